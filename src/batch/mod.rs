@@ -1,0 +1,1 @@
+//! The CSV contract of the batch tools (placeholder until written).

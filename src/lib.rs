@@ -1,0 +1,11 @@
+//! rigbridge: plans joint motion for robot rigs and streams it to controllers or to a
+//! simulated twin.
+//!
+//! The crate is laid out by pipeline stage:
+//! - [`rig`]: rig models, their TOML/URDF descriptions and forward kinematics;
+//! - [`ik`]: inverse-kinematics solvers behind one trait (FABRIK planner, CCD, gradient descent);
+//! - [`batch`]: the CSV contract of the `fk` and `ik` batch tools.
+
+pub mod batch;
+pub mod ik;
+pub mod rig;

@@ -1,0 +1,287 @@
+//! Loading rigs from `config/`: TOML descriptions (validated, every error naming the file,
+//! the key and the bad value) and URDF files. Owns the file formats only; the model itself
+//! lives in the parent module.
+
+use super::{Joint, JointKind, JointLimits, Rig};
+use glam::{DAffine3, DQuat, DVec3, EulerRot};
+use serde::Deserialize;
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum ConfigError {
+    #[error("{file}: cannot read: {source}")]
+    Io {
+        file: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{file}: {message}")]
+    Parse { file: PathBuf, message: String },
+    #[error("{file}: key `{key}` = {value}: {reason}")]
+    Invalid {
+        file: PathBuf,
+        key: String,
+        value: String,
+        reason: String,
+    },
+}
+
+/// Reads a rig from a `.toml` description or a `.urdf` file, chosen by extension.
+pub fn load_rig(path: &Path) -> Result<Rig, ConfigError> {
+    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+        file: path.to_path_buf(),
+        source,
+    })?;
+    match path.extension().and_then(|e| e.to_str()) {
+        Some("urdf") => super::rig_from_urdf(&text, path),
+        _ => rig_from_toml(&text, path),
+    }
+}
+
+/// Parses a rig description; `file` is only used to name the source in errors.
+pub fn rig_from_toml(text: &str, file: &Path) -> Result<Rig, ConfigError> {
+    let raw: RawRig = toml::from_str(text).map_err(|e| ConfigError::Parse {
+        file: file.to_path_buf(),
+        message: e.to_string().trim_end().to_string(),
+    })?;
+    raw.validate(file)
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawRig {
+    name: String,
+    base_frame: String,
+    tool_frame: String,
+    joint: Vec<RawJoint>,
+    #[serde(default)]
+    tool: RawOrigin,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawOrigin {
+    #[serde(default)]
+    origin_xyz_m: [f64; 3],
+    #[serde(default)]
+    origin_rpy_deg: [f64; 3],
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawJoint {
+    name: String,
+    kind: RawKind,
+    #[serde(default)]
+    origin_xyz_m: [f64; 3],
+    #[serde(default)]
+    origin_rpy_deg: [f64; 3],
+    axis: [f64; 3],
+    lower_deg: Option<f64>,
+    upper_deg: Option<f64>,
+    max_speed_deg_s: Option<f64>,
+    max_accel_deg_s2: Option<f64>,
+    lower_m: Option<f64>,
+    upper_m: Option<f64>,
+    max_speed_m_s: Option<f64>,
+    max_accel_m_s2: Option<f64>,
+}
+
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(rename_all = "lowercase")]
+enum RawKind {
+    Revolute,
+    Prismatic,
+}
+
+struct Checker<'a> {
+    file: &'a Path,
+}
+
+impl Checker<'_> {
+    fn invalid(&self, key: String, value: impl std::fmt::Debug, reason: &str) -> ConfigError {
+        ConfigError::Invalid {
+            file: self.file.to_path_buf(),
+            key,
+            value: format!("{value:?}"),
+            reason: reason.to_string(),
+        }
+    }
+
+    fn finite3(&self, key: String, v: [f64; 3]) -> Result<DVec3, ConfigError> {
+        if v.iter().all(|x| x.is_finite()) {
+            Ok(DVec3::from_array(v))
+        } else {
+            Err(self.invalid(key, v, "every component must be a finite number"))
+        }
+    }
+
+    fn origin(
+        &self,
+        prefix: &str,
+        xyz: [f64; 3],
+        rpy_deg: [f64; 3],
+    ) -> Result<DAffine3, ConfigError> {
+        let translation = self.finite3(format!("{prefix}origin_xyz_m"), xyz)?;
+        let rpy = self.finite3(format!("{prefix}origin_rpy_deg"), rpy_deg)?;
+        Ok(origin_from_xyz_rpy(
+            translation,
+            rpy * (std::f64::consts::PI / 180.0),
+        ))
+    }
+
+    fn required(&self, key: String, value: Option<f64>, kind: &str) -> Result<f64, ConfigError> {
+        match value {
+            Some(v) if v.is_finite() => Ok(v),
+            Some(v) => Err(self.invalid(key, v, "must be a finite number")),
+            None => Err(self.invalid(key, "missing", &format!("required for a {kind} joint"))),
+        }
+    }
+
+    fn forbidden(&self, key: String, value: Option<f64>, kind: &str) -> Result<(), ConfigError> {
+        match value {
+            Some(v) => Err(self.invalid(key, v, &format!("not allowed on a {kind} joint"))),
+            None => Ok(()),
+        }
+    }
+
+    fn limits(&self, key: &str, raw: &RawJoint) -> Result<(JointKind, JointLimits), ConfigError> {
+        let k = |field: &str| format!("{key}.{field}");
+        let (kind, unit_scale, values, others) = match raw.kind {
+            RawKind::Revolute => (
+                JointKind::Revolute,
+                std::f64::consts::PI / 180.0,
+                [
+                    ("lower_deg", raw.lower_deg),
+                    ("upper_deg", raw.upper_deg),
+                    ("max_speed_deg_s", raw.max_speed_deg_s),
+                    ("max_accel_deg_s2", raw.max_accel_deg_s2),
+                ],
+                [
+                    ("lower_m", raw.lower_m),
+                    ("upper_m", raw.upper_m),
+                    ("max_speed_m_s", raw.max_speed_m_s),
+                    ("max_accel_m_s2", raw.max_accel_m_s2),
+                ],
+            ),
+            RawKind::Prismatic => (
+                JointKind::Prismatic,
+                1.0,
+                [
+                    ("lower_m", raw.lower_m),
+                    ("upper_m", raw.upper_m),
+                    ("max_speed_m_s", raw.max_speed_m_s),
+                    ("max_accel_m_s2", raw.max_accel_m_s2),
+                ],
+                [
+                    ("lower_deg", raw.lower_deg),
+                    ("upper_deg", raw.upper_deg),
+                    ("max_speed_deg_s", raw.max_speed_deg_s),
+                    ("max_accel_deg_s2", raw.max_accel_deg_s2),
+                ],
+            ),
+        };
+        let kind_name = match kind {
+            JointKind::Revolute => "revolute",
+            JointKind::Prismatic => "prismatic",
+        };
+        for (field, value) in others {
+            self.forbidden(k(field), value, kind_name)?;
+        }
+        let mut v = [0.0; 4];
+        for (slot, (field, value)) in v.iter_mut().zip(values) {
+            *slot = self.required(k(field), value, kind_name)?;
+        }
+        let [lower, upper, speed, accel] = v;
+        if lower >= upper {
+            return Err(self.invalid(
+                k(values[1].0),
+                upper,
+                &format!("must be above {} = {lower}", values[0].0),
+            ));
+        }
+        if speed <= 0.0 {
+            return Err(self.invalid(k(values[2].0), speed, "must be positive"));
+        }
+        if accel <= 0.0 {
+            return Err(self.invalid(k(values[3].0), accel, "must be positive"));
+        }
+        Ok((
+            kind,
+            JointLimits {
+                lower: lower * unit_scale,
+                upper: upper * unit_scale,
+                max_speed: speed * unit_scale,
+                max_acceleration: accel * unit_scale,
+            },
+        ))
+    }
+
+    fn joint(&self, index: usize, raw: &RawJoint) -> Result<Joint, ConfigError> {
+        let key = format!("joint[{index}]");
+        if raw.name.trim().is_empty() {
+            return Err(self.invalid(format!("{key}.name"), &raw.name, "must not be empty"));
+        }
+        let axis = self.finite3(format!("{key}.axis"), raw.axis)?;
+        if axis.length() < 1e-9 {
+            return Err(self.invalid(
+                format!("{key}.axis"),
+                raw.axis,
+                "must not be the zero vector",
+            ));
+        }
+        let (kind, limits) = self.limits(&key, raw)?;
+        Ok(Joint {
+            name: raw.name.clone(),
+            kind,
+            origin: self.origin(&format!("{key}."), raw.origin_xyz_m, raw.origin_rpy_deg)?,
+            axis: axis.normalize(),
+            limits,
+        })
+    }
+}
+
+/// URDF's convention: rotate about fixed x (roll), then y (pitch), then z (yaw).
+pub(super) fn origin_from_xyz_rpy(xyz: DVec3, rpy_rad: DVec3) -> DAffine3 {
+    let rotation = DQuat::from_euler(EulerRot::ZYX, rpy_rad.z, rpy_rad.y, rpy_rad.x);
+    DAffine3::from_rotation_translation(rotation, xyz)
+}
+
+impl RawRig {
+    fn validate(self, file: &Path) -> Result<Rig, ConfigError> {
+        let checker = Checker { file };
+        for (key, value) in [
+            ("name", &self.name),
+            ("base_frame", &self.base_frame),
+            ("tool_frame", &self.tool_frame),
+        ] {
+            if value.trim().is_empty() {
+                return Err(checker.invalid(key.to_string(), value, "must not be empty"));
+            }
+        }
+        if self.joint.is_empty() {
+            return Err(checker.invalid("joint".into(), "[]", "a rig needs at least one joint"));
+        }
+        let mut seen = HashSet::new();
+        let mut joints = Vec::with_capacity(self.joint.len());
+        for (index, raw) in self.joint.iter().enumerate() {
+            if !seen.insert(raw.name.as_str()) {
+                return Err(checker.invalid(
+                    format!("joint[{index}].name"),
+                    &raw.name,
+                    "duplicate joint name",
+                ));
+            }
+            joints.push(checker.joint(index, raw)?);
+        }
+        let tool = checker.origin("tool.", self.tool.origin_xyz_m, self.tool.origin_rpy_deg)?;
+        Ok(Rig {
+            name: self.name,
+            base_frame: self.base_frame,
+            tool_frame: self.tool_frame,
+            joints,
+            tool,
+        })
+    }
+}

@@ -1,0 +1,95 @@
+//! Rig models: joints, limits and forward kinematics, generic over the number of joints.
+//!
+//! Owns the description of a robot (what its joints are, where they sit, how far and how
+//! fast they may move) and the forward kinematics built on it. It must not know about
+//! solvers, trajectories or links: those stages read a [`Rig`], they never change it.
+
+mod config;
+mod fk;
+mod pose;
+mod urdf;
+
+pub use config::{ConfigError, load_rig};
+pub use fk::{DofMismatch, JointAxis};
+pub use pose::{Pose, PoseError, rotation_angle_between};
+pub use urdf::rig_from_urdf;
+
+use glam::{DAffine3, DQuat, DVec3};
+
+/// How a joint moves its child link.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum JointKind {
+    /// Rotation about the axis; positions in radians.
+    Revolute,
+    /// Translation along the axis; positions in metres.
+    Prismatic,
+}
+
+/// Position, speed and acceleration bounds of one joint, in SI units (rad or m).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct JointLimits {
+    pub lower: f64,
+    pub upper: f64,
+    pub max_speed: f64,
+    pub max_acceleration: f64,
+}
+
+impl JointLimits {
+    pub fn contains(&self, position: f64) -> bool {
+        position >= self.lower && position <= self.upper
+    }
+}
+
+/// One actuated joint: a fixed origin relative to its parent, then motion along `axis`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Joint {
+    pub name: String,
+    pub kind: JointKind,
+    pub origin: DAffine3,
+    /// Unit vector in the joint's own frame (after `origin`).
+    pub axis: DVec3,
+    pub limits: JointLimits,
+}
+
+impl Joint {
+    /// The transform this joint adds at `position` (origin, then motion).
+    pub fn transform(&self, position: f64) -> DAffine3 {
+        match self.kind {
+            JointKind::Revolute => {
+                self.origin * DAffine3::from_quat(DQuat::from_axis_angle(self.axis, position))
+            }
+            JointKind::Prismatic => self.origin * DAffine3::from_translation(self.axis * position),
+        }
+    }
+}
+
+/// A serial chain from a base frame to a tool frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rig {
+    pub name: String,
+    pub base_frame: String,
+    pub tool_frame: String,
+    pub joints: Vec<Joint>,
+    /// Fixed transform from the last joint's frame to the tool frame.
+    pub tool: DAffine3,
+}
+
+impl Rig {
+    pub fn dof(&self) -> usize {
+        self.joints.len()
+    }
+
+    pub fn joint_names(&self) -> impl Iterator<Item = &str> {
+        self.joints.iter().map(|j| j.name.as_str())
+    }
+
+    /// The first joint whose limit `positions` breaks, as (index, position).
+    pub fn first_limit_violation(&self, positions: &[f64]) -> Option<(usize, f64)> {
+        self.joints
+            .iter()
+            .zip(positions)
+            .enumerate()
+            .find(|(_, (joint, q))| !joint.limits.contains(**q))
+            .map(|(index, (_, q))| (index, *q))
+    }
+}

@@ -1,0 +1,66 @@
+//! Helpers shared by the integration tests: the shipped IRB 120 rig, the independent
+//! reference data in `../shared/reference`, and seeded random configurations.
+#![allow(dead_code)]
+
+use glam::{DQuat, DVec3};
+use rand::{Rng, RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rigbridge::rig::{Pose, Rig, load_rig};
+use std::path::PathBuf;
+
+pub fn repo_path(relative: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(relative)
+}
+
+/// `../shared/reference`, or `RIGBRIDGE_REFERENCE_DIR` where the checkout sits elsewhere.
+pub fn reference_path(file: &str) -> PathBuf {
+    std::env::var_os("RIGBRIDGE_REFERENCE_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo_path("../shared/reference"))
+        .join(file)
+}
+
+pub fn irb120() -> Rig {
+    load_rig(&repo_path("config/irb120.toml")).expect("shipped IRB 120 config loads")
+}
+
+pub struct ReferenceRow {
+    pub joints_deg: [f64; 6],
+    pub pose: Pose,
+}
+
+pub fn reference_rows() -> Vec<ReferenceRow> {
+    let path = reference_path("irb120_fk.csv");
+    let text = std::fs::read_to_string(&path)
+        .unwrap_or_else(|e| panic!("reference data {} is needed: {e}", path.display()));
+    let mut lines = text.lines();
+    assert_eq!(lines.next(), Some("j1,j2,j3,j4,j5,j6,x,y,z,qw,qx,qy,qz"));
+    lines
+        .map(|line| {
+            let v: Vec<f64> = line.split(',').map(|f| f.parse().unwrap()).collect();
+            ReferenceRow {
+                joints_deg: v[..6].try_into().unwrap(),
+                pose: Pose::new(
+                    DVec3::new(v[6], v[7], v[8]),
+                    DQuat::from_xyzw(v[10], v[11], v[12], v[9]),
+                ),
+            }
+        })
+        .collect()
+}
+
+pub fn rng(seed: u64) -> ChaCha8Rng {
+    ChaCha8Rng::seed_from_u64(seed)
+}
+
+/// A uniformly random configuration strictly inside the rig's limits.
+pub fn random_configuration(rig: &Rig, rng: &mut impl Rng) -> Vec<f64> {
+    rig.joints
+        .iter()
+        .map(|j| rng.random_range(j.limits.lower..j.limits.upper))
+        .collect()
+}
+
+pub fn degrees(radians: &[f64]) -> Vec<f64> {
+    radians.iter().map(|r| r.to_degrees()).collect()
+}
