@@ -1,1 +1,208 @@
-//! The CSV contract of the batch tools (placeholder until written).
+//! The CSV contract of the `fk` and `ik` batch tools, as library functions over any reader
+//! and writer (the binary only opens files and draws progress).
+//!
+//! Joint files: header `j1..jN`, degrees. Pose files: header `x,y,z,qw,qx,qy,qz`, metres and
+//! a unit quaternion, tool frame in base frame. Columns are found by name; extra columns are
+//! ignored. A bad row never stops a batch: it gets an error status and the batch goes on.
+
+use crate::ik::{IkError, IkSolver};
+use crate::rig::{Pose, Rig};
+use glam::{DQuat, DVec3};
+use std::collections::BTreeMap;
+use std::io::{Read, Write};
+use thiserror::Error;
+
+pub const POSE_COLUMNS: [&str; 7] = ["x", "y", "z", "qw", "qx", "qy", "qz"];
+
+#[derive(Debug, Error)]
+pub enum BatchError {
+    #[error("input has no column `{column}` (header: {header})")]
+    MissingColumn { column: String, header: String },
+    #[error("cannot read input: {0}")]
+    Read(#[from] csv::Error),
+    #[error("cannot write output: {0}")]
+    Write(#[from] std::io::Error),
+}
+
+/// What a batch did, for the closing summary.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct BatchSummary {
+    pub rows: usize,
+    pub solved: usize,
+    /// Failed rows by status.
+    pub failed: BTreeMap<&'static str, usize>,
+    pub max_position_error_m: f64,
+    pub max_orientation_error_rad: f64,
+}
+
+impl BatchSummary {
+    fn fail(&mut self, status: &'static str) {
+        *self.failed.entry(status).or_default() += 1;
+    }
+}
+
+/// Column positions of `names` in `header`.
+fn locate<const N: usize>(
+    header: &csv::StringRecord,
+    names: [&str; N],
+) -> Result<[usize; N], BatchError> {
+    let mut positions = [0; N];
+    for (slot, name) in positions.iter_mut().zip(names) {
+        *slot = header
+            .iter()
+            .position(|h| h.trim() == name)
+            .ok_or_else(|| BatchError::MissingColumn {
+                column: name.to_string(),
+                header: header.iter().collect::<Vec<_>>().join(","),
+            })?;
+    }
+    Ok(positions)
+}
+
+fn field(record: &csv::StringRecord, index: usize) -> Option<f64> {
+    record
+        .get(index)?
+        .trim()
+        .parse()
+        .ok()
+        .filter(|v: &f64| v.is_finite())
+}
+
+fn reader(input: impl Read) -> csv::Reader<impl Read> {
+    csv::ReaderBuilder::new()
+        .flexible(true)
+        .trim(csv::Trim::All)
+        .from_reader(input)
+}
+
+pub fn joint_columns(dof: usize) -> Vec<String> {
+    (1..=dof).map(|i| format!("j{i}")).collect()
+}
+
+/// Parses one joint row into radians.
+fn joints_from(record: &csv::StringRecord, columns: &[usize]) -> Option<Vec<f64>> {
+    columns
+        .iter()
+        .map(|&c| field(record, c).map(f64::to_radians))
+        .collect()
+}
+
+fn pose_from(record: &csv::StringRecord, columns: &[usize; 7]) -> Option<Pose> {
+    let v = columns.map(|c| field(record, c));
+    let [x, y, z, w, i, j, k] = v;
+    Some(Pose::new(
+        DVec3::new(x?, y?, z?),
+        DQuat::from_xyzw(i?, j?, k?, w?),
+    ))
+}
+
+/// Forward kinematics of every joint row. Output: `x,y,z,qw,qx,qy,qz,status`; status is
+/// `ok`, `outside_limits` (the pose is still given) or `invalid_input` (no pose).
+pub fn fk_batch(
+    rig: &Rig,
+    input: impl Read,
+    output: impl Write,
+    mut progress: impl FnMut(usize),
+) -> Result<BatchSummary, BatchError> {
+    let mut reader = reader(input);
+    let names = joint_columns(rig.dof());
+    let header = reader.headers()?.clone();
+    let columns: Vec<usize> = names
+        .iter()
+        .map(|n| locate(&header, [n.as_str()]).map(|[c]| c))
+        .collect::<Result<_, _>>()?;
+    let mut out = std::io::BufWriter::new(output);
+    writeln!(out, "{},status", POSE_COLUMNS.join(","))?;
+    let mut summary = BatchSummary::default();
+    let mut record = csv::StringRecord::new();
+    while reader.read_record(&mut record)? {
+        summary.rows += 1;
+        match joints_from(&record, &columns) {
+            Some(joints) => {
+                let pose = rig
+                    .tool_pose(&joints)
+                    .expect("row has the rig's joint count");
+                let (p, q) = (pose.position, pose.orientation);
+                let status = if rig.first_limit_violation(&joints).is_some() {
+                    summary.fail("outside_limits");
+                    "outside_limits"
+                } else {
+                    summary.solved += 1;
+                    "ok"
+                };
+                writeln!(
+                    out,
+                    "{:.12},{:.12},{:.12},{:.12},{:.12},{:.12},{:.12},{status}",
+                    p.x, p.y, p.z, q.w, q.x, q.y, q.z
+                )?;
+            }
+            None => {
+                summary.fail("invalid_input");
+                writeln!(out, ",,,,,,,invalid_input")?;
+            }
+        }
+        progress(summary.rows);
+    }
+    out.flush()?;
+    Ok(summary)
+}
+
+/// Inverse kinematics of every pose row, each seeded by the previous row's solution (the
+/// first by `seed`), so a path in gives a smooth joint path out. Output:
+/// `j1..jN,pos_err_m,rot_err_rad,iterations,status`; a failed row has empty values and its
+/// error kind as status, and leaves the seed where it was.
+pub fn ik_batch(
+    solver: &dyn IkSolver,
+    seed: &[f64],
+    input: impl Read,
+    output: impl Write,
+    mut progress: impl FnMut(usize),
+) -> Result<BatchSummary, BatchError> {
+    let dof = solver.rig().dof();
+    let mut reader = reader(input);
+    let header = reader.headers()?.clone();
+    let columns = locate(&header, POSE_COLUMNS)?;
+    let mut out = std::io::BufWriter::new(output);
+    writeln!(
+        out,
+        "{},pos_err_m,rot_err_rad,iterations,status",
+        joint_columns(dof).join(",")
+    )?;
+    let empty_joints = ",".repeat(dof);
+    let mut seed = seed.to_vec();
+    let mut summary = BatchSummary::default();
+    let mut record = csv::StringRecord::new();
+    while reader.read_record(&mut record)? {
+        summary.rows += 1;
+        let result = match pose_from(&record, &columns) {
+            Some(pose) => solver.solve(&pose, &seed),
+            None => Err(IkError::InvalidTarget(crate::rig::PoseError::Unparsable)),
+        };
+        match result {
+            Ok(solution) => {
+                for q in &solution.joints {
+                    write!(out, "{:.9},", q.to_degrees())?;
+                }
+                writeln!(
+                    out,
+                    "{:.3e},{:.3e},{},ok",
+                    solution.position_error_m, solution.orientation_error_rad, solution.iterations
+                )?;
+                summary.solved += 1;
+                summary.max_position_error_m =
+                    summary.max_position_error_m.max(solution.position_error_m);
+                summary.max_orientation_error_rad = summary
+                    .max_orientation_error_rad
+                    .max(solution.orientation_error_rad);
+                seed = solution.joints;
+            }
+            Err(error) => {
+                summary.fail(error.kind());
+                writeln!(out, "{empty_joints},,,{}", error.kind())?;
+            }
+        }
+        progress(summary.rows);
+    }
+    out.flush()?;
+    Ok(summary)
+}

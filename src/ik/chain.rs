@@ -33,7 +33,7 @@ impl JointConstraint for Unconstrained {
 
 /// Iterations without progress before FABRIK gives up (constraints can make the error
 /// rise for a few iterations before it falls again).
-pub const STALL_PATIENCE: u32 = 8;
+pub const STALL_PATIENCE: u32 = 3;
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ChainOutcome {

@@ -28,8 +28,8 @@ const GEOMETRY_TOLERANCE: f64 = 1e-9;
 /// convergence slows to thousands of iterations per digit. So unless a hinge limit holds
 /// the chain (it stalls farther than [`CLOSING_DISTANCE`] from the target), the exact
 /// triangle on FABRIK's elbow side finishes the job, and the limits are checked on that.
-const FABRIK_TOLERANCE: f64 = 1e-7;
-const FABRIK_MAX_ITERATIONS: u32 = 64;
+const FABRIK_TOLERANCE: f64 = 3e-3;
+const FABRIK_MAX_ITERATIONS: u32 = 32;
 const CLOSING_DISTANCE: f64 = 1e-3;
 
 #[derive(Debug, Clone, PartialEq, Error)]
@@ -54,18 +54,74 @@ fn wrap(angle: f64) -> f64 {
     if wrapped == -PI { PI } else { wrapped }
 }
 
-/// Allowed relative angles of a hinge in the arm's plane.
+/// A direction in the arm's plane as the unit complex number cos a + i sin a of its plane
+/// angle: relative angles and rotations become products, with no trigonometry in the loop.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Turn {
+    cos: f64,
+    sin: f64,
+}
+
+impl Turn {
+    fn of_angle(angle: f64) -> Self {
+        let (sin, cos) = angle.sin_cos();
+        Self { cos, sin }
+    }
+
+    fn of_direction(direction: DVec3) -> Self {
+        Self {
+            cos: direction.z,
+            sin: direction.x,
+        }
+    }
+
+    fn direction(self) -> DVec3 {
+        DVec3::new(self.sin, 0.0, self.cos)
+    }
+
+    fn then(self, other: Turn) -> Turn {
+        Turn {
+            cos: self.cos * other.cos - self.sin * other.sin,
+            sin: self.sin * other.cos + self.cos * other.sin,
+        }
+    }
+
+    fn inverse(self) -> Turn {
+        Turn {
+            cos: self.cos,
+            sin: -self.sin,
+        }
+    }
+}
+
+/// Allowed relative angles of a hinge in the arm's plane: a window of half-width at most
+/// pi around a centre.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct HingeWindow {
-    centre: f64,
-    half_width: f64,
+    centre: Turn,
+    cos_half_width: f64,
+    lower_edge: Turn,
+    upper_edge: Turn,
 }
 
 impl HingeWindow {
-    /// Clamps a relative angle into the window; `None` when it already lies inside.
-    fn clamp(&self, relative: f64) -> Option<f64> {
-        let offset = wrap(relative - self.centre);
-        (offset.abs() > self.half_width).then(|| self.centre + self.half_width.copysign(offset))
+    fn new(centre: f64, half_width: f64) -> Self {
+        Self {
+            centre: Turn::of_angle(centre),
+            cos_half_width: half_width.cos(),
+            lower_edge: Turn::of_angle(centre - half_width),
+            upper_edge: Turn::of_angle(centre + half_width),
+        }
+    }
+
+    /// The nearer edge of the window when `relative` lies outside it; `None` inside.
+    fn clamp(&self, relative: Turn) -> Option<Turn> {
+        let offset = relative.then(self.centre.inverse());
+        (offset.cos < self.cos_half_width).then_some(if offset.sin >= 0.0 {
+            self.upper_edge
+        } else {
+            self.lower_edge
+        })
     }
 }
 
@@ -77,22 +133,24 @@ struct ArmHinges {
 
 impl JointConstraint for ArmHinges {
     fn clamp_child(&self, joint: usize, parent: DVec3, child: DVec3) -> DVec3 {
-        let parent_angle = plane_angle(parent);
-        match self.windows[joint].clamp(plane_angle(child) - parent_angle) {
-            Some(relative) => {
+        let parent = Turn::of_direction(parent);
+        let relative = Turn::of_direction(child).then(parent.inverse());
+        match self.windows[joint].clamp(relative) {
+            Some(edge) => {
                 self.last_clamped.set(Some(joint));
-                plane_direction(parent_angle + relative)
+                parent.then(edge).direction()
             }
             None => child,
         }
     }
 
     fn clamp_parent(&self, joint: usize, parent: DVec3, child: DVec3) -> DVec3 {
-        let child_angle = plane_angle(child);
-        match self.windows[joint].clamp(child_angle - plane_angle(parent)) {
-            Some(relative) => {
+        let child_turn = Turn::of_direction(child);
+        let relative = child_turn.then(Turn::of_direction(parent).inverse());
+        match self.windows[joint].clamp(relative) {
+            Some(edge) => {
                 self.last_clamped.set(Some(joint));
-                plane_direction(child_angle - relative)
+                child_turn.then(edge.inverse()).direction()
             }
             None => parent,
         }
@@ -167,10 +225,10 @@ impl FabrikSolver {
         })?;
         let window = |index: usize, zero_angle: f64, sign: f64| {
             let limits = rig.joints[index].limits;
-            HingeWindow {
-                centre: zero_angle + sign * (limits.lower + limits.upper) / 2.0,
-                half_width: ((limits.upper - limits.lower) / 2.0).min(PI),
-            }
+            HingeWindow::new(
+                zero_angle + sign * (limits.lower + limits.upper) / 2.0,
+                ((limits.upper - limits.lower) / 2.0).min(PI),
+            )
         };
         let windows = [
             window(1, arm.upper_arm_angle, 1.0),
@@ -299,8 +357,9 @@ impl FabrikSolver {
         [side, -side]
     }
 
-    /// Runs FABRIK on one elbow side: from the seed's elbow (moved to that side), and,
-    /// if a hinge limit traps it there, from elbows spread over axis 2's range.
+    /// Runs FABRIK on one elbow side: from the seed's elbow (moved to that side), and, if
+    /// a hinge limit traps it there, again from an upper arm turned toward the target, bent
+    /// to that side (the classic FABRIK start; it escapes the traps the seed can set).
     fn solve_side(
         &self,
         target: DVec3,
@@ -308,15 +367,9 @@ impl FabrikSolver {
         side: f64,
         seed: &[f64],
     ) -> Result<([f64; 2], u32), usize> {
-        let (lower, upper) = self.limit(1);
-        let spread = [
-            seed[1],
-            (lower + upper) / 2.0,
-            lower + (upper - lower) / 6.0,
-            upper - (upper - lower) / 6.0,
-        ];
+        let toward = plane_angle(line) - self.arm.upper_arm_angle;
         let mut blocked = 1;
-        for q2 in spread {
+        for q2 in [seed[1], toward + 0.3 * side] {
             let elbow = self.on_side(self.elbow_at(q2), line, side);
             match self.solve_plane(target, elbow) {
                 Ok(solution) => return Ok(solution),

@@ -14,6 +14,8 @@ pub struct Pose {
 
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum PoseError {
+    #[error("pose row has a missing or unparsable value")]
+    Unparsable,
     #[error("pose has a non-finite component: position {position:?}, quaternion {orientation:?}")]
     NotFinite { position: DVec3, orientation: DQuat },
     #[error("quaternion {orientation:?} is not unit: norm {norm}")]

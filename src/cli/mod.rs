@@ -1,0 +1,34 @@
+//! Command-line edge of the binary: argument parsing, files, progress and summaries.
+//! Everything it runs lives in the library; errors gain their context here.
+
+mod batch;
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+#[derive(Parser)]
+#[command(
+    name = "rigbridge",
+    version,
+    about = "Plans joint motion for robot rigs (ABB IRB 120 first) and streams it to controllers or a simulated twin.",
+    long_about = "Plans joint motion for robot rigs (ABB IRB 120 first) and streams it to controllers or a simulated twin.\n\nAngles on the command line and in CSV files are in degrees, lengths in metres. Rigs are TOML files in config/ or URDF files."
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Forward kinematics over a CSV of joint rows (j1..jN, degrees) -> tool poses.
+    Fk(batch::FkArgs),
+    /// Inverse kinematics over a CSV of tool poses (x,y,z,qw,qx,qy,qz) -> joint rows.
+    Ik(batch::IkArgs),
+}
+
+pub fn run() -> anyhow::Result<ExitCode> {
+    match Cli::parse().command {
+        Command::Fk(args) => batch::fk(args),
+        Command::Ik(args) => batch::ik(args),
+    }
+}
