@@ -9,3 +9,7 @@
 pub mod batch;
 pub mod ik;
 pub mod rig;
+
+#[doc = include_str!("../README.md")]
+#[cfg(doctest)]
+struct ReadmeDoctests;

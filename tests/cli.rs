@@ -1,0 +1,100 @@
+//! The `fk` and `ik` batch tools, run as a user would, against the reference data.
+
+mod common;
+
+use common::{reference_path, repo_path};
+use std::process::{Command, Output};
+
+fn rigbridge(args: &[&str], stdin: Option<&str>) -> Output {
+    use std::io::Write;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args(args)
+        .current_dir(repo_path(""))
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let input = stdin.unwrap_or("").to_string();
+    let mut pipe = child.stdin.take().unwrap();
+    let writer = std::thread::spawn(move || pipe.write_all(input.as_bytes()));
+    let output = child.wait_with_output().unwrap();
+    writer.join().unwrap().unwrap();
+    output
+}
+
+fn column(line: &str, index: usize) -> f64 {
+    line.split(',').nth(index).unwrap().parse().unwrap()
+}
+
+#[test]
+fn fk_reproduces_the_reference_poses() {
+    let reference = reference_path("irb120_fk.csv");
+    let output = rigbridge(&["fk", "--input", reference.to_str().unwrap()], None);
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let produced = String::from_utf8(output.stdout).unwrap();
+    let expected = std::fs::read_to_string(&reference).unwrap();
+    let mut rows = 0;
+    for (ours, theirs) in produced.lines().skip(1).zip(expected.lines().skip(1)) {
+        for i in 0..3 {
+            assert!((column(ours, i) - column(theirs, 6 + i)).abs() < 1e-9, "{ours} vs {theirs}");
+        }
+        assert!(ours.ends_with(",ok"));
+        rows += 1;
+    }
+    assert_eq!(rows, 1000);
+    assert!(String::from_utf8_lossy(&output.stderr).contains("1000 rows: 1000 ok"));
+}
+
+#[test]
+fn ik_keeps_going_past_bad_rows_and_reports_them() {
+    let rig = common::irb120();
+    let row = |q: [f64; 6]| {
+        let pose = rig.tool_pose(&q.map(f64::to_radians)).unwrap();
+        let (p, o) = (pose.position, pose.orientation);
+        format!("{},{},{},{},{},{},{}", p.x, p.y, p.z, o.w, o.x, o.y, o.z)
+    };
+    let input = format!(
+        "x,y,z,qw,qx,qy,qz,comment\n{},start\n5.0,0,0.5,1,0,0,0,far\n0.4,0,abc,1,0,0,0,garbage\n\
+         0.4,0,0.5,2,0,0,0,not unit\n{},a degree on\n",
+        row([10.0, 20.0, -30.0, 40.0, 50.0, 60.0]),
+        row([11.0, 21.0, -29.0, 41.0, 51.0, 61.0]),
+    );
+    let output = rigbridge(&["ik", "--input", "-", "--output", "-"], Some(&input));
+    assert_eq!(output.status.code(), Some(2), "{}", String::from_utf8_lossy(&output.stderr));
+    let text = String::from_utf8(output.stdout).unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines[0], "j1,j2,j3,j4,j5,j6,pos_err_m,rot_err_rad,iterations,status");
+    let statuses: Vec<&str> = lines[1..].iter().map(|l| l.rsplit(',').next().unwrap()).collect();
+    assert_eq!(statuses, ["ok", "out_of_reach", "invalid_target", "invalid_target", "ok"]);
+    // The last row is seeded by the first (the failures in between leave the seed alone),
+    // so it stays on the same branch, a small step away.
+    let first: Vec<f64> = (0..6).map(|i| column(lines[1], i)).collect();
+    let last: Vec<f64> = (0..6).map(|i| column(lines[5], i)).collect();
+    for (a, b) in first.iter().zip(&last) {
+        assert!((a - b - -1.0).abs() < 1e-6, "{first:?} -> {last:?}");
+    }
+    let summary = String::from_utf8_lossy(&output.stderr);
+    assert!(summary.contains("5 rows: 2 ok, 3 failed"), "{summary}");
+}
+
+#[test]
+fn ik_refuses_a_seed_of_the_wrong_length() {
+    let output = rigbridge(&["ik", "--seed", "1,2,3"], Some("x,y,z,qw,qx,qy,qz\n"));
+    assert_eq!(output.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&output.stderr).contains("--seed has 3 values"));
+}
+
+#[test]
+fn ik_names_a_missing_column() {
+    let output = rigbridge(&["ik"], Some("x,y,qw,qx,qy,qz\n1,2,3,4,5,6\n"));
+    assert_eq!(output.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&output.stderr).contains("no column `z`"));
+}
+
+#[test]
+fn help_explains_the_commands() {
+    let output = rigbridge(&["--help"], None);
+    let text = String::from_utf8_lossy(&output.stdout);
+    assert!(text.contains("fk") && text.contains("ik") && text.contains("degrees"), "{text}");
+}

@@ -1,0 +1,73 @@
+//! Every shipped config loads; a bad one is refused with the file, the key and the value.
+
+mod common;
+
+use common::repo_path;
+use rigbridge::rig::{ConfigError, load_rig};
+use std::path::Path;
+
+#[test]
+fn every_shipped_rig_config_loads() {
+    let mut loaded = 0;
+    for entry in std::fs::read_dir(repo_path("config")).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            let text = std::fs::read_to_string(&path).unwrap();
+            if text.contains("[[joint]]") {
+                load_rig(&path).unwrap_or_else(|e| panic!("{e}"));
+                loaded += 1;
+            }
+        }
+    }
+    assert!(loaded >= 1);
+}
+
+fn write_variant(name: &str, edit: impl Fn(String) -> String) -> std::path::PathBuf {
+    let original = std::fs::read_to_string(repo_path("config/irb120.toml")).unwrap();
+    let dir = std::env::temp_dir().join(format!("rigbridge-config-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(name);
+    std::fs::write(&path, edit(original)).unwrap();
+    path
+}
+
+#[test]
+fn unknown_key_names_file_and_key() {
+    let path = write_variant("unknown.toml", |t| t.replacen("kind = \"revolute\"", "kind = \"revolute\"\nmax_torque = 3.0", 1));
+    let message = load_rig(&path).unwrap_err().to_string();
+    assert!(message.contains("unknown.toml"), "{message}");
+    assert!(message.contains("max_torque"), "{message}");
+}
+
+#[test]
+fn inverted_limits_name_key_and_value() {
+    let path = write_variant("inverted.toml", |t| t.replacen("upper_deg = 70.0", "upper_deg = -120.0", 1));
+    match load_rig(&path).unwrap_err() {
+        ConfigError::Invalid { file, key, value, .. } => {
+            assert!(file.ends_with("inverted.toml"));
+            assert_eq!(key, "joint[2].upper_deg");
+            assert_eq!(value, "-120.0");
+        }
+        other => panic!("expected Invalid, got {other}"),
+    }
+}
+
+#[test]
+fn wrong_unit_for_the_joint_kind_is_refused() {
+    let path = write_variant("units.toml", |t| t.replacen("lower_deg = -165.0", "lower_m = -165.0", 1));
+    let message = load_rig(&path).unwrap_err().to_string();
+    assert!(message.contains("joint[0].lower_m"), "{message}");
+}
+
+#[test]
+fn missing_file_is_an_io_error_naming_it() {
+    let error = load_rig(Path::new("config/does-not-exist.toml")).unwrap_err();
+    assert!(matches!(error, ConfigError::Io { .. }));
+    assert!(error.to_string().contains("does-not-exist.toml"));
+}
+
+#[test]
+fn malformed_urdf_is_an_error_not_a_panic() {
+    let path = write_variant("broken.urdf", |_| "<robot name=\"x\"><joint".to_string());
+    assert!(load_rig(&path).is_err());
+}
