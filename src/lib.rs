@@ -7,8 +7,12 @@
 //! - [`batch`]: the CSV contract of the `fk` and `ik` batch tools.
 
 pub mod batch;
+pub mod clock;
 pub mod ik;
+pub mod link;
+pub mod protocol;
 pub mod rig;
+pub mod trajectory;
 
 #[doc = include_str!("../README.md")]
 #[cfg(doctest)]

@@ -1,0 +1,2 @@
+//! In-process loopback to the twin (being written).
+pub struct LoopbackLink;

@@ -1,0 +1,102 @@
+//! The messages between rigbridge and a controller (real, or the twin), independent of how
+//! they travel. Fixed-size and `Copy`, so the streaming cycle moves them without allocating.
+//! The byte encoding for serial, TCP and CAN lives beside this (see `docs/protocol.md`).
+
+/// The most axes one rig may stream (the arm with its base, the sloth's bones and body).
+pub const MAX_AXES: usize = 32;
+
+/// Up to [`MAX_AXES`] values, one per axis, in the rig's joint order.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AxisValues {
+    len: u8,
+    values: [f64; MAX_AXES],
+}
+
+impl AxisValues {
+    /// `None` when there are more than [`MAX_AXES`] values.
+    pub fn from_slice(values: &[f64]) -> Option<Self> {
+        if values.len() > MAX_AXES {
+            return None;
+        }
+        let mut out = Self::zeros(values.len());
+        out.values[..values.len()].copy_from_slice(values);
+        Some(out)
+    }
+
+    /// `len` zeros (capped at [`MAX_AXES`]).
+    pub fn zeros(len: usize) -> Self {
+        Self {
+            len: len.min(MAX_AXES) as u8,
+            values: [0.0; MAX_AXES],
+        }
+    }
+
+    pub fn as_slice(&self) -> &[f64] {
+        &self.values[..usize::from(self.len)]
+    }
+
+    pub fn as_mut_slice(&mut self) -> &mut [f64] {
+        &mut self.values[..usize::from(self.len)]
+    }
+
+    pub fn len(&self) -> usize {
+        usize::from(self.len)
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+}
+
+/// One cycle's command: where each axis should be at time `t`, and how fast it moves there.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct JointTarget {
+    pub seq: u32,
+    /// Seconds since the job started.
+    pub t: f64,
+    /// rad (revolute) or m (prismatic).
+    pub positions: AxisValues,
+    /// rad/s or m/s.
+    pub velocities: AxisValues,
+}
+
+/// What the bridge may send a controller.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Command {
+    Target(JointTarget),
+    /// Decelerate within the limits and hold.
+    Stop,
+    /// Halt at once and refuse targets until reset.
+    EStop,
+    Heartbeat,
+}
+
+/// Why a controller refuses to move.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Fault {
+    /// A target outside the axis's position limits (0-based axis index).
+    OutsideLimits { axis: u8 },
+    /// A target step faster than the axis's max speed.
+    OverSpeed { axis: u8 },
+    /// A target with the wrong number of axes.
+    AxisCount { expected: u8, got: u8 },
+    EStop,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ControllerStatus {
+    Ok,
+    /// No target within the watchdog, or a stop: at rest, waiting.
+    Holding,
+    Fault(Fault),
+}
+
+/// The controller's answer each cycle.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Feedback {
+    /// The sequence number of the last target the controller accepted.
+    pub seq: u32,
+    /// Measured axis positions.
+    pub positions: AxisValues,
+    pub status: ControllerStatus,
+}

@@ -1,0 +1,197 @@
+//! Time-parameterised joint trajectories, generic over the rig: samples at a fixed period
+//! (the streaming cycle), positions and velocities per axis. Owns building them from
+//! waypoints (`plan`) and the validator every trajectory passes before it is streamed
+//! or replayed. Must not talk to links or controllers.
+
+use crate::rig::Rig;
+use thiserror::Error;
+
+/// Relative slack on speed checks, for rounding only (1e-9 of the limit).
+pub const SPEED_SLACK: f64 = 1e-9;
+
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum TrajectoryError {
+    #[error("trajectory has {got} axes ({names:?}), rig {rig} has {expected}")]
+    AxisMismatch {
+        rig: String,
+        expected: usize,
+        got: usize,
+        names: Vec<String>,
+    },
+    #[error("trajectory axis {index} is `{got}`, rig joint is `{expected}`")]
+    NameMismatch {
+        index: usize,
+        expected: String,
+        got: String,
+    },
+    #[error("trajectory data has {values} values, not a whole number of {dof}-axis samples")]
+    Ragged { values: usize, dof: usize },
+    #[error("period {period_s} s must be positive and finite")]
+    BadPeriod { period_s: f64 },
+    #[error("sample {sample}: {joint} = {value} is not finite")]
+    NotFinite { sample: usize, joint: String, value: f64 },
+    #[error("sample {sample}: {joint} = {value:.6} is outside its limits [{lower:.6}, {upper:.6}]")]
+    OutsideLimits {
+        sample: usize,
+        joint: String,
+        value: f64,
+        lower: f64,
+        upper: f64,
+    },
+    #[error("sample {sample}: {joint} steps {step:.6} in one period, more than its max {max_step:.6}")]
+    OverSpeed {
+        sample: usize,
+        joint: String,
+        step: f64,
+        max_step: f64,
+    },
+    #[error("sample {sample}: {joint} velocity {velocity:.6} is above its max speed {max_speed:.6}")]
+    VelocityOverSpeed {
+        sample: usize,
+        joint: String,
+        velocity: f64,
+        max_speed: f64,
+    },
+}
+
+/// Samples `0..len` at times `i * period`, row-major: sample `i` holds `dof` values.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Trajectory {
+    pub rig: String,
+    pub joint_names: Vec<String>,
+    pub period_s: f64,
+    positions: Vec<f64>,
+    velocities: Vec<f64>,
+}
+
+impl Trajectory {
+    pub fn new(
+        rig: String,
+        joint_names: Vec<String>,
+        period_s: f64,
+        positions: Vec<f64>,
+        velocities: Vec<f64>,
+    ) -> Result<Self, TrajectoryError> {
+        let dof = joint_names.len();
+        if !(period_s.is_finite() && period_s > 0.0) {
+            return Err(TrajectoryError::BadPeriod { period_s });
+        }
+        for values in [&positions, &velocities] {
+            if dof == 0 || values.len() % dof != 0 || values.len() != positions.len() {
+                return Err(TrajectoryError::Ragged {
+                    values: values.len(),
+                    dof,
+                });
+            }
+        }
+        Ok(Self {
+            rig,
+            joint_names,
+            period_s,
+            positions,
+            velocities,
+        })
+    }
+
+    pub fn dof(&self) -> usize {
+        self.joint_names.len()
+    }
+
+    pub fn len(&self) -> usize {
+        self.positions.len() / self.dof()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    pub fn position(&self, sample: usize) -> &[f64] {
+        let dof = self.dof();
+        &self.positions[sample * dof..(sample + 1) * dof]
+    }
+
+    pub fn velocity(&self, sample: usize) -> &[f64] {
+        let dof = self.dof();
+        &self.velocities[sample * dof..(sample + 1) * dof]
+    }
+
+    pub fn duration_s(&self) -> f64 {
+        self.len().saturating_sub(1) as f64 * self.period_s
+    }
+
+    /// Joins `next` on the end; it must start where this one ends (same rig and period).
+    pub fn append(&mut self, next: &Trajectory) {
+        debug_assert_eq!(self.joint_names, next.joint_names);
+        let dof = self.dof();
+        let skip = if self.is_empty() { 0 } else { dof };
+        self.positions.extend_from_slice(&next.positions[skip.min(next.positions.len())..]);
+        self.velocities.extend_from_slice(&next.velocities[skip.min(next.velocities.len())..]);
+    }
+}
+
+/// Checks every sample against the rig: same axes, finite, inside the position limits, no
+/// step between samples beyond max speed x period, no velocity above max speed.
+pub fn validate(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {
+    if trajectory.dof() != rig.dof() {
+        return Err(TrajectoryError::AxisMismatch {
+            rig: rig.name.clone(),
+            expected: rig.dof(),
+            got: trajectory.dof(),
+            names: trajectory.joint_names.clone(),
+        });
+    }
+    for (index, (joint, name)) in rig.joints.iter().zip(&trajectory.joint_names).enumerate() {
+        if &joint.name != name {
+            return Err(TrajectoryError::NameMismatch {
+                index,
+                expected: joint.name.clone(),
+                got: name.clone(),
+            });
+        }
+    }
+    for sample in 0..trajectory.len() {
+        let positions = trajectory.position(sample);
+        let velocities = trajectory.velocity(sample);
+        for (axis, joint) in rig.joints.iter().enumerate() {
+            let (value, velocity) = (positions[axis], velocities[axis]);
+            let limits = joint.limits;
+            if !value.is_finite() || !velocity.is_finite() {
+                return Err(TrajectoryError::NotFinite {
+                    sample,
+                    joint: joint.name.clone(),
+                    value: if value.is_finite() { velocity } else { value },
+                });
+            }
+            if !limits.contains(value) {
+                return Err(TrajectoryError::OutsideLimits {
+                    sample,
+                    joint: joint.name.clone(),
+                    value,
+                    lower: limits.lower,
+                    upper: limits.upper,
+                });
+            }
+            if velocity.abs() > limits.max_speed * (1.0 + SPEED_SLACK) {
+                return Err(TrajectoryError::VelocityOverSpeed {
+                    sample,
+                    joint: joint.name.clone(),
+                    velocity,
+                    max_speed: limits.max_speed,
+                });
+            }
+            if sample > 0 {
+                let step = (value - trajectory.position(sample - 1)[axis]).abs();
+                let max_step = limits.max_speed * trajectory.period_s;
+                if step > max_step * (1.0 + SPEED_SLACK) {
+                    return Err(TrajectoryError::OverSpeed {
+                        sample,
+                        joint: joint.name.clone(),
+                        step,
+                        max_step,
+                    });
+                }
+            }
+        }
+    }
+    Ok(())
+}
