@@ -89,14 +89,32 @@ fn verifies(rig: &Rig, target: &Pose, joints: &[f64]) -> bool {
         && reached.orientation_error(target) <= TOLERANCE_RAD
 }
 
-/// openrr's `k` on the IRB 120 URDF (ROS-Industrial's, base_link -> tool0), Jacobian IK with
-/// its default settings (1 mm / 0.005 rad, 10 tries, gain 0.5), every solve from zero.
+/// openrr's `k` on the IRB 120 URDF (ROS-Industrial's, base_link -> tool0), Jacobian IK,
+/// every solve from the same start.
+///
+/// The `k` entry is the default solver (1 mm / 0.005 rad, 10 tries, gain 0.5) from
+/// the zero configuration. But zero is a wrist singularity of the IRB 120 (axis 5 at 0 puts
+/// axes 4 and 6 on one line), so k's square Jacobian has no inverse there and every solve
+/// fails at once with `InverseMatrixError`: that entry times a failure. Two more entries say
+/// what k does from a regular start (axis 5 at 30 deg, the rest 0): `k_j5_30deg` with its
+/// defaults, and `k_tight_j5_30deg` asked for our 1e-6 m / 1e-6 rad with 100 tries.
 struct KSolver {
     arm: k::SerialChain<f64>,
     solver: k::JacobianIkSolver<f64>,
+    start: [f64; 6],
 }
 
+const K_REGULAR_START: [f64; 6] = [0.0, 0.0, 0.0, 0.0, 0.5235987755982988, 0.0];
+
 impl KSolver {
+    fn with(solver: k::JacobianIkSolver<f64>, start: [f64; 6]) -> Self {
+        Self {
+            solver,
+            start,
+            ..Self::new()
+        }
+    }
+
     fn new() -> Self {
         let urdf = std::env::var_os("RIGBRIDGE_REFERENCE_DIR")
             .map(PathBuf::from)
@@ -110,6 +128,7 @@ impl KSolver {
         Self {
             arm,
             solver: k::JacobianIkSolver::default(),
+            start: [0.0; 6],
         }
     }
 
@@ -129,7 +148,7 @@ impl KSolver {
             k::Translation3::new(p.x, p.y, p.z),
             k::UnitQuaternion::from_quaternion(k::nalgebra::Quaternion::new(q.w, q.x, q.y, q.z)),
         );
-        self.arm.set_joint_positions_unchecked(&[0.0; 6]);
+        self.arm.set_joint_positions_unchecked(&self.start);
         self.solver.solve(&self.arm, &target)?;
         Ok(self.arm.joint_positions())
     }
@@ -189,12 +208,45 @@ impl Run {
     }
 }
 
+/// A `k` run, with k's own verdicts beside ours.
+struct KRun {
+    run: Run,
+    own_ok: usize,
+    errors: std::collections::BTreeMap<String, usize>,
+}
+
+impl KRun {
+    fn measure(solver: &KSolver, poses: &[Pose]) -> Self {
+        let mut own_ok = 0;
+        let mut errors = std::collections::BTreeMap::new();
+        let run = Run::measure(poses, |p| match solver.solve(p) {
+            Ok(answer) => {
+                own_ok += 1;
+                Some(answer)
+            }
+            Err(e) => {
+                let debug = format!("{e:?}");
+                let variant = debug.split([' ', '(', '{']).next().unwrap_or_default();
+                *errors.entry(variant.to_string()).or_default() += 1;
+                None
+            }
+        });
+        Self {
+            run,
+            own_ok,
+            errors,
+        }
+    }
+}
+
 struct Solvers {
     fabrik: FabrikSolver,
     ccd: CcdSolver,
     gd: GradientDescentSolver,
     opw: OpwSolver,
     k: KSolver,
+    k_regular: KSolver,
+    k_tight: KSolver,
 }
 
 impl Solvers {
@@ -206,6 +258,11 @@ impl Solvers {
             gd: GradientDescentSolver::new(rig.clone()),
             opw: OpwSolver::irb120(rig),
             k: KSolver::new(),
+            k_regular: KSolver::with(k::JacobianIkSolver::default(), K_REGULAR_START),
+            k_tight: KSolver::with(
+                k::JacobianIkSolver::new(TOLERANCE_M, TOLERANCE_RAD, 0.5, 100),
+                K_REGULAR_START,
+            ),
         };
         // An honest comparison needs the same robot and frames everywhere.
         let (dp, dr) = solvers.opw.check_frames(&fixture.configurations);
@@ -238,12 +295,9 @@ fn report(fixture: &Fixture, solvers: &Solvers) {
     let ccd = Run::measure(poses, |p| ours(&solvers.ccd, p, &zero));
     let gd = Run::measure(poses, |p| ours(&solvers.gd, p, &zero));
     let opw = Run::measure(poses, |p| ours(&solvers.opw, p, &zero));
-    let mut k_own_ok = 0;
-    let k = Run::measure(poses, |p| {
-        let answer = solvers.k.solve(p).ok();
-        k_own_ok += usize::from(answer.is_some());
-        answer
-    });
+    let k = KRun::measure(&solvers.k, poses);
+    let k_regular = KRun::measure(&solvers.k_regular, poses);
+    let k_tight = KRun::measure(&solvers.k_tight, poses);
 
     let opw_ok = opw.successes(rig, poses);
     assert_eq!(
@@ -266,7 +320,7 @@ fn report(fixture: &Fixture, solvers: &Solvers) {
          {TOLERANCE_RAD:e} rad (checked here for every solver). Times per pose, Instant.\n"
     );
     eprintln!(
-        "{:<8} {:>16} {:>10} {:>10} {:>10}",
+        "{:<16} {:>16} {:>10} {:>10} {:>10}",
         "solver", "success", "p50 us", "p99 us", "mean us"
     );
     for (name, run) in [
@@ -274,11 +328,13 @@ fn report(fixture: &Fixture, solvers: &Solvers) {
         ("ccd", &ccd),
         ("gd", &gd),
         ("opw", &opw),
-        ("k", &k),
+        ("k", &k.run),
+        ("k_j5_30deg", &k_regular.run),
+        ("k_tight_j5_30deg", &k_tight.run),
     ] {
         let ok = run.successes(rig, poses);
         eprintln!(
-            "{name:<8} {:>16} {:>10.3} {:>10.3} {:>10.3}",
+            "{name:<16} {:>16} {:>10.3} {:>10.3} {:>10.3}",
             format!("{ok}/{POSES} {:.1}%", 100.0 * ok as f64 / POSES as f64),
             run.percentile_us(50.0),
             run.percentile_us(99.0),
@@ -292,11 +348,20 @@ fn report(fixture: &Fixture, solvers: &Solvers) {
         fabrik.percentile_us(99.0),
         fabrik.percentile_us(50.0) / opw.percentile_us(50.0)
     );
-    eprintln!("fabrik and opw chose the same answer (every joint within 1e-6 rad) on {same}/{POSES} poses");
     eprintln!(
-        "k: Ok by its own default tolerance (1 mm / 0.005 rad) on {k_own_ok}/{POSES}; \
-         within 1e-6 see table\n"
+        "fabrik and opw chose the same answer (every joint within 1e-6 rad) on {same}/{POSES} poses"
     );
+    for (name, run) in [
+        ("k", &k),
+        ("k_j5_30deg", &k_regular),
+        ("k_tight_j5_30deg", &k_tight),
+    ] {
+        eprintln!(
+            "{name}: Ok by its own tolerance on {}/{POSES}; errors {:?}",
+            run.own_ok, run.errors
+        );
+    }
+    eprintln!();
 }
 
 /// Hands out the items of `items` in turn, forever.
@@ -337,10 +402,16 @@ fn bench_ik(c: &mut Criterion) {
         let mut next = cycle(poses);
         b.iter(|| solvers.opw.all_solutions(next()))
     });
-    group.bench_function("k", |b| {
-        let mut next = cycle(poses);
-        b.iter(|| solvers.k.solve(next()))
-    });
+    for (name, k) in [
+        ("k", &solvers.k),
+        ("k_j5_30deg", &solvers.k_regular),
+        ("k_tight_j5_30deg", &solvers.k_tight),
+    ] {
+        group.bench_function(name, |b| {
+            let mut next = cycle(poses);
+            b.iter(|| k.solve(next()))
+        });
+    }
     group.finish();
 }
 

@@ -101,7 +101,10 @@ pub fn tally(targets: &[DVec3], solve: impl Fn(DVec3) -> ChainOutcome) -> Tally 
         } else {
             (f64::from(iterations[middle - 1]) + f64::from(iterations[middle])) / 2.0
         },
-        mean_iterations: outcomes.iter().map(|o| f64::from(o.iterations)).sum::<f64>()
+        mean_iterations: outcomes
+            .iter()
+            .map(|o| f64::from(o.iterations))
+            .sum::<f64>()
             / outcomes.len() as f64,
         converged: outcomes.iter().filter(|o| o.converged).count(),
         count: outcomes.len(),

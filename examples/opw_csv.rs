@@ -207,7 +207,10 @@ fn main() -> anyhow::Result<()> {
         anyhow::bail!("input header must have columns {}", POSE_COLUMNS.join(","));
     };
     let mut out = std::io::BufWriter::new(std::fs::File::create(&args.output)?);
-    writeln!(out, "j1,j2,j3,j4,j5,j6,pos_err_m,rot_err_rad,iterations,status")?;
+    writeln!(
+        out,
+        "j1,j2,j3,j4,j5,j6,pos_err_m,rot_err_rad,iterations,status"
+    )?;
     let mut seed = vec![0.0; 6];
     let (mut rows, mut solved) = (0usize, 0usize);
     let mut record = csv::StringRecord::new();

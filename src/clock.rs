@@ -83,7 +83,8 @@ impl Clock for VirtualClock {
     }
 
     fn sleep_until(&self, deadline: Duration) {
-        self.nanos.fetch_max(duration_nanos(deadline), Ordering::SeqCst);
+        self.nanos
+            .fetch_max(duration_nanos(deadline), Ordering::SeqCst);
     }
 
     fn is_virtual(&self) -> bool {

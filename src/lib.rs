@@ -12,7 +12,9 @@ pub mod ik;
 pub mod link;
 pub mod protocol;
 pub mod rig;
+pub mod stream;
 pub mod trajectory;
+pub mod twin;
 
 #[doc = include_str!("../README.md")]
 #[cfg(doctest)]

@@ -31,13 +31,20 @@ fn column(line: &str, index: usize) -> f64 {
 fn fk_reproduces_the_reference_poses() {
     let reference = reference_path("irb120_fk.csv");
     let output = rigbridge(&["fk", "--input", reference.to_str().unwrap()], None);
-    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
     let produced = String::from_utf8(output.stdout).unwrap();
     let expected = std::fs::read_to_string(&reference).unwrap();
     let mut rows = 0;
     for (ours, theirs) in produced.lines().skip(1).zip(expected.lines().skip(1)) {
         for i in 0..3 {
-            assert!((column(ours, i) - column(theirs, 6 + i)).abs() < 1e-9, "{ours} vs {theirs}");
+            assert!(
+                (column(ours, i) - column(theirs, 6 + i)).abs() < 1e-9,
+                "{ours} vs {theirs}"
+            );
         }
         assert!(ours.ends_with(",ok"));
         rows += 1;
@@ -61,12 +68,32 @@ fn ik_keeps_going_past_bad_rows_and_reports_them() {
         row([11.0, 21.0, -29.0, 41.0, 51.0, 61.0]),
     );
     let output = rigbridge(&["ik", "--input", "-", "--output", "-"], Some(&input));
-    assert_eq!(output.status.code(), Some(2), "{}", String::from_utf8_lossy(&output.stderr));
+    assert_eq!(
+        output.status.code(),
+        Some(2),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
     let text = String::from_utf8(output.stdout).unwrap();
     let lines: Vec<&str> = text.lines().collect();
-    assert_eq!(lines[0], "j1,j2,j3,j4,j5,j6,pos_err_m,rot_err_rad,iterations,status");
-    let statuses: Vec<&str> = lines[1..].iter().map(|l| l.rsplit(',').next().unwrap()).collect();
-    assert_eq!(statuses, ["ok", "out_of_reach", "invalid_target", "invalid_target", "ok"]);
+    assert_eq!(
+        lines[0],
+        "j1,j2,j3,j4,j5,j6,pos_err_m,rot_err_rad,iterations,status"
+    );
+    let statuses: Vec<&str> = lines[1..]
+        .iter()
+        .map(|l| l.rsplit(',').next().unwrap())
+        .collect();
+    assert_eq!(
+        statuses,
+        [
+            "ok",
+            "out_of_reach",
+            "invalid_target",
+            "invalid_target",
+            "ok"
+        ]
+    );
     // The last row is seeded by the first (the failures in between leave the seed alone),
     // so it stays on the same branch, a small step away.
     let first: Vec<f64> = (0..6).map(|i| column(lines[1], i)).collect();
@@ -96,5 +123,8 @@ fn ik_names_a_missing_column() {
 fn help_explains_the_commands() {
     let output = rigbridge(&["--help"], None);
     let text = String::from_utf8_lossy(&output.stdout);
-    assert!(text.contains("fk") && text.contains("ik") && text.contains("degrees"), "{text}");
+    assert!(
+        text.contains("fk") && text.contains("ik") && text.contains("degrees"),
+        "{text}"
+    );
 }

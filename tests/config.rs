@@ -33,7 +33,13 @@ fn write_variant(name: &str, edit: impl Fn(String) -> String) -> std::path::Path
 
 #[test]
 fn unknown_key_names_file_and_key() {
-    let path = write_variant("unknown.toml", |t| t.replacen("kind = \"revolute\"", "kind = \"revolute\"\nmax_torque = 3.0", 1));
+    let path = write_variant("unknown.toml", |t| {
+        t.replacen(
+            "kind = \"revolute\"",
+            "kind = \"revolute\"\nmax_torque = 3.0",
+            1,
+        )
+    });
     let message = load_rig(&path).unwrap_err().to_string();
     assert!(message.contains("unknown.toml"), "{message}");
     assert!(message.contains("max_torque"), "{message}");
@@ -41,9 +47,13 @@ fn unknown_key_names_file_and_key() {
 
 #[test]
 fn inverted_limits_name_key_and_value() {
-    let path = write_variant("inverted.toml", |t| t.replacen("upper_deg = 70.0", "upper_deg = -120.0", 1));
+    let path = write_variant("inverted.toml", |t| {
+        t.replacen("upper_deg = 70.0", "upper_deg = -120.0", 1)
+    });
     match load_rig(&path).unwrap_err() {
-        ConfigError::Invalid { file, key, value, .. } => {
+        ConfigError::Invalid {
+            file, key, value, ..
+        } => {
             assert!(file.ends_with("inverted.toml"));
             assert_eq!(key, "joint[2].upper_deg");
             assert_eq!(value, "-120.0");
@@ -54,7 +64,9 @@ fn inverted_limits_name_key_and_value() {
 
 #[test]
 fn wrong_unit_for_the_joint_kind_is_refused() {
-    let path = write_variant("units.toml", |t| t.replacen("lower_deg = -165.0", "lower_m = -165.0", 1));
+    let path = write_variant("units.toml", |t| {
+        t.replacen("lower_deg = -165.0", "lower_m = -165.0", 1)
+    });
     let message = load_rig(&path).unwrap_err().to_string();
     assert!(message.contains("joint[0].lower_m"), "{message}");
 }

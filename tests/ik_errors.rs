@@ -15,7 +15,11 @@ fn fabrik() -> &'static FabrikSolver {
     SOLVER.get_or_init(|| FabrikSolver::new(irb120()).unwrap())
 }
 
-fn assert_sound(solver: &dyn IkSolver, target: &Pose, result: &Result<rigbridge::ik::IkSolution, IkError>) {
+fn assert_sound(
+    solver: &dyn IkSolver,
+    target: &Pose,
+    result: &Result<rigbridge::ik::IkSolution, IkError>,
+) {
     if let Ok(solution) = result {
         let rig = solver.rig();
         assert_eq!(rig.first_limit_violation(&solution.joints), None);
@@ -29,8 +33,13 @@ fn assert_sound(solver: &dyn IkSolver, target: &Pose, result: &Result<rigbridge:
 fn far_target_is_out_of_reach_by_the_right_amount() {
     let target = Pose::new(DVec3::new(2.0, 0.0, 0.29), DQuat::IDENTITY);
     match fabrik().solve(&target, &[0.0; 6]) {
-        Err(IkError::OutOfReach { excess_m, reach_m, .. }) => {
-            assert!((reach_m - (0.27 + 0.302f64.hypot(0.07))).abs() < 1e-9, "{reach_m}");
+        Err(IkError::OutOfReach {
+            excess_m, reach_m, ..
+        }) => {
+            assert!(
+                (reach_m - (0.27 + 0.302f64.hypot(0.07))).abs() < 1e-9,
+                "{reach_m}"
+            );
             assert!(excess_m > 1.3 && excess_m < 1.5, "{excess_m}");
         }
         other => panic!("expected OutOfReach, got {other:?}"),
@@ -44,13 +53,19 @@ fn invalid_targets_and_seeds_are_refused() {
         fabrik().solve(&nan, &[0.0; 6]),
         Err(IkError::InvalidTarget(PoseError::NotFinite { .. }))
     ));
-    let scaled = Pose::new(DVec3::new(0.4, 0.0, 0.5), DQuat::from_xyzw(0.0, 0.0, 0.0, 1.1));
+    let scaled = Pose::new(
+        DVec3::new(0.4, 0.0, 0.5),
+        DQuat::from_xyzw(0.0, 0.0, 0.0, 1.1),
+    );
     assert!(matches!(
         fabrik().solve(&scaled, &[0.0; 6]),
         Err(IkError::InvalidTarget(PoseError::NotUnitQuaternion { .. }))
     ));
     let fine = irb120().tool_pose(&[0.1; 6]).unwrap();
-    assert!(matches!(fabrik().solve(&fine, &[0.0; 5]), Err(IkError::InvalidSeed(_))));
+    assert!(matches!(
+        fabrik().solve(&fine, &[0.0; 5]),
+        Err(IkError::InvalidSeed(_))
+    ));
     assert!(matches!(
         fabrik().solve(&fine, &[0.0, f64::INFINITY, 0.0, 0.0, 0.0, 0.0]),
         Err(IkError::InvalidSeed(_))
@@ -62,7 +77,9 @@ fn a_pose_only_reachable_past_a_limit_names_the_blocking_axis() {
     // Axis 3 narrowed to +-10 deg: a pose made with axis 3 at 40 deg has, on every branch,
     // axis 3 at 40 deg or at the other elbow's -194 deg.
     let full = irb120();
-    let target = full.tool_pose(&[0.3, 0.2, 40f64.to_radians(), 0.5, 0.6, 0.7]).unwrap();
+    let target = full
+        .tool_pose(&[0.3, 0.2, 40f64.to_radians(), 0.5, 0.6, 0.7])
+        .unwrap();
     let mut narrowed = full.clone();
     narrowed.joints[2].limits.lower = -10f64.to_radians();
     narrowed.joints[2].limits.upper = 10f64.to_radians();

@@ -21,8 +21,16 @@ fn seeded_with_the_answer_returns_the_answer() {
     for _ in 0..5_000 {
         let q = random_configuration(&rig, &mut rng);
         let solution = solver.solve(&rig.tool_pose(&q).unwrap(), &q).unwrap();
-        let worst = q.iter().zip(&solution.joints).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
-        assert!(worst < 1e-6, "seed {q:?} came back as {:?}", solution.joints);
+        let worst = q
+            .iter()
+            .zip(&solution.joints)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!(
+            worst < 1e-6,
+            "seed {q:?} came back as {:?}",
+            solution.joints
+        );
     }
 }
 
@@ -57,7 +65,8 @@ fn branch(rig: &Rig, q: &[f64]) -> (bool, bool, bool) {
 }
 
 fn classify(rig: &Rig, before: &[f64], after: &[f64], counts: &mut LargeSteps) {
-    let same_turn = (before[5] - after[5]).abs() < std::f64::consts::PI && (before[3] - after[3]).abs() < std::f64::consts::PI;
+    let same_turn = (before[5] - after[5]).abs() < std::f64::consts::PI
+        && (before[3] - after[3]).abs() < std::f64::consts::PI;
     if branch(rig, before) == branch(rig, after) && same_turn {
         counts.same_branch += 1;
         return;
@@ -77,7 +86,11 @@ fn classify(rig: &Rig, before: &[f64], after: &[f64], counts: &mut LargeSteps) {
     } else if near_limit(before) {
         counts.switch_at_limit += 1;
     } else {
-        counts.unexplained_switches.push(format!("{:?} -> {:?}", common::degrees(before), common::degrees(after)));
+        counts.unexplained_switches.push(format!(
+            "{:?} -> {:?}",
+            common::degrees(before),
+            common::degrees(after)
+        ));
     }
 }
 
@@ -91,10 +104,18 @@ fn smooth_paths_give_smooth_joint_motion() {
     for _ in 0..1_000 {
         let mut joints = random_configuration(&rig, &mut rng);
         let mut pose = rig.tool_pose(&joints).unwrap();
-        let direction = DVec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0))
-            .normalize_or(DVec3::X);
-        let axis = DVec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0))
-            .normalize_or(DVec3::Z);
+        let direction = DVec3::new(
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+        )
+        .normalize_or(DVec3::X);
+        let axis = DVec3::new(
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+        )
+        .normalize_or(DVec3::Z);
         for _ in 0..100 {
             pose = Pose::new(
                 pose.position + direction * STEP_M,
@@ -105,15 +126,25 @@ fn smooth_paths_give_smooth_joint_motion() {
                 break;
             };
             counts.steps += 1;
-            let jump = joints.iter().zip(&solution.joints).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            let jump = joints
+                .iter()
+                .zip(&solution.joints)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
             if jump > MAX_JUMP_RAD {
                 classify(&rig, &joints, &solution.joints, &mut counts);
             }
             joints = solution.joints;
         }
     }
-    eprintln!("continuity over 1,000 paths: {counts:?}, paths ended by an unreachable pose: {ended_unreachable}");
-    assert!(counts.steps > 50_000, "too few steps solved: {}", counts.steps);
+    eprintln!(
+        "continuity over 1,000 paths: {counts:?}, paths ended by an unreachable pose: {ended_unreachable}"
+    );
+    assert!(
+        counts.steps > 50_000,
+        "too few steps solved: {}",
+        counts.steps
+    );
     assert!(
         counts.unexplained_switches.is_empty(),
         "{} branch switches away from singularities and limits, first: {:?}",

@@ -61,6 +61,8 @@ pub struct JointTarget {
 }
 
 /// What the bridge may send a controller.
+// A target is large next to the other variants, but boxing it would allocate every cycle.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Command {
     Target(JointTarget),
@@ -75,11 +77,18 @@ pub enum Command {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Fault {
     /// A target outside the axis's position limits (0-based axis index).
-    OutsideLimits { axis: u8 },
+    OutsideLimits {
+        axis: u8,
+    },
     /// A target step faster than the axis's max speed.
-    OverSpeed { axis: u8 },
+    OverSpeed {
+        axis: u8,
+    },
     /// A target with the wrong number of axes.
-    AxisCount { expected: u8, got: u8 },
+    AxisCount {
+        expected: u8,
+        got: u8,
+    },
     EStop,
 }
 

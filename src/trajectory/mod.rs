@@ -29,7 +29,11 @@ pub enum TrajectoryError {
     #[error("period {period_s} s must be positive and finite")]
     BadPeriod { period_s: f64 },
     #[error("sample {sample}: {joint} = {value} is not finite")]
-    NotFinite { sample: usize, joint: String, value: f64 },
+    NotFinite {
+        sample: usize,
+        joint: String,
+        value: f64,
+    },
     #[error("sample {sample}: {joint} = {value:.6} is outside its limits [{lower:.6}, {upper:.6}]")]
     OutsideLimits {
         sample: usize,
@@ -38,14 +42,18 @@ pub enum TrajectoryError {
         lower: f64,
         upper: f64,
     },
-    #[error("sample {sample}: {joint} steps {step:.6} in one period, more than its max {max_step:.6}")]
+    #[error(
+        "sample {sample}: {joint} steps {step:.6} in one period, more than its max {max_step:.6}"
+    )]
     OverSpeed {
         sample: usize,
         joint: String,
         step: f64,
         max_step: f64,
     },
-    #[error("sample {sample}: {joint} velocity {velocity:.6} is above its max speed {max_speed:.6}")]
+    #[error(
+        "sample {sample}: {joint} velocity {velocity:.6} is above its max speed {max_speed:.6}"
+    )]
     VelocityOverSpeed {
         sample: usize,
         joint: String,
@@ -124,8 +132,10 @@ impl Trajectory {
         debug_assert_eq!(self.joint_names, next.joint_names);
         let dof = self.dof();
         let skip = if self.is_empty() { 0 } else { dof };
-        self.positions.extend_from_slice(&next.positions[skip.min(next.positions.len())..]);
-        self.velocities.extend_from_slice(&next.velocities[skip.min(next.velocities.len())..]);
+        self.positions
+            .extend_from_slice(&next.positions[skip.min(next.positions.len())..]);
+        self.velocities
+            .extend_from_slice(&next.velocities[skip.min(next.velocities.len())..]);
     }
 }
 

@@ -1,0 +1,428 @@
+//! The streamer: a fixed-rate cycle that sends the next joint target over a [`Link`] and
+//! reads the controller's feedback, measuring jitter, missed cycles, command-to-feedback
+//! latency and tracking error.
+//!
+//! Pause and stop never cut motion short: they ramp a time scale on the trajectory down to
+//! standstill (and back up on resume) at a rate that keeps every axis within its limits.
+//! A last gate checks every outgoing target against the rig's limits and speeds. The
+//! cycle allocates nothing and never touches the disk: records go to a [`CycleSink`].
+//! It owns the cycle only; it must not plan, encode bytes or write files.
+
+mod metrics;
+
+pub use metrics::MicrosHistogram;
+
+use crate::clock::Clock;
+use crate::link::{Link, LinkCounters, LinkError};
+use crate::protocol::{AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget};
+use crate::rig::{JointKind, Rig};
+use crate::trajectory::{SPEED_SLACK, Trajectory, TrajectoryError, validate};
+use serde::Serialize;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::Duration;
+use thiserror::Error;
+
+/// Timing histograms reach 100 ms; anything later is counted there.
+const HISTOGRAM_CEILING_US: usize = 100_000;
+
+#[derive(Debug, Error)]
+pub enum StreamError {
+    #[error("trajectory refused before streaming: {0}")]
+    Invalid(#[from] TrajectoryError),
+    #[error("trajectory starts with {joint} at {start:.6} but the controller reports {actual:.6}")]
+    StartMismatch {
+        joint: String,
+        start: f64,
+        actual: f64,
+    },
+    #[error("no feedback from {link} before streaming")]
+    NoFeedback { link: String },
+    #[error("controller is in fault before streaming: {0:?}")]
+    FaultAtStart(Fault),
+    #[error(transparent)]
+    Link(#[from] LinkError),
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Outcome {
+    Completed,
+    Stopped,
+    EStopped,
+    Faulted,
+    /// The safety gate refused a target: a bug upstream, never sent.
+    GateRefused,
+}
+
+/// Pause, stop and e-stop requests, and progress, shared with whoever runs the job.
+#[derive(Debug, Default)]
+pub struct StreamControl {
+    paused: AtomicBool,
+    stop: AtomicBool,
+    estop: AtomicBool,
+    progress_bits: AtomicU64,
+    cycles: AtomicU64,
+}
+
+impl StreamControl {
+    pub fn pause(&self) {
+        self.paused.store(true, Ordering::SeqCst);
+    }
+    pub fn resume(&self) {
+        self.paused.store(false, Ordering::SeqCst);
+    }
+    /// Decelerate to standstill along the path, then end the job.
+    pub fn stop(&self) {
+        self.stop.store(true, Ordering::SeqCst);
+    }
+    pub fn estop(&self) {
+        self.estop.store(true, Ordering::SeqCst);
+    }
+    pub fn is_paused(&self) -> bool {
+        self.paused.load(Ordering::SeqCst)
+    }
+    /// Fraction of the trajectory done, 0..=1.
+    pub fn progress(&self) -> f64 {
+        f64::from_bits(self.progress_bits.load(Ordering::Relaxed))
+    }
+    pub fn cycles(&self) -> u64 {
+        self.cycles.load(Ordering::Relaxed)
+    }
+}
+
+/// One cycle as it happened.
+#[derive(Debug, Clone, Copy)]
+pub struct CycleRecord {
+    pub target: JointTarget,
+    pub feedback: Option<Feedback>,
+}
+
+/// Where the cycle hands its records (the recorder, a live view). Must not block.
+pub trait CycleSink {
+    fn record(&mut self, cycle: &CycleRecord);
+}
+
+impl CycleSink for () {
+    fn record(&mut self, _: &CycleRecord) {}
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StreamSettings {
+    pub feedback_timeout: Duration,
+    /// How fast pause and stop may change the time scale (1/s). See [`slowdown_rate`].
+    pub slowdown_rate_per_s: f64,
+}
+
+/// The fastest time-scale change that keeps every axis within its max acceleration, given
+/// the share of speed and acceleration the plan used: the extra acceleration of a scale
+/// change is rate x velocity, and the plan left (1 - accel_scale) x max accel for it.
+pub fn slowdown_rate(rig: &Rig, speed_scale: f64, accel_scale: f64) -> f64 {
+    rig.joints
+        .iter()
+        .map(|j| {
+            (1.0 - accel_scale) * j.limits.max_acceleration / (speed_scale * j.limits.max_speed)
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct StreamReport {
+    pub outcome: Outcome,
+    pub fault: Option<String>,
+    pub cycles: u64,
+    pub missed_cycles: u64,
+    pub limit_violations: u64,
+    pub feedback_timeouts: u64,
+    pub jitter_p50_us: f64,
+    pub jitter_p99_us: f64,
+    pub jitter_max_us: f64,
+    pub latency_p50_us: f64,
+    pub latency_p99_us: f64,
+    pub tracking_error_max_deg: f64,
+    pub duration_s: f64,
+    pub link: String,
+    pub frames_sent: u64,
+    pub frames_received: u64,
+    pub crc_errors: u64,
+    pub duplicates: u64,
+    pub gaps: u64,
+    pub reconnects: u64,
+}
+
+/// Streams `trajectory` to the controller behind `link`, one sample per period.
+pub fn stream(
+    trajectory: &Trajectory,
+    rig: &Rig,
+    link: &mut dyn Link,
+    clock: &dyn Clock,
+    sink: &mut dyn CycleSink,
+    control: &StreamControl,
+    settings: &StreamSettings,
+) -> Result<StreamReport, StreamError> {
+    validate(trajectory, rig)?;
+    check_start(trajectory, rig, link, settings)?;
+    let mut cycle = Cycle::new(trajectory, rig, settings);
+    let start = clock.now();
+    let outcome = loop {
+        let deadline = start + Duration::from_secs_f64(cycle.seq as f64 * trajectory.period_s);
+        clock.sleep_until(deadline);
+        let woke = clock.now();
+        cycle.record_wake(woke.saturating_sub(deadline), trajectory.period_s);
+        if control.estop.load(Ordering::SeqCst) {
+            link.send(&Command::EStop)?;
+            break Outcome::EStopped;
+        }
+        let finished = cycle.advance(control, trajectory);
+        let Some(target) = cycle.target(trajectory, rig) else {
+            link.send(&Command::Stop)?;
+            break Outcome::GateRefused;
+        };
+        link.send(&Command::Target(target))?;
+        let feedback = link.receive(settings.feedback_timeout)?;
+        cycle.record_feedback(feedback.as_ref(), &target, clock.now().saturating_sub(woke));
+        sink.record(&CycleRecord { target, feedback });
+        control.cycles.store(cycle.seq as u64, Ordering::Relaxed);
+        control
+            .progress_bits
+            .store(cycle.progress(trajectory).to_bits(), Ordering::Relaxed);
+        if let Some(ControllerStatus::Fault(fault)) = feedback.map(|f| f.status) {
+            cycle.fault = Some(format!("{fault:?}"));
+            break Outcome::Faulted;
+        }
+        if let Some(outcome) = finished {
+            link.send(&Command::Stop)?;
+            break outcome;
+        }
+    };
+    Ok(cycle.report(
+        outcome,
+        trajectory.period_s,
+        link.counters(),
+        link.describe(),
+    ))
+}
+
+/// Asks for feedback and checks the trajectory starts where the controller is.
+fn check_start(
+    trajectory: &Trajectory,
+    rig: &Rig,
+    link: &mut dyn Link,
+    settings: &StreamSettings,
+) -> Result<(), StreamError> {
+    link.send(&Command::Heartbeat)?;
+    let Some(feedback) = link.receive(settings.feedback_timeout)? else {
+        return Err(StreamError::NoFeedback {
+            link: link.describe(),
+        });
+    };
+    if let ControllerStatus::Fault(fault) = feedback.status {
+        return Err(StreamError::FaultAtStart(fault));
+    }
+    let first = trajectory.position(0);
+    for ((joint, start), actual) in rig
+        .joints
+        .iter()
+        .zip(first)
+        .zip(feedback.positions.as_slice())
+    {
+        if (start - actual).abs() > joint.limits.max_speed * trajectory.period_s {
+            return Err(StreamError::StartMismatch {
+                joint: joint.name.clone(),
+                start: *start,
+                actual: *actual,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// The cycle's state and measurements.
+struct Cycle {
+    seq: u32,
+    /// Position along the trajectory, in samples.
+    path: f64,
+    /// Time scale: 1 runs the trajectory as planned, 0 holds still.
+    scale: f64,
+    scale_step: f64,
+    previous: Option<AxisValues>,
+    jitter: MicrosHistogram,
+    latency: MicrosHistogram,
+    missed: u64,
+    timeouts: u64,
+    violations: u64,
+    tracking_max: f64,
+    revolute: Vec<bool>,
+    fault: Option<String>,
+}
+
+impl Cycle {
+    fn new(trajectory: &Trajectory, rig: &Rig, settings: &StreamSettings) -> Self {
+        Self {
+            seq: 0,
+            path: 0.0,
+            scale: 1.0,
+            scale_step: settings.slowdown_rate_per_s * trajectory.period_s,
+            previous: None,
+            jitter: MicrosHistogram::new(HISTOGRAM_CEILING_US),
+            latency: MicrosHistogram::new(HISTOGRAM_CEILING_US),
+            missed: 0,
+            timeouts: 0,
+            violations: 0,
+            tracking_max: 0.0,
+            revolute: rig
+                .joints
+                .iter()
+                .map(|j| j.kind == JointKind::Revolute)
+                .collect(),
+            fault: None,
+        }
+    }
+
+    fn progress(&self, trajectory: &Trajectory) -> f64 {
+        let last = trajectory.len().saturating_sub(1).max(1) as f64;
+        (self.path / last).min(1.0)
+    }
+
+    fn record_wake(&mut self, late: Duration, period_s: f64) {
+        let late_us = late.as_secs_f64() * 1e6;
+        self.jitter.record(late_us);
+        if late_us > period_s * 1e6 {
+            self.missed += 1;
+        }
+    }
+
+    /// Moves along the path by the time scale, ramping it toward 0 when paused or
+    /// stopping, toward 1 otherwise. Returns the outcome once the job is over.
+    fn advance(&mut self, control: &StreamControl, trajectory: &Trajectory) -> Option<Outcome> {
+        self.seq += 1;
+        let stopping = control.stop.load(Ordering::SeqCst);
+        let wanted = if stopping || control.is_paused() {
+            0.0
+        } else {
+            1.0
+        };
+        self.scale = if wanted > self.scale {
+            (self.scale + self.scale_step).min(1.0)
+        } else {
+            (self.scale - self.scale_step).max(0.0)
+        };
+        let last = (trajectory.len() - 1) as f64;
+        self.path = (self.path + self.scale).min(last);
+        if self.path >= last {
+            Some(Outcome::Completed)
+        } else if stopping && self.scale == 0.0 {
+            Some(Outcome::Stopped)
+        } else {
+            None
+        }
+    }
+
+    /// The target at the current path position, if it passes the gate.
+    fn target(&mut self, trajectory: &Trajectory, rig: &Rig) -> Option<JointTarget> {
+        let dof = trajectory.dof();
+        let index = (self.path.floor() as usize).min(trajectory.len() - 1);
+        let next = (index + 1).min(trajectory.len() - 1);
+        let fraction = self.path - index as f64;
+        let mut positions = AxisValues::zeros(dof);
+        let mut velocities = AxisValues::zeros(dof);
+        for axis in 0..dof {
+            let (a, b) = (
+                trajectory.position(index)[axis],
+                trajectory.position(next)[axis],
+            );
+            let (va, vb) = (
+                trajectory.velocity(index)[axis],
+                trajectory.velocity(next)[axis],
+            );
+            positions.as_mut_slice()[axis] = a + fraction * (b - a);
+            velocities.as_mut_slice()[axis] = self.scale * (va + fraction * (vb - va));
+        }
+        if !self.gate(&positions, &velocities, rig, trajectory.period_s) {
+            self.violations += 1;
+            return None;
+        }
+        self.previous = Some(positions);
+        Some(JointTarget {
+            seq: self.seq,
+            t: self.seq as f64 * trajectory.period_s,
+            positions,
+            velocities,
+        })
+    }
+
+    /// The last line of defence: inside the limits, no step or velocity above max speed.
+    fn gate(
+        &self,
+        positions: &AxisValues,
+        velocities: &AxisValues,
+        rig: &Rig,
+        period_s: f64,
+    ) -> bool {
+        rig.joints.iter().enumerate().all(|(axis, joint)| {
+            let limits = joint.limits;
+            let value = positions.as_slice()[axis];
+            let max_speed = limits.max_speed * (1.0 + SPEED_SLACK);
+            let step_ok = self
+                .previous
+                .is_none_or(|p| (value - p.as_slice()[axis]).abs() <= max_speed * period_s);
+            limits.contains(value) && velocities.as_slice()[axis].abs() <= max_speed && step_ok
+        })
+    }
+
+    fn record_feedback(
+        &mut self,
+        feedback: Option<&Feedback>,
+        target: &JointTarget,
+        latency: Duration,
+    ) {
+        let Some(feedback) = feedback else {
+            self.timeouts += 1;
+            return;
+        };
+        self.latency.record(latency.as_secs_f64() * 1e6);
+        for ((commanded, actual), revolute) in target
+            .positions
+            .as_slice()
+            .iter()
+            .zip(feedback.positions.as_slice())
+            .zip(&self.revolute)
+        {
+            if *revolute {
+                self.tracking_max = self
+                    .tracking_max
+                    .max((commanded - actual).abs().to_degrees());
+            }
+        }
+    }
+
+    fn report(
+        self,
+        outcome: Outcome,
+        period_s: f64,
+        counters: LinkCounters,
+        link: String,
+    ) -> StreamReport {
+        StreamReport {
+            outcome,
+            fault: self.fault,
+            cycles: u64::from(self.seq),
+            missed_cycles: self.missed,
+            limit_violations: self.violations,
+            feedback_timeouts: self.timeouts,
+            jitter_p50_us: self.jitter.percentile(0.5),
+            jitter_p99_us: self.jitter.percentile(0.99),
+            jitter_max_us: self.jitter.max_us(),
+            latency_p50_us: self.latency.percentile(0.5),
+            latency_p99_us: self.latency.percentile(0.99),
+            tracking_error_max_deg: self.tracking_max,
+            duration_s: f64::from(self.seq) * period_s,
+            link,
+            frames_sent: counters.frames_sent,
+            frames_received: counters.frames_received,
+            crc_errors: counters.crc_errors,
+            duplicates: counters.duplicates,
+            gaps: counters.gaps,
+            reconnects: counters.reconnects,
+        }
+    }
+}
