@@ -302,9 +302,9 @@ impl Cycle {
             1.0
         };
         self.scale = if wanted > self.scale {
-            (self.scale + self.scale_step).min(1.0)
+            (self.scale + self.scale_step).min(wanted)
         } else {
-            (self.scale - self.scale_step).max(0.0)
+            (self.scale - self.scale_step).max(wanted)
         };
         let last = (trajectory.len() - 1) as f64;
         self.path = (self.path + self.scale).min(last);

@@ -1,0 +1,174 @@
+//! Run settings (`config/rigbridge.toml`): which rig, how to stream, the twin's servo model,
+//! the plan's speed shares and the job. Validated on load; every error names the file,
+//! the key and the value.
+
+use crate::rig::{ConfigError, Rig, load_rig};
+use serde::Deserialize;
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunConfig {
+    /// Rig description, relative to the config file.
+    pub rig: PathBuf,
+    pub stream: StreamConfig,
+    pub twin: TwinConfig,
+    pub plan: PlanConfig,
+    pub job: JobConfig,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StreamConfig {
+    pub rate_hz: f64,
+    #[serde(default = "default_link")]
+    pub link: String,
+}
+
+fn default_link() -> String {
+    "loopback".to_string()
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TwinConfig {
+    pub bandwidth_hz: f64,
+    pub delay_ms: f64,
+    pub watchdog_cycles: u32,
+    pub initial_deg: Vec<f64>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlanConfig {
+    pub speed_scale: f64,
+    pub accel_scale: f64,
+}
+
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum JobConfig {
+    /// A five-pointed star on a wall plane x = wall_x_m, tool normal to the wall.
+    WallFigure {
+        wall_x_m: f64,
+        centre_yz_m: [f64; 2],
+        radius_m: f64,
+        laps: u32,
+    },
+    /// Point-to-point joint moves through these configurations (degrees).
+    JointWaypoints { waypoints_deg: Vec<Vec<f64>> },
+}
+
+/// A loaded, validated configuration with its rig.
+#[derive(Debug, Clone)]
+pub struct RunSettings {
+    pub file: PathBuf,
+    pub config: RunConfig,
+    pub rig: Rig,
+}
+
+impl RunSettings {
+    pub fn period_s(&self) -> f64 {
+        1.0 / self.config.stream.rate_hz
+    }
+
+    pub fn initial(&self) -> Vec<f64> {
+        self.config.twin.initial_deg.iter().map(|d| d.to_radians()).collect()
+    }
+}
+
+fn invalid(file: &Path, key: &str, value: impl std::fmt::Debug, reason: &str) -> ConfigError {
+    ConfigError::Invalid {
+        file: file.to_path_buf(),
+        key: key.to_string(),
+        value: format!("{value:?}"),
+        reason: reason.to_string(),
+    }
+}
+
+fn check_range(file: &Path, key: &str, value: f64, low: f64, high: f64) -> Result<(), ConfigError> {
+    if value.is_finite() && value >= low && value <= high {
+        Ok(())
+    } else {
+        Err(invalid(file, key, value, &format!("must lie in [{low}, {high}]")))
+    }
+}
+
+/// Reads and validates run settings and the rig they name.
+pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
+    let text = std::fs::read_to_string(file).map_err(|source| ConfigError::Io {
+        file: file.to_path_buf(),
+        source,
+    })?;
+    let config: RunConfig = toml::from_str(&text).map_err(|e| ConfigError::Parse {
+        file: file.to_path_buf(),
+        message: e.to_string().trim_end().to_string(),
+    })?;
+    let rig_path = file.parent().unwrap_or(Path::new(".")).join(&config.rig);
+    let rig = load_rig(&rig_path)?;
+    check_range(file, "stream.rate_hz", config.stream.rate_hz, 1.0, 1000.0)?;
+    if config.stream.link != "loopback" {
+        return Err(invalid(file, "stream.link", &config.stream.link, "only \"loopback\" is available so far"));
+    }
+    check_range(file, "twin.bandwidth_hz", config.twin.bandwidth_hz, 0.1, 1000.0)?;
+    check_range(file, "twin.delay_ms", config.twin.delay_ms, 0.0, 1000.0)?;
+    if config.twin.watchdog_cycles == 0 {
+        return Err(invalid(file, "twin.watchdog_cycles", 0, "must be at least 1"));
+    }
+    check_joints(file, "twin.initial_deg", &config.twin.initial_deg, &rig)?;
+    check_range(file, "plan.speed_scale", config.plan.speed_scale, 0.01, 0.99)?;
+    check_range(file, "plan.accel_scale", config.plan.accel_scale, 0.01, 0.99)?;
+    check_job(file, &config.job, &rig)?;
+    Ok(RunSettings {
+        file: file.to_path_buf(),
+        config,
+        rig,
+    })
+}
+
+fn check_joints(file: &Path, key: &str, degrees: &[f64], rig: &Rig) -> Result<(), ConfigError> {
+    if degrees.len() != rig.dof() {
+        return Err(invalid(file, key, degrees, &format!("needs {} values for rig {}", rig.dof(), rig.name)));
+    }
+    let radians: Vec<f64> = degrees.iter().map(|d| d.to_radians()).collect();
+    if degrees.iter().any(|d| !d.is_finite()) {
+        return Err(invalid(file, key, degrees, "values must be finite"));
+    }
+    if let Some((index, _)) = rig.first_limit_violation(&radians) {
+        return Err(invalid(
+            file,
+            &format!("{key}[{index}]"),
+            degrees[index],
+            &format!("outside the limits of {}", rig.joints[index].name),
+        ));
+    }
+    Ok(())
+}
+
+fn check_job(file: &Path, job: &JobConfig, rig: &Rig) -> Result<(), ConfigError> {
+    match job {
+        JobConfig::WallFigure {
+            wall_x_m,
+            centre_yz_m,
+            radius_m,
+            laps,
+        } => {
+            check_range(file, "job.wall_x_m", *wall_x_m, -2.0, 2.0)?;
+            check_range(file, "job.centre_yz_m[0]", centre_yz_m[0], -2.0, 2.0)?;
+            check_range(file, "job.centre_yz_m[1]", centre_yz_m[1], -2.0, 2.0)?;
+            check_range(file, "job.radius_m", *radius_m, 0.001, 1.0)?;
+            if *laps == 0 || *laps > 1000 {
+                return Err(invalid(file, "job.laps", laps, "must lie in [1, 1000]"));
+            }
+        }
+        JobConfig::JointWaypoints { waypoints_deg } => {
+            if waypoints_deg.is_empty() {
+                return Err(invalid(file, "job.waypoints_deg", "[]", "needs at least one waypoint"));
+            }
+            for (i, waypoint) in waypoints_deg.iter().enumerate() {
+                check_joints(file, &format!("job.waypoints_deg[{i}]"), waypoint, rig)?;
+            }
+        }
+    }
+    Ok(())
+}

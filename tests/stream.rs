@@ -1,0 +1,280 @@
+//! The streamer against the in-process twin under the virtual clock: it completes, pauses
+//! and stops along the path within the limits, and refuses bad trajectories before motion.
+
+mod common;
+
+use common::irb120;
+use rigbridge::clock::VirtualClock;
+use rigbridge::link::LoopbackLink;
+use rigbridge::rig::Rig;
+use rigbridge::stream::{
+    CycleRecord, CycleSink, Outcome, StreamControl, StreamError, StreamSettings, slowdown_rate,
+    stream,
+};
+use rigbridge::trajectory::Trajectory;
+use rigbridge::twin::{Twin, TwinSettings};
+use std::time::Duration;
+
+const PERIOD: f64 = 0.004;
+const START: [f64; 6] = [0.0, 0.0, 0.0, 0.0, 0.5, 0.0];
+
+/// Axis 1 from 0 to `distance` rad and back to rest on a smooth (cosine) speed profile.
+fn sweep(rig: &Rig, distance: f64, samples: usize) -> Trajectory {
+    let mut positions = Vec::new();
+    let mut velocities = Vec::new();
+    let duration = (samples - 1) as f64 * PERIOD;
+    for i in 0..samples {
+        let s = i as f64 / (samples - 1) as f64;
+        let mut q = START;
+        q[0] = distance * (1.0 - (std::f64::consts::PI * s).cos()) / 2.0;
+        let mut v = [0.0; 6];
+        v[0] =
+            distance * std::f64::consts::PI * (std::f64::consts::PI * s).sin() / (2.0 * duration);
+        positions.extend_from_slice(&q);
+        velocities.extend_from_slice(&v);
+    }
+    let names = rig.joint_names().map(String::from).collect();
+    Trajectory::new(rig.name.clone(), names, PERIOD, positions, velocities).unwrap()
+}
+
+fn link(rig: &Rig) -> LoopbackLink {
+    LoopbackLink::new(Twin::new(rig, TwinSettings::default(), &START).unwrap())
+}
+
+fn settings(rig: &Rig) -> StreamSettings {
+    StreamSettings {
+        feedback_timeout: Duration::from_millis(2),
+        slowdown_rate_per_s: slowdown_rate(rig, 0.9, 0.8),
+    }
+}
+
+#[derive(Default)]
+struct Recorded(Vec<CycleRecord>);
+
+impl CycleSink for Recorded {
+    fn record(&mut self, cycle: &CycleRecord) {
+        self.0.push(*cycle);
+    }
+}
+
+/// Every command inside the limits and within max speed of the one before.
+fn assert_commands_safe(rig: &Rig, records: &[CycleRecord]) {
+    let mut previous = START.to_vec();
+    for record in records {
+        let q = record.target.positions.as_slice();
+        assert_eq!(rig.first_limit_violation(q), None);
+        for ((a, b), joint) in q.iter().zip(&previous).zip(&rig.joints) {
+            assert!(
+                (a - b).abs() <= joint.limits.max_speed * PERIOD * (1.0 + 1e-9),
+                "{a} after {b}"
+            );
+        }
+        previous = q.to_vec();
+    }
+}
+
+#[test]
+fn streams_a_whole_trajectory_sample_by_sample() {
+    let rig = irb120();
+    let trajectory = sweep(&rig, 1.0, 1001);
+    let mut sink = Recorded::default();
+    let report = stream(
+        &trajectory,
+        &rig,
+        &mut link(&rig),
+        &VirtualClock::new(),
+        &mut sink,
+        &StreamControl::default(),
+        &settings(&rig),
+    )
+    .unwrap();
+    assert_eq!(report.outcome, Outcome::Completed);
+    assert_eq!(report.cycles, 1000);
+    assert_eq!(
+        (
+            report.missed_cycles,
+            report.limit_violations,
+            report.feedback_timeouts
+        ),
+        (0, 0, 0)
+    );
+    for (i, record) in sink.0.iter().enumerate() {
+        assert_eq!(record.target.seq as usize, i + 1);
+        assert_eq!(
+            record.target.positions.as_slice(),
+            trajectory.position(i + 1)
+        );
+    }
+    assert_commands_safe(&rig, &sink.0);
+    assert!(
+        report.tracking_error_max_deg > 0.1,
+        "the servo model lags: {report:?}"
+    );
+}
+
+/// A sink that pulls a control lever at a given cycle.
+struct Lever<'a> {
+    at: usize,
+    pull: &'a dyn Fn(),
+    records: Vec<CycleRecord>,
+}
+
+impl CycleSink for Lever<'_> {
+    fn record(&mut self, cycle: &CycleRecord) {
+        if self.records.len() == self.at {
+            (self.pull)();
+        }
+        self.records.push(*cycle);
+    }
+}
+
+#[test]
+fn stop_decelerates_along_the_path_and_ends_at_rest() {
+    let rig = irb120();
+    let trajectory = sweep(&rig, 2.0, 2001);
+    let control = StreamControl::default();
+    let mut lever = Lever {
+        at: 1000,
+        pull: &|| control.stop(),
+        records: Vec::new(),
+    };
+    let report = stream(
+        &trajectory,
+        &rig,
+        &mut link(&rig),
+        &VirtualClock::new(),
+        &mut lever,
+        &control,
+        &settings(&rig),
+    )
+    .unwrap();
+    assert_eq!(report.outcome, Outcome::Stopped);
+    assert!(
+        report.cycles > 1001 && report.cycles < 2000,
+        "{}",
+        report.cycles
+    );
+    assert_commands_safe(&rig, &lever.records);
+    let last = lever.records.last().unwrap();
+    assert!(last.target.velocities.as_slice().iter().all(|v| *v == 0.0));
+    let rest = last.target.positions.as_slice()[0];
+    assert!(
+        rest > trajectory.position(1000)[0] && rest < 2.0,
+        "stopped along the path at {rest}"
+    );
+}
+
+#[test]
+fn pause_holds_still_then_resume_finishes() {
+    let rig = irb120();
+    let trajectory = sweep(&rig, 1.0, 1001);
+    let control = StreamControl::default();
+    let mut lever = Lever {
+        at: 300,
+        pull: &|| control.pause(),
+        records: Vec::new(),
+    };
+    struct Resume<'a, 'b>(&'b mut Lever<'a>, &'b StreamControl);
+    impl CycleSink for Resume<'_, '_> {
+        fn record(&mut self, cycle: &CycleRecord) {
+            if self.0.records.len() == 1500 {
+                self.1.resume();
+            }
+            self.0.record(cycle);
+        }
+    }
+    let mut sink = Resume(&mut lever, &control);
+    let report = stream(
+        &trajectory,
+        &rig,
+        &mut link(&rig),
+        &VirtualClock::new(),
+        &mut sink,
+        &control,
+        &settings(&rig),
+    )
+    .unwrap();
+    assert_eq!(report.outcome, Outcome::Completed);
+    let records = &lever.records;
+    assert_commands_safe(&rig, records);
+    let still = &records[1200..1400];
+    assert!(
+        still
+            .windows(2)
+            .all(|w| w[0].target.positions == w[1].target.positions),
+        "paused"
+    );
+    assert_eq!(
+        records.last().unwrap().target.positions.as_slice(),
+        trajectory.position(1000)
+    );
+}
+
+#[test]
+fn refuses_before_motion_a_trajectory_that_breaks_a_limit() {
+    let rig = irb120();
+    let trajectory = sweep(&rig, 3.0, 101); // 3 rad in 0.4 s: far above axis 1's 4.36 rad/s
+    let mut sink = Recorded::default();
+    let error = stream(
+        &trajectory,
+        &rig,
+        &mut link(&rig),
+        &VirtualClock::new(),
+        &mut sink,
+        &StreamControl::default(),
+        &settings(&rig),
+    )
+    .unwrap_err();
+    assert!(matches!(error, StreamError::Invalid(_)), "{error}");
+    assert!(sink.0.is_empty());
+}
+
+#[test]
+fn refuses_a_trajectory_that_starts_away_from_the_arm() {
+    let rig = irb120();
+    let trajectory = sweep(&rig, 1.0, 1001);
+    let twin = Twin::new(
+        &rig,
+        TwinSettings::default(),
+        &[0.3, 0.0, 0.0, 0.0, 0.5, 0.0],
+    )
+    .unwrap();
+    let error = stream(
+        &trajectory,
+        &rig,
+        &mut LoopbackLink::new(twin),
+        &VirtualClock::new(),
+        &mut (),
+        &StreamControl::default(),
+        &settings(&rig),
+    )
+    .unwrap_err();
+    assert!(
+        matches!(error, StreamError::StartMismatch { .. }),
+        "{error}"
+    );
+}
+
+#[test]
+fn estop_halts_at_once() {
+    let rig = irb120();
+    let trajectory = sweep(&rig, 1.0, 1001);
+    let control = StreamControl::default();
+    let mut lever = Lever {
+        at: 500,
+        pull: &|| control.estop(),
+        records: Vec::new(),
+    };
+    let report = stream(
+        &trajectory,
+        &rig,
+        &mut link(&rig),
+        &VirtualClock::new(),
+        &mut lever,
+        &control,
+        &settings(&rig),
+    )
+    .unwrap();
+    assert_eq!(report.outcome, Outcome::EStopped);
+    assert_eq!(lever.records.len(), 501);
+}
