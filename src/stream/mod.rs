@@ -9,8 +9,10 @@
 //! It owns the cycle only; it must not plan, encode bytes or write files.
 
 mod metrics;
+mod realtime;
 
 pub use metrics::MicrosHistogram;
+pub use realtime::raise_priority;
 
 use crate::clock::Clock;
 use crate::link::{Link, LinkCounters, LinkError};
