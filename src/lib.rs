@@ -8,8 +8,11 @@
 
 pub mod batch;
 pub mod clock;
+pub mod daemon;
 pub mod ik;
+pub mod job;
 pub mod link;
+pub mod log;
 pub mod protocol;
 pub mod rig;
 pub mod stream;

@@ -2,6 +2,9 @@
 //! Everything it runs lives in the library; errors gain their context here.
 
 mod batch;
+mod replay;
+mod run;
+mod serve;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -24,11 +27,24 @@ enum Command {
     Fk(batch::FkArgs),
     /// Inverse kinematics over a CSV of tool poses (x,y,z,qw,qx,qy,qz) -> joint rows.
     Ik(batch::IkArgs),
+    /// Run a job against the twin and exit: plan, stream, record (MCAP), report.
+    Run(run::RunArgs),
+    /// Stay up with a control API on 127.0.0.1: submit jobs, status, pause/resume, stop, e-stop.
+    Serve(serve::ServeArgs),
+    /// Re-stream a recorded run's commands with their timing, validated again against the rig.
+    Replay(replay::ReplayArgs),
+    /// Inspect run logs.
+    #[command(subcommand)]
+    Log(replay::LogCommand),
 }
 
 pub fn run() -> anyhow::Result<ExitCode> {
     match Cli::parse().command {
         Command::Fk(args) => batch::fk(args),
         Command::Ik(args) => batch::ik(args),
+        Command::Run(args) => run::run(args),
+        Command::Serve(args) => serve::serve(args),
+        Command::Replay(args) => replay::replay_command(args),
+        Command::Log(command) => replay::log_command(command),
     }
 }

@@ -6,7 +6,7 @@ use anyhow::Context;
 use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use rigbridge::clock::{Clock, VirtualClock, WallClock};
-use rigbridge::daemon::config::{RunSettings, load_run_settings};
+use rigbridge::daemon::config::load_run_settings;
 use rigbridge::daemon::{RunReport, loopback_twin, run_job};
 use rigbridge::stream::{Outcome, StreamControl};
 use std::path::PathBuf;
@@ -27,6 +27,9 @@ pub struct RunArgs {
     /// Run settings: rig, stream rate, twin, plan and job.
     #[arg(long, default_value = "config/rigbridge.toml")]
     config: PathBuf,
+    /// Record the run to this MCAP file (default: runs/run-<unix time>.mcap).
+    #[arg(long)]
+    log: Option<PathBuf>,
     /// Write the run report (JSON) here.
     #[arg(long)]
     report: Option<PathBuf>,
@@ -34,30 +37,34 @@ pub struct RunArgs {
     clock: ClockChoice,
 }
 
-fn make_clock(choice: ClockChoice) -> Arc<dyn Clock> {
+pub fn make_clock(choice: ClockChoice) -> Arc<dyn Clock> {
     match choice {
         ClockChoice::Wall => Arc::new(WallClock::new()),
         ClockChoice::Virtual => Arc::new(VirtualClock::new()),
     }
 }
 
-fn spawn_job(
-    settings: RunSettings,
-    clock: Arc<dyn Clock>,
-    control: Arc<StreamControl>,
-) -> std::thread::JoinHandle<anyhow::Result<RunReport>> {
-    std::thread::Builder::new()
-        .name("rigbridge-stream".into())
-        .spawn(move || {
-            let mut link = loopback_twin(&settings)?;
-            let report = run_job(&settings, &mut link, clock.as_ref(), &mut (), &control)?;
-            Ok(report)
-        })
-        .expect("the OS can start one thread")
+/// The default log path, unique per run.
+pub fn default_log_path(prefix: &str) -> PathBuf {
+    let seconds = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    PathBuf::from("runs").join(format!("{prefix}-{seconds}.mcap"))
 }
 
-/// Waits for the job, drawing progress and turning SIGINT/SIGTERM into a stop.
-async fn supervise(control: &StreamControl, job: &std::thread::JoinHandle<anyhow::Result<RunReport>>) -> anyhow::Result<()> {
+pub fn spawn_streaming<T: Send + 'static>(
+    work: impl FnOnce() -> anyhow::Result<T> + Send + 'static,
+) -> anyhow::Result<std::thread::JoinHandle<anyhow::Result<T>>> {
+    Ok(std::thread::Builder::new().name("rigbridge-stream".into()).spawn(move || {
+        if let Err(e) = rigbridge::stream::raise_priority(50) {
+            eprintln!("note: streaming at normal priority (real-time scheduling refused: {e})");
+        }
+        work()
+    })?)
+}
+
+/// Waits for the streaming thread, drawing progress and turning SIGINT/SIGTERM into a stop.
+pub async fn supervise<T>(control: &StreamControl, job: &std::thread::JoinHandle<anyhow::Result<T>>) -> anyhow::Result<()> {
     let bar = ProgressBar::new(1000).with_style(
         ProgressStyle::with_template("{bar:40} {percent:>3}% {msg}").expect("static template"),
     );
@@ -84,30 +91,57 @@ fn stop(control: &StreamControl, bar: &ProgressBar) {
 
 pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     let settings = load_run_settings(&args.config).context("cannot load run settings")?;
+    let log = args.log.unwrap_or_else(|| default_log_path("run"));
+    if let Some(dir) = log.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    }
     let control = Arc::new(StreamControl::default());
-    let job = spawn_job(settings, make_clock(args.clock), control.clone());
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()?
-        .block_on(supervise(&control, &job))?;
+    let clock = make_clock(args.clock);
+    let job_control = control.clone();
+    let job_log = log.clone();
+    let job = spawn_streaming(move || {
+        let mut link = loopback_twin(&settings)?;
+        Ok(run_job(&settings, &settings.config.job.clone(), &mut link, clock.as_ref(), Some(&job_log), &job_control)?)
+    })?;
+    wait(&control, &job)?;
     let report = job.join().map_err(|_| anyhow::anyhow!("the streaming thread panicked"))??;
     print_summary(&report);
-    if let Some(path) = &args.report {
-        let json = serde_json::to_string_pretty(&report)?;
-        std::fs::write(path, json + "\n").with_context(|| format!("cannot write report {}", path.display()))?;
-    }
-    Ok(match report.stream.outcome {
+    println!("  log: {}", log.display());
+    write_report(args.report.as_deref(), &report)?;
+    Ok(exit_code(report.stream.outcome))
+}
+
+pub fn exit_code(outcome: Outcome) -> ExitCode {
+    match outcome {
         Outcome::Completed => ExitCode::SUCCESS,
         Outcome::Stopped => ExitCode::from(130),
         _ => ExitCode::from(3),
-    })
+    }
+}
+
+pub fn wait<T>(control: &StreamControl, job: &std::thread::JoinHandle<anyhow::Result<T>>) -> anyhow::Result<()> {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?
+        .block_on(supervise(control, job))
+}
+
+pub fn write_report(path: Option<&std::path::Path>, report: &impl serde::Serialize) -> anyhow::Result<()> {
+    if let Some(path) = path {
+        let json = serde_json::to_string_pretty(report)?;
+        std::fs::write(path, json + "\n").with_context(|| format!("cannot write report {}", path.display()))?;
+    }
+    Ok(())
 }
 
 fn print_summary(report: &RunReport) {
-    let s = &report.stream;
+    print_stream_summary(&report.job, &report.rig, report.rate_hz, report.clock, &report.stream);
+}
+
+pub fn print_stream_summary(job: &str, rig: &str, rate_hz: f64, clock: &str, s: &rigbridge::stream::StreamReport) {
     println!(
         "{} on {} over {}: {:?} after {} cycles ({:.2} s at {} Hz, {} clock)",
-        report.job, report.rig, s.link, s.outcome, s.cycles, s.duration_s, report.rate_hz, report.clock
+        job, rig, s.link, s.outcome, s.cycles, s.duration_s, rate_hz, clock
     );
     println!(
         "  missed cycles {}, limit violations {}, feedback timeouts {}",

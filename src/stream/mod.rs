@@ -29,7 +29,7 @@ const HISTOGRAM_CEILING_US: usize = 100_000;
 
 #[derive(Debug, Error)]
 pub enum StreamError {
-    #[error("trajectory refused before streaming: {0}")]
+    #[error("trajectory refused before streaming")]
     Invalid(#[from] TrajectoryError),
     #[error("trajectory starts with {joint} at {start:.6} but the controller reports {actual:.6}")]
     StartMismatch {

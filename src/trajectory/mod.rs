@@ -3,6 +3,12 @@
 //! waypoints (`plan`) and the validator every trajectory passes before it is streamed
 //! or replayed. Must not talk to links or controllers.
 
+mod cartesian;
+mod plan;
+
+pub use cartesian::plan_cartesian;
+pub use plan::{InvalidValue, PlanError, PlanSettings, plan_joint_moves};
+
 use crate::rig::Rig;
 use thiserror::Error;
 

@@ -1,0 +1,150 @@
+//! Run logs: recording a streamed job to an MCAP file and reading it back (`docs/logs.md`
+//! describes the file). Owns the file layout, the recorder's writer thread, the tolerant
+//! reader, the replay conversion and the `log info` summary. It must not touch links,
+//! controllers or the streaming loop itself: the loop hands it [`LogRecord`]s and events, and
+//! gets nothing back that could make it wait.
+//!
+//! - [`Recorder`]: non-blocking recording (bounded channel, writer thread, small chunks so a
+//!   killed run leaves a readable file);
+//! - [`read_log`]: every complete chunk of a file, even a truncated or damaged one;
+//! - [`RunLog::to_trajectory`]: the recorded commands as a [`Trajectory`](crate::trajectory::Trajectory) for replay;
+//! - [`summarize`]: counts, gaps, events and tracking error for `rigbridge log info`.
+
+mod json_exact;
+mod reader;
+mod recorder;
+mod records;
+mod replay;
+mod summary;
+mod wire;
+
+pub use reader::{read_log, read_log_from};
+pub use recorder::{LogRecord, Recorder, RecorderOptions, RecorderStats};
+pub use summary::{ChannelSummary, LogSummary, SeqGap, TrackingError, summarize};
+pub use wire::{EVENTS_TOPIC, METADATA_NAME, command_topic, state_topic};
+
+use crate::rig::JointKind;
+use crate::trajectory::TrajectoryError;
+use serde::Serialize;
+use std::path::PathBuf;
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum LogError {
+    #[error("{context}: {source}")]
+    Io {
+        context: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("MCAP writer: {0}")]
+    Mcap(#[from] mcap::McapError),
+    #[error("cannot record: {0}")]
+    Setup(String),
+    #[error("the recorder's writer thread panicked; {path} may end early")]
+    WriterPanicked { path: PathBuf },
+    #[error("not a rigbridge run log: {0}")]
+    NotARunLog(String),
+    #[error("metadata record `{name}`: {reason}")]
+    BadMetadata { name: String, reason: String },
+    #[error("channel {topic}: {reason}")]
+    BadChannel { topic: String, reason: String },
+    #[error("{topic} message {index} (0-based, byte {offset}): {reason}")]
+    BadMessage {
+        topic: String,
+        index: usize,
+        offset: u64,
+        reason: String,
+    },
+    #[error("the log holds no commands to replay")]
+    NoCommands,
+    #[error(
+        "command {index}: seq {seq} follows seq {previous}; replay needs consecutive seq numbers"
+    )]
+    SeqGap {
+        index: usize,
+        previous: u32,
+        seq: u32,
+    },
+    #[error(
+        "command {index} (seq {seq}): t = {t:.9} s, expected {expected:.9} s for period {period_s} s (tolerance 1 us)"
+    )]
+    Uneven {
+        index: usize,
+        seq: u32,
+        t: f64,
+        expected: f64,
+        period_s: f64,
+    },
+    #[error(
+        "command {index} (seq {seq}): {positions} positions and {velocities} velocities for {dof} joints"
+    )]
+    AxisCount {
+        index: usize,
+        seq: u32,
+        positions: usize,
+        velocities: usize,
+        dof: usize,
+    },
+    #[error(transparent)]
+    Trajectory(#[from] TrajectoryError),
+}
+
+impl LogError {
+    fn io(context: impl Into<String>, source: std::io::Error) -> Self {
+        Self::Io {
+            context: context.into(),
+            source,
+        }
+    }
+}
+
+/// One recorded command or state, as read back.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LoggedSample {
+    pub seq: u32,
+    /// Seconds since the job started.
+    pub t: f64,
+    /// rad (revolute) or m (prismatic); NaN where the recorder was handed a non-finite value.
+    pub positions: Vec<f64>,
+    /// rad/s or m/s; NaN as for positions.
+    pub velocities: Vec<f64>,
+}
+
+/// One job event (started, ended, pause, stop, fault, link error...), as read back.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LoggedEvent {
+    pub t: f64,
+    pub kind: String,
+    pub detail: serde_json::Value,
+}
+
+/// Where and why reading stopped before the end of the data section.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct ReadStop {
+    /// Byte offset of the first record that could not be read whole and intact.
+    pub offset: u64,
+    pub reason: String,
+}
+
+/// Everything a run log holds, in file order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunLog {
+    pub rig: String,
+    pub joint_names: Vec<String>,
+    /// Known when the recorder was told (see [`RecorderOptions::joint_kinds`]).
+    pub joint_kinds: Option<Vec<JointKind>>,
+    /// The job description and config given to [`Recorder::create`]; `Null` when the
+    /// metadata record is missing.
+    pub metadata: serde_json::Value,
+    pub commands: Vec<LoggedSample>,
+    pub states: Vec<LoggedSample>,
+    pub events: Vec<LoggedEvent>,
+    /// Messages on channels that are not rigbridge's (skipped, counted).
+    pub other_messages: u64,
+    /// True when the data section did not end cleanly: the file was cut (a killed run), a
+    /// chunk was damaged, or the data-section CRC did not match. Everything before
+    /// `stopped.offset` was read.
+    pub truncated: bool,
+    pub stopped: Option<ReadStop>,
+}

@@ -1,0 +1,604 @@
+//! Recording a run without ever making the streaming cycle wait. The cycle hands over `Copy`
+//! records through a preallocated bounded channel (`try_send`: no allocation, no lock held
+//! across I/O, a full channel drops and counts); one writer thread serialises them to JSON and
+//! writes MCAP chunks. Owns the writer thread and the file it writes; must not touch the
+//! link, the controller or the cycle's timing, and never blocks the caller of `record`.
+
+use super::LogError;
+use super::wire::{
+    self, EVENT_SCHEMA_NAME, EVENTS_TOPIC, EventOut, MESSAGE_ENCODING, METADATA_NAME,
+    SAMPLE_SCHEMA_NAME, SCHEMA_ENCODING, SampleOut, key,
+};
+use crate::protocol::{AxisValues, JointTarget, MAX_AXES};
+use crate::rig::{JointKind, Rig};
+use mcap::records::{MessageHeader, Metadata};
+use mcap::{Compression, WriteOptions, Writer};
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{self, Receiver, Sender, SyncSender, TryRecvError, TrySendError};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+/// 8192 records: command + state at 1 kHz for 4 s, twice the 2 s a stalled disk must be
+/// ridden out for. About 4.5 MB, allocated once at `create`.
+pub const DEFAULT_CAPACITY: usize = 8192;
+/// Uncompressed bytes per chunk. A SIGKILL loses at most the open chunk: at 1 kHz with six
+/// joints this closes a chunk about every 0.2 s.
+pub const DEFAULT_CHUNK_BYTES: usize = 128 * 1024;
+/// Slow runs (few joints, 250 Hz, long pauses) still close a chunk at least this often.
+pub const DEFAULT_CHUNK_INTERVAL: Duration = Duration::from_secs(1);
+
+/// The writer polls rather than sleeps on the channel, so `try_send` never has a parked
+/// receiver to wake: no futex call on the cycle thread. 2 ms is 2 cycles at 1 kHz.
+const POLL: Duration = Duration::from_millis(2);
+/// Records written per pass before events and chunk closing get a turn.
+const BATCH: usize = 1024;
+
+/// One cycle's command or measured state, handed to [`Recorder::record`] by value.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum LogRecord {
+    /// What the bridge sent.
+    Command {
+        seq: u32,
+        t: f64,
+        positions: AxisValues,
+        velocities: AxisValues,
+    },
+    /// What the controller reported (velocities may be estimated by the caller).
+    State {
+        seq: u32,
+        t: f64,
+        positions: AxisValues,
+        velocities: AxisValues,
+    },
+}
+
+impl LogRecord {
+    pub fn command(target: &JointTarget) -> Self {
+        Self::Command {
+            seq: target.seq,
+            t: target.t,
+            positions: target.positions,
+            velocities: target.velocities,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct RecorderOptions {
+    /// Records the channel holds; [`Recorder::record`] drops (and counts) beyond this.
+    pub capacity: usize,
+    /// Close the open chunk once this many uncompressed message bytes are in it.
+    pub chunk_bytes: usize,
+    /// ... or once it has been open this long.
+    pub chunk_interval: Duration,
+    /// Recorded so `log info` can report revolute tracking error in degrees.
+    pub joint_kinds: Option<Vec<JointKind>>,
+}
+
+impl Default for RecorderOptions {
+    fn default() -> Self {
+        Self {
+            capacity: DEFAULT_CAPACITY,
+            chunk_bytes: DEFAULT_CHUNK_BYTES,
+            chunk_interval: DEFAULT_CHUNK_INTERVAL,
+            joint_kinds: None,
+        }
+    }
+}
+
+impl RecorderOptions {
+    /// Defaults plus the rig's joint kinds.
+    pub fn for_rig(rig: &Rig) -> Self {
+        Self {
+            joint_kinds: Some(rig.joints.iter().map(|j| j.kind).collect()),
+            ..Self::default()
+        }
+    }
+}
+
+/// What a finished recording holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RecorderStats {
+    pub commands: u64,
+    pub states: u64,
+    pub events: u64,
+    /// Records `record` could not queue (channel full) or the writer could not write.
+    pub dropped: u64,
+    /// File size once closed.
+    pub bytes: u64,
+}
+
+struct EventMessage {
+    t: f64,
+    kind: String,
+    detail: serde_json::Value,
+}
+
+#[derive(Default)]
+struct Written {
+    commands: u64,
+    states: u64,
+    events: u64,
+    bytes: u64,
+}
+
+/// Records one run to one MCAP file (layout: `docs/logs.md`).
+pub struct Recorder {
+    path: PathBuf,
+    records: Option<SyncSender<LogRecord>>,
+    // Unbounded: events are rare, may allocate, and must not be lost to a full channel.
+    events: Option<Sender<EventMessage>>,
+    dropped: Arc<AtomicU64>,
+    writer: Option<JoinHandle<Result<Written, LogError>>>,
+}
+
+impl Recorder {
+    /// Creates `path` (refusing to overwrite an existing file), writes the metadata record,
+    /// schemas and channels, and starts the writer thread.
+    pub fn create(
+        path: &Path,
+        rig_name: &str,
+        joint_names: &[String],
+        metadata: serde_json::Value,
+    ) -> Result<Self, LogError> {
+        Self::create_with(
+            path,
+            rig_name,
+            joint_names,
+            metadata,
+            RecorderOptions::default(),
+        )
+    }
+
+    /// [`Recorder::create`] for a rig, recording its joint kinds too.
+    pub fn for_rig(path: &Path, rig: &Rig, metadata: serde_json::Value) -> Result<Self, LogError> {
+        let names: Vec<String> = rig.joint_names().map(str::to_owned).collect();
+        Self::create_with(
+            path,
+            &rig.name,
+            &names,
+            metadata,
+            RecorderOptions::for_rig(rig),
+        )
+    }
+
+    pub fn create_with(
+        path: &Path,
+        rig_name: &str,
+        joint_names: &[String],
+        metadata: serde_json::Value,
+        options: RecorderOptions,
+    ) -> Result<Self, LogError> {
+        check_setup(rig_name, joint_names, &options)?;
+        let sink = Sink::open(path, rig_name, joint_names, &metadata, &options)?;
+        let (records_tx, records_rx) = mpsc::sync_channel(options.capacity);
+        let (events_tx, events_rx) = mpsc::channel();
+        let dropped = Arc::new(AtomicU64::new(0));
+        let thread_dropped = Arc::clone(&dropped);
+        let writer = std::thread::Builder::new()
+            .name("rigbridge-log".to_owned())
+            .spawn(move || sink.run(&records_rx, &events_rx, &thread_dropped))
+            .map_err(|e| LogError::io("starting the log writer thread", e))?;
+        Ok(Self {
+            path: path.to_owned(),
+            records: Some(records_tx),
+            events: Some(events_tx),
+            dropped,
+            writer: Some(writer),
+        })
+    }
+
+    /// Queues one record for writing. Never allocates, never waits: when the writer is
+    /// behind and the channel is full, the record is dropped and counted.
+    pub fn record(&self, record: LogRecord) {
+        let queued = match &self.records {
+            Some(records) => match records.try_send(record) {
+                Ok(()) => true,
+                Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) => false,
+            },
+            None => false,
+        };
+        if !queued {
+            self.dropped.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// Queues a job event (`job_started`, `job_ended`, `pause`, `stop`, `fault`,
+    /// `link_error`, ...). Allocates; meant for events, not for every cycle.
+    pub fn event(&self, t: f64, kind: &str, detail: serde_json::Value) {
+        if let Some(events) = &self.events {
+            // A send fails only once the writer thread has gone, which finish() reports.
+            let _ = events.send(EventMessage {
+                t,
+                kind: kind.to_owned(),
+                detail,
+            });
+        }
+    }
+
+    /// Records dropped so far.
+    pub fn dropped(&self) -> u64 {
+        self.dropped.load(Ordering::Relaxed)
+    }
+
+    /// Writes everything queued, the summary and the footer, and closes the file.
+    pub fn finish(mut self) -> Result<RecorderStats, LogError> {
+        let written = self.stop_writer()?;
+        Ok(RecorderStats {
+            commands: written.commands,
+            states: written.states,
+            events: written.events,
+            dropped: self.dropped(),
+            bytes: written.bytes,
+        })
+    }
+
+    fn stop_writer(&mut self) -> Result<Written, LogError> {
+        // Closing both channels is the writer's signal to drain and finish.
+        self.records = None;
+        self.events = None;
+        match self.writer.take() {
+            Some(handle) => handle.join().map_err(|_| LogError::WriterPanicked {
+                path: self.path.clone(),
+            })?,
+            None => Ok(Written::default()),
+        }
+    }
+}
+
+impl Drop for Recorder {
+    /// A recorder dropped without `finish` still closes its file properly.
+    fn drop(&mut self) {
+        let _ = self.stop_writer();
+    }
+}
+
+fn check_setup(rig: &str, joints: &[String], options: &RecorderOptions) -> Result<(), LogError> {
+    let problem = if rig.is_empty() {
+        Some("the rig name is empty".to_owned())
+    } else if joints.is_empty() || joints.len() > MAX_AXES {
+        Some(format!(
+            "{} joints; a log takes 1 to {MAX_AXES}",
+            joints.len()
+        ))
+    } else if options.capacity == 0 {
+        // A zero-capacity sync_channel is a rendezvous: every try_send would fail.
+        Some("channel capacity 0".to_owned())
+    } else if options.chunk_bytes == 0 {
+        Some("chunk size 0".to_owned())
+    } else {
+        options
+            .joint_kinds
+            .as_ref()
+            .filter(|kinds| kinds.len() != joints.len())
+            .map(|kinds| format!("{} joint kinds for {} joints", kinds.len(), joints.len()))
+    };
+    match problem {
+        Some(problem) => Err(LogError::Setup(problem)),
+        None => Ok(()),
+    }
+}
+
+/// The writer thread's state: the MCAP writer and what it needs to encode records.
+struct Sink {
+    path: PathBuf,
+    writer: Writer<BufWriter<File>>,
+    command_channel: u16,
+    state_channel: u16,
+    event_channel: u16,
+    joint_names: Vec<String>,
+    json: Vec<u8>,
+    open_chunk_bytes: usize,
+    chunk_opened: Option<Instant>,
+    chunk_bytes: usize,
+    chunk_interval: Duration,
+    written: Written,
+}
+
+impl Sink {
+    fn open(
+        path: &Path,
+        rig: &str,
+        joint_names: &[String],
+        metadata: &serde_json::Value,
+        options: &RecorderOptions,
+    ) -> Result<Self, LogError> {
+        let context = || format!("creating log {}", path.display());
+        let file = File::create_new(path).map_err(|e| LogError::io(context(), e))?;
+        let write_options = WriteOptions::new()
+            .compression(Some(Compression::Zstd))
+            .library(format!(
+                "rigbridge/{} {}",
+                env!("CARGO_PKG_VERSION"),
+                mcap::LIBRARY_IDENTIFIER
+            ))
+            // Chunks close when this sink says so (size or age), never inside `write`.
+            .chunk_size(None)
+            // Build each chunk in memory and write it whole: a killed run leaves complete
+            // chunks and at most one partial one at the end, never a patched-up header.
+            .disable_seeking(true)
+            // Multi-threaded zstd would add worker threads competing with the cycle.
+            .compression_threads(0);
+        let mut writer = write_options.create(BufWriter::new(file))?;
+        let kinds = options.joint_kinds.as_deref();
+        let mut identity = wire::identity_map(rig, joint_names, kinds);
+        let channel_metadata = identity.clone();
+        identity.insert(key::METADATA.to_owned(), wire::json_string(metadata));
+        writer.write_metadata(&Metadata {
+            name: METADATA_NAME.to_owned(),
+            metadata: identity,
+        })?;
+        let (command_channel, state_channel, event_channel) =
+            add_channels(&mut writer, rig, &channel_metadata)?;
+        // The first chunk holds only schemas and channels, on disk before the first cycle.
+        writer.flush()?;
+        Ok(Self {
+            path: path.to_owned(),
+            writer,
+            command_channel,
+            state_channel,
+            event_channel,
+            joint_names: joint_names.to_vec(),
+            json: Vec::with_capacity(4096),
+            open_chunk_bytes: 0,
+            chunk_opened: None,
+            chunk_bytes: options.chunk_bytes,
+            chunk_interval: options.chunk_interval,
+            written: Written::default(),
+        })
+    }
+
+    fn run(
+        mut self,
+        records: &Receiver<LogRecord>,
+        events: &Receiver<EventMessage>,
+        dropped: &AtomicU64,
+    ) -> Result<Written, LogError> {
+        let mut failure: Option<LogError> = None;
+        loop {
+            let (taken, closed) = self.pass(records, events, dropped, &mut failure);
+            if closed {
+                break;
+            }
+            if taken == 0 {
+                std::thread::sleep(POLL);
+            }
+        }
+        // Events sent before finish() are queued by now; write them last.
+        self.drain_events(events, &mut failure);
+        match failure {
+            Some(error) => Err(error),
+            None => self.close(),
+        }
+    }
+
+    /// One batch of records, then events and chunk closing. Returns how many records were
+    /// taken and whether the records channel is closed and empty.
+    fn pass(
+        &mut self,
+        records: &Receiver<LogRecord>,
+        events: &Receiver<EventMessage>,
+        dropped: &AtomicU64,
+        failure: &mut Option<LogError>,
+    ) -> (usize, bool) {
+        let mut taken = 0;
+        let mut closed = false;
+        while taken < BATCH {
+            match records.try_recv() {
+                Ok(record) => {
+                    taken += 1;
+                    if failure.is_some() {
+                        dropped.fetch_add(1, Ordering::Relaxed);
+                    } else if let Err(error) = self.write_record(&record) {
+                        dropped.fetch_add(1, Ordering::Relaxed);
+                        *failure = Some(error);
+                    }
+                }
+                Err(TryRecvError::Empty) => break,
+                Err(TryRecvError::Disconnected) => {
+                    closed = true;
+                    break;
+                }
+            }
+        }
+        self.drain_events(events, failure);
+        if failure.is_none()
+            && let Err(error) = self.close_chunk_if_old()
+        {
+            *failure = Some(error);
+        }
+        (taken, closed)
+    }
+
+    fn drain_events(&mut self, events: &Receiver<EventMessage>, failure: &mut Option<LogError>) {
+        while let Ok(event) = events.try_recv() {
+            if failure.is_none()
+                && let Err(error) = self.write_event(&event)
+            {
+                *failure = Some(error);
+            }
+        }
+    }
+
+    fn write_record(&mut self, record: &LogRecord) -> Result<(), LogError> {
+        let (channel, seq, t, positions, velocities) = match record {
+            LogRecord::Command {
+                seq,
+                t,
+                positions,
+                velocities,
+            } => (self.command_channel, seq, t, positions, velocities),
+            LogRecord::State {
+                seq,
+                t,
+                positions,
+                velocities,
+            } => (self.state_channel, seq, t, positions, velocities),
+        };
+        self.json.clear();
+        let sample = SampleOut {
+            seq: *seq,
+            t: *t,
+            name: &self.joint_names,
+            position: positions.as_slice(),
+            velocity: velocities.as_slice(),
+        };
+        serde_json::to_writer(&mut self.json, &sample)
+            .map_err(|e| LogError::io("encoding a record", e.into()))?;
+        self.write_message(channel, *seq, *t)?;
+        if channel == self.command_channel {
+            self.written.commands += 1;
+        } else {
+            self.written.states += 1;
+        }
+        Ok(())
+    }
+
+    fn write_event(&mut self, event: &EventMessage) -> Result<(), LogError> {
+        self.json.clear();
+        let out = EventOut {
+            t: event.t,
+            kind: &event.kind,
+            detail: &event.detail,
+        };
+        serde_json::to_writer(&mut self.json, &out)
+            .map_err(|e| LogError::io("encoding an event", e.into()))?;
+        let sequence = u32::try_from(self.written.events).unwrap_or(u32::MAX);
+        self.write_message(self.event_channel, sequence, event.t)?;
+        self.written.events += 1;
+        Ok(())
+    }
+
+    /// Writes `self.json` as one message stamped with job time `t`.
+    fn write_message(&mut self, channel_id: u16, sequence: u32, t: f64) -> Result<(), LogError> {
+        let time = job_time_ns(t);
+        let header = MessageHeader {
+            channel_id,
+            sequence,
+            log_time: time,
+            publish_time: time,
+        };
+        self.writer.write_to_known_channel(&header, &self.json)?;
+        self.open_chunk_bytes += self.json.len();
+        self.chunk_opened.get_or_insert_with(Instant::now);
+        if self.open_chunk_bytes >= self.chunk_bytes {
+            self.close_chunk()?;
+        }
+        Ok(())
+    }
+
+    fn close_chunk_if_old(&mut self) -> Result<(), LogError> {
+        match self.chunk_opened {
+            Some(opened) if opened.elapsed() >= self.chunk_interval => self.close_chunk(),
+            _ => Ok(()),
+        }
+    }
+
+    fn close_chunk(&mut self) -> Result<(), LogError> {
+        // Finishes the chunk and pushes it out of the BufWriter to the OS, where a killed
+        // process can no longer lose it.
+        self.writer.flush()?;
+        self.open_chunk_bytes = 0;
+        self.chunk_opened = None;
+        Ok(())
+    }
+
+    fn close(mut self) -> Result<Written, LogError> {
+        let context = || format!("closing log {}", self.path.display());
+        self.writer.finish()?;
+        let file = self
+            .writer
+            .into_inner()
+            .into_inner()
+            .map_err(|e| LogError::io(context(), e.into_error()))?;
+        file.sync_all().map_err(|e| LogError::io(context(), e))?;
+        let bytes = file
+            .metadata()
+            .map_err(|e| LogError::io(context(), e))?
+            .len();
+        Ok(Written {
+            bytes,
+            ..self.written
+        })
+    }
+}
+
+fn add_channels(
+    writer: &mut Writer<BufWriter<File>>,
+    rig: &str,
+    joint_metadata: &BTreeMap<String, String>,
+) -> Result<(u16, u16, u16), LogError> {
+    let sample_schema = wire::sample_schema();
+    let event_schema = wire::event_schema();
+    let sample = writer.add_schema(
+        SAMPLE_SCHEMA_NAME,
+        SCHEMA_ENCODING,
+        sample_schema.as_bytes(),
+    )?;
+    let event = writer.add_schema(EVENT_SCHEMA_NAME, SCHEMA_ENCODING, event_schema.as_bytes())?;
+    let command = writer.add_channel(
+        sample,
+        &wire::command_topic(rig),
+        MESSAGE_ENCODING,
+        joint_metadata,
+    )?;
+    let state = writer.add_channel(
+        sample,
+        &wire::state_topic(rig),
+        MESSAGE_ENCODING,
+        joint_metadata,
+    )?;
+    let events = writer.add_channel(event, EVENTS_TOPIC, MESSAGE_ENCODING, &BTreeMap::new())?;
+    Ok((command, state, events))
+}
+
+/// Job time in MCAP nanoseconds. Times before the job start (or not finite) become 0: MCAP
+/// timestamps are unsigned, and the exact `t` is in the message anyway.
+fn job_time_ns(t: f64) -> u64 {
+    if t.is_finite() && t > 0.0 {
+        // `as` saturates at u64::MAX (585 years), which is the right clamp here.
+        (t * 1e9).round() as u64
+    } else {
+        0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn job_time_is_clamped_nanoseconds() {
+        assert_eq!(job_time_ns(0.004), 4_000_000);
+        assert_eq!(job_time_ns(-1.0), 0);
+        assert_eq!(job_time_ns(f64::NAN), 0);
+        assert_eq!(job_time_ns(f64::INFINITY), 0);
+    }
+
+    #[test]
+    fn a_record_is_small_enough_to_preallocate_thousands() {
+        assert!(std::mem::size_of::<LogRecord>() <= 560);
+    }
+
+    #[test]
+    fn bad_setups_are_refused() {
+        let opts = RecorderOptions::default();
+        assert!(check_setup("", &["a".into()], &opts).is_err());
+        assert!(check_setup("r", &[], &opts).is_err());
+        let zero = RecorderOptions {
+            capacity: 0,
+            ..RecorderOptions::default()
+        };
+        assert!(check_setup("r", &["a".into()], &zero).is_err());
+        let kinds = RecorderOptions {
+            joint_kinds: Some(vec![]),
+            ..RecorderOptions::default()
+        };
+        assert!(check_setup("r", &["a".into()], &kinds).is_err());
+    }
+}

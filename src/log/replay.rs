@@ -1,0 +1,145 @@
+//! A run log's commands as a [`Trajectory`] to replay. Checks only what makes the samples a
+//! trajectory at all (every cycle present, one period apart, one value per joint); limits
+//! and speeds are the caller's check against the rig (`trajectory::validate`), which this
+//! must not duplicate or skip.
+
+use super::{LogError, LoggedSample, RunLog};
+use crate::trajectory::{Trajectory, TrajectoryError};
+
+/// How far a command's `t` may sit from `t0 + index * period`.
+pub const TIME_TOLERANCE_S: f64 = 1e-6;
+
+impl RunLog {
+    /// The recorded commands, sample `i` at `i * period_s` (the log's first `t` becomes 0).
+    /// Errors name the first command whose seq is not the previous one plus 1, whose `t` is
+    /// off the period grid by more than 1 us (measured from the first command, so a drift
+    /// cannot hide in per-step slack), or whose value count is not the joint count.
+    pub fn to_trajectory(&self, period_s: f64) -> Result<Trajectory, LogError> {
+        if !(period_s.is_finite() && period_s > 0.0) {
+            return Err(TrajectoryError::BadPeriod { period_s }.into());
+        }
+        let first = self.commands.first().ok_or(LogError::NoCommands)?;
+        let dof = self.joint_names.len();
+        let mut positions = Vec::with_capacity(self.commands.len() * dof);
+        let mut velocities = Vec::with_capacity(self.commands.len() * dof);
+        let mut previous: Option<&LoggedSample> = None;
+        for (index, sample) in self.commands.iter().enumerate() {
+            check_axes(index, sample, dof)?;
+            if let Some(previous) = previous {
+                check_seq(index, previous.seq, sample.seq)?;
+            }
+            check_time(index, first.t, sample, period_s)?;
+            positions.extend_from_slice(&sample.positions);
+            velocities.extend_from_slice(&sample.velocities);
+            previous = Some(sample);
+        }
+        Ok(Trajectory::new(
+            self.rig.clone(),
+            self.joint_names.clone(),
+            period_s,
+            positions,
+            velocities,
+        )?)
+    }
+}
+
+fn check_axes(index: usize, sample: &LoggedSample, dof: usize) -> Result<(), LogError> {
+    if sample.positions.len() == dof && sample.velocities.len() == dof {
+        return Ok(());
+    }
+    Err(LogError::AxisCount {
+        index,
+        seq: sample.seq,
+        positions: sample.positions.len(),
+        velocities: sample.velocities.len(),
+        dof,
+    })
+}
+
+fn check_seq(index: usize, previous: u32, seq: u32) -> Result<(), LogError> {
+    // Wrapping: a u32 seq at 1 kHz wraps after 49 days, and the wrap itself is no gap.
+    if seq == previous.wrapping_add(1) {
+        return Ok(());
+    }
+    Err(LogError::SeqGap {
+        index,
+        previous,
+        seq,
+    })
+}
+
+fn check_time(index: usize, t0: f64, sample: &LoggedSample, period_s: f64) -> Result<(), LogError> {
+    let expected = t0 + index as f64 * period_s;
+    // Written so that a NaN time fails too.
+    if (sample.t - expected).abs() <= TIME_TOLERANCE_S {
+        return Ok(());
+    }
+    Err(LogError::Uneven {
+        index,
+        seq: sample.seq,
+        t: sample.t,
+        expected,
+        period_s,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn log(samples: &[(u32, f64)]) -> RunLog {
+        RunLog {
+            rig: "r".into(),
+            joint_names: vec!["a".into()],
+            joint_kinds: None,
+            metadata: serde_json::Value::Null,
+            commands: samples
+                .iter()
+                .map(|&(seq, t)| LoggedSample {
+                    seq,
+                    t,
+                    positions: vec![t],
+                    velocities: vec![1.0],
+                })
+                .collect(),
+            states: vec![],
+            events: vec![],
+            other_messages: 0,
+            truncated: false,
+            stopped: None,
+        }
+    }
+
+    #[test]
+    fn consecutive_evenly_spaced_commands_make_a_trajectory() {
+        let trajectory = log(&[(5, 1.0), (6, 1.004), (7, 1.008)])
+            .to_trajectory(0.004)
+            .unwrap();
+        assert_eq!(trajectory.len(), 3);
+        assert_eq!(trajectory.position(2), &[1.008]);
+    }
+
+    #[test]
+    fn gaps_drift_and_bad_periods_are_named() {
+        let gap = log(&[(5, 0.0), (7, 0.004)]).to_trajectory(0.004);
+        assert!(matches!(
+            gap,
+            Err(LogError::SeqGap {
+                index: 1,
+                previous: 5,
+                seq: 7
+            })
+        ));
+        let late = log(&[(0, 0.0), (1, 0.004), (2, 0.0080011)]).to_trajectory(0.004);
+        assert!(matches!(late, Err(LogError::Uneven { index: 2, .. })));
+        let nan = log(&[(0, 0.0), (1, f64::NAN)]).to_trajectory(0.004);
+        assert!(matches!(nan, Err(LogError::Uneven { index: 1, .. })));
+        assert!(log(&[(0, 0.0)]).to_trajectory(0.0).is_err());
+        assert!(matches!(
+            log(&[]).to_trajectory(0.004),
+            Err(LogError::NoCommands)
+        ));
+        let wrap = log(&[(u32::MAX, 0.0), (0, 0.004)]).to_trajectory(0.004);
+        assert!(wrap.is_ok());
+    }
+}
