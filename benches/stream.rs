@@ -23,9 +23,9 @@ fn swing(rig: &Rig, period: f64, seconds: f64) -> Trajectory {
     let omega = std::f64::consts::TAU * 0.25;
     for i in 0..samples {
         let t = i as f64 * period;
-        for axis in 0..6 {
+        for start in START {
             let amplitude = 0.3 * (1.0 - (omega * t).cos()) / 2.0;
-            positions.push(START[axis] + amplitude);
+            positions.push(start + amplitude);
             velocities.push(0.3 * omega * (omega * t).sin() / 2.0);
         }
     }

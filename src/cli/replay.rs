@@ -1,7 +1,9 @@
 //! `rigbridge replay` and `rigbridge log info`: re-stream a recorded run against the twin,
 //! and summarise a log.
 
-use super::run::{ClockChoice, make_clock, print_stream_summary, spawn_streaming, wait, write_report};
+use super::run::{
+    ClockChoice, make_clock, print_stream_summary, spawn_streaming, wait, write_report,
+};
 use anyhow::Context;
 use clap::{Args, Subcommand};
 use rigbridge::daemon::config::load_run_settings;
@@ -49,11 +51,18 @@ pub enum LogCommand {
 }
 
 pub fn replay_command(args: ReplayArgs) -> anyhow::Result<ExitCode> {
-    anyhow::ensure!(args.link == "loopback", "--link {}: only `loopback` is available so far", args.link);
+    anyhow::ensure!(
+        args.link == "loopback",
+        "--link {}: only `loopback` is available so far",
+        args.link
+    );
     let settings = load_run_settings(&args.config).context("cannot load run settings")?;
     let log = read_log(&args.log).with_context(|| format!("cannot read {}", args.log.display()))?;
     if log.truncated {
-        eprintln!("note: {} ends early (a killed run?); replaying what it holds", args.log.display());
+        eprintln!(
+            "note: {} ends early (a killed run?); replaying what it holds",
+            args.log.display()
+        );
     }
     anyhow::ensure!(
         log.rig == settings.rig.name,
@@ -76,10 +85,20 @@ pub fn replay_command(args: ReplayArgs) -> anyhow::Result<ExitCode> {
     let record = args.record.clone();
     let job = spawn_streaming(move || {
         let mut link = LoopbackLink::new(twin);
-        Ok(replay(&log, &settings, speed, &mut link, clock.as_ref(), record.as_deref(), &job_control)?)
+        Ok(replay(
+            &log,
+            &settings,
+            speed,
+            &mut link,
+            clock.as_ref(),
+            record.as_deref(),
+            &job_control,
+        )?)
     })?;
     wait(&control, &job)?;
-    let report = job.join().map_err(|_| anyhow::anyhow!("the streaming thread panicked"))??;
+    let report = job
+        .join()
+        .map_err(|_| anyhow::anyhow!("the streaming thread panicked"))??;
     let rate_hz = report.stream.cycles as f64 / report.stream.duration_s.max(f64::MIN_POSITIVE);
     print_stream_summary("replay", &report.rig, rate_hz, clock_name, &report.stream);
     println!(

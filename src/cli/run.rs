@@ -55,16 +55,21 @@ pub fn default_log_path(prefix: &str) -> PathBuf {
 pub fn spawn_streaming<T: Send + 'static>(
     work: impl FnOnce() -> anyhow::Result<T> + Send + 'static,
 ) -> anyhow::Result<std::thread::JoinHandle<anyhow::Result<T>>> {
-    Ok(std::thread::Builder::new().name("rigbridge-stream".into()).spawn(move || {
-        if let Err(e) = rigbridge::stream::raise_priority(50) {
-            eprintln!("note: streaming at normal priority (real-time scheduling refused: {e})");
-        }
-        work()
-    })?)
+    Ok(std::thread::Builder::new()
+        .name("rigbridge-stream".into())
+        .spawn(move || {
+            if let Err(e) = rigbridge::stream::raise_priority(50) {
+                eprintln!("note: streaming at normal priority (real-time scheduling refused: {e})");
+            }
+            work()
+        })?)
 }
 
 /// Waits for the streaming thread, drawing progress and turning SIGINT/SIGTERM into a stop.
-pub async fn supervise<T>(control: &StreamControl, job: &std::thread::JoinHandle<anyhow::Result<T>>) -> anyhow::Result<()> {
+pub async fn supervise<T>(
+    control: &StreamControl,
+    job: &std::thread::JoinHandle<anyhow::Result<T>>,
+) -> anyhow::Result<()> {
     let bar = ProgressBar::new(1000).with_style(
         ProgressStyle::with_template("{bar:40} {percent:>3}% {msg}").expect("static template"),
     );
@@ -101,10 +106,19 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     let job_log = log.clone();
     let job = spawn_streaming(move || {
         let mut link = loopback_twin(&settings)?;
-        Ok(run_job(&settings, &settings.config.job.clone(), &mut link, clock.as_ref(), Some(&job_log), &job_control)?)
+        Ok(run_job(
+            &settings,
+            &settings.config.job.clone(),
+            &mut link,
+            clock.as_ref(),
+            Some(&job_log),
+            &job_control,
+        )?)
     })?;
     wait(&control, &job)?;
-    let report = job.join().map_err(|_| anyhow::anyhow!("the streaming thread panicked"))??;
+    let report = job
+        .join()
+        .map_err(|_| anyhow::anyhow!("the streaming thread panicked"))??;
     print_summary(&report);
     println!("  log: {}", log.display());
     write_report(args.report.as_deref(), &report)?;
@@ -119,26 +133,45 @@ pub fn exit_code(outcome: Outcome) -> ExitCode {
     }
 }
 
-pub fn wait<T>(control: &StreamControl, job: &std::thread::JoinHandle<anyhow::Result<T>>) -> anyhow::Result<()> {
+pub fn wait<T>(
+    control: &StreamControl,
+    job: &std::thread::JoinHandle<anyhow::Result<T>>,
+) -> anyhow::Result<()> {
     tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?
         .block_on(supervise(control, job))
 }
 
-pub fn write_report(path: Option<&std::path::Path>, report: &impl serde::Serialize) -> anyhow::Result<()> {
+pub fn write_report(
+    path: Option<&std::path::Path>,
+    report: &impl serde::Serialize,
+) -> anyhow::Result<()> {
     if let Some(path) = path {
         let json = serde_json::to_string_pretty(report)?;
-        std::fs::write(path, json + "\n").with_context(|| format!("cannot write report {}", path.display()))?;
+        std::fs::write(path, json + "\n")
+            .with_context(|| format!("cannot write report {}", path.display()))?;
     }
     Ok(())
 }
 
 fn print_summary(report: &RunReport) {
-    print_stream_summary(&report.job, &report.rig, report.rate_hz, report.clock, &report.stream);
+    print_stream_summary(
+        &report.job,
+        &report.rig,
+        report.rate_hz,
+        report.clock,
+        &report.stream,
+    );
 }
 
-pub fn print_stream_summary(job: &str, rig: &str, rate_hz: f64, clock: &str, s: &rigbridge::stream::StreamReport) {
+pub fn print_stream_summary(
+    job: &str,
+    rig: &str,
+    rate_hz: f64,
+    clock: &str,
+    s: &rigbridge::stream::StreamReport,
+) {
     println!(
         "{} on {} over {}: {:?} after {} cycles ({:.2} s at {} Hz, {} clock)",
         job, rig, s.link, s.outcome, s.cycles, s.duration_s, rate_hz, clock
@@ -149,7 +182,11 @@ pub fn print_stream_summary(job: &str, rig: &str, rate_hz: f64, clock: &str, s: 
     );
     println!(
         "  jitter p50 {:.0} us, p99 {:.0} us, max {:.0} us; latency p99 {:.0} us; tracking error max {:.3} deg",
-        s.jitter_p50_us, s.jitter_p99_us, s.jitter_max_us, s.latency_p99_us, s.tracking_error_max_deg
+        s.jitter_p50_us,
+        s.jitter_p99_us,
+        s.jitter_max_us,
+        s.latency_p99_us,
+        s.tracking_error_max_deg
     );
     if let Some(fault) = &s.fault {
         println!("  fault: {fault}");

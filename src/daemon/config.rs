@@ -73,7 +73,12 @@ impl RunSettings {
     }
 
     pub fn initial(&self) -> Vec<f64> {
-        self.config.twin.initial_deg.iter().map(|d| d.to_radians()).collect()
+        self.config
+            .twin
+            .initial_deg
+            .iter()
+            .map(|d| d.to_radians())
+            .collect()
     }
 }
 
@@ -90,7 +95,12 @@ fn check_range(file: &Path, key: &str, value: f64, low: f64, high: f64) -> Resul
     if value.is_finite() && value >= low && value <= high {
         Ok(())
     } else {
-        Err(invalid(file, key, value, &format!("must lie in [{low}, {high}]")))
+        Err(invalid(
+            file,
+            key,
+            value,
+            &format!("must lie in [{low}, {high}]"),
+        ))
     }
 }
 
@@ -108,16 +118,44 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     let rig = load_rig(&rig_path)?;
     check_range(file, "stream.rate_hz", config.stream.rate_hz, 1.0, 1000.0)?;
     if config.stream.link != "loopback" {
-        return Err(invalid(file, "stream.link", &config.stream.link, "only \"loopback\" is available so far"));
+        return Err(invalid(
+            file,
+            "stream.link",
+            &config.stream.link,
+            "only \"loopback\" is available so far",
+        ));
     }
-    check_range(file, "twin.bandwidth_hz", config.twin.bandwidth_hz, 0.1, 1000.0)?;
+    check_range(
+        file,
+        "twin.bandwidth_hz",
+        config.twin.bandwidth_hz,
+        0.1,
+        1000.0,
+    )?;
     check_range(file, "twin.delay_ms", config.twin.delay_ms, 0.0, 1000.0)?;
     if config.twin.watchdog_cycles == 0 {
-        return Err(invalid(file, "twin.watchdog_cycles", 0, "must be at least 1"));
+        return Err(invalid(
+            file,
+            "twin.watchdog_cycles",
+            0,
+            "must be at least 1",
+        ));
     }
     check_joints(file, "twin.initial_deg", &config.twin.initial_deg, &rig)?;
-    check_range(file, "plan.speed_scale", config.plan.speed_scale, 0.01, 0.99)?;
-    check_range(file, "plan.accel_scale", config.plan.accel_scale, 0.01, 0.99)?;
+    check_range(
+        file,
+        "plan.speed_scale",
+        config.plan.speed_scale,
+        0.01,
+        0.99,
+    )?;
+    check_range(
+        file,
+        "plan.accel_scale",
+        config.plan.accel_scale,
+        0.01,
+        0.99,
+    )?;
     check_job(file, &config.job, &rig)?;
     Ok(RunSettings {
         file: file.to_path_buf(),
@@ -128,7 +166,12 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
 
 fn check_joints(file: &Path, key: &str, degrees: &[f64], rig: &Rig) -> Result<(), ConfigError> {
     if degrees.len() != rig.dof() {
-        return Err(invalid(file, key, degrees, &format!("needs {} values for rig {}", rig.dof(), rig.name)));
+        return Err(invalid(
+            file,
+            key,
+            degrees,
+            &format!("needs {} values for rig {}", rig.dof(), rig.name),
+        ));
     }
     let radians: Vec<f64> = degrees.iter().map(|d| d.to_radians()).collect();
     if degrees.iter().any(|d| !d.is_finite()) {
@@ -163,7 +206,12 @@ fn check_job(file: &Path, job: &JobConfig, rig: &Rig) -> Result<(), ConfigError>
         }
         JobConfig::JointWaypoints { waypoints_deg } => {
             if waypoints_deg.is_empty() {
-                return Err(invalid(file, "job.waypoints_deg", "[]", "needs at least one waypoint"));
+                return Err(invalid(
+                    file,
+                    "job.waypoints_deg",
+                    "[]",
+                    "needs at least one waypoint",
+                ));
             }
             for (i, waypoint) in waypoints_deg.iter().enumerate() {
                 check_joints(file, &format!("job.waypoints_deg[{i}]"), waypoint, rig)?;

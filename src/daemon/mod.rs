@@ -10,11 +10,13 @@ pub mod server;
 pub use recording::RecorderSink;
 
 use crate::clock::Clock;
-use crate::log::{LogError, Recorder, RecorderStats};
 use crate::job::{JobError, plan_job};
 use crate::link::{Link, LinkError, LoopbackLink};
+use crate::log::{LogError, Recorder, RecorderStats};
 use crate::protocol::Command;
-use crate::stream::{StreamControl, StreamError, StreamReport, StreamSettings, slowdown_rate, stream};
+use crate::stream::{
+    StreamControl, StreamError, StreamReport, StreamSettings, slowdown_rate, stream,
+};
 use crate::trajectory::PlanSettings;
 use crate::twin::{Twin, TwinError, TwinSettings};
 use config::RunSettings;
@@ -38,6 +40,18 @@ pub enum DaemonError {
     Log(#[from] LogError),
     #[error("replay: {0}")]
     Replay(String),
+}
+
+/// An error and all its sources, as one line ("job refused before motion: job target 0 ...").
+pub fn error_chain(error: &dyn std::error::Error) -> String {
+    let mut text = error.to_string();
+    let mut source = error.source();
+    while let Some(cause) = source {
+        text.push_str(": ");
+        text.push_str(&cause.to_string());
+        source = cause.source();
+    }
+    text
 }
 
 /// What `run` prints and writes with `--report`.
@@ -97,7 +111,11 @@ pub fn plan_settings(settings: &RunSettings) -> PlanSettings {
 pub fn stream_settings(settings: &RunSettings) -> StreamSettings {
     StreamSettings {
         feedback_timeout: Duration::from_secs_f64(settings.period_s() / 2.0),
-        slowdown_rate_per_s: slowdown_rate(&settings.rig, settings.config.plan.speed_scale, settings.config.plan.accel_scale),
+        slowdown_rate_per_s: slowdown_rate(
+            &settings.rig,
+            settings.config.plan.speed_scale,
+            settings.config.plan.accel_scale,
+        ),
     }
 }
 
@@ -123,7 +141,11 @@ pub struct PlannedJob {
     pub trajectory: crate::trajectory::Trajectory,
 }
 
-pub fn plan_for(settings: &RunSettings, job: &config::JobConfig, link: &mut dyn Link) -> Result<PlannedJob, DaemonError> {
+pub fn plan_for(
+    settings: &RunSettings,
+    job: &config::JobConfig,
+    link: &mut dyn Link,
+) -> Result<PlannedJob, DaemonError> {
     let start = actual_position(link, stream_settings(settings).feedback_timeout)?;
     let trajectory = plan_job(job, &settings.rig, &start, &plan_settings(settings))?;
     Ok(PlannedJob {
@@ -165,14 +187,32 @@ pub fn stream_planned(
         "start": planned.start,
         "link": link.describe(),
     });
-    let recorder = log.map(|path| Recorder::for_rig(path, &settings.rig, metadata.clone())).transpose()?;
+    let recorder = log
+        .map(|path| Recorder::for_rig(path, &settings.rig, metadata.clone()))
+        .transpose()?;
     let report = match &recorder {
         Some(recorder) => {
             recorder.event(0.0, "job_started", metadata);
             let mut sink = RecorderSink::new(recorder, settings.period_s());
-            stream(trajectory, &settings.rig, link, clock, &mut sink, control, &streaming)
+            stream(
+                trajectory,
+                &settings.rig,
+                link,
+                clock,
+                &mut sink,
+                control,
+                &streaming,
+            )
         }
-        None => stream(trajectory, &settings.rig, link, clock, &mut (), control, &streaming),
+        None => stream(
+            trajectory,
+            &settings.rig,
+            link,
+            clock,
+            &mut (),
+            control,
+            &streaming,
+        ),
     };
     let log_report = match recorder {
         Some(recorder) => {
@@ -191,7 +231,11 @@ pub fn stream_planned(
         rig: settings.rig.name.clone(),
         job: job_name(&planned.job),
         rate_hz: settings.config.stream.rate_hz,
-        clock: if clock.is_virtual() { "virtual" } else { "wall" },
+        clock: if clock.is_virtual() {
+            "virtual"
+        } else {
+            "wall"
+        },
         planned_duration_s: trajectory.duration_s(),
         stream: report?,
         log: log_report,

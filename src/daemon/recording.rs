@@ -24,7 +24,12 @@ impl<'a> RecorderSink<'a> {
     fn estimated_velocity(&self, actual: &AxisValues) -> AxisValues {
         let mut velocity = AxisValues::zeros(actual.len());
         if let Some(previous) = &self.previous_actual {
-            for ((v, now), before) in velocity.as_mut_slice().iter_mut().zip(actual.as_slice()).zip(previous.as_slice()) {
+            for ((v, now), before) in velocity
+                .as_mut_slice()
+                .iter_mut()
+                .zip(actual.as_slice())
+                .zip(previous.as_slice())
+            {
                 *v = (now - before) / self.period_s;
             }
         }

@@ -33,7 +33,10 @@ fn recorded_start(log: &RunLog) -> Result<(Vec<f64>, f64), DaemonError> {
         .metadata
         .get("start")
         .and_then(|v| serde_json::from_value(v.clone()).ok());
-    let period = log.metadata.get("period_s").and_then(serde_json::Value::as_f64);
+    let period = log
+        .metadata
+        .get("period_s")
+        .and_then(serde_json::Value::as_f64);
     match (start, period) {
         (Some(start), Some(period)) if start.len() == log.joint_names.len() => Ok((start, period)),
         _ => Err(DaemonError::Replay(
@@ -45,7 +48,9 @@ fn recorded_start(log: &RunLog) -> Result<(Vec<f64>, f64), DaemonError> {
 /// The start position, then every recorded command, at `period_s`.
 pub fn replay_trajectory(log: &RunLog, speed: f64) -> Result<(Trajectory, Vec<f64>), DaemonError> {
     if !(speed.is_finite() && speed > 0.0) {
-        return Err(DaemonError::Replay(format!("speed {speed} must be a positive number")));
+        return Err(DaemonError::Replay(format!(
+            "speed {speed} must be a positive number"
+        )));
     }
     let (start, period) = recorded_start(log)?;
     let commands = log.to_trajectory(period)?;
@@ -55,8 +60,14 @@ pub fn replay_trajectory(log: &RunLog, speed: f64) -> Result<(Trajectory, Vec<f6
         positions.extend_from_slice(commands.position(sample));
         velocities.extend(commands.velocity(sample).iter().map(|v| v * speed));
     }
-    let trajectory = Trajectory::new(log.rig.clone(), log.joint_names.clone(), period / speed, positions, velocities)
-        .map_err(LogError::from)?;
+    let trajectory = Trajectory::new(
+        log.rig.clone(),
+        log.joint_names.clone(),
+        period / speed,
+        positions,
+        velocities,
+    )
+    .map_err(LogError::from)?;
     Ok((trajectory, start))
 }
 
@@ -72,7 +83,9 @@ struct Comparison<'a> {
 impl CycleSink for Comparison<'_> {
     fn record(&mut self, cycle: &CycleRecord) {
         self.sent_seqs.push(cycle.target.seq);
-        if let (Some(feedback), Some(then)) = (&cycle.feedback, self.recorded.get(&cycle.target.seq)) {
+        if let (Some(feedback), Some(then)) =
+            (&cycle.feedback, self.recorded.get(&cycle.target.seq))
+        {
             for (now, then) in feedback.positions.as_slice().iter().zip(then.iter()) {
                 self.max_deviation = self.max_deviation.max((now - then).abs().to_degrees());
             }
@@ -98,20 +111,36 @@ pub fn replay(
         .map(|path| Recorder::for_rig(path, &settings.rig, log.metadata.clone()))
         .transpose()?;
     let mut comparison = Comparison {
-        recorded: log.states.iter().map(|s| (s.seq, s.positions.as_slice())).collect(),
+        recorded: log
+            .states
+            .iter()
+            .map(|s| (s.seq, s.positions.as_slice()))
+            .collect(),
         recorded_seqs: log.commands.iter().map(|c| c.seq).collect(),
         sent_seqs: Vec::with_capacity(log.commands.len()),
         max_deviation: 0.0,
-        recorder: recorder.as_ref().map(|r| RecorderSink::new(r, trajectory.period_s)),
+        recorder: recorder
+            .as_ref()
+            .map(|r| RecorderSink::new(r, trajectory.period_s)),
     };
     let mut streaming = stream_settings(settings);
     streaming.feedback_timeout = std::time::Duration::from_secs_f64(trajectory.period_s / 2.0);
-    let result = stream(&trajectory, &settings.rig, link, clock, &mut comparison, control, &streaming);
+    let result = stream(
+        &trajectory,
+        &settings.rig,
+        link,
+        clock,
+        &mut comparison,
+        control,
+        &streaming,
+    );
     let same_sequence = comparison.sent_seqs == comparison.recorded_seqs;
     let max_deviation = comparison.max_deviation;
     drop(comparison);
     let log_report = match recorder {
-        Some(recorder) => record_to.map(|path| recorder.finish().map(|stats| LogReport::new(path, stats))).transpose()?,
+        Some(recorder) => record_to
+            .map(|path| recorder.finish().map(|stats| LogReport::new(path, stats)))
+            .transpose()?,
         None => None,
     };
     let report = result?;

@@ -73,7 +73,11 @@ struct JobRequest {
 }
 
 fn error(status: StatusCode, message: impl std::fmt::Display) -> Response {
-    (status, Json(serde_json::json!({ "error": message.to_string() }))).into_response()
+    (
+        status,
+        Json(serde_json::json!({ "error": message.to_string() })),
+    )
+        .into_response()
 }
 
 /// Serves the control API on `listener` until `shutdown` completes; then stops any job
@@ -132,16 +136,23 @@ fn job_running(shared: &Shared) -> bool {
 
 async fn status(State(shared): State<Arc<Shared>>) -> Response {
     let job = shared.job.lock().ok().and_then(|job| {
-        job.as_ref().filter(|j| !j.handle.is_finished()).map(|j| JobStatus {
-            id: j.id,
-            name: j.name.clone(),
-            progress: j.control.progress(),
-            cycles: j.control.cycles(),
-            paused: j.control.is_paused(),
-        })
+        job.as_ref()
+            .filter(|j| !j.handle.is_finished())
+            .map(|j| JobStatus {
+                id: j.id,
+                name: j.name.clone(),
+                progress: j.control.progress(),
+                cycles: j.control.cycles(),
+                paused: j.control.is_paused(),
+            })
     });
     let actual_deg = match shared.link.try_lock() {
-        Ok(link) => link.twin().actual().iter().map(|q| q.to_degrees()).collect(),
+        Ok(link) => link
+            .twin()
+            .actual()
+            .iter()
+            .map(|q| q.to_degrees())
+            .collect(),
         Err(_) => Vec::new(),
     };
     let state = match &job {
@@ -159,11 +170,29 @@ async fn status(State(shared): State<Arc<Shared>>) -> Response {
     .into_response()
 }
 
-async fn submit(State(shared): State<Arc<Shared>>, body: Option<Json<JobRequest>>) -> Response {
+async fn submit(State(shared): State<Arc<Shared>>, body: axum::body::Bytes) -> Response {
     if job_running(&shared) {
-        return error(StatusCode::CONFLICT, "a job is already running: stop it or wait");
+        return error(
+            StatusCode::CONFLICT,
+            "a job is already running: stop it or wait",
+        );
     }
-    let job = body.and_then(|Json(r)| r.job).unwrap_or_else(|| shared.settings.config.job.clone());
+    let request: JobRequest = if body.iter().all(u8::is_ascii_whitespace) {
+        JobRequest { job: None }
+    } else {
+        match serde_json::from_slice(&body) {
+            Ok(request) => request,
+            Err(e) => {
+                return error(
+                    StatusCode::BAD_REQUEST,
+                    format!("job request is not valid: {e}"),
+                );
+            }
+        }
+    };
+    let job = request
+        .job
+        .unwrap_or_else(|| shared.settings.config.job.clone());
     let id = {
         let Ok(mut next) = shared.next_id.lock() else {
             return error(StatusCode::INTERNAL_SERVER_ERROR, "state lock poisoned");
@@ -187,9 +216,16 @@ async fn submit(State(shared): State<Arc<Shared>>, body: Option<Json<JobRequest>
         });
     }
     match planned_rx.await {
-        Ok(Ok(())) => (StatusCode::ACCEPTED, Json(serde_json::json!({ "id": id, "job": name }))).into_response(),
+        Ok(Ok(())) => (
+            StatusCode::ACCEPTED,
+            Json(serde_json::json!({ "id": id, "job": name })),
+        )
+            .into_response(),
         Ok(Err(message)) => error(StatusCode::UNPROCESSABLE_ENTITY, message),
-        Err(_) => error(StatusCode::INTERNAL_SERVER_ERROR, "the job thread ended before planning"),
+        Err(_) => error(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "the job thread ended before planning",
+        ),
     }
 }
 
@@ -214,14 +250,26 @@ fn spawn_job(
             return;
         };
         let plan = plan_for(&shared.settings, &job, &mut *link);
-        let _ = planned.send(plan.as_ref().map(|_| ()).map_err(|e| e.to_string()));
-        let result = plan.and_then(|plan| stream_planned(&shared.settings, &plan, &mut *link, clock.as_ref(), Some(&log), &control));
+        let _ = planned.send(plan.as_ref().map(|_| ()).map_err(|e| super::error_chain(e)));
+        let result = plan.and_then(|plan| {
+            stream_planned(
+                &shared.settings,
+                &plan,
+                &mut *link,
+                clock.as_ref(),
+                Some(&log),
+                &control,
+            )
+        });
         let outcome = match result {
             Ok(report) => JobResult::Finished {
                 id,
                 report: Box::new(report),
             },
-            Err(e) => JobResult::Failed { id, error: e.to_string() },
+            Err(e) => JobResult::Failed {
+                id,
+                error: super::error_chain(&e),
+            },
         };
         if let Ok(mut last) = shared.last.lock() {
             *last = Some(outcome);

@@ -29,17 +29,30 @@ pub fn star_poses(wall_x: f64, centre_yz: [f64; 2], radius: f64, laps: u32) -> V
     let facing_wall = DQuat::from_rotation_y(std::f64::consts::FRAC_PI_2);
     let corner = |k: u32| {
         // Every second vertex of a pentagon draws the star in one stroke.
-        let angle = std::f64::consts::FRAC_PI_2 + f64::from(2 * k % 5) * std::f64::consts::TAU / 5.0;
+        let angle =
+            std::f64::consts::FRAC_PI_2 + f64::from(2 * k % 5) * std::f64::consts::TAU / 5.0;
         Pose::new(
-            DVec3::new(wall_x, centre_yz[0] + radius * angle.cos(), centre_yz[1] + radius * angle.sin()),
+            DVec3::new(
+                wall_x,
+                centre_yz[0] + radius * angle.cos(),
+                centre_yz[1] + radius * angle.sin(),
+            ),
             facing_wall,
         )
     };
-    (0..laps * 5).map(|k| corner(k % 5)).chain(std::iter::once(corner(0))).collect()
+    (0..laps * 5)
+        .map(|k| corner(k % 5))
+        .chain(std::iter::once(corner(0)))
+        .collect()
 }
 
 /// Plans the whole job from `start` (the controller's position) back to `start`.
-pub fn plan_job(job: &JobConfig, rig: &Rig, start: &[f64], settings: &PlanSettings) -> Result<Trajectory, JobError> {
+pub fn plan_job(
+    job: &JobConfig,
+    rig: &Rig,
+    start: &[f64],
+    settings: &PlanSettings,
+) -> Result<Trajectory, JobError> {
     match job {
         JobConfig::WallFigure {
             wall_x_m,
@@ -49,12 +62,15 @@ pub fn plan_job(job: &JobConfig, rig: &Rig, start: &[f64], settings: &PlanSettin
         } => {
             let solver = FabrikSolver::new(rig.clone())?;
             let poses = star_poses(*wall_x_m, *centre_yz_m, *radius_m, *laps);
-            let first = solver.solve(&poses[0], start).map_err(|error| JobError::Unreachable {
-                index: 0,
-                what: format!("star corner at {:?}", poses[0].position),
-                error,
-            })?;
-            let mut trajectory = plan_joint_moves(rig, start, std::slice::from_ref(&first.joints), settings)?;
+            let first = solver
+                .solve(&poses[0], start)
+                .map_err(|error| JobError::Unreachable {
+                    index: 0,
+                    what: format!("star corner at {:?}", poses[0].position),
+                    error,
+                })?;
+            let mut trajectory =
+                plan_joint_moves(rig, start, std::slice::from_ref(&first.joints), settings)?;
             let figure = plan_cartesian(&solver, &first.joints, &poses[1..], settings)?;
             trajectory.append(&figure);
             let end = figure.position(figure.len() - 1).to_vec();
