@@ -386,7 +386,7 @@ fn small_run(name: &str) -> Recorded {
         chunk_bytes: 2048,
         ..RecorderOptions::default()
     };
-    record_run(name, 16, options)
+    record_run(name, 12, options)
 }
 
 fn same_data(a: &RunLog, b: &RunLog) -> bool {
@@ -412,7 +412,9 @@ fn every_cut_and_every_flipped_byte_of_a_small_file_is_survived() {
     }
     let mut damaged = run.bytes.clone();
     let (mut errors, mut truncated, mut intact) = (0, 0, 0);
-    for offset in 0..damaged.len() {
+    // Every byte of the data section; the summary after it is never read, so a sample will do.
+    let offsets = (0..data_end).chain((data_end..damaged.len()).step_by(7));
+    for offset in offsets {
         for flip in [0xFF, 0x01] {
             damaged[offset] ^= flip;
             match read_log_from(damaged.as_slice()) {
@@ -432,7 +434,8 @@ fn every_cut_and_every_flipped_byte_of_a_small_file_is_survived() {
         }
     }
     println!(
-        "{} bytes x 2 flips: {errors} errors, {truncated} truncated, {intact} unaffected",
+        "{} bytes ({data_end} of data section), 2 flips each: {errors} errors, \
+         {truncated} truncated, {intact} unaffected",
         damaged.len()
     );
     let _ = std::fs::remove_file(&run.path);
@@ -482,7 +485,7 @@ fn random_bytes_never_panic() {
         let noise = rng.bytes(len);
         bytes[at..at + len].copy_from_slice(&noise);
         if let Ok(log) = read_log_from(bytes.as_slice()) {
-            assert!(log.truncated || log.commands.len() == 16);
+            assert!(log.truncated || log.commands.len() == 12);
         }
     }
     let _ = std::fs::remove_file(&run.path);

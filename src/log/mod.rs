@@ -19,7 +19,11 @@ mod summary;
 mod wire;
 
 pub use reader::{read_log, read_log_from};
-pub use recorder::{LogRecord, Recorder, RecorderOptions, RecorderStats};
+pub use recorder::{
+    DEFAULT_CAPACITY, DEFAULT_CHUNK_BYTES, DEFAULT_CHUNK_INTERVAL, LogRecord, MAX_CHUNK_BYTES,
+    Recorder, RecorderOptions, RecorderStats,
+};
+pub use replay::TIME_TOLERANCE_S;
 pub use summary::{ChannelSummary, LogSummary, SeqGap, TrackingError, summarize};
 pub use wire::{EVENTS_TOPIC, METADATA_NAME, command_topic, state_topic};
 

@@ -29,6 +29,8 @@ pub const DEFAULT_CAPACITY: usize = 8192;
 /// Uncompressed bytes per chunk. A SIGKILL loses at most the open chunk: at 1 kHz with six
 /// joints this closes a chunk about every 0.2 s.
 pub const DEFAULT_CHUNK_BYTES: usize = 128 * 1024;
+/// Largest chunk size accepted; `read_log` takes records up to 64 MiB, with room to spare.
+pub const MAX_CHUNK_BYTES: usize = 16 << 20;
 /// Slow runs (few joints, 250 Hz, long pauses) still close a chunk at least this often.
 pub const DEFAULT_CHUNK_INTERVAL: Duration = Duration::from_secs(1);
 
@@ -269,8 +271,11 @@ fn check_setup(rig: &str, joints: &[String], options: &RecorderOptions) -> Resul
     } else if options.capacity == 0 {
         // A zero-capacity sync_channel is a rendezvous: every try_send would fail.
         Some("channel capacity 0".to_owned())
-    } else if options.chunk_bytes == 0 {
-        Some("chunk size 0".to_owned())
+    } else if options.chunk_bytes == 0 || options.chunk_bytes > MAX_CHUNK_BYTES {
+        Some(format!(
+            "chunk size {} bytes; a log takes 1 to {MAX_CHUNK_BYTES}",
+            options.chunk_bytes
+        ))
     } else {
         options
             .joint_kinds
