@@ -14,6 +14,7 @@ const ZERO_SEED: [f64; 6] = [0.0; 6];
 fn round_trip_failures(solver: &FabrikSolver, configurations: &[Vec<f64>]) -> Vec<String> {
     let rig = solver.rig();
     let mut failures = Vec::new();
+    let (mut worst_position, mut worst_rotation) = (0.0f64, 0.0f64);
     for joints in configurations {
         let pose = rig.tool_pose(joints).unwrap();
         match solver.solve(&pose, &ZERO_SEED) {
@@ -24,6 +25,8 @@ fn round_trip_failures(solver: &FabrikSolver, configurations: &[Vec<f64>]) -> Ve
                     reached.orientation_error(&pose),
                 );
                 let outside = rig.first_limit_violation(&solution.joints);
+                worst_position = worst_position.max(p);
+                worst_rotation = worst_rotation.max(r);
                 if p > 1e-6 || r > 1e-6 || outside.is_some() {
                     failures.push(format!(
                         "{joints:?}: errors {p:e} m {r:e} rad, outside {outside:?}"
@@ -33,6 +36,11 @@ fn round_trip_failures(solver: &FabrikSolver, configurations: &[Vec<f64>]) -> Ve
             Err(e) => failures.push(format!("{:?}: {e}", common::degrees(joints))),
         }
     }
+    eprintln!(
+        "{} poses: {} failed; worst errors {worst_position:.3e} m, {worst_rotation:.3e} rad",
+        configurations.len(),
+        failures.len()
+    );
     failures
 }
 

@@ -106,14 +106,22 @@ fn load(rig: &Path) -> anyhow::Result<Rig> {
     load_rig(rig).context("cannot load the rig")
 }
 
-fn report(summary: &BatchSummary, elapsed: std::time::Duration) {
+fn report(summary: &BatchSummary, elapsed: std::time::Duration, with_errors: bool) {
     let per_row = if summary.rows > 0 {
         elapsed.as_secs_f64() * 1e6 / summary.rows as f64
     } else {
         0.0
     };
+    let errors = if with_errors {
+        format!(
+            "; max error {:.3e} m, {:.3e} rad",
+            summary.max_position_error_m, summary.max_orientation_error_rad
+        )
+    } else {
+        String::new()
+    };
     eprintln!(
-        "{} rows: {} ok, {} failed ({}); {:.3} s, {per_row:.2} us per row; max error {:.3e} m, {:.3e} rad",
+        "{} rows: {} ok, {} failed ({}); {:.3} s, {per_row:.2} us per row{errors}",
         summary.rows,
         summary.solved,
         summary.failed.values().sum::<usize>(),
@@ -128,8 +136,6 @@ fn report(summary: &BatchSummary, elapsed: std::time::Duration) {
                 .join(", ")
         },
         elapsed.as_secs_f64(),
-        summary.max_position_error_m,
-        summary.max_orientation_error_rad,
     );
 }
 
@@ -151,7 +157,7 @@ pub fn fk(args: FkArgs) -> anyhow::Result<ExitCode> {
     let summary = fk_batch(&rig, input, output, |n| bar.set_position(n as u64))
         .with_context(|| format!("fk batch on {}", args.input.display()))?;
     bar.finish_and_clear();
-    report(&summary, start.elapsed());
+    report(&summary, start.elapsed(), false);
     Ok(exit_code(&summary))
 }
 
@@ -185,6 +191,6 @@ pub fn ik(args: IkArgs) -> anyhow::Result<ExitCode> {
     })
     .with_context(|| format!("ik batch on {}", args.input.display()))?;
     bar.finish_and_clear();
-    report(&summary, start.elapsed());
+    report(&summary, start.elapsed(), true);
     Ok(exit_code(&summary))
 }
