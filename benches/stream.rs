@@ -44,10 +44,7 @@ fn run(rig: &Rig, rate_hz: f64, seconds: f64) -> bool {
         &START,
     )
     .expect("twin");
-    let settings = StreamSettings {
-        feedback_timeout: Duration::from_secs_f64(period / 2.0),
-        slowdown_rate_per_s: slowdown_rate(rig, 0.9, 0.8),
-    };
+    let settings = StreamSettings::new(period, slowdown_rate(rig, 0.9, 0.8));
     let report = stream(
         &swing(rig, period, seconds),
         rig,

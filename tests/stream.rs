@@ -42,10 +42,7 @@ fn link(rig: &Rig) -> LoopbackLink {
 }
 
 fn settings(rig: &Rig) -> StreamSettings {
-    StreamSettings {
-        feedback_timeout: Duration::from_millis(2),
-        slowdown_rate_per_s: slowdown_rate(rig, 0.9, 0.8),
-    }
+    StreamSettings::new(PERIOD, slowdown_rate(rig, 0.9, 0.8))
 }
 
 #[derive(Default)]

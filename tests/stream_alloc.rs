@@ -47,10 +47,7 @@ fn allocations_while_streaming(samples: usize) -> usize {
     let mut link = LoopbackLink::new(Twin::new(&rig, TwinSettings::default(), &START).unwrap());
     let clock = VirtualClock::new();
     let control = StreamControl::default();
-    let settings = StreamSettings {
-        feedback_timeout: Duration::from_millis(2),
-        slowdown_rate_per_s: slowdown_rate(&rig, 0.9, 0.8),
-    };
+    let settings = StreamSettings::new(0.004, slowdown_rate(&rig, 0.9, 0.8));
     let before = ALLOCATIONS.load(Ordering::SeqCst);
     let report = stream(
         &trajectory,

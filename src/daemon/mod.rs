@@ -109,14 +109,14 @@ pub fn plan_settings(settings: &RunSettings) -> PlanSettings {
 }
 
 pub fn stream_settings(settings: &RunSettings) -> StreamSettings {
-    StreamSettings {
-        feedback_timeout: Duration::from_secs_f64(settings.period_s() / 2.0),
-        slowdown_rate_per_s: slowdown_rate(
+    StreamSettings::new(
+        settings.period_s(),
+        slowdown_rate(
             &settings.rig,
             settings.config.plan.speed_scale,
             settings.config.plan.accel_scale,
         ),
-    }
+    )
 }
 
 /// The in-process twin at the configured initial position, behind a loopback link.

@@ -2,8 +2,10 @@
 //! backend. A link owns its transport and framing; it never interprets motion (that is the
 //! streamer's job) and never changes a command's values.
 
+mod channel;
 mod loopback;
 
+pub use channel::{CHANNEL_DEPTH, ChannelLink, IoEnds, LinkShared};
 pub use loopback::LoopbackLink;
 
 use crate::protocol::{Command, Feedback};
@@ -36,4 +38,10 @@ pub trait Link: Send {
     fn counters(&self) -> LinkCounters;
     /// A short description for summaries, such as `loopback` or `tcp://127.0.0.1:7000`.
     fn describe(&self) -> String;
+    /// False while the transport is down (a link that reconnects is between attempts).
+    fn is_up(&self) -> bool {
+        true
+    }
+    /// Discards feedback that arrived before now (stale after a reconnect).
+    fn drain(&mut self) {}
 }

@@ -26,6 +26,8 @@ use thiserror::Error;
 
 /// Timing histograms reach 100 ms; anything later is counted there.
 const HISTOGRAM_CEILING_US: usize = 100_000;
+/// Send times kept for matching feedback to its target (by seq modulo this).
+const SEND_TIMES: usize = 256;
 
 #[derive(Debug, Error)]
 pub enum StreamError {
@@ -54,6 +56,8 @@ pub enum Outcome {
     Faulted,
     /// The safety gate refused a target: a bug upstream, never sent.
     GateRefused,
+    /// No feedback for `max_silent_cycles`, or the link reports it is down.
+    LinkLost,
 }
 
 /// Pause, stop and e-stop requests, and progress, shared with whoever runs the job.
@@ -111,8 +115,24 @@ impl CycleSink for () {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StreamSettings {
     pub feedback_timeout: Duration,
+    /// Cycles in a row without feedback before the link counts as lost.
+    pub max_silent_cycles: u32,
+    /// Sequence number of the first target (a resumed job continues its numbering).
+    pub first_seq: u32,
     /// How fast pause and stop may change the time scale (1/s). See [`slowdown_rate`].
     pub slowdown_rate_per_s: f64,
+}
+
+impl StreamSettings {
+    /// Feedback awaited for half a period; the link counts as lost after 0.1 s of silence.
+    pub fn new(period_s: f64, slowdown_rate_per_s: f64) -> Self {
+        Self {
+            feedback_timeout: Duration::from_secs_f64(period_s / 2.0),
+            max_silent_cycles: (0.1 / period_s).ceil() as u32,
+            first_seq: 0,
+            slowdown_rate_per_s,
+        }
+    }
 }
 
 /// The fastest time-scale change that keeps every axis within its max acceleration, given
@@ -142,6 +162,8 @@ pub struct StreamReport {
     pub latency_p99_us: f64,
     pub tracking_error_max_deg: f64,
     pub duration_s: f64,
+    /// Whole trajectory samples passed when streaming ended (where to resume after a loss).
+    pub samples_done: usize,
     pub link: String,
     pub frames_sent: u64,
     pub frames_received: u64,
@@ -180,8 +202,12 @@ pub fn stream(
             break Outcome::GateRefused;
         };
         link.send(&Command::Target(target))?;
-        let feedback = link.receive(settings.feedback_timeout)?;
-        cycle.record_feedback(feedback.as_ref(), &target, clock.now().saturating_sub(woke));
+        cycle.sent_at[target.seq as usize % SEND_TIMES] = clock.now();
+        let mut feedback = link.receive(settings.feedback_timeout)?;
+        while let Some(newer) = link.receive(Duration::ZERO)? {
+            feedback = Some(newer);
+        }
+        cycle.record_feedback(feedback.as_ref(), &target, clock.now());
         sink.record(&CycleRecord { target, feedback });
         control.cycles.store(cycle.seq as u64, Ordering::Relaxed);
         control
@@ -194,6 +220,9 @@ pub fn stream(
         if let Some(outcome) = finished {
             link.send(&Command::Stop)?;
             break outcome;
+        }
+        if cycle.silent_cycles > settings.max_silent_cycles || !link.is_up() {
+            break Outcome::LinkLost;
         }
     };
     Ok(cycle.report(
@@ -255,12 +284,18 @@ struct Cycle {
     tracking_max: f64,
     revolute: Vec<bool>,
     fault: Option<String>,
+    sent_at: [Duration; SEND_TIMES],
+    silent_cycles: u32,
+    first_seq: u32,
 }
 
 impl Cycle {
     fn new(trajectory: &Trajectory, rig: &Rig, settings: &StreamSettings) -> Self {
         Self {
-            seq: 0,
+            seq: settings.first_seq,
+            first_seq: settings.first_seq,
+            sent_at: [Duration::ZERO; SEND_TIMES],
+            silent_cycles: 0,
             path: 0.0,
             scale: 1.0,
             scale_step: settings.slowdown_rate_per_s * trajectory.period_s,
@@ -407,7 +442,7 @@ impl Cycle {
         StreamReport {
             outcome,
             fault: self.fault,
-            cycles: u64::from(self.seq),
+            cycles: u64::from(self.seq - self.first_seq),
             missed_cycles: self.missed,
             limit_violations: self.violations,
             feedback_timeouts: self.timeouts,
@@ -417,7 +452,8 @@ impl Cycle {
             latency_p50_us: self.latency.percentile(0.5),
             latency_p99_us: self.latency.percentile(0.99),
             tracking_error_max_deg: self.tracking_max,
-            duration_s: f64::from(self.seq) * period_s,
+            duration_s: f64::from(self.seq - self.first_seq) * period_s,
+            samples_done: self.path.floor() as usize,
             link,
             frames_sent: counters.frames_sent,
             frames_received: counters.frames_received,

@@ -1,0 +1,143 @@
+//! The cycle's side of every byte link: commands go to the link's I/O thread through a
+//! bounded channel, feedback comes back through another, so the cycle never blocks on a
+//! socket or a serial port and never allocates. The I/O threads (one file per backend)
+//! own the transport, the framing and the reconnects.
+
+use super::{Link, LinkCounters, LinkError};
+use crate::protocol::{Command, Feedback};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender};
+use std::time::Duration;
+use tokio::sync::mpsc::error::TrySendError;
+
+/// Frames in flight each way: a few cycles' worth; more would only add latency.
+pub const CHANNEL_DEPTH: usize = 16;
+
+/// Counters and state shared between the cycle and an I/O thread.
+#[derive(Debug, Default)]
+pub struct LinkShared {
+    pub frames_sent: AtomicU64,
+    pub frames_received: AtomicU64,
+    pub crc_errors: AtomicU64,
+    pub duplicates: AtomicU64,
+    pub gaps: AtomicU64,
+    pub reconnects: AtomicU64,
+    /// Commands the cycle could not hand over (I/O thread behind or disconnected).
+    pub dropped_commands: AtomicU64,
+    pub connected: AtomicBool,
+    pub closed: AtomicBool,
+}
+
+impl LinkShared {
+    pub fn counters(&self) -> LinkCounters {
+        let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
+        LinkCounters {
+            frames_sent: get(&self.frames_sent),
+            frames_received: get(&self.frames_received),
+            crc_errors: get(&self.crc_errors),
+            duplicates: get(&self.duplicates),
+            gaps: get(&self.gaps),
+            reconnects: get(&self.reconnects),
+        }
+    }
+
+    pub fn count(counter: &AtomicU64) {
+        counter.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+/// What an I/O thread gets: the commands to write, where to put feedback, the counters.
+pub struct IoEnds {
+    /// tokio's channel: an async I/O task can await it, a thread can `blocking_recv` it,
+    /// and the cycle's `try_send` needs no runtime.
+    pub commands: tokio::sync::mpsc::Receiver<Command>,
+    pub feedback: SyncSender<Feedback>,
+    pub shared: Arc<LinkShared>,
+}
+
+pub struct ChannelLink {
+    commands: tokio::sync::mpsc::Sender<Command>,
+    feedback: Receiver<Feedback>,
+    shared: Arc<LinkShared>,
+    description: String,
+}
+
+impl ChannelLink {
+    /// A link and the ends its I/O thread works with.
+    pub fn pair(description: String) -> (Self, IoEnds) {
+        let (command_tx, command_rx) = tokio::sync::mpsc::channel(CHANNEL_DEPTH);
+        let (feedback_tx, feedback_rx) = std::sync::mpsc::sync_channel(CHANNEL_DEPTH);
+        let shared = Arc::new(LinkShared::default());
+        (
+            Self {
+                commands: command_tx,
+                feedback: feedback_rx,
+                shared: shared.clone(),
+                description,
+            },
+            IoEnds {
+                commands: command_rx,
+                feedback: feedback_tx,
+                shared,
+            },
+        )
+    }
+
+    pub fn is_connected(&self) -> bool {
+        self.shared.connected.load(Ordering::SeqCst)
+    }
+
+    pub fn shared(&self) -> &LinkShared {
+        &self.shared
+    }
+}
+
+impl Drop for ChannelLink {
+    fn drop(&mut self) {
+        self.shared.closed.store(true, Ordering::SeqCst);
+    }
+}
+
+impl Link for ChannelLink {
+    fn send(&mut self, command: &Command) -> Result<(), LinkError> {
+        match self.commands.try_send(*command) {
+            Ok(()) => Ok(()),
+            Err(TrySendError::Full(_)) => {
+                LinkShared::count(&self.shared.dropped_commands);
+                Ok(())
+            }
+            Err(TrySendError::Closed(_)) => Err(LinkError::Closed(format!(
+                "{}: I/O thread ended",
+                self.description
+            ))),
+        }
+    }
+
+    fn receive(&mut self, timeout: Duration) -> Result<Option<Feedback>, LinkError> {
+        match self.feedback.recv_timeout(timeout) {
+            Ok(feedback) => Ok(Some(feedback)),
+            Err(RecvTimeoutError::Timeout) => Ok(None),
+            Err(RecvTimeoutError::Disconnected) => Err(LinkError::Closed(format!(
+                "{}: I/O thread ended",
+                self.description
+            ))),
+        }
+    }
+
+    fn counters(&self) -> LinkCounters {
+        self.shared.counters()
+    }
+
+    fn describe(&self) -> String {
+        self.description.clone()
+    }
+
+    fn is_up(&self) -> bool {
+        self.is_connected()
+    }
+
+    fn drain(&mut self) {
+        while self.feedback.try_recv().is_ok() {}
+    }
+}
