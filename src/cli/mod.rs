@@ -5,6 +5,7 @@ mod batch;
 mod replay;
 mod run;
 mod serve;
+mod twin;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -33,6 +34,8 @@ enum Command {
     Serve(serve::ServeArgs),
     /// Re-stream a recorded run's commands with their timing, validated again against the rig.
     Replay(replay::ReplayArgs),
+    /// The simulated controller as its own process, on a TCP port, a serial line, a pty or CAN.
+    Twin(twin::TwinArgs),
     /// Inspect run logs.
     #[command(subcommand)]
     Log(replay::LogCommand),
@@ -46,5 +49,6 @@ pub fn run() -> anyhow::Result<ExitCode> {
         Command::Serve(args) => serve::serve(args),
         Command::Replay(args) => replay::replay_command(args),
         Command::Log(command) => replay::log_command(command),
+        Command::Twin(args) => twin::twin(args),
     }
 }

@@ -7,7 +7,8 @@ use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use rigbridge::clock::{Clock, VirtualClock, WallClock};
 use rigbridge::daemon::config::load_run_settings;
-use rigbridge::daemon::{RunReport, loopback_twin, run_job};
+use rigbridge::daemon::{RunReport, open_link, run_job};
+use rigbridge::link::LinkSpec;
 use rigbridge::stream::{Outcome, StreamControl};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -27,6 +28,10 @@ pub struct RunArgs {
     /// Run settings: rig, stream rate, twin, plan and job.
     #[arg(long, default_value = "config/rigbridge.toml")]
     config: PathBuf,
+    /// Where to stream (overrides the config): loopback, tcp://HOST:PORT,
+    /// serial:///dev/PATH?baud=N or can://IFACE.
+    #[arg(long)]
+    link: Option<String>,
     /// Record the run to this MCAP file (default: runs/run-<unix time>.mcap).
     #[arg(long)]
     log: Option<PathBuf>,
@@ -104,12 +109,18 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     let clock = make_clock(args.clock);
     let job_control = control.clone();
     let job_log = log.clone();
+    let spec: LinkSpec = args
+        .link
+        .as_deref()
+        .unwrap_or(&settings.config.stream.link)
+        .parse()?;
     let job = spawn_streaming(move || {
-        let mut link = loopback_twin(&settings)?;
+        let mut link = open_link(&spec, &settings)?;
+        let job = settings.config.job.clone();
         Ok(run_job(
             &settings,
-            &settings.config.job.clone(),
-            &mut link,
+            &job,
+            link.as_mut(),
             clock.as_ref(),
             Some(&job_log),
             &job_control,

@@ -23,10 +23,17 @@ pub struct StreamConfig {
     pub rate_hz: f64,
     #[serde(default = "default_link")]
     pub link: String,
+    /// After a link loss, how long to wait for the link before aborting the job.
+    #[serde(default = "default_reconnect_timeout")]
+    pub reconnect_timeout_s: f64,
 }
 
 fn default_link() -> String {
     "loopback".to_string()
+}
+
+fn default_reconnect_timeout() -> f64 {
+    5.0
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -117,14 +124,16 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     let rig_path = file.parent().unwrap_or(Path::new(".")).join(&config.rig);
     let rig = load_rig(&rig_path)?;
     check_range(file, "stream.rate_hz", config.stream.rate_hz, 1.0, 1000.0)?;
-    if config.stream.link != "loopback" {
-        return Err(invalid(
-            file,
-            "stream.link",
-            &config.stream.link,
-            "only \"loopback\" is available so far",
-        ));
+    if let Err(e) = config.stream.link.parse::<crate::link::LinkSpec>() {
+        return Err(invalid(file, "stream.link", &config.stream.link, &e.reason));
     }
+    check_range(
+        file,
+        "stream.reconnect_timeout_s",
+        config.stream.reconnect_timeout_s,
+        0.0,
+        3600.0,
+    )?;
     check_range(
         file,
         "twin.bandwidth_hz",

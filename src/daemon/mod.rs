@@ -40,6 +40,8 @@ pub enum DaemonError {
     Log(#[from] LogError),
     #[error("replay: {0}")]
     Replay(String),
+    #[error("{0}")]
+    Unavailable(String),
 }
 
 /// An error and all its sources, as one line ("job refused before motion: job target 0 ...").
@@ -125,10 +127,39 @@ pub fn loopback_twin(settings: &RunSettings) -> Result<LoopbackLink, DaemonError
     Ok(LoopbackLink::new(twin))
 }
 
+/// Opens the link `spec` names: the in-process twin for `loopback`, a real transport
+/// otherwise (the controller on its far side is someone else's, or `rigbridge twin`).
+pub fn open_link(
+    spec: &crate::link::LinkSpec,
+    settings: &RunSettings,
+) -> Result<Box<dyn Link>, DaemonError> {
+    use crate::link::LinkSpec;
+    match spec {
+        LinkSpec::Loopback => Ok(Box::new(loopback_twin(settings)?)),
+        LinkSpec::Tcp { address } => {
+            let link = crate::link::connect_tcp(crate::link::TcpSettings::new(address.clone()))
+                .map_err(LinkError::Io)?;
+            wait_for_link(
+                &link,
+                &crate::clock::WallClock::new(),
+                settings.config.stream.reconnect_timeout_s,
+            );
+            Ok(Box::new(link))
+        }
+        other => Err(DaemonError::Unavailable(format!(
+            "link {other:?} is not available yet"
+        ))),
+    }
+}
+
 /// The controller's actual position, read before planning so the plan starts there.
 pub fn actual_position(link: &mut dyn Link, timeout: Duration) -> Result<Vec<f64>, DaemonError> {
     link.send(&Command::Heartbeat)?;
-    link.receive(timeout)?
+    let mut latest = link.receive(timeout)?;
+    while let Some(newer) = link.receive(Duration::ZERO)? {
+        latest = Some(newer);
+    }
+    latest
         .map(|f| f.positions.as_slice().to_vec())
         .ok_or_else(|| DaemonError::NoFeedback(link.describe()))
 }
@@ -177,7 +208,6 @@ pub fn stream_planned(
     log: Option<&std::path::Path>,
     control: &StreamControl,
 ) -> Result<RunReport, DaemonError> {
-    let streaming = stream_settings(settings);
     let trajectory = &planned.trajectory;
     let metadata = serde_json::json!({
         "job": planned.job,
@@ -194,31 +224,23 @@ pub fn stream_planned(
         Some(recorder) => {
             recorder.event(0.0, "job_started", metadata);
             let mut sink = RecorderSink::new(recorder, settings.period_s());
-            stream(
+            stream_resuming(
+                settings,
                 trajectory,
-                &settings.rig,
                 link,
                 clock,
                 &mut sink,
                 control,
-                &streaming,
+                Some(recorder),
             )
         }
-        None => stream(
-            trajectory,
-            &settings.rig,
-            link,
-            clock,
-            &mut (),
-            control,
-            &streaming,
-        ),
+        None => stream_resuming(settings, trajectory, link, clock, &mut (), control, None),
     };
     let log_report = match recorder {
         Some(recorder) => {
             let ended = match &report {
                 Ok(r) => serde_json::to_value(r).unwrap_or_default(),
-                Err(e) => serde_json::json!({ "error": e.to_string() }),
+                Err(e) => serde_json::json!({ "error": error_chain(e) }),
             };
             let t = report.as_ref().map_or(0.0, |r| r.duration_s);
             recorder.event(t, "job_ended", ended);
@@ -240,6 +262,103 @@ pub fn stream_planned(
         stream: report?,
         log: log_report,
     })
+}
+
+/// Streams `trajectory`; after a link loss, waits for the link (up to the configured
+/// reconnect timeout), reads where the rig actually is, moves it from there to where the
+/// job was interrupted and resumes from standstill: never a jump to a stale target.
+fn stream_resuming(
+    settings: &RunSettings,
+    trajectory: &crate::trajectory::Trajectory,
+    link: &mut dyn Link,
+    clock: &dyn Clock,
+    sink: &mut dyn crate::stream::CycleSink,
+    control: &StreamControl,
+    events: Option<&Recorder>,
+) -> Result<StreamReport, DaemonError> {
+    let mut streaming = stream_settings(settings);
+    let mut report = stream(
+        trajectory,
+        &settings.rig,
+        link,
+        clock,
+        sink,
+        control,
+        &streaming,
+    )?;
+    let mut remaining = trajectory.tail(report.samples_done);
+    while report.outcome == crate::stream::Outcome::LinkLost {
+        let t = report.duration_s;
+        streaming.first_seq += u32::try_from(report.cycles).unwrap_or(u32::MAX);
+        if let Some(recorder) = events {
+            recorder.event(
+                t,
+                "link_lost",
+                serde_json::json!({ "at_sample": report.samples_done }),
+            );
+        }
+        if !wait_for_link(link, clock, settings.config.stream.reconnect_timeout_s) {
+            report.fault = Some(format!(
+                "link {} lost for {} s: job aborted {:.0} % of the way",
+                link.describe(),
+                settings.config.stream.reconnect_timeout_s,
+                100.0 * report.samples_done as f64 / trajectory.len().max(1) as f64
+            ));
+            return Ok(report);
+        }
+        link.drain();
+        let actual = actual_position(link, Duration::from_millis(200))?;
+        let resume_at = remaining.position(0).to_vec();
+        if let Some(recorder) = events {
+            recorder.event(
+                t,
+                "resumed",
+                serde_json::json!({ "actual": actual, "resume_at": resume_at }),
+            );
+        }
+        let approach = crate::trajectory::plan_joint_moves(
+            &settings.rig,
+            &actual,
+            &[resume_at],
+            &plan_settings(settings),
+        )
+        .map_err(crate::job::JobError::from)?;
+        let part = stream(
+            &approach,
+            &settings.rig,
+            link,
+            clock,
+            sink,
+            control,
+            &streaming,
+        )?;
+        streaming.first_seq += u32::try_from(part.cycles).unwrap_or(u32::MAX);
+        let approached = part.outcome == crate::stream::Outcome::Completed;
+        report = report.merge(part);
+        if !approached {
+            continue;
+        }
+        let rest = StreamSettings {
+            start_scale: 0.0,
+            ..streaming
+        };
+        let part = stream(&remaining, &settings.rig, link, clock, sink, control, &rest)?;
+        remaining = remaining.tail(part.samples_done);
+        report = report.merge(part);
+    }
+    Ok(report)
+}
+
+/// Polls the link until it is up again or `timeout_s` passes.
+fn wait_for_link(link: &dyn Link, clock: &dyn Clock, timeout_s: f64) -> bool {
+    let deadline = clock.now() + Duration::from_secs_f64(timeout_s);
+    while !link.is_up() {
+        if clock.now() >= deadline {
+            return false;
+        }
+        clock.sleep_until(clock.now() + Duration::from_millis(10));
+    }
+    true
 }
 
 fn job_name(job: &config::JobConfig) -> String {

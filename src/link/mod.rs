@@ -4,9 +4,13 @@
 
 mod channel;
 mod loopback;
+mod spec;
+mod tcp;
 
 pub use channel::{CHANNEL_DEPTH, ChannelLink, IoEnds, LinkShared};
 pub use loopback::LoopbackLink;
+pub use spec::{DEFAULT_BAUD, LinkSpec, LinkSpecError};
+pub use tcp::{TcpSettings, connect_tcp};
 
 use crate::protocol::{Command, Feedback};
 use std::time::Duration;

@@ -2,6 +2,15 @@
 //! they travel. Fixed-size and `Copy`, so the streaming cycle moves them without allocating.
 //! The byte encoding for serial, TCP and CAN lives beside this (see `docs/protocol.md`).
 
+pub mod can;
+pub mod codec;
+
+pub use can::{CanAssembler, CanCounters, CanMapping, CanPayload, CanSender, can_frames};
+pub use codec::{
+    DecodeError, DecoderCounters, EncodeError, FaultReport, FrameDecoder, Hello, Message,
+    decode_body, encode_body, encode_frame,
+};
+
 /// The most axes one rig may stream (the arm with its base, the sloth's bones and body).
 pub const MAX_AXES: usize = 32;
 

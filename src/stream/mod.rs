@@ -119,6 +119,9 @@ pub struct StreamSettings {
     pub max_silent_cycles: u32,
     /// Sequence number of the first target (a resumed job continues its numbering).
     pub first_seq: u32,
+    /// Time scale at the first cycle: 1 runs as planned; 0 starts from standstill and
+    /// ramps up (a trajectory resumed mid-motion after a link loss).
+    pub start_scale: f64,
     /// How fast pause and stop may change the time scale (1/s). See [`slowdown_rate`].
     pub slowdown_rate_per_s: f64,
 }
@@ -130,6 +133,7 @@ impl StreamSettings {
             feedback_timeout: Duration::from_secs_f64(period_s / 2.0),
             max_silent_cycles: (0.1 / period_s).ceil() as u32,
             first_seq: 0,
+            start_scale: 1.0,
             slowdown_rate_per_s,
         }
     }
@@ -173,6 +177,31 @@ pub struct StreamReport {
     pub reconnects: u64,
 }
 
+impl StreamReport {
+    /// One report for a job streamed in several parts (resumed after link losses): counts
+    /// add up, worst cases are kept, the outcome is the last part's.
+    pub fn merge(self, later: StreamReport) -> StreamReport {
+        StreamReport {
+            outcome: later.outcome,
+            fault: later.fault.or(self.fault),
+            cycles: self.cycles + later.cycles,
+            missed_cycles: self.missed_cycles + later.missed_cycles,
+            limit_violations: self.limit_violations + later.limit_violations,
+            feedback_timeouts: self.feedback_timeouts + later.feedback_timeouts,
+            jitter_p50_us: self.jitter_p50_us.max(later.jitter_p50_us),
+            jitter_p99_us: self.jitter_p99_us.max(later.jitter_p99_us),
+            jitter_max_us: self.jitter_max_us.max(later.jitter_max_us),
+            latency_p50_us: self.latency_p50_us.max(later.latency_p50_us),
+            latency_p99_us: self.latency_p99_us.max(later.latency_p99_us),
+            tracking_error_max_deg: self
+                .tracking_error_max_deg
+                .max(later.tracking_error_max_deg),
+            duration_s: self.duration_s + later.duration_s,
+            ..later
+        }
+    }
+}
+
 /// Streams `trajectory` to the controller behind `link`, one sample per period.
 pub fn stream(
     trajectory: &Trajectory,
@@ -201,12 +230,10 @@ pub fn stream(
             link.send(&Command::Stop)?;
             break Outcome::GateRefused;
         };
+        let late = latest_feedback(link)?;
         link.send(&Command::Target(target))?;
         cycle.sent_at[target.seq as usize % SEND_TIMES] = clock.now();
-        let mut feedback = link.receive(settings.feedback_timeout)?;
-        while let Some(newer) = link.receive(Duration::ZERO)? {
-            feedback = Some(newer);
-        }
+        let feedback = await_echo(link, target.seq, settings.feedback_timeout)?.or(late);
         cycle.record_feedback(feedback.as_ref(), &target, clock.now());
         sink.record(&CycleRecord { target, feedback });
         control.cycles.store(cycle.seq as u64, Ordering::Relaxed);
@@ -231,6 +258,35 @@ pub fn stream(
         link.counters(),
         link.describe(),
     ))
+}
+
+/// Whatever feedback is already waiting, newest last: read before sending, so a cycle
+/// never mistakes the previous cycle's late answer for its own.
+fn latest_feedback(link: &mut dyn Link) -> Result<Option<Feedback>, LinkError> {
+    let mut latest = None;
+    while let Some(feedback) = link.receive(Duration::ZERO)? {
+        latest = Some(feedback);
+    }
+    Ok(latest)
+}
+
+/// Waits up to `timeout` for the feedback that echoes `seq` (or a later one).
+fn await_echo(
+    link: &mut dyn Link,
+    seq: u32,
+    timeout: Duration,
+) -> Result<Option<Feedback>, LinkError> {
+    let deadline = std::time::Instant::now() + timeout;
+    let mut latest = None;
+    while let Some(feedback) =
+        link.receive(deadline.saturating_duration_since(std::time::Instant::now()))?
+    {
+        latest = Some(feedback);
+        if feedback.seq >= seq {
+            break;
+        }
+    }
+    Ok(latest)
 }
 
 /// Asks for feedback and checks the trajectory starts where the controller is.
@@ -287,6 +343,7 @@ struct Cycle {
     sent_at: [Duration; SEND_TIMES],
     silent_cycles: u32,
     first_seq: u32,
+    last_echo: Option<u32>,
 }
 
 impl Cycle {
@@ -294,10 +351,11 @@ impl Cycle {
         Self {
             seq: settings.first_seq,
             first_seq: settings.first_seq,
+            last_echo: None,
             sent_at: [Duration::ZERO; SEND_TIMES],
             silent_cycles: 0,
             path: 0.0,
-            scale: 1.0,
+            scale: settings.start_scale.clamp(0.0, 1.0),
             scale_step: settings.slowdown_rate_per_s * trajectory.period_s,
             previous: None,
             jitter: MicrosHistogram::new(HISTOGRAM_CEILING_US),
@@ -406,17 +464,29 @@ impl Cycle {
         })
     }
 
+    /// Latency runs from sending the target a feedback echoes to receiving that feedback.
     fn record_feedback(
         &mut self,
         feedback: Option<&Feedback>,
         target: &JointTarget,
-        latency: Duration,
+        now: Duration,
     ) {
         let Some(feedback) = feedback else {
             self.timeouts += 1;
+            self.silent_cycles += 1;
             return;
         };
-        self.latency.record(latency.as_secs_f64() * 1e6);
+        self.silent_cycles = 0;
+        // Only the first echo of a target this stream sent measures its latency; repeats
+        // of an older seq (a controller between cycles) would measure nothing real.
+        let fresh =
+            feedback.seq > self.first_seq && self.last_echo.is_none_or(|last| feedback.seq > last);
+        if fresh && self.seq.wrapping_sub(feedback.seq) < SEND_TIMES as u32 {
+            let sent = self.sent_at[feedback.seq as usize % SEND_TIMES];
+            self.latency
+                .record(now.saturating_sub(sent).as_secs_f64() * 1e6);
+            self.last_echo = Some(feedback.seq);
+        }
         for ((commanded, actual), revolute) in target
             .positions
             .as_slice()

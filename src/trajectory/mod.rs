@@ -133,6 +133,19 @@ impl Trajectory {
         self.len().saturating_sub(1) as f64 * self.period_s
     }
 
+    /// Samples `from..` as a trajectory of their own (where a resumed job picks up).
+    pub fn tail(&self, from: usize) -> Trajectory {
+        let dof = self.dof();
+        let from = from.min(self.len().saturating_sub(1));
+        Trajectory {
+            rig: self.rig.clone(),
+            joint_names: self.joint_names.clone(),
+            period_s: self.period_s,
+            positions: self.positions[from * dof..].to_vec(),
+            velocities: self.velocities[from * dof..].to_vec(),
+        }
+    }
+
     /// Joins `next` on the end; it must start where this one ends (same rig and period).
     pub fn append(&mut self, next: &Trajectory) {
         debug_assert_eq!(self.joint_names, next.joint_names);

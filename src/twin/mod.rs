@@ -7,6 +7,8 @@
 //! `watchdog_cycles` it decelerates within the limits and holds. It owns the simulated arm
 //! state only; it must not know about trajectories, jobs or logs.
 
+pub mod server;
+
 use crate::protocol::{
     AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget, MAX_AXES,
 };

@@ -1,0 +1,117 @@
+//! `rigbridge twin`: the simulated controller as its own process, on the far side of a real
+//! transport. Prints where to connect as its first line of stdout, then one line per event.
+
+use anyhow::Context;
+use clap::Args;
+use rigbridge::clock::WallClock;
+use rigbridge::daemon::config::load_run_settings;
+use rigbridge::daemon::twin_settings;
+use rigbridge::twin::Twin;
+use rigbridge::twin::server::{ControllerPort, TcpPort, hello_for_rig, serve_twin};
+use std::io::Write;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+#[derive(Args)]
+#[command(group(clap::ArgGroup::new("transport").required(true).args(["listen", "serial", "pty", "can"])))]
+pub struct TwinArgs {
+    /// Rig and twin settings (servo model, initial position, cycle).
+    #[arg(long, default_value = "config/rigbridge.toml")]
+    config: PathBuf,
+    /// Serve TCP: tcp://HOST:PORT (port 0 picks a free one).
+    #[arg(long)]
+    listen: Option<String>,
+    /// Serve on a serial device.
+    #[arg(long)]
+    serial: Option<PathBuf>,
+    #[arg(long, default_value_t = rigbridge::link::DEFAULT_BAUD)]
+    baud: u32,
+    /// Open a pseudo-terminal pair and serve on it; its path is the first line printed.
+    #[arg(long)]
+    pty: bool,
+    /// Serve on a SocketCAN interface.
+    #[arg(long)]
+    can: Option<String>,
+    /// Cycles without a target before holding (overrides the config: a remote twin must
+    /// hold within 2 cycles of losing the link).
+    #[arg(long, default_value_t = 2)]
+    watchdog_cycles: u32,
+}
+
+fn stop_on_signals() -> anyhow::Result<Arc<AtomicBool>> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    std::thread::spawn(move || {
+        runtime.block_on(async {
+            let mut terminate =
+                match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                    Ok(signal) => signal,
+                    Err(_) => return,
+                };
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = terminate.recv() => {}
+            }
+            flag.store(true, Ordering::SeqCst);
+        });
+    });
+    Ok(stop)
+}
+
+fn say(line: &str) {
+    let mut out = std::io::stdout().lock();
+    let _ = writeln!(out, "{line}");
+    let _ = out.flush();
+}
+
+pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
+    let settings = load_run_settings(&args.config).context("cannot load run settings")?;
+    let mut twin_config = twin_settings(&settings);
+    twin_config.watchdog_cycles = args.watchdog_cycles.max(1);
+    let mut twin = Twin::new(&settings.rig, twin_config, &settings.initial())?;
+    let hello = hello_for_rig(
+        &settings.rig,
+        settings.period_s(),
+        twin_config.watchdog_cycles,
+    );
+    let mut port: Box<dyn ControllerPort> = match (&args.listen, &args.serial, args.pty, &args.can)
+    {
+        (Some(listen), ..) => {
+            let address = listen.strip_prefix("tcp://").unwrap_or(listen);
+            let port =
+                TcpPort::bind(address).with_context(|| format!("cannot listen on {listen}"))?;
+            say(&format!("tcp://{}", port.local_address()?));
+            Box::new(port)
+        }
+        _ => anyhow::bail!("this transport is not available yet: use --listen tcp://HOST:PORT"),
+    };
+    let stop = stop_on_signals()?;
+    if let Err(e) = rigbridge::stream::raise_priority(50) {
+        eprintln!("note: twin at normal priority (real-time scheduling refused: {e})");
+    }
+    let counters = serve_twin(
+        &mut twin,
+        port.as_mut(),
+        &hello,
+        Duration::from_secs_f64(settings.period_s()),
+        &WallClock::new(),
+        &stop,
+        say,
+    );
+    eprintln!(
+        "twin stopped after {} cycles: {} frames, {} CRC errors, {} malformed, {} connections, {} link losses",
+        counters.cycles,
+        counters.frames_received,
+        counters.crc_errors,
+        counters.malformed,
+        counters.connections,
+        counters.link_losses
+    );
+    Ok(ExitCode::SUCCESS)
+}
