@@ -26,6 +26,8 @@ use thiserror::Error;
 
 /// Timing histograms reach 100 ms; anything later is counted there.
 const HISTOGRAM_CEILING_US: usize = 100_000;
+/// How long to wait for the controller's first feedback before streaming.
+const START_FEEDBACK_TIMEOUT: Duration = Duration::from_millis(200);
 /// Send times kept for matching feedback to its target (by seq modulo this).
 const SEND_TIMES: usize = 256;
 
@@ -297,7 +299,13 @@ fn check_start(
     settings: &StreamSettings,
 ) -> Result<(), StreamError> {
     link.send(&Command::Heartbeat)?;
-    let Some(feedback) = link.receive(settings.feedback_timeout)? else {
+    // A remote controller answers at its next cycle: give it a few, not half of one.
+    let wait = settings.feedback_timeout.max(START_FEEDBACK_TIMEOUT);
+    let Some(feedback) = await_echo(link, 0, wait)?
+        .map(Ok)
+        .or_else(|| latest_feedback(link).transpose())
+        .transpose()?
+    else {
         return Err(StreamError::NoFeedback {
             link: link.describe(),
         });

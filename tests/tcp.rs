@@ -1,0 +1,274 @@
+//! The daemon and the twin as separate processes over a real TCP socket on 127.0.0.1:
+//! a whole job, a twin killed and restarted mid-job, a daemon killed mid-job, and garbage.
+
+mod common;
+
+use common::{irb120, repo_path};
+use rigbridge::log::read_log;
+use std::io::{BufRead, BufReader, Read, Write};
+use std::path::PathBuf;
+use std::process::{Child, ChildStdout, Command, Stdio};
+use std::sync::mpsc::Receiver;
+use std::time::Duration;
+
+const PERIOD: f64 = 0.004;
+
+struct TwinProcess {
+    child: Child,
+    address: String,
+    lines: Receiver<String>,
+}
+
+impl Drop for TwinProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn forward_lines(stdout: ChildStdout) -> Receiver<String> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    rx
+}
+
+fn start_twin(listen: &str) -> TwinProcess {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args(["twin", "--listen", listen])
+        .current_dir(repo_path(""))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let lines = forward_lines(child.stdout.take().unwrap());
+    let address = lines
+        .recv_timeout(Duration::from_secs(10))
+        .expect("the twin prints its address");
+    assert!(address.starts_with("tcp://127.0.0.1:"), "{address}");
+    TwinProcess {
+        child,
+        address,
+        lines,
+    }
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("rigbridge-tcp-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(name);
+    let _ = std::fs::remove_file(&path);
+    path
+}
+
+fn spawn_run(link: &str, log: &PathBuf, report: &PathBuf) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args([
+            "run",
+            "--link",
+            link,
+            "--log",
+            log.to_str().unwrap(),
+            "--report",
+            report.to_str().unwrap(),
+        ])
+        .current_dir(repo_path(""))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+fn report(path: &PathBuf) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+#[test]
+fn a_job_over_tcp_loses_no_frame_and_stays_within_limits() {
+    let twin = start_twin("tcp://127.0.0.1:0");
+    let (log, json) = (scratch("whole.mcap"), scratch("whole.json"));
+    let output = spawn_run(&twin.address, &log, &json)
+        .wait_with_output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let report = report(&json);
+    assert_eq!(report["outcome"], "completed");
+    // No frame lost either way: no gap or repeat in the echoed sequence, no CRC error.
+    // (A feedback later than half a cycle on this shared machine counts as a timeout,
+    // not a loss: it is used the next cycle.)
+    assert_eq!(report["gaps"], 0, "{report}");
+    assert_eq!(report["duplicates"], 0, "{report}");
+    assert_eq!(report["crc_errors"], 0);
+    let cycles = report["cycles"].as_u64().unwrap();
+    assert!(
+        report["feedback_timeouts"].as_u64().unwrap() * 1000 <= cycles,
+        "{report}"
+    );
+    let run = read_log(&log).unwrap();
+    let seqs: Vec<u32> = run.commands.iter().map(|c| c.seq).collect();
+    assert!(seqs.windows(2).all(|w| w[1] == w[0] + 1));
+}
+
+#[test]
+fn a_restarted_twin_is_rejoined_from_its_actual_position() {
+    let first = start_twin("tcp://127.0.0.1:0");
+    let address = first.address.clone();
+    let (log, json) = (scratch("restart.mcap"), scratch("restart.json"));
+    let daemon = spawn_run(&address, &log, &json);
+    std::thread::sleep(Duration::from_millis(2500));
+    drop(first);
+    std::thread::sleep(Duration::from_millis(300));
+    let _second = start_twin(address.trim_start_matches("tcp://"));
+    let output = daemon.wait_with_output().unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let report = report(&json);
+    assert_eq!(report["outcome"], "completed", "{report}");
+    assert!(report["reconnects"].as_u64().unwrap() >= 1, "{report}");
+
+    let rig = irb120();
+    let run = read_log(&log).unwrap();
+    let resumed = run
+        .events
+        .iter()
+        .find(|e| e.kind == "resumed")
+        .expect("a resumed event");
+    let actual: Vec<f64> = serde_json::from_value(resumed.detail["actual"].clone()).unwrap();
+    let seqs: Vec<u32> = run.commands.iter().map(|c| c.seq).collect();
+    assert!(
+        seqs.windows(2).all(|w| w[1] == w[0] + 1),
+        "one unbroken sequence across the restart"
+    );
+    let lost_at = run.events.iter().find(|e| e.kind == "link_lost").unwrap().t;
+    let first_after = run.commands.iter().find(|c| c.t > lost_at + 1e-9).unwrap();
+    let after_index = run
+        .commands
+        .iter()
+        .position(|c| c.seq == first_after.seq)
+        .unwrap();
+    let mut previous = actual.clone();
+    for command in &run.commands[after_index..] {
+        for ((q, p), joint) in command.positions.iter().zip(&previous).zip(&rig.joints) {
+            assert!(
+                (q - p).abs() <= joint.limits.max_speed * PERIOD * (1.0 + 1e-9),
+                "step at seq {}",
+                command.seq
+            );
+        }
+        previous = command.positions.clone();
+    }
+}
+
+#[test]
+fn a_killed_daemon_leaves_the_twin_holding_within_two_cycles() {
+    let twin = start_twin("tcp://127.0.0.1:0");
+    let (log, json) = (scratch("killed.mcap"), scratch("killed.json"));
+    let mut daemon = spawn_run(&twin.address, &log, &json);
+    std::thread::sleep(Duration::from_millis(2000));
+    daemon.kill().unwrap();
+    daemon.wait().unwrap();
+    let mut lost = None;
+    let mut holding = None;
+    while let Ok(line) = twin.lines.recv_timeout(Duration::from_secs(2)) {
+        let cycle = |l: &str| {
+            l.split("at cycle ")
+                .nth(1)
+                .and_then(|r| r.split_whitespace().next())
+                .and_then(|c| c.parse::<u64>().ok())
+        };
+        if line.starts_with("link lost") {
+            lost = cycle(&line);
+        }
+        if line.starts_with("status holding") && lost.is_some() {
+            holding = cycle(&line);
+            break;
+        }
+        if line.starts_with("link lost") && line.ends_with("holding") {
+            holding = lost;
+        }
+    }
+    let (lost, holding) = (
+        lost.expect("the twin saw the link go"),
+        holding.expect("and held"),
+    );
+    assert!(
+        holding - lost <= 2,
+        "held {} cycles after the loss",
+        holding - lost
+    );
+}
+
+#[test]
+fn a_megabyte_of_garbage_moves_nothing_and_crashes_nothing() {
+    let twin = start_twin("tcp://127.0.0.1:0");
+    let address = twin.address.trim_start_matches("tcp://").to_string();
+    let mut noise = Vec::with_capacity(1 << 20);
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    while noise.len() < 1 << 20 {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        noise.extend_from_slice(&state.to_le_bytes());
+    }
+    let mut socket = std::net::TcpStream::connect(&address).unwrap();
+    socket
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    let reader = {
+        let mut socket = socket.try_clone().unwrap();
+        std::thread::spawn(move || {
+            let mut received = Vec::new();
+            let mut buffer = [0u8; 65536];
+            while let Ok(n) = socket.read(&mut buffer) {
+                if n == 0 {
+                    break;
+                }
+                received.extend_from_slice(&buffer[..n]);
+            }
+            received
+        })
+    };
+    socket.write_all(&noise).unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    socket.shutdown(std::net::Shutdown::Both).unwrap();
+    let received = reader.join().unwrap();
+    let mut decoder = rigbridge::protocol::FrameDecoder::default();
+    decoder.push(&received);
+    let initial: Vec<f64> = [0.0, 0.0, 0.0, 0.0, 30.0, 0.0]
+        .iter()
+        .map(|d: &f64| d.to_radians())
+        .collect();
+    let mut feedbacks = 0;
+    while let Some(message) = decoder.next_message() {
+        if let rigbridge::protocol::Message::Feedback(feedback) = message {
+            feedbacks += 1;
+            for (q, start) in feedback.positions.as_slice().iter().zip(&initial) {
+                // Positions travel as whole micro-radians.
+                assert!((q - start).abs() <= 0.5e-6, "garbage moved the twin");
+            }
+        }
+    }
+    assert!(feedbacks > 0, "the twin kept answering");
+    // And the twin still serves a real job afterwards.
+    let (log, json) = (scratch("after-garbage.mcap"), scratch("after-garbage.json"));
+    let output = spawn_run(&twin.address, &log, &json)
+        .wait_with_output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
