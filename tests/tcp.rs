@@ -6,7 +6,7 @@ mod common;
 use common::{irb120, repo_path};
 use rigbridge::log::read_log;
 use std::io::{BufRead, BufReader, Read, Write};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdout, Command, Stdio};
 use std::sync::mpsc::Receiver;
 use std::time::Duration;
@@ -66,7 +66,7 @@ fn scratch(name: &str) -> PathBuf {
     path
 }
 
-fn spawn_run(link: &str, log: &PathBuf, report: &PathBuf) -> Child {
+fn spawn_run(link: &str, log: &Path, report: &Path) -> Child {
     Command::new(env!("CARGO_BIN_EXE_rigbridge"))
         .args([
             "run",
@@ -84,7 +84,7 @@ fn spawn_run(link: &str, log: &PathBuf, report: &PathBuf) -> Child {
         .unwrap()
 }
 
-fn report(path: &PathBuf) -> serde_json::Value {
+fn report(path: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
 
