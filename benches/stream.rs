@@ -11,7 +11,6 @@ use rigbridge::stream::{StreamControl, StreamSettings, slowdown_rate, stream};
 use rigbridge::trajectory::Trajectory;
 use rigbridge::twin::{Twin, TwinSettings};
 use std::path::Path;
-use std::time::Duration;
 
 const START: [f64; 6] = [0.0, 0.0, 0.0, 0.0, 0.5, 0.0];
 
