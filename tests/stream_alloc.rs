@@ -11,7 +11,6 @@ use rigbridge::trajectory::Trajectory;
 use rigbridge::twin::{Twin, TwinSettings};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::time::Duration;
 
 struct Counting;
 
