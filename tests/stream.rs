@@ -13,7 +13,6 @@ use rigbridge::stream::{
 };
 use rigbridge::trajectory::Trajectory;
 use rigbridge::twin::{Twin, TwinSettings};
-use std::time::Duration;
 
 const PERIOD: f64 = 0.004;
 const START: [f64; 6] = [0.0, 0.0, 0.0, 0.0, 0.5, 0.0];
