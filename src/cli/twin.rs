@@ -6,7 +6,11 @@ use clap::Args;
 use rigbridge::clock::WallClock;
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::daemon::twin_settings;
+use rigbridge::link::SerialSettings;
+use rigbridge::protocol::CanSender;
 use rigbridge::twin::Twin;
+use rigbridge::twin::can_port::CanPort;
+use rigbridge::twin::serial_port::SerialControllerPort;
 use rigbridge::twin::server::{ControllerPort, TcpPort, hello_for_rig, serve_twin};
 use std::io::Write;
 use std::path::PathBuf;
@@ -80,6 +84,7 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
         settings.period_s(),
         twin_config.watchdog_cycles,
     );
+    let mut can_stats = None;
     let mut port: Box<dyn ControllerPort> = match (&args.listen, &args.serial, args.pty, &args.can)
     {
         (Some(listen), ..) => {
@@ -89,7 +94,28 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
             say(&format!("tcp://{}", port.local_address()?));
             Box::new(port)
         }
-        _ => anyhow::bail!("this transport is not available yet: use --listen tcp://HOST:PORT"),
+        (None, Some(path), ..) => {
+            let settings = SerialSettings::new(path.display().to_string(), args.baud);
+            let port = SerialControllerPort::open(&settings)
+                .with_context(|| format!("cannot open {}", path.display()))?;
+            say(&port.describe());
+            Box::new(port)
+        }
+        (None, None, true, _) => {
+            let (port, path) =
+                SerialControllerPort::pty().context("cannot open a pseudo-terminal")?;
+            say(&path);
+            Box::new(port)
+        }
+        (None, None, false, Some(interface)) => {
+            let mapping = settings.config.stream.can_mapping(CanSender::Controller)?;
+            let port = CanPort::open(interface, mapping)
+                .with_context(|| format!("cannot open CAN interface {interface}"))?;
+            say(&port.describe());
+            can_stats = Some(port.stats());
+            Box::new(port)
+        }
+        _ => anyhow::bail!("choose one transport: --listen, --serial, --pty or --can"),
     };
     let stop = stop_on_signals()?;
     if let Err(e) = rigbridge::stream::raise_priority(50) {
@@ -113,5 +139,8 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
         counters.connections,
         counters.link_losses
     );
+    if let Some(stats) = can_stats {
+        eprintln!("{}", stats.summary());
+    }
     Ok(ExitCode::SUCCESS)
 }

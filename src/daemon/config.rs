@@ -2,6 +2,8 @@
 //! the plan's speed shares and the job. Validated on load; every error names the file,
 //! the key and the value.
 
+use crate::protocol::can::{CAN_ID_BLOCK, CanMappingError, MAX_CAN_BASE_ID};
+use crate::protocol::{CanMapping, CanSender};
 use crate::rig::{ConfigError, Rig, load_rig};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
@@ -26,6 +28,20 @@ pub struct StreamConfig {
     /// After a link loss, how long to wait for the link before aborting the job.
     #[serde(default = "default_reconnect_timeout")]
     pub reconnect_timeout_s: f64,
+    /// `can://` links: CAN FD frames (64-byte payloads) instead of classic CAN (8 bytes).
+    #[serde(default)]
+    pub can_fd: bool,
+    /// `can://` links: the first of the 128 standard identifiers the protocol uses
+    /// (`docs/protocol.md`, section 7.1); at most 0x780.
+    #[serde(default = "default_can_base_id")]
+    pub can_base_id: u16,
+}
+
+impl StreamConfig {
+    /// The CAN mapping of these settings for `sender`'s end of a `can://` link.
+    pub fn can_mapping(&self, sender: CanSender) -> Result<CanMapping, CanMappingError> {
+        CanMapping::new(self.can_base_id, self.can_fd, sender)
+    }
 }
 
 fn default_link() -> String {
@@ -34,6 +50,10 @@ fn default_link() -> String {
 
 fn default_reconnect_timeout() -> f64 {
     5.0
+}
+
+fn default_can_base_id() -> u16 {
+    0x100
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -134,6 +154,17 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         0.0,
         3600.0,
     )?;
+    if config.stream.can_base_id > MAX_CAN_BASE_ID {
+        return Err(invalid(
+            file,
+            "stream.can_base_id",
+            format_args!("{:#x}", config.stream.can_base_id),
+            &format!(
+                "must be at most {MAX_CAN_BASE_ID:#x}: the protocol's {CAN_ID_BLOCK:#x} \
+                 identifiers from the base must fit the 11-bit range"
+            ),
+        ));
+    }
     check_range(
         file,
         "twin.bandwidth_hz",

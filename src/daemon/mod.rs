@@ -146,9 +146,30 @@ pub fn open_link(
             );
             Ok(Box::new(link))
         }
-        other => Err(DaemonError::Unavailable(format!(
-            "link {other:?} is not available yet"
-        ))),
+        LinkSpec::Serial { path, baud } => {
+            let serial = crate::link::SerialSettings::new(path.clone(), *baud);
+            let link = crate::link::connect_serial(serial).map_err(LinkError::Io)?;
+            wait_for_link(
+                &link,
+                &crate::clock::WallClock::new(),
+                settings.config.stream.reconnect_timeout_s,
+            );
+            Ok(Box::new(link))
+        }
+        LinkSpec::Can { interface } => {
+            let mapping = settings
+                .config
+                .stream
+                .can_mapping(crate::protocol::CanSender::Bridge)
+                .map_err(|e| DaemonError::Unavailable(e.to_string()))?;
+            let link = crate::link::connect_can(interface, mapping).map_err(LinkError::Io)?;
+            wait_for_link(
+                &link,
+                &crate::clock::WallClock::new(),
+                settings.config.stream.reconnect_timeout_s,
+            );
+            Ok(Box::new(link))
+        }
     }
 }
 
@@ -164,6 +185,10 @@ pub fn actual_position(link: &mut dyn Link, timeout: Duration) -> Result<Vec<f64
         .ok_or_else(|| DaemonError::NoFeedback(link.describe()))
 }
 
+/// How long to wait for a controller's first answer: a remote one may only just have seen
+/// the link come up.
+pub const FIRST_FEEDBACK_TIMEOUT: Duration = Duration::from_millis(500);
+
 /// A job planned from where the rig is: nothing has moved yet. A job with a bad target
 /// never gets this far.
 pub struct PlannedJob {
@@ -177,7 +202,7 @@ pub fn plan_for(
     job: &config::JobConfig,
     link: &mut dyn Link,
 ) -> Result<PlannedJob, DaemonError> {
-    let start = actual_position(link, stream_settings(settings).feedback_timeout)?;
+    let start = actual_position(link, FIRST_FEEDBACK_TIMEOUT)?;
     let trajectory = plan_job(job, &settings.rig, &start, &plan_settings(settings))?;
     Ok(PlannedJob {
         job: job.clone(),

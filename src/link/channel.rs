@@ -45,6 +45,19 @@ impl LinkShared {
     pub fn count(counter: &AtomicU64) {
         counter.fetch_add(1, Ordering::Relaxed);
     }
+
+    /// Feedback bookkeeping for I/O threads: a repeated seq is a duplicate, a jump a gap.
+    pub fn note_feedback(&self, last: &mut Option<u32>, feedback: &Feedback) {
+        Self::count(&self.frames_received);
+        if let Some(previous) = *last {
+            if feedback.seq == previous && feedback.seq != 0 {
+                Self::count(&self.duplicates);
+            } else if feedback.seq > previous.wrapping_add(1) {
+                Self::count(&self.gaps);
+            }
+        }
+        *last = Some(feedback.seq);
+    }
 }
 
 /// What an I/O thread gets: the commands to write, where to put feedback, the counters.

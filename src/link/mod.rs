@@ -2,13 +2,17 @@
 //! backend. A link owns its transport and framing; it never interprets motion (that is the
 //! streamer's job) and never changes a command's values.
 
+mod can;
 mod channel;
 mod loopback;
+mod serial;
 mod spec;
 mod tcp;
 
+pub use can::{CanBus, SEND_PATIENCE, connect_can, interface_mtu, interface_up};
 pub use channel::{CHANNEL_DEPTH, ChannelLink, IoEnds, LinkShared};
 pub use loopback::LoopbackLink;
+pub use serial::{SerialSettings, connect_serial};
 pub use spec::{DEFAULT_BAUD, LinkSpec, LinkSpecError};
 pub use tcp::{TcpSettings, connect_tcp};
 

@@ -4,7 +4,6 @@
 //! current-thread runtime; the cycle only touches the channels of [`ChannelLink`].
 
 use super::{ChannelLink, IoEnds, LinkShared};
-use crate::protocol::Feedback;
 use crate::protocol::codec::{FrameDecoder, Message, encode_frame};
 use std::sync::atomic::Ordering;
 use std::time::Duration;
@@ -69,19 +68,6 @@ async fn keep_connected(settings: TcpSettings, mut ends: IoEnds) {
     }
 }
 
-/// Feedback bookkeeping: a repeated seq is a duplicate, a jump a gap.
-fn note_feedback(shared: &LinkShared, last: &mut Option<u32>, feedback: &Feedback) {
-    LinkShared::count(&shared.frames_received);
-    if let Some(previous) = *last {
-        if feedback.seq == previous && feedback.seq != 0 {
-            LinkShared::count(&shared.duplicates);
-        } else if feedback.seq > previous.wrapping_add(1) {
-            LinkShared::count(&shared.gaps);
-        }
-    }
-    *last = Some(feedback.seq);
-}
-
 /// One connection's life. True when the bridge closed the link (stop for good).
 async fn session(stream: TcpStream, ends: &mut IoEnds) -> bool {
     let (mut reader, mut writer) = stream.into_split();
@@ -110,7 +96,7 @@ async fn session(stream: TcpStream, ends: &mut IoEnds) -> bool {
                 decoder.push(&buffer[..n]);
                 while let Some(message) = decoder.next_message() {
                     if let Message::Feedback(feedback) = message {
-                        note_feedback(&ends.shared, &mut last_seq, &feedback);
+                        ends.shared.note_feedback(&mut last_seq, &feedback);
                         let _ = ends.feedback.try_send(feedback);
                     }
                 }

@@ -7,6 +7,8 @@
 //! `watchdog_cycles` it decelerates within the limits and holds. It owns the simulated arm
 //! state only; it must not know about trajectories, jobs or logs.
 
+pub mod can_port;
+pub mod serial_port;
 pub mod server;
 
 use crate::protocol::{

@@ -12,6 +12,9 @@ use std::io::{ErrorKind, Read, Write};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
+/// How often a port without a peer looks for one.
+pub const DETACHED_POLL: Duration = Duration::from_millis(1);
+
 /// The Hello a twin of `rig` sends each new peer.
 pub fn hello_for_rig(rig: &crate::rig::Rig, period_s: f64, watchdog_cycles: u32) -> Hello {
     Hello {
@@ -71,6 +74,7 @@ impl ControllerPort for TcpPort {
 
     fn read_within(&mut self, buffer: &mut [u8], timeout: Duration) -> std::io::Result<usize> {
         let Some(client) = &mut self.client else {
+            std::thread::sleep(timeout.min(DETACHED_POLL));
             return Ok(0);
         };
         client.set_read_timeout(Some(timeout.max(Duration::from_micros(1))))?;
@@ -148,17 +152,12 @@ pub fn serve_twin(
     let mut next_tick = clock.now() + period;
     while !stop.load(Ordering::SeqCst) {
         session.attach(port, hello, &mut say);
-        let mut targeted = false;
-        if session.attached {
-            let wait = next_tick.saturating_sub(clock.now()).min(period);
-            match port.read_within(&mut buffer, wait) {
-                Ok(n) => session.decoder.push(&buffer[..n]),
-                Err(e) => session.lose(twin, port, &mut say, &e.to_string()),
-            }
-            targeted = session.apply(twin);
-        } else {
-            clock.sleep_until(next_tick.min(clock.now() + Duration::from_millis(1)));
+        let wait = next_tick.saturating_sub(clock.now()).min(period);
+        match port.read_within(&mut buffer, wait) {
+            Ok(n) => session.decoder.push(&buffer[..n]),
+            Err(e) => session.lose(twin, port, &mut say, &e.to_string()),
         }
+        let targeted = session.attached && session.apply(twin);
         let now = clock.now();
         if targeted || now >= next_tick {
             session.tick(twin, port, &mut say);

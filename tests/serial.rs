@@ -1,0 +1,78 @@
+//! The daemon and the twin as separate processes over a real serial line: a pseudo-terminal
+//! pair opened by `rigbridge twin --pty`, the daemon on its slave side at 115200 baud.
+
+mod common;
+
+use common::repo_path;
+use rigbridge::log::read_log;
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+struct TwinProcess(Child);
+
+impl Drop for TwinProcess {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+#[test]
+fn a_job_over_a_pty_at_115200_baud_completes_within_limits() {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args(["twin", "--pty"])
+        .current_dir(repo_path(""))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut first = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut first)
+        .unwrap();
+    let _twin = TwinProcess(child);
+    let pty = first.trim().to_string();
+    assert!(
+        pty.starts_with("/dev/"),
+        "the twin prints its pty first: {pty:?}"
+    );
+
+    let dir = std::env::temp_dir().join(format!("rigbridge-serial-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (log, report) = (dir.join("pty.mcap"), dir.join("pty.json"));
+    let _ = std::fs::remove_file(&log);
+    let link = format!("serial://{pty}?baud=115200");
+    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args([
+            "run",
+            "--link",
+            &link,
+            "--log",
+            log.to_str().unwrap(),
+            "--report",
+            report.to_str().unwrap(),
+        ])
+        .current_dir(repo_path(""))
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_eq!(report["outcome"], "completed", "{report}");
+    assert_eq!(report["limit_violations"], 0);
+    assert_eq!(report["gaps"], 0, "{report}");
+    assert_eq!(report["crc_errors"], 0);
+    let cycles = report["cycles"].as_u64().unwrap();
+    assert!(
+        report["feedback_timeouts"].as_u64().unwrap() * 100 <= cycles,
+        "{report}"
+    );
+    let run = read_log(&log).unwrap();
+    assert_eq!(run.commands.len() as u64, cycles);
+    std::thread::sleep(Duration::from_millis(50));
+}
