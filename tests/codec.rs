@@ -458,14 +458,6 @@ fn doc_examples_and_figures_match_the_code() {
     );
 }
 
-#[test]
-#[ignore = "prints the doc's generated blocks; run by hand after a deliberate change"]
-fn print_doc_examples() {
-    for (name, generated) in doc_blocks() {
-        println!("<!-- {name} -->\n{generated}\n");
-    }
-}
-
 // ---------------------------------------------------------------------------------------
 // Fixed vectors.
 

@@ -17,6 +17,9 @@ use crate::protocol::{
 use crate::rig::{JointLimits, Rig};
 use crate::trajectory::SPEED_SLACK;
 use std::collections::VecDeque;
+
+/// Positions cross the wire as whole micro-radians: two roundings may add 1 µrad to a step.
+const WIRE_ROUNDING: f64 = 1e-6;
 use thiserror::Error;
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -74,6 +77,7 @@ pub struct Twin {
     cycles_without_target: u32,
     status: ControllerStatus,
     smoothing: f64,
+    stale_targets: u64,
 }
 
 impl Twin {
@@ -118,9 +122,15 @@ impl Twin {
             delay_cycles,
             cycles_without_target: 0,
             status: ControllerStatus::Holding,
+            stale_targets: 0,
             smoothing: 1.0
                 - (-std::f64::consts::TAU * settings.bandwidth_hz * settings.period_s).exp(),
         })
+    }
+
+    /// Targets dropped because their seq was not newer than the last accepted one.
+    pub fn stale_targets(&self) -> u64 {
+        self.stale_targets
     }
 
     pub fn status(&self) -> ControllerStatus {
@@ -157,6 +167,12 @@ impl Twin {
         if matches!(self.status, ControllerStatus::Fault(_)) {
             return;
         }
+        // A repeated or older target (a duplicate on the wire) is dropped, not applied twice.
+        if self.status == ControllerStatus::Ok && target.seq <= self.last_seq && self.last_seq != 0
+        {
+            self.stale_targets += 1;
+            return;
+        }
         if let Some(fault) = self.check(target) {
             self.status = ControllerStatus::Fault(fault);
             self.in_transit.clear();
@@ -183,10 +199,15 @@ impl Twin {
                 got: target.positions.len() as u8,
             });
         }
-        let reference = if self.status == ControllerStatus::Holding {
-            self.setpoint
+        let (reference, elapsed_cycles) = if self.status == ControllerStatus::Holding {
+            (self.setpoint, 1)
         } else {
-            self.last_accepted
+            // A target after a gap of d seqs may have travelled d cycles (docs/protocol.md 6.3).
+            let gap = target
+                .seq
+                .wrapping_sub(self.last_seq)
+                .clamp(1, self.settings.watchdog_cycles.max(1));
+            (self.last_accepted, gap)
         };
         for (axis, limits) in self.limits.iter().enumerate() {
             let value = target.positions.as_slice()[axis];
@@ -195,7 +216,11 @@ impl Twin {
             }
             let step = (value - reference.as_slice()[axis]).abs();
             let velocity = target.velocities.as_slice()[axis];
-            let max_step = limits.max_speed * self.settings.period_s * (1.0 + SPEED_SLACK);
+            let max_step = limits.max_speed
+                * self.settings.period_s
+                * f64::from(elapsed_cycles)
+                * (1.0 + SPEED_SLACK)
+                + WIRE_ROUNDING;
             if step > max_step
                 || !velocity.is_finite()
                 || velocity.abs() > limits.max_speed * (1.0 + SPEED_SLACK)
