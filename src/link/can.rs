@@ -87,12 +87,21 @@ impl CanBus {
         };
         let socket = match opened {
             Ok(socket) => socket,
+            // The interface is looked up first: a kernel without CAN says "no such device".
+            Err(e) if e.raw_os_error() == Some(libc::ENODEV) => {
+                let e = socketcan_supported().err().unwrap_or(e);
+                return fail(kind_of(&e), explain(&e));
+            }
             Err(e) => return fail(kind_of(&e), explain(&e)),
         };
         let filters = receive_filters(mapping);
         let configured = match &socket {
-            BusSocket::Classic(s) => s.set_filters(&filters).and(s.set_nonblocking(true)),
-            BusSocket::Fd(s) => s.set_filters(&filters).and(s.set_nonblocking(true)),
+            BusSocket::Classic(s) => s
+                .set_filters(&filters)
+                .and_then(|()| s.set_nonblocking(true)),
+            BusSocket::Fd(s) => s
+                .set_filters(&filters)
+                .and_then(|()| s.set_nonblocking(true)),
         };
         if let Err(e) = configured {
             return fail(e.kind(), format!("cannot configure the socket: {e}"));
@@ -266,6 +275,18 @@ pub fn interface_up(interface: &str) -> Option<bool> {
 /// The interface's MTU: 16 for classic CAN only, 72 for CAN FD; `None` when unknown.
 pub fn interface_mtu(interface: &str) -> Option<usize> {
     sysfs(interface, "mtu")?.trim().parse().ok()
+}
+
+/// Whether this kernel offers SocketCAN raw sockets at all.
+fn socketcan_supported() -> io::Result<()> {
+    // SAFETY: socket(2) with constant arguments; the descriptor is closed at once.
+    let fd = unsafe { libc::socket(libc::PF_CAN, libc::SOCK_RAW, libc::CAN_RAW) };
+    if fd < 0 {
+        return Err(io::Error::last_os_error());
+    }
+    // SAFETY: fd is the descriptor socket(2) just returned, closed once.
+    unsafe { libc::close(fd) };
+    Ok(())
 }
 
 fn kind_of(e: &io::Error) -> ErrorKind {

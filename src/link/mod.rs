@@ -24,7 +24,7 @@ use thiserror::Error;
 pub enum LinkError {
     #[error("link is closed: {0}")]
     Closed(String),
-    #[error("link I/O error: {0}")]
+    #[error("link I/O error")]
     Io(#[from] std::io::Error),
 }
 

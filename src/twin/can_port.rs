@@ -19,6 +19,7 @@ use crate::protocol::{
     CanAssembler, CanCounters, CanMapping, CanPayload, CanSender, FrameDecoder, can_frames,
     encode_frame,
 };
+use std::collections::VecDeque;
 use std::io::{self, ErrorKind};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -64,8 +65,10 @@ pub struct CanPort {
     mapping: CanMapping,
     bus: Option<CanBus>,
     assembler: CanAssembler,
-    /// Received messages, framed for serve_twin, not yet read.
+    /// Received messages, framed for serve_twin, not yet read ...
     pending: Vec<u8>,
+    /// ... and their lengths: a read hands over one message at most.
+    lengths: VecDeque<usize>,
     /// Decodes the frames serve_twin writes.
     outgoing: FrameDecoder,
     frames: Vec<CanPayload>,
@@ -96,6 +99,7 @@ impl CanPort {
             bus,
             assembler: CanAssembler::new(mapping),
             pending: Vec::with_capacity(4096),
+            lengths: VecDeque::with_capacity(64),
             outgoing: FrameDecoder::default(),
             frames: Vec::with_capacity(256),
             retry_at: Instant::now(),
@@ -109,10 +113,18 @@ impl CanPort {
         self.stats.clone()
     }
 
+    /// The next received message's framed bytes (as many as fit).
     fn take_pending(&mut self, buffer: &mut [u8]) -> usize {
-        let n = self.pending.len().min(buffer.len());
+        let Some(length) = self.lengths.front_mut() else {
+            return 0;
+        };
+        let n = (*length).min(buffer.len());
         buffer[..n].copy_from_slice(&self.pending[..n]);
         self.pending.drain(..n);
+        *length -= n;
+        if *length == 0 {
+            self.lengths.pop_front();
+        }
         n
     }
 }
@@ -134,8 +146,11 @@ impl ControllerPort for CanPort {
         self.bus.is_some()
     }
 
+    /// Hands over one message per call, as CAN delivers them: serve_twin then advances one
+    /// cycle per target even when several arrived together (after a stall), so each one's
+    /// seq is echoed.
     fn read_within(&mut self, buffer: &mut [u8], timeout: Duration) -> io::Result<usize> {
-        if !self.pending.is_empty() {
+        if !self.lengths.is_empty() {
             return Ok(self.take_pending(buffer));
         }
         let Some(bus) = &self.bus else {
@@ -148,8 +163,11 @@ impl ControllerPort for CanPort {
         while let Some(frame) = bus.try_receive()? {
             self.stats.frames_received.fetch_add(1, Ordering::Relaxed);
             if let Some(message) = self.assembler.push(&frame) {
+                let before = self.pending.len();
                 // Every message the assembler delivers came from wire values: it encodes.
-                let _ = encode_frame(&message, &mut self.pending);
+                if encode_frame(&message, &mut self.pending).is_ok() {
+                    self.lengths.push_back(self.pending.len() - before);
+                }
             }
         }
         *self
@@ -181,6 +199,7 @@ impl ControllerPort for CanPort {
         self.bus = None;
         self.assembler.reset();
         self.pending.clear();
+        self.lengths.clear();
         self.outgoing.reset();
         self.retry_at = Instant::now() + self.backoff;
     }

@@ -1,0 +1,77 @@
+#!/usr/bin/env bash
+# The project's full test command (the README's, and what .ci/run runs after fmt and clippy):
+#  1. every test on this machine: `cargo test --release`. Here tests/can.rs only says it is
+#     skipping, since this machine's kernel has no SocketCAN;
+#  2. tests/can.rs again, inside a throw-away QEMU VM with SocketCAN and vcan interfaces
+#     (../shared/tools/run-in-vcan-vm.sh), where it must pass and may not skip.
+# Installs what the VM needs when missing (qemu-system-x86, busybox-static, cpio, xz-utils:
+# one apt-get update, then apt-get install; as root, no prompts). The VM's kernel is
+# fetched with apt-get download on first use and cached (~/.cache/vcan-vm).
+# `bash scripts/test.sh --vm-only` skips step 1. CARGO_TARGET_DIR is honoured;
+# VCANVM_SCRIPT overrides the VM script's path (other VCANVM_* settings pass through).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+started=$SECONDS
+vm_only=
+case ${1:-} in
+  --vm-only) vm_only=1 ;;
+  "") ;;
+  *) echo "usage: bash scripts/test.sh [--vm-only]" >&2; exit 2 ;;
+esac
+
+vm_script=${VCANVM_SCRIPT:-../shared/tools/run-in-vcan-vm.sh}
+[ -f "$vm_script" ] || { echo "test.sh: no VM script at $vm_script (shared/ beside the repo?)" >&2; exit 1; }
+
+# ------------------------------------------------------------- what the VM needs --
+as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo -n "$@"; fi; }
+updated=
+apt_update_once() {
+  if [ -z "$updated" ]; then
+    as_root env DEBIAN_FRONTEND=noninteractive apt-get update -qq
+    updated=1
+  fi
+}
+missing=()
+command -v qemu-system-x86_64 >/dev/null || missing+=(qemu-system-x86)
+{ [ -x /bin/busybox ] && ! ldd /bin/busybox >/dev/null 2>&1; } || missing+=(busybox-static)
+command -v cpio >/dev/null || missing+=(cpio)
+command -v xz >/dev/null || missing+=(xz-utils)
+if [ ${#missing[@]} -gt 0 ]; then
+  echo "test.sh: installing ${missing[*]}" >&2
+  apt_update_once
+  as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+    "${missing[@]}" </dev/null
+fi
+# The VM script resolves linux-image-amd64 with apt-cache on first use: it needs apt lists.
+cache=${VCANVM_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/vcan-vm}
+if [ -z "${VCANVM_KERNEL:-}" ] && ! ls "$cache"/kroot/boot/vmlinuz-* >/dev/null 2>&1 \
+   && ! apt-cache depends linux-image-amd64 2>/dev/null | grep -q 'Depends: linux-image-[0-9]'; then
+  apt_update_once
+fi
+
+# ------------------------------------------------------------- 1. on this machine --
+[ -n "$vm_only" ] || cargo test --release
+
+# ------------------------------------------------------- 2. tests/can.rs in the VM --
+# The test binary and the rigbridge binary it spawns, from cargo's own account of them.
+artifacts=$(cargo test --release --test can --no-run --message-format=json)
+executable() {  # KIND NAME
+  grep '"reason":"compiler-artifact"' <<<"$artifacts" | grep "\"kind\":\[\"$1\"\]" \
+    | grep "\"name\":\"$2\"" | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' | tail -n 1 || true
+}
+test_bin=$(executable test can)
+rig_bin=$(executable bin rigbridge)
+[ -x "$test_bin" ] && [ -x "$rig_bin" ] \
+  || { echo "test.sh: cannot find the CAN test ($test_bin) or rigbridge ($rig_bin)" >&2; exit 1; }
+
+echo "test.sh: tests/can.rs inside a VM with SocketCAN ($(basename "$test_bin"))"
+# The guest gets both binaries and config/ at their host paths and runs in this directory;
+# RIGBRIDGE_REQUIRE_CAN=1 makes a test that cannot reach a CAN interface fail, not skip.
+RIGBRIDGE_REQUIRE_CAN=1 \
+VCANVM_ENV=RIGBRIDGE_REQUIRE_CAN \
+VCANVM_IFACES="vcan0 vcan1 vcan2 vcan3" \
+VCANVM_FILES="$rig_bin $PWD/config" \
+VCANVM_TIMEOUT=${VCANVM_TIMEOUT:-300} \
+  bash "$vm_script" "$test_bin" --test-threads=1 --nocapture
+
+echo "test.sh: all tests passed in $((SECONDS - started)) s"
