@@ -83,3 +83,12 @@ fn malformed_urdf_is_an_error_not_a_panic() {
     let path = write_variant("broken.urdf", |_| "<robot name=\"x\"><joint".to_string());
     assert!(load_rig(&path).is_err());
 }
+
+#[test]
+fn the_shipped_run_settings_load() {
+    let settings =
+        rigbridge::daemon::config::load_run_settings(&repo_path("config/rigbridge.toml"))
+            .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(settings.rig.name, "irb120");
+    assert_eq!(settings.config.stream.link, "loopback");
+}

@@ -272,3 +272,52 @@ fn a_megabyte_of_garbage_moves_nothing_and_crashes_nothing() {
         String::from_utf8_lossy(&output.stderr)
     );
 }
+
+#[test]
+fn a_controller_sending_garbage_gets_no_motion_and_no_crash() {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let address = listener.local_addr().unwrap();
+    let server = std::thread::spawn(move || {
+        let (mut socket, _) = listener.accept().unwrap();
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut noise = Vec::with_capacity(1 << 20);
+        while noise.len() < 1 << 20 {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            noise.extend_from_slice(&state.to_le_bytes());
+        }
+        let _ = socket.write_all(&noise);
+        let mut received = Vec::new();
+        let _ = socket.read_to_end(&mut received);
+        received
+    });
+    let (log, json) = (
+        scratch("garbage-daemon.mcap"),
+        scratch("garbage-daemon.json"),
+    );
+    let output = spawn_run(&format!("tcp://{address}"), &log, &json)
+        .wait_with_output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("no feedback"), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert!(
+        !log.exists(),
+        "nothing was streamed, so nothing was recorded"
+    );
+    // What the bridge sent: heartbeats only, never a target.
+    let sent = server.join().unwrap();
+    let mut decoder = rigbridge::protocol::FrameDecoder::default();
+    decoder.push(&sent);
+    while let Some(message) = decoder.next_message() {
+        assert!(
+            matches!(
+                message,
+                rigbridge::protocol::Message::Command(rigbridge::protocol::Command::Heartbeat)
+            ),
+            "{message:?}"
+        );
+    }
+}

@@ -199,6 +199,10 @@ pub fn print_stream_summary(
         s.latency_p99_us,
         s.tracking_error_max_deg
     );
+    println!(
+        "  link: {} frames sent, {} received, {} CRC errors, {} gaps, {} duplicates, {} reconnects",
+        s.frames_sent, s.frames_received, s.crc_errors, s.gaps, s.duplicates, s.reconnects
+    );
     if let Some(fault) = &s.fault {
         println!("  fault: {fault}");
     }

@@ -6,7 +6,6 @@ use clap::Args;
 use rigbridge::clock::WallClock;
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::daemon::twin_settings;
-use rigbridge::link::SerialSettings;
 use rigbridge::protocol::CanSender;
 use rigbridge::twin::Twin;
 use rigbridge::twin::can_port::CanPort;
@@ -95,7 +94,10 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
             Box::new(port)
         }
         (None, Some(path), ..) => {
-            let settings = SerialSettings::new(path.display().to_string(), args.baud);
+            let settings = settings
+                .config
+                .stream
+                .serial_settings(&path.display().to_string(), args.baud);
             let port = SerialControllerPort::open(&settings)
                 .with_context(|| format!("cannot open {}", path.display()))?;
             say(&port.describe());

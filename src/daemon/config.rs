@@ -35,9 +35,59 @@ pub struct StreamConfig {
     /// (`docs/protocol.md`, section 7.1); at most 0x780.
     #[serde(default = "default_can_base_id")]
     pub can_base_id: u16,
+    /// `serial://` links: the line's framing beyond the baud rate (8 data bits always).
+    #[serde(default)]
+    pub serial_parity: SerialParity,
+    #[serde(default = "default_stop_bits")]
+    pub serial_stop_bits: u8,
+    #[serde(default)]
+    pub serial_flow_control: SerialFlowControl,
+}
+
+#[derive(Debug, Clone, Copy, Default, Deserialize, serde::Serialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum SerialParity {
+    #[default]
+    None,
+    Odd,
+    Even,
+}
+
+#[derive(Debug, Clone, Copy, Default, Deserialize, serde::Serialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum SerialFlowControl {
+    #[default]
+    None,
+    Software,
+    Hardware,
+}
+
+fn default_stop_bits() -> u8 {
+    1
 }
 
 impl StreamConfig {
+    /// The serial settings of these settings for a `serial://PATH?baud=N` link.
+    pub fn serial_settings(&self, path: &str, baud: u32) -> crate::link::SerialSettings {
+        let mut settings = crate::link::SerialSettings::new(path, baud);
+        settings.parity = match self.serial_parity {
+            SerialParity::None => serialport::Parity::None,
+            SerialParity::Odd => serialport::Parity::Odd,
+            SerialParity::Even => serialport::Parity::Even,
+        };
+        settings.stop_bits = if self.serial_stop_bits == 2 {
+            serialport::StopBits::Two
+        } else {
+            serialport::StopBits::One
+        };
+        settings.flow_control = match self.serial_flow_control {
+            SerialFlowControl::None => serialport::FlowControl::None,
+            SerialFlowControl::Software => serialport::FlowControl::Software,
+            SerialFlowControl::Hardware => serialport::FlowControl::Hardware,
+        };
+        settings
+    }
+
     /// The CAN mapping of these settings for `sender`'s end of a `can://` link.
     pub fn can_mapping(&self, sender: CanSender) -> Result<CanMapping, CanMappingError> {
         CanMapping::new(self.can_base_id, self.can_fd, sender)
@@ -146,6 +196,14 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     check_range(file, "stream.rate_hz", config.stream.rate_hz, 1.0, 1000.0)?;
     if let Err(e) = config.stream.link.parse::<crate::link::LinkSpec>() {
         return Err(invalid(file, "stream.link", &config.stream.link, &e.reason));
+    }
+    if !matches!(config.stream.serial_stop_bits, 1 | 2) {
+        return Err(invalid(
+            file,
+            "stream.serial_stop_bits",
+            config.stream.serial_stop_bits,
+            "must be 1 or 2",
+        ));
     }
     check_range(
         file,

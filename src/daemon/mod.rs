@@ -147,7 +147,7 @@ pub fn open_link(
             Ok(Box::new(link))
         }
         LinkSpec::Serial { path, baud } => {
-            let serial = crate::link::SerialSettings::new(path.clone(), *baud);
+            let serial = settings.config.stream.serial_settings(path, *baud);
             let link = crate::link::connect_serial(serial).map_err(LinkError::Io)?;
             wait_for_link(
                 &link,
