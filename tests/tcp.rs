@@ -321,3 +321,59 @@ fn a_controller_sending_garbage_gets_no_motion_and_no_crash() {
         );
     }
 }
+
+#[test]
+fn a_twin_that_never_comes_back_aborts_the_job_with_a_message() {
+    let config = repo_path("config").join(format!(".test-{}-reconnect.toml", std::process::id()));
+    let original = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    std::fs::write(
+        &config,
+        original.replace(
+            "link = \"loopback\"",
+            "link = \"loopback\"\nreconnect_timeout_s = 1.0",
+        ),
+    )
+    .unwrap();
+    let twin = start_twin("tcp://127.0.0.1:0");
+    let (log, json) = (scratch("abort.mcap"), scratch("abort.json"));
+    let daemon = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args([
+            "run",
+            "--config",
+            config.to_str().unwrap(),
+            "--link",
+            &twin.address,
+        ])
+        .args([
+            "--log",
+            log.to_str().unwrap(),
+            "--report",
+            json.to_str().unwrap(),
+        ])
+        .current_dir(repo_path(""))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(2000));
+    drop(twin);
+    let output = daemon.wait_with_output().unwrap();
+    std::fs::remove_file(&config).unwrap();
+    assert_eq!(
+        output.status.code(),
+        Some(3),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let report = report(&json);
+    assert_eq!(report["outcome"], "link_lost", "{report}");
+    let fault = report["fault"].as_str().unwrap();
+    assert!(
+        fault.contains("lost for 1 s") && fault.contains("aborted"),
+        "{fault}"
+    );
+    assert!(
+        !read_log(&log).unwrap().truncated,
+        "the log is closed properly"
+    );
+}
