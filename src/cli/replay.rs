@@ -95,10 +95,7 @@ pub fn replay_command(args: ReplayArgs) -> anyhow::Result<ExitCode> {
             &job_control,
         )?)
     })?;
-    wait(&control, &job)?;
-    let report = job
-        .join()
-        .map_err(|_| anyhow::anyhow!("the streaming thread panicked"))??;
+    let report = wait(&control, job)?;
     let rate_hz = report.stream.cycles as f64 / report.stream.duration_s.max(f64::MIN_POSITIVE);
     print_stream_summary("replay", &report.rig, rate_hz, clock_name, &report.stream);
     println!(

@@ -126,10 +126,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
             &job_control,
         )?)
     })?;
-    wait(&control, &job)?;
-    let report = job
-        .join()
-        .map_err(|_| anyhow::anyhow!("the streaming thread panicked"))??;
+    let report = wait(&control, job)?;
     print_summary(&report);
     println!("  log: {}", log.display());
     write_report(args.report.as_deref(), &report)?;
@@ -144,14 +141,17 @@ pub fn exit_code(outcome: Outcome) -> ExitCode {
     }
 }
 
+/// Waits for the streaming thread (progress, signals) and returns what it produced.
 pub fn wait<T>(
     control: &StreamControl,
-    job: &std::thread::JoinHandle<anyhow::Result<T>>,
-) -> anyhow::Result<()> {
+    job: std::thread::JoinHandle<anyhow::Result<T>>,
+) -> anyhow::Result<T> {
     tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?
-        .block_on(supervise(control, job))
+        .block_on(supervise(control, &job))?;
+    job.join()
+        .map_err(|_| anyhow::anyhow!("the streaming thread panicked"))?
 }
 
 pub fn write_report(
