@@ -272,7 +272,9 @@ fn latest_feedback(link: &mut dyn Link) -> Result<Option<Feedback>, LinkError> {
     Ok(latest)
 }
 
-/// Waits up to `timeout` for the feedback that echoes `seq` (or a later one).
+/// Waits up to `timeout` for the feedback that echoes `seq` (or a later one). The deadline
+/// is real time on purpose: it bounds a wait on a real transport, which a virtual clock
+/// (which only jumps) could not.
 fn await_echo(
     link: &mut dyn Link,
     seq: u32,
