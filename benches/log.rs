@@ -34,6 +34,7 @@ fn cycle(i: u32) -> (LogRecord, LogRecord) {
             t,
             positions: axes(&measured),
             velocities: axes(&v),
+            late_us: 0.0,
         },
     )
 }

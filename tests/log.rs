@@ -53,6 +53,7 @@ fn cycle(i: u32) -> (LogRecord, LogRecord) {
         t,
         positions: axes(&measured),
         velocities: axes(&v),
+        late_us: 0.0,
     };
     (command, state)
 }
@@ -129,6 +130,7 @@ fn fields(record: &LogRecord) -> (u32, f64, &[f64], &[f64]) {
             t,
             positions,
             velocities,
+            ..
         } => (*seq, *t, positions.as_slice(), velocities.as_slice()),
     }
 }

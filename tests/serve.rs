@@ -1,4 +1,5 @@
-//! `rigbridge serve`: the control API over real HTTP on 127.0.0.1, against the twin.
+//! `rigbridge serve`: the control API over real HTTP on 127.0.0.1, against the twin, and its
+//! access control (bind address, bearer token). Traffic only ever goes to 127.0.0.1.
 
 mod common;
 
@@ -10,7 +11,12 @@ use std::time::{Duration, Instant};
 
 struct Server {
     child: Child,
+    /// Where to connect: always 127.0.0.1:PORT.
     address: String,
+    /// What the server printed as its address.
+    listening: String,
+    /// Sent as `Authorization: Bearer <token>` when set.
+    token: Option<String>,
 }
 
 impl Drop for Server {
@@ -20,11 +26,26 @@ impl Drop for Server {
     }
 }
 
-fn start_server() -> Server {
+fn serve_command(extra: &[&str], env_token: Option<&str>) -> Command {
     let runs = std::env::temp_dir().join(format!("rigbridge-serve-{}", std::process::id()));
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+    let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
+    command
         .args(["serve", "--port", "0", "--runs-dir", runs.to_str().unwrap()])
+        .args(extra)
         .current_dir(repo_path(""))
+        .env_remove("RIGBRIDGE_TOKEN");
+    if let Some(token) = env_token {
+        command.env("RIGBRIDGE_TOKEN", token);
+    }
+    command
+}
+
+fn start_server() -> Server {
+    start_server_with(&[], None)
+}
+
+fn start_server_with(extra: &[&str], env_token: Option<&str>) -> Server {
+    let mut child = serve_command(extra, env_token)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -39,8 +60,13 @@ fn start_server() -> Server {
         .and_then(|a| a.strip_suffix('/'))
         .unwrap_or_else(|| panic!("first line should be the address, got {line:?}"))
         .to_string();
-    assert!(address.starts_with("127.0.0.1:"), "{address}");
-    Server { child, address }
+    let port = address.rsplit_once(':').unwrap().1;
+    Server {
+        child,
+        address: format!("127.0.0.1:{port}"),
+        listening: address,
+        token: env_token.map(String::from),
+    }
 }
 
 /// One HTTP/1.1 request; returns the status code and the body as JSON.
@@ -55,9 +81,14 @@ fn request(
         .set_read_timeout(Some(Duration::from_secs(30)))
         .unwrap();
     let body = body.unwrap_or("");
+    let authorization = server
+        .token
+        .as_ref()
+        .map(|t| format!("Authorization: Bearer {t}\r\n"))
+        .unwrap_or_default();
     write!(
         stream,
-        "{method} {path} HTTP/1.1\r\nHost: {}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        "{method} {path} HTTP/1.1\r\nHost: {}\r\n{authorization}Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
         server.address,
         body.len()
     )
@@ -147,4 +178,165 @@ fn estop_halts_the_job_and_a_bad_job_is_refused_before_motion() {
     assert_eq!(request(&server, "POST", "/api/estop", None).0, 200);
     let done = wait_for(&server, "e-stop", |s| s["state"] == "idle");
     assert_eq!(done["last"]["report"]["outcome"], "e_stopped", "{done}");
+}
+
+/// One request with exactly these extra header lines (no token of the server's own).
+fn request_with(server: &Server, method: &str, path: &str, headers: &str) -> (u16, String) {
+    assert!(server.address.starts_with("127.0.0.1:"));
+    let mut stream = TcpStream::connect(&server.address).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(30)))
+        .unwrap();
+    write!(
+        stream,
+        "{method} {path} HTTP/1.1\r\nHost: {}\r\n{headers}Content-Length: 0\r\nConnection: close\r\n\r\n",
+        server.address
+    )
+    .unwrap();
+    let mut response = String::new();
+    stream.read_to_string(&mut response).unwrap();
+    let status = response[9..12].parse().unwrap();
+    (status, response)
+}
+
+fn assert_unauthorized((code, response): (u16, String)) {
+    assert_eq!(code, 401, "{response}");
+    let lower = response.to_ascii_lowercase();
+    assert!(lower.contains("www-authenticate: bearer"), "{response}");
+    let body = response.split("\r\n\r\n").nth(1).unwrap_or("");
+    let json: serde_json::Value = serde_json::from_str(body).unwrap();
+    assert!(json["error"].as_str().unwrap().contains("token"), "{json}");
+}
+
+#[test]
+fn default_bind_is_loopback_and_needs_no_token() {
+    let server = start_server();
+    assert!(
+        server.listening.starts_with("127.0.0.1:"),
+        "{}",
+        server.listening
+    );
+    assert_eq!(request(&server, "GET", "/api/status", None).0, 200);
+    assert_eq!(request_with(&server, "GET", "/", "").0, 200);
+    // No job: 409 from the handler itself, not 401.
+    assert_eq!(request(&server, "POST", "/api/stop", None).0, 409);
+}
+
+#[test]
+fn a_token_guards_the_control_routes_on_loopback() {
+    let token = "s3cret-token-for-tests";
+    let server = start_server_with(&[], Some(token));
+    assert!(
+        server.listening.starts_with("127.0.0.1:"),
+        "{}",
+        server.listening
+    );
+    for path in [
+        "/api/stop",
+        "/api/jobs",
+        "/api/pause",
+        "/api/resume",
+        "/api/estop",
+    ] {
+        assert_unauthorized(request_with(&server, "POST", path, ""));
+    }
+    assert_unauthorized(request_with(
+        &server,
+        "POST",
+        "/api/stop",
+        "Authorization: Bearer wrong-token\r\n",
+    ));
+    assert_unauthorized(request_with(
+        &server,
+        "POST",
+        "/api/stop",
+        "Authorization: Bearer s3cret-token-for-test\r\n",
+    ));
+    assert_unauthorized(request_with(
+        &server,
+        "POST",
+        "/api/stop",
+        &format!("Authorization: Basic {token}\r\n"),
+    ));
+    let (code, response) = request_with(
+        &server,
+        "POST",
+        "/api/stop",
+        &format!("Authorization: Bearer {token}\r\n"),
+    );
+    assert_ne!(code, 401, "{response}");
+    assert_eq!(code, 409, "no job to stop: {response}");
+    // Status stays open on loopback.
+    assert_eq!(request_with(&server, "GET", "/api/status", "").0, 200);
+    assert_eq!(request_with(&server, "GET", "/", "").0, 200);
+}
+
+#[test]
+fn a_non_loopback_bind_without_a_token_refuses_to_start() {
+    let output = serve_command(&["--bind", "0.0.0.0"], None)
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("0.0.0.0"), "{stderr}");
+    assert!(stderr.contains("token"), "{stderr}");
+    assert!(stderr.contains("RIGBRIDGE_TOKEN"), "{stderr}");
+    assert!(
+        output.stdout.is_empty(),
+        "never listened: {:?}",
+        output.stdout
+    );
+}
+
+#[test]
+fn a_non_loopback_bind_with_a_token_guards_status_too() {
+    let token = "another-s3cret-for-tests";
+    let server = start_server_with(&["--bind", "0.0.0.0"], Some(token));
+    assert!(
+        server.listening.starts_with("0.0.0.0:"),
+        "{}",
+        server.listening
+    );
+    // Only ever connect to 127.0.0.1.
+    assert_unauthorized(request_with(&server, "GET", "/api/status", ""));
+    assert_unauthorized(request_with(&server, "GET", "/", ""));
+    assert_unauthorized(request_with(&server, "POST", "/api/stop", ""));
+    assert_unauthorized(request_with(
+        &server,
+        "GET",
+        "/api/status",
+        "Authorization: Bearer nope\r\n",
+    ));
+    let (code, status) = request(&server, "GET", "/api/status", None);
+    assert_eq!((code, status["state"].as_str()), (200, Some("idle")));
+    assert_eq!(request(&server, "POST", "/api/stop", None).0, 409);
+}
+
+#[test]
+fn a_cross_site_request_from_a_browser_page_is_refused() {
+    let server = start_server();
+    let mut stream = TcpStream::connect(&server.address).unwrap();
+    write!(
+        stream,
+        "POST /api/estop HTTP/1.1\r\nHost: {}\r\nOrigin: http://evil.example\r\nContent-Length: 0\r\nConnection: close\r\n\r\n",
+        server.address
+    )
+    .unwrap();
+    let mut response = String::new();
+    stream.read_to_string(&mut response).unwrap();
+    assert!(response.starts_with("HTTP/1.1 403"), "{response}");
+    let mut stream = TcpStream::connect(&server.address).unwrap();
+    write!(
+        stream,
+        "POST /api/estop HTTP/1.1\r\nHost: {0}\r\nOrigin: http://{0}\r\nContent-Length: 0\r\nConnection: close\r\n\r\n",
+        server.address
+    )
+    .unwrap();
+    let mut response = String::new();
+    stream.read_to_string(&mut response).unwrap();
+    assert!(
+        response.starts_with("HTTP/1.1 409"),
+        "same origin passes (no job to stop): {response}"
+    );
 }

@@ -2,6 +2,7 @@
 //! Everything it runs lives in the library; errors gain their context here.
 
 mod batch;
+mod plot;
 mod replay;
 mod run;
 mod serve;

@@ -48,6 +48,8 @@ pub enum LogCommand {
         #[arg(long)]
         json: bool,
     },
+    /// Draw a run log to a PNG: commanded vs actual per axis, tracking error, cycle jitter.
+    Plot(super::plot::PlotArgs),
 }
 
 pub fn replay_command(args: ReplayArgs) -> anyhow::Result<ExitCode> {
@@ -118,5 +120,6 @@ pub fn log_command(command: LogCommand) -> anyhow::Result<ExitCode> {
             }
             Ok(ExitCode::SUCCESS)
         }
+        LogCommand::Plot(args) => super::plot::plot_command(args),
     }
 }

@@ -1,19 +1,29 @@
-//! `rigbridge serve`: binds 127.0.0.1 and hands the listener to the daemon's server.
+//! `rigbridge serve`: binds 127.0.0.1 (or `--bind` / `[serve] bind`) and hands the listener
+//! to the daemon's server. A non-loopback address requires a token (`RIGBRIDGE_TOKEN` or
+//! `[serve] token`).
 
 use super::run::ClockChoice;
 use anyhow::Context;
 use clap::Args;
-use rigbridge::daemon::config::load_run_settings;
+use rigbridge::daemon::config::{load_run_settings, token_problem};
 use rigbridge::daemon::server::{ServeOptions, run};
+use std::net::IpAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
+
+/// The environment variable holding the API token; it wins over `[serve] token`.
+const TOKEN_VAR: &str = "RIGBRIDGE_TOKEN";
 
 #[derive(Args)]
 pub struct ServeArgs {
     /// Run settings: rig, stream rate, twin, plan and the default job.
     #[arg(long, default_value = "config/rigbridge.toml")]
     config: PathBuf,
-    /// Port on 127.0.0.1 (0 picks a free one).
+    /// Address to listen on [default: `[serve] bind`, else 127.0.0.1]. Anything but a
+    /// loopback address requires a token (RIGBRIDGE_TOKEN or `[serve] token`).
+    #[arg(long, value_name = "ADDRESS")]
+    bind: Option<IpAddr>,
+    /// Port on the bind address (0 picks a free one).
     #[arg(long, default_value_t = 0)]
     port: u16,
     /// Where each job's MCAP log goes.
@@ -39,16 +49,54 @@ async fn shutdown_signal() {
     eprintln!("stopping: bringing any job to rest, closing its log");
 }
 
+/// The token: `RIGBRIDGE_TOKEN` when set, else `[serve] token`.
+fn token(config_token: Option<&str>) -> anyhow::Result<Option<String>> {
+    match std::env::var(TOKEN_VAR) {
+        Ok(token) => {
+            if let Some(reason) = token_problem(&token) {
+                anyhow::bail!("{TOKEN_VAR} is set but not usable: it {reason}");
+            }
+            Ok(Some(token))
+        }
+        Err(std::env::VarError::NotPresent) => Ok(config_token.map(String::from)),
+        Err(std::env::VarError::NotUnicode(_)) => {
+            anyhow::bail!("{TOKEN_VAR} is set but not usable: it is not valid Unicode")
+        }
+    }
+}
+
 pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
     let settings = load_run_settings(&args.config).context("cannot load run settings")?;
+    let bind = match args.bind {
+        Some(bind) => bind,
+        // Validated on load.
+        None => settings
+            .config
+            .serve
+            .bind
+            .parse()
+            .context("cannot parse [serve] bind")?,
+    };
+    let token = token(settings.config.serve.token.as_deref())?;
+    if !bind.is_loopback() && token.is_none() {
+        anyhow::bail!(
+            "refusing to serve on {bind} without a token: anyone who can reach a non-loopback \
+             address could move the arm. Set one in the environment ({TOKEN_VAR}=<secret>) \
+             or as `token` under [serve] in {}, or bind 127.0.0.1",
+            args.config.display()
+        );
+    }
     let options = ServeOptions {
         runs_dir: args.runs_dir,
         virtual_clock: matches!(args.clock, ClockChoice::Virtual),
+        token,
     };
     tokio::runtime::Runtime::new()?.block_on(async move {
-        let listener = tokio::net::TcpListener::bind(("127.0.0.1", args.port))
+        let listener = tokio::net::TcpListener::bind((bind, args.port))
             .await
-            .with_context(|| format!("cannot bind 127.0.0.1:{}", args.port))?;
+            .with_context(|| {
+                format!("cannot bind {}", std::net::SocketAddr::new(bind, args.port))
+            })?;
         println!("http://{}/", listener.local_addr()?);
         run(listener, settings, options, shutdown_signal()).await?;
         anyhow::Ok(())

@@ -17,6 +17,56 @@ pub struct RunConfig {
     pub twin: TwinConfig,
     pub plan: PlanConfig,
     pub job: JobConfig,
+    /// `rigbridge serve`: where to listen and the control API's bearer token.
+    #[serde(default)]
+    pub serve: ServeConfig,
+}
+
+/// `[serve]`: optional; without it `serve` binds 127.0.0.1 with no token.
+#[derive(Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServeConfig {
+    /// The address to listen on (an IP address; `--bind` overrides it). Any address but a
+    /// loopback one requires a token.
+    #[serde(default = "default_bind")]
+    pub bind: String,
+    /// The bearer token the control API requires (`RIGBRIDGE_TOKEN` overrides it).
+    #[serde(default)]
+    pub token: Option<String>,
+}
+
+impl Default for ServeConfig {
+    fn default() -> Self {
+        ServeConfig {
+            bind: default_bind(),
+            token: None,
+        }
+    }
+}
+
+/// Never prints the token itself.
+impl std::fmt::Debug for ServeConfig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ServeConfig")
+            .field("bind", &self.bind)
+            .field("token", &self.token.as_ref().map(|_| "<redacted>"))
+            .finish()
+    }
+}
+
+fn default_bind() -> String {
+    "127.0.0.1".to_string()
+}
+
+/// Why a bearer token is not usable (empty, or not sendable in an HTTP header), if it is not.
+pub fn token_problem(token: &str) -> Option<&'static str> {
+    if token.is_empty() {
+        Some("must not be empty")
+    } else if !token.bytes().all(|b| b.is_ascii_graphic()) {
+        Some("must be printable ASCII without spaces (it is sent in an HTTP header)")
+    } else {
+        None
+    }
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -255,6 +305,17 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         0.99,
     )?;
     check_job(file, &config.job, &rig)?;
+    if config.serve.bind.parse::<std::net::IpAddr>().is_err() {
+        return Err(invalid(
+            file,
+            "serve.bind",
+            &config.serve.bind,
+            "must be an IP address, such as 127.0.0.1 or 0.0.0.0",
+        ));
+    }
+    if let Some(reason) = config.serve.token.as_deref().and_then(token_problem) {
+        return Err(invalid(file, "serve.token", "<redacted>", reason));
+    }
     Ok(RunSettings {
         file: file.to_path_buf(),
         config,

@@ -53,6 +53,7 @@ impl CycleSink for RecorderSink<'_> {
                 t: target.t,
                 positions: feedback.positions,
                 velocities,
+                late_us: cycle.late_us,
             });
             self.previous_actual = Some(feedback.positions);
         }

@@ -3,14 +3,19 @@
 //! e-stop. One job streams at a time; the twin persists between jobs, so each job starts
 //! where the last one left the arm. Like mini-redis, the binary only binds the listener
 //! and hands it to [`run`] with a shutdown signal.
+//!
+//! Access: with a token ([`ServeOptions::token`]) every control route requires
+//! `Authorization: Bearer <token>` ([`require_token`]); on a listener that is not loopback a
+//! token is mandatory and every route requires it, status included.
 
 use super::config::{JobConfig, RunSettings};
 use super::{DaemonError, RunReport, loopback_twin, plan_for, stream_planned};
 use crate::clock::{Clock, VirtualClock, WallClock};
 use crate::link::LoopbackLink;
 use crate::stream::StreamControl;
-use axum::extract::State;
-use axum::http::StatusCode;
+use axum::extract::{Request, State};
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
@@ -19,11 +24,113 @@ use std::future::Future;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
-/// Where each job's MCAP log goes, and which clock jobs run on.
-#[derive(Debug, Clone)]
+/// Where each job's MCAP log goes, which clock jobs run on, and the bearer token the API
+/// requires (mandatory when the listener is not on a loopback address).
+#[derive(Clone)]
 pub struct ServeOptions {
     pub runs_dir: PathBuf,
     pub virtual_clock: bool,
+    pub token: Option<String>,
+}
+
+/// Never prints the token itself.
+impl std::fmt::Debug for ServeOptions {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ServeOptions")
+            .field("runs_dir", &self.runs_dir)
+            .field("virtual_clock", &self.virtual_clock)
+            .field("token", &self.token.as_ref().map(|_| "<redacted>"))
+            .finish()
+    }
+}
+
+/// The state of [`require_token`]: the token requests must carry, if any.
+#[derive(Clone)]
+pub struct TokenCheck {
+    token: Option<Arc<[u8]>>,
+}
+
+impl TokenCheck {
+    /// `None` lets every request through.
+    pub fn new(token: Option<&str>) -> Self {
+        TokenCheck {
+            token: token.map(|t| Arc::from(t.as_bytes())),
+        }
+    }
+
+    /// Whether `request` may pass: always without a token, else only with
+    /// `Authorization: Bearer <token>` (the scheme's case is free), compared in constant time.
+    pub fn allows(&self, headers: &axum::http::HeaderMap) -> bool {
+        let Some(expected) = &self.token else {
+            return true;
+        };
+        let Some(value) = headers.get(header::AUTHORIZATION) else {
+            return false;
+        };
+        let value = value.as_bytes();
+        let Some((scheme, presented)) = value.split_at_checked(7) else {
+            return false;
+        };
+        scheme.eq_ignore_ascii_case(b"bearer ") && constant_time_eq(presented, expected)
+    }
+}
+
+/// Equality whose time depends only on the lengths, not on where the bytes differ.
+fn constant_time_eq(presented: &[u8], expected: &[u8]) -> bool {
+    if expected.is_empty() {
+        return false;
+    }
+    let mut diff = u8::from(presented.len() != expected.len());
+    for (i, byte) in presented.iter().enumerate() {
+        diff |= byte ^ expected[i % expected.len()];
+    }
+    std::hint::black_box(diff) == 0
+}
+
+/// The access check as axum middleware, reusable on any route (the control routes, a
+/// future `/ws`): `route_layer(axum::middleware::from_fn_with_state(check, require_token))`.
+/// Refuses a request without the right bearer token with 401 and a JSON error.
+pub async fn require_token(
+    State(check): State<TokenCheck>,
+    request: Request,
+    next: Next,
+) -> Response {
+    if check.allows(request.headers()) {
+        return next.run(request).await;
+    }
+    let mut response = error(
+        StatusCode::UNAUTHORIZED,
+        "missing or wrong token: send `Authorization: Bearer <token>`",
+    );
+    response
+        .headers_mut()
+        .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+    response
+}
+
+/// Refuses control requests a browser sends on behalf of another site: a page open in a
+/// local browser could otherwise POST to 127.0.0.1 and move the arm. Browsers send
+/// `Origin` on every cross-origin POST; it must name the host the request went to.
+/// Requests without `Origin` (curl, scripts, tests) pass.
+pub async fn require_same_origin(request: Request, next: Next) -> Response {
+    let headers = request.headers();
+    let host = headers.get(header::HOST).and_then(|h| h.to_str().ok());
+    let origin = headers.get(header::ORIGIN).and_then(|o| o.to_str().ok());
+    let same = match origin {
+        None => true,
+        Some(origin) => {
+            let origin_host = origin.split_once("://").map_or(origin, |(_, rest)| rest);
+            host.is_some_and(|host| host == origin_host)
+        }
+    };
+    if same {
+        next.run(request).await
+    } else {
+        error(
+            StatusCode::FORBIDDEN,
+            "cross-origin request refused: control requests must come from this server's own page",
+        )
+    }
 }
 
 struct ActiveJob {
@@ -81,13 +188,24 @@ fn error(status: StatusCode, message: impl std::fmt::Display) -> Response {
 }
 
 /// Serves the control API on `listener` until `shutdown` completes; then stops any job
-/// (decelerating along its path) and waits for it.
+/// (decelerating along its path) and waits for it. Refuses a listener that is not on a
+/// loopback address unless `options.token` is set.
 pub async fn run(
     listener: tokio::net::TcpListener,
     settings: RunSettings,
     options: ServeOptions,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), DaemonError> {
+    let local = listener.local_addr().map_err(crate::link::LinkError::Io)?;
+    let exposed = !local.ip().is_loopback();
+    if exposed && options.token.is_none() {
+        return Err(DaemonError::Unavailable(format!(
+            "refusing to serve on {local} without a token: a non-loopback address needs \
+             RIGBRIDGE_TOKEN or [serve] token"
+        )));
+    }
+    let check = TokenCheck::new(options.token.as_deref());
+    let auth = axum::middleware::from_fn_with_state(check, require_token);
     let link = loopback_twin(&settings)?;
     std::fs::create_dir_all(&options.runs_dir).map_err(crate::link::LinkError::Io)?;
     let shared = Arc::new(Shared {
@@ -98,15 +216,21 @@ pub async fn run(
         last: Arc::new(Mutex::new(None)),
         next_id: Mutex::new(1),
     });
-    let app = Router::new()
-        .route("/", get(index))
-        .route("/api/status", get(status))
+    // Everything that moves the arm goes here (a future `/ws` too): always behind the check.
+    let control = Router::new()
         .route("/api/jobs", post(submit))
         .route("/api/pause", post(pause))
         .route("/api/resume", post(resume))
         .route("/api/stop", post(stop))
         .route("/api/estop", post(estop))
-        .with_state(shared.clone());
+        .route_layer(auth.clone())
+        .route_layer(axum::middleware::from_fn(require_same_origin));
+    let read = Router::new()
+        .route("/", get(index))
+        .route("/api/status", get(status));
+    let app = read.merge(control).with_state(shared.clone());
+    // Off loopback the arm's state is sensitive too: every request needs the token.
+    let app = if exposed { app.layer(auth) } else { app };
     axum::serve(listener, app)
         .with_graceful_shutdown(shutdown)
         .await

@@ -113,6 +113,9 @@ pub struct LoggedSample {
     pub positions: Vec<f64>,
     /// rad/s or m/s; NaN as for positions.
     pub velocities: Vec<f64>,
+    /// States only: how late the cycle woke after its deadline (jitter), microseconds;
+    /// `None` for commands and for logs recorded before it was written.
+    pub late_us: Option<f64>,
 }
 
 /// One job event (started, ended, pause, stop, fault, link error...), as read back.

@@ -50,12 +50,14 @@ pub enum LogRecord {
         positions: AxisValues,
         velocities: AxisValues,
     },
-    /// What the controller reported (velocities may be estimated by the caller).
+    /// What the controller reported (velocities may be estimated by the caller), and how
+    /// late the cycle that asked for it woke (microseconds; its jitter).
     State {
         seq: u32,
         t: f64,
         positions: AxisValues,
         velocities: AxisValues,
+        late_us: f32,
     },
 }
 
@@ -431,19 +433,27 @@ impl Sink {
     }
 
     fn write_record(&mut self, record: &LogRecord) -> Result<(), LogError> {
-        let (channel, seq, t, positions, velocities) = match record {
+        let (channel, seq, t, positions, velocities, late_us) = match record {
             LogRecord::Command {
                 seq,
                 t,
                 positions,
                 velocities,
-            } => (self.command_channel, seq, t, positions, velocities),
+            } => (self.command_channel, seq, t, positions, velocities, None),
             LogRecord::State {
                 seq,
                 t,
                 positions,
                 velocities,
-            } => (self.state_channel, seq, t, positions, velocities),
+                late_us,
+            } => (
+                self.state_channel,
+                seq,
+                t,
+                positions,
+                velocities,
+                Some(*late_us),
+            ),
         };
         self.json.clear();
         let sample = SampleOut {
@@ -452,6 +462,7 @@ impl Sink {
             name: &self.joint_names,
             position: positions.as_slice(),
             velocity: velocities.as_slice(),
+            late_us,
         };
         serde_json::to_writer(&mut self.json, &sample)
             .map_err(|e| LogError::io("encoding a record", e.into()))?;

@@ -100,6 +100,7 @@ mod tests {
                     t,
                     positions: vec![t],
                     velocities: vec![1.0],
+                    late_us: None,
                 })
                 .collect(),
             states: vec![],

@@ -313,6 +313,7 @@ mod tests {
             t,
             positions: q.to_vec(),
             velocities: vec![0.0; 2],
+            late_us: None,
         }
     }
 

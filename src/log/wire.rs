@@ -98,6 +98,10 @@ pub(super) fn sample_schema() -> String {
             },
             "position": number_array("rad (revolute joints) or m (prismatic joints)."),
             "velocity": number_array("rad/s or m/s."),
+            "late_us": {
+                "type": "number",
+                "description": "States only, optional: how late the cycle woke after its deadline (its jitter), microseconds."
+            },
         },
         "required": ["seq", "t", "name", "position", "velocity"],
     });
@@ -132,6 +136,9 @@ pub(super) struct SampleOut<'a> {
     pub name: &'a [String],
     pub position: &'a [f64],
     pub velocity: &'a [f64],
+    /// States only: how late the cycle woke, microseconds.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub late_us: Option<f32>,
 }
 
 #[derive(Serialize)]
@@ -148,6 +155,8 @@ struct SampleIn {
     t: f64,
     position: Vec<Option<f64>>,
     velocity: Vec<Option<f64>>,
+    #[serde(default)]
+    late_us: Option<f64>,
 }
 
 #[derive(Deserialize)]
@@ -179,6 +188,7 @@ pub(super) fn decode_sample(json: &[u8]) -> Result<LoggedSample, String> {
         t: refine_number(json, "t", sample.t),
         positions,
         velocities,
+        late_us: sample.late_us,
     })
 }
 
@@ -279,6 +289,7 @@ mod tests {
             name: &names,
             position: &position,
             velocity: &velocity,
+            late_us: Some(12.5),
         };
         let json = serde_json::to_vec(&out).unwrap();
         let back = decode_sample(&json).unwrap();
@@ -286,6 +297,7 @@ mod tests {
         assert_eq!(back.positions[0].to_bits(), position[0].to_bits());
         assert!(back.positions[1].is_nan());
         assert_eq!(back.velocities, velocity);
+        assert_eq!(back.late_us, Some(12.5));
     }
 
     #[test]

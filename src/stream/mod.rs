@@ -103,6 +103,8 @@ impl StreamControl {
 pub struct CycleRecord {
     pub target: JointTarget,
     pub feedback: Option<Feedback>,
+    /// How late the cycle woke after its deadline (jitter), microseconds.
+    pub late_us: f32,
 }
 
 /// Where the cycle hands its records (the recorder, a live view). Must not block.
@@ -222,7 +224,9 @@ pub fn stream(
         let deadline = start + Duration::from_secs_f64(cycle.seq as f64 * trajectory.period_s);
         clock.sleep_until(deadline);
         let woke = clock.now();
-        cycle.record_wake(woke.saturating_sub(deadline), trajectory.period_s);
+        let late = woke.saturating_sub(deadline);
+        cycle.record_wake(late, trajectory.period_s);
+        let late_us = (late.as_secs_f64() * 1e6) as f32;
         if control.estop.load(Ordering::SeqCst) {
             link.send(&Command::EStop)?;
             break Outcome::EStopped;
@@ -237,7 +241,11 @@ pub fn stream(
         cycle.sent_at[target.seq as usize % SEND_TIMES] = clock.now();
         let feedback = await_echo(link, target.seq, settings.feedback_timeout)?.or(late);
         cycle.record_feedback(feedback.as_ref(), &target, clock.now());
-        sink.record(&CycleRecord { target, feedback });
+        sink.record(&CycleRecord {
+            target,
+            feedback,
+            late_us,
+        });
         control.cycles.store(cycle.seq as u64, Ordering::Relaxed);
         control
             .progress_bits

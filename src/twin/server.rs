@@ -157,15 +157,13 @@ pub fn serve_twin(
             Ok(n) => session.decoder.push(&buffer[..n]),
             Err(e) => session.lose(twin, port, &mut say, &e.to_string()),
         }
-        let targeted = session.attached && session.apply(twin);
+        let targeted = session.attached && session.apply(twin, port, &mut say);
         let now = clock.now();
-        if targeted || now >= next_tick {
+        if targeted {
+            next_tick = now + period + period / 2;
+        } else if now >= next_tick {
             session.tick(twin, port, &mut say);
-            next_tick = if targeted {
-                now + period + period / 2
-            } else {
-                next_tick + period
-            };
+            next_tick += period;
         }
     }
     session.counters
@@ -198,14 +196,24 @@ impl Session {
         self.attached = attached;
     }
 
-    /// Hands every decoded command to the twin; true when one was a target.
-    fn apply(&mut self, twin: &mut Twin) -> bool {
+    /// Hands every decoded command to the twin; each target is one cycle, answered at once
+    /// (two targets that arrive together are still two cycles, two answers). True when one
+    /// was a target.
+    fn apply(
+        &mut self,
+        twin: &mut Twin,
+        port: &mut dyn ControllerPort,
+        say: &mut impl FnMut(&str),
+    ) -> bool {
         let mut targeted = false;
         while let Some(message) = self.decoder.next_message() {
             self.counters.frames_received += 1;
             if let Message::Command(command) = message {
-                targeted |= matches!(command, Command::Target(_));
                 twin.handle(&command);
+                if matches!(command, Command::Target(_)) {
+                    targeted = true;
+                    self.tick(twin, port, say);
+                }
             }
         }
         let decoded = self.decoder.counters();
