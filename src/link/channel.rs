@@ -46,7 +46,10 @@ impl LinkShared {
         counter.fetch_add(1, Ordering::Relaxed);
     }
 
-    /// Feedback bookkeeping for I/O threads: a repeated seq is a duplicate, a jump a gap.
+    /// Feedback bookkeeping for I/O threads. A jump in the echoed seq is a gap (a target
+    /// lost on the way: the controller answers every target it gets). A repeated echo is
+    /// counted as a duplicate: a duplicated frame, or a controller cycle that had no new
+    /// target (protocol v1 feedback carries no sequence of its own to tell them apart).
     pub fn note_feedback(&self, last: &mut Option<u32>, feedback: &Feedback) {
         Self::count(&self.frames_received);
         if let Some(previous) = *last {
