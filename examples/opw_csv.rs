@@ -28,7 +28,6 @@ use rs_opw_kinematics::kinematics_impl::OPWKinematics;
 use rs_opw_kinematics::parameters::opw_kinematics::Parameters;
 use rs_opw_kinematics::pose::Pose as OpwPose;
 use std::f64::consts::TAU;
-use std::io::Write;
 use std::path::PathBuf;
 
 /// A joint value within this of a limit (rad) counts as on it: the same rounding allowance
@@ -191,67 +190,20 @@ struct Args {
     output: PathBuf,
 }
 
-const POSE_COLUMNS: [&str; 7] = ["x", "y", "z", "qw", "qx", "qy", "qz"];
-
+/// The same CSV job as `rigbridge ik`: the library's own batch function, with the closed-form
+/// solver behind the `IkSolver` trait, so only the solver differs between the two timings.
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let rig = load_rig(&args.rig)?;
     let solver = OpwSolver::irb120(rig);
-    let mut reader = csv::ReaderBuilder::new()
-        .flexible(true)
-        .trim(csv::Trim::All)
-        .from_path(&args.input)?;
-    let header = reader.headers()?.clone();
-    let columns = POSE_COLUMNS.map(|name| header.iter().position(|h| h == name));
-    let Some(columns) = columns.into_iter().collect::<Option<Vec<usize>>>() else {
-        anyhow::bail!("input header must have columns {}", POSE_COLUMNS.join(","));
-    };
-    let mut out = std::io::BufWriter::new(std::fs::File::create(&args.output)?);
-    writeln!(
-        out,
-        "j1,j2,j3,j4,j5,j6,pos_err_m,rot_err_rad,iterations,status"
-    )?;
-    let mut seed = vec![0.0; 6];
-    let (mut rows, mut solved) = (0usize, 0usize);
-    let mut record = csv::StringRecord::new();
-    while reader.read_record(&mut record)? {
-        rows += 1;
-        let values: Option<Vec<f64>> = columns
-            .iter()
-            .map(|&c| {
-                let v: f64 = record.get(c)?.parse().ok()?;
-                v.is_finite().then_some(v)
-            })
-            .collect();
-        let result = match values.as_deref() {
-            Some(&[x, y, z, w, i, j, k]) => solver.solve(
-                &Pose::new(DVec3::new(x, y, z), DQuat::from_xyzw(i, j, k, w)),
-                &seed,
-            ),
-            _ => Err(IkError::InvalidTarget(
-                rigbridge::rig::PoseError::NotFinite {
-                    position: DVec3::NAN,
-                    orientation: DQuat::NAN,
-                },
-            )),
-        };
-        match result {
-            Ok(solution) => {
-                for q in &solution.joints {
-                    write!(out, "{:.9},", q.to_degrees())?;
-                }
-                writeln!(
-                    out,
-                    "{:.3e},{:.3e},{},ok",
-                    solution.position_error_m, solution.orientation_error_rad, solution.iterations
-                )?;
-                solved += 1;
-                seed = solution.joints;
-            }
-            Err(error) => writeln!(out, ",,,,,,,,,{}", error.kind())?,
-        }
-    }
-    out.flush()?;
-    eprintln!("opw_csv: {solved} of {rows} rows solved");
+    let input = std::io::BufReader::new(std::fs::File::open(&args.input)?);
+    let output = std::fs::File::create(&args.output)?;
+    let summary = rigbridge::batch::ik_batch(&solver, &[0.0; 6], input, output, |_| {})?;
+    eprintln!(
+        "{} rows: {} ok, {} failed",
+        summary.rows,
+        summary.solved,
+        summary.failed.values().sum::<usize>()
+    );
     Ok(())
 }

@@ -55,26 +55,25 @@ pub struct IkArgs {
     solver: SolverChoice,
 }
 
-fn open_input(path: &Path) -> anyhow::Result<(Box<dyn Read>, Option<u64>)> {
+/// The input, read through the progress bar so it advances with the bytes consumed (the
+/// file is read once; its size gives the bar its length). Stdin gets a spinner.
+fn open_input(path: &Path) -> anyhow::Result<(Box<dyn Read>, ProgressBar)> {
     if path == Path::new("-") {
-        return Ok((Box::new(std::io::stdin().lock()), None));
+        let bar = ProgressBar::new_spinner().with_style(
+            ProgressStyle::with_template("{spinner} {msg}, {elapsed}").expect("static template"),
+        );
+        bar.enable_steady_tick(std::time::Duration::from_millis(250));
+        return Ok((Box::new(std::io::stdin().lock()), bar));
     }
-    let text_rows = count_rows(path)?;
     let file = File::open(path).with_context(|| format!("cannot open input {}", path.display()))?;
-    Ok((Box::new(BufReader::new(file)), Some(text_rows)))
-}
-
-/// Data rows in a file (lines minus the header), for the progress bar's length.
-fn count_rows(path: &Path) -> anyhow::Result<u64> {
-    let bytes =
-        std::fs::read(path).with_context(|| format!("cannot read input {}", path.display()))?;
-    let lines =
-        bytecount_newlines(&bytes) + u64::from(!bytes.ends_with(b"\n") && !bytes.is_empty());
-    Ok(lines.saturating_sub(1))
-}
-
-fn bytecount_newlines(bytes: &[u8]) -> u64 {
-    bytes.iter().filter(|&&b| b == b'\n').count() as u64
+    let size = file.metadata().map(|m| m.len()).unwrap_or(0);
+    let bar = ProgressBar::new(size).with_style(
+        ProgressStyle::with_template("{bar:40} {percent:>3}% {msg}, eta {eta}")
+            .expect("static template"),
+    );
+    // Batches shorter than a second finish before a bar would help.
+    bar.enable_steady_tick(std::time::Duration::from_millis(250));
+    Ok((Box::new(bar.wrap_read(BufReader::new(file))), bar))
 }
 
 fn open_output(path: &Path) -> anyhow::Result<Box<dyn Write>> {
@@ -86,20 +85,11 @@ fn open_output(path: &Path) -> anyhow::Result<Box<dyn Write>> {
     Ok(Box::new(file))
 }
 
-fn progress_bar(rows: Option<u64>) -> ProgressBar {
-    let bar = match rows {
-        Some(n) => ProgressBar::new(n).with_style(
-            ProgressStyle::with_template("{bar:40} {pos}/{len} rows, {per_sec}, eta {eta}")
-                .expect("static template"),
-        ),
-        None => ProgressBar::new_spinner().with_style(
-            ProgressStyle::with_template("{spinner} {pos} rows, {per_sec}")
-                .expect("static template"),
-        ),
-    };
-    // Batches shorter than a second finish before a bar would help.
-    bar.enable_steady_tick(std::time::Duration::from_millis(250));
-    bar
+/// Row counts on the bar, every 1,000 rows (formatting each row would cost more than it shows).
+fn show_rows(bar: &ProgressBar, rows: usize) {
+    if rows.is_multiple_of(1000) {
+        bar.set_message(format!("{rows} rows"));
+    }
 }
 
 fn load(rig: &Path) -> anyhow::Result<Rig> {
@@ -150,11 +140,10 @@ fn exit_code(summary: &BatchSummary) -> ExitCode {
 
 pub fn fk(args: FkArgs) -> anyhow::Result<ExitCode> {
     let rig = load(&args.rig)?;
-    let (input, rows) = open_input(&args.input)?;
+    let (input, bar) = open_input(&args.input)?;
     let output = open_output(&args.output)?;
-    let bar = progress_bar(rows);
     let start = Instant::now();
-    let summary = fk_batch(&rig, input, output, |n| bar.set_position(n as u64))
+    let summary = fk_batch(&rig, input, output, |n| show_rows(&bar, n))
         .with_context(|| format!("fk batch on {}", args.input.display()))?;
     bar.finish_and_clear();
     report(&summary, start.elapsed(), false);
@@ -182,12 +171,11 @@ pub fn ik(args: IkArgs) -> anyhow::Result<ExitCode> {
         SolverChoice::Ccd => Box::new(CcdSolver::new(rig)),
         SolverChoice::Gd => Box::new(GradientDescentSolver::new(rig)),
     };
-    let (input, rows) = open_input(&args.input)?;
+    let (input, bar) = open_input(&args.input)?;
     let output = open_output(&args.output)?;
-    let bar = progress_bar(rows);
     let start = Instant::now();
     let summary = ik_batch(solver.as_ref(), &seed, input, output, |n| {
-        bar.set_position(n as u64)
+        show_rows(&bar, n)
     })
     .with_context(|| format!("ik batch on {}", args.input.display()))?;
     bar.finish_and_clear();
