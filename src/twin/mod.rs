@@ -10,6 +10,9 @@
 pub mod can_port;
 pub mod serial_port;
 pub mod server;
+mod world;
+
+pub use world::{SharedWorld, TwinWorld};
 
 use crate::protocol::{
     AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget, MAX_AXES,
@@ -78,6 +81,7 @@ pub struct Twin {
     status: ControllerStatus,
     smoothing: f64,
     stale_targets: u64,
+    world: Option<Box<dyn TwinWorld>>,
 }
 
 impl Twin {
@@ -123,9 +127,16 @@ impl Twin {
             cycles_without_target: 0,
             status: ControllerStatus::Holding,
             stale_targets: 0,
+            world: None,
             smoothing: 1.0
                 - (-std::f64::consts::TAU * settings.bandwidth_hz * settings.period_s).exp(),
         })
+    }
+
+    /// Puts the twin's body in a world that watches every cycle's actual positions.
+    pub fn with_world(mut self, world: Box<dyn TwinWorld>) -> Self {
+        self.world = Some(world);
+        self
     }
 
     /// Targets dropped because their seq was not newer than the last accepted one.
@@ -254,6 +265,9 @@ impl Twin {
             .zip(self.setpoint.as_slice())
         {
             *actual += smoothing * (setpoint - *actual);
+        }
+        if let Some(world) = self.world.as_mut() {
+            world.observe(self.actual.as_slice());
         }
         Feedback {
             seq: self.last_seq,

@@ -1,0 +1,75 @@
+//! The world around the twin's body: what it touches, paints or stands on.
+//!
+//! A world sees the twin's actual joint positions once per controller cycle, after the servo
+//! model has moved them: measurements such as paint coverage, collisions or foot contact are
+//! made from what the twin did, never from what was planned. A world must not change the
+//! twin's state or talk to the link.
+
+use std::sync::{Arc, Mutex, PoisonError};
+
+/// Something that watches the twin's actual positions, one call per controller cycle.
+pub trait TwinWorld: Send {
+    fn observe(&mut self, actual: &[f64]);
+}
+
+/// A world shared with whoever reads its measurements (a report, the live view).
+pub type SharedWorld<W> = Arc<Mutex<W>>;
+
+impl<W: TwinWorld> TwinWorld for Arc<Mutex<W>> {
+    fn observe(&mut self, actual: &[f64]) {
+        // A reader that panicked holding the lock leaves the measurements as they were.
+        self.lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .observe(actual);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rig::{Joint, JointKind, JointLimits, Rig};
+    use crate::twin::{Twin, TwinSettings};
+    use glam::{DAffine3, DVec3};
+
+    struct Trace(Vec<Vec<f64>>);
+
+    impl TwinWorld for Trace {
+        fn observe(&mut self, actual: &[f64]) {
+            self.0.push(actual.to_vec());
+        }
+    }
+
+    fn one_axis_rig() -> Rig {
+        Rig {
+            name: "slide".into(),
+            base_frame: "base".into(),
+            tool_frame: "tool".into(),
+            joints: vec![Joint {
+                name: "x".into(),
+                kind: JointKind::Prismatic,
+                origin: DAffine3::IDENTITY,
+                axis: DVec3::X,
+                limits: JointLimits {
+                    lower: -1.0,
+                    upper: 1.0,
+                    max_speed: 1.0,
+                    max_acceleration: 10.0,
+                },
+            }],
+            tool: DAffine3::IDENTITY,
+        }
+    }
+
+    #[test]
+    fn the_world_sees_every_cycle_of_actual_positions() {
+        let trace = Arc::new(Mutex::new(Trace(Vec::new())));
+        let mut twin = Twin::new(&one_axis_rig(), TwinSettings::default(), &[0.25])
+            .unwrap()
+            .with_world(Box::new(trace.clone()));
+        let mut reported = Vec::new();
+        for _ in 0..3 {
+            reported.push(twin.tick().positions.as_slice().to_vec());
+        }
+        assert_eq!(trace.lock().unwrap().0, reported);
+    }
+}
