@@ -18,6 +18,7 @@ pub mod rig;
 pub mod stream;
 pub mod trajectory;
 pub mod twin;
+pub mod view;
 
 #[doc = include_str!("../README.md")]
 #[cfg(doctest)]

@@ -233,6 +233,19 @@ pub fn stream_planned(
     log: Option<&std::path::Path>,
     control: &StreamControl,
 ) -> Result<RunReport, DaemonError> {
+    stream_planned_with(settings, planned, link, clock, log, control, &mut ())
+}
+
+/// [`stream_planned`], also handing every cycle to `live` (the live view's sink).
+pub fn stream_planned_with(
+    settings: &RunSettings,
+    planned: &PlannedJob,
+    link: &mut dyn Link,
+    clock: &dyn Clock,
+    log: Option<&std::path::Path>,
+    control: &StreamControl,
+    live: &mut dyn crate::stream::CycleSink,
+) -> Result<RunReport, DaemonError> {
     let trajectory = &planned.trajectory;
     let metadata = serde_json::json!({
         "job": planned.job,
@@ -248,7 +261,8 @@ pub fn stream_planned(
     let report = match &recorder {
         Some(recorder) => {
             recorder.event(0.0, "job_started", metadata);
-            let mut sink = RecorderSink::new(recorder, settings.period_s());
+            let mut recording = RecorderSink::new(recorder, settings.period_s());
+            let mut sink = recording::BothSinks(&mut recording, live);
             stream_resuming(
                 settings,
                 trajectory,
@@ -259,7 +273,7 @@ pub fn stream_planned(
                 Some(recorder),
             )
         }
-        None => stream_resuming(settings, trajectory, link, clock, &mut (), control, None),
+        None => stream_resuming(settings, trajectory, link, clock, live, control, None),
     };
     let log_report = match recorder {
         Some(recorder) => {

@@ -1,5 +1,6 @@
 //! The bridge from the streaming cycle to the recorder: each cycle's command and the
-//! controller's measured state, as log records. Allocation-free, like the cycle itself.
+//! controller's measured state, as log records; and [`BothSinks`], so the recorder and the
+//! live view see the same cycles. Allocation-free, like the cycle itself.
 
 use crate::log::{LogRecord, Recorder};
 use crate::protocol::AxisValues;
@@ -57,5 +58,15 @@ impl CycleSink for RecorderSink<'_> {
             });
             self.previous_actual = Some(feedback.positions);
         }
+    }
+}
+
+/// Hands every cycle to two sinks, in order.
+pub struct BothSinks<'a>(pub &'a mut dyn CycleSink, pub &'a mut dyn CycleSink);
+
+impl CycleSink for BothSinks<'_> {
+    fn record(&mut self, cycle: &CycleRecord) {
+        self.0.record(cycle);
+        self.1.record(cycle);
     }
 }

@@ -5,14 +5,23 @@
 //! and hands it to [`run`] with a shutdown signal.
 //!
 //! Access: with a token ([`ServeOptions::token`]) every control route requires
-//! `Authorization: Bearer <token>` ([`require_token`]); on a listener that is not loopback a
-//! token is mandatory and every route requires it, status included.
+//! `Authorization: Bearer <token>` ([`require_token`]), and the live view's WebSocket the
+//! token in the header, a `token` query parameter or a `rigbridge.token.<token>` subprotocol
+//! ([`require_live_token`]: browsers cannot set headers on a WebSocket); on a listener that
+//! is not loopback a token is mandatory and every `/api` route requires it, status included.
+//! The page's static files (`/`, `/live.js`, `/live.css`) hold no state and stay open.
+//!
+//! The live view (`src/view`): a task samples the streamer's latest state 50 times a second
+//! and sends each frame to every page connected to `/api/live`.
 
 use super::config::{JobConfig, RunSettings};
-use super::{DaemonError, RunReport, loopback_twin, plan_for, stream_planned};
+use super::{DaemonError, RunReport, plan_for, stream_planned_with, twin_settings};
 use crate::clock::{Clock, VirtualClock, WallClock};
 use crate::link::LoopbackLink;
 use crate::stream::StreamControl;
+use crate::twin::{SharedWorld, Twin};
+use crate::view::{ArmScene, JobView, LiveHub, LiveSample, LiveSink, LiveSlot, ToolTrace, page};
+use axum::extract::ws::{Message as WsMessage, WebSocket, WebSocketUpgrade};
 use axum::extract::{Request, State};
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::middleware::Next;
@@ -23,6 +32,16 @@ use serde::{Deserialize, Serialize};
 use std::future::Future;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::sync::{broadcast, watch};
+
+/// Frames per second sent to the live view: above the 30 a page needs to look smooth, a
+/// fifth of the 250 Hz stream.
+pub const LIVE_FRAME_RATE_HZ: f64 = 50.0;
+/// The WebSocket subprotocol of `/api/live`; a page may offer its token as a second one,
+/// `rigbridge.token.<token>`.
+pub const LIVE_PROTOCOL: &str = "rigbridge.live";
+const TOKEN_PROTOCOL_PREFIX: &str = "rigbridge.token.";
 
 /// Where each job's MCAP log goes, which clock jobs run on, and the bearer token the API
 /// requires (mandatory when the listener is not on a loopback address).
@@ -73,6 +92,51 @@ impl TokenCheck {
         };
         scheme.eq_ignore_ascii_case(b"bearer ") && constant_time_eq(presented, expected)
     }
+
+    /// Whether a WebSocket request may pass: like [`TokenCheck::allows`], or with the token
+    /// as the query parameter `token` (percent-encoded) or as a `rigbridge.token.<token>`
+    /// value of `Sec-WebSocket-Protocol`.
+    pub fn allows_websocket(&self, request: &Request) -> bool {
+        let Some(expected) = &self.token else {
+            return true;
+        };
+        if self.allows(request.headers()) {
+            return true;
+        }
+        let in_query = request.uri().query().is_some_and(|query| {
+            query
+                .split('&')
+                .filter_map(|pair| pair.strip_prefix("token="))
+                .any(|value| percent_decode(value).is_some_and(|t| constant_time_eq(&t, expected)))
+        });
+        let in_protocol = request
+            .headers()
+            .get_all(header::SEC_WEBSOCKET_PROTOCOL)
+            .iter()
+            .filter_map(|value| value.to_str().ok())
+            .flat_map(|value| value.split(','))
+            .filter_map(|protocol| protocol.trim().strip_prefix(TOKEN_PROTOCOL_PREFIX))
+            .any(|token| constant_time_eq(token.as_bytes(), expected));
+        in_query || in_protocol
+    }
+}
+
+/// `%XX` escapes and `+` decoded; `None` for a broken escape.
+fn percent_decode(text: &str) -> Option<Vec<u8>> {
+    let mut out = Vec::with_capacity(text.len());
+    let mut bytes = text.bytes();
+    while let Some(byte) = bytes.next() {
+        out.push(match byte {
+            b'%' => {
+                let high = char::from(bytes.next()?).to_digit(16)?;
+                let low = char::from(bytes.next()?).to_digit(16)?;
+                u8::try_from(high * 16 + low).ok()?
+            }
+            b'+' => b' ',
+            other => other,
+        });
+    }
+    Some(out)
 }
 
 /// Equality whose time depends only on the lengths, not on where the bytes differ.
@@ -101,6 +165,26 @@ pub async fn require_token(
     let mut response = error(
         StatusCode::UNAUTHORIZED,
         "missing or wrong token: send `Authorization: Bearer <token>`",
+    );
+    response
+        .headers_mut()
+        .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+    response
+}
+
+/// The access check of the live view's WebSocket ([`TokenCheck::allows_websocket`]).
+pub async fn require_live_token(
+    State(check): State<TokenCheck>,
+    request: Request,
+    next: Next,
+) -> Response {
+    if check.allows_websocket(&request) {
+        return next.run(request).await;
+    }
+    let mut response = error(
+        StatusCode::UNAUTHORIZED,
+        "missing or wrong token: send it as `?token=<token>`, as the WebSocket subprotocol \
+         `rigbridge.token.<token>` or in `Authorization: Bearer <token>`",
     );
     response
         .headers_mut()
@@ -147,6 +231,11 @@ struct Shared {
     job: Mutex<Option<ActiveJob>>,
     last: Arc<Mutex<Option<JobResult>>>,
     next_id: Mutex<u64>,
+    hub: LiveHub,
+    /// The tool's trace on the job's wall: a world of the twin, shown as paint.
+    trace: SharedWorld<ToolTrace>,
+    /// Turns true when the server stops: live connections close.
+    stopping: watch::Receiver<bool>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -205,9 +294,27 @@ pub async fn run(
         )));
     }
     let check = TokenCheck::new(options.token.as_deref());
-    let auth = axum::middleware::from_fn_with_state(check, require_token);
-    let link = loopback_twin(&settings)?;
+    let auth = axum::middleware::from_fn_with_state(check.clone(), require_token);
+    let live_auth = axum::middleware::from_fn_with_state(check, require_live_token);
+    let trace = Arc::new(Mutex::new(ToolTrace::new(settings.rig.clone())));
+    let twin = Twin::new(&settings.rig, twin_settings(&settings), &settings.initial())?
+        .with_world(Box::new(trace.clone()));
+    let link = LoopbackLink::new(twin);
     std::fs::create_dir_all(&options.runs_dir).map_err(crate::link::LinkError::Io)?;
+    let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&settings.initial())));
+    let scene = ArmScene::for_job(
+        settings.rig.clone(),
+        &settings.config.job,
+        Some(trace.clone()),
+    );
+    let hub = LiveHub::new(
+        settings.rig.clone(),
+        settings.config.stream.rate_hz,
+        LIVE_FRAME_RATE_HZ,
+        slot,
+        Box::new(scene),
+    );
+    let (stop_live, stopping) = watch::channel(false);
     let shared = Arc::new(Shared {
         settings,
         options,
@@ -215,8 +322,12 @@ pub async fn run(
         job: Mutex::new(None),
         last: Arc::new(Mutex::new(None)),
         next_id: Mutex::new(1),
+        hub,
+        trace,
+        stopping,
     });
-    // Everything that moves the arm goes here (a future `/ws` too): always behind the check.
+    let same_origin = axum::middleware::from_fn(require_same_origin);
+    // Everything that moves the arm goes here: always behind the check.
     let control = Router::new()
         .route("/api/jobs", post(submit))
         .route("/api/pause", post(pause))
@@ -224,17 +335,38 @@ pub async fn run(
         .route("/api/stop", post(stop))
         .route("/api/estop", post(estop))
         .route_layer(auth.clone())
-        .route_layer(axum::middleware::from_fn(require_same_origin));
-    let read = Router::new()
+        .route_layer(same_origin.clone());
+    // The arm's state, live: as guarded as control (a browser cannot send the header).
+    let live = Router::new()
+        .route("/api/live", get(live))
+        .route_layer(live_auth)
+        .route_layer(same_origin);
+    let status = Router::new().route("/api/status", get(status));
+    // Off loopback the arm's state is sensitive too.
+    let status = if exposed {
+        status.route_layer(auth)
+    } else {
+        status
+    };
+    let assets = Router::new()
         .route("/", get(index))
-        .route("/api/status", get(status));
-    let app = read.merge(control).with_state(shared.clone());
-    // Off loopback the arm's state is sensitive too: every request needs the token.
-    let app = if exposed { app.layer(auth) } else { app };
+        .route("/live.js", get(live_js))
+        .route("/live.css", get(live_css));
+    let app = assets
+        .merge(status)
+        .merge(control)
+        .merge(live)
+        .with_state(shared.clone());
+    let frames = tokio::spawn(send_frames(shared.clone()));
+    let shutdown = async move {
+        shutdown.await;
+        let _ = stop_live.send(true);
+    };
     axum::serve(listener, app)
         .with_graceful_shutdown(shutdown)
         .await
         .map_err(crate::link::LinkError::Io)?;
+    frames.abort();
     let active = shared.job.lock().map(|mut job| job.take()).unwrap_or(None);
     if let Some(job) = active {
         job.control.stop();
@@ -244,10 +376,99 @@ pub async fn run(
 }
 
 async fn index() -> impl IntoResponse {
+    ([("content-type", "text/html; charset=utf-8")], page::INDEX_HTML)
+}
+
+async fn live_js() -> impl IntoResponse {
     (
-        [("content-type", "text/plain; charset=utf-8")],
-        "rigbridge control API: GET /api/status; POST /api/jobs {\"job\": {...}} (optional), /api/pause, /api/resume, /api/stop, /api/estop\n",
+        [("content-type", "text/javascript; charset=utf-8")],
+        page::LIVE_JS,
     )
+}
+
+async fn live_css() -> impl IntoResponse {
+    ([("content-type", "text/css; charset=utf-8")], page::LIVE_CSS)
+}
+
+/// The live view's frame task: samples the streamer's state at [`LIVE_FRAME_RATE_HZ`] in
+/// real time (whatever clock jobs run on: a person watches it) and sends every page the frame.
+async fn send_frames(shared: Arc<Shared>) {
+    let clock = WallClock::new();
+    let mut ticks = tokio::time::interval(Duration::from_secs_f64(1.0 / LIVE_FRAME_RATE_HZ));
+    ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    loop {
+        ticks.tick().await;
+        shared.hub.tick(clock.now(), job_view(&shared));
+    }
+}
+
+fn job_view(shared: &Shared) -> JobView {
+    let last = shared.last.lock().ok().and_then(|last| {
+        last.as_ref().map(|result| match result {
+            JobResult::Finished { report, .. } => serde_json::to_value(report.stream.outcome)
+                .ok()
+                .and_then(|v| v.as_str().map(String::from))
+                .unwrap_or_default(),
+            JobResult::Failed { error, .. } => format!("failed: {error}"),
+        })
+    });
+    let running = shared.job.lock().ok().and_then(|job| {
+        job.as_ref()
+            .filter(|j| !j.handle.is_finished())
+            .map(|j| (j.id, j.name.clone(), j.control.progress(), j.control.is_paused()))
+    });
+    match running {
+        Some((id, name, progress, paused)) => JobView {
+            state: if paused { "paused" } else { "running" },
+            id: Some(id),
+            name: Some(name),
+            progress,
+            last,
+        },
+        None => JobView {
+            state: "idle",
+            last,
+            ..JobView::default()
+        },
+    }
+}
+
+async fn live(State(shared): State<Arc<Shared>>, upgrade: WebSocketUpgrade) -> Response {
+    upgrade
+        .protocols([LIVE_PROTOCOL])
+        .on_upgrade(move |socket| serve_live(socket, shared))
+}
+
+/// One page: the scene, then every frame until the page goes or the server stops. A page
+/// that falls behind skips to the present and gets the scene again (paint included).
+async fn serve_live(mut socket: WebSocket, shared: Arc<Shared>) {
+    let (scene, mut frames) = shared.hub.subscribe();
+    let mut stopping = shared.stopping.clone();
+    if socket.send(WsMessage::Text((&*scene).into())).await.is_err() {
+        return;
+    }
+    loop {
+        tokio::select! {
+            frame = frames.recv() => {
+                let text = match frame {
+                    Ok(text) => text,
+                    Err(broadcast::error::RecvError::Lagged(_)) => shared.hub.scene_now(),
+                    Err(broadcast::error::RecvError::Closed) => return,
+                };
+                if socket.send(WsMessage::Text((&*text).into())).await.is_err() {
+                    return;
+                }
+            }
+            incoming = socket.recv() => match incoming {
+                None | Some(Err(_)) | Some(Ok(WsMessage::Close(_))) => return,
+                Some(Ok(_)) => {}
+            },
+            _ = stopping.changed() => {
+                let _ = socket.send(WsMessage::Close(None)).await;
+                return;
+            }
+        }
+    }
 }
 
 fn job_running(shared: &Shared) -> bool {
@@ -376,13 +597,19 @@ fn spawn_job(
         let plan = plan_for(&shared.settings, &job, &mut *link);
         let _ = planned.send(plan.as_ref().map(|_| ()).map_err(|e| super::error_chain(e)));
         let result = plan.and_then(|plan| {
-            stream_planned(
+            let rig = shared.settings.rig.clone();
+            let scene = ArmScene::for_job(rig, &job, Some(shared.trace.clone()));
+            shared.hub.set_scene(Box::new(scene));
+            let rate = shared.settings.config.stream.rate_hz.round() as u64;
+            let mut live = LiveSink::new(shared.hub.slot(), rate);
+            stream_planned_with(
                 &shared.settings,
                 &plan,
                 &mut *link,
                 clock.as_ref(),
                 Some(&log),
                 &control,
+                &mut live,
             )
         });
         let outcome = match result {

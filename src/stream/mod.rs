@@ -105,6 +105,10 @@ pub struct CycleRecord {
     pub feedback: Option<Feedback>,
     /// How late the cycle woke after its deadline (jitter), microseconds.
     pub late_us: f32,
+    /// Command-to-feedback latency measured this cycle (a fresh echo), microseconds.
+    pub latency_us: Option<f32>,
+    /// The link's counters after this cycle.
+    pub counters: LinkCounters,
 }
 
 /// Where the cycle hands its records (the recorder, a live view). Must not block.
@@ -240,11 +244,13 @@ pub fn stream(
         link.send(&Command::Target(target))?;
         cycle.sent_at[target.seq as usize % SEND_TIMES] = clock.now();
         let feedback = await_echo(link, target.seq, settings.feedback_timeout)?.or(late);
-        cycle.record_feedback(feedback.as_ref(), &target, clock.now());
+        let latency_us = cycle.record_feedback(feedback.as_ref(), &target, clock.now());
         sink.record(&CycleRecord {
             target,
             feedback,
             late_us,
+            latency_us: latency_us.map(|us| us as f32),
+            counters: link.counters(),
         });
         control.cycles.store(cycle.seq as u64, Ordering::Relaxed);
         control
@@ -482,18 +488,20 @@ impl Cycle {
         })
     }
 
-    /// Latency runs from sending the target a feedback echoes to receiving that feedback.
+    /// Latency runs from sending the target a feedback echoes to receiving that feedback;
+    /// returns it (us) when this cycle measured one.
     fn record_feedback(
         &mut self,
         feedback: Option<&Feedback>,
         target: &JointTarget,
         now: Duration,
-    ) {
+    ) -> Option<f64> {
         let Some(feedback) = feedback else {
             self.timeouts += 1;
             self.silent_cycles += 1;
-            return;
+            return None;
         };
+        let mut latency_us = None;
         self.silent_cycles = 0;
         // Only the first echo of a target this stream sent measures its latency; repeats
         // of an older seq (a controller between cycles) would measure nothing real.
@@ -501,8 +509,9 @@ impl Cycle {
             feedback.seq > self.first_seq && self.last_echo.is_none_or(|last| feedback.seq > last);
         if fresh && self.seq.wrapping_sub(feedback.seq) < SEND_TIMES as u32 {
             let sent = self.sent_at[feedback.seq as usize % SEND_TIMES];
-            self.latency
-                .record(now.saturating_sub(sent).as_secs_f64() * 1e6);
+            let micros = now.saturating_sub(sent).as_secs_f64() * 1e6;
+            self.latency.record(micros);
+            latency_us = Some(micros);
             self.last_echo = Some(feedback.seq);
         }
         for ((commanded, actual), revolute) in target
@@ -518,6 +527,7 @@ impl Cycle {
                     .max((commanded - actual).abs().to_degrees());
             }
         }
+        latency_us
     }
 
     fn report(

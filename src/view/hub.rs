@@ -1,0 +1,277 @@
+//! The view's hub: holds the current [`LiveScene`] and the paint so far, samples the
+//! [`LiveSlot`] when asked (the server's frame task, about 50 times a second) and
+//! broadcasts each frame, as JSON text, to every connected page. Time is handed in. It runs
+//! outside the streaming cycle and must not touch the link or the job.
+
+use super::frame::{Frame, LinkView, Message, SceneMessage};
+use super::{JointLabel, LiveScene, LiveSlot, SceneView};
+use crate::protocol::{AxisValues, ControllerStatus};
+use crate::rig::{JointKind, Rig};
+use serde::Serialize;
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::Duration;
+use tokio::sync::broadcast;
+
+/// Frames a slow page may fall behind before it skips ahead (and gets the scene again).
+const BACKLOG_FRAMES: usize = 64;
+/// How far back the measured cycle rate looks.
+const RATE_WINDOW: Duration = Duration::from_millis(500);
+
+/// The job as the page shows it.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct JobView {
+    /// `idle`, `running` or `paused`.
+    pub state: &'static str,
+    pub id: Option<u64>,
+    pub name: Option<String>,
+    /// 0..=1 of the running job's trajectory.
+    pub progress: f64,
+    /// How the last job ended (`completed`, `stopped`, `e_stopped`, ... or an error).
+    pub last: Option<String>,
+}
+
+struct HubState {
+    scene: Box<dyn LiveScene>,
+    /// The scene with every paint quad drained since it was set.
+    view: SceneView,
+    frames: u64,
+    /// (time, cycles) of recent frames, for the measured cycle rate.
+    recent: VecDeque<(Duration, u64)>,
+}
+
+pub struct LiveHub {
+    slot: Arc<LiveSlot>,
+    rig: Rig,
+    joints: Vec<JointLabel>,
+    rate_hz: f64,
+    frame_rate_hz: f64,
+    state: Mutex<HubState>,
+    sender: broadcast::Sender<Arc<str>>,
+}
+
+impl LiveHub {
+    pub fn new(
+        rig: Rig,
+        rate_hz: f64,
+        frame_rate_hz: f64,
+        slot: Arc<LiveSlot>,
+        scene: Box<dyn LiveScene>,
+    ) -> Self {
+        let (sender, _) = broadcast::channel(BACKLOG_FRAMES);
+        LiveHub {
+            slot,
+            joints: JointLabel::for_rig(&rig),
+            rig,
+            rate_hz,
+            frame_rate_hz,
+            state: Mutex::new(HubState {
+                view: scene.scene(),
+                scene,
+                frames: 0,
+                recent: VecDeque::new(),
+            }),
+            sender,
+        }
+    }
+
+    pub fn slot(&self) -> &Arc<LiveSlot> {
+        &self.slot
+    }
+
+    fn state(&self) -> std::sync::MutexGuard<'_, HubState> {
+        self.state.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    fn scene_message(&self, view: &SceneView) -> Arc<str> {
+        let message = Message::Scene(SceneMessage {
+            rig: &self.rig.name,
+            joints: &self.joints,
+            rate_hz: self.rate_hz,
+            frame_rate_hz: self.frame_rate_hz,
+            scene: view,
+        });
+        Arc::from(serde_json::to_string(&message).unwrap_or_default())
+    }
+
+    /// A new page: the scene as it stands (paint included), then every frame from now on.
+    /// Subscribed before the scene is taken, so no paint falls between them.
+    pub fn subscribe(&self) -> (Arc<str>, broadcast::Receiver<Arc<str>>) {
+        let frames = self.sender.subscribe();
+        let scene = self.scene_message(&self.state().view);
+        (scene, frames)
+    }
+
+    /// The scene as it stands, for a page that fell behind.
+    pub fn scene_now(&self) -> Arc<str> {
+        self.scene_message(&self.state().view)
+    }
+
+    /// Shows `scene` from now on (a new job); every page gets the new scene.
+    pub fn set_scene(&self, scene: Box<dyn LiveScene>) {
+        let message = {
+            let mut state = self.state();
+            state.view = scene.scene();
+            state.scene = scene;
+            self.scene_message(&state.view)
+        };
+        let _ = self.sender.send(message);
+    }
+
+    /// Samples the slot at time `now` and sends every page the frame; returns it.
+    pub fn tick(&self, now: Duration, job: JobView) -> Arc<str> {
+        let sample = self.slot.latest();
+        let mut state = self.state();
+        let chains = state.scene.chains(sample.actual.as_slice());
+        let paint = state.scene.drain_paint();
+        state.view.paint.extend_from_slice(&paint);
+        state.frames += 1;
+        state.recent.push_back((now, sample.cycles));
+        while state
+            .recent
+            .front()
+            .is_some_and(|(t, _)| now.saturating_sub(*t) > RATE_WINDOW)
+        {
+            state.recent.pop_front();
+        }
+        let cycles_per_s = match state.recent.front() {
+            Some((t, cycles)) if now > *t => {
+                (sample.cycles - cycles) as f64 / (now - *t).as_secs_f64()
+            }
+            _ => 0.0,
+        };
+        let frame = Frame {
+            frame: state.frames,
+            seq: sample.seq,
+            t: sample.t,
+            actual: self.display(&sample.actual),
+            commanded: self.display(&sample.commanded),
+            chains,
+            paint,
+            link: LinkView {
+                status: status_text(sample.status),
+                rate_hz: self.rate_hz,
+                cycles_per_s,
+                cycles: sample.cycles,
+                jitter_us: f64::from(sample.late_us),
+                jitter_max_us: f64::from(sample.late_max_us),
+                latency_us: f64::from(sample.latency_us),
+                latency_max_us: f64::from(sample.latency_max_us),
+                tracking_error_deg: self.tracking_error_deg(&sample.commanded, &sample.actual),
+                frames_sent: sample.counters.frames_sent,
+                frames_received: sample.counters.frames_received,
+                crc_errors: sample.counters.crc_errors,
+                duplicates: sample.counters.duplicates,
+                gaps: sample.counters.gaps,
+                reconnects: sample.counters.reconnects,
+                feedback_timeouts: sample.feedback_timeouts,
+            },
+            job,
+        };
+        drop(state);
+        let text: Arc<str> =
+            Arc::from(serde_json::to_string(&Message::Frame(&frame)).unwrap_or_default());
+        if self.sender.receiver_count() > 0 {
+            let _ = self.sender.send(text.clone());
+        }
+        text
+    }
+
+    /// Degrees for revolute axes, metres for prismatic ones.
+    fn display(&self, values: &AxisValues) -> Vec<f64> {
+        self.rig
+            .joints
+            .iter()
+            .zip(values.as_slice())
+            .map(|(joint, value)| match joint.kind {
+                JointKind::Revolute => value.to_degrees(),
+                JointKind::Prismatic => *value,
+            })
+            .collect()
+    }
+
+    fn tracking_error_deg(&self, commanded: &AxisValues, actual: &AxisValues) -> f64 {
+        self.rig
+            .joints
+            .iter()
+            .zip(commanded.as_slice().iter().zip(actual.as_slice()))
+            .filter(|(joint, _)| joint.kind == JointKind::Revolute)
+            .map(|(_, (c, a))| (c - a).abs().to_degrees())
+            .fold(0.0, f64::max)
+    }
+}
+
+fn status_text(status: Option<ControllerStatus>) -> String {
+    match status {
+        None => "none".into(),
+        Some(ControllerStatus::Ok) => "ok".into(),
+        Some(ControllerStatus::Holding) => "holding".into(),
+        Some(ControllerStatus::Fault(fault)) => format!("fault: {fault:?}"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::view::{LiveSample, PaintQuad, Point};
+
+    struct Painter {
+        rig: Rig,
+        pending: Vec<PaintQuad>,
+    }
+
+    impl LiveScene for Painter {
+        fn scene(&self) -> SceneView {
+            SceneView::default()
+        }
+        fn chains(&self, actual: &[f64]) -> Vec<Vec<Point>> {
+            vec![crate::view::arm::joint_origins(&self.rig, actual)]
+        }
+        fn drain_paint(&mut self) -> Vec<PaintQuad> {
+            std::mem::take(&mut self.pending)
+        }
+    }
+
+    fn rig() -> Rig {
+        crate::rig::load_rig(std::path::Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/config/irb120.toml"
+        )))
+        .unwrap()
+    }
+
+    #[test]
+    fn frames_carry_the_sample_and_paint_reaches_late_pages_in_the_scene() {
+        let home = [0.0, 0.0, 0.0, 0.0, std::f64::consts::FRAC_PI_6, 0.0];
+        let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&home)));
+        let quad = PaintQuad {
+            wall: 0,
+            quad: [[0.5, 0.0, 0.5]; 4],
+        };
+        let painter = Painter {
+            rig: rig(),
+            pending: vec![quad],
+        };
+        let hub = LiveHub::new(rig(), 250.0, 50.0, slot, Box::new(painter));
+        let (_, mut frames) = hub.subscribe();
+        let sent = hub.tick(Duration::from_millis(20), JobView::default());
+        assert_eq!(frames.try_recv().unwrap(), sent);
+        let frame: serde_json::Value = serde_json::from_str(&sent).unwrap();
+        assert_eq!(frame["type"], "frame");
+        let actual: Vec<f64> = serde_json::from_value(frame["actual"].clone()).unwrap();
+        assert!((actual[4] - 30.0).abs() < 1e-9, "degrees: {actual:?}");
+        let chain = frame["chains"][0].as_array().unwrap();
+        // Joint 1 sits on the base and tool0 on joint 6's origin: they add no point.
+        assert_eq!(chain.len(), 6, "base and joints 2..=6: {chain:?}");
+        assert_eq!(frame["paint"].as_array().unwrap().len(), 1);
+        let again: serde_json::Value =
+            serde_json::from_str(&hub.tick(Duration::from_millis(40), JobView::default()))
+                .unwrap();
+        assert!(again["paint"].as_array().unwrap().is_empty(), "sent once");
+        let (scene, _) = hub.subscribe();
+        let scene: serde_json::Value = serde_json::from_str(&scene).unwrap();
+        assert_eq!(scene["type"], "scene");
+        assert_eq!(scene["scene"]["paint"].as_array().unwrap().len(), 1);
+        assert_eq!(scene["joints"][0]["unit"], "deg");
+    }
+}
