@@ -1,0 +1,512 @@
+// rigbridge live view: a WebSocket client for /api/live and a small 3D renderer on a 2D
+// canvas (perspective projection, painter's algorithm, orbit/zoom camera). No library and
+// no build step: docs/live-view.md says why. World coordinates are metres, z up.
+'use strict';
+
+// ---------------------------------------------------------------- page health --
+// What a test (or a person) reads to judge the page: first frame time, frame and message
+// rates, and every error the page saw.
+const health = {
+  firstFrameMs: null,
+  framesDrawn: 0,
+  fps: 0,
+  wsMessages: 0,
+  wsRate: 0,
+  errors: [],
+};
+window.rigbridgeView = health;
+
+function recordError(text) {
+  health.errors.push(String(text));
+  const list = document.getElementById('errors');
+  if (list) {
+    const item = document.createElement('li');
+    item.textContent = String(text);
+    list.appendChild(item);
+    document.getElementById('error-count').textContent = String(health.errors.length);
+  }
+}
+window.addEventListener('error', (event) => {
+  recordError('error: ' + event.message + ' at ' + event.filename + ':' + event.lineno);
+});
+window.addEventListener('unhandledrejection', (event) => {
+  recordError('unhandled rejection: ' + (event.reason && event.reason.message || event.reason));
+});
+const consoleError = console.error.bind(console);
+console.error = (...args) => {
+  recordError('console.error: ' + args.map(String).join(' '));
+  consoleError(...args);
+};
+
+// ---------------------------------------------------------------------- token --
+// With a token, it comes from the URL fragment (#token=..., never sent to any server) or
+// the form; it is kept for this tab only.
+function readToken() {
+  const match = /(?:^#|&)token=([^&]*)/.exec(location.hash);
+  if (match) {
+    sessionStorage.setItem('rigbridge-token', decodeURIComponent(match[1]));
+    history.replaceState(null, '', location.pathname + location.search);
+  }
+  return sessionStorage.getItem('rigbridge-token') || '';
+}
+let token = readToken();
+
+function authHeaders() {
+  return token ? { Authorization: 'Bearer ' + token } : {};
+}
+
+function askForToken(why) {
+  const form = document.getElementById('token-form');
+  form.hidden = false;
+  setConnection('down', why);
+}
+
+document.getElementById('token-form').addEventListener('submit', (event) => {
+  event.preventDefault();
+  token = document.getElementById('token-input').value.trim();
+  sessionStorage.setItem('rigbridge-token', token);
+  document.getElementById('token-form').hidden = true;
+  connect();
+});
+
+// --------------------------------------------------------------------- camera --
+const canvas = document.getElementById('view');
+const ctx = canvas.getContext('2d');
+const HOME_CAMERA = { yaw: -2.45, pitch: 0.42, distance: 2.6, target: [0.25, 0.0, 0.4] };
+const camera = Object.assign({}, HOME_CAMERA);
+let dirty = true;
+
+function sub(a, b) { return [a[0] - b[0], a[1] - b[1], a[2] - b[2]]; }
+function dot(a, b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+function cross(a, b) {
+  return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+}
+function normalize(a) {
+  const n = Math.hypot(a[0], a[1], a[2]) || 1;
+  return [a[0] / n, a[1] / n, a[2] / n];
+}
+
+// The camera's eye and basis for this draw.
+function view() {
+  const c = Math.cos(camera.pitch);
+  const t = camera.target;
+  const eye = [
+    t[0] + camera.distance * c * Math.cos(camera.yaw),
+    t[1] + camera.distance * c * Math.sin(camera.yaw),
+    t[2] + camera.distance * Math.sin(camera.pitch),
+  ];
+  const forward = normalize(sub(t, eye));
+  const right = normalize(cross(forward, [0, 0, 1]));
+  const up = cross(right, forward);
+  const focal = 0.9 * Math.min(canvas.width, canvas.height);
+  return { eye, forward, right, up, focal, cx: canvas.width / 2, cy: canvas.height / 2 };
+}
+
+const NEAR = 0.05;
+// Screen point [x, y, depth], or null behind the near plane.
+function project(v, p) {
+  const d = sub(p, v.eye);
+  const z = dot(d, v.forward);
+  if (z < NEAR) return null;
+  return [v.cx + v.focal * dot(d, v.right) / z, v.cy - v.focal * dot(d, v.up) / z, z];
+}
+
+let drag = null;
+canvas.addEventListener('pointerdown', (event) => {
+  drag = { x: event.clientX, y: event.clientY };
+  canvas.setPointerCapture(event.pointerId);
+});
+canvas.addEventListener('pointermove', (event) => {
+  if (!drag) return;
+  camera.yaw -= (event.clientX - drag.x) * 0.008;
+  camera.pitch = Math.max(-0.2, Math.min(1.5, camera.pitch + (event.clientY - drag.y) * 0.008));
+  drag = { x: event.clientX, y: event.clientY };
+  dirty = true;
+});
+canvas.addEventListener('pointerup', () => { drag = null; });
+canvas.addEventListener('wheel', (event) => {
+  event.preventDefault();
+  camera.distance = Math.max(0.4, Math.min(12, camera.distance * Math.exp(event.deltaY * 0.001)));
+  dirty = true;
+}, { passive: false });
+canvas.addEventListener('dblclick', () => {
+  Object.assign(camera, HOME_CAMERA);
+  dirty = true;
+});
+
+function resize() {
+  const ratio = window.devicePixelRatio || 1;
+  const width = Math.max(1, Math.round(canvas.clientWidth * ratio));
+  const height = Math.max(1, Math.round(canvas.clientHeight * ratio));
+  if (canvas.width !== width || canvas.height !== height) {
+    canvas.width = width;
+    canvas.height = height;
+    dirty = true;
+  }
+}
+window.addEventListener('resize', resize);
+
+// ---------------------------------------------------------------------- scene --
+let scene = { walls: [], cylinders: [], paint: [] };
+let paintByWall = [];
+let latest = null;
+const LINK_RADIUS = 0.045;
+const JOINT_RADIUS = 0.055;
+const BASE_RADIUS = 0.12;
+const CHAIN_COLOURS = ['#e8772e', '#2f7dd1', '#7a4fc4', '#1f9d74'];
+
+function setScene(message) {
+  scene = message.scene;
+  paintByWall = scene.walls.map(() => []);
+  addPaint(scene.paint);
+  document.getElementById('rig-name').textContent =
+    message.rig + ' \u00b7 ' + message.rate_hz + ' Hz stream \u00b7 ' + message.frame_rate_hz + ' frames/s';
+  buildJointTable(message.joints);
+  dirty = true;
+}
+
+function addPaint(quads) {
+  for (const quad of quads) {
+    if (paintByWall[quad.wall]) paintByWall[quad.wall].push(quad.quad);
+  }
+}
+
+// Lighter when facing the camera: a cheap cue for which way a surface turns.
+function shade(rgb, normal, v) {
+  const facing = Math.abs(dot(normalize(normal), v.forward));
+  const k = 0.65 + 0.35 * facing;
+  return 'rgb(' + rgb.map((c) => Math.round(c * k)).join(',') + ')';
+}
+
+function polygonPath(points) {
+  ctx.moveTo(points[0][0], points[0][1]);
+  for (let i = 1; i < points.length; i++) ctx.lineTo(points[i][0], points[i][1]);
+  ctx.closePath();
+}
+
+function projectAll(v, points) {
+  const out = [];
+  for (const p of points) {
+    const s = project(v, p);
+    if (!s) return null;
+    out.push(s);
+  }
+  return out;
+}
+
+function meanDepth(points) {
+  return points.reduce((sum, p) => sum + p[2], 0) / points.length;
+}
+
+function wallDrawable(v, wall, index) {
+  const outline = projectAll(v, wall.corners);
+  if (!outline) return null;
+  const holes = wall.openings.map((o) => projectAll(v, o)).filter((o) => o);
+  const paint = paintByWall[index].map((q) => projectAll(v, q)).filter((q) => q);
+  const normal = cross(sub(wall.corners[1], wall.corners[0]), sub(wall.corners[2], wall.corners[0]));
+  const fill = shade([214, 209, 198], normal, v);
+  return {
+    depth: meanDepth(outline),
+    draw() {
+      ctx.beginPath();
+      polygonPath(outline);
+      for (const hole of holes) polygonPath(hole);
+      ctx.fillStyle = fill;
+      ctx.fill('evenodd');
+      ctx.strokeStyle = '#8d877b';
+      ctx.lineWidth = 1;
+      ctx.stroke();
+      ctx.fillStyle = '#1f5fbf';
+      ctx.beginPath();
+      for (const quad of paint) polygonPath(quad);
+      ctx.fill('nonzero');
+    },
+  };
+}
+
+function cylinderDrawable(v, cylinder) {
+  const a = project(v, cylinder.from);
+  const b = project(v, cylinder.to);
+  if (!a || !b) return null;
+  const ra = v.focal * cylinder.radius / a[2];
+  const rb = v.focal * cylinder.radius / b[2];
+  const dx = b[0] - a[0];
+  const dy = b[1] - a[1];
+  const n = Math.hypot(dx, dy) || 1;
+  const px = -dy / n;
+  const py = dx / n;
+  const axis = sub(cylinder.to, cylinder.from);
+  const side = cross(axis, v.forward);
+  const fill = shade([124, 92, 58], cross(axis, side), v);
+  return {
+    depth: (a[2] + b[2]) / 2,
+    draw() {
+      ctx.fillStyle = fill;
+      ctx.beginPath();
+      ctx.moveTo(a[0] + px * ra, a[1] + py * ra);
+      ctx.lineTo(b[0] + px * rb, b[1] + py * rb);
+      ctx.lineTo(b[0] - px * rb, b[1] - py * rb);
+      ctx.lineTo(a[0] - px * ra, a[1] - py * ra);
+      ctx.closePath();
+      ctx.fill();
+      ctx.beginPath();
+      ctx.arc(a[0], a[1], ra, 0, 2 * Math.PI);
+      ctx.arc(b[0], b[1], rb, 0, 2 * Math.PI);
+      ctx.fill();
+    },
+  };
+}
+
+// A disc on the floor under the chain's first point: the rig's base.
+function baseDrawable(v, origin) {
+  const rim = [];
+  for (let k = 0; k < 20; k++) {
+    const angle = (k / 20) * 2 * Math.PI;
+    rim.push([origin[0] + BASE_RADIUS * Math.cos(angle), origin[1] + BASE_RADIUS * Math.sin(angle), origin[2]]);
+  }
+  const points = projectAll(v, rim);
+  if (!points) return null;
+  return {
+    // Flat on the floor: drawn before the links standing on it, in order with the walls.
+    depth: meanDepth(points) + BASE_RADIUS,
+    draw() {
+      ctx.fillStyle = '#4b5563';
+      ctx.beginPath();
+      polygonPath(points);
+      ctx.fill();
+    },
+  };
+}
+
+function chainDrawables(v, chain, colour, out) {
+  const points = chain.map((p) => project(v, p));
+  for (let i = 0; i + 1 < points.length; i++) {
+    const a = points[i];
+    const b = points[i + 1];
+    if (!a || !b) continue;
+    out.push({
+      depth: (a[2] + b[2]) / 2,
+      draw() {
+        ctx.strokeStyle = colour;
+        ctx.lineCap = 'round';
+        ctx.lineWidth = Math.max(2, 2 * v.focal * LINK_RADIUS / ((a[2] + b[2]) / 2));
+        ctx.beginPath();
+        ctx.moveTo(a[0], a[1]);
+        ctx.lineTo(b[0], b[1]);
+        ctx.stroke();
+      },
+    });
+  }
+  points.forEach((p, i) => {
+    if (!p) return;
+    const tool = i === points.length - 1;
+    out.push({
+      depth: p[2] - 0.001,
+      draw() {
+        ctx.fillStyle = tool ? '#111827' : '#374151';
+        ctx.beginPath();
+        ctx.arc(p[0], p[1], Math.max(2, v.focal * (tool ? 0.6 : 1) * JOINT_RADIUS / p[2]), 0, 2 * Math.PI);
+        ctx.fill();
+      },
+    });
+  });
+}
+
+function drawFloor(v) {
+  ctx.strokeStyle = '#cfd5dd';
+  ctx.lineWidth = 1;
+  ctx.beginPath();
+  for (let k = -10; k <= 10; k++) {
+    const x = k * 0.2;
+    for (const [p, q] of [[[x, -2, 0], [x, 2, 0]], [[-2, x, 0], [2, x, 0]]]) {
+      const a = project(v, p);
+      const b = project(v, q);
+      if (!a || !b) continue;
+      ctx.moveTo(a[0], a[1]);
+      ctx.lineTo(b[0], b[1]);
+    }
+  }
+  ctx.stroke();
+}
+
+function draw() {
+  resize();
+  const v = view();
+  ctx.fillStyle = '#f7f8fa';
+  ctx.fillRect(0, 0, canvas.width, canvas.height);
+  drawFloor(v);
+  const drawables = [];
+  scene.walls.forEach((wall, i) => drawables.push(wallDrawable(v, wall, i)));
+  scene.cylinders.forEach((c) => drawables.push(cylinderDrawable(v, c)));
+  if (latest) {
+    latest.chains.forEach((chain, i) => {
+      if (chain.length === 0) return;
+      drawables.push(baseDrawable(v, chain[0]));
+      chainDrawables(v, chain, CHAIN_COLOURS[i % CHAIN_COLOURS.length], drawables);
+    });
+  }
+  // Painter's algorithm: farthest first.
+  drawables.filter((d) => d).sort((a, b) => b.depth - a.depth).forEach((d) => d.draw());
+  health.framesDrawn += 1;
+  if (health.firstFrameMs === null && latest) {
+    health.firstFrameMs = performance.now();
+    document.getElementById('first-frame').textContent = health.firstFrameMs.toFixed(0) + ' ms after load';
+  }
+}
+
+function animate() {
+  if (dirty) {
+    dirty = false;
+    draw();
+  }
+  requestAnimationFrame(animate);
+}
+
+// -------------------------------------------------------------------- status --
+function format(value, digits) {
+  return typeof value === 'number' && isFinite(value) ? value.toFixed(digits) : '-';
+}
+
+let jointUnits = [];
+function buildJointTable(joints) {
+  jointUnits = joints.map((j) => j.unit);
+  const body = document.querySelector('#joints tbody');
+  body.textContent = '';
+  joints.forEach((joint, i) => {
+    const row = body.insertRow();
+    row.insertCell().textContent = joint.name;
+    row.insertCell().id = 'joint-actual-' + i;
+    row.insertCell().id = 'joint-commanded-' + i;
+    row.insertCell().textContent = joint.unit;
+    row.cells[0].style.textAlign = 'left';
+  });
+}
+
+const LINK_ROWS = [
+  ['status', 'controller', (l) => l.status],
+  ['rate', 'rate (set / measured) Hz', (l) => format(l.rate_hz, 0) + ' / ' + format(l.cycles_per_s, 0)],
+  ['cycles', 'cycles', (l) => String(l.cycles)],
+  ['jitter', 'jitter (last / max 1 s) \u00b5s', (l) => format(l.jitter_us, 0) + ' / ' + format(l.jitter_max_us, 0)],
+  ['latency', 'latency (last / max 1 s) \u00b5s', (l) => format(l.latency_us, 0) + ' / ' + format(l.latency_max_us, 0)],
+  ['tracking', 'tracking error deg', (l) => format(l.tracking_error_deg, 3)],
+  ['frames', 'frames sent / received', (l) => l.frames_sent + ' / ' + l.frames_received],
+  ['errors', 'crc / dup / gaps / reconnects', (l) => [l.crc_errors, l.duplicates, l.gaps, l.reconnects].join(' / ')],
+  ['timeouts', 'feedback timeouts', (l) => String(l.feedback_timeouts)],
+];
+(function buildLinkTable() {
+  const body = document.querySelector('#link tbody');
+  for (const [key, label] of LINK_ROWS) {
+    const row = body.insertRow();
+    row.insertCell().textContent = label;
+    row.insertCell().id = 'link-' + key;
+    row.cells[0].style.textAlign = 'left';
+    row.cells[0].style.color = '#5b6472';
+  }
+})();
+
+function showStatus(frame) {
+  frame.actual.forEach((value, i) => {
+    const digits = jointUnits[i] === 'm' ? 4 : 2;
+    const actual = document.getElementById('joint-actual-' + i);
+    if (actual) actual.textContent = format(value, digits);
+    const commanded = document.getElementById('joint-commanded-' + i);
+    if (commanded) commanded.textContent = format(frame.commanded[i], digits);
+  });
+  for (const [key, , text] of LINK_ROWS) {
+    document.getElementById('link-' + key).textContent = text(frame.link);
+  }
+  const job = frame.job;
+  document.getElementById('job-state').textContent = job.state;
+  document.getElementById('job-name').textContent = job.name ? '(' + job.name + ' #' + job.id + ')' : '';
+  document.getElementById('job-progress').value = job.progress;
+  document.getElementById('job-percent').textContent = (100 * job.progress).toFixed(1) + ' %';
+  document.getElementById('job-last').textContent = job.last ? 'last job: ' + job.last : '';
+}
+
+// Rates over the last second.
+let lastRateAt = performance.now();
+let lastFrames = 0;
+let lastMessages = 0;
+setInterval(() => {
+  const now = performance.now();
+  const seconds = (now - lastRateAt) / 1000;
+  health.fps = (health.framesDrawn - lastFrames) / seconds;
+  health.wsRate = (health.wsMessages - lastMessages) / seconds;
+  lastRateAt = now;
+  lastFrames = health.framesDrawn;
+  lastMessages = health.wsMessages;
+  document.getElementById('fps').textContent = health.fps.toFixed(1);
+  document.getElementById('ws-rate').textContent = health.wsRate.toFixed(1);
+}, 1000);
+
+// ------------------------------------------------------------------ WebSocket --
+function setConnection(state, text) {
+  const badge = document.getElementById('connection');
+  badge.className = 'badge ' + state;
+  badge.textContent = text;
+}
+
+// A token that is a valid subprotocol name travels as one (kept out of URLs and logs);
+// any other goes in the query string.
+const PROTOCOL_TOKEN = /^[!#$%&'*+\-.^_`|~0-9A-Za-z]+$/;
+
+let socket = null;
+function connect() {
+  const scheme = location.protocol === 'https:' ? 'wss://' : 'ws://';
+  let url = scheme + location.host + '/api/live';
+  const protocols = ['rigbridge.live'];
+  if (token && PROTOCOL_TOKEN.test(token)) {
+    protocols.push('rigbridge.token.' + token);
+  } else if (token) {
+    url += '?token=' + encodeURIComponent(token);
+  }
+  let opened = false;
+  socket = new WebSocket(url, protocols);
+  socket.addEventListener('open', () => {
+    opened = true;
+    setConnection('live', 'live');
+  });
+  socket.addEventListener('message', (event) => {
+    health.wsMessages += 1;
+    const message = JSON.parse(event.data);
+    if (message.type === 'scene') {
+      setScene(message);
+    } else if (message.type === 'frame') {
+      latest = message;
+      addPaint(message.paint);
+      showStatus(message);
+      dirty = true;
+    }
+  });
+  socket.addEventListener('close', () => {
+    if (!opened) {
+      // Refused before opening: most likely a missing or wrong token.
+      askForToken('refused: token?');
+      return;
+    }
+    setConnection('down', 'disconnected, retrying');
+    setTimeout(connect, 1000);
+  });
+}
+
+// -------------------------------------------------------------------- controls --
+async function control(path) {
+  const result = document.getElementById('control-result');
+  result.textContent = path + ' ...';
+  try {
+    const response = await fetch(path, { method: 'POST', headers: authHeaders() });
+    const body = await response.json().catch(() => ({}));
+    if (response.status === 401) askForToken('token needed');
+    result.textContent = path + ': ' + response.status + (body.error ? ' ' + body.error : '');
+  } catch (error) {
+    result.textContent = path + ': ' + error;
+  }
+}
+const CONTROLS = { start: '/api/jobs', pause: '/api/pause', resume: '/api/resume', stop: '/api/stop', estop: '/api/estop' };
+for (const [id, path] of Object.entries(CONTROLS)) {
+  document.getElementById(id).addEventListener('click', () => control(path));
+}
+
+resize();
+connect();
+requestAnimationFrame(animate);
