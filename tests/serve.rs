@@ -27,7 +27,12 @@ impl Drop for Server {
 }
 
 fn serve_command(extra: &[&str], env_token: Option<&str>) -> Command {
-    let runs = std::env::temp_dir().join(format!("rigbridge-serve-{}", std::process::id()));
+    // One runs directory per server: tests run in parallel and every server numbers its
+    // jobs from 1.
+    static SERVERS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = SERVERS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let runs = std::env::temp_dir().join(format!("rigbridge-serve-{}-{n}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&runs);
     let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
     command
         .args(["serve", "--port", "0", "--runs-dir", runs.to_str().unwrap()])
@@ -300,8 +305,12 @@ fn a_non_loopback_bind_with_a_token_guards_status_too() {
     );
     // Only ever connect to 127.0.0.1.
     assert_unauthorized(request_with(&server, "GET", "/api/status", ""));
-    assert_unauthorized(request_with(&server, "GET", "/", ""));
     assert_unauthorized(request_with(&server, "POST", "/api/stop", ""));
+    assert_unauthorized(request_with(&server, "GET", "/api/live", ""));
+    // The page is static code without state: a browser must be able to load it.
+    let (code, page) = request_with(&server, "GET", "/", "");
+    assert_eq!(code, 200, "{page}");
+    assert!(!page.contains("actual_deg"), "no state in the page");
     assert_unauthorized(request_with(
         &server,
         "GET",
@@ -339,4 +348,155 @@ fn a_cross_site_request_from_a_browser_page_is_refused() {
         response.starts_with("HTTP/1.1 409"),
         "same origin passes (no job to stop): {response}"
     );
+}
+
+// ------------------------------------------------------------------ live view --
+
+type LiveSocket = tungstenite::WebSocket<tungstenite::stream::MaybeTlsStream<TcpStream>>;
+
+/// Opens `/api/live` with these extra headers (`path_and_query` after the host).
+fn open_live(
+    server: &Server,
+    path_and_query: &str,
+    headers: &[(&str, &str)],
+) -> Result<(LiveSocket, tungstenite::handshake::client::Response), tungstenite::Error> {
+    use tungstenite::client::IntoClientRequest;
+    assert!(server.address.starts_with("127.0.0.1:"));
+    let mut request = format!("ws://{}{path_and_query}", server.address)
+        .into_client_request()
+        .unwrap();
+    for (name, value) in headers {
+        request.headers_mut().insert(
+            tungstenite::http::HeaderName::from_bytes(name.as_bytes()).unwrap(),
+            value.parse().unwrap(),
+        );
+    }
+    tungstenite::connect(request)
+}
+
+fn refused_with(result: Result<(LiveSocket, impl std::fmt::Debug), tungstenite::Error>) -> u16 {
+    match result {
+        Err(tungstenite::Error::Http(response)) => response.status().as_u16(),
+        Err(other) => panic!("expected an HTTP refusal, got {other}"),
+        Ok((_, response)) => panic!("expected a refusal, got {response:?}"),
+    }
+}
+
+fn next_json(socket: &mut LiveSocket) -> serde_json::Value {
+    loop {
+        match socket.read().unwrap() {
+            tungstenite::Message::Text(text) => return serde_json::from_str(&text).unwrap(),
+            tungstenite::Message::Ping(_) | tungstenite::Message::Pong(_) => {}
+            other => panic!("unexpected message {other:?}"),
+        }
+    }
+}
+
+#[test]
+fn the_live_view_sends_the_scene_then_frames_of_the_moving_twin_and_its_paint() {
+    let server = start_server();
+    let (code, page) = request_with(&server, "GET", "/", "");
+    assert_eq!(code, 200);
+    assert!(page.contains("<canvas") && page.contains("/live.js"), "{page}");
+    assert!(!page.contains("http://") && !page.contains("https://"), "nothing fetched from elsewhere");
+    let (code, script) = request_with(&server, "GET", "/live.js", "");
+    assert_eq!(code, 200);
+    assert!(script.contains("text/javascript"));
+
+    let (mut socket, response) = open_live(&server, "/api/live", &[]).unwrap();
+    assert_eq!(response.status().as_u16(), 101);
+    let scene = next_json(&mut socket);
+    assert_eq!(scene["type"], "scene", "{scene}");
+    assert_eq!(scene["joints"].as_array().unwrap().len(), 6);
+    let wall = &scene["scene"]["walls"][0]["corners"];
+    for corner in wall.as_array().unwrap() {
+        assert_eq!(corner[0], 0.45, "the star job's wall at x = wall_x_m: {wall}");
+    }
+    // At rest, before any job: the twin at its configured initial position.
+    let rest = next_json(&mut socket);
+    assert_eq!(rest["type"], "frame");
+    assert_eq!(rest["job"]["state"], "idle");
+    assert!((rest["actual"][4].as_f64().unwrap() - 30.0).abs() < 1e-9, "{rest}");
+    let chain = rest["chains"][0].as_array().unwrap();
+    assert!(chain.len() >= 2, "{rest}");
+    assert_eq!(chain[0], serde_json::json!([0.0, 0.0, 0.0]), "the base");
+
+    assert_eq!(request(&server, "POST", "/api/jobs", None).0, 202);
+    let mut seqs = Vec::new();
+    let mut painted = 0;
+    let mut tips = std::collections::HashSet::new();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        let message = next_json(&mut socket);
+        if message["type"] != "frame" {
+            continue;
+        }
+        seqs.push(message["seq"].as_u64().unwrap());
+        painted += message["paint"].as_array().unwrap().len();
+        let chain = message["chains"][0].as_array().unwrap();
+        tips.insert(chain.last().unwrap().to_string());
+        if message["job"]["state"] == "idle" && seqs.len() > 10 {
+            assert_eq!(message["job"]["last"], "completed", "{message}");
+            break;
+        }
+        assert!(Instant::now() < deadline, "the job should end: {message}");
+    }
+    assert!(seqs.windows(2).all(|w| w[0] <= w[1]), "frames in cycle order");
+    assert!(tips.len() > 50, "the tool moved: {} distinct positions", tips.len());
+    // The star is drawn on the wall: the tool's trace shows as paint, once, on wall 0.
+    assert!(painted > 20, "paint quads during the star: {painted}");
+    let (mut late, _) = open_live(&server, "/api/live", &[]).unwrap();
+    let scene = next_json(&mut late);
+    assert_eq!(scene["scene"]["paint"].as_array().unwrap().len(), painted, "a page that connects later sees all the paint");
+}
+
+#[test]
+fn the_live_view_refuses_a_websocket_without_the_token() {
+    let token = "live-s3cret_token.1";
+    let server = start_server_with(&[], Some(token));
+    assert_eq!(refused_with(open_live(&server, "/api/live", &[])), 401);
+    assert_eq!(refused_with(open_live(&server, "/api/live?token=wrong", &[])), 401);
+    assert_eq!(
+        refused_with(open_live(
+            &server,
+            "/api/live",
+            &[("sec-websocket-protocol", "rigbridge.live, rigbridge.token.wrong")]
+        )),
+        401
+    );
+    // Right token from another site's page: refused all the same.
+    assert_eq!(
+        refused_with(open_live(
+            &server,
+            &format!("/api/live?token={token}"),
+            &[("origin", "http://evil.example")]
+        )),
+        403
+    );
+    let (mut socket, _) = open_live(&server, &format!("/api/live?token={token}"), &[]).unwrap();
+    assert_eq!(next_json(&mut socket)["type"], "scene");
+    let (mut socket, response) = open_live(
+        &server,
+        "/api/live",
+        &[("sec-websocket-protocol", &format!("rigbridge.live, rigbridge.token.{token}"))],
+    )
+    .unwrap();
+    assert_eq!(
+        response.headers()["sec-websocket-protocol"],
+        "rigbridge.live",
+        "the token is never echoed back"
+    );
+    assert_eq!(next_json(&mut socket)["type"], "scene");
+    let bearer = format!("Bearer {token}");
+    let (mut socket, _) = open_live(&server, "/api/live", &[("authorization", &bearer)]).unwrap();
+    assert_eq!(next_json(&mut socket)["type"], "scene");
+}
+
+#[test]
+fn off_loopback_the_live_view_needs_the_token_too() {
+    let token = "exposed-live-token";
+    let server = start_server_with(&["--bind", "0.0.0.0"], Some(token));
+    assert_eq!(refused_with(open_live(&server, "/api/live", &[])), 401);
+    let (mut socket, _) = open_live(&server, &format!("/api/live?token={token}"), &[]).unwrap();
+    assert_eq!(next_json(&mut socket)["type"], "scene");
 }
