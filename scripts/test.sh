@@ -5,7 +5,8 @@
 #  2. tests/can.rs again, inside a throw-away QEMU VM with SocketCAN and vcan interfaces
 #     (../shared/tools/run-in-vcan-vm.sh), where it must pass and may not skip.
 # Installs what the VM needs when missing (qemu-system-x86, busybox-static, cpio, xz-utils:
-# one apt-get update, then apt-get install; as root, no prompts). The VM's kernel is
+# one apt-get update, then apt-get install; as root, no prompts), and what the live view's
+# browser test (tests/live_view.rs) needs: chromium and chromium-driver. The VM's kernel is
 # fetched with apt-get download on first use and cached (~/.cache/vcan-vm).
 # `bash scripts/test.sh --vm-only` skips step 1. CARGO_TARGET_DIR is honoured;
 # VCANVM_SCRIPT overrides the VM script's path (other VCANVM_* settings pass through).
@@ -22,7 +23,7 @@ esac
 vm_script=${VCANVM_SCRIPT:-../shared/tools/run-in-vcan-vm.sh}
 [ -f "$vm_script" ] || { echo "test.sh: no VM script at $vm_script (shared/ beside the repo?)" >&2; exit 1; }
 
-# ------------------------------------------------------------- what the VM needs --
+# ------------------------------------- what the VM and the browser test need --
 as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo -n "$@"; fi; }
 updated=
 apt_update_once() {
@@ -36,6 +37,8 @@ command -v qemu-system-x86_64 >/dev/null || missing+=(qemu-system-x86)
 { [ -x /bin/busybox ] && ! ldd /bin/busybox >/dev/null 2>&1; } || missing+=(busybox-static)
 command -v cpio >/dev/null || missing+=(cpio)
 command -v xz >/dev/null || missing+=(xz-utils)
+[ -x /usr/bin/chromium ] || missing+=(chromium)
+[ -x /usr/bin/chromedriver ] || missing+=(chromium-driver)
 if [ ${#missing[@]} -gt 0 ]; then
   echo "test.sh: installing ${missing[*]}" >&2
   apt_update_once

@@ -397,8 +397,14 @@ fn the_live_view_sends_the_scene_then_frames_of_the_moving_twin_and_its_paint() 
     let server = start_server();
     let (code, page) = request_with(&server, "GET", "/", "");
     assert_eq!(code, 200);
-    assert!(page.contains("<canvas") && page.contains("/live.js"), "{page}");
-    assert!(!page.contains("http://") && !page.contains("https://"), "nothing fetched from elsewhere");
+    assert!(
+        page.contains("<canvas") && page.contains("/live.js"),
+        "{page}"
+    );
+    assert!(
+        !page.contains("http://") && !page.contains("https://"),
+        "nothing fetched from elsewhere"
+    );
     let (code, script) = request_with(&server, "GET", "/live.js", "");
     assert_eq!(code, 200);
     assert!(script.contains("text/javascript"));
@@ -410,13 +416,19 @@ fn the_live_view_sends_the_scene_then_frames_of_the_moving_twin_and_its_paint() 
     assert_eq!(scene["joints"].as_array().unwrap().len(), 6);
     let wall = &scene["scene"]["walls"][0]["corners"];
     for corner in wall.as_array().unwrap() {
-        assert_eq!(corner[0], 0.45, "the star job's wall at x = wall_x_m: {wall}");
+        assert_eq!(
+            corner[0], 0.45,
+            "the star job's wall at x = wall_x_m: {wall}"
+        );
     }
     // At rest, before any job: the twin at its configured initial position.
     let rest = next_json(&mut socket);
     assert_eq!(rest["type"], "frame");
     assert_eq!(rest["job"]["state"], "idle");
-    assert!((rest["actual"][4].as_f64().unwrap() - 30.0).abs() < 1e-9, "{rest}");
+    assert!(
+        (rest["actual"][4].as_f64().unwrap() - 30.0).abs() < 1e-9,
+        "{rest}"
+    );
     let chain = rest["chains"][0].as_array().unwrap();
     assert!(chain.len() >= 2, "{rest}");
     assert_eq!(chain[0], serde_json::json!([0.0, 0.0, 0.0]), "the base");
@@ -441,13 +453,24 @@ fn the_live_view_sends_the_scene_then_frames_of_the_moving_twin_and_its_paint() 
         }
         assert!(Instant::now() < deadline, "the job should end: {message}");
     }
-    assert!(seqs.windows(2).all(|w| w[0] <= w[1]), "frames in cycle order");
-    assert!(tips.len() > 50, "the tool moved: {} distinct positions", tips.len());
+    assert!(
+        seqs.windows(2).all(|w| w[0] <= w[1]),
+        "frames in cycle order"
+    );
+    assert!(
+        tips.len() > 50,
+        "the tool moved: {} distinct positions",
+        tips.len()
+    );
     // The star is drawn on the wall: the tool's trace shows as paint, once, on wall 0.
     assert!(painted > 20, "paint quads during the star: {painted}");
     let (mut late, _) = open_live(&server, "/api/live", &[]).unwrap();
     let scene = next_json(&mut late);
-    assert_eq!(scene["scene"]["paint"].as_array().unwrap().len(), painted, "a page that connects later sees all the paint");
+    assert_eq!(
+        scene["scene"]["paint"].as_array().unwrap().len(),
+        painted,
+        "a page that connects later sees all the paint"
+    );
 }
 
 #[test]
@@ -455,12 +478,18 @@ fn the_live_view_refuses_a_websocket_without_the_token() {
     let token = "live-s3cret_token.1";
     let server = start_server_with(&[], Some(token));
     assert_eq!(refused_with(open_live(&server, "/api/live", &[])), 401);
-    assert_eq!(refused_with(open_live(&server, "/api/live?token=wrong", &[])), 401);
+    assert_eq!(
+        refused_with(open_live(&server, "/api/live?token=wrong", &[])),
+        401
+    );
     assert_eq!(
         refused_with(open_live(
             &server,
             "/api/live",
-            &[("sec-websocket-protocol", "rigbridge.live, rigbridge.token.wrong")]
+            &[(
+                "sec-websocket-protocol",
+                "rigbridge.live, rigbridge.token.wrong"
+            )]
         )),
         401
     );
@@ -478,7 +507,10 @@ fn the_live_view_refuses_a_websocket_without_the_token() {
     let (mut socket, response) = open_live(
         &server,
         "/api/live",
-        &[("sec-websocket-protocol", &format!("rigbridge.live, rigbridge.token.{token}"))],
+        &[(
+            "sec-websocket-protocol",
+            &format!("rigbridge.live, rigbridge.token.{token}"),
+        )],
     )
     .unwrap();
     assert_eq!(

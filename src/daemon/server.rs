@@ -376,7 +376,10 @@ pub async fn run(
 }
 
 async fn index() -> impl IntoResponse {
-    ([("content-type", "text/html; charset=utf-8")], page::INDEX_HTML)
+    (
+        [("content-type", "text/html; charset=utf-8")],
+        page::INDEX_HTML,
+    )
 }
 
 async fn live_js() -> impl IntoResponse {
@@ -387,7 +390,10 @@ async fn live_js() -> impl IntoResponse {
 }
 
 async fn live_css() -> impl IntoResponse {
-    ([("content-type", "text/css; charset=utf-8")], page::LIVE_CSS)
+    (
+        [("content-type", "text/css; charset=utf-8")],
+        page::LIVE_CSS,
+    )
 }
 
 /// The live view's frame task: samples the streamer's state at [`LIVE_FRAME_RATE_HZ`] in
@@ -413,9 +419,14 @@ fn job_view(shared: &Shared) -> JobView {
         })
     });
     let running = shared.job.lock().ok().and_then(|job| {
-        job.as_ref()
-            .filter(|j| !j.handle.is_finished())
-            .map(|j| (j.id, j.name.clone(), j.control.progress(), j.control.is_paused()))
+        job.as_ref().filter(|j| !j.handle.is_finished()).map(|j| {
+            (
+                j.id,
+                j.name.clone(),
+                j.control.progress(),
+                j.control.is_paused(),
+            )
+        })
     });
     match running {
         Some((id, name, progress, paused)) => JobView {
@@ -444,7 +455,11 @@ async fn live(State(shared): State<Arc<Shared>>, upgrade: WebSocketUpgrade) -> R
 async fn serve_live(mut socket: WebSocket, shared: Arc<Shared>) {
     let (scene, mut frames) = shared.hub.subscribe();
     let mut stopping = shared.stopping.clone();
-    if socket.send(WsMessage::Text((&*scene).into())).await.is_err() {
+    if socket
+        .send(WsMessage::Text((&*scene).into()))
+        .await
+        .is_err()
+    {
         return;
     }
     loop {

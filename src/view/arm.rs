@@ -41,7 +41,11 @@ impl ArmScene {
                 .unwrap_or_else(PoisonError::into_inner)
                 .set_wall(walls.first().map(|wall| (0, wall)));
         }
-        ArmScene { walls, trace, ..ArmScene::new(rig) }
+        ArmScene {
+            walls,
+            trace,
+            ..ArmScene::new(rig)
+        }
     }
 }
 
@@ -107,10 +111,7 @@ impl LiveScene for ArmScene {
 
     fn drain_paint(&mut self) -> Vec<PaintQuad> {
         match &self.trace {
-            Some(trace) => trace
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner)
-                .drain(),
+            Some(trace) => trace.lock().unwrap_or_else(PoisonError::into_inner).drain(),
             None => Vec::new(),
         }
     }
@@ -190,7 +191,12 @@ mod tests {
         let wall = job_wall(&job).unwrap();
         assert!(wall.corners.iter().all(|c| c[0] == 0.45));
         let (ys, zs): (Vec<f64>, Vec<f64>) = wall.corners.iter().map(|c| (c[1], c[2])).unzip();
-        let span = |v: &[f64]| (v.iter().cloned().fold(f64::INFINITY, f64::min), v.iter().cloned().fold(f64::NEG_INFINITY, f64::max));
+        let span = |v: &[f64]| {
+            (
+                v.iter().cloned().fold(f64::INFINITY, f64::min),
+                v.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
+            )
+        };
         let (y0, y1) = span(&ys);
         let (z0, z1) = span(&zs);
         assert!(y0 < 0.1 - 0.12 && y1 > 0.1 + 0.12, "{wall:?}");

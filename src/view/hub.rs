@@ -225,7 +225,7 @@ mod tests {
             SceneView::default()
         }
         fn chains(&self, actual: &[f64]) -> Vec<Vec<Point>> {
-            vec![crate::view::arm::joint_origins(&self.rig, actual)]
+            vec![crate::view::joint_origins(&self.rig, actual)]
         }
         fn drain_paint(&mut self) -> Vec<PaintQuad> {
             std::mem::take(&mut self.pending)
@@ -265,8 +265,7 @@ mod tests {
         assert_eq!(chain.len(), 6, "base and joints 2..=6: {chain:?}");
         assert_eq!(frame["paint"].as_array().unwrap().len(), 1);
         let again: serde_json::Value =
-            serde_json::from_str(&hub.tick(Duration::from_millis(40), JobView::default()))
-                .unwrap();
+            serde_json::from_str(&hub.tick(Duration::from_millis(40), JobView::default())).unwrap();
         assert!(again["paint"].as_array().unwrap().is_empty(), "sent once");
         let (scene, _) = hub.subscribe();
         let scene: serde_json::Value = serde_json::from_str(&scene).unwrap();

@@ -213,7 +213,10 @@ mod tests {
             assert_eq!(latest.commanded.as_slice(), &[0.2 * 6.0]);
             assert_eq!(latest.actual.as_slice(), &[0.1 * 6.0]);
             assert_eq!(latest.late_us, 5.0);
-            assert_eq!(latest.late_max_us, 90.0, "cycle 1 is in the previous window");
+            assert_eq!(
+                latest.late_max_us, 90.0,
+                "cycle 1 is in the previous window"
+            );
             assert_eq!(latest.latency_us, 300.0, "no newer measurement");
             assert_eq!(latest.counters.frames_sent, 6);
             for seq in 7..=10 {

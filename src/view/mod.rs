@@ -18,7 +18,7 @@ mod live;
 pub mod page;
 mod trace;
 
-pub use arm::ArmScene;
+pub use arm::{ArmScene, joint_origins};
 pub use hub::{JobView, LiveHub};
 pub use live::{LiveSample, LiveSink, LiveSlot};
 pub use trace::ToolTrace;

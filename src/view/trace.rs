@@ -167,7 +167,12 @@ mod tests {
         for stroke in &strokes {
             assert_eq!(stroke.wall, 2);
             assert!(stroke.quad.iter().all(|p| (p[0] - 0.5).abs() < 1e-12));
-            assert!(stroke.quad.iter().all(|p| (p[2] - 0.3).abs() <= STROKE_WIDTH_M));
+            assert!(
+                stroke
+                    .quad
+                    .iter()
+                    .all(|p| (p[2] - 0.3).abs() <= STROKE_WIDTH_M)
+            );
         }
         assert!(trace.drain().is_empty(), "drained once");
 

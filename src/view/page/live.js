@@ -12,6 +12,7 @@ const health = {
   fps: 0,
   wsMessages: 0,
   wsRate: 0,
+  paintQuads: 0,
   errors: [],
 };
 window.rigbridgeView = health;
@@ -72,7 +73,7 @@ document.getElementById('token-form').addEventListener('submit', (event) => {
 // --------------------------------------------------------------------- camera --
 const canvas = document.getElementById('view');
 const ctx = canvas.getContext('2d');
-const HOME_CAMERA = { yaw: -2.45, pitch: 0.42, distance: 2.6, target: [0.25, 0.0, 0.4] };
+const HOME_CAMERA = { yaw: -2.25, pitch: 0.38, distance: 2.0, target: [0.25, 0.0, 0.42] };
 const camera = Object.assign({}, HOME_CAMERA);
 let dirty = true;
 
@@ -153,11 +154,13 @@ let latest = null;
 const LINK_RADIUS = 0.045;
 const JOINT_RADIUS = 0.055;
 const BASE_RADIUS = 0.12;
+const FLOOR_TOLERANCE = 0.01;
 const CHAIN_COLOURS = ['#e8772e', '#2f7dd1', '#7a4fc4', '#1f9d74'];
 
 function setScene(message) {
   scene = message.scene;
   paintByWall = scene.walls.map(() => []);
+  health.paintQuads = 0;
   addPaint(scene.paint);
   document.getElementById('rig-name').textContent =
     message.rig + ' \u00b7 ' + message.rate_hz + ' Hz stream \u00b7 ' + message.frame_rate_hz + ' frames/s';
@@ -167,7 +170,10 @@ function setScene(message) {
 
 function addPaint(quads) {
   for (const quad of quads) {
-    if (paintByWall[quad.wall]) paintByWall[quad.wall].push(quad.quad);
+    if (paintByWall[quad.wall]) {
+      paintByWall[quad.wall].push(quad.quad);
+      health.paintQuads += 1;
+    }
   }
 }
 
@@ -257,7 +263,7 @@ function cylinderDrawable(v, cylinder) {
   };
 }
 
-// A disc on the floor under the chain's first point: the rig's base.
+// A disc on the floor around the chain's first point: the rig's base.
 function baseDrawable(v, origin) {
   const rim = [];
   for (let k = 0; k < 20; k++) {
@@ -341,7 +347,8 @@ function draw() {
   if (latest) {
     latest.chains.forEach((chain, i) => {
       if (chain.length === 0) return;
-      drawables.push(baseDrawable(v, chain[0]));
+      // A chain that starts on the floor stands on a base plate (the arm); a limb does not.
+      if (Math.abs(chain[0][2]) < FLOOR_TOLERANCE) drawables.push(baseDrawable(v, chain[0]));
       chainDrawables(v, chain, CHAIN_COLOURS[i % CHAIN_COLOURS.length], drawables);
     });
   }

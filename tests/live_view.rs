@@ -1,0 +1,342 @@
+//! The live view end to end in a real browser: `rigbridge serve` (the built binary, wall
+//! clock, 250 Hz) and headless Chromium driven over WebDriver (Debian's `chromium` and
+//! `chromium-driver`; `scripts/test.sh` installs them). The page must draw its first frame
+//! within 1 s of loading, start a job from its button, redraw the canvas as the twin moves,
+//! update its status numbers, draw and receive >= 30 frames/s while streaming, and log no
+//! error. Saves a screenshot to `target/e2e/live-view.png`.
+//!
+//! Without Chromium the test fails, unless `RIGBRIDGE_SKIP_BROWSER=1`, when it says why it
+//! skips. `RIGBRIDGE_CHROMIUM` and `RIGBRIDGE_CHROMEDRIVER` override the binaries' paths.
+//! Traffic only ever goes to 127.0.0.1.
+
+mod common;
+
+use common::repo_path;
+use fantoccini::{Client, ClientBuilder, Locator};
+use serde_json::{Value, json};
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::{TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// Exactly the flags this machine's closed network needs (plus a fresh profile).
+const CHROMIUM_FLAGS: [&str; 7] = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+];
+
+/// A child process killed when the test ends, however it ends.
+struct Running(Child);
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn binary(variable: &str, default: &str) -> PathBuf {
+    std::env::var_os(variable).map_or_else(|| PathBuf::from(default), PathBuf::from)
+}
+
+/// `rigbridge serve` on a free port of 127.0.0.1; returns it and its page's address.
+fn start_server(runs: &Path) -> (Running, String) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args(["serve", "--port", "0", "--clock", "wall", "--runs-dir"])
+        .arg(runs)
+        .current_dir(repo_path(""))
+        .env_remove("RIGBRIDGE_TOKEN")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("rigbridge serve starts");
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let url = line.trim().to_string();
+    assert!(url.starts_with("http://127.0.0.1:"), "{url}");
+    (Running(child), url)
+}
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// One plain HTTP/1.1 request to chromedriver; the JSON body of its answer.
+fn driver_request(port: u16, method: &str, path: &str, body: &str) -> Option<Value> {
+    let mut stream = TcpStream::connect(("127.0.0.1", port)).ok()?;
+    stream
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .ok()?;
+    write!(
+        stream,
+        "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    )
+    .ok()?;
+    // chromedriver keeps the connection open: read the head, then Content-Length bytes.
+    let mut reader = BufReader::new(stream);
+    let mut length = 0;
+    loop {
+        let mut line = String::new();
+        reader.read_line(&mut line).ok()?;
+        let line = line.trim_end();
+        if line.is_empty() {
+            break;
+        }
+        if let Some((name, value)) = line.split_once(':')
+            && name.eq_ignore_ascii_case("content-length")
+        {
+            length = value.trim().parse().ok()?;
+        }
+    }
+    let mut body = vec![0; length];
+    reader.read_exact(&mut body).ok()?;
+    serde_json::from_slice(&body).ok()
+}
+
+fn start_chromedriver(driver: &Path) -> (Running, u16) {
+    let port = free_port();
+    let child = Command::new(driver)
+        .arg(format!("--port={port}"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap_or_else(|e| panic!("cannot start {}: {e}", driver.display()));
+    let running = Running(child);
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while driver_request(port, "GET", "/status", "").is_none_or(|s| s["value"]["ready"] != true) {
+        assert!(Instant::now() < deadline, "chromedriver never got ready");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    (running, port)
+}
+
+async fn eval(client: &Client, script: &str) -> Value {
+    client
+        .execute(script, Vec::new())
+        .await
+        .unwrap_or_else(|e| panic!("script failed: {script}: {e}"))
+}
+
+/// A hash of the canvas' pixels as PNG (FNV-1a over its data URL), computed in the page.
+async fn canvas_hash(client: &Client) -> String {
+    let hash = eval(
+        client,
+        "const s = document.getElementById('view').toDataURL('image/png');
+         let h = 0x811c9dc5;
+         for (let i = 0; i < s.length; i++) { h ^= s.charCodeAt(i); h = Math.imul(h, 0x01000193) >>> 0; }
+         return h.toString(16) + ':' + s.length;",
+    )
+    .await;
+    hash.as_str().unwrap().to_string()
+}
+
+async fn text_of(client: &Client, id: &str) -> String {
+    client
+        .find(Locator::Id(id))
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap()
+}
+
+async fn health(client: &Client) -> Value {
+    eval(client, "return window.rigbridgeView;").await
+}
+
+/// Polls `script` (returning a boolean) until true.
+async fn wait_until(client: &Client, what: &str, script: &str, timeout: Duration) {
+    let deadline = Instant::now() + timeout;
+    while eval(client, script).await != Value::Bool(true) {
+        assert!(Instant::now() < deadline, "timed out waiting for {what}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+#[test]
+fn the_live_view_draws_the_twin_and_runs_a_job_in_headless_chromium() {
+    let chromium = binary("RIGBRIDGE_CHROMIUM", "/usr/bin/chromium");
+    let driver = binary("RIGBRIDGE_CHROMEDRIVER", "/usr/bin/chromedriver");
+    if !chromium.exists() || !driver.exists() {
+        let why = format!(
+            "no browser for the live view's end-to-end test: {} or {} is missing \
+             (apt-get install -y chromium chromium-driver; scripts/test.sh does it)",
+            chromium.display(),
+            driver.display()
+        );
+        if std::env::var("RIGBRIDGE_SKIP_BROWSER").as_deref() == Ok("1") {
+            eprintln!("skipping, RIGBRIDGE_SKIP_BROWSER=1: {why}");
+            return;
+        }
+        panic!("{why}; set RIGBRIDGE_SKIP_BROWSER=1 to skip knowingly");
+    }
+    let scratch = std::env::temp_dir().join(format!("rigbridge-e2e-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&scratch);
+    std::fs::create_dir_all(&scratch).unwrap();
+    let (_server, url) = start_server(&scratch.join("runs"));
+    let (_driver, driver_port) = start_chromedriver(&driver);
+    let profile = scratch.join("profile");
+
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let report = runtime.block_on(async {
+        let mut args: Vec<String> = CHROMIUM_FLAGS.iter().map(|f| f.to_string()).collect();
+        args.push(format!("--user-data-dir={}", profile.display()));
+        let capabilities = json!({
+            "browserName": "chrome",
+            "goog:chromeOptions": { "binary": chromium, "args": args },
+            "goog:loggingPrefs": { "browser": "ALL" },
+        });
+        let Value::Object(capabilities) = capabilities else {
+            unreachable!()
+        };
+        let client = ClientBuilder::new(hyper_util::client::legacy::connect::HttpConnector::new())
+            .capabilities(capabilities)
+            .connect(&format!("http://127.0.0.1:{driver_port}"))
+            .await
+            .expect("a WebDriver session in headless Chromium");
+        let session = client.session_id().await.unwrap().unwrap();
+        client.set_window_size(1280, 960).await.unwrap();
+        let report = exercise_page(&client, &url).await;
+        let console = driver_request(
+            driver_port,
+            "POST",
+            &format!("/session/{session}/se/log"),
+            r#"{"type":"browser"}"#,
+        )
+        .expect("chromedriver's browser log");
+        client.close().await.unwrap();
+        (report, console)
+    });
+    let (report, console) = report;
+    eprintln!("live view: {report}");
+    let entries = console["value"].as_array().cloned().unwrap_or_default();
+    let severe: Vec<&Value> = entries
+        .iter()
+        .filter(|e| e["level"] == "SEVERE" || e["level"] == "WARNING")
+        .collect();
+    eprintln!(
+        "browser console: {} entries, {} warnings or errors",
+        entries.len(),
+        severe.len()
+    );
+    assert!(severe.is_empty(), "browser console: {severe:#?}");
+    let _ = std::fs::remove_dir_all(&scratch);
+}
+
+/// Loads the page and drives it; returns the figures it measured.
+async fn exercise_page(client: &Client, url: &str) -> Value {
+    client.goto(url).await.unwrap();
+    wait_until(
+        client,
+        "the first frame",
+        "return window.rigbridgeView && window.rigbridgeView.firstFrameMs !== null;",
+        Duration::from_secs(5),
+    )
+    .await;
+    let first_frame_ms = health(client).await["firstFrameMs"].as_f64().unwrap();
+    assert!(
+        first_frame_ms < 1000.0,
+        "first frame {first_frame_ms:.0} ms after navigation start"
+    );
+    assert_eq!(text_of(client, "job-state").await, "idle");
+    // At rest the picture holds still: whatever changes later is the twin moving.
+    let at_rest = canvas_hash(client).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert_eq!(
+        canvas_hash(client).await,
+        at_rest,
+        "a still twin draws the same picture"
+    );
+    let cycles_at_rest = text_of(client, "link-cycles").await;
+
+    client
+        .find(Locator::Id("start"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    wait_until(
+        client,
+        "the job to run",
+        "return document.getElementById('job-state').textContent === 'running';",
+        Duration::from_secs(10),
+    )
+    .await;
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let moving = canvas_hash(client).await;
+    let cycles_early: u64 = text_of(client, "link-cycles").await.parse().unwrap();
+    let rate_early = text_of(client, "link-rate").await;
+    let early = health(client).await;
+    tokio::time::sleep(Duration::from_millis(1000)).await;
+    let later = canvas_hash(client).await;
+    let cycles_later: u64 = text_of(client, "link-cycles").await.parse().unwrap();
+    let streaming = health(client).await;
+    assert_ne!(moving, at_rest, "the canvas changes as the twin moves");
+    assert_ne!(later, moving, "and keeps changing");
+    assert_ne!(cycles_at_rest, cycles_early.to_string());
+    assert!(
+        cycles_later > cycles_early + 150,
+        "status numbers update: {cycles_early} -> {cycles_later} cycles in 1 s at 250 Hz"
+    );
+    for figures in [&early, &streaming] {
+        let fps = figures["fps"].as_f64().unwrap();
+        let ws_rate = figures["wsRate"].as_f64().unwrap();
+        assert!(
+            fps >= 30.0,
+            "frames drawn per second while streaming: {figures}"
+        );
+        assert!(ws_rate >= 30.0, "WebSocket messages per second: {figures}");
+    }
+    // Half-way through the star: arm, wall and paint in one picture.
+    wait_until(
+        client,
+        "the star half drawn",
+        "return document.getElementById('job-progress').value > 0.55;",
+        Duration::from_secs(20),
+    )
+    .await;
+    let screenshot = client.screenshot().await.unwrap();
+    let out = repo_path("target/e2e");
+    std::fs::create_dir_all(&out).unwrap();
+    std::fs::write(out.join("live-view.png"), &screenshot).unwrap();
+    let painted: u64 = eval(client, "return window.rigbridgeView.paintQuads;")
+        .await
+        .as_u64()
+        .unwrap();
+    assert!(painted > 20, "paint on the wall: {painted} quads");
+    wait_until(
+        client,
+        "the job to end",
+        "return document.getElementById('job-state').textContent === 'idle';",
+        Duration::from_secs(30),
+    )
+    .await;
+    assert_eq!(text_of(client, "job-last").await, "last job: completed");
+    let end = health(client).await;
+    let errors = end["errors"].as_array().unwrap();
+    assert!(errors.is_empty(), "errors the page collected: {errors:?}");
+    json!({
+        "first_frame_ms": first_frame_ms,
+        "fps_while_streaming": [early["fps"], streaming["fps"]],
+        "ws_messages_per_s": [early["wsRate"], streaming["wsRate"]],
+        "rate_shown": rate_early,
+        "cycles_in_1s": cycles_later - cycles_early,
+        "paint_quads": painted,
+        "frames_drawn": end["framesDrawn"],
+        "page_errors": errors.len(),
+    })
+}
