@@ -13,7 +13,7 @@ use std::sync::PoisonError;
 /// Margin of the drawn wall around the job's figure, as a multiple of its radius, and the
 /// least width and height it is drawn with (m): a wall, not a sticker.
 const WALL_MARGIN_RADII: f64 = 3.0;
-const WALL_MIN_SIZE_M: f64 = 1.2;
+const WALL_MIN_SIZE_M: f64 = 0.8;
 
 pub struct ArmScene {
     rig: Rig,
@@ -64,12 +64,13 @@ pub fn job_wall(job: &JobConfig) -> Option<WallView> {
     let half_width = (WALL_MARGIN_RADII * radius_m).max(WALL_MIN_SIZE_M / 2.0);
     let top = (centre_yz_m[1] + WALL_MARGIN_RADII * radius_m).max(WALL_MIN_SIZE_M);
     let (y0, y1) = (centre_yz_m[0] - half_width, centre_yz_m[0] + half_width);
+    // Counter-clockwise seen from the arm (x < wall_x_m): the face the tool works on.
     Some(WallView {
         corners: [
-            [*wall_x_m, y0, 0.0],
             [*wall_x_m, y1, 0.0],
-            [*wall_x_m, y1, top],
+            [*wall_x_m, y0, 0.0],
             [*wall_x_m, y0, top],
+            [*wall_x_m, y1, top],
         ],
         openings: Vec::new(),
     })
@@ -78,13 +79,23 @@ pub fn job_wall(job: &JobConfig) -> Option<WallView> {
 /// The origin of every joint frame of `rig` at `positions`, then the tool frame's: the
 /// links as the page draws them. Empty when `positions` does not fit the rig.
 pub fn joint_origins(rig: &Rig, positions: &[f64]) -> Vec<Point> {
-    if positions.len() != rig.dof() {
+    joint_origins_from(rig, positions, 0)
+}
+
+/// [`joint_origins`] for a rig whose first `carried_by` joints move it rather than being
+/// links, such as a mobile base's x, y and heading: the polyline starts where those joints
+/// put the rig (its base), so no link is drawn from the world origin to it.
+pub fn joint_origins_from(rig: &Rig, positions: &[f64], carried_by: usize) -> Vec<Point> {
+    if positions.len() != rig.dof() || carried_by > rig.dof() {
         return Vec::new();
     }
-    let mut points = Vec::with_capacity(rig.dof() + 2);
     let mut frame = DAffine3::IDENTITY;
+    for (joint, q) in rig.joints.iter().zip(positions).take(carried_by) {
+        frame *= joint.transform(*q);
+    }
+    let mut points = Vec::with_capacity(rig.dof() + 2);
     points.push(point(frame.translation));
-    for (joint, q) in rig.joints.iter().zip(positions) {
+    for (joint, q) in rig.joints.iter().zip(positions).skip(carried_by) {
         points.push(point((frame * joint.origin).translation));
         frame *= joint.transform(*q);
     }
@@ -181,6 +192,19 @@ mod tests {
     }
 
     #[test]
+    fn a_rig_carried_by_its_first_joints_starts_at_its_base() {
+        // The lift's slide, seen as what carries the arm: no link from the origin to it.
+        let rig = lift_and_arm();
+        let chain = joint_origins_from(&rig, &[0.3, 0.0], 1);
+        let expected = [[1.0, 0.0, 0.3], [1.0, 0.0, 0.5], [1.5, 0.0, 0.5]];
+        assert_eq!(chain.len(), expected.len(), "{chain:?}");
+        for (got, want) in chain.iter().zip(expected) {
+            assert!(close(*got, want), "{chain:?}");
+        }
+        assert!(joint_origins_from(&rig, &[0.3, 0.0], 3).is_empty());
+    }
+
+    #[test]
     fn the_star_job_shows_its_wall_at_wall_x() {
         let job = JobConfig::WallFigure {
             wall_x_m: 0.45,
@@ -201,6 +225,9 @@ mod tests {
         let (z0, z1) = span(&zs);
         assert!(y0 < 0.1 - 0.12 && y1 > 0.1 + 0.12, "{wall:?}");
         assert!(z0 <= 0.0 && z1 > 0.45 + 0.12, "{wall:?}");
+        let [a, b, c, _] = wall.corners.map(glam::DVec3::from_array);
+        let facing = (b - a).cross(c - a);
+        assert!(facing.x < 0.0, "the wall's front faces the arm: {facing}");
         let waypoints = JobConfig::JointWaypoints {
             waypoints_deg: vec![vec![0.0; 6]],
         };

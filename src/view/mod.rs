@@ -18,7 +18,7 @@ mod live;
 pub mod page;
 mod trace;
 
-pub use arm::{ArmScene, joint_origins};
+pub use arm::{ArmScene, joint_origins, joint_origins_from};
 pub use hub::{JobView, LiveHub};
 pub use live::{LiveSample, LiveSink, LiveSlot};
 pub use trace::ToolTrace;
@@ -37,8 +37,10 @@ pub struct SceneView {
     pub paint: Vec<PaintQuad>,
 }
 
-/// A flat wall: four corners in order around its outline, and holes in it (doors,
-/// windows), each four corners in the wall's plane.
+/// A flat wall: four corners around its outline, counter-clockwise seen from its front (the
+/// side the rig works on, the painted side: `(c1 - c0) x (c2 - c0)` points out of it), and
+/// holes in it (doors, windows), each four corners in the wall's plane. Seen from behind,
+/// the page draws a wall as an outline only, so a room shows what is inside.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct WallView {
     pub corners: [Point; 4],

@@ -73,8 +73,11 @@ document.getElementById('token-form').addEventListener('submit', (event) => {
 // --------------------------------------------------------------------- camera --
 const canvas = document.getElementById('view');
 const ctx = canvas.getContext('2d');
+// The camera looks at the middle of the scene from the front left; `fitCamera` sizes it to
+// the scene. Until the user moves it, it follows every new scene.
 const HOME_CAMERA = { yaw: -2.25, pitch: 0.38, distance: 2.0, target: [0.25, 0.0, 0.42] };
 const camera = Object.assign({}, HOME_CAMERA);
+let cameraMoved = false;
 let dirty = true;
 
 function sub(a, b) { return [a[0] - b[0], a[1] - b[1], a[2] - b[2]]; }
@@ -122,18 +125,41 @@ canvas.addEventListener('pointermove', (event) => {
   camera.yaw -= (event.clientX - drag.x) * 0.008;
   camera.pitch = Math.max(-0.2, Math.min(1.5, camera.pitch + (event.clientY - drag.y) * 0.008));
   drag = { x: event.clientX, y: event.clientY };
+  cameraMoved = true;
   dirty = true;
 });
 canvas.addEventListener('pointerup', () => { drag = null; });
 canvas.addEventListener('wheel', (event) => {
   event.preventDefault();
-  camera.distance = Math.max(0.4, Math.min(12, camera.distance * Math.exp(event.deltaY * 0.001)));
+  camera.distance = Math.max(0.4, Math.min(40, camera.distance * Math.exp(event.deltaY * 0.001)));
+  cameraMoved = true;
   dirty = true;
 }, { passive: false });
 canvas.addEventListener('dblclick', () => {
   Object.assign(camera, HOME_CAMERA);
+  cameraMoved = false;
   dirty = true;
 });
+
+// Home: looking at the middle of everything there is to see (walls, cylinders, the rig),
+// from far enough for all of it to fit.
+function fitCamera(chains) {
+  const points = [];
+  for (const wall of scene.walls) points.push(...wall.corners);
+  for (const c of scene.cylinders) points.push(c.from, c.to);
+  for (const chain of chains) points.push(...chain);
+  if (points.length === 0) return;
+  const low = [0, 1, 2].map((k) => Math.min(...points.map((p) => p[k])));
+  const high = [0, 1, 2].map((k) => Math.max(...points.map((p) => p[k])));
+  const radius = Math.hypot(high[0] - low[0], high[1] - low[1], high[2] - low[2]) / 2;
+  HOME_CAMERA.target = [0, 1, 2].map((k) => (low[k] + high[k]) / 2);
+  const reach = Math.max(...[0, 1].flatMap((k) => [Math.abs(low[k]), Math.abs(high[k])]));
+  floorHalf = Math.max(2, Math.ceil(reach + 0.5));
+  // The view's half-angle is atan(0.5 / 0.9) (focal length 0.9 of the shorter side).
+  HOME_CAMERA.distance = Math.max(1.0, 1.15 * radius / Math.sin(Math.atan(0.5 / 0.9)));
+  if (!cameraMoved) Object.assign(camera, HOME_CAMERA);
+}
+let fitPending = true;
 
 function resize() {
   const ratio = window.devicePixelRatio || 1;
@@ -165,6 +191,7 @@ function setScene(message) {
   document.getElementById('rig-name').textContent =
     message.rig + ' \u00b7 ' + message.rate_hz + ' Hz stream \u00b7 ' + message.frame_rate_hz + ' frames/s';
   buildJointTable(message.joints);
+  fitPending = true;
   dirty = true;
 }
 
@@ -210,6 +237,8 @@ function wallDrawable(v, wall, index) {
   const holes = wall.openings.map((o) => projectAll(v, o)).filter((o) => o);
   const paint = paintByWall[index].map((q) => projectAll(v, q)).filter((q) => q);
   const normal = cross(sub(wall.corners[1], wall.corners[0]), sub(wall.corners[2], wall.corners[0]));
+  // Seen from behind (a room's near wall, from outside): an outline, so the inside shows.
+  const fromBehind = dot(normal, sub(v.eye, wall.corners[0])) < 0;
   const fill = shade([214, 209, 198], normal, v);
   return {
     depth: meanDepth(outline),
@@ -217,10 +246,14 @@ function wallDrawable(v, wall, index) {
       ctx.beginPath();
       polygonPath(outline);
       for (const hole of holes) polygonPath(hole);
-      ctx.fillStyle = fill;
-      ctx.fill('evenodd');
       ctx.strokeStyle = '#8d877b';
       ctx.lineWidth = 1;
+      if (fromBehind) {
+        ctx.stroke();
+        return;
+      }
+      ctx.fillStyle = fill;
+      ctx.fill('evenodd');
       ctx.stroke();
       ctx.fillStyle = '#1f5fbf';
       ctx.beginPath();
@@ -318,13 +351,18 @@ function chainDrawables(v, chain, colour, out) {
   });
 }
 
+// The floor's grid: 0.2 m squares, 0.5 m in scenes wider than 8 m, reaching past the scene.
+let floorHalf = 2;
 function drawFloor(v) {
   ctx.strokeStyle = '#cfd5dd';
   ctx.lineWidth = 1;
   ctx.beginPath();
-  for (let k = -10; k <= 10; k++) {
-    const x = k * 0.2;
-    for (const [p, q] of [[[x, -2, 0], [x, 2, 0]], [[-2, x, 0], [2, x, 0]]]) {
+  const step = floorHalf > 4 ? 0.5 : 0.2;
+  const lines = Math.round(floorHalf / step);
+  for (let k = -lines; k <= lines; k++) {
+    const x = k * step;
+    const h = floorHalf;
+    for (const [p, q] of [[[x, -h, 0], [x, h, 0]], [[-h, x, 0], [h, x, 0]]]) {
       const a = project(v, p);
       const b = project(v, q);
       if (!a || !b) continue;
@@ -480,6 +518,10 @@ function connect() {
       setScene(message);
     } else if (message.type === 'frame') {
       latest = message;
+      if (fitPending) {
+        fitPending = false;
+        fitCamera(message.chains);
+      }
       addPaint(message.paint);
       showStatus(message);
       dirty = true;
