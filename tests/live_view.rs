@@ -318,6 +318,22 @@ async fn exercise_page(client: &Client, url: &str) -> Value {
         .as_u64()
         .unwrap();
     assert!(painted > 20, "paint on the wall: {painted} quads");
+    for (button, state) in [("pause", "paused"), ("resume", "running")] {
+        client
+            .find(Locator::Id(button))
+            .await
+            .unwrap()
+            .click()
+            .await
+            .unwrap();
+        wait_until(
+            client,
+            state,
+            &format!("return document.getElementById('job-state').textContent === '{state}';"),
+            Duration::from_secs(10),
+        )
+        .await;
+    }
     wait_until(
         client,
         "the job to end",

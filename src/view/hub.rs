@@ -136,7 +136,7 @@ impl LiveHub {
         }
         let cycles_per_s = match state.recent.front() {
             Some((t, cycles)) if now > *t => {
-                (sample.cycles - cycles) as f64 / (now - *t).as_secs_f64()
+                sample.cycles.saturating_sub(*cycles) as f64 / (now - *t).as_secs_f64()
             }
             _ => 0.0,
         };
