@@ -20,7 +20,9 @@ use crate::clock::{Clock, VirtualClock, WallClock};
 use crate::link::LoopbackLink;
 use crate::stream::StreamControl;
 use crate::twin::{SharedWorld, Twin};
-use crate::view::{ArmScene, JobView, LiveHub, LiveSample, LiveSink, LiveSlot, ToolTrace, page};
+use crate::view::{
+    ArmScene, JobView, LiveHub, LiveSample, LiveScene, LiveSink, LiveSlot, ToolTrace, page,
+};
 use axum::extract::ws::{Message as WsMessage, WebSocket, WebSocketUpgrade};
 use axum::extract::{Request, State};
 use axum::http::{HeaderValue, StatusCode, header};
@@ -302,17 +304,13 @@ pub async fn run(
     let link = LoopbackLink::new(twin);
     std::fs::create_dir_all(&options.runs_dir).map_err(crate::link::LinkError::Io)?;
     let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&settings.initial())));
-    let scene = ArmScene::for_job(
-        settings.rig.clone(),
-        &settings.config.job,
-        Some(trace.clone()),
-    );
+    let scene = scene_for_job(&settings, &settings.config.job, &trace);
     let hub = LiveHub::new(
         settings.rig.clone(),
         settings.config.stream.rate_hz,
         LIVE_FRAME_RATE_HZ,
         slot,
-        Box::new(scene),
+        scene,
     );
     let (stop_live, stopping) = watch::channel(false);
     let shared = Arc::new(Shared {
@@ -394,6 +392,20 @@ async fn live_css() -> impl IntoResponse {
         [("content-type", "text/css; charset=utf-8")],
         page::LIVE_CSS,
     )
+}
+
+/// What the live view shows for `job`: the one place a kind of job chooses its scene (the
+/// arm in front of the star's wall, with the tool's trace as paint).
+fn scene_for_job(
+    settings: &RunSettings,
+    job: &JobConfig,
+    trace: &SharedWorld<ToolTrace>,
+) -> Box<dyn LiveScene> {
+    Box::new(ArmScene::for_job(
+        settings.rig.clone(),
+        job,
+        Some(trace.clone()),
+    ))
 }
 
 /// The live view's frame task: samples the streamer's state at [`LIVE_FRAME_RATE_HZ`] in
@@ -612,9 +624,8 @@ fn spawn_job(
         let plan = plan_for(&shared.settings, &job, &mut *link);
         let _ = planned.send(plan.as_ref().map(|_| ()).map_err(|e| super::error_chain(e)));
         let result = plan.and_then(|plan| {
-            let rig = shared.settings.rig.clone();
-            let scene = ArmScene::for_job(rig, &job, Some(shared.trace.clone()));
-            shared.hub.set_scene(Box::new(scene));
+            let scene = scene_for_job(&shared.settings, &job, &shared.trace);
+            shared.hub.set_scene(scene);
             let rate = shared.settings.config.stream.rate_hz.round() as u64;
             let mut live = LiveSink::new(shared.hub.slot(), rate);
             stream_planned_with(
