@@ -19,7 +19,7 @@ use super::{DaemonError, RunReport, plan_for, stream_planned_with, twin_settings
 use crate::clock::{Clock, VirtualClock, WallClock};
 use crate::link::LoopbackLink;
 use crate::stream::StreamControl;
-use crate::twin::{SharedWorld, Twin};
+use crate::twin::{SharedWorld, Twin, TwinWorld};
 use crate::view::{
     ArmScene, JobView, LiveHub, LiveSample, LiveScene, LiveSink, LiveSlot, ToolTrace, page,
 };
@@ -234,8 +234,8 @@ struct Shared {
     last: Arc<Mutex<Option<JobResult>>>,
     next_id: Mutex<u64>,
     hub: LiveHub,
-    /// The tool's trace on the job's wall: a world of the twin, shown as paint.
-    trace: SharedWorld<ToolTrace>,
+    /// The twin's world for the current job (the twin outlives jobs; its world does not).
+    world: SharedWorld<JobWorld>,
     /// Turns true when the server stops: live connections close.
     stopping: watch::Receiver<bool>,
 }
@@ -298,13 +298,16 @@ pub async fn run(
     let check = TokenCheck::new(options.token.as_deref());
     let auth = axum::middleware::from_fn_with_state(check.clone(), require_token);
     let live_auth = axum::middleware::from_fn_with_state(check, require_live_token);
-    let trace = Arc::new(Mutex::new(ToolTrace::new(settings.rig.clone())));
+    let world = Arc::new(Mutex::new(JobWorld(None)));
     let twin = Twin::new(&settings.rig, twin_settings(&settings), &settings.initial())?
-        .with_world(Box::new(trace.clone()));
+        .with_world(Box::new(world.clone()));
     let link = LoopbackLink::new(twin);
     std::fs::create_dir_all(&options.runs_dir).map_err(crate::link::LinkError::Io)?;
     let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&settings.initial())));
-    let scene = scene_for_job(&settings, &settings.config.job, &trace);
+    let (scene, job_world) = scene_for_job(&settings, &settings.config.job);
+    if let Ok(mut world) = world.lock() {
+        world.0 = job_world;
+    }
     let hub = LiveHub::new(
         settings.rig.clone(),
         settings.config.stream.rate_hz,
@@ -321,7 +324,7 @@ pub async fn run(
         last: Arc::new(Mutex::new(None)),
         next_id: Mutex::new(1),
         hub,
-        trace,
+        world,
         stopping,
     });
     let same_origin = axum::middleware::from_fn(require_same_origin);
@@ -394,18 +397,27 @@ async fn live_css() -> impl IntoResponse {
     )
 }
 
-/// What the live view shows for `job`: the one place a kind of job chooses its scene (the
-/// arm in front of the star's wall, with the tool's trace as paint).
+/// What the live view shows for `job`, and the twin's world that measures it: the one place
+/// a kind of job chooses its scene. The star: the arm in front of its wall, the tool's trace
+/// on the wall as paint.
 fn scene_for_job(
     settings: &RunSettings,
     job: &JobConfig,
-    trace: &SharedWorld<ToolTrace>,
-) -> Box<dyn LiveScene> {
-    Box::new(ArmScene::for_job(
-        settings.rig.clone(),
-        job,
-        Some(trace.clone()),
-    ))
+) -> (Box<dyn LiveScene>, Option<Box<dyn TwinWorld>>) {
+    let trace = Arc::new(Mutex::new(ToolTrace::new(settings.rig.clone())));
+    let scene = ArmScene::for_job(settings.rig.clone(), job, Some(trace.clone()));
+    (Box::new(scene), Some(Box::new(trace)))
+}
+
+/// The twin's world for the job at hand, swapped when a job starts.
+struct JobWorld(Option<Box<dyn TwinWorld>>);
+
+impl TwinWorld for JobWorld {
+    fn observe(&mut self, actual: &[f64]) {
+        if let Some(world) = self.0.as_mut() {
+            world.observe(actual);
+        }
+    }
 }
 
 /// The live view's frame task: samples the streamer's state at [`LIVE_FRAME_RATE_HZ`] in
@@ -624,7 +636,11 @@ fn spawn_job(
         let plan = plan_for(&shared.settings, &job, &mut *link);
         let _ = planned.send(plan.as_ref().map(|_| ()).map_err(|e| super::error_chain(e)));
         let result = plan.and_then(|plan| {
-            let scene = scene_for_job(&shared.settings, &job, &shared.trace);
+            let (scene, world) = scene_for_job(&shared.settings, &job);
+            // Nothing streams yet: the twin is not observing.
+            if let Ok(mut current) = shared.world.lock() {
+                current.0 = world;
+            }
             shared.hub.set_scene(scene);
             let rate = shared.settings.config.stream.rate_hz.round() as u64;
             let mut live = LiveSink::new(shared.hub.slot(), rate);
