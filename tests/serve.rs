@@ -475,7 +475,9 @@ fn the_live_view_sends_the_scene_then_frames_of_the_moving_twin_and_its_paint() 
 
 #[test]
 fn the_live_view_refuses_a_websocket_without_the_token() {
-    let token = "live-s3cret_token.1";
+    // '/' and '+' must be percent-encoded in a query, as the page does (encodeURIComponent).
+    let token = "live/s3cret+token_1";
+    let encoded = "live%2Fs3cret%2Btoken_1";
     let server = start_server_with(&[], Some(token));
     assert_eq!(refused_with(open_live(&server, "/api/live", &[])), 401);
     assert_eq!(
@@ -493,16 +495,22 @@ fn the_live_view_refuses_a_websocket_without_the_token() {
         )),
         401
     );
+    assert_eq!(
+        refused_with(open_live(&server, "/api/live?token=live%2Fs3cret%2", &[])),
+        401,
+        "a broken escape"
+    );
     // Right token from another site's page: refused all the same.
     assert_eq!(
         refused_with(open_live(
             &server,
-            &format!("/api/live?token={token}"),
+            &format!("/api/live?token={encoded}"),
             &[("origin", "http://evil.example")]
         )),
         403
     );
-    let (mut socket, _) = open_live(&server, &format!("/api/live?token={token}"), &[]).unwrap();
+    let (mut socket, _) =
+        open_live(&server, &format!("/api/live?x=1&token={encoded}"), &[]).unwrap();
     assert_eq!(next_json(&mut socket)["type"], "scene");
     let (mut socket, response) = open_live(
         &server,
