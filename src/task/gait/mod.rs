@@ -5,6 +5,9 @@
 
 pub mod body;
 pub mod config;
+pub mod metrics;
+pub mod picture;
+pub mod pipeline;
 pub mod placement;
 pub mod rig;
 pub mod scenario;
@@ -16,3 +19,5 @@ pub use rig::{Girdle, Limb, Side, SlothRig};
 pub use scenario::{Scenario, ScenarioError};
 pub use terrain::{Cylinder, Terrain};
 pub use walker::{GaitPlan, Stance, WalkError, Walker};
+pub use metrics::{GaitReport, GaitWorld, judge};
+pub use pipeline::{GaitError, plan_gait, plan_gait_job, trajectory_from_plan};
