@@ -166,16 +166,24 @@ impl<'a> Walker<'a> {
         (seconds / self.period_s).round() as usize
     }
 
-    /// Where each limb stands at the start: staggered as in the steady gait, so that every
-    /// step can be the max step (a limb that swings later in the cycle stands further ahead).
+    /// Where each limb stands at the start: staggered as in the steady gait (a limb that
+    /// swings later in the cycle stands further ahead, so that every step can be the max
+    /// step), each girdle's pair straddling its girdle.
     fn start_state(&self) -> Result<State, String> {
         let gait = &self.sloth.gait;
         let order = &gait.footfall_order;
+        let stagger = |index: usize| {
+            let slot = order.iter().position(|l| *l == index).unwrap_or(0);
+            gait.max_step_m * slot as f64 / order.len() as f64
+        };
         let mut limbs = Vec::with_capacity(self.sloth.limbs.len());
         for (index, limb) in self.sloth.limbs.iter().enumerate() {
-            let slot = order.iter().position(|l| *l == index).unwrap_or(0);
-            let lead = gait.max_step_m * (slot as f64 / order.len() as f64 - gait.duty_factor / 2.0);
-            let s = self.scenario.start_s + limb.attachment().x + lead;
+            let pair: Vec<f64> = (0..self.sloth.limbs.len())
+                .filter(|other| self.sloth.limbs[*other].girdle == limb.girdle)
+                .map(stagger)
+                .collect();
+            let centre = pair.iter().sum::<f64>() / pair.len() as f64;
+            let s = self.scenario.start_s + limb.attachment().x + stagger(index) - centre;
             let contact = contact_at(self.sloth, self.scenario, index, s)?;
             limbs.push(LimbState {
                 contact,
