@@ -5,16 +5,15 @@
 use super::run::{ClockChoice, default_log_path, make_clock, spawn_streaming, wait, write_report};
 use anyhow::Context;
 use clap::Args;
-use rigbridge::daemon::config::{JobConfig, load_run_settings};
-use rigbridge::daemon::{PlannedJob, RunReport, stream_planned, twin_settings};
-use rigbridge::link::LoopbackLink;
-use rigbridge::stream::{Outcome, StreamControl};
-use rigbridge::task::gait::{GaitReport, GaitWorld, Scenario, judge, picture, plan_gait};
-use rigbridge::twin::Twin;
+use rigbridge::daemon::RunReport;
+use rigbridge::daemon::config::load_run_settings;
+use rigbridge::daemon::gait::{GaitRun, run_gait};
+use rigbridge::stream::StreamControl;
+use rigbridge::task::gait::{GaitReport, Scenario, picture};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 #[derive(Args)]
 pub struct GaitArgs {
@@ -53,67 +52,43 @@ struct GaitRunReport {
 
 pub fn gait(args: GaitArgs) -> anyhow::Result<ExitCode> {
     let settings = load_run_settings(&args.config).context("cannot load run settings")?;
-    let sloth = settings.sloth.clone().with_context(|| {
-        format!(
-            "{}: the job must be `kind = \"gait\"` with a sloth rig",
-            args.config.display()
-        )
-    })?;
     let scenario = Scenario::build(&args.scenario, args.angle, args.gap)?;
-    let (plan, trajectory) =
-        plan_gait(&sloth, &scenario, settings.period_s()).context("cannot plan the gait")?;
-    if let Some(reason) = &plan.stop_reason {
-        println!("the gait stops early: {reason}");
-    }
-    let start = trajectory.position(0).to_vec();
-    let twin = twin_settings(&settings);
-    let lag_frames = (twin.delay_s / twin.period_s).round() as usize;
-    let world = Arc::new(Mutex::new(GaitWorld::new(&sloth, &scenario, &plan, lag_frames)));
-    let mut link = LoopbackLink::new(
-        Twin::new(&settings.rig, twin, &start)?.with_world(Box::new(world.clone())),
-    );
     let log = args.log.unwrap_or_else(|| default_log_path("gait"));
     if let Some(dir) = log.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     }
-    let planned = PlannedJob {
-        job: JobConfig::Gait {
-            scenario: scenario.name.clone(),
-            angle_deg: scenario.angle_deg,
-            gap_m: scenario.gap_m,
-        },
-        start,
-        trajectory,
-    };
     let control = Arc::new(StreamControl::default());
     let clock = make_clock(args.clock);
-    let (job_control, job_log) = (control.clone(), log.clone());
+    let (job_control, job_log, job_scenario) = (control.clone(), log.clone(), scenario.clone());
     let job = spawn_streaming(move || {
-        Ok(stream_planned(
+        Ok(run_gait(
             &settings,
-            &planned,
-            &mut link,
+            &job_scenario,
             clock.as_ref(),
             Some(&job_log),
             &job_control,
         )?)
     })?;
-    let run = wait(&control, job)?;
-    let world = world
-        .lock()
-        .map_err(|_| anyhow::anyhow!("the twin's world was poisoned"))?;
-    let completed = run.stream.outcome == Outcome::Completed;
-    let verdict = judge(&sloth, &scenario, &plan, &world, completed);
+    let GaitRun {
+        verdict,
+        run,
+        plan,
+        body_path,
+        sloth,
+    } = wait(&control, job)?;
     print_verdict(&verdict);
     println!("  log: {}", log.display());
     if let Some(path) = &args.picture {
-        std::fs::write(path, picture::render(&sloth, &scenario, &plan, &world.body_path))
+        std::fs::write(path, picture::render(&sloth, &scenario, &plan, &body_path))
             .with_context(|| format!("cannot write picture {}", path.display()))?;
     }
     let passed = verdict.passed;
     write_report(
         args.report.as_deref(),
-        &GaitRunReport { gait: verdict, run },
+        &GaitRunReport {
+            gait: verdict,
+            run,
+        },
     )?;
     Ok(if passed {
         ExitCode::SUCCESS

@@ -3,6 +3,7 @@
 //! run report; the stages themselves live in their own modules.
 
 pub mod config;
+pub mod gait;
 mod recording;
 pub mod replay;
 pub mod server;

@@ -60,6 +60,23 @@ impl CcdSolver {
         ]
     }
 
+    /// Moves `markers` with a change `delta` of the joint on `axis`.
+    fn follow(axis: &JointAxis, delta: f64, markers: &mut [DVec3; 3]) {
+        match axis.kind {
+            JointKind::Revolute => {
+                let turn = glam::DQuat::from_axis_angle(axis.direction, delta);
+                for marker in markers.iter_mut() {
+                    *marker = axis.point + turn * (*marker - axis.point);
+                }
+            }
+            JointKind::Prismatic => {
+                for marker in markers.iter_mut() {
+                    *marker += axis.direction * delta;
+                }
+            }
+        }
+    }
+
     /// The change of one joint that best moves `current` markers onto `wanted` ones.
     fn best_step(axis: &JointAxis, current: &[DVec3], wanted: &[DVec3]) -> f64 {
         match axis.kind {
@@ -111,19 +128,24 @@ impl IkSolver for CcdSolver {
         let mut axes = Vec::with_capacity(joints.len());
         let mut iterations = 0;
         while iterations < self.max_iterations {
-            let reached = Pose::from_affine(&self.rig.forward(&joints)?);
+            let tool = self.rig.forward_with_axes(&joints, &mut axes)?;
+            let reached = Pose::from_affine(&tool);
             if reached.position_error(&target) <= tolerance.position_m
                 && reached.orientation_error(&target) <= tolerance.orientation_rad
             {
                 break;
             }
             iterations += 1;
+            // Turning joint `index` moves only what lies beyond it: the axes of the joints
+            // before it stay put, so one forward pass per sweep serves the whole sweep, the
+            // markers following each joint's change.
+            let mut current = self.markers(&reached);
             for index in (0..joints.len()).rev() {
-                let tool = self.rig.forward_with_axes(&joints, &mut axes)?;
-                let current = self.markers(&Pose::from_affine(&tool));
                 let step = Self::best_step(&axes[index], &current[..used], &wanted[..used]);
                 let limits = self.rig.joints[index].limits;
-                joints[index] = (joints[index] + step).clamp(limits.lower, limits.upper);
+                let moved = (joints[index] + step).clamp(limits.lower, limits.upper);
+                Self::follow(&axes[index], moved - joints[index], &mut current);
+                joints[index] = moved;
             }
         }
         verified(&self.rig, &target, joints, iterations, tolerance)

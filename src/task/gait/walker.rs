@@ -367,6 +367,28 @@ impl<'a> Walker<'a> {
 
     /// Walks the scenario's cycles (or until a rule stops the gait) and returns the plan.
     pub fn plan(&self) -> Result<GaitPlan, WalkError> {
+        self.walk(usize::MAX).map(|(plan, _)| plan)
+    }
+
+    /// The walker's state just before frame `frame` (or at the end, if the gait ends
+    /// sooner): where a frame-by-frame consumer (the bench, a live view) picks up.
+    pub fn state_before(&self, frame: usize) -> Result<GaitState, WalkError> {
+        self.walk(frame).map(|(plan, state)| GaitState {
+            next_frame: plan.len(),
+            state,
+        })
+    }
+
+    /// One frame of the whole gait (swing interpolation, body pose, IK of every limb),
+    /// advancing `state`; no new swings start. Returns the streamed joint vector.
+    pub fn step_frame<'s>(&self, state: &'s mut GaitState) -> Result<&'s [f64], String> {
+        self.step(state.next_frame, &mut state.state)?;
+        land(&mut state.state, state.next_frame);
+        state.next_frame += 1;
+        Ok(&state.state.joints)
+    }
+
+    fn walk(&self, stop_before: usize) -> Result<(GaitPlan, State), WalkError> {
         let gait = &self.sloth.gait;
         let mut state = self.start_state().map_err(|reason| WalkError::NoStart {
             scenario: self.scenario.name.clone(),
@@ -397,7 +419,7 @@ impl<'a> Walker<'a> {
         loop {
             let swinging = state.limbs.iter().any(|l| l.swing.is_some());
             let walking = plan.stop_reason.is_none() && k < last_start;
-            if !walking && !swinging {
+            if (!walking && !swinging) || k >= stop_before {
                 break;
             }
             if walking && k >= first_swing {
@@ -449,8 +471,15 @@ impl<'a> Walker<'a> {
                 });
             }
         }
-        Ok(plan)
+        Ok((plan, state))
     }
+}
+
+/// The walker's state between two frames.
+#[derive(Debug, Clone)]
+pub struct GaitState {
+    next_frame: usize,
+    state: State,
 }
 
 /// Ends the swings that finish at frame `k`; says which limbs landed.
