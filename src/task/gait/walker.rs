@@ -24,7 +24,7 @@ pub enum WalkError {
     NoStart { scenario: String, reason: String },
 }
 
-/// Settle time before the first swing, so the first samples are a standstill.
+/// Standstill before the first swing and after the last landing.
 const SETTLE_S: f64 = 0.2;
 /// Share of an axis' max speed a frame-to-frame step may use.
 const SPEED_SHARE: f64 = 0.95;
@@ -459,6 +459,13 @@ impl<'a> Walker<'a> {
                 }
             }
             k += 1;
+        }
+        if k < stop_before && !plan.is_empty() {
+            // Hold the final pose a moment: the stream ends at rest, every foot down.
+            let last_frame = plan.frame(plan.len() - 1).to_vec();
+            for _ in 0..self.frames(SETTLE_S) {
+                plan.frames.extend_from_slice(&last_frame);
+            }
         }
         let last = plan.len().saturating_sub(1);
         for (limb, start) in stance_start.into_iter().enumerate() {
