@@ -51,7 +51,10 @@ fn assert_passes(run: &GaitRun) {
     for limb in &v.limbs {
         assert!(limb.max_foot_to_surface_mm <= 5.0, "{limb:?}");
         assert!(limb.max_slip_mm <= 1.0, "{limb:?}");
-        assert!(limb.max_bone_excursion_deg <= limb.bone_limit_deg + 1e-9, "{limb:?}");
+        assert!(
+            limb.max_bone_excursion_deg <= limb.bone_limit_deg + 1e-9,
+            "{limb:?}"
+        );
         assert!((limb.duty_factor - 2.0 / 3.0).abs() < 0.05, "{limb:?}");
     }
     assert!(v.min_body_clearance_mm > 0.0);
@@ -72,7 +75,10 @@ fn assert_stops_cleanly(run: &GaitRun, reason_contains: &str) {
     assert_eq!(run.run.stream.outcome, Outcome::Completed);
     assert!(v.min_body_clearance_mm > 0.0);
     for limb in &v.limbs {
-        assert!(limb.max_bone_excursion_deg <= limb.bone_limit_deg + 1e-9, "{limb:?}");
+        assert!(
+            limb.max_bone_excursion_deg <= limb.bone_limit_deg + 1e-9,
+            "{limb:?}"
+        );
         assert!(limb.max_foot_to_surface_mm <= 5.0, "{limb:?}");
     }
     let last = run.plan.frame(run.plan.len() - 1);
@@ -85,7 +91,11 @@ fn assert_stops_cleanly(run: &GaitRun, reason_contains: &str) {
 fn straight_branch_at_the_sloths_speed() {
     let run = walk("straight", None, None);
     assert_passes(&run);
-    assert!((run.verdict.speed_mps - 0.11).abs() <= 0.02, "{}", run.verdict.speed_mps);
+    assert!(
+        (run.verdict.speed_mps - 0.11).abs() <= 0.02,
+        "{}",
+        run.verdict.speed_mps
+    );
 }
 
 #[test]
@@ -146,7 +156,10 @@ fn a_bad_bone_limit_names_file_key_and_value() {
             file, key, value, ..
         } => {
             assert!(file.ends_with("inverted.toml"));
-            assert!(key.starts_with("limb[1].joint[") && key.ends_with("upper_deg"), "{key}");
+            assert!(
+                key.starts_with("limb[1].joint[") && key.ends_with("upper_deg"),
+                "{key}"
+            );
             assert!(!value.is_empty());
         }
         other => panic!("{other}"),
@@ -167,9 +180,11 @@ fn a_bad_gait_setting_names_file_key_and_value() {
 
 #[test]
 fn an_unknown_footfall_limb_is_refused() {
-    let message = sloth_variant("order.toml", |t| t.replacen("\"lf\", \"lh\"", "\"lf\", \"xx\"", 1))
-        .unwrap_err()
-        .to_string();
+    let message = sloth_variant("order.toml", |t| {
+        t.replacen("\"lf\", \"lh\"", "\"lf\", \"xx\"", 1)
+    })
+    .unwrap_err()
+    .to_string();
     assert!(message.contains("gait.footfall_order[2]"), "{message}");
     assert!(message.contains("xx"), "{message}");
 }
@@ -178,4 +193,52 @@ fn an_unknown_footfall_limb_is_refused() {
 fn an_unknown_scenario_is_refused_by_name() {
     let error = Scenario::build("loop-the-loop", None, None).unwrap_err();
     assert!(error.to_string().contains("loop-the-loop"));
+}
+
+fn scratch(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("rigbridge-gait-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(name);
+    let _ = std::fs::remove_file(&path);
+    path
+}
+
+#[test]
+fn the_gait_command_reports_and_draws() {
+    let (report, picture, log) = (scratch("r.json"), scratch("p.svg"), scratch("g.mcap"));
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .current_dir(repo_path("."))
+        .args(["gait", "--scenario", "branch-turn", "--angle", "135", "--clock", "virtual"])
+        .arg("--report")
+        .arg(&report)
+        .arg("--picture")
+        .arg(&picture)
+        .arg("--log")
+        .arg(&log)
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_eq!(json["passed"], true);
+    assert_eq!(json["limbs"].as_array().unwrap().len(), 4);
+    assert_eq!(json["run"]["outcome"], "completed");
+    let svg = std::fs::read_to_string(&picture).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("gait diagram"));
+    assert!(log.exists());
+}
+
+#[test]
+fn run_takes_a_gait_job() {
+    let log = scratch("run.mcap");
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .current_dir(repo_path("."))
+        .args(["run", "--config", "config/gait-run.toml", "--clock", "virtual"])
+        .arg("--log")
+        .arg(&log)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(output.status.success(), "{stdout}{}", String::from_utf8_lossy(&output.stderr));
+    assert!(stdout.contains("gait straight on sloth"), "{stdout}");
 }

@@ -85,10 +85,7 @@ pub fn gait(args: GaitArgs) -> anyhow::Result<ExitCode> {
     let passed = verdict.passed;
     write_report(
         args.report.as_deref(),
-        &GaitRunReport {
-            gait: verdict,
-            run,
-        },
+        &GaitRunReport { gait: verdict, run },
     )?;
     Ok(if passed {
         ExitCode::SUCCESS

@@ -249,9 +249,9 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     })?;
     let rig_path = file.parent().unwrap_or(Path::new(".")).join(&config.rig);
     let sloth = match config.job {
-        JobConfig::Gait { .. } => Some(std::sync::Arc::new(
-            crate::task::gait::SlothRig::load(&rig_path)?,
-        )),
+        JobConfig::Gait { .. } => Some(std::sync::Arc::new(crate::task::gait::SlothRig::load(
+            &rig_path,
+        )?)),
         _ => None,
     };
     let rig = match &sloth {

@@ -43,8 +43,9 @@ pub fn run_gait(
     let world = Arc::new(Mutex::new(GaitWorld::new(
         &sloth, scenario, &plan, lag_frames,
     )));
-    let mut link =
-        LoopbackLink::new(Twin::new(&settings.rig, twin, &start)?.with_world(Box::new(world.clone())));
+    let mut link = LoopbackLink::new(
+        Twin::new(&settings.rig, twin, &start)?.with_world(Box::new(world.clone())),
+    );
     let planned = PlannedJob {
         job: JobConfig::Gait {
             scenario: scenario.name.clone(),

@@ -67,8 +67,7 @@ impl RawGait {
         let speed_m_s = check_range(file, "gait.speed_m_s", self.speed_m_s, 0.01, 1.0)?;
         let max_step_m = check_range(file, "gait.max_step_m", self.max_step_m, 0.01, 1.0)?;
         let min_step_m = check_range(file, "gait.min_step_m", self.min_step_m, 0.0, max_step_m)?;
-        let retry_step_m =
-            check_range(file, "gait.retry_step_m", self.retry_step_m, 0.001, 0.1)?;
+        let retry_step_m = check_range(file, "gait.retry_step_m", self.retry_step_m, 0.001, 0.1)?;
         let duty_factor = check_range(file, "gait.duty_factor", self.duty_factor, 0.5, 0.9)?;
         let swing_lift_m = check_range(file, "gait.swing_lift_m", self.swing_lift_m, 0.0, 0.3)?;
         let mut footfall_order = Vec::with_capacity(self.footfall_order.len());

@@ -129,13 +129,13 @@ impl TwinWorld for GaitWorld {
         let body = self.sloth.body_frame(actual);
         self.body_path.push(body.translation);
         let (hind, fore) = self.sloth.spine();
-        self.min_body_clearance_m = self.min_body_clearance_m.min(
-            self.scenario.terrain.capsule_clearance(
-                body.transform_point3(hind),
-                body.transform_point3(fore),
-                self.sloth.body_radius_m,
-            ),
-        );
+        self.min_body_clearance_m =
+            self.min_body_clearance_m
+                .min(self.scenario.terrain.capsule_clearance(
+                    body.transform_point3(hind),
+                    body.transform_point3(fore),
+                    self.sloth.body_radius_m,
+                ));
         for index in 0..self.sloth.limbs.len() {
             self.measure_limb(index, frame, actual, &body);
         }
@@ -297,9 +297,7 @@ pub fn judge(
     {
         failures.push(format!("footfall order {footfall_order:?}"));
     }
-    if scenario.name == "straight"
-        && (speed_mps - STRAIGHT_SPEED_M_S).abs() > SPEED_TOLERANCE_M_S
-    {
+    if scenario.name == "straight" && (speed_mps - STRAIGHT_SPEED_M_S).abs() > SPEED_TOLERANCE_M_S {
         failures.push(format!("speed {speed_mps:.3} m/s"));
     }
     GaitReport {

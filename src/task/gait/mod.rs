@@ -15,9 +15,9 @@ pub mod terrain;
 pub mod walker;
 
 pub use config::{GaitConfig, LimbSolver};
+pub use metrics::{GaitReport, GaitWorld, judge};
+pub use pipeline::{GaitError, plan_gait, plan_gait_job, trajectory_from_plan};
 pub use rig::{Girdle, Limb, Side, SlothRig};
 pub use scenario::{Scenario, ScenarioError};
 pub use terrain::{Cylinder, Terrain};
 pub use walker::{GaitPlan, GaitState, Stance, WalkError, Walker};
-pub use metrics::{GaitReport, GaitWorld, judge};
-pub use pipeline::{GaitError, plan_gait, plan_gait_job, trajectory_from_plan};

@@ -22,7 +22,10 @@ struct Panel {
 
 impl Panel {
     fn fit(points: &[(f64, f64)], top: f64) -> Panel {
-        let (mut lo, mut hi) = ((f64::INFINITY, f64::INFINITY), (f64::NEG_INFINITY, f64::NEG_INFINITY));
+        let (mut lo, mut hi) = (
+            (f64::INFINITY, f64::INFINITY),
+            (f64::NEG_INFINITY, f64::NEG_INFINITY),
+        );
         for (a, b) in points {
             lo = (lo.0.min(*a), lo.1.min(*b));
             hi = (hi.0.max(*a), hi.1.max(*b));
@@ -94,7 +97,12 @@ fn view(
 
 /// The picture of a run: views of the body's `body_path` (the twin's actual positions) and
 /// the plan's stances.
-pub fn render(sloth: &SlothRig, scenario: &Scenario, plan: &GaitPlan, body_path: &[DVec3]) -> String {
+pub fn render(
+    sloth: &SlothRig,
+    scenario: &Scenario,
+    plan: &GaitPlan,
+    body_path: &[DVec3],
+) -> String {
     let limbs = sloth.limbs.len();
     let diagram_top = 2.0 * VIEW_HEIGHT + 20.0;
     let height = diagram_top + 40.0 + ROW * limbs as f64 + MARGIN;
@@ -104,8 +112,22 @@ pub fn render(sloth: &SlothRig, scenario: &Scenario, plan: &GaitPlan, body_path:
         r#"<svg xmlns="http://www.w3.org/2000/svg" width="{WIDTH}" height="{height:.0}" font-family="sans-serif">"#
     );
     let _ = writeln!(svg, r#"<rect width="100%" height="100%" fill="white"/>"#);
-    view(&mut svg, &format!("{}: side view (x-z), body path in blue", scenario.name), 0.0, scenario, body_path, |p| (p.x, p.z));
-    view(&mut svg, "top view (x-y)", VIEW_HEIGHT, scenario, body_path, |p| (p.x, p.y));
+    view(
+        &mut svg,
+        &format!("{}: side view (x-z), body path in blue", scenario.name),
+        0.0,
+        scenario,
+        body_path,
+        |p| (p.x, p.z),
+    );
+    view(
+        &mut svg,
+        "top view (x-y)",
+        VIEW_HEIGHT,
+        scenario,
+        body_path,
+        |p| (p.x, p.y),
+    );
     let frames = plan.len().max(1) as f64;
     let scale = (WIDTH - 2.0 * MARGIN - 40.0) / frames;
     let _ = writeln!(

@@ -6,7 +6,9 @@
 use super::rig::SlothRig;
 use super::scenario::{Scenario, ScenarioError};
 use super::walker::{GaitPlan, WalkError, Walker};
-use crate::trajectory::{PlanError, PlanSettings, Trajectory, TrajectoryError, plan_joint_moves, validate};
+use crate::trajectory::{
+    PlanError, PlanSettings, Trajectory, TrajectoryError, plan_joint_moves, validate,
+};
 use thiserror::Error;
 
 #[derive(Debug, Error)]

@@ -42,9 +42,7 @@ pub fn contact_at(
     };
     let cylinder = &scenario.terrain.cylinders[support];
     let axis_point = cylinder.axis_point(cylinder.parameter(scenario.route.point(s)));
-    let left = WORLD_UP
-        .cross(cylinder.direction())
-        .normalize_or(DVec3::Y);
+    let left = WORLD_UP.cross(cylinder.direction()).normalize_or(DVec3::Y);
     let normal = left * limb.side.sign();
     let expected = axis_point + normal * cylinder.radius;
     let start = expected + normal * (limb.claw_m + TRACE_START_M);

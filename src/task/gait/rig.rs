@@ -5,9 +5,7 @@
 //! steps or solve IK: the walker does, on the chains built here.
 
 use super::config::{GaitConfig, RawGait};
-use crate::rig::{
-    ConfigError, Joint, RawJoint, RawOrigin, Rig, joints_from_raw, origin_from_raw,
-};
+use crate::rig::{ConfigError, Joint, RawJoint, RawOrigin, Rig, joints_from_raw, origin_from_raw};
 use glam::{DAffine3, DVec3};
 use serde::Deserialize;
 use std::path::Path;
@@ -199,7 +197,12 @@ impl SlothRig {
             ));
         }
         if let Some(name) = duplicate_name(&streamed_joints) {
-            return Err(invalid(file, "limb.joint.name", name, "duplicate joint name"));
+            return Err(invalid(
+                file,
+                "limb.joint.name",
+                name,
+                "duplicate joint name",
+            ));
         }
         let body = Rig {
             name: format!("{}_body", raw.name),
@@ -369,12 +372,7 @@ fn limb_from_raw(
 /// Four limbs, one per girdle and side, uniquely named.
 fn check_limb_set(file: &Path, limbs: &[Limb]) -> Result<(), ConfigError> {
     if limbs.len() != 4 {
-        return Err(invalid(
-            file,
-            "limb",
-            limbs.len(),
-            "a sloth has 4 limbs",
-        ));
+        return Err(invalid(file, "limb", limbs.len(), "a sloth has 4 limbs"));
     }
     for (index, limb) in limbs.iter().enumerate() {
         let twin = limbs[..index]

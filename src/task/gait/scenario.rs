@@ -24,7 +24,10 @@ pub enum ScenarioError {
         high: f64,
     },
     #[error("scenario {scenario} takes no --{name}")]
-    Unused { scenario: String, name: &'static str },
+    Unused {
+        scenario: String,
+        name: &'static str,
+    },
 }
 
 /// One stretch of the route: from `start_s` on, the path runs from `origin` along
@@ -150,7 +153,10 @@ impl Scenario {
                     return Err(unused("gap"));
                 }
                 let terrain = Terrain {
-                    cylinders: vec![branch(DVec3::new(-1.0, 0.0, 0.0), DVec3::new(2.0, 0.0, 0.0))],
+                    cylinders: vec![branch(
+                        DVec3::new(-1.0, 0.0, 0.0),
+                        DVec3::new(2.0, 0.0, 0.0),
+                    )],
                 };
                 let route = Route {
                     legs: vec![Leg {
@@ -193,7 +199,10 @@ impl Scenario {
                 let terrain = Terrain {
                     cylinders: vec![
                         branch(DVec3::new(-1.0, 0.0, 0.0), DVec3::new(0.6, 0.0, 0.0)),
-                        branch(DVec3::new(-0.4, 0.0, 0.0) + right, DVec3::new(2.0, 0.0, 0.0) + right),
+                        branch(
+                            DVec3::new(-0.4, 0.0, 0.0) + right,
+                            DVec3::new(2.0, 0.0, 0.0) + right,
+                        ),
                     ],
                 };
                 let leg = |start_s: f64, left: usize, right: usize| Leg {

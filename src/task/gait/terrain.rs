@@ -110,12 +110,14 @@ impl Terrain {
             .iter()
             .enumerate()
             .filter_map(|(support, cylinder)| {
-                cylinder.trace(origin, direction).map(|(distance, point)| Hit {
-                    support,
-                    distance,
-                    point,
-                    normal: cylinder.normal_at(point),
-                })
+                cylinder
+                    .trace(origin, direction)
+                    .map(|(distance, point)| Hit {
+                        support,
+                        distance,
+                        point,
+                        normal: cylinder.normal_at(point),
+                    })
             })
             .min_by(|a, b| a.distance.total_cmp(&b.distance))
     }
@@ -193,7 +195,11 @@ mod tests {
             .trace(DVec3::new(0.3, -0.5, 0.0), DVec3::Y)
             .unwrap();
         assert!((t - 0.48).abs() < 1e-12 && (p.y + 0.02).abs() < 1e-12);
-        assert!(branch().trace(DVec3::new(1.3, -0.5, 0.0), DVec3::Y).is_none());
+        assert!(
+            branch()
+                .trace(DVec3::new(1.3, -0.5, 0.0), DVec3::Y)
+                .is_none()
+        );
     }
 
     #[test]

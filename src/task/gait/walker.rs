@@ -230,7 +230,11 @@ impl<'a> Walker<'a> {
             };
         }
         let body_wanted = body_from_feet(sloth, &ground[..limb_count]);
-        let previous_yaw = if state.has_previous { state.joints[3] } else { 0.0 };
+        let previous_yaw = if state.has_previous {
+            state.joints[3]
+        } else {
+            0.0
+        };
         let axes = body_axes(&body_wanted, previous_yaw);
         let mut joints = state.joints.clone();
         joints[..axes.len()].copy_from_slice(&axes);
@@ -325,7 +329,13 @@ impl<'a> Walker<'a> {
 
     /// FindNextStep for `limb` lifting off at frame `k`: the first candidate (max step
     /// first, then closer) that passes the placement rules and whose motion is possible.
-    fn next_step(&self, limb: usize, k: usize, state: &State, swing_frames: usize) -> Result<State, String> {
+    fn next_step(
+        &self,
+        limb: usize,
+        k: usize,
+        state: &State,
+        swing_frames: usize,
+    ) -> Result<State, String> {
         let current = state.limbs[limb].contact;
         let planned: Vec<Contact> = state.limbs.iter().map(|l| l.contact).collect();
         let mut first_reason = None;
