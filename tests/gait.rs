@@ -106,10 +106,20 @@ fn branch_turns_from_95_to_175_degrees() {
 }
 
 #[test]
-fn height_changes_rising_and_descending() {
-    for angle in [165.0, 180.0, 200.0] {
+fn height_changes_from_135_to_200_degrees() {
+    for angle in [135.0, 150.0, 165.0, 180.0, 200.0] {
         assert_passes(&walk("height-change", Some(angle), None));
     }
+}
+
+#[test]
+fn a_change_to_a_close_parallel_branch() {
+    assert_passes(&walk("parallel", None, Some(0.10)));
+}
+
+#[test]
+fn a_parallel_branch_too_far_for_the_limbs_stops_the_gait_cleanly() {
+    assert_stops_cleanly(&walk("parallel", None, Some(0.30)), "no next step");
 }
 
 #[test]
@@ -208,7 +218,15 @@ fn the_gait_command_reports_and_draws() {
     let (report, picture, log) = (scratch("r.json"), scratch("p.svg"), scratch("g.mcap"));
     let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
         .current_dir(repo_path("."))
-        .args(["gait", "--scenario", "branch-turn", "--angle", "135", "--clock", "virtual"])
+        .args([
+            "gait",
+            "--scenario",
+            "branch-turn",
+            "--angle",
+            "135",
+            "--clock",
+            "virtual",
+        ])
         .arg("--report")
         .arg(&report)
         .arg("--picture")
@@ -217,7 +235,11 @@ fn the_gait_command_reports_and_draws() {
         .arg(&log)
         .output()
         .unwrap();
-    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
     assert_eq!(json["passed"], true);
@@ -233,12 +255,22 @@ fn run_takes_a_gait_job() {
     let log = scratch("run.mcap");
     let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
         .current_dir(repo_path("."))
-        .args(["run", "--config", "config/gait-run.toml", "--clock", "virtual"])
+        .args([
+            "run",
+            "--config",
+            "config/gait-run.toml",
+            "--clock",
+            "virtual",
+        ])
         .arg("--log")
         .arg(&log)
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&output.stdout);
-    assert!(output.status.success(), "{stdout}{}", String::from_utf8_lossy(&output.stderr));
+    assert!(
+        output.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
     assert!(stdout.contains("gait straight on sloth"), "{stdout}");
 }

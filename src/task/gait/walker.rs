@@ -118,6 +118,16 @@ pub struct Walker<'a> {
 /// Iterations for a cold start (the first frame), where no previous frame is near.
 const COLD_START_ITERATIONS: u32 = 2_000;
 
+/// Share of a swing spent lifting (and as much lowering): the foot travels mostly while
+/// lifted, and leaves and reaches its contact along the body's up, so it never sweeps
+/// through a branch on its way.
+const LIFT_SHARE: f64 = 0.25;
+
+/// Lift over the swing, 0 to 1: up, hold, down, each change minimum-jerk.
+fn swing_lift(phase: f64) -> f64 {
+    min_jerk(phase / LIFT_SHARE).min(min_jerk((1.0 - phase) / LIFT_SHARE))
+}
+
 /// Minimum-jerk progress: zero velocity and acceleration at lift-off and touchdown.
 fn min_jerk(phase: f64) -> f64 {
     let p = phase.clamp(0.0, 1.0);
@@ -214,7 +224,7 @@ impl<'a> Walker<'a> {
                 Some(swing) => {
                     let phase = k.saturating_sub(swing.start) as f64
                         / (swing.end - swing.start).max(1) as f64;
-                    let m = min_jerk(phase);
+                    let m = min_jerk((phase - LIFT_SHARE * 0.6) / (1.0 - 1.2 * LIFT_SHARE));
                     let normal = swing
                         .from
                         .normal
@@ -223,7 +233,7 @@ impl<'a> Walker<'a> {
                     (
                         swing.from.point.lerp(limb.contact.point, m),
                         normal,
-                        lift_m * (std::f64::consts::PI * phase.clamp(0.0, 1.0)).sin(),
+                        lift_m * swing_lift(phase),
                     )
                 }
                 None => (limb.contact.point, limb.contact.normal, 0.0),
@@ -243,7 +253,9 @@ impl<'a> Walker<'a> {
         let to_body = body.inverse();
         let mut residual: f64 = 0.0;
         for (index, limb) in sloth.limbs.iter().enumerate() {
-            let away = (normals[index] - up).normalize_or(normals[index]);
+            // Straight down, away from the branch the sloth hangs under: from a contact on
+            // the branch's side this never cuts into it, and adds no sideways reach.
+            let away = -up;
             let claw = ground[index] + away * lifts[index];
             if lifts[index] > 0.0 {
                 let gap = self.scenario.terrain.clearance(claw);
@@ -268,7 +280,12 @@ impl<'a> Walker<'a> {
             let solution = solver
                 .solve(&target, seed)
                 .or_else(|_| self.cold_solvers[index].solve(&target, &self.neutral[index]))
-                .map_err(|e| format!("{} cannot reach its target: {e}", limb.name))?;
+                .map_err(|e| {
+                    format!(
+                        "{} cannot reach {:.3?} (body frame) at frame {k}: {e}",
+                        limb.name, target.position
+                    )
+                })?;
             joints[limb.axes()].copy_from_slice(&solution.joints);
             residual = residual.max(sloth.limb_tip(&body, limb, &joints).distance(target_world));
         }
