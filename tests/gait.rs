@@ -142,8 +142,13 @@ fn the_streamed_rig_fits_the_wire_protocol() {
     assert!(sloth.dof() <= rigbridge::protocol::MAX_AXES);
     let names: Vec<&str> = sloth.limbs.iter().map(|l| l.name.as_str()).collect();
     assert_eq!(names, ["rh", "lf", "lh", "rf"]);
-    let polylines = sloth.bone_polylines(&vec![0.0; sloth.dof()]);
+    let polylines = sloth.bone_polylines(&vec![0.0; sloth.dof()]).unwrap();
     assert_eq!(polylines.len(), 5, "the spine and four limbs");
+    assert!(
+        polylines[1..].iter().all(|limb| limb.len() == 5),
+        "girdle and four bone ends"
+    );
+    assert!(sloth.bone_polylines(&[0.0; 3]).is_err());
 }
 
 fn sloth_variant(name: &str, edit: impl Fn(String) -> String) -> Result<SlothRig, ConfigError> {

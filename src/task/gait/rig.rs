@@ -5,7 +5,9 @@
 //! steps or solve IK: the walker does, on the chains built here.
 
 use super::config::{GaitConfig, RawGait};
-use crate::rig::{ConfigError, Joint, RawJoint, RawOrigin, Rig, joints_from_raw, origin_from_raw};
+use crate::rig::{
+    ConfigError, DofMismatch, Joint, RawJoint, RawOrigin, Rig, joints_from_raw, origin_from_raw,
+};
 use glam::{DAffine3, DVec3};
 use serde::Deserialize;
 use std::path::Path;
@@ -232,8 +234,8 @@ impl SlothRig {
         self.streamed.dof()
     }
 
-    /// The body frame in the world for a streamed joint vector.
-    pub fn body_frame(&self, joints: &[f64]) -> DAffine3 {
+    /// The body frame in the world for a streamed joint vector (of the rig's length).
+    pub(crate) fn body_frame(&self, joints: &[f64]) -> DAffine3 {
         let body_dof = self.body.dof();
         self.body
             .joints
@@ -245,7 +247,7 @@ impl SlothRig {
     }
 
     /// Every joint origin of `limb` and the end of its hand or foot, in the world.
-    pub fn limb_points(&self, body: &DAffine3, limb: &Limb, joints: &[f64]) -> Vec<DVec3> {
+    pub(crate) fn limb_points(&self, body: &DAffine3, limb: &Limb, joints: &[f64]) -> Vec<DVec3> {
         let mut frame = *body;
         let mut points = Vec::with_capacity(limb.chain.dof() + 1);
         for (joint, q) in limb.chain.joints.iter().zip(&joints[limb.axes()]) {
@@ -257,7 +259,7 @@ impl SlothRig {
     }
 
     /// The end of `limb`'s hand or foot in the world (where the claw starts).
-    pub fn limb_tip(&self, body: &DAffine3, limb: &Limb, joints: &[f64]) -> DVec3 {
+    pub(crate) fn limb_tip(&self, body: &DAffine3, limb: &Limb, joints: &[f64]) -> DVec3 {
         let frame = limb
             .chain
             .joints
@@ -281,9 +283,15 @@ impl SlothRig {
         (middle(Girdle::Hind), middle(Girdle::Fore))
     }
 
-    /// World-space polylines of the sloth at `joints`: the spine first, then each limb from
-    /// its girdle to the end of its hand or foot (for a 3D view).
-    pub fn bone_polylines(&self, joints: &[f64]) -> Vec<Vec<DVec3>> {
+    /// World-space polylines of the sloth at `joints` (a streamed joint vector): the spine
+    /// first, then each limb from its girdle to the end of its hand or foot (for a 3D view).
+    pub fn bone_polylines(&self, joints: &[f64]) -> Result<Vec<Vec<DVec3>>, DofMismatch> {
+        if joints.len() != self.dof() {
+            return Err(DofMismatch {
+                expected: self.dof(),
+                given: joints.len(),
+            });
+        }
         let body = self.body_frame(joints);
         let (hind, fore) = self.spine();
         let mut lines = vec![vec![
@@ -299,7 +307,7 @@ impl SlothRig {
             }
             lines.push(line);
         }
-        lines
+        Ok(lines)
     }
 
     pub fn limb_index(&self, name: &str) -> Option<usize> {
