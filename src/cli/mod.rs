@@ -2,6 +2,7 @@
 //! Everything it runs lives in the library; errors gain their context here.
 
 mod batch;
+mod gait;
 mod plot;
 mod replay;
 mod run;
@@ -37,6 +38,8 @@ enum Command {
     Replay(replay::ReplayArgs),
     /// The simulated controller as its own process, on a TCP port, a serial line, a pty or CAN.
     Twin(twin::TwinArgs),
+    /// The sloth gait over a scenario, streamed to the twin and judged from what it did.
+    Gait(gait::GaitArgs),
     /// Inspect run logs.
     #[command(subcommand)]
     Log(replay::LogCommand),
@@ -51,5 +54,6 @@ pub fn run() -> anyhow::Result<ExitCode> {
         Command::Replay(args) => replay::replay_command(args),
         Command::Log(command) => replay::log_command(command),
         Command::Twin(args) => twin::twin(args),
+        Command::Gait(args) => gait::gait(args),
     }
 }

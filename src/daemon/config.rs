@@ -184,6 +184,14 @@ pub enum JobConfig {
     },
     /// Point-to-point joint moves through these configurations (degrees).
     JointWaypoints { waypoints_deg: Vec<Vec<f64>> },
+    /// The sloth's gait over a scenario (`rig` must then be a sloth file, config/sloth.toml).
+    Gait {
+        scenario: String,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        angle_deg: Option<f64>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        gap_m: Option<f64>,
+    },
 }
 
 /// A loaded, validated configuration with its rig.
@@ -192,6 +200,8 @@ pub struct RunSettings {
     pub file: PathBuf,
     pub config: RunConfig,
     pub rig: Rig,
+    /// The sloth behind `rig` when the job is a gait (`rig` is then its streamed axes).
+    pub sloth: Option<std::sync::Arc<crate::task::gait::SlothRig>>,
 }
 
 impl RunSettings {
@@ -199,13 +209,9 @@ impl RunSettings {
         1.0 / self.config.stream.rate_hz
     }
 
+    /// The twin's initial position: degrees for revolute axes, metres for prismatic ones.
     pub fn initial(&self) -> Vec<f64> {
-        self.config
-            .twin
-            .initial_deg
-            .iter()
-            .map(|d| d.to_radians())
-            .collect()
+        to_si(&self.config.twin.initial_deg, &self.rig)
     }
 }
 
@@ -242,7 +248,16 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         message: e.to_string().trim_end().to_string(),
     })?;
     let rig_path = file.parent().unwrap_or(Path::new(".")).join(&config.rig);
-    let rig = load_rig(&rig_path)?;
+    let sloth = match config.job {
+        JobConfig::Gait { .. } => Some(std::sync::Arc::new(crate::task::gait::SlothRig::load(
+            &rig_path,
+        )?)),
+        _ => None,
+    };
+    let rig = match &sloth {
+        Some(sloth) => sloth.streamed.clone(),
+        None => load_rig(&rig_path)?,
+    };
     check_range(file, "stream.rate_hz", config.stream.rate_hz, 1.0, 1000.0)?;
     if let Err(e) = config.stream.link.parse::<crate::link::LinkSpec>() {
         return Err(invalid(file, "stream.link", &config.stream.link, &e.reason));
@@ -320,7 +335,21 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         file: file.to_path_buf(),
         config,
         rig,
+        sloth,
     })
+}
+
+/// Config joint values in SI units: revolute axes are written in degrees, prismatic ones in
+/// metres.
+fn to_si(values: &[f64], rig: &Rig) -> Vec<f64> {
+    values
+        .iter()
+        .zip(&rig.joints)
+        .map(|(v, joint)| match joint.kind {
+            crate::rig::JointKind::Revolute => v.to_radians(),
+            crate::rig::JointKind::Prismatic => *v,
+        })
+        .collect()
 }
 
 fn check_joints(file: &Path, key: &str, degrees: &[f64], rig: &Rig) -> Result<(), ConfigError> {
@@ -332,7 +361,7 @@ fn check_joints(file: &Path, key: &str, degrees: &[f64], rig: &Rig) -> Result<()
             &format!("needs {} values for rig {}", rig.dof(), rig.name),
         ));
     }
-    let radians: Vec<f64> = degrees.iter().map(|d| d.to_radians()).collect();
+    let radians = to_si(degrees, rig);
     if degrees.iter().any(|d| !d.is_finite()) {
         return Err(invalid(file, key, degrees, "values must be finite"));
     }
@@ -374,6 +403,15 @@ fn check_job(file: &Path, job: &JobConfig, rig: &Rig) -> Result<(), ConfigError>
             }
             for (i, waypoint) in waypoints_deg.iter().enumerate() {
                 check_joints(file, &format!("job.waypoints_deg[{i}]"), waypoint, rig)?;
+            }
+        }
+        JobConfig::Gait {
+            scenario,
+            angle_deg,
+            gap_m,
+        } => {
+            if let Err(e) = crate::task::gait::Scenario::build(scenario, *angle_deg, *gap_m) {
+                return Err(invalid(file, "job.scenario", scenario, &e.to_string()));
             }
         }
     }

@@ -3,6 +3,7 @@
 //! run report; the stages themselves live in their own modules.
 
 pub mod config;
+pub mod gait;
 mod recording;
 pub mod replay;
 pub mod server;
@@ -30,6 +31,8 @@ pub enum DaemonError {
     Twin(#[from] TwinError),
     #[error("job refused before motion")]
     Job(#[from] JobError),
+    #[error("gait refused before motion")]
+    Gait(#[from] crate::task::gait::GaitError),
     #[error("streaming")]
     Stream(#[from] StreamError),
     #[error("link")]
@@ -203,7 +206,21 @@ pub fn plan_for(
     link: &mut dyn Link,
 ) -> Result<PlannedJob, DaemonError> {
     let start = actual_position(link, FIRST_FEEDBACK_TIMEOUT)?;
-    let trajectory = plan_job(job, &settings.rig, &start, &plan_settings(settings))?;
+    let trajectory = match (job, &settings.sloth) {
+        (
+            config::JobConfig::Gait {
+                scenario,
+                angle_deg,
+                gap_m,
+            },
+            Some(sloth),
+        ) => {
+            let scenario = crate::task::gait::Scenario::build(scenario, *angle_deg, *gap_m)
+                .map_err(crate::task::gait::GaitError::from)?;
+            crate::task::gait::plan_gait_job(sloth, &scenario, &start, &plan_settings(settings))?
+        }
+        _ => plan_job(job, &settings.rig, &start, &plan_settings(settings))?,
+    };
     Ok(PlannedJob {
         job: job.clone(),
         start,
@@ -404,5 +421,6 @@ fn job_name(job: &config::JobConfig) -> String {
     match job {
         config::JobConfig::WallFigure { .. } => "wall_figure".into(),
         config::JobConfig::JointWaypoints { .. } => "joint_waypoints".into(),
+        config::JobConfig::Gait { scenario, .. } => format!("gait {scenario}"),
     }
 }

@@ -13,6 +13,8 @@ pub struct CcdSolver {
     max_iterations: u32,
     /// Half-length of the tool's frame markers: weighs orientation against position.
     frame_size_m: f64,
+    /// Solve for the tool's position only (a limb placing a foot), ignoring orientation.
+    position_only: bool,
 }
 
 impl CcdSolver {
@@ -22,7 +24,19 @@ impl CcdSolver {
             tolerance: Tolerance::default(),
             max_iterations: 500,
             frame_size_m: 0.1,
+            position_only: false,
         }
+    }
+
+    /// Places the tool origin only; the target's orientation is ignored (any is accepted).
+    pub fn position_only(mut self) -> Self {
+        self.position_only = true;
+        self
+    }
+
+    /// How many of the markers take part: the origin alone when only position counts.
+    fn marker_count(&self) -> usize {
+        if self.position_only { 1 } else { 3 }
     }
 
     pub fn with_tolerance(mut self, tolerance: Tolerance) -> Self {
@@ -46,8 +60,25 @@ impl CcdSolver {
         ]
     }
 
+    /// Moves `markers` with a change `delta` of the joint on `axis`.
+    fn follow(axis: &JointAxis, delta: f64, markers: &mut [DVec3; 3]) {
+        match axis.kind {
+            JointKind::Revolute => {
+                let turn = glam::DQuat::from_axis_angle(axis.direction, delta);
+                for marker in markers.iter_mut() {
+                    *marker = axis.point + turn * (*marker - axis.point);
+                }
+            }
+            JointKind::Prismatic => {
+                for marker in markers.iter_mut() {
+                    *marker += axis.direction * delta;
+                }
+            }
+        }
+    }
+
     /// The change of one joint that best moves `current` markers onto `wanted` ones.
-    fn best_step(axis: &JointAxis, current: &[DVec3; 3], wanted: &[DVec3; 3]) -> f64 {
+    fn best_step(axis: &JointAxis, current: &[DVec3], wanted: &[DVec3]) -> f64 {
         match axis.kind {
             JointKind::Revolute => {
                 let (mut sine, mut cosine) = (0.0, 0.0);
@@ -61,7 +92,7 @@ impl CcdSolver {
             }
             JointKind::Prismatic => {
                 let shift: DVec3 = current.iter().zip(wanted).map(|(c, w)| *w - *c).sum();
-                shift.dot(axis.direction) / 3.0
+                shift.dot(axis.direction) / current.len() as f64
             }
         }
     }
@@ -79,7 +110,16 @@ impl IkSolver for CcdSolver {
     fn solve(&self, target: &Pose, seed: &[f64]) -> Result<IkSolution, IkError> {
         let target = target.validated()?;
         check_seed(&self.rig, seed)?;
+        let used = self.marker_count();
         let wanted = self.markers(&target);
+        let tolerance = if self.position_only {
+            Tolerance {
+                orientation_rad: std::f64::consts::PI,
+                ..self.tolerance
+            }
+        } else {
+            self.tolerance
+        };
         let mut joints: Vec<f64> = seed
             .iter()
             .zip(&self.rig.joints)
@@ -88,21 +128,26 @@ impl IkSolver for CcdSolver {
         let mut axes = Vec::with_capacity(joints.len());
         let mut iterations = 0;
         while iterations < self.max_iterations {
-            let reached = Pose::from_affine(&self.rig.forward(&joints)?);
-            if reached.position_error(&target) <= self.tolerance.position_m
-                && reached.orientation_error(&target) <= self.tolerance.orientation_rad
+            let tool = self.rig.forward_with_axes(&joints, &mut axes)?;
+            let reached = Pose::from_affine(&tool);
+            if reached.position_error(&target) <= tolerance.position_m
+                && reached.orientation_error(&target) <= tolerance.orientation_rad
             {
                 break;
             }
             iterations += 1;
+            // Turning joint `index` moves only what lies beyond it: the axes of the joints
+            // before it stay put, so one forward pass per sweep serves the whole sweep, the
+            // markers following each joint's change.
+            let mut current = self.markers(&reached);
             for index in (0..joints.len()).rev() {
-                let tool = self.rig.forward_with_axes(&joints, &mut axes)?;
-                let current = self.markers(&Pose::from_affine(&tool));
-                let step = Self::best_step(&axes[index], &current, &wanted);
+                let step = Self::best_step(&axes[index], &current[..used], &wanted[..used]);
                 let limits = self.rig.joints[index].limits;
-                joints[index] = (joints[index] + step).clamp(limits.lower, limits.upper);
+                let moved = (joints[index] + step).clamp(limits.lower, limits.upper);
+                Self::follow(&axes[index], moved - joints[index], &mut current);
+                joints[index] = moved;
             }
         }
-        verified(&self.rig, &target, joints, iterations, self.tolerance)
+        verified(&self.rig, &target, joints, iterations, tolerance)
     }
 }

@@ -21,6 +21,8 @@ pub enum JobError {
     Plan(#[from] PlanError),
     #[error(transparent)]
     Structure(#[from] StructureError),
+    #[error("a gait job needs the sloth rig: run it with a sloth file as the rig")]
+    NeedsSloth,
 }
 
 /// The points of a five-pointed star (as one closed stroke) on the wall plane x = `wall_x`,
@@ -85,5 +87,6 @@ pub fn plan_job(
             waypoints.push(start.to_vec());
             Ok(plan_joint_moves(rig, start, &waypoints, settings)?)
         }
+        JobConfig::Gait { .. } => Err(JobError::NeedsSloth),
     }
 }

@@ -61,16 +61,17 @@ struct RawRig {
 
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
-struct RawOrigin {
+pub(crate) struct RawOrigin {
     #[serde(default)]
     origin_xyz_m: [f64; 3],
     #[serde(default)]
     origin_rpy_deg: [f64; 3],
 }
 
+/// One `[[joint]]` table: the joint schema other rig formats (the sloth's limbs) reuse.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
-struct RawJoint {
+pub(crate) struct RawJoint {
     name: String,
     kind: RawKind,
     #[serde(default)]
@@ -97,6 +98,8 @@ enum RawKind {
 
 struct Checker<'a> {
     file: &'a Path,
+    /// Where the joint tables sit in the file (`""` for a rig, `limb[2].` for a sloth limb).
+    prefix: &'a str,
 }
 
 impl Checker<'_> {
@@ -219,7 +222,7 @@ impl Checker<'_> {
     }
 
     fn joint(&self, index: usize, raw: &RawJoint) -> Result<Joint, ConfigError> {
-        let key = format!("joint[{index}]");
+        let key = format!("{}joint[{index}]", self.prefix);
         if raw.name.trim().is_empty() {
             return Err(self.invalid(format!("{key}.name"), &raw.name, "must not be empty"));
         }
@@ -248,9 +251,48 @@ pub(super) fn origin_from_xyz_rpy(xyz: DVec3, rpy_rad: DVec3) -> DAffine3 {
     DAffine3::from_rotation_translation(rotation, xyz)
 }
 
+/// Validates joint tables found under `prefix` (`""` for a rig file): at least one, unique
+/// names, every field checked as in a rig file.
+pub(crate) fn joints_from_raw(
+    file: &Path,
+    prefix: &str,
+    raw: &[RawJoint],
+) -> Result<Vec<Joint>, ConfigError> {
+    let checker = Checker { file, prefix };
+    if raw.is_empty() {
+        return Err(checker.invalid(
+            format!("{prefix}joint"),
+            "[]",
+            "a chain needs at least one joint",
+        ));
+    }
+    let mut seen = HashSet::new();
+    let mut joints = Vec::with_capacity(raw.len());
+    for (index, joint) in raw.iter().enumerate() {
+        if !seen.insert(joint.name.as_str()) {
+            return Err(checker.invalid(
+                format!("{prefix}joint[{index}].name"),
+                &joint.name,
+                "duplicate joint name",
+            ));
+        }
+        joints.push(checker.joint(index, joint)?);
+    }
+    Ok(joints)
+}
+
+/// A validated fixed transform from an origin table named `key_prefix` (e.g. `tool.`).
+pub(crate) fn origin_from_raw(
+    file: &Path,
+    key_prefix: &str,
+    raw: &RawOrigin,
+) -> Result<DAffine3, ConfigError> {
+    Checker { file, prefix: "" }.origin(key_prefix, raw.origin_xyz_m, raw.origin_rpy_deg)
+}
+
 impl RawRig {
     fn validate(self, file: &Path) -> Result<Rig, ConfigError> {
-        let checker = Checker { file };
+        let checker = Checker { file, prefix: "" };
         for (key, value) in [
             ("name", &self.name),
             ("base_frame", &self.base_frame),
@@ -260,22 +302,8 @@ impl RawRig {
                 return Err(checker.invalid(key.to_string(), value, "must not be empty"));
             }
         }
-        if self.joint.is_empty() {
-            return Err(checker.invalid("joint".into(), "[]", "a rig needs at least one joint"));
-        }
-        let mut seen = HashSet::new();
-        let mut joints = Vec::with_capacity(self.joint.len());
-        for (index, raw) in self.joint.iter().enumerate() {
-            if !seen.insert(raw.name.as_str()) {
-                return Err(checker.invalid(
-                    format!("joint[{index}].name"),
-                    &raw.name,
-                    "duplicate joint name",
-                ));
-            }
-            joints.push(checker.joint(index, raw)?);
-        }
-        let tool = checker.origin("tool.", self.tool.origin_xyz_m, self.tool.origin_rpy_deg)?;
+        let joints = joints_from_raw(file, "", &self.joint)?;
+        let tool = origin_from_raw(file, "tool.", &self.tool)?;
         Ok(Rig {
             name: self.name,
             base_frame: self.base_frame,

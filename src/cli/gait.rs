@@ -1,0 +1,128 @@
+//! `rigbridge gait`: the sloth walks a scenario through the same pipeline as the arm (plan,
+//! validate, stream to the loopback twin, MCAP log); the twin's world measures contact,
+//! slip and clearance from its actual positions, and the verdict is printed and written.
+
+use super::run::{ClockChoice, default_log_path, make_clock, spawn_streaming, wait, write_report};
+use anyhow::Context;
+use clap::Args;
+use rigbridge::daemon::RunReport;
+use rigbridge::daemon::config::load_run_settings;
+use rigbridge::daemon::gait::{GaitRun, run_gait};
+use rigbridge::stream::StreamControl;
+use rigbridge::task::gait::{GaitReport, Scenario, picture};
+use serde::Serialize;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+
+#[derive(Args)]
+pub struct GaitArgs {
+    /// straight, branch-turn, parallel or height-change.
+    #[arg(long)]
+    scenario: String,
+    /// Angle between the branches in degrees (180: straight on): branch-turn, height-change.
+    #[arg(long)]
+    angle: Option<f64>,
+    /// Distance between the parallel branches' axes (m): parallel.
+    #[arg(long)]
+    gap: Option<f64>,
+    /// Run settings naming the sloth rig (stream rate, twin).
+    #[arg(long, default_value = "config/gait-run.toml")]
+    config: PathBuf,
+    /// Record the run to this MCAP file (default: runs/gait-<unix time>.mcap).
+    #[arg(long)]
+    log: Option<PathBuf>,
+    /// Write the gait report (JSON) here.
+    #[arg(long)]
+    report: Option<PathBuf>,
+    /// Write the picture (SVG: side and top views, gait diagram) here.
+    #[arg(long)]
+    picture: Option<PathBuf>,
+    #[arg(long, value_enum, default_value = "wall")]
+    clock: ClockChoice,
+}
+
+/// What `--report` holds: the verdict and the stream's own report.
+#[derive(Serialize)]
+struct GaitRunReport {
+    #[serde(flatten)]
+    gait: GaitReport,
+    run: RunReport,
+}
+
+pub fn gait(args: GaitArgs) -> anyhow::Result<ExitCode> {
+    let settings = load_run_settings(&args.config).context("cannot load run settings")?;
+    let scenario = Scenario::build(&args.scenario, args.angle, args.gap)?;
+    let log = args.log.unwrap_or_else(|| default_log_path("gait"));
+    if let Some(dir) = log.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    }
+    let control = Arc::new(StreamControl::default());
+    let clock = make_clock(args.clock);
+    let (job_control, job_log, job_scenario) = (control.clone(), log.clone(), scenario.clone());
+    let job = spawn_streaming(move || {
+        Ok(run_gait(
+            &settings,
+            &job_scenario,
+            clock.as_ref(),
+            Some(&job_log),
+            &job_control,
+        )?)
+    })?;
+    let GaitRun {
+        verdict,
+        run,
+        plan,
+        body_path,
+        sloth,
+    } = wait(&control, job)?;
+    print_verdict(&verdict);
+    println!("  log: {}", log.display());
+    if let Some(path) = &args.picture {
+        std::fs::write(path, picture::render(&sloth, &scenario, &plan, &body_path))
+            .with_context(|| format!("cannot write picture {}", path.display()))?;
+    }
+    let passed = verdict.passed;
+    write_report(
+        args.report.as_deref(),
+        &GaitRunReport { gait: verdict, run },
+    )?;
+    Ok(if passed {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(4)
+    })
+}
+
+fn print_verdict(r: &GaitReport) {
+    println!(
+        "gait {} (angle {:?}, gap {:?}): {} over {} judged cycles, {:.3} m/s",
+        r.scenario,
+        r.angle_deg,
+        r.gap_m,
+        if r.passed { "PASSED" } else { "FAILED" },
+        r.cycles_judged,
+        r.speed_mps
+    );
+    if let Some(reason) = &r.reason {
+        println!("  reason: {reason}");
+    }
+    println!(
+        "  footfalls: {}; min body clearance {:.1} mm; max IK residual {:.3} mm",
+        r.footfall_order.join(" "),
+        r.min_body_clearance_mm,
+        r.max_ik_residual_mm
+    );
+    for l in &r.limbs {
+        println!(
+            "  {}: duty {:.2}, foot-to-surface {:.3} mm, slip {:.3} mm, {} {:.1} of {:.1} deg",
+            l.limb,
+            l.duty_factor,
+            l.max_foot_to_surface_mm,
+            l.max_slip_mm,
+            l.max_bone_excursion_joint,
+            l.max_bone_excursion_deg,
+            l.bone_limit_deg
+        );
+    }
+}

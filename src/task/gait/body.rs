@@ -1,0 +1,49 @@
+//! The body's pose from the feet (seed 004): rotation from the mean of the two hind-to-fore
+//! directions (formula 6), position at the mean of the four feet minus up x the vertical
+//! offset (formula 7). Owns that rule and its conversion to the six virtual body axes; it
+//! must not move feet.
+
+use super::rig::{Girdle, Side, SlothRig};
+use glam::{DAffine3, DMat3, DQuat, DVec3, EulerRot};
+
+/// The world's up: the sloth hangs under its branches, so its belly faces this way.
+pub const WORLD_UP: DVec3 = DVec3::Z;
+
+/// The body frame (x forward, y left, z toward the supports) for feet at `feet` (one point
+/// per limb, in the rig's limb order).
+pub fn body_from_feet(sloth: &SlothRig, feet: &[DVec3]) -> DAffine3 {
+    let foot = |girdle: Girdle, side: Side| {
+        sloth
+            .limbs
+            .iter()
+            .position(|l| l.girdle == girdle && l.side == side)
+            .map_or(DVec3::ZERO, |i| feet[i])
+    };
+    let right = foot(Girdle::Fore, Side::Right) - foot(Girdle::Hind, Side::Right);
+    let left = foot(Girdle::Fore, Side::Left) - foot(Girdle::Hind, Side::Left);
+    let forward = (right.normalize_or_zero() + left.normalize_or_zero()).normalize_or(DVec3::X);
+    let up = (WORLD_UP - forward * forward.dot(WORLD_UP)).normalize_or(DVec3::Z);
+    let side = up.cross(forward);
+    let mean = feet.iter().sum::<DVec3>() / feet.len() as f64;
+    DAffine3::from_mat3_translation(
+        DMat3::from_cols(forward, side, up),
+        mean - up * sloth.vertical_offset_m,
+    )
+}
+
+/// The six virtual body axes (x, y, z, yaw, pitch, roll) of a body frame; yaw is taken
+/// within half a turn of `previous_yaw` so that it never jumps by a turn.
+pub fn body_axes(frame: &DAffine3, previous_yaw: f64) -> [f64; 6] {
+    let rotation = DQuat::from_mat3(&frame.matrix3);
+    let (yaw, pitch, roll) = rotation.to_euler(EulerRot::ZYX);
+    let turns = ((previous_yaw - yaw) / std::f64::consts::TAU).round();
+    let p = frame.translation;
+    [
+        p.x,
+        p.y,
+        p.z,
+        yaw + turns * std::f64::consts::TAU,
+        pitch,
+        roll,
+    ]
+}

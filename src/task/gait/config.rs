@@ -1,0 +1,135 @@
+//! The `[gait]` table of the sloth file: speed, step search, timing, rules and the limb
+//! solver. Owns parsing and validating it (errors name the file, the key and the value);
+//! the walker reads the result, it never changes it.
+
+use super::rig::{Limb, check_range, invalid};
+use crate::rig::ConfigError;
+use serde::Deserialize;
+use std::path::Path;
+
+/// Which of the core's solvers places each limb.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LimbSolver {
+    /// Cyclic coordinate descent with per-bone limits (the thesis's solver).
+    Ccd,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct GaitConfig {
+    pub speed_m_s: f64,
+    pub max_step_m: f64,
+    pub min_step_m: f64,
+    pub retry_step_m: f64,
+    pub duty_factor: f64,
+    pub swing_lift_m: f64,
+    /// Limb indices in footfall order.
+    pub footfall_order: Vec<usize>,
+    pub trunk_tilt_rad: f64,
+    pub max_rise_rad: f64,
+    pub max_descent_rad: f64,
+    pub solver: LimbSolver,
+    pub ik_tolerance_m: f64,
+    pub ik_max_iterations: u32,
+}
+
+impl GaitConfig {
+    /// One gait cycle: each limb steps once by the max step.
+    pub fn cycle_s(&self) -> f64 {
+        self.max_step_m / self.speed_m_s
+    }
+
+    pub fn swing_s(&self) -> f64 {
+        (1.0 - self.duty_factor) * self.cycle_s()
+    }
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct RawGait {
+    speed_m_s: f64,
+    max_step_m: f64,
+    min_step_m: f64,
+    retry_step_m: f64,
+    duty_factor: f64,
+    swing_lift_m: f64,
+    footfall_order: Vec<String>,
+    trunk_tilt_deg: f64,
+    max_rise_deg: f64,
+    max_descent_deg: f64,
+    solver: LimbSolver,
+    ik_tolerance_m: f64,
+    ik_max_iterations: u32,
+}
+
+impl RawGait {
+    pub(super) fn validate(self, file: &Path, limbs: &[Limb]) -> Result<GaitConfig, ConfigError> {
+        let speed_m_s = check_range(file, "gait.speed_m_s", self.speed_m_s, 0.01, 1.0)?;
+        let max_step_m = check_range(file, "gait.max_step_m", self.max_step_m, 0.01, 1.0)?;
+        let min_step_m = check_range(file, "gait.min_step_m", self.min_step_m, 0.0, max_step_m)?;
+        let retry_step_m = check_range(file, "gait.retry_step_m", self.retry_step_m, 0.001, 0.1)?;
+        let duty_factor = check_range(file, "gait.duty_factor", self.duty_factor, 0.5, 0.9)?;
+        let swing_lift_m = check_range(file, "gait.swing_lift_m", self.swing_lift_m, 0.0, 0.3)?;
+        let mut footfall_order = Vec::with_capacity(self.footfall_order.len());
+        for (index, name) in self.footfall_order.iter().enumerate() {
+            let Some(limb) = limbs.iter().position(|l| &l.name == name) else {
+                return Err(invalid(
+                    file,
+                    &format!("gait.footfall_order[{index}]"),
+                    name,
+                    "names no limb",
+                ));
+            };
+            if footfall_order.contains(&limb) {
+                return Err(invalid(
+                    file,
+                    &format!("gait.footfall_order[{index}]"),
+                    name,
+                    "each limb appears once",
+                ));
+            }
+            footfall_order.push(limb);
+        }
+        if footfall_order.len() != limbs.len() {
+            return Err(invalid(
+                file,
+                "gait.footfall_order",
+                &self.footfall_order,
+                "must name every limb once",
+            ));
+        }
+        let degrees = |key: &str, value: f64, high: f64| {
+            check_range(file, key, value, 0.0, high).map(f64::to_radians)
+        };
+        Ok(GaitConfig {
+            speed_m_s,
+            max_step_m,
+            min_step_m,
+            retry_step_m,
+            duty_factor,
+            swing_lift_m,
+            footfall_order,
+            trunk_tilt_rad: degrees("gait.trunk_tilt_deg", self.trunk_tilt_deg, 90.0)?,
+            max_rise_rad: degrees("gait.max_rise_deg", self.max_rise_deg, 90.0)?,
+            max_descent_rad: degrees("gait.max_descent_deg", self.max_descent_deg, 90.0)?,
+            solver: self.solver,
+            ik_tolerance_m: check_range(
+                file,
+                "gait.ik_tolerance_m",
+                self.ik_tolerance_m,
+                1e-7,
+                1e-3,
+            )?,
+            ik_max_iterations: if (1..=10_000).contains(&self.ik_max_iterations) {
+                self.ik_max_iterations
+            } else {
+                return Err(invalid(
+                    file,
+                    "gait.ik_max_iterations",
+                    self.ik_max_iterations,
+                    "must lie in [1, 10000]",
+                ));
+            },
+        })
+    }
+}

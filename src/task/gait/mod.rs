@@ -1,0 +1,23 @@
+//! The sloth gait of seed 004 as a second rig on the bridge's pipeline: the rig and its
+//! file, terrain, scenarios, foot placement, the walker that plans joint motion, the
+//! twin-side measurements and the report. Owns producing the sloth's joint trajectory and
+//! judging it; streaming, the twin and logging are the pipeline's.
+
+pub mod body;
+pub mod config;
+pub mod metrics;
+pub mod picture;
+pub mod pipeline;
+pub mod placement;
+pub mod rig;
+pub mod scenario;
+pub mod terrain;
+pub mod walker;
+
+pub use config::{GaitConfig, LimbSolver};
+pub use metrics::{GaitReport, GaitWorld, judge};
+pub use pipeline::{GaitError, plan_gait, plan_gait_job, trajectory_from_plan};
+pub use rig::{Girdle, Limb, Side, SlothRig};
+pub use scenario::{Scenario, ScenarioError};
+pub use terrain::{Cylinder, Terrain};
+pub use walker::{GaitPlan, GaitState, Stance, WalkError, Walker};

@@ -1,0 +1,86 @@
+//! The gait's hand-over to the bridge's pipeline: a walker's plan becomes a validated
+//! [`Trajectory`] of every streamed axis, optionally led in by a jerk-limited move from
+//! where the twin or controller stands. Owns that conversion only: streaming, the twin
+//! and logging are the daemon's.
+
+use super::rig::SlothRig;
+use super::scenario::{Scenario, ScenarioError};
+use super::walker::{GaitPlan, WalkError, Walker};
+use crate::trajectory::{
+    PlanError, PlanSettings, Trajectory, TrajectoryError, plan_joint_moves, validate,
+};
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum GaitError {
+    #[error(transparent)]
+    Scenario(#[from] ScenarioError),
+    #[error(transparent)]
+    Walk(#[from] WalkError),
+    #[error("the gait's trajectory is refused: {0}")]
+    Trajectory(#[from] TrajectoryError),
+    #[error("the move to the gait's first pose: {0}")]
+    Approach(#[from] PlanError),
+    #[error("scenario {scenario}: the gait stopped before its first frame: {reason}")]
+    Empty { scenario: String, reason: String },
+}
+
+/// The plan's samples with central-difference velocities (zero at both ends), validated
+/// against the streamed rig.
+pub fn trajectory_from_plan(sloth: &SlothRig, plan: &GaitPlan) -> Result<Trajectory, GaitError> {
+    let (dof, len) = (plan.dof, plan.len());
+    let mut velocities = vec![0.0; plan.frames.len()];
+    for k in 1..len.saturating_sub(1) {
+        for axis in 0..dof {
+            velocities[k * dof + axis] = (plan.frames[(k + 1) * dof + axis]
+                - plan.frames[(k - 1) * dof + axis])
+                / (2.0 * plan.period_s);
+        }
+    }
+    let trajectory = Trajectory::new(
+        sloth.streamed.name.clone(),
+        sloth.streamed.joint_names().map(str::to_owned).collect(),
+        plan.period_s,
+        plan.frames.clone(),
+        velocities,
+    )?;
+    validate(&trajectory, &sloth.streamed)?;
+    Ok(trajectory)
+}
+
+/// Walks `scenario` at `period_s` and returns the plan with its validated trajectory.
+pub fn plan_gait(
+    sloth: &SlothRig,
+    scenario: &Scenario,
+    period_s: f64,
+) -> Result<(GaitPlan, Trajectory), GaitError> {
+    let plan = Walker::new(sloth, scenario, period_s).plan()?;
+    if plan.is_empty() {
+        return Err(GaitError::Empty {
+            scenario: scenario.name.clone(),
+            reason: plan.stop_reason.unwrap_or_default(),
+        });
+    }
+    let trajectory = trajectory_from_plan(sloth, &plan)?;
+    Ok((plan, trajectory))
+}
+
+/// A gait job for `run` and `serve`: a jerk-limited move from `start` (where the rig is)
+/// to the gait's first pose, then the gait.
+pub fn plan_gait_job(
+    sloth: &SlothRig,
+    scenario: &Scenario,
+    start: &[f64],
+    settings: &PlanSettings,
+) -> Result<Trajectory, GaitError> {
+    let (_, gait) = plan_gait(sloth, scenario, settings.period_s)?;
+    let mut trajectory = plan_joint_moves(
+        &sloth.streamed,
+        start,
+        &[gait.position(0).to_vec()],
+        settings,
+    )?;
+    trajectory.append(&gait);
+    validate(&trajectory, &sloth.streamed)?;
+    Ok(trajectory)
+}

@@ -1,0 +1,154 @@
+//! Foot placement, the seed's FindNextStep: where on which support a limb may put its
+//! hand or foot next. Owns the contact geometry (a trace toward the correct side of the
+//! branch, the surface point and its normal) and the placement rules; it must not move
+//! the body or solve IK (the walker tries a placement and judges the motion).
+
+use super::body::{WORLD_UP, body_from_feet};
+use super::rig::{Girdle, SlothRig};
+use super::scenario::Scenario;
+use glam::DVec3;
+
+/// A hand or foot on a support: the claw's point on the surface.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct Contact {
+    pub point: DVec3,
+    /// Outward surface normal: the claw lies along it, the hand or foot beyond it.
+    pub normal: DVec3,
+    pub support: usize,
+    /// Route distance the contact was found at.
+    pub s: f64,
+}
+
+/// How far outside the expected surface the placement trace starts.
+const TRACE_START_M: f64 = 0.03;
+/// Share of a limb's reach a placement may use: a fully stretched limb has no room left
+/// for the body's motion during the stance.
+const USABLE_REACH: f64 = 0.95;
+
+/// The contact of a limb on `side` at route distance `s`: trace from outside toward the
+/// expected support, from that limb's side, and take the first surface hit. A hit on
+/// another support, or no hit (past the end of the branch), is refused with the reason.
+pub fn contact_at(
+    sloth: &SlothRig,
+    scenario: &Scenario,
+    limb: usize,
+    s: f64,
+) -> Result<Contact, String> {
+    let limb = &sloth.limbs[limb];
+    let leg = scenario.route.leg(s);
+    let support = match limb.side {
+        super::rig::Side::Left => leg.left,
+        super::rig::Side::Right => leg.right,
+    };
+    let cylinder = &scenario.terrain.cylinders[support];
+    let axis_point = cylinder.axis_point(cylinder.parameter(scenario.route.point(s)));
+    let left = WORLD_UP.cross(cylinder.direction()).normalize_or(DVec3::Y);
+    let normal = left * limb.side.sign();
+    let expected = axis_point + normal * cylinder.radius;
+    let start = expected + normal * (limb.claw_m + TRACE_START_M);
+    match scenario.terrain.trace(start, -normal) {
+        Some(hit) if hit.support == support && hit.point.distance(expected) < 1e-6 => Ok(Contact {
+            point: hit.point,
+            normal: hit.normal,
+            support,
+            s,
+        }),
+        Some(hit) => Err(format!(
+            "the trace for {} at s = {s:.2} m meets support {} before support {support}",
+            limb.name, hit.support
+        )),
+        None => Err(format!(
+            "the trace for {} at s = {s:.2} m finds no surface (end of support {support})",
+            limb.name
+        )),
+    }
+}
+
+/// Checks a candidate contact for `limb` against the rules, given where every limb is
+/// (or will be, for swinging limbs): the support's slope, never behind the paired limb,
+/// hind limbs never ahead of a fore limb nor leaving a support a fore limb of their side is
+/// still on, and within reach from where the body will be.
+pub fn check_rules(
+    sloth: &SlothRig,
+    scenario: &Scenario,
+    limb: usize,
+    candidate: &Contact,
+    planned: &[Contact],
+) -> Result<(), String> {
+    let this = &sloth.limbs[limb];
+    let gait = &sloth.gait;
+    let cylinder = &scenario.terrain.cylinders[candidate.support];
+    let slope = cylinder.slope();
+    if !cylinder.is_trunk(gait.trunk_tilt_rad) {
+        if -slope > gait.max_descent_rad {
+            return Err(format!(
+                "support {} descends {:.1} deg: head-first descent beyond {:.1} deg",
+                candidate.support,
+                -slope.to_degrees(),
+                gait.max_descent_rad.to_degrees()
+            ));
+        }
+        if slope > gait.max_rise_rad + 1e-9 {
+            return Err(format!(
+                "support {} rises {:.1} deg, more than {:.1} deg: the body would meet the branch",
+                candidate.support,
+                slope.to_degrees(),
+                gait.max_rise_rad.to_degrees()
+            ));
+        }
+    }
+    for (other, (limb_other, contact)) in sloth.limbs.iter().zip(planned).enumerate() {
+        if other == limb {
+            continue;
+        }
+        let same_girdle = limb_other.girdle == this.girdle;
+        if same_girdle && candidate.s < contact.s {
+            return Err(format!(
+                "{} would land behind its pair {}",
+                this.name, limb_other.name
+            ));
+        }
+        if this.girdle == Girdle::Hind && limb_other.girdle == Girdle::Fore {
+            if candidate.s > contact.s {
+                return Err(format!(
+                    "{} would land ahead of {}",
+                    this.name, limb_other.name
+                ));
+            }
+            let current = planned[limb].support;
+            if limb_other.side == this.side
+                && candidate.support != current
+                && contact.support == current
+            {
+                return Err(format!(
+                    "{} follows to support {} only once {} has left support {current}",
+                    this.name, candidate.support, limb_other.name
+                ));
+            }
+        }
+    }
+    let mut feet: Vec<DVec3> = planned.iter().map(|c| c.point).collect();
+    feet[limb] = candidate.point;
+    let body = body_from_feet(sloth, &feet);
+    let girdle = body.transform_point3(this.attachment());
+    let tip = candidate.point + candidate.normal * this.claw_m;
+    let distance = girdle.distance(tip);
+    if distance > USABLE_REACH * this.reach_m {
+        return Err(format!(
+            "{} would reach {distance:.3} m, beyond {:.0} % of its {:.3} m",
+            this.name,
+            USABLE_REACH * 100.0,
+            this.reach_m
+        ));
+    }
+    Ok(())
+}
+
+/// The route distances FindNextStep tries for a limb at `current`: the max step first,
+/// then 1 cm (the retry step) closer each time, down to the min step.
+pub fn candidate_steps(sloth: &SlothRig, current: f64) -> impl Iterator<Item = f64> {
+    let gait = &sloth.gait;
+    let tries = ((gait.max_step_m - gait.min_step_m) / gait.retry_step_m + 1e-9).floor() as usize;
+    let (max, retry) = (gait.max_step_m, gait.retry_step_m);
+    (0..=tries).map(move |i| current + max - retry * i as f64)
+}

@@ -1,0 +1,529 @@
+//! The walker: turns a scenario into the sloth's sampled joint motion, frame by frame.
+//! Swings start on the footfall schedule (diagonal sequence, contact about twice swing);
+//! each swing's target comes from FindNextStep, and is accepted only once the motion it
+//! implies (every frame until all swinging limbs are down again) is possible: limb IK
+//! within the bones' limits, axis speeds, the body clear of the branches, swinging claws
+//! outside them. A move that breaks a rule is never started: the gait stops there, with
+//! the reason, after the swings under way have landed.
+//!
+//! Owns the gait's state and schedule; it must not stream, or measure what the twin did.
+
+use super::body::{body_axes, body_from_feet};
+use super::placement::{Contact, candidate_steps, check_rules, contact_at};
+use super::rig::SlothRig;
+use super::scenario::Scenario;
+use crate::ik::{CcdSolver, IkSolver, Tolerance};
+use crate::rig::Pose;
+use glam::{DQuat, DVec3};
+use serde::Serialize;
+use thiserror::Error;
+
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum WalkError {
+    #[error("scenario {scenario}: the sloth cannot stand at its start: {reason}")]
+    NoStart { scenario: String, reason: String },
+}
+
+/// Standstill before the first swing and after the last landing.
+const SETTLE_S: f64 = 0.2;
+/// Share of an axis' max speed a frame-to-frame step may use.
+const SPEED_SHARE: f64 = 0.95;
+/// How far a swinging claw may dip into a surface (mm-level numeric slack only).
+const PENETRATION_SLACK_M: f64 = 1e-4;
+
+/// One limb's contact from `start` to `end` (frames, inclusive).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Stance {
+    pub limb: usize,
+    pub start: usize,
+    pub end: usize,
+    pub contact: Contact,
+}
+
+/// The planned gait: joint samples at the stream period and what they mean.
+#[derive(Debug, Clone)]
+pub struct GaitPlan {
+    pub period_s: f64,
+    pub dof: usize,
+    /// Row-major samples of the streamed joint vector.
+    pub frames: Vec<f64>,
+    pub stances: Vec<Stance>,
+    /// (frame, limb) of every touchdown after a swing, in time order.
+    pub touchdowns: Vec<(usize, usize)>,
+    /// Frames per gait cycle and the first swing's frame.
+    pub cycle_frames: usize,
+    pub first_swing: usize,
+    /// Why the gait stopped before walking all its cycles.
+    pub stop_reason: Option<String>,
+    pub ik_residual_max_m: f64,
+    /// Worst body-to-branch gap in the plan (the twin's world measures the actual one).
+    pub plan_clearance_min_m: f64,
+}
+
+impl GaitPlan {
+    pub fn len(&self) -> usize {
+        self.frames.len() / self.dof
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.frames.is_empty()
+    }
+
+    pub fn frame(&self, index: usize) -> &[f64] {
+        &self.frames[index * self.dof..(index + 1) * self.dof]
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Swing {
+    from: Contact,
+    start: usize,
+    end: usize,
+}
+
+#[derive(Debug, Clone)]
+struct LimbState {
+    /// The stance contact, or the swing's target while swinging.
+    contact: Contact,
+    swing: Option<Swing>,
+}
+
+#[derive(Debug, Clone)]
+struct State {
+    limbs: Vec<LimbState>,
+    /// The last frame's joints (the IK's warm start and the speed check's reference).
+    joints: Vec<f64>,
+    has_previous: bool,
+}
+
+/// What one frame measured in the plan.
+#[derive(Debug, Clone, Copy)]
+struct FrameCheck {
+    residual: f64,
+    clearance: f64,
+}
+
+/// Plans and checks the gait of one scenario.
+pub struct Walker<'a> {
+    sloth: &'a SlothRig,
+    scenario: &'a Scenario,
+    solvers: Vec<CcdSolver>,
+    /// The same solvers with room for the first frame's cold start from the neutral pose.
+    cold_solvers: Vec<CcdSolver>,
+    /// Each limb's neutral pose: the middle of every joint's range.
+    neutral: Vec<Vec<f64>>,
+    period_s: f64,
+}
+
+/// Iterations for a cold start (the first frame), where no previous frame is near.
+const COLD_START_ITERATIONS: u32 = 2_000;
+
+/// Share of a swing spent lifting (and as much lowering): the foot travels mostly while
+/// lifted, and leaves and reaches its contact along the body's up, so it never sweeps
+/// through a branch on its way.
+const LIFT_SHARE: f64 = 0.25;
+
+/// Lift over the swing, 0 to 1: up, hold, down, each change minimum-jerk.
+fn swing_lift(phase: f64) -> f64 {
+    min_jerk(phase / LIFT_SHARE).min(min_jerk((1.0 - phase) / LIFT_SHARE))
+}
+
+/// Minimum-jerk progress: zero velocity and acceleration at lift-off and touchdown.
+fn min_jerk(phase: f64) -> f64 {
+    let p = phase.clamp(0.0, 1.0);
+    p * p * p * (10.0 - 15.0 * p + 6.0 * p * p)
+}
+
+impl<'a> Walker<'a> {
+    pub fn new(sloth: &'a SlothRig, scenario: &'a Scenario, period_s: f64) -> Self {
+        let tolerance = Tolerance {
+            position_m: sloth.gait.ik_tolerance_m,
+            orientation_rad: std::f64::consts::PI,
+        };
+        let solvers_with = |iterations: u32| {
+            sloth
+                .limbs
+                .iter()
+                .map(|limb| {
+                    CcdSolver::new(limb.chain.clone())
+                        .position_only()
+                        .with_tolerance(tolerance)
+                        .with_max_iterations(iterations)
+                })
+                .collect()
+        };
+        Self {
+            sloth,
+            scenario,
+            solvers: solvers_with(sloth.gait.ik_max_iterations),
+            cold_solvers: solvers_with(COLD_START_ITERATIONS),
+            neutral: sloth
+                .limbs
+                .iter()
+                .map(|limb| {
+                    limb.chain
+                        .joints
+                        .iter()
+                        .map(|j| 0.5 * (j.limits.lower + j.limits.upper))
+                        .collect()
+                })
+                .collect(),
+            period_s,
+        }
+    }
+
+    fn frames(&self, seconds: f64) -> usize {
+        (seconds / self.period_s).round() as usize
+    }
+
+    /// Where each limb stands at the start: staggered as in the steady gait (a limb that
+    /// swings later in the cycle stands further ahead, so that every step can be the max
+    /// step), each girdle's pair straddling its girdle.
+    fn start_state(&self) -> Result<State, String> {
+        let gait = &self.sloth.gait;
+        let order = &gait.footfall_order;
+        let stagger = |index: usize| {
+            let slot = order.iter().position(|l| *l == index).unwrap_or(0);
+            gait.max_step_m * slot as f64 / order.len() as f64
+        };
+        let mut limbs = Vec::with_capacity(self.sloth.limbs.len());
+        for (index, limb) in self.sloth.limbs.iter().enumerate() {
+            let pair: Vec<f64> = (0..self.sloth.limbs.len())
+                .filter(|other| self.sloth.limbs[*other].girdle == limb.girdle)
+                .map(stagger)
+                .collect();
+            let centre = pair.iter().sum::<f64>() / pair.len() as f64;
+            let s = self.scenario.start_s + limb.attachment().x + stagger(index) - centre;
+            let contact = contact_at(self.sloth, self.scenario, index, s)?;
+            limbs.push(LimbState {
+                contact,
+                swing: None,
+            });
+        }
+        let mut joints = vec![0.0; self.sloth.dof()];
+        for (limb, neutral) in self.sloth.limbs.iter().zip(&self.neutral) {
+            joints[limb.axes()].copy_from_slice(neutral);
+        }
+        Ok(State {
+            limbs,
+            joints,
+            has_previous: false,
+        })
+    }
+
+    /// Computes frame `k` from `state` into `state.joints`, or says which rule it breaks.
+    fn step(&self, k: usize, state: &mut State) -> Result<FrameCheck, String> {
+        let sloth = self.sloth;
+        let lift_m = sloth.gait.swing_lift_m;
+        let limb_count = sloth.limbs.len();
+        let mut ground = [DVec3::ZERO; 4];
+        let mut normals = [DVec3::ZERO; 4];
+        let mut lifts = [0.0; 4];
+        for (index, limb) in state.limbs.iter().enumerate().take(limb_count) {
+            (ground[index], normals[index], lifts[index]) = match limb.swing {
+                Some(swing) => {
+                    let phase = k.saturating_sub(swing.start) as f64
+                        / (swing.end - swing.start).max(1) as f64;
+                    let m = min_jerk((phase - LIFT_SHARE * 0.6) / (1.0 - 1.2 * LIFT_SHARE));
+                    let normal = swing
+                        .from
+                        .normal
+                        .lerp(limb.contact.normal, m)
+                        .normalize_or(limb.contact.normal);
+                    (
+                        swing.from.point.lerp(limb.contact.point, m),
+                        normal,
+                        lift_m * swing_lift(phase),
+                    )
+                }
+                None => (limb.contact.point, limb.contact.normal, 0.0),
+            };
+        }
+        let body_wanted = body_from_feet(sloth, &ground[..limb_count]);
+        let previous_yaw = if state.has_previous {
+            state.joints[3]
+        } else {
+            0.0
+        };
+        let axes = body_axes(&body_wanted, previous_yaw);
+        let mut joints = state.joints.clone();
+        joints[..axes.len()].copy_from_slice(&axes);
+        let body = sloth.body_frame(&joints);
+        let up = body.matrix3.z_axis;
+        let to_body = body.inverse();
+        let mut residual: f64 = 0.0;
+        for (index, limb) in sloth.limbs.iter().enumerate() {
+            // Straight down, away from the branch the sloth hangs under: from a contact on
+            // the branch's side this never cuts into it, and adds no sideways reach.
+            let away = -up;
+            let claw = ground[index] + away * lifts[index];
+            if lifts[index] > 0.0 {
+                let gap = self.scenario.terrain.clearance(claw);
+                if gap < -PENETRATION_SLACK_M {
+                    return Err(format!(
+                        "{}'s swinging claw would enter a branch by {:.1} mm",
+                        limb.name,
+                        -gap * 1000.0
+                    ));
+                }
+            }
+            let target_world = claw + normals[index] * limb.claw_m;
+            let target = Pose::new(to_body.transform_point3(target_world), DQuat::IDENTITY);
+            let seed = &state.joints[limb.axes()];
+            let solver = if state.has_previous {
+                &self.solvers[index]
+            } else {
+                &self.cold_solvers[index]
+            };
+            // CCD can stall against a limit from the previous frame's pose: once, start
+            // again from the neutral pose (the speed check refuses a jump).
+            let solution = solver
+                .solve(&target, seed)
+                .or_else(|_| self.cold_solvers[index].solve(&target, &self.neutral[index]))
+                .map_err(|e| {
+                    format!(
+                        "{} cannot reach {:.3?} (body frame) at frame {k}: {e}",
+                        limb.name, target.position
+                    )
+                })?;
+            joints[limb.axes()].copy_from_slice(&solution.joints);
+            residual = residual.max(sloth.limb_tip(&body, limb, &joints).distance(target_world));
+        }
+        if state.has_previous {
+            self.check_speeds(&state.joints, &joints)?;
+        }
+        let (hind, fore) = sloth.spine();
+        let clearance = self.scenario.terrain.capsule_clearance(
+            body.transform_point3(hind),
+            body.transform_point3(fore),
+            sloth.body_radius_m,
+        );
+        if clearance <= 0.0 {
+            return Err(format!(
+                "the body would touch a branch (clearance {:.1} mm)",
+                clearance * 1000.0
+            ));
+        }
+        state.joints = joints;
+        state.has_previous = true;
+        Ok(FrameCheck {
+            residual,
+            clearance,
+        })
+    }
+
+    fn check_speeds(&self, previous: &[f64], next: &[f64]) -> Result<(), String> {
+        for ((joint, a), b) in self.sloth.streamed.joints.iter().zip(previous).zip(next) {
+            let max_step = SPEED_SHARE * joint.limits.max_speed * self.period_s;
+            if (b - a).abs() > max_step {
+                return Err(format!(
+                    "{} would move {:.5} in one period, above {:.0} % of its max speed",
+                    joint.name,
+                    (b - a).abs(),
+                    SPEED_SHARE * 100.0
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// Runs frames from `k` with no new swings until every limb is down: proof that the
+    /// gait can stop cleanly after the swings now under way.
+    fn look_ahead(&self, k: usize, state: &State) -> Result<(), String> {
+        let mut trial = state.clone();
+        let last = trial
+            .limbs
+            .iter()
+            .filter_map(|l| l.swing.map(|s| s.end))
+            .max()
+            .unwrap_or(k);
+        for frame in k..=last {
+            self.step(frame, &mut trial)?;
+            land(&mut trial, frame);
+        }
+        Ok(())
+    }
+
+    /// FindNextStep for `limb` lifting off at frame `k`: the first candidate (max step
+    /// first, then closer) that passes the placement rules and whose motion is possible.
+    fn next_step(
+        &self,
+        limb: usize,
+        k: usize,
+        state: &State,
+        swing_frames: usize,
+    ) -> Result<State, String> {
+        let current = state.limbs[limb].contact;
+        let planned: Vec<Contact> = state.limbs.iter().map(|l| l.contact).collect();
+        let mut first_reason = None;
+        let mut last_reason = None;
+        for s in candidate_steps(self.sloth, current.s) {
+            let verdict = contact_at(self.sloth, self.scenario, limb, s)
+                .and_then(|contact| {
+                    check_rules(self.sloth, self.scenario, limb, &contact, &planned)?;
+                    Ok(contact)
+                })
+                .and_then(|contact| {
+                    let mut next = state.clone();
+                    next.limbs[limb] = LimbState {
+                        contact,
+                        swing: Some(Swing {
+                            from: current,
+                            start: k,
+                            end: k + swing_frames,
+                        }),
+                    };
+                    self.look_ahead(k, &next)?;
+                    Ok(next)
+                });
+            match verdict {
+                Ok(next) => return Ok(next),
+                Err(reason) => {
+                    first_reason.get_or_insert_with(|| reason.clone());
+                    last_reason = Some(reason);
+                }
+            }
+        }
+        Err(format!(
+            "no next step for {}: at the max step {}; at the min step {}",
+            self.sloth.limbs[limb].name,
+            first_reason.unwrap_or_default(),
+            last_reason.unwrap_or_default()
+        ))
+    }
+
+    /// Walks the scenario's cycles (or until a rule stops the gait) and returns the plan.
+    pub fn plan(&self) -> Result<GaitPlan, WalkError> {
+        self.walk(usize::MAX).map(|(plan, _)| plan)
+    }
+
+    /// The walker's state just before frame `frame` (or at the end, if the gait ends
+    /// sooner): where a frame-by-frame consumer (the bench, a live view) picks up.
+    pub fn state_before(&self, frame: usize) -> Result<GaitState, WalkError> {
+        self.walk(frame).map(|(plan, state)| GaitState {
+            next_frame: plan.len(),
+            state,
+        })
+    }
+
+    /// One frame of the whole gait (swing interpolation, body pose, IK of every limb),
+    /// advancing `state`; no new swings start. Returns the streamed joint vector.
+    pub fn step_frame<'s>(&self, state: &'s mut GaitState) -> Result<&'s [f64], String> {
+        self.step(state.next_frame, &mut state.state)?;
+        land(&mut state.state, state.next_frame);
+        state.next_frame += 1;
+        Ok(&state.state.joints)
+    }
+
+    fn walk(&self, stop_before: usize) -> Result<(GaitPlan, State), WalkError> {
+        let gait = &self.sloth.gait;
+        let mut state = self.start_state().map_err(|reason| WalkError::NoStart {
+            scenario: self.scenario.name.clone(),
+            reason,
+        })?;
+        let cycle_frames = self.frames(gait.cycle_s());
+        let swing_frames = self.frames(gait.swing_s()).max(1);
+        let first_swing = self.frames(SETTLE_S);
+        let last_start = first_swing + self.scenario.cycles as usize * cycle_frames;
+        let order = gait.footfall_order.clone();
+        let slot_frames: Vec<usize> = (0..order.len())
+            .map(|slot| (slot as f64 * cycle_frames as f64 / order.len() as f64).round() as usize)
+            .collect();
+        let mut plan = GaitPlan {
+            period_s: self.period_s,
+            dof: self.sloth.dof(),
+            frames: Vec::new(),
+            stances: Vec::new(),
+            touchdowns: Vec::new(),
+            cycle_frames,
+            first_swing,
+            stop_reason: None,
+            ik_residual_max_m: 0.0,
+            plan_clearance_min_m: f64::INFINITY,
+        };
+        let mut stance_start = vec![0usize; order.len()];
+        let mut k = 0;
+        loop {
+            let swinging = state.limbs.iter().any(|l| l.swing.is_some());
+            let walking = plan.stop_reason.is_none() && k < last_start;
+            if (!walking && !swinging) || k >= stop_before {
+                break;
+            }
+            if walking && k >= first_swing {
+                let into_cycle = (k - first_swing) % cycle_frames;
+                if let Some(slot) = slot_frames.iter().position(|f| *f == into_cycle) {
+                    let limb = order[slot];
+                    match self.next_step(limb, k, &state, swing_frames) {
+                        Ok(next) => {
+                            plan.stances.push(Stance {
+                                limb,
+                                start: stance_start[limb],
+                                end: k,
+                                contact: state.limbs[limb].contact,
+                            });
+                            state = next;
+                        }
+                        Err(reason) => plan.stop_reason = Some(reason),
+                    }
+                }
+            }
+            match self.step(k, &mut state) {
+                Ok(check) => {
+                    plan.ik_residual_max_m = plan.ik_residual_max_m.max(check.residual);
+                    plan.plan_clearance_min_m = plan.plan_clearance_min_m.min(check.clearance);
+                    plan.frames.extend_from_slice(&state.joints);
+                }
+                Err(reason) => {
+                    // Only reachable if the look-ahead and the walk disagree: stop here.
+                    plan.stop_reason = Some(format!("stopped mid-motion at frame {k}: {reason}"));
+                    break;
+                }
+            }
+            for (limb, landed) in land(&mut state, k).into_iter().enumerate() {
+                if landed {
+                    plan.touchdowns.push((k, limb));
+                    stance_start[limb] = k;
+                }
+            }
+            k += 1;
+        }
+        if k < stop_before && !plan.is_empty() {
+            // Hold the final pose a moment: the stream ends at rest, every foot down.
+            let last_frame = plan.frame(plan.len() - 1).to_vec();
+            for _ in 0..self.frames(SETTLE_S) {
+                plan.frames.extend_from_slice(&last_frame);
+            }
+        }
+        let last = plan.len().saturating_sub(1);
+        for (limb, start) in stance_start.into_iter().enumerate() {
+            if state.limbs[limb].swing.is_none() {
+                plan.stances.push(Stance {
+                    limb,
+                    start,
+                    end: last,
+                    contact: state.limbs[limb].contact,
+                });
+            }
+        }
+        Ok((plan, state))
+    }
+}
+
+/// The walker's state between two frames.
+#[derive(Debug, Clone)]
+pub struct GaitState {
+    next_frame: usize,
+    state: State,
+}
+
+/// Ends the swings that finish at frame `k`; says which limbs landed.
+fn land(state: &mut State, k: usize) -> [bool; 4] {
+    let mut landed = [false; 4];
+    for (index, limb) in state.limbs.iter_mut().enumerate().take(4) {
+        if limb.swing.is_some_and(|s| s.end <= k) {
+            limb.swing = None;
+            landed[index] = true;
+        }
+    }
+    landed
+}
