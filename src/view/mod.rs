@@ -16,11 +16,13 @@ pub mod frame;
 mod hub;
 mod live;
 pub mod page;
+mod sloth;
 mod trace;
 
 pub use arm::{ArmScene, joint_origins, joint_origins_from};
 pub use hub::{JobView, LiveHub};
 pub use live::{LiveSample, LiveSink, LiveSlot};
+pub use sloth::SlothScene;
 pub use trace::ToolTrace;
 
 use serde::Serialize;
