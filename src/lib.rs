@@ -16,6 +16,7 @@ pub mod log;
 pub mod protocol;
 pub mod rig;
 pub mod stream;
+pub mod task;
 pub mod trajectory;
 pub mod twin;
 

@@ -2,6 +2,7 @@
 //! Everything it runs lives in the library; errors gain their context here.
 
 mod batch;
+mod paint;
 mod plot;
 mod replay;
 mod run;
@@ -37,6 +38,8 @@ enum Command {
     Replay(replay::ReplayArgs),
     /// The simulated controller as its own process, on a TCP port, a serial line, a pty or CAN.
     Twin(twin::TwinArgs),
+    /// Paint a generated room of N walls against the twin, which measures the paint.
+    Paint(paint::PaintArgs),
     /// Inspect run logs.
     #[command(subcommand)]
     Log(replay::LogCommand),
@@ -51,5 +54,6 @@ pub fn run() -> anyhow::Result<ExitCode> {
         Command::Replay(args) => replay::replay_command(args),
         Command::Log(command) => replay::log_command(command),
         Command::Twin(args) => twin::twin(args),
+        Command::Paint(args) => paint::paint(args),
     }
 }

@@ -3,6 +3,7 @@
 //! run report; the stages themselves live in their own modules.
 
 pub mod config;
+pub mod paint;
 mod recording;
 pub mod replay;
 pub mod server;
@@ -390,5 +391,6 @@ fn job_name(job: &config::JobConfig) -> String {
     match job {
         config::JobConfig::WallFigure { .. } => "wall_figure".into(),
         config::JobConfig::JointWaypoints { .. } => "joint_waypoints".into(),
+        config::JobConfig::Paint { walls, seed, .. } => format!("paint ({walls} walls, seed {seed})"),
     }
 }
