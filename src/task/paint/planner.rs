@@ -119,7 +119,7 @@ enum Band {
 /// [`CANONICAL_LIFT`], the wall's plane at x = standoff, `s` growing along -y.
 const CANONICAL_LIFT: f64 = 1.0;
 /// Base back-off before the arm changes pose between stations, tried in order (m).
-const BACKOFFS: [f64; 4] = [0.3, 0.2, 0.12, 0.06];
+const BACKOFFS: [f64; 6] = [0.3, 0.5, 0.8, 0.2, 0.12, 0.06];
 /// During free moves the brush's ends stay at least this many contact tolerances off
 /// every wall, so nothing is painted between strokes.
 const FREE_MOVE_OFF_WALL: f64 = 3.0;
@@ -232,6 +232,7 @@ impl<'a> Planner<'a> {
         attitude: Attitude,
         lateral: f64,
         path: &[(f64, f64)],
+        start_arm: Option<&[f64]>,
     ) -> Option<Trajectory> {
         let mut key: PieceKey = vec![
             quantise(station.standoff),
@@ -240,10 +241,11 @@ impl<'a> Planner<'a> {
             quantise(attitude.theta),
         ];
         key.extend(path.iter().flat_map(|(o, h)| [quantise(*o), quantise(*h)]));
+        key.extend(start_arm.unwrap_or(&[]).iter().map(|q| quantise(*q)));
         if let Some(cached) = self.pieces.get(&key) {
             return cached.clone();
         }
-        let planned = self.plan_piece(station, attitude, lateral, path);
+        let planned = self.plan_piece(station, attitude, lateral, path, start_arm);
         self.pieces.insert(key, planned.clone());
         planned
     }
@@ -254,13 +256,22 @@ impl<'a> Planner<'a> {
         attitude: Attitude,
         lateral: f64,
         path: &[(f64, f64)],
+        start_arm: Option<&[f64]>,
     ) -> Option<Trajectory> {
         let poses: Vec<Pose> = path
             .iter()
             .map(|(off, h)| self.canonical_pose(station, attitude, lateral, *h, *off))
             .collect();
-        let start = self.solver.solve(&poses[0], &self.canonical_seed()).ok()?;
-        plan_cartesian(&self.solver, &start.joints, &poses[1..], &self.plan).ok()
+        let start = match start_arm {
+            // Continue from where the previous piece left the arm (same branch).
+            Some(arm) => {
+                let mut joints = self.canonical_seed();
+                joints[EXTRA_AXES..].copy_from_slice(arm);
+                joints
+            }
+            None => self.solver.solve(&poses[0], &self.canonical_seed()).ok()?.joints,
+        };
+        plan_cartesian(&self.solver, &start, &poses[1..], &self.plan).ok()
     }
 
     /// Re-bases a canonical piece onto `wall` at `station` and lift `lift`.
@@ -338,7 +349,7 @@ impl<'a> Planner<'a> {
     /// turned at least enough to fit a gap narrower than the brush.
     fn attitudes(&self, band: Band, corner: bool) -> Vec<Attitude> {
         let deg = f64::to_radians;
-        let thetas = [0.0, 25.0, 45.0, 60.0];
+        let thetas = [0.0, 25.0, 45.0, 52.0, 60.0];
         let (at, fit) = match band {
             Band::Flush { edge, room, .. } => (edge, room),
             Band::Centred { centre } => (centre, f64::INFINITY),
@@ -353,7 +364,7 @@ impl<'a> Planner<'a> {
             0.0
         };
         let turns: &[f64] = if corner || near_corner {
-            &[0.0, 20.0, 35.0, 45.0, MAX_TURN_DEG]
+            &[0.0, 20.0, 35.0, 45.0, 50.0, MAX_TURN_DEG]
         } else {
             &[0.0]
         };
@@ -486,14 +497,16 @@ impl<'a> Planner<'a> {
             path.push((0.0, arm_top));
         }
         let approach = self
-            .piece(station, attitude, lateral, &path)
+            .piece(station, attitude, lateral, &path, None)
             .ok_or_else(|| format!("arm cannot paint up to {arm_top:.3} m above its base"))?;
+        let held_arm = approach.position(approach.len() - 1)[EXTRA_AXES..].to_vec();
         let retreat = self
             .piece(
                 station,
                 attitude,
                 lateral,
                 &[(0.0, arm_top), (retract, arm_top)],
+                Some(&held_arm),
             )
             .ok_or_else(|| format!("arm cannot retract at {arm_top:.3} m above its base"))?;
         let mut trajectory = self
@@ -645,10 +658,12 @@ impl<'a> Planner<'a> {
             .zip(&to[EXTRA_AXES..])
             .all(|(a, b)| (a - b).abs() < 1e-6)
             && (from[2] - to[2]).abs() < 1e-9;
-        if same_arm
-            && let Some(direct) = self.try_route(from, to, &[])
-        {
-            return Ok(direct);
+        let mut reasons: Vec<String> = Vec::new();
+        if same_arm {
+            match self.try_route(from, to, &[]) {
+                Ok(direct) => return Ok(direct),
+                Err(why) => reasons.push(format!("direct: {why}")),
+            }
         }
         for backoff in BACKOFFS {
             let out_from = self.backed_off(from, backoff);
@@ -658,8 +673,9 @@ impl<'a> Planner<'a> {
             let mut travel_to = out_to.clone();
             travel_to[EXTRA_AXES..].copy_from_slice(&self.travel_arm);
             let via = [out_from, travel_from, travel_to, out_to];
-            if let Some(route) = self.try_route(from, to, &via) {
-                return Ok(route);
+            match self.try_route(from, to, &via) {
+                Ok(route) => return Ok(route),
+                Err(why) => reasons.push(format!("backing off {backoff} m: {why}")),
             }
             // Through the room's centre, where the arm turns freely.
             let mut centre_from = via[1].clone();
@@ -674,35 +690,52 @@ impl<'a> Planner<'a> {
                 via[2].clone(),
                 via[3].clone(),
             ];
-            if let Some(route) = self.try_route(from, to, &via) {
-                return Ok(route);
+            match self.try_route(from, to, &via) {
+                Ok(route) => return Ok(route),
+                Err(why) => reasons.push(format!("via the centre: {why}")),
             }
         }
         Err(PaintPlanError::NoRoute {
             from_wall: walls.0,
             to_wall: walls.1,
-            reason: format!("from {from:?} to {to:?}"),
+            reason: format!("from {from:?} to {to:?}: {}", reasons.join("; ")),
         })
     }
 
-    /// `joints` with the base moved `distance` back from the wall it faces (yaw).
+    /// `joints` with the base moved `distance` toward the room's centre (at most onto it):
+    /// away from every wall it is near, the brush leaving the wall it faces.
     fn backed_off(&self, joints: &[f64], distance: f64) -> Vec<f64> {
-        let facing = DVec2::from_angle(joints[2]);
+        let base = DVec2::new(joints[0], joints[1]);
+        let moved = base - base.clamp_length_max(distance);
         let mut out = joints.to_vec();
-        out[0] -= facing.x * distance;
-        out[1] -= facing.y * distance;
+        out[0] = moved.x;
+        out[1] = moved.y;
         out
     }
 
-    fn try_route(&mut self, from: &[f64], to: &[f64], via: &[Vec<f64>]) -> Option<Trajectory> {
+    fn try_route(
+        &mut self,
+        from: &[f64],
+        to: &[f64],
+        via: &[Vec<f64>],
+    ) -> Result<Trajectory, String> {
         let mut waypoints: Vec<Vec<f64>> = via.to_vec();
         waypoints.push(to.to_vec());
         waypoints.dedup_by(|a, b| a == b);
-        let route = plan_joint_moves(self.rig, from, &waypoints, &self.plan).ok()?;
-        let clear = self.worst_clearance(&route, 2) >= 0.0;
-        let off_wall = self.brush_off_wall(&route)
-            > FREE_MOVE_OFF_WALL * self.settings.config.brush.contact_tolerance_m;
-        (clear && off_wall).then_some(route)
+        let route = plan_joint_moves(self.rig, from, &waypoints, &self.plan)
+            .map_err(|e| e.to_string())?;
+        let clearance = self.worst_clearance(&route, 2);
+        if clearance < 0.0 {
+            return Err(format!("the body would come {clearance:.3} m from a wall"));
+        }
+        let off_wall = self.brush_off_wall(&route);
+        let needed = FREE_MOVE_OFF_WALL * self.settings.config.brush.contact_tolerance_m;
+        if off_wall <= needed {
+            return Err(format!(
+                "the brush would come {off_wall:.4} m from a wall (needs {needed:.4})"
+            ));
+        }
+        Ok(route)
     }
 
     /// The whole job from `start` back to `start`.
