@@ -350,21 +350,27 @@ impl<'a> Planner<'a> {
     fn attitudes(&self, band: Band, corner: bool) -> Vec<Attitude> {
         let deg = f64::to_radians;
         let thetas = [0.0, 25.0, 45.0, 52.0, 60.0];
-        let (at, fit) = match band {
-            Band::Flush { edge, room, .. } => (edge, room),
-            Band::Centred { centre } => (centre, f64::INFINITY),
+        let (at, fit, flush) = match band {
+            Band::Flush { edge, room, toward } => (edge, room, toward),
+            Band::Centred { centre } => (centre, f64::INFINITY, 1.0),
         };
-        // Lean the handle away from the nearer corner (positive turns lean toward -s).
+        // Near a corner, lean the handle away from it (positive turns lean toward -s).
+        // Elsewhere, the two bands of a narrow gap turn opposite ways, so that each covers
+        // the small triangle the other leaves at the floor and the ceiling.
         let width = self.room.wall_width_m;
-        let toward = if at > width / 2.0 { 1.0 } else { -1.0 };
         let near_corner = at.min(width - at) < NEAR_CORNER_M;
+        let toward = match (near_corner, at > width / 2.0) {
+            (true, true) => 1.0,
+            (true, false) => -1.0,
+            (false, _) => -flush,
+        };
         let narrowest = if fit < self.brush_width() {
             (fit / self.brush_width()).clamp(0.0, 1.0).acos() * 1.02
         } else {
             0.0
         };
         let turns: &[f64] = if corner || near_corner {
-            &[0.0, 20.0, 35.0, 45.0, 50.0, MAX_TURN_DEG]
+            &[0.0, 8.0, 14.0, 20.0, 27.0, 35.0, 40.0, 45.0, 50.0, MAX_TURN_DEG]
         } else {
             &[0.0]
         };
