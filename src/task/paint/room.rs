@@ -87,6 +87,8 @@ pub struct Wall {
     pub wall_type: WallType,
     /// Direction of the outward normal from the room's centre (rad, from world x).
     pub heading_rad: f64,
+    /// The outward normal (world x, y): out of the room.
+    pub normal_xy: [f64; 2],
     /// Floor corners in world x, y: the left end (s = 0), then the right end (s = width).
     pub corners_xy: [[f64; 2]; 2],
     pub openings: Vec<Opening>,
@@ -97,7 +99,7 @@ pub struct Wall {
 
 impl Wall {
     pub fn normal(&self) -> DVec2 {
-        DVec2::from_angle(self.heading_rad)
+        DVec2::from_array(self.normal_xy)
     }
 
     /// Along the wall, from the left end to the right end.
@@ -232,6 +234,7 @@ pub fn generate_room(
             index,
             wall_type,
             heading_rad: heading,
+            normal_xy: normal.to_array(),
             corners_xy: [left.to_array(), right.to_array()],
             openings,
             narrowed_window_m,
