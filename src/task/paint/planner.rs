@@ -71,6 +71,8 @@ pub struct PlannedStroke {
     pub v_to_m: f64,
     pub turn_deg: f64,
     pub tilt_deg: f64,
+    /// First and last sample of the stroke (approach to retract) in the plan.
+    pub samples: [usize; 2],
 }
 
 pub struct PaintPlan {
@@ -774,6 +776,7 @@ impl<'a> Planner<'a> {
                     let first = stroke.position(0).to_vec();
                     let route = self.free_move(&at, &first, (at_wall, wall.index))?;
                     trajectory.append(&route);
+                    let first_sample = trajectory.len() - 1;
                     trajectory.append(&stroke);
                     at = stroke.position(stroke.len() - 1).to_vec();
                     at_wall = wall.index;
@@ -784,6 +787,7 @@ impl<'a> Planner<'a> {
                         v_to_m: v_to,
                         turn_deg: column.attitude.phi.to_degrees(),
                         tilt_deg: column.attitude.theta.to_degrees(),
+                        samples: [first_sample, trajectory.len() - 1],
                     });
                 }
             }

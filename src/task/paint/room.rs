@@ -33,7 +33,7 @@ pub enum RoomError {
 /// The most walls a room may have: the painter's x and y axes cover a 32-wall room.
 pub const MAX_WALLS: u32 = 32;
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum WallType {
     Blank,
