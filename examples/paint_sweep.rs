@@ -23,21 +23,35 @@ fn main() -> anyhow::Result<()> {
     let paint = load_paint_settings(Path::new("config/paint.toml"))?;
     let mut worst: Option<(f64, u32, u64)> = None;
     let mut failures = 0;
-    println!("walls seed coverage_% openings_m2 collisions limit_violations unreachable strokes duration_s plan_s wall_s");
+    println!(
+        "walls seed coverage_% openings_m2 collisions limit_violations unreachable strokes duration_s plan_s wall_s"
+    );
     for walls in first..=last {
         for seed in 0..seeds {
             let started = std::time::Instant::now();
             let clock = VirtualClock::new();
             let control = StreamControl::default();
             let mut plan_s = 0.0;
-            let run = run_paint(&settings, &paint, walls, seed, &clock, None, &control, &mut |_| {
-                plan_s = started.elapsed().as_secs_f64();
-            });
+            let run = run_paint(
+                &settings,
+                &paint,
+                walls,
+                seed,
+                &clock,
+                None,
+                &control,
+                &mut |_| {
+                    plan_s = started.elapsed().as_secs_f64();
+                },
+            );
             let run = match run {
                 Ok(run) => run,
                 Err(e) => {
                     failures += 1;
-                    println!("{walls} {seed} FAILED: {}", rigbridge::daemon::error_chain(&e));
+                    println!(
+                        "{walls} {seed} FAILED: {}",
+                        rigbridge::daemon::error_chain(&e)
+                    );
                     continue;
                 }
             };

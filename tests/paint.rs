@@ -37,7 +37,12 @@ fn paint(walls: u32, seed: u64) -> PaintRun {
         &StreamControl::default(),
         &mut |_| {},
     )
-    .unwrap_or_else(|e| panic!("{walls} walls, seed {seed}: {}", rigbridge::daemon::error_chain(&e)))
+    .unwrap_or_else(|e| {
+        panic!(
+            "{walls} walls, seed {seed}: {}",
+            rigbridge::daemon::error_chain(&e)
+        )
+    })
 }
 
 #[test]
@@ -45,7 +50,11 @@ fn wall_distance_is_the_seeds_formula() {
     let settings = paint_settings();
     for (walls, expected) in [(3, 1.5 / 3f64.sqrt()), (4, 1.5), (6, 1.5 * 3f64.sqrt())] {
         let room = room_for(&settings, walls, 0).unwrap();
-        assert!((room.apothem_m - expected).abs() < 1e-12, "{walls}: {}", room.apothem_m);
+        assert!(
+            (room.apothem_m - expected).abs() < 1e-12,
+            "{walls}: {}",
+            room.apothem_m
+        );
         for wall in &room.walls {
             let centre = (DVec2::from_array(wall.corners_xy[0])
                 + DVec2::from_array(wall.corners_xy[1]))
@@ -93,7 +102,10 @@ fn openings_keep_a_brush_width_apart_on_the_grid_and_never_overlap() {
             for o in &wall.openings {
                 edges.extend([o.left_m, o.right_m]);
                 for x in [o.left_m, o.right_m, o.bottom_m, o.top_m] {
-                    assert!(((x / 0.01) - (x / 0.01).round()).abs() < 1e-6, "{x} off grid");
+                    assert!(
+                        ((x / 0.01) - (x / 0.01).round()).abs() < 1e-6,
+                        "{x} off grid"
+                    );
                 }
                 let expected = match o.kind {
                     OpeningKind::Door => (0.0, 2.0),
@@ -102,7 +114,7 @@ fn openings_keep_a_brush_width_apart_on_the_grid_and_never_overlap() {
                 assert_eq!((o.bottom_m, o.top_m), expected);
             }
             edges.push(room.wall_width_m);
-            for gap in edges.windows(2).skip(0).step_by(2) {
+            for gap in edges.windows(2).step_by(2) {
                 assert!(gap[1] - gap[0] >= brush - 1e-9, "gap {gap:?} on {wall:?}");
             }
             let kinds: Vec<OpeningKind> = wall.openings.iter().map(|o| o.kind).collect();
@@ -129,7 +141,11 @@ fn door_and_two_windows_narrow_the_windows_to_fit_a_3_m_wall() {
         .expect("some seed draws a door and two windows");
     // 3.0 m - 0.9 m door - 4 brush widths = 1.7 m for two windows.
     assert_eq!(wall.narrowed_window_m, Some(0.85));
-    for o in wall.openings.iter().filter(|o| o.kind == OpeningKind::Window) {
+    for o in wall
+        .openings
+        .iter()
+        .filter(|o| o.kind == OpeningKind::Window)
+    {
         assert!((o.right_m - o.left_m - 0.85).abs() < 1e-9);
     }
 }
@@ -186,7 +202,10 @@ fn bad_paint_config_names_file_key_and_value() {
         t.replacen("width_m = 0.10", "width_m = 0.10\ncolour = \"red\"", 1)
     });
     let message = load_paint_settings(&path).unwrap_err().to_string();
-    assert!(message.contains("unknown.toml") && message.contains("colour"), "{message}");
+    assert!(
+        message.contains("unknown.toml") && message.contains("colour"),
+        "{message}"
+    );
     let path = write_paint_variant("off_grid.toml", |t| {
         t.replacen("door_width_m = 0.9", "door_width_m = 0.905", 1)
     });
@@ -238,11 +257,20 @@ fn assert_figures(run: &PaintRun, walls: u32, seed: u64) {
     assert_eq!(t.paint_in_openings_m2, 0.0, "{tag}");
     assert_eq!(t.limit_violations, 0, "{tag}");
     assert_eq!(t.collisions, 0, "{tag}");
-    assert!(run.paint.unreachable.is_empty(), "{tag}: {:?}", run.paint.unreachable);
+    assert!(
+        run.paint.unreachable.is_empty(),
+        "{tag}: {:?}",
+        run.paint.unreachable
+    );
     assert_eq!(run.run.stream.outcome, Outcome::Completed, "{tag}");
     assert_eq!(run.paint.walls.len(), walls as usize);
     for wall in &run.paint.walls {
-        assert!(wall.coverage >= 0.99, "{tag}: wall {}: {}", wall.index, wall.coverage);
+        assert!(
+            wall.coverage >= 0.99,
+            "{tag}: wall {}: {}",
+            wall.index,
+            wall.coverage
+        );
     }
     let sum: f64 = run.paint.walls.iter().map(|w| w.painted_m2).sum();
     assert!((sum - t.painted_m2).abs() < 1e-9);
@@ -292,10 +320,7 @@ fn stream_into(
         &VirtualClock::new(),
         &mut (),
         &StreamControl::default(),
-        &StreamSettings::new(
-            trajectory.period_s,
-            slowdown_rate(&settings.rig, 0.9, 0.8),
-        ),
+        &StreamSettings::new(trajectory.period_s, slowdown_rate(&settings.rig, 0.9, 0.8)),
     )
     .unwrap();
     assert_eq!(report.outcome, Outcome::Completed);

@@ -46,7 +46,10 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
     if let Some(picture) = &args.picture
         && picture.extension().is_none_or(|e| e != "svg")
     {
-        anyhow::bail!("--picture {}: only .svg pictures are written", picture.display());
+        anyhow::bail!(
+            "--picture {}: only .svg pictures are written",
+            picture.display()
+        );
     }
     let log = args.log.unwrap_or_else(|| default_log_path("paint"));
     if let Some(dir) = log.parent().filter(|d| !d.as_os_str().is_empty()) {
@@ -74,7 +77,10 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
                     if plan.unreachable.is_empty() {
                         String::new()
                     } else {
-                        format!("; {} strokes unreachable, left out:", plan.unreachable.len())
+                        format!(
+                            "; {} strokes unreachable, left out:",
+                            plan.unreachable.len()
+                        )
                     }
                 );
                 for stroke in &plan.unreachable {

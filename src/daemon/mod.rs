@@ -391,6 +391,8 @@ fn job_name(job: &config::JobConfig) -> String {
     match job {
         config::JobConfig::WallFigure { .. } => "wall_figure".into(),
         config::JobConfig::JointWaypoints { .. } => "joint_waypoints".into(),
-        config::JobConfig::Paint { walls, seed, .. } => format!("paint ({walls} walls, seed {seed})"),
+        config::JobConfig::Paint { walls, seed, .. } => {
+            format!("paint ({walls} walls, seed {seed})")
+        }
     }
 }

@@ -35,8 +35,8 @@ pub fn run_paint(
     control: &StreamControl,
     planned: &mut dyn FnMut(&crate::task::paint::PaintPlan),
 ) -> Result<PaintRun, DaemonError> {
-    let room = crate::task::paint::room_for(paint, walls, seed)
-        .map_err(|e| JobError::Paint(e.into()))?;
+    let room =
+        crate::task::paint::room_for(paint, walls, seed).map_err(|e| JobError::Paint(e.into()))?;
     let world = Arc::new(Mutex::new(world_for(paint, &room)));
     let twin = Twin::new(&settings.rig, twin_settings(settings), &settings.initial())?
         .with_world(Box::new(world.clone()));

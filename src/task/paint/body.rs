@@ -43,10 +43,10 @@ impl Brush {
     pub fn tool0_for(&self, centre: DVec3, line: DVec3, into_wall: DVec3) -> DAffine3 {
         let y = into_wall.cross(line);
         DAffine3::from_cols(
-            line.into(),
-            y.into(),
-            into_wall.into(),
-            (centre - into_wall * self.handle).into(),
+            line,
+            y,
+            into_wall,
+            centre - into_wall * self.handle,
         )
     }
 }

@@ -133,7 +133,12 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
         ("room.door_width_m", r.door_width_m, 0.1, 10.0),
         ("room.door_height_m", r.door_height_m, 0.1, r.wall_height_m),
         ("room.window_width_m", r.window_width_m, 0.1, 10.0),
-        ("room.window_height_m", r.window_height_m, 0.1, r.wall_height_m),
+        (
+            "room.window_height_m",
+            r.window_height_m,
+            0.1,
+            r.wall_height_m,
+        ),
         ("room.window_sill_m", r.window_sill_m, 0.0, r.wall_height_m),
     ] {
         check_range(file, key, value, low, high)?;
@@ -142,7 +147,10 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
                 file,
                 key,
                 value,
-                &format!("must be a multiple of room.layout_grid_m = {}", r.layout_grid_m),
+                &format!(
+                    "must be a multiple of room.layout_grid_m = {}",
+                    r.layout_grid_m
+                ),
             ));
         }
     }
@@ -162,9 +170,21 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
     check_range(file, "brush.width_m", b.width_m, 0.02, 0.5)?;
     check_range(file, "brush.handle_m", b.handle_m, 0.05, 0.5)?;
     check_range(file, "brush.bristle_m", b.bristle_m, 0.0, b.handle_m)?;
-    check_range(file, "brush.handle_radius_m", b.handle_radius_m, 0.001, 0.05)?;
+    check_range(
+        file,
+        "brush.handle_radius_m",
+        b.handle_radius_m,
+        0.001,
+        0.05,
+    )?;
     check_range(file, "brush.overlap_m", b.overlap_m, 0.0, b.width_m / 2.0)?;
-    check_range(file, "brush.contact_tolerance_m", b.contact_tolerance_m, 1e-4, 0.01)?;
+    check_range(
+        file,
+        "brush.contact_tolerance_m",
+        b.contact_tolerance_m,
+        1e-4,
+        0.01,
+    )?;
     check_range(
         file,
         "brush.edge_inset_m",
@@ -184,9 +204,21 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
     let body = &c.body;
     check_range(file, "body.base_radius_m", body.base_radius_m, 0.05, 1.0)?;
     for (i, radius) in body.link_radii_m.iter().enumerate() {
-        check_range(file, &format!("body.link_radii_m[{i}]"), *radius, 0.005, 0.3)?;
+        check_range(
+            file,
+            &format!("body.link_radii_m[{i}]"),
+            *radius,
+            0.005,
+            0.3,
+        )?;
     }
-    check_range(file, "body.planning_clearance_m", body.planning_clearance_m, 0.0, 0.2)?;
+    check_range(
+        file,
+        "body.planning_clearance_m",
+        body.planning_clearance_m,
+        0.0,
+        0.2,
+    )?;
     let s = &c.strokes;
     check_range(file, "strokes.reach_m", s.reach_m, 0.2, 1.0)?;
     check_range(file, "strokes.retract_m", s.retract_m, 0.005, 0.2)?;
@@ -204,7 +236,13 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
         ));
     }
     let lift = rig.joints[3].limits;
-    check_range(file, "strokes.low_lift_m", s.low_lift_m, lift.lower, lift.upper)?;
+    check_range(
+        file,
+        "strokes.low_lift_m",
+        s.low_lift_m,
+        lift.lower,
+        lift.upper,
+    )?;
     let top_lift = r.wall_height_m - s.hold_height_m;
     if top_lift > lift.upper || s.low_lift_m + s.hold_height_m >= r.wall_height_m {
         return Err(invalid(

@@ -212,11 +212,7 @@ impl<'a> Planner<'a> {
         let line = t * cp + v * sp;
         let m = -t * sp + v * cp;
         let handle_out = -n * ct + m * st;
-        let centre = DVec3::new(
-            station.standoff - off,
-            -lateral,
-            CANONICAL_LIFT + height,
-        );
+        let centre = DVec3::new(station.standoff - off, -lateral, CANONICAL_LIFT + height);
         Pose::from_affine(&self.body.brush.tool0_for(centre, line, -handle_out))
     }
 
@@ -271,7 +267,12 @@ impl<'a> Planner<'a> {
                 joints[EXTRA_AXES..].copy_from_slice(arm);
                 joints
             }
-            None => self.solver.solve(&poses[0], &self.canonical_seed()).ok()?.joints,
+            None => {
+                self.solver
+                    .solve(&poses[0], &self.canonical_seed())
+                    .ok()?
+                    .joints
+            }
         };
         plan_cartesian(&self.solver, &start, &poses[1..], &self.plan).ok()
     }
@@ -322,9 +323,9 @@ impl<'a> Planner<'a> {
     fn brush_off_wall(&mut self, trajectory: &Trajectory) -> f64 {
         let mut worst = f64::INFINITY;
         for i in 0..trajectory.len() {
-            let (_, tool0) = self
-                .body
-                .clearance(self.room, trajectory.position(i), &mut self.scratch);
+            let (_, tool0) =
+                self.body
+                    .clearance(self.room, trajectory.position(i), &mut self.scratch);
             let ends = self.body.brush.contact(&tool0);
             for wall in &self.room.walls {
                 let farther = wall.local(ends[0]).2.abs().max(wall.local(ends[1]).2.abs());
@@ -372,7 +373,18 @@ impl<'a> Planner<'a> {
             0.0
         };
         let turns: &[f64] = if corner || near_corner {
-            &[0.0, 8.0, 14.0, 20.0, 27.0, 35.0, 40.0, 45.0, 50.0, MAX_TURN_DEG]
+            &[
+                0.0,
+                8.0,
+                14.0,
+                20.0,
+                27.0,
+                35.0,
+                40.0,
+                45.0,
+                50.0,
+                MAX_TURN_DEG,
+            ]
         } else {
             &[0.0]
         };
@@ -450,12 +462,7 @@ impl<'a> Planner<'a> {
                             column.strokes = strokes;
                             return Ok(column);
                         }
-                        Err(reason) => {
-                            if std::env::var("PAINT_DEBUG").is_ok() && wall.index == 0 {
-                                eprintln!("wall {} s {s:.3} phi {:.0} theta {:.0} station {:.3} {:.3}: {reason}", wall.index, attitude.phi.to_degrees(), attitude.theta.to_degrees(), station.s, station.standoff);
-                            }
-                            last_reason = reason
-                        }
+                        Err(reason) => last_reason = reason,
                     }
                 }
             }
@@ -524,8 +531,8 @@ impl<'a> Planner<'a> {
         if lift_to > lift_from {
             let mut top = held.clone();
             top[3] = lift_to;
-            let lift = plan_joint_moves(self.rig, &held, &[top], &self.plan)
-                .map_err(|e| e.to_string())?;
+            let lift =
+                plan_joint_moves(self.rig, &held, &[top], &self.plan).map_err(|e| e.to_string())?;
             trajectory.append(&lift);
         }
         let retreat = self
@@ -536,11 +543,7 @@ impl<'a> Planner<'a> {
     }
 
     /// Columns of one wall, from its right end to its left end.
-    fn columns(
-        &mut self,
-        wall: &Wall,
-        unreachable: &mut Vec<UnreachableStroke>,
-    ) -> Vec<Column> {
+    fn columns(&mut self, wall: &Wall, unreachable: &mut Vec<UnreachableStroke>) -> Vec<Column> {
         let width = self.room.wall_width_m;
         let height = self.room.wall_height_m;
         let mut edges: Vec<f64> = vec![0.0, width];
@@ -562,7 +565,13 @@ impl<'a> Planner<'a> {
                     Ok(column) => columns.push(column),
                     Err(reason) => unreachable.push(UnreachableStroke {
                         wall: wall.index,
-                        s_m: self.band_centre(band, Attitude { phi: 0.0, theta: 0.0 }),
+                        s_m: self.band_centre(
+                            band,
+                            Attitude {
+                                phi: 0.0,
+                                theta: 0.0,
+                            },
+                        ),
                         v_from_m: segments[0].0,
                         v_to_m: segments[segments.len() - 1].1,
                         reason,
@@ -623,7 +632,13 @@ impl<'a> Planner<'a> {
         if span <= b {
             return vec![right, left];
         }
-        let narrowest = |corner: bool| if corner { b * MAX_TURN_DEG.to_radians().cos() } else { b };
+        let narrowest = |corner: bool| {
+            if corner {
+                b * MAX_TURN_DEG.to_radians().cos()
+            } else {
+                b
+            }
+        };
         let overlap = self.settings.config.brush.overlap_m;
         let pitch = b - overlap;
         let (m0, m1) = (
@@ -632,7 +647,10 @@ impl<'a> Planner<'a> {
         );
         let mut bands = vec![right];
         if m1 > m0 {
-            let (lo, hi) = ((m0 + b / 2.0).max(x0 + b / 2.0), (m1 - b / 2.0).min(x1 - b / 2.0));
+            let (lo, hi) = (
+                (m0 + b / 2.0).max(x0 + b / 2.0),
+                (m1 - b / 2.0).min(x1 - b / 2.0),
+            );
             let centres: Vec<f64> = if hi <= lo {
                 vec![((m0 + m1) / 2.0).clamp(x0 + b / 2.0, x1 - b / 2.0)]
             } else {
@@ -730,8 +748,8 @@ impl<'a> Planner<'a> {
         let mut waypoints: Vec<Vec<f64>> = via.to_vec();
         waypoints.push(to.to_vec());
         waypoints.dedup_by(|a, b| a == b);
-        let route = plan_joint_moves(self.rig, from, &waypoints, &self.plan)
-            .map_err(|e| e.to_string())?;
+        let route =
+            plan_joint_moves(self.rig, from, &waypoints, &self.plan).map_err(|e| e.to_string())?;
         let clearance = self.worst_clearance(&route, 2);
         if clearance < 0.0 {
             return Err(format!("the body would come {clearance:.3} m from a wall"));
