@@ -42,12 +42,7 @@ impl Brush {
     /// `into_wall` from tool0 to the contact (both unit, perpendicular).
     pub fn tool0_for(&self, centre: DVec3, line: DVec3, into_wall: DVec3) -> DAffine3 {
         let y = into_wall.cross(line);
-        DAffine3::from_cols(
-            line,
-            y,
-            into_wall,
-            centre - into_wall * self.handle,
-        )
+        DAffine3::from_cols(line, y, into_wall, centre - into_wall * self.handle)
     }
 }
 
