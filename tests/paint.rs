@@ -469,3 +469,30 @@ fn an_unreachable_stroke_is_reported_before_motion_and_planned_around() {
         Err(e) => panic!("{}", rigbridge::daemon::error_chain(&e)),
     }
 }
+
+#[test]
+fn shipped_paint_configs_load_and_run_knows_the_job() {
+    let paint = paint_settings();
+    assert_eq!(paint.rig.name, "painter");
+    let run = load_run_settings(&repo_path("config/paint-run.toml")).unwrap();
+    match &run.config.job {
+        rigbridge::daemon::config::JobConfig::Paint {
+            walls,
+            paint_config,
+            ..
+        } => {
+            assert_eq!(*walls, 4);
+            assert!(paint_config.ends_with("paint.toml") && paint_config.exists());
+        }
+        other => panic!("{other:?}"),
+    }
+    // `run` plans the same job through the job stage.
+    let start = start_position();
+    let plan = PlanSettings {
+        period_s: 0.01,
+        ..PlanSettings::default()
+    };
+    let trajectory = rigbridge::job::plan_job(&run.config.job, &run.rig, &start, &plan).unwrap();
+    rigbridge::trajectory::validate(&trajectory, &run.rig).unwrap();
+    assert!(trajectory.duration_s() > 100.0);
+}

@@ -60,6 +60,8 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
     let (walls, seed) = (args.walls, args.seed);
     let job_control = control.clone();
     let job_log = log.clone();
+    // Planning time as the user waits for it (the library never reads the clock).
+    let started = std::time::Instant::now();
     let job = super::run::spawn_streaming(move || {
         Ok(run_paint(
             &settings,
@@ -71,9 +73,10 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
             &job_control,
             &mut |plan| {
                 println!(
-                    "planned {} strokes ({:.0} s of motion){}",
+                    "planned {} strokes ({:.0} s of motion) in {:.2} s{}",
                     plan.strokes.len(),
                     plan.trajectory.duration_s(),
+                    started.elapsed().as_secs_f64(),
                     if plan.unreachable.is_empty() {
                         String::new()
                     } else {
@@ -97,14 +100,13 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
     print_stream_summary(&r.job, &r.rig, r.rate_hz, r.clock, &r.stream);
     let t = &run.paint.totals;
     println!(
-        "  paint: coverage {:.3} % of {:.3} m2 ({:.3} m2 painted), paint in openings {:.4} m2, collisions {}, limit violations {}, planning {:.2} s",
+        "  paint: coverage {:.3} % of {:.3} m2 ({:.3} m2 painted), paint in openings {:.4} m2, collisions {}, limit violations {}",
         t.coverage * 100.0,
         t.paintable_m2,
         t.painted_m2,
         t.paint_in_openings_m2,
         t.collisions,
-        t.limit_violations,
-        run.planning_s
+        t.limit_violations
     );
     println!("  log: {}", log.display());
     super::run::write_report(args.report.as_deref(), &run.paint)?;

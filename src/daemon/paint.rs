@@ -19,7 +19,6 @@ pub struct PaintRun {
     pub run: RunReport,
     pub paint: PaintReport,
     pub world: Arc<Mutex<PaintWorld>>,
-    pub planning_s: f64,
 }
 
 /// Plans and paints the room of `walls` walls for `seed` against the in-process twin.
@@ -42,10 +41,8 @@ pub fn run_paint(
         .with_world(Box::new(world.clone()));
     let mut link = LoopbackLink::new(twin);
     let start = actual_position(&mut link, super::FIRST_FEEDBACK_TIMEOUT)?;
-    let started = clock.now();
     let (_, plan) = plan_room(paint, walls, seed, &start, &super::plan_settings(settings))
         .map_err(JobError::Paint)?;
-    let planning_s = clock.now().saturating_sub(started).as_secs_f64();
     planned(&plan);
     let job = PlannedJob {
         job: JobConfig::Paint {
@@ -65,6 +62,5 @@ pub fn run_paint(
         run,
         paint: report,
         world,
-        planning_s,
     })
 }
