@@ -56,9 +56,16 @@ fn main() -> anyhow::Result<()> {
                 }
             };
             let t = &run.paint.totals;
+            let worst_wall = run
+                .paint
+                .walls
+                .iter()
+                .map(|w| w.coverage)
+                .fold(f64::INFINITY, f64::min);
             println!(
-                "{walls} {seed} {:.3} {:.4} {} {} {} {} {:.0} {:.2} {:.2}",
+                "{walls} {seed} {:.3} {:.3} {:.4} {} {} {} {} {:.0} {:.2} {:.2}",
                 t.coverage * 100.0,
+                worst_wall * 100.0,
                 t.paint_in_openings_m2,
                 t.collisions,
                 t.limit_violations,
@@ -69,7 +76,8 @@ fn main() -> anyhow::Result<()> {
                 started.elapsed().as_secs_f64()
             );
             let bad = t.paint_in_openings_m2 > 0.0 || t.collisions > 0 || t.limit_violations > 0;
-            failures += usize::from(bad || t.coverage < 0.995);
+            let unreachable = !run.paint.unreachable.is_empty();
+            failures += usize::from(bad || unreachable || t.coverage < 0.995);
             if worst.is_none_or(|(c, _, _)| t.coverage < c) {
                 worst = Some((t.coverage, walls, seed));
             }
