@@ -125,6 +125,8 @@ const BACKOFFS: [f64; 6] = [0.3, 0.5, 0.8, 0.2, 0.12, 0.06];
 /// During free moves the brush's ends stay at least this many contact tolerances off
 /// every wall, so nothing is painted between strokes.
 const FREE_MOVE_OFF_WALL: f64 = 3.0;
+/// Turns a band between two others may take near a corner (deg).
+const CENTRED_TURNS_DEG: [f64; 4] = [0.0, 8.0, 14.0, 20.0];
 /// Bands this close to a corner may turn the brush too (m).
 const NEAR_CORNER_M: f64 = 0.6;
 /// The most a brush is turned about the wall normal to get into a corner (deg).
@@ -372,7 +374,10 @@ impl<'a> Planner<'a> {
         } else {
             0.0
         };
-        let turns: &[f64] = if corner || near_corner {
+        let is_flush = matches!(band, Band::Flush { .. });
+        let turns: &[f64] = if !is_flush && near_corner {
+            &CENTRED_TURNS_DEG
+        } else if corner || near_corner {
             &[
                 0.0,
                 8.0,
@@ -388,7 +393,15 @@ impl<'a> Planner<'a> {
         } else {
             &[0.0]
         };
-        let mut phis: Vec<f64> = turns.iter().map(|p| deg(*p).max(narrowest)).collect();
+        // A band between others must still meet its neighbours when both are turned:
+        // width x cos(phi) >= width - overlap.
+        let overlap_share = self.settings.config.brush.overlap_m / self.brush_width();
+        let meets = |phi: &f64| is_flush || phi.cos() >= 1.0 - overlap_share;
+        let mut phis: Vec<f64> = turns
+            .iter()
+            .map(|p| deg(*p).max(narrowest))
+            .filter(meets)
+            .collect();
         phis.dedup();
         phis.iter()
             .flat_map(|phi| {
@@ -560,24 +573,28 @@ impl<'a> Planner<'a> {
             if segments.is_empty() {
                 continue;
             }
-            for (band, corner) in self.bands(a, e, width) {
-                match self.choose(wall, band, corner, &segments) {
-                    Ok(column) => columns.push(column),
-                    Err(reason) => unreachable.push(UnreachableStroke {
-                        wall: wall.index,
-                        s_m: self.band_centre(
-                            band,
-                            Attitude {
-                                phi: 0.0,
-                                theta: 0.0,
-                            },
-                        ),
-                        v_from_m: segments[0].0,
-                        v_to_m: segments[segments.len() - 1].1,
-                        reason,
-                    }),
-                }
+            // The two bands flush with the interval's edges first: how far they reach
+            // (turned bands are narrower) decides the bands between them.
+            let (x0, x1) = (a + self.inset(), e - self.inset());
+            let [right, left] = self.flush_bands(a, e, width);
+            let right = self.place(wall, right, &segments, unreachable);
+            let left = self.place(wall, left, &segments, unreachable);
+            let reach = |column: &Option<Column>| {
+                column
+                    .as_ref()
+                    .map_or(0.0, |c| self.brush_width() * c.attitude.phi.cos())
+            };
+            let middle: Vec<(Band, bool)> = self
+                .middle_centres(x0 + reach(&left), x1 - reach(&right), (x0, x1))
+                .into_iter()
+                .rev()
+                .map(|centre| (Band::Centred { centre }, false))
+                .collect();
+            columns.extend(right);
+            for band in middle {
+                columns.extend(self.place(wall, band, &segments, unreachable));
             }
+            columns.extend(left);
         }
         columns
     }
@@ -605,69 +622,78 @@ impl<'a> Planner<'a> {
         segments
     }
 
-    /// Bands filling [a, e] from right to left: flush with both edges, evenly spaced
-    /// between, one brush width minus the overlap apart at most. Bands flush with a corner
-    /// may be turned (narrower), so the ones between leave room for that.
-    fn bands(&self, a: f64, e: f64, width: f64) -> Vec<(Band, bool)> {
-        let b = self.brush_width();
-        let (x0, x1) = (a + self.inset(), e - self.inset());
-        let span = x1 - x0;
-        let (left_corner, right_corner) = (a <= 1e-9, e >= width - 1e-9);
-        let right = (
-            Band::Flush {
-                edge: e,
-                toward: 1.0,
-                room: span,
-            },
-            right_corner,
-        );
-        let left = (
-            Band::Flush {
-                edge: a,
-                toward: -1.0,
-                room: span,
-            },
-            left_corner,
-        );
-        if span <= b {
-            return vec![right, left];
-        }
-        let narrowest = |corner: bool| {
-            if corner {
-                b * MAX_TURN_DEG.to_radians().cos()
-            } else {
-                b
+    /// Chooses an attitude and station for `band`, or records it as unreachable.
+    fn place(
+        &mut self,
+        wall: &Wall,
+        (band, corner): (Band, bool),
+        segments: &[(f64, f64)],
+        unreachable: &mut Vec<UnreachableStroke>,
+    ) -> Option<Column> {
+        match self.choose(wall, band, corner, segments) {
+            Ok(column) => Some(column),
+            Err(reason) => {
+                let level = Attitude {
+                    phi: 0.0,
+                    theta: 0.0,
+                };
+                unreachable.push(UnreachableStroke {
+                    wall: wall.index,
+                    s_m: self.band_centre(band, level),
+                    v_from_m: segments[0].0,
+                    v_to_m: segments[segments.len() - 1].1,
+                    reason,
+                });
+                None
             }
-        };
-        let overlap = self.settings.config.brush.overlap_m;
-        let pitch = b - overlap;
-        let (m0, m1) = (
-            x0 + narrowest(left_corner) - overlap,
-            x1 - narrowest(right_corner) + overlap,
-        );
-        let mut bands = vec![right];
-        if m1 > m0 {
-            let (lo, hi) = (
-                (m0 + b / 2.0).max(x0 + b / 2.0),
-                (m1 - b / 2.0).min(x1 - b / 2.0),
-            );
-            let centres: Vec<f64> = if hi <= lo {
-                vec![((m0 + m1) / 2.0).clamp(x0 + b / 2.0, x1 - b / 2.0)]
-            } else {
-                let count = ((hi - lo) / pitch).ceil() as usize + 1;
-                (0..count)
-                    .map(|k| lo + (hi - lo) * k as f64 / (count - 1) as f64)
-                    .collect()
-            };
-            bands.extend(
-                centres
-                    .into_iter()
-                    .rev()
-                    .map(|centre| (Band::Centred { centre }, false)),
-            );
         }
-        bands.push(left);
-        bands
+    }
+
+    /// The bands flush with the right and left edges of the interval [a, e] (each flagged
+    /// when its edge is a corner of the room).
+    fn flush_bands(&self, a: f64, e: f64, width: f64) -> [(Band, bool); 2] {
+        let span = e - a - 2.0 * self.inset();
+        [
+            (
+                Band::Flush {
+                    edge: e,
+                    toward: 1.0,
+                    room: span,
+                },
+                e >= width - 1e-9,
+            ),
+            (
+                Band::Flush {
+                    edge: a,
+                    toward: -1.0,
+                    room: span,
+                },
+                a <= 1e-9,
+            ),
+        ]
+    }
+
+    /// Centres of the bands that cover [from, to] (what the flush bands left), one brush
+    /// width minus the overlap apart at most, overlapping the flush bands by the overlap,
+    /// each inside the interval `within`.
+    fn middle_centres(&self, from: f64, to: f64, within: (f64, f64)) -> Vec<f64> {
+        let b = self.brush_width();
+        let overlap = self.settings.config.brush.overlap_m;
+        let (m0, m1) = (from - overlap, to + overlap);
+        if m1 <= m0 + 2.0 * overlap {
+            return Vec::new();
+        }
+        let (lo, hi) = (
+            (m0 + b / 2.0).max(within.0 + b / 2.0),
+            (m1 - b / 2.0).min(within.1 - b / 2.0),
+        );
+        if hi <= lo {
+            return vec![((m0 + m1) / 2.0).clamp(within.0 + b / 2.0, within.1 - b / 2.0)];
+        }
+        let count = ((hi - lo) / (b - overlap)).ceil() as usize + 1;
+        (0..count)
+            .map(|k| lo + (hi - lo) * k as f64 / (count - 1) as f64)
+            .collect()
     }
 
     /// A rest-to-rest move from `from` to `to` that keeps the body clear of the walls and
