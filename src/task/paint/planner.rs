@@ -680,7 +680,9 @@ impl<'a> Planner<'a> {
         let b = self.brush_width();
         let overlap = self.settings.config.brush.overlap_m;
         let (m0, m1) = (from - overlap, to + overlap);
-        if m1 <= m0 + 2.0 * overlap {
+        // Nothing left between the flush bands, or no room for a level band (a gap
+        // narrower than the brush only takes the two turned flush bands).
+        if m1 <= m0 + 2.0 * overlap || within.1 - within.0 < b {
             return Vec::new();
         }
         let (lo, hi) = (
