@@ -8,8 +8,8 @@ use clap::Args;
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::daemon::paint::run_paint;
 use rigbridge::stream::StreamControl;
-use rigbridge::task::paint::{load_paint_settings, write_svg};
-use std::path::PathBuf;
+use rigbridge::task::paint::{PaintReport, PaintWorld, load_paint_settings, write_svg};
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::{Arc, PoisonError};
 
@@ -43,14 +43,14 @@ pub struct PaintArgs {
 pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
     let settings = load_run_settings(&args.config).context("cannot load run settings")?;
     let paint = load_paint_settings(&args.paint_config).context("cannot load paint settings")?;
-    if let Some(picture) = &args.picture
-        && picture.extension().is_none_or(|e| e != "svg")
-    {
-        anyhow::bail!(
-            "--picture {}: only .svg pictures are written",
-            picture.display()
-        );
-    }
+    let picture_kind = match &args.picture {
+        Some(picture) => match picture.extension().and_then(|e| e.to_str()) {
+            Some("svg") => Some(Picture::Svg),
+            Some("png") => Some(Picture::Png),
+            _ => anyhow::bail!("--picture {}: write a .svg or a .png", picture.display()),
+        },
+        None => None,
+    };
     let log = args.log.unwrap_or_else(|| default_log_path("paint"));
     if let Some(dir) = log.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
@@ -110,10 +110,102 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
     );
     println!("  log: {}", log.display());
     super::run::write_report(args.report.as_deref(), &run.paint)?;
-    if let Some(picture) = &args.picture {
+    if let (Some(picture), Some(kind)) = (&args.picture, picture_kind) {
         let world = run.world.lock().unwrap_or_else(PoisonError::into_inner);
-        std::fs::write(picture, write_svg(&world, &run.paint))
-            .with_context(|| format!("cannot write picture {}", picture.display()))?;
+        match kind {
+            Picture::Svg => std::fs::write(picture, write_svg(&world, &run.paint))
+                .with_context(|| format!("cannot write picture {}", picture.display()))?,
+            Picture::Png => write_png(&world, &run.paint, picture)
+                .with_context(|| format!("cannot write picture {}", picture.display()))?,
+        }
+        println!("  picture: {}", picture.display());
     }
     Ok(exit_code(r.stream.outcome))
+}
+
+#[derive(Clone, Copy)]
+enum Picture {
+    Svg,
+    Png,
+}
+
+/// The unrolled walls as a PNG, one pixel per coverage cell: paint green, paint inside an
+/// opening red, unpainted wall grey, openings light blue (windows) or brown (doors).
+fn write_png(world: &PaintWorld, report: &PaintReport, path: &Path) -> anyhow::Result<()> {
+    use plotters::prelude::*;
+    super::plot::register_font()?;
+    let grids = world.grids();
+    let (cols, rows) = (grids[0].cols as i32, grids[0].rows as i32);
+    let (gap, label, per_row) = (30, 24, 8);
+    let walls = grids.len() as i32;
+    let width = per_row.min(walls) * (cols + gap) + gap;
+    let height = (walls + per_row - 1) / per_row * (rows + gap + label) + gap + label;
+    let root = BitMapBackend::new(path, (width as u32, height as u32)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let font = (super::plot::FONT, 16).into_font();
+    let t = &report.totals;
+    root.draw_text(
+        &format!(
+            "{} walls, seed {}: coverage {:.3} %, paint in openings {:.4} m2, collisions {}, limit violations {}",
+            report.walls_count,
+            report.seed,
+            t.coverage * 100.0,
+            t.paint_in_openings_m2,
+            t.collisions,
+            t.limit_violations
+        ),
+        &font.color(&BLACK),
+        (gap, 6),
+    )?;
+    let door = world.room().walls.iter().map(|w| {
+        w.openings
+            .iter()
+            .map(|o| (o.kind, o.left_m, o.right_m, o.bottom_m, o.top_m))
+            .collect::<Vec<_>>()
+    });
+    for ((index, grid), (openings, wall)) in grids.iter().enumerate().zip(door.zip(&report.walls)) {
+        let (x0, top) = (
+            gap + (index as i32 % per_row) * (cols + gap),
+            gap + label + (index as i32 / per_row) * (rows + gap + label),
+        );
+        root.draw_text(
+            &format!(
+                "wall {} ({}): {:.2} %",
+                wall.index,
+                wall.wall_type,
+                wall.coverage * 100.0
+            ),
+            &(super::plot::FONT, 13).into_font().color(&BLACK),
+            (x0, top - 16),
+        )?;
+        for row in 0..rows {
+            for col in 0..cols {
+                let i = (row * cols + col) as usize;
+                let colour = match (grid.painted[i], grid.opening[i]) {
+                    (true, false) => RGBColor(44, 160, 44),
+                    (true, true) => RGBColor(214, 39, 40),
+                    (false, false) => RGBColor(200, 200, 200),
+                    (false, true) => {
+                        let s = (f64::from(col) + 0.5) * grid.cell;
+                        let v = (f64::from(row) + 0.5) * grid.cell;
+                        let is_door = openings.iter().any(|(kind, l, r, b, t)| {
+                            *kind == rigbridge::task::paint::room::OpeningKind::Door
+                                && s > *l
+                                && s < *r
+                                && v > *b
+                                && v < *t
+                        });
+                        if is_door {
+                            RGBColor(196, 156, 148)
+                        } else {
+                            RGBColor(198, 219, 239)
+                        }
+                    }
+                };
+                root.draw_pixel((x0 + col, top + rows - 1 - row), &colour)?;
+            }
+        }
+    }
+    root.present()?;
+    Ok(())
 }
