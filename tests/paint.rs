@@ -496,3 +496,154 @@ fn shipped_paint_configs_load_and_run_knows_the_job() {
     rigbridge::trajectory::validate(&trajectory, &run.rig).unwrap();
     assert!(trajectory.duration_s() > 100.0);
 }
+
+/// The report's room and tool and the log's joint states are enough to recompute the
+/// coverage: this does it independently of the world's code (its own contact test, its own
+/// rasterisation by two triangles per swept quad) and finds the report's figures.
+#[test]
+fn coverage_is_recomputed_from_the_log_and_the_report() {
+    let settings = load_run_settings(&repo_path("config/paint-run.toml")).unwrap();
+    let dir = std::env::temp_dir().join(format!("rigbridge-paint-log-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let log = dir.join("paint.mcap");
+    let _ = std::fs::remove_file(&log);
+    let run = run_paint(
+        &settings,
+        &paint_settings(),
+        4,
+        3,
+        &VirtualClock::new(),
+        Some(&log),
+        &StreamControl::default(),
+        &mut |_| {},
+    )
+    .unwrap();
+    let report = serde_json::to_value(&run.paint).unwrap();
+    let recorded = run.run.log.as_ref().unwrap();
+    assert_eq!(recorded.dropped, 0, "{recorded:?}");
+    let logged = rigbridge::log::read_log(&log).unwrap();
+    assert_eq!(logged.states.len() as u64, run.run.stream.cycles);
+    let rig = load_rig(&repo_path("config/painter.toml")).unwrap();
+    assert_eq!(logged.joint_names, rig.joint_names().collect::<Vec<_>>());
+
+    let tool = &report["tool"];
+    let (width, handle, tolerance, cell) = (
+        tool["brush_width_m"].as_f64().unwrap(),
+        tool["handle_m"].as_f64().unwrap(),
+        tool["contact_tolerance_m"].as_f64().unwrap(),
+        tool["coverage_cell_m"].as_f64().unwrap(),
+    );
+    let room = &report["room"];
+    let apothem = room["apothem_m"].as_f64().unwrap();
+    let (wall_w, wall_h) = (
+        room["wall_width_m"].as_f64().unwrap(),
+        room["wall_height_m"].as_f64().unwrap(),
+    );
+    let walls: Vec<(DVec2, DVec2, Vec<[f64; 4]>)> = room["walls"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|w| {
+            let n = DVec2::new(
+                w["normal_xy"][0].as_f64().unwrap(),
+                w["normal_xy"][1].as_f64().unwrap(),
+            );
+            let left = DVec2::new(
+                w["corners_xy"][0][0].as_f64().unwrap(),
+                w["corners_xy"][0][1].as_f64().unwrap(),
+            );
+            let openings = w["openings"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|o| ["left_m", "right_m", "bottom_m", "top_m"].map(|k| o[k].as_f64().unwrap()))
+                .collect();
+            (n, left, openings)
+        })
+        .collect();
+    let (cols, rows) = (
+        (wall_w / cell).round() as usize,
+        (wall_h / cell).round() as usize,
+    );
+    let mut painted = vec![vec![false; cols * rows]; walls.len()];
+    // Where the brush touches: the wall and its ends in (s, v), for one logged state.
+    let touch = |q: &[f64]| -> Option<(usize, [DVec2; 2])> {
+        let t = rig.forward(q).unwrap();
+        let centre = t.transform_point3(glam::DVec3::new(0.0, 0.0, handle));
+        let half = t.transform_vector3(glam::DVec3::X) * (width / 2.0);
+        let ends = [centre - half, centre + half];
+        walls.iter().enumerate().find_map(|(i, (n, left, _))| {
+            let tangent = DVec2::new(n.y, -n.x);
+            let on = ends.iter().all(|p| {
+                let s = (p.truncate() - *left).dot(tangent);
+                (apothem - p.truncate().dot(*n)).abs() <= tolerance
+                    && s >= -tolerance
+                    && s <= wall_w + tolerance
+            });
+            on.then(|| {
+                let st = |p: &glam::DVec3| DVec2::new((p.truncate() - *left).dot(tangent), p.z);
+                (i, [st(&ends[0]), st(&ends[1])])
+            })
+        })
+    };
+    let in_triangle = |p: DVec2, a: DVec2, b: DVec2, c: DVec2| {
+        let d = |u: DVec2, v: DVec2, w: DVec2| (v - u).perp_dot(w - u);
+        let (d1, d2, d3) = (d(a, b, p), d(b, c, p), d(c, a, p));
+        let tol = 1e-12;
+        (d1 >= -tol && d2 >= -tol && d3 >= -tol) || (d1 <= tol && d2 <= tol && d3 <= tol)
+    };
+    let mut previous: Option<(usize, [DVec2; 2])> = None;
+    for state in &logged.states {
+        let now = touch(&state.positions);
+        if let (Some((wall, [b0, b1])), Some((before, [a0, a1]))) = (now, previous)
+            && wall == before
+        {
+            let grid = &mut painted[wall];
+            for row in 0..rows {
+                for col in 0..cols {
+                    let p = DVec2::new((col as f64 + 0.5) * cell, (row as f64 + 0.5) * cell);
+                    let lo = a0.min(a1).min(b0).min(b1);
+                    let hi = a0.max(a1).max(b0).max(b1);
+                    if p.x < lo.x || p.y < lo.y || p.x > hi.x || p.y > hi.y {
+                        continue;
+                    }
+                    let area =
+                        (a1 - a0).perp_dot(b1 - a0).abs() + (b1 - a0).perp_dot(b0 - a0).abs();
+                    if area > 0.0 && (in_triangle(p, a0, a1, b1) || in_triangle(p, a0, b1, b0)) {
+                        grid[row * cols + col] = true;
+                    }
+                }
+            }
+        }
+        previous = now;
+    }
+    let (mut paintable, mut covered, mut in_openings) = (0u64, 0u64, 0u64);
+    for ((_, _, openings), grid) in walls.iter().zip(&painted) {
+        for row in 0..rows {
+            for col in 0..cols {
+                let (s, v) = ((col as f64 + 0.5) * cell, (row as f64 + 0.5) * cell);
+                let opening = openings
+                    .iter()
+                    .any(|[l, r, b, t]| s > *l && s < *r && v > *b && v < *t);
+                let p = grid[row * cols + col];
+                match (opening, p) {
+                    (true, true) => in_openings += 1,
+                    (true, false) => {}
+                    (false, true) => {
+                        paintable += 1;
+                        covered += 1;
+                    }
+                    (false, false) => paintable += 1,
+                }
+            }
+        }
+    }
+    let coverage = covered as f64 / paintable as f64;
+    let reported = report["totals"]["coverage"].as_f64().unwrap();
+    assert!(
+        (coverage - reported).abs() < 1e-4,
+        "recomputed {coverage}, reported {reported}"
+    );
+    assert_eq!(in_openings, 0);
+    assert!(coverage >= 0.995);
+}
