@@ -3,6 +3,7 @@
 
 mod batch;
 mod gait;
+mod paint;
 mod plot;
 mod replay;
 mod run;
@@ -40,6 +41,8 @@ enum Command {
     Twin(twin::TwinArgs),
     /// The sloth gait over a scenario, streamed to the twin and judged from what it did.
     Gait(gait::GaitArgs),
+    /// Paint a generated room of N walls against the twin, which measures the paint.
+    Paint(paint::PaintArgs),
     /// Inspect run logs.
     #[command(subcommand)]
     Log(replay::LogCommand),
@@ -55,5 +58,6 @@ pub fn run() -> anyhow::Result<ExitCode> {
         Command::Log(command) => replay::log_command(command),
         Command::Twin(args) => twin::twin(args),
         Command::Gait(args) => gait::gait(args),
+        Command::Paint(args) => paint::paint(args),
     }
 }

@@ -192,6 +192,13 @@ pub enum JobConfig {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         gap_m: Option<f64>,
     },
+    /// Paint a generated room of `walls` walls (seed `seed`) with the painter rig;
+    /// `paint_config` (config/paint.toml) is relative to this file, resolved on load.
+    Paint {
+        walls: u32,
+        seed: u64,
+        paint_config: PathBuf,
+    },
 }
 
 /// A loaded, validated configuration with its rig.
@@ -243,10 +250,13 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         file: file.to_path_buf(),
         source,
     })?;
-    let config: RunConfig = toml::from_str(&text).map_err(|e| ConfigError::Parse {
+    let mut config: RunConfig = toml::from_str(&text).map_err(|e| ConfigError::Parse {
         file: file.to_path_buf(),
         message: e.to_string().trim_end().to_string(),
     })?;
+    if let JobConfig::Paint { paint_config, .. } = &mut config.job {
+        *paint_config = file.parent().unwrap_or(Path::new(".")).join(&*paint_config);
+    }
     let rig_path = file.parent().unwrap_or(Path::new(".")).join(&config.rig);
     let sloth = match config.job {
         JobConfig::Gait { .. } => Some(std::sync::Arc::new(crate::task::gait::SlothRig::load(
@@ -390,6 +400,34 @@ fn check_job(file: &Path, job: &JobConfig, rig: &Rig) -> Result<(), ConfigError>
             check_range(file, "job.radius_m", *radius_m, 0.001, 1.0)?;
             if *laps == 0 || *laps > 1000 {
                 return Err(invalid(file, "job.laps", laps, "must lie in [1, 1000]"));
+            }
+        }
+        JobConfig::Paint {
+            walls,
+            paint_config,
+            ..
+        } => {
+            let max = crate::task::paint::room::MAX_WALLS;
+            if !(3..=max).contains(walls) {
+                return Err(invalid(
+                    file,
+                    "job.walls",
+                    walls,
+                    &format!("must lie in [3, {max}]"),
+                ));
+            }
+            let paint = crate::task::paint::load_paint_settings(paint_config)?;
+            if paint.rig != *rig {
+                return Err(invalid(
+                    file,
+                    "rig",
+                    &rig.name,
+                    &format!(
+                        "must be the painter rig {} named by {}",
+                        paint.rig.name,
+                        paint_config.display()
+                    ),
+                ));
             }
         }
         JobConfig::JointWaypoints { waypoints_deg } => {

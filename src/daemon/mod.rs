@@ -4,6 +4,7 @@
 
 pub mod config;
 pub mod gait;
+pub mod paint;
 mod recording;
 pub mod replay;
 pub mod server;
@@ -272,8 +273,23 @@ pub fn stream_planned_with(
         "start": planned.start,
         "link": link.describe(),
     });
+    // Under a virtual clock nothing is real time: the cycle waits for the log writer
+    // rather than dropping records, so the log holds every cycle.
+    let options = crate::log::RecorderOptions {
+        wait_when_full: clock.is_virtual(),
+        ..crate::log::RecorderOptions::for_rig(&settings.rig)
+    };
+    let names: Vec<String> = settings.rig.joint_names().map(str::to_owned).collect();
     let recorder = log
-        .map(|path| Recorder::for_rig(path, &settings.rig, metadata.clone()))
+        .map(|path| {
+            Recorder::create_with(
+                path,
+                &settings.rig.name,
+                &names,
+                metadata.clone(),
+                options.clone(),
+            )
+        })
         .transpose()?;
     let report = match &recorder {
         Some(recorder) => {
@@ -422,5 +438,8 @@ fn job_name(job: &config::JobConfig) -> String {
         config::JobConfig::WallFigure { .. } => "wall_figure".into(),
         config::JobConfig::JointWaypoints { .. } => "joint_waypoints".into(),
         config::JobConfig::Gait { scenario, .. } => format!("gait {scenario}"),
+        config::JobConfig::Paint { walls, seed, .. } => {
+            format!("paint ({walls} walls, seed {seed})")
+        }
     }
 }

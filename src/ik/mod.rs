@@ -4,12 +4,14 @@
 //! [`Rig`](crate::rig::Rig) and never return a position outside its limits: a target they
 //! cannot reach within limits is a typed [`IkError`], never a clamped, different motion.
 
+mod base_held;
 mod ccd;
 pub mod chain;
 mod fabrik;
 mod gradient;
 mod wrist;
 
+pub use base_held::BaseHeldSolver;
 pub use ccd::CcdSolver;
 pub use fabrik::{FabrikSolver, StructureError};
 pub use gradient::GradientDescentSolver;

@@ -23,6 +23,10 @@ pub enum JobError {
     Structure(#[from] StructureError),
     #[error("a gait job needs the sloth rig: run it with a sloth file as the rig")]
     NeedsSloth,
+    #[error("paint settings")]
+    PaintConfig(#[from] crate::rig::ConfigError),
+    #[error("paint job")]
+    Paint(#[from] crate::task::paint::PaintError),
 }
 
 /// The points of a five-pointed star (as one closed stroke) on the wall plane x = `wall_x`,
@@ -78,6 +82,16 @@ pub fn plan_job(
             let end = figure.position(figure.len() - 1).to_vec();
             trajectory.append(&plan_joint_moves(rig, &end, &[start.to_vec()], settings)?);
             Ok(trajectory)
+        }
+        JobConfig::Paint {
+            walls,
+            seed,
+            paint_config,
+        } => {
+            let paint = crate::task::paint::load_paint_settings(paint_config)?;
+            let (_, planned) =
+                crate::task::paint::plan_room(&paint, *walls, *seed, start, settings)?;
+            Ok(planned.trajectory)
         }
         JobConfig::JointWaypoints { waypoints_deg } => {
             let mut waypoints: Vec<Vec<f64>> = waypoints_deg

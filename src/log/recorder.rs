@@ -82,6 +82,10 @@ pub struct RecorderOptions {
     pub chunk_interval: Duration,
     /// Recorded so `log info` can report revolute tracking error in degrees.
     pub joint_kinds: Option<Vec<JointKind>>,
+    /// Wait for room in the channel instead of dropping. Only for cycles that are not real
+    /// time (a virtual clock outruns any writer; waiting there costs no deadline and keeps
+    /// the log complete).
+    pub wait_when_full: bool,
 }
 
 impl Default for RecorderOptions {
@@ -91,6 +95,7 @@ impl Default for RecorderOptions {
             chunk_bytes: DEFAULT_CHUNK_BYTES,
             chunk_interval: DEFAULT_CHUNK_INTERVAL,
             joint_kinds: None,
+            wait_when_full: false,
         }
     }
 }
@@ -139,6 +144,7 @@ pub struct Recorder {
     events: Option<Sender<EventMessage>>,
     dropped: Arc<AtomicU64>,
     writer: Option<JoinHandle<Result<Written, LogError>>>,
+    wait_when_full: bool,
 }
 
 impl Recorder {
@@ -179,6 +185,7 @@ impl Recorder {
         options: RecorderOptions,
     ) -> Result<Self, LogError> {
         check_setup(rig_name, joint_names, &options)?;
+        let wait_when_full = options.wait_when_full;
         let sink = Sink::open(path, rig_name, joint_names, &metadata, &options)?;
         let (records_tx, records_rx) = mpsc::sync_channel(options.capacity);
         let (events_tx, events_rx) = mpsc::channel();
@@ -194,13 +201,16 @@ impl Recorder {
             events: Some(events_tx),
             dropped,
             writer: Some(writer),
+            wait_when_full,
         })
     }
 
-    /// Queues one record for writing. Never allocates, never waits: when the writer is
-    /// behind and the channel is full, the record is dropped and counted.
+    /// Queues one record for writing. Never allocates, never waits (unless the options
+    /// ask to, for a virtual clock): when the writer is behind and the channel is full, the
+    /// record is dropped and counted.
     pub fn record(&self, record: LogRecord) {
         let queued = match &self.records {
+            Some(records) if self.wait_when_full => records.send(record).is_ok(),
             Some(records) => match records.try_send(record) {
                 Ok(()) => true,
                 Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) => false,

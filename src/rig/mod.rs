@@ -84,6 +84,32 @@ impl Rig {
         self.joints.iter().map(|j| j.name.as_str())
     }
 
+    /// The chain from joint `first` on, with the same tool: the arm of a rig that rides on
+    /// extra axes (a mobile base, a lift). `None` when `first` leaves no joint.
+    pub fn sub_chain(&self, first: usize) -> Option<Rig> {
+        (first < self.dof()).then(|| Rig {
+            name: format!("{}[{first}..]", self.name),
+            base_frame: match first {
+                0 => self.base_frame.clone(),
+                _ => self.joints[first - 1].name.clone(),
+            },
+            tool_frame: self.tool_frame.clone(),
+            joints: self.joints[first..].to_vec(),
+            tool: self.tool,
+        })
+    }
+
+    /// The frame the first `leading.len()` joints place at `leading`: where a sub-chain
+    /// starting after them is mounted.
+    pub fn frame_after(&self, leading: &[f64]) -> DAffine3 {
+        self.joints
+            .iter()
+            .zip(leading)
+            .fold(DAffine3::IDENTITY, |frame, (joint, q)| {
+                frame * joint.transform(*q)
+            })
+    }
+
     /// The first joint whose limit `positions` breaks, as (index, position).
     pub fn first_limit_violation(&self, positions: &[f64]) -> Option<(usize, f64)> {
         self.joints

@@ -1,4 +1,7 @@
-//! Tasks: sources of targets for rigs other than the arm's jobs (the sloth's gait). A task
-//! produces a joint trajectory and hands it to the pipeline; it never streams itself.
+//! Tasks: sources of targets that need more than a job description: a generated room to
+//! paint, the sloth's gait over its branches. A task produces geometry, a plan through the
+//! normal pipeline and the measurements that judge it; it never streams and never changes
+//! the rig.
 
 pub mod gait;
+pub mod paint;

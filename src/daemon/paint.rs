@@ -1,0 +1,66 @@
+//! The painting job end to end: generate the room, plan it, put the in-process twin in a
+//! [`PaintWorld`], stream through the normal pipeline (validate, stream, record), then build
+//! the paint report from what the twin's world measured. Owns the wiring only.
+
+use super::config::{JobConfig, RunSettings};
+use super::{DaemonError, PlannedJob, RunReport, actual_position, twin_settings};
+use crate::clock::Clock;
+use crate::job::JobError;
+use crate::link::LoopbackLink;
+use crate::stream::StreamControl;
+use crate::task::paint::{
+    PaintReport, PaintSettings, PaintWorld, build_report, plan_room, world_for,
+};
+use crate::twin::Twin;
+use std::sync::{Arc, Mutex, PoisonError};
+
+/// Everything a paint run produced.
+pub struct PaintRun {
+    pub run: RunReport,
+    pub paint: PaintReport,
+    pub world: Arc<Mutex<PaintWorld>>,
+}
+
+/// Plans and paints the room of `walls` walls for `seed` against the in-process twin.
+/// `planned` is told the plan's size before motion starts (for progress and messages).
+#[allow(clippy::too_many_arguments)]
+pub fn run_paint(
+    settings: &RunSettings,
+    paint: &PaintSettings,
+    walls: u32,
+    seed: u64,
+    clock: &dyn Clock,
+    log: Option<&std::path::Path>,
+    control: &StreamControl,
+    planned: &mut dyn FnMut(&crate::task::paint::PaintPlan),
+) -> Result<PaintRun, DaemonError> {
+    let room =
+        crate::task::paint::room_for(paint, walls, seed).map_err(|e| JobError::Paint(e.into()))?;
+    let world = Arc::new(Mutex::new(world_for(paint, &room)));
+    let twin = Twin::new(&settings.rig, twin_settings(settings), &settings.initial())?
+        .with_world(Box::new(world.clone()));
+    let mut link = LoopbackLink::new(twin);
+    let start = actual_position(&mut link, super::FIRST_FEEDBACK_TIMEOUT)?;
+    let (_, plan) = plan_room(paint, walls, seed, &start, &super::plan_settings(settings))
+        .map_err(JobError::Paint)?;
+    planned(&plan);
+    let job = PlannedJob {
+        job: JobConfig::Paint {
+            walls,
+            seed,
+            paint_config: paint.file.clone(),
+        },
+        start,
+        trajectory: plan.trajectory.clone(),
+    };
+    let run = super::stream_planned(settings, &job, &mut link, clock, log, control)?;
+    let report = {
+        let measured = world.lock().unwrap_or_else(PoisonError::into_inner);
+        build_report(paint, &plan, &measured, run.stream.duration_s)
+    };
+    Ok(PaintRun {
+        run,
+        paint: report,
+        world,
+    })
+}

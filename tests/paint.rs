@@ -1,0 +1,649 @@
+//! The painting task (issue 5): the room generator's geometry and errors, the painter rig,
+//! the base-held FABRIK solver, and whole jobs streamed to the twin under the virtual
+//! clock, judged by what the twin's world measured.
+
+mod common;
+
+use common::repo_path;
+use glam::DVec2;
+use rigbridge::clock::VirtualClock;
+use rigbridge::daemon::config::load_run_settings;
+use rigbridge::daemon::paint::{PaintRun, run_paint};
+use rigbridge::ik::{BaseHeldSolver, IkSolver};
+use rigbridge::link::LoopbackLink;
+use rigbridge::rig::{ConfigError, load_rig};
+use rigbridge::stream::{Outcome, StreamControl, StreamSettings, slowdown_rate, stream};
+use rigbridge::task::paint::room::{OpeningKind, RoomError, WallType, apothem};
+use rigbridge::task::paint::{
+    EXTRA_AXES, PaintSettings, load_paint_settings, plan_room, room_for, world_for,
+};
+use rigbridge::trajectory::{PlanSettings, Trajectory};
+use rigbridge::twin::{Twin, TwinSettings};
+use std::sync::{Arc, Mutex};
+
+fn paint_settings() -> PaintSettings {
+    load_paint_settings(&repo_path("config/paint.toml")).unwrap()
+}
+
+fn paint(walls: u32, seed: u64) -> PaintRun {
+    let settings = load_run_settings(&repo_path("config/paint-run.toml")).unwrap();
+    run_paint(
+        &settings,
+        &paint_settings(),
+        walls,
+        seed,
+        &VirtualClock::new(),
+        None,
+        &StreamControl::default(),
+        &mut |_| {},
+    )
+    .unwrap_or_else(|e| {
+        panic!(
+            "{walls} walls, seed {seed}: {}",
+            rigbridge::daemon::error_chain(&e)
+        )
+    })
+}
+
+#[test]
+fn wall_distance_is_the_seeds_formula() {
+    let settings = paint_settings();
+    for (walls, expected) in [(3, 1.5 / 3f64.sqrt()), (4, 1.5), (6, 1.5 * 3f64.sqrt())] {
+        let room = room_for(&settings, walls, 0).unwrap();
+        assert!(
+            (room.apothem_m - expected).abs() < 1e-12,
+            "{walls}: {}",
+            room.apothem_m
+        );
+        for wall in &room.walls {
+            let centre = (DVec2::from_array(wall.corners_xy[0])
+                + DVec2::from_array(wall.corners_xy[1]))
+                / 2.0;
+            assert!((centre.length() - expected).abs() < 1e-12);
+            let width = DVec2::from_array(wall.corners_xy[0])
+                .distance(DVec2::from_array(wall.corners_xy[1]));
+            assert!((width - 3.0).abs() < 1e-12);
+        }
+    }
+    // 32 walls of 3 m stand 15.23 m from the centre: the base's x and y limits cover it.
+    assert!((apothem(32, 3.0) - 15.229_7).abs() < 1e-4);
+}
+
+#[test]
+fn walls_close_the_polygon_turning_by_360_over_n() {
+    let settings = paint_settings();
+    for walls in [3u32, 5, 8, 32] {
+        let room = room_for(&settings, walls, 7).unwrap();
+        for (i, wall) in room.walls.iter().enumerate() {
+            let next = &room.walls[(i + 1) % room.walls.len()];
+            let meet = DVec2::from_array(wall.corners_xy[0])
+                .distance(DVec2::from_array(next.corners_xy[1]));
+            assert!(meet < 1e-9, "wall {i} and {} do not meet: {meet}", i + 1);
+            let step = next.heading_rad - wall.heading_rad;
+            let expected = std::f64::consts::TAU / f64::from(walls);
+            assert!(
+                (step.rem_euclid(std::f64::consts::TAU) - expected).abs() < 1e-12,
+                "{step}"
+            );
+        }
+    }
+}
+
+#[test]
+fn openings_keep_a_brush_width_apart_on_the_grid_and_never_overlap() {
+    let settings = paint_settings();
+    let brush = settings.config.brush.width_m;
+    let mut seen = std::collections::HashSet::new();
+    for seed in 0..40 {
+        let room = room_for(&settings, 8, seed).unwrap();
+        for wall in &room.walls {
+            seen.insert(wall.wall_type);
+            let mut edges = vec![0.0];
+            for o in &wall.openings {
+                edges.extend([o.left_m, o.right_m]);
+                for x in [o.left_m, o.right_m, o.bottom_m, o.top_m] {
+                    assert!(
+                        ((x / 0.01) - (x / 0.01).round()).abs() < 1e-6,
+                        "{x} off grid"
+                    );
+                }
+                let expected = match o.kind {
+                    OpeningKind::Door => (0.0, 2.0),
+                    OpeningKind::Window => (0.9, 2.1),
+                };
+                assert_eq!((o.bottom_m, o.top_m), expected);
+            }
+            edges.push(room.wall_width_m);
+            for gap in edges.windows(2).step_by(2) {
+                assert!(gap[1] - gap[0] >= brush - 1e-9, "gap {gap:?} on {wall:?}");
+            }
+            let kinds: Vec<OpeningKind> = wall.openings.iter().map(|o| o.kind).collect();
+            let doors = kinds.iter().filter(|k| **k == OpeningKind::Door).count();
+            let windows = kinds.len() - doors;
+            let expected = match wall.wall_type {
+                WallType::Blank => (0, 0),
+                WallType::Door => (1, 0),
+                WallType::TwoWindows => (0, 2),
+                WallType::DoorAndTwoWindows => (1, 2),
+            };
+            assert_eq!((doors, windows), expected);
+        }
+    }
+    assert_eq!(seen.len(), 4, "every wall type appears: {seen:?}");
+}
+
+#[test]
+fn door_and_two_windows_narrow_the_windows_to_fit_a_3_m_wall() {
+    let settings = paint_settings();
+    let wall = (0..50)
+        .flat_map(|seed| room_for(&settings, 6, seed).unwrap().walls)
+        .find(|w| w.wall_type == WallType::DoorAndTwoWindows)
+        .expect("some seed draws a door and two windows");
+    // 3.0 m - 0.9 m door - 4 brush widths = 1.7 m for two windows.
+    assert_eq!(wall.narrowed_window_m, Some(0.85));
+    for o in wall
+        .openings
+        .iter()
+        .filter(|o| o.kind == OpeningKind::Window)
+    {
+        assert!((o.right_m - o.left_m - 0.85).abs() < 1e-9);
+    }
+}
+
+#[test]
+fn rooms_are_determined_by_the_seed() {
+    let settings = paint_settings();
+    let a = room_for(&settings, 12, 99).unwrap();
+    let b = room_for(&settings, 12, 99).unwrap();
+    assert_eq!(a, b);
+    let c = room_for(&settings, 12, 100).unwrap();
+    assert_ne!(a.walls, c.walls);
+}
+
+#[test]
+fn bad_rooms_are_refused_with_the_value() {
+    let settings = paint_settings();
+    assert_eq!(
+        room_for(&settings, 2, 0).unwrap_err(),
+        RoomError::TooFewWalls { walls: 2 }
+    );
+    assert!(matches!(
+        room_for(&settings, 33, 0),
+        Err(RoomError::TooManyWalls { walls: 33, .. })
+    ));
+    let mut narrow = settings.config.room.clone();
+    narrow.wall_width_m = 1.2;
+    let error = (0..20)
+        .find_map(|seed| {
+            rigbridge::task::paint::generate_room(4, seed, &narrow, 0.1)
+                .err()
+                .filter(|e| matches!(e, RoomError::OpeningsDoNotFit { .. }))
+        })
+        .expect("a 1.2 m wall cannot hold a door and two windows");
+    let message = error.to_string();
+    assert!(message.contains("1.2 m wall"), "{message}");
+}
+
+fn write_paint_variant(name: &str, edit: impl Fn(String) -> String) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("rigbridge-paint-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for file in ["painter.toml", "paint.toml"] {
+        std::fs::copy(repo_path(&format!("config/{file}")), dir.join(file)).unwrap();
+    }
+    let text = std::fs::read_to_string(repo_path("config/paint.toml")).unwrap();
+    let path = dir.join(name);
+    std::fs::write(&path, edit(text)).unwrap();
+    path
+}
+
+#[test]
+fn bad_paint_config_names_file_key_and_value() {
+    let path = write_paint_variant("unknown.toml", |t| {
+        t.replacen("width_m = 0.10", "width_m = 0.10\ncolour = \"red\"", 1)
+    });
+    let message = load_paint_settings(&path).unwrap_err().to_string();
+    assert!(
+        message.contains("unknown.toml") && message.contains("colour"),
+        "{message}"
+    );
+    let path = write_paint_variant("off_grid.toml", |t| {
+        t.replacen("door_width_m = 0.9", "door_width_m = 0.905", 1)
+    });
+    match load_paint_settings(&path).unwrap_err() {
+        ConfigError::Invalid { key, value, .. } => {
+            assert_eq!(key, "room.door_width_m");
+            assert_eq!(value, "0.905");
+        }
+        other => panic!("{other}"),
+    }
+}
+
+#[test]
+fn the_painters_arm_is_the_irb120() {
+    let painter = load_rig(&repo_path("config/painter.toml")).unwrap();
+    let irb120 = load_rig(&repo_path("config/irb120.toml")).unwrap();
+    let arm = painter.sub_chain(EXTRA_AXES).unwrap();
+    assert_eq!(arm.joints, irb120.joints);
+    assert_eq!(arm.tool, irb120.tool);
+    assert_eq!(painter.dof(), 10);
+}
+
+#[test]
+fn base_held_solver_moves_only_the_arm() {
+    let painter = load_rig(&repo_path("config/painter.toml")).unwrap();
+    let solver = BaseHeldSolver::new(painter.clone(), EXTRA_AXES).unwrap();
+    let target_joints = [3.0, -2.0, 2.0, 1.2, 0.3, 0.4, -0.2, 0.5, 0.6, -0.4];
+    let target = painter.tool_pose(&target_joints).unwrap();
+    let mut seed = target_joints;
+    for q in &mut seed[EXTRA_AXES..] {
+        *q += 0.05;
+    }
+    let solution = solver.solve(&target, &seed).unwrap();
+    assert_eq!(&solution.joints[..EXTRA_AXES], &target_joints[..EXTRA_AXES]);
+    for (got, want) in solution.joints.iter().zip(target_joints) {
+        assert!((got - want).abs() < 1e-6, "{got} vs {want}");
+    }
+    // Out of the arm's reach from where the base stands: an error, never a base move.
+    let mut far = target;
+    far.position.x += 2.0;
+    assert!(solver.solve(&far, &seed).is_err());
+}
+
+/// The issue's figures over a spread of N and seeds, measured by the twin.
+fn assert_figures(run: &PaintRun, walls: u32, seed: u64) {
+    let t = &run.paint.totals;
+    let tag = format!("{walls} walls, seed {seed}");
+    assert!(t.coverage >= 0.995, "{tag}: coverage {}", t.coverage);
+    assert_eq!(t.paint_in_openings_m2, 0.0, "{tag}");
+    assert_eq!(t.limit_violations, 0, "{tag}");
+    assert_eq!(t.collisions, 0, "{tag}");
+    assert!(
+        run.paint.unreachable.is_empty(),
+        "{tag}: {:?}",
+        run.paint.unreachable
+    );
+    assert_eq!(run.run.stream.outcome, Outcome::Completed, "{tag}");
+    assert_eq!(run.paint.walls.len(), walls as usize);
+    for wall in &run.paint.walls {
+        assert!(
+            wall.coverage >= 0.99,
+            "{tag}: wall {}: {}",
+            wall.index,
+            wall.coverage
+        );
+    }
+    let sum: f64 = run.paint.walls.iter().map(|w| w.painted_m2).sum();
+    assert!((sum - t.painted_m2).abs() < 1e-9);
+}
+
+#[test]
+fn small_rooms_with_sharp_corners_are_painted() {
+    for (walls, seed) in [(3, 0), (3, 5), (4, 1), (4, 6), (5, 2)] {
+        assert_figures(&paint(walls, seed), walls, seed);
+    }
+}
+
+#[test]
+fn larger_rooms_are_painted() {
+    for (walls, seed) in [(6, 3), (8, 4), (12, 8)] {
+        assert_figures(&paint(walls, seed), walls, seed);
+    }
+}
+
+#[test]
+fn a_32_wall_room_is_painted() {
+    assert_figures(&paint(32, 11), 32, 11);
+}
+
+/// Streams `trajectory` to a fresh twin whose world is `world`.
+fn stream_into(
+    trajectory: &Trajectory,
+    settings: &PaintSettings,
+    world: Arc<Mutex<rigbridge::task::paint::PaintWorld>>,
+    start: &[f64],
+) {
+    let twin = Twin::new(
+        &settings.rig,
+        TwinSettings {
+            period_s: trajectory.period_s,
+            ..TwinSettings::default()
+        },
+        start,
+    )
+    .unwrap()
+    .with_world(Box::new(world));
+    let mut link = LoopbackLink::new(twin);
+    let report = stream(
+        trajectory,
+        &settings.rig,
+        &mut link,
+        &VirtualClock::new(),
+        &mut (),
+        &StreamControl::default(),
+        &StreamSettings::new(trajectory.period_s, slowdown_rate(&settings.rig, 0.9, 0.8)),
+    )
+    .unwrap();
+    assert_eq!(report.outcome, Outcome::Completed);
+}
+
+fn start_position() -> Vec<f64> {
+    let mut start = vec![0.0; 10];
+    start[8] = 30f64.to_radians();
+    start
+}
+
+/// The first `last + 1` samples of `trajectory`.
+fn head(trajectory: &Trajectory, last: usize) -> Trajectory {
+    let (mut positions, mut velocities) = (Vec::new(), Vec::new());
+    for i in 0..=last {
+        positions.extend_from_slice(trajectory.position(i));
+        velocities.extend_from_slice(trajectory.velocity(i));
+    }
+    Trajectory::new(
+        trajectory.rig.clone(),
+        trajectory.joint_names.clone(),
+        trajectory.period_s,
+        positions,
+        velocities,
+    )
+    .unwrap()
+}
+
+#[test]
+fn stroke_edges_are_straight_within_5_mm() {
+    // A 2 mm grid, the first strokes of a room streamed through the twin (servo lag
+    // included): every row of each band's interior has its left and right edges in the
+    // same place to within 5 mm.
+    let mut settings = paint_settings();
+    settings.config.coverage.cell_m = 0.002;
+    let start = start_position();
+    let plan = PlanSettings {
+        period_s: 0.01,
+        ..PlanSettings::default()
+    };
+    let (room, planned) = plan_room(&settings, 5, 1, &start, &plan).unwrap();
+    // The second and third strokes: ordinary columns, one up, one down.
+    for stroke in &planned.strokes[1..3] {
+        let world = Arc::new(Mutex::new(world_for(&settings, &room)));
+        stream_into(
+            &head(&planned.trajectory, stroke.samples[1]),
+            &settings,
+            world.clone(),
+            &start,
+        );
+        let world = world.lock().unwrap();
+        let grid = &world.grids()[stroke.wall];
+        let (lo, hi) = (
+            stroke.v_from_m.min(stroke.v_to_m) + 0.1,
+            stroke.v_from_m.max(stroke.v_to_m) - 0.1,
+        );
+        let s_cell = (stroke.s_m / grid.cell) as usize;
+        let (mut lefts, mut rights) = (Vec::new(), Vec::new());
+        for row in (lo / grid.cell) as usize..(hi / grid.cell) as usize {
+            let painted = |c: usize| grid.painted[row * grid.cols + c];
+            assert!(painted(s_cell), "row {row}: the band's centre is unpainted");
+            // Walk out from the band's centre to the painted area's edges: on the left this
+            // stroke's edge (columns go right to left), on the right an earlier stroke's.
+            let mut left = s_cell;
+            while left > 0 && painted(left - 1) {
+                left -= 1;
+            }
+            let mut right = s_cell;
+            while right + 1 < grid.cols && painted(right + 1) {
+                right += 1;
+            }
+            lefts.push(left);
+            rights.push(right);
+        }
+        for edges in [&lefts, &rights] {
+            let spread = edges.iter().max().unwrap() - edges.iter().min().unwrap();
+            assert!(
+                spread as f64 * grid.cell <= 0.005,
+                "edge wanders {spread} cells of {} m",
+                grid.cell
+            );
+        }
+    }
+}
+
+#[test]
+fn the_brush_is_where_the_streamed_joints_put_it() {
+    // The world computes the brush from the actual joints only (forward kinematics of
+    // the whole rig and the tool): streaming the same plan twice paints the same cells,
+    // and paint lands only inside the bands of the strokes streamed so far.
+    let settings = paint_settings();
+    let start = start_position();
+    let plan = PlanSettings {
+        period_s: 0.01,
+        ..PlanSettings::default()
+    };
+    let (room, planned) = plan_room(&settings, 4, 2, &start, &plan).unwrap();
+    let first = &planned.strokes[1];
+    let trajectory = head(&planned.trajectory, first.samples[1]);
+    let paint_with = |trajectory: &Trajectory| {
+        let world = Arc::new(Mutex::new(world_for(&settings, &room)));
+        stream_into(trajectory, &settings, world.clone(), &start);
+        let world = world.lock().unwrap();
+        world.grids()[first.wall].painted.clone()
+    };
+    let once = paint_with(&trajectory);
+    assert_eq!(once, paint_with(&trajectory));
+    assert!(once.iter().any(|p| *p));
+    let cols = (room.wall_width_m / settings.config.coverage.cell_m).round() as usize;
+    let painted_cols: std::collections::BTreeSet<usize> = once
+        .iter()
+        .enumerate()
+        .filter(|(_, p)| **p)
+        .map(|(i, _)| i % cols)
+        .collect();
+    // Every painted column lies within the planned bands of the strokes streamed so far.
+    for col in painted_cols {
+        let s = (col as f64 + 0.5) * settings.config.coverage.cell_m;
+        let near = planned.strokes[..2]
+            .iter()
+            .any(|st| st.wall == first.wall && (s - st.s_m).abs() <= 0.05 + 1e-9);
+        assert!(near, "paint at s = {s} is outside the strokes streamed");
+    }
+}
+
+#[test]
+fn an_unreachable_stroke_is_reported_before_motion_and_planned_around() {
+    // A reach the arm cannot hold from the floor: the planner finds no station for some
+    // columns, says so, and plans the rest; nothing it plans collides.
+    let mut settings = paint_settings();
+    settings.config.strokes.reach_m = 0.95;
+    let start = start_position();
+    let plan = PlanSettings {
+        period_s: 0.01,
+        ..PlanSettings::default()
+    };
+    let outcome = plan_room(&settings, 3, 0, &start, &plan);
+    match outcome {
+        Ok((_, planned)) => {
+            assert!(!planned.unreachable.is_empty());
+            for stroke in &planned.unreachable {
+                assert!(!stroke.reason.is_empty());
+            }
+            rigbridge::trajectory::validate(&planned.trajectory, &settings.rig).unwrap();
+        }
+        Err(e) => panic!("{}", rigbridge::daemon::error_chain(&e)),
+    }
+}
+
+#[test]
+fn shipped_paint_configs_load_and_run_knows_the_job() {
+    let paint = paint_settings();
+    assert_eq!(paint.rig.name, "painter");
+    let run = load_run_settings(&repo_path("config/paint-run.toml")).unwrap();
+    match &run.config.job {
+        rigbridge::daemon::config::JobConfig::Paint {
+            walls,
+            paint_config,
+            ..
+        } => {
+            assert_eq!(*walls, 4);
+            assert!(paint_config.ends_with("paint.toml") && paint_config.exists());
+        }
+        other => panic!("{other:?}"),
+    }
+    // `run` plans the same job through the job stage.
+    let start = start_position();
+    let plan = PlanSettings {
+        period_s: 0.01,
+        ..PlanSettings::default()
+    };
+    let trajectory = rigbridge::job::plan_job(&run.config.job, &run.rig, &start, &plan).unwrap();
+    rigbridge::trajectory::validate(&trajectory, &run.rig).unwrap();
+    assert!(trajectory.duration_s() > 100.0);
+}
+
+/// The report's room and tool and the log's joint states are enough to recompute the
+/// coverage: this does it independently of the world's code (its own contact test, its own
+/// rasterisation by two triangles per swept quad) and finds the report's figures.
+#[test]
+fn coverage_is_recomputed_from_the_log_and_the_report() {
+    let settings = load_run_settings(&repo_path("config/paint-run.toml")).unwrap();
+    let dir = std::env::temp_dir().join(format!("rigbridge-paint-log-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let log = dir.join("paint.mcap");
+    let _ = std::fs::remove_file(&log);
+    let run = run_paint(
+        &settings,
+        &paint_settings(),
+        4,
+        3,
+        &VirtualClock::new(),
+        Some(&log),
+        &StreamControl::default(),
+        &mut |_| {},
+    )
+    .unwrap();
+    let report = serde_json::to_value(&run.paint).unwrap();
+    let recorded = run.run.log.as_ref().unwrap();
+    assert_eq!(recorded.dropped, 0, "{recorded:?}");
+    let logged = rigbridge::log::read_log(&log).unwrap();
+    assert_eq!(logged.states.len() as u64, run.run.stream.cycles);
+    let rig = load_rig(&repo_path("config/painter.toml")).unwrap();
+    assert_eq!(logged.joint_names, rig.joint_names().collect::<Vec<_>>());
+
+    let tool = &report["tool"];
+    let (width, handle, tolerance, cell) = (
+        tool["brush_width_m"].as_f64().unwrap(),
+        tool["handle_m"].as_f64().unwrap(),
+        tool["contact_tolerance_m"].as_f64().unwrap(),
+        tool["coverage_cell_m"].as_f64().unwrap(),
+    );
+    let room = &report["room"];
+    let apothem = room["apothem_m"].as_f64().unwrap();
+    let (wall_w, wall_h) = (
+        room["wall_width_m"].as_f64().unwrap(),
+        room["wall_height_m"].as_f64().unwrap(),
+    );
+    let walls: Vec<(DVec2, DVec2, Vec<[f64; 4]>)> = room["walls"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|w| {
+            let n = DVec2::new(
+                w["normal_xy"][0].as_f64().unwrap(),
+                w["normal_xy"][1].as_f64().unwrap(),
+            );
+            let left = DVec2::new(
+                w["corners_xy"][0][0].as_f64().unwrap(),
+                w["corners_xy"][0][1].as_f64().unwrap(),
+            );
+            let openings = w["openings"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|o| ["left_m", "right_m", "bottom_m", "top_m"].map(|k| o[k].as_f64().unwrap()))
+                .collect();
+            (n, left, openings)
+        })
+        .collect();
+    let (cols, rows) = (
+        (wall_w / cell).round() as usize,
+        (wall_h / cell).round() as usize,
+    );
+    let mut painted = vec![vec![false; cols * rows]; walls.len()];
+    // Where the brush touches: the wall and its ends in (s, v), for one logged state.
+    let touch = |q: &[f64]| -> Option<(usize, [DVec2; 2])> {
+        let t = rig.forward(q).unwrap();
+        let centre = t.transform_point3(glam::DVec3::new(0.0, 0.0, handle));
+        let half = t.transform_vector3(glam::DVec3::X) * (width / 2.0);
+        let ends = [centre - half, centre + half];
+        walls.iter().enumerate().find_map(|(i, (n, left, _))| {
+            let tangent = DVec2::new(n.y, -n.x);
+            let on = ends.iter().all(|p| {
+                let s = (p.truncate() - *left).dot(tangent);
+                (apothem - p.truncate().dot(*n)).abs() <= tolerance
+                    && s >= -tolerance
+                    && s <= wall_w + tolerance
+            });
+            on.then(|| {
+                let st = |p: &glam::DVec3| DVec2::new((p.truncate() - *left).dot(tangent), p.z);
+                (i, [st(&ends[0]), st(&ends[1])])
+            })
+        })
+    };
+    let in_triangle = |p: DVec2, a: DVec2, b: DVec2, c: DVec2| {
+        let d = |u: DVec2, v: DVec2, w: DVec2| (v - u).perp_dot(w - u);
+        let (d1, d2, d3) = (d(a, b, p), d(b, c, p), d(c, a, p));
+        let tol = 1e-12;
+        (d1 >= -tol && d2 >= -tol && d3 >= -tol) || (d1 <= tol && d2 <= tol && d3 <= tol)
+    };
+    let mut previous: Option<(usize, [DVec2; 2])> = None;
+    for state in &logged.states {
+        let now = touch(&state.positions);
+        if let (Some((wall, [b0, b1])), Some((before, [a0, a1]))) = (now, previous)
+            && wall == before
+        {
+            let grid = &mut painted[wall];
+            for row in 0..rows {
+                for col in 0..cols {
+                    let p = DVec2::new((col as f64 + 0.5) * cell, (row as f64 + 0.5) * cell);
+                    let lo = a0.min(a1).min(b0).min(b1);
+                    let hi = a0.max(a1).max(b0).max(b1);
+                    if p.x < lo.x || p.y < lo.y || p.x > hi.x || p.y > hi.y {
+                        continue;
+                    }
+                    let area =
+                        (a1 - a0).perp_dot(b1 - a0).abs() + (b1 - a0).perp_dot(b0 - a0).abs();
+                    if area > 0.0 && (in_triangle(p, a0, a1, b1) || in_triangle(p, a0, b1, b0)) {
+                        grid[row * cols + col] = true;
+                    }
+                }
+            }
+        }
+        previous = now;
+    }
+    let (mut paintable, mut covered, mut in_openings) = (0u64, 0u64, 0u64);
+    for ((_, _, openings), grid) in walls.iter().zip(&painted) {
+        for row in 0..rows {
+            for col in 0..cols {
+                let (s, v) = ((col as f64 + 0.5) * cell, (row as f64 + 0.5) * cell);
+                let opening = openings
+                    .iter()
+                    .any(|[l, r, b, t]| s > *l && s < *r && v > *b && v < *t);
+                let p = grid[row * cols + col];
+                match (opening, p) {
+                    (true, true) => in_openings += 1,
+                    (true, false) => {}
+                    (false, true) => {
+                        paintable += 1;
+                        covered += 1;
+                    }
+                    (false, false) => paintable += 1,
+                }
+            }
+        }
+    }
+    let coverage = covered as f64 / paintable as f64;
+    let reported = report["totals"]["coverage"].as_f64().unwrap();
+    assert!(
+        (coverage - reported).abs() < 1e-4,
+        "recomputed {coverage}, reported {reported}"
+    );
+    assert_eq!(in_openings, 0);
+    assert!(coverage >= 0.995);
+}
