@@ -16,12 +16,14 @@ pub mod frame;
 mod hub;
 mod live;
 pub mod page;
+mod paint;
 mod sloth;
 mod trace;
 
 pub use arm::{ArmScene, joint_origins, joint_origins_from};
 pub use hub::{JobView, LiveHub};
 pub use live::{LiveSample, LiveSink, LiveSlot};
+pub use paint::PaintScene;
 pub use sloth::SlothScene;
 pub use trace::ToolTrace;
 

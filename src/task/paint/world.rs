@@ -173,6 +173,8 @@ pub struct PaintWorld {
     tolerance: f64,
     grids: Vec<WallGrid>,
     previous: Option<(usize, [DVec2; 2])>,
+    /// Contact episodes so far: a new one starts whenever the brush lands on a wall.
+    contacts: u64,
     in_collision: bool,
     measured: Measurements,
 }
@@ -189,6 +191,7 @@ impl PaintWorld {
                 .map(|w| WallGrid::new(room, w, cell))
                 .collect(),
             previous: None,
+            contacts: 0,
             in_collision: false,
             measured: Measurements {
                 cycles: 0,
@@ -213,6 +216,17 @@ impl PaintWorld {
 
     pub fn room(&self) -> &Room {
         &self.room
+    }
+
+    pub fn body(&self) -> &Body {
+        &self.body
+    }
+
+    /// The brush's contact line as of the last cycle (its wall, and its ends in that wall's
+    /// coordinates), with the number of the contact episode it belongs to.
+    pub fn contact(&self) -> Option<(u64, usize, [DVec2; 2])> {
+        self.previous
+            .map(|(wall, ends)| (self.contacts, wall, ends))
     }
 
     /// The wall the contact line lies on (both ends within the tolerance of its plane,
@@ -259,6 +273,9 @@ impl TwinWorld for PaintWorld {
             let mut corners = [before[0], before[1], now[0], now[1]];
             let hull = convex_hull(&mut corners);
             self.grids[wall].fill(&hull);
+        }
+        if contact.is_some_and(|(wall, _)| self.previous.is_none_or(|(before, _)| before != wall)) {
+            self.contacts += 1;
         }
         self.previous = contact;
     }
