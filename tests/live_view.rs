@@ -436,7 +436,10 @@ async fn watch_the_second_cell(client: &Client) -> Value {
     )
     .await;
     let result = text_of(client, "control-result").await;
-    assert!(result.starts_with("/api/cells/pan_tilt/jobs: 202"), "{result}");
+    assert!(
+        result.starts_with("/api/cells/pan_tilt/jobs: 202"),
+        "{result}"
+    );
     wait_until(
         client,
         "the second cell's job to end",

@@ -648,14 +648,14 @@ fn two_cells_run_their_jobs_at_the_same_time_each_on_its_own_rig() {
         std::thread::sleep(Duration::from_millis(20));
     }
     let deadline = Instant::now() + Duration::from_secs(30);
-    while cell_states(&server).iter().any(|(_, state)| state != "idle") {
+    while cell_states(&server)
+        .iter()
+        .any(|(_, state)| state != "idle")
+    {
         assert!(Instant::now() < deadline, "jobs should end");
         std::thread::sleep(Duration::from_millis(50));
     }
-    for (cell, rig, joints) in [
-        ("irb120", "irb120", 6),
-        ("pan_tilt", "pan_tilt", 3),
-    ] {
+    for (cell, rig, joints) in [("irb120", "irb120", 6), ("pan_tilt", "pan_tilt", 3)] {
         let (_, status) = request(&server, "GET", &format!("/api/cells/{cell}/status"), None);
         let report = &status["last"]["report"];
         assert_eq!(report["outcome"], "completed", "{status}");
@@ -700,10 +700,16 @@ fn an_unknown_cell_is_404_and_the_cell_routes_need_the_token() {
     let (code, missing) = request(&server, "POST", "/api/cells/nowhere/stop", None);
     assert_eq!(code, 404, "{missing}");
     let message = missing["error"].as_str().unwrap();
-    assert!(message.contains("nowhere") && message.contains("pan_tilt"), "{message}");
+    assert!(
+        message.contains("nowhere") && message.contains("pan_tilt"),
+        "{message}"
+    );
     let (code, missing) = request(&server, "GET", "/api/cells/nowhere/status", None);
     assert_eq!(code, 404, "{missing}");
-    assert_eq!(request(&server, "POST", "/api/cells/pan_tilt/stop", None).0, 409);
+    assert_eq!(
+        request(&server, "POST", "/api/cells/pan_tilt/stop", None).0,
+        409
+    );
     let (mut socket, _) = open_live(
         &server,
         &format!("/api/cells/pan_tilt/live?token={token}"),
@@ -713,8 +719,7 @@ fn an_unknown_cell_is_404_and_the_cell_routes_need_the_token() {
     let scene = next_json(&mut socket);
     assert_eq!(scene["rig"], "pan_tilt", "{scene}");
     assert_eq!(scene["joints"].as_array().unwrap().len(), 3);
-    let (mut socket, _) =
-        open_live(&server, &format!("/api/live?token={token}"), &[]).unwrap();
+    let (mut socket, _) = open_live(&server, &format!("/api/live?token={token}"), &[]).unwrap();
     assert_eq!(next_json(&mut socket)["rig"], "irb120", "the first cell's");
     let mut stream = TcpStream::connect(&server.address).unwrap();
     write!(
@@ -738,7 +743,11 @@ fn refused_at_start(configs: &[&std::path::Path]) -> String {
         .output()
         .unwrap();
     assert!(!output.status.success());
-    assert!(output.stdout.is_empty(), "never listened: {:?}", output.stdout);
+    assert!(
+        output.stdout.is_empty(),
+        "never listened: {:?}",
+        output.stdout
+    );
     String::from_utf8_lossy(&output.stderr).into_owned()
 }
 

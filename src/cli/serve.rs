@@ -6,8 +6,8 @@
 use super::run::ClockChoice;
 use anyhow::Context;
 use clap::Args;
-use rigbridge::daemon::config::{load_run_settings, token_problem};
 use rigbridge::daemon::config::RunSettings;
+use rigbridge::daemon::config::{load_run_settings, token_problem};
 use rigbridge::daemon::server::{ServeOptions, check_cells, run};
 use std::net::IpAddr;
 use std::path::PathBuf;

@@ -253,7 +253,13 @@ impl Cell {
         CellSummary {
             name: self.name().to_string(),
             dof: self.settings.rig.dof(),
-            joints: self.settings.rig.joints.iter().map(|j| j.name.clone()).collect(),
+            joints: self
+                .settings
+                .rig
+                .joints
+                .iter()
+                .map(|j| j.name.clone())
+                .collect(),
             state: state_of(job.as_ref()),
             job,
         }
