@@ -3,7 +3,9 @@
 //! `chromium-driver`; `scripts/test.sh` installs them). The page must draw its first frame
 //! within 1 s of loading, start a job from its button, redraw the canvas as the twin moves,
 //! update its status numbers, draw and receive >= 30 frames/s while streaming, and log no
-//! error. Saves a screenshot to `target/e2e/live-view.png`.
+//! error. Saves a screenshot to `target/e2e/live-view.png`. The daemon runs two cells (the
+//! arm and a small pan-tilt rig): the page shows the first, and its cell selector switches
+//! to the second, whose job it starts and watches to the end.
 //!
 //! Without Chromium the test fails, unless `RIGBRIDGE_SKIP_BROWSER=1`, when it says why it
 //! skips. `RIGBRIDGE_CHROMIUM` and `RIGBRIDGE_CHROMEDRIVER` override the binaries' paths.
@@ -45,10 +47,43 @@ fn binary(variable: &str, default: &str) -> PathBuf {
     std::env::var_os(variable).map_or_else(|| PathBuf::from(default), PathBuf::from)
 }
 
-/// `rigbridge serve` on a free port of 127.0.0.1; returns it and its page's address.
-fn start_server(runs: &Path) -> (Running, String) {
+/// A second cell for the daemon in `dir`: a three-axis pan-tilt rig named `pan_tilt` whose
+/// default job is a few joint moves.
+fn pan_tilt_cell(dir: &Path) -> PathBuf {
+    let joint = |joint: &str, z: f64, axis: &str| {
+        format!(
+            "[[joint]]\nname = \"{joint}\"\nkind = \"revolute\"\norigin_xyz_m = [0.0, 0.0, {z}]\n\
+             axis = {axis}\nlower_deg = -90.0\nupper_deg = 90.0\nmax_speed_deg_s = 60.0\n\
+             max_accel_deg_s2 = 240.0\n\n"
+        )
+    };
+    let rig = format!(
+        "name = \"pan_tilt\"\nbase_frame = \"base\"\ntool_frame = \"tool\"\n\n{}{}{}",
+        joint("pan", 0.0, "[0.0, 0.0, 1.0]"),
+        joint("tilt", 0.3, "[0.0, 1.0, 0.0]"),
+        joint("elbow", 0.25, "[0.0, 1.0, 0.0]"),
+    );
+    std::fs::write(dir.join("pan_tilt.toml"), rig).unwrap();
+    let file = dir.join("pan_tilt_cell.toml");
+    std::fs::write(
+        &file,
+        "rig = \"pan_tilt.toml\"\n\n[stream]\nrate_hz = 250.0\n\n\
+         [twin]\nbandwidth_hz = 20.0\ndelay_ms = 12.0\nwatchdog_cycles = 25\n\
+         initial_deg = [0.0, 0.0, 0.0]\n\n[plan]\nspeed_scale = 0.9\naccel_scale = 0.8\n\n\
+         [job]\nkind = \"joint_waypoints\"\nwaypoints_deg = [[50.0, 20.0, -20.0], [0.0, 0.0, 0.0]]\n",
+    )
+    .unwrap();
+    file
+}
+
+/// `rigbridge serve` on a free port of 127.0.0.1 with the arm's cell and `second`; returns
+/// it and its page's address.
+fn start_server(runs: &Path, second: &Path) -> (Running, String) {
     let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["serve", "--port", "0", "--clock", "wall", "--runs-dir"])
+        .args(["serve", "--port", "0", "--clock", "wall"])
+        .args(["--config", "config/rigbridge.toml", "--config"])
+        .arg(second)
+        .arg("--runs-dir")
         .arg(runs)
         .current_dir(repo_path(""))
         .env_remove("RIGBRIDGE_TOKEN")
@@ -186,7 +221,8 @@ fn the_live_view_draws_the_twin_and_runs_a_job_in_headless_chromium() {
     let scratch = std::env::temp_dir().join(format!("rigbridge-e2e-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&scratch);
     std::fs::create_dir_all(&scratch).unwrap();
-    let (_server, url) = start_server(&scratch.join("runs"));
+    let second = pan_tilt_cell(&scratch);
+    let (_server, url) = start_server(&scratch.join("runs"), &second);
     let (_driver, driver_port) = start_chromedriver(&driver);
     let profile = scratch.join("profile");
 
@@ -342,6 +378,7 @@ async fn exercise_page(client: &Client, url: &str) -> Value {
     )
     .await;
     assert_eq!(text_of(client, "job-last").await, "last job: completed");
+    let second_cell = watch_the_second_cell(client).await;
     let end = health(client).await;
     let errors = end["errors"].as_array().unwrap();
     assert!(errors.is_empty(), "errors the page collected: {errors:?}");
@@ -354,5 +391,62 @@ async fn exercise_page(client: &Client, url: &str) -> Value {
         "paint_quads": painted,
         "frames_drawn": end["framesDrawn"],
         "page_errors": errors.len(),
+        "second_cell": second_cell,
     })
+}
+
+/// Chooses the second cell in the page's selector, starts its job and watches it complete.
+async fn watch_the_second_cell(client: &Client) -> Value {
+    wait_until(
+        client,
+        "the cell selector",
+        "return !document.getElementById('cell').hidden;",
+        Duration::from_secs(5),
+    )
+    .await;
+    eval(
+        client,
+        "const select = document.getElementById('cell');
+         select.value = 'pan_tilt';
+         select.dispatchEvent(new Event('change'));
+         return true;",
+    )
+    .await;
+    wait_until(
+        client,
+        "the second cell's scene",
+        "return document.getElementById('rig-name').textContent.startsWith('pan_tilt') &&
+                document.querySelectorAll('#joints tbody tr').length === 3;",
+        Duration::from_secs(5),
+    )
+    .await;
+    assert_eq!(text_of(client, "job-state").await, "idle");
+    client
+        .find(Locator::Id("start"))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    wait_until(
+        client,
+        "the second cell's job to run",
+        "return document.getElementById('job-state').textContent === 'running';",
+        Duration::from_secs(10),
+    )
+    .await;
+    let result = text_of(client, "control-result").await;
+    assert!(
+        result.starts_with("/api/cells/pan_tilt/jobs: 202"),
+        "{result}"
+    );
+    wait_until(
+        client,
+        "the second cell's job to end",
+        "return document.getElementById('job-state').textContent === 'idle' &&
+                document.getElementById('job-last').textContent === 'last job: completed';",
+        Duration::from_secs(30),
+    )
+    .await;
+    json!({ "cell": "pan_tilt", "control": result })
 }

@@ -540,3 +540,231 @@ fn off_loopback_the_live_view_needs_the_token_too() {
     let (mut socket, _) = open_live(&server, &format!("/api/live?token={token}"), &[]).unwrap();
     assert_eq!(next_json(&mut socket)["type"], "scene");
 }
+
+// ---------------------------------------------------------------------- cells --
+
+/// A second cell's run settings in a fresh directory: a three-axis pan-tilt rig named
+/// `name` (joints `pan`, `tilt`, `elbow`, slow enough that a job lasts seconds) on `link`,
+/// whose default job is a few joint moves.
+fn pan_tilt_cell(name: &str, link: &str) -> std::path::PathBuf {
+    static CELLS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = CELLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let dir = std::env::temp_dir().join(format!("rigbridge-cell-{}-{n}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let joint = |joint: &str, z: f64, axis: &str| {
+        format!(
+            "[[joint]]\nname = \"{joint}\"\nkind = \"revolute\"\norigin_xyz_m = [0.0, 0.0, {z}]\n\
+             axis = {axis}\nlower_deg = -90.0\nupper_deg = 90.0\nmax_speed_deg_s = 60.0\n\
+             max_accel_deg_s2 = 240.0\n\n"
+        )
+    };
+    let rig = format!(
+        "name = \"{name}\"\nbase_frame = \"base\"\ntool_frame = \"tool\"\n\n{}{}{}",
+        joint("pan", 0.0, "[0.0, 0.0, 1.0]"),
+        joint("tilt", 0.3, "[0.0, 1.0, 0.0]"),
+        joint("elbow", 0.25, "[0.0, 1.0, 0.0]"),
+    );
+    std::fs::write(dir.join("pan_tilt.toml"), rig).unwrap();
+    let settings = format!(
+        "rig = \"pan_tilt.toml\"\n\n[stream]\nrate_hz = 250.0\nlink = \"{link}\"\n\n\
+         [twin]\nbandwidth_hz = 20.0\ndelay_ms = 12.0\nwatchdog_cycles = 25\n\
+         initial_deg = [0.0, 0.0, 0.0]\n\n[plan]\nspeed_scale = 0.9\naccel_scale = 0.8\n\n\
+         [job]\nkind = \"joint_waypoints\"\n\
+         waypoints_deg = [[50.0, 20.0, -20.0], [-50.0, -20.0, 20.0], [0.0, 0.0, 0.0]]\n"
+    );
+    let file = dir.join("pan_tilt_cell.toml");
+    std::fs::write(&file, settings).unwrap();
+    file
+}
+
+fn two_cells(second: &std::path::Path, env_token: Option<&str>) -> Server {
+    start_server_with(
+        &[
+            "--config",
+            "config/rigbridge.toml",
+            "--config",
+            second.to_str().unwrap(),
+        ],
+        env_token,
+    )
+}
+
+/// A few joint moves of the arm, about 2 s at 250 Hz.
+const ARM_MOVES: &str = r#"{"job": {"kind": "joint_waypoints", "waypoints_deg": [[60, 0, 0, 0, 30, 0], [-60, 0, 0, 0, 30, 0], [0, 0, 0, 0, 30, 0]]}}"#;
+
+fn cell_states(server: &Server) -> Vec<(String, String)> {
+    let (code, list) = request(server, "GET", "/api/cells", None);
+    assert_eq!(code, 200, "{list}");
+    list["cells"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| {
+            (
+                c["name"].as_str().unwrap().to_string(),
+                c["state"].as_str().unwrap().to_string(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn two_cells_run_their_jobs_at_the_same_time_each_on_its_own_rig() {
+    let server = two_cells(&pan_tilt_cell("pan_tilt", "loopback"), None);
+    let (code, list) = request(&server, "GET", "/api/cells", None);
+    assert_eq!(code, 200, "{list}");
+    let cells = list["cells"].as_array().unwrap();
+    assert_eq!(cells.len(), 2, "{list}");
+    assert_eq!(cells[0]["name"], "irb120", "the first file's cell first");
+    assert_eq!(cells[0]["dof"], 6);
+    assert_eq!(cells[1]["name"], "pan_tilt");
+    assert_eq!(cells[1]["dof"], 3);
+    assert_eq!(
+        cells[1]["joints"],
+        serde_json::json!(["pan", "tilt", "elbow"])
+    );
+    let (_, status) = request(&server, "GET", "/api/cells/pan_tilt/status", None);
+    assert_eq!(status["cell"], "pan_tilt");
+    assert_eq!(status["actual_deg"].as_array().unwrap().len(), 3);
+
+    let (code, arm) = request(&server, "POST", "/api/cells/irb120/jobs", Some(ARM_MOVES));
+    assert_eq!(code, 202, "{arm}");
+    let (code, pan) = request(&server, "POST", "/api/cells/pan_tilt/jobs", None);
+    assert_eq!(code, 202, "{pan}");
+    assert_eq!(pan["cell"], "pan_tilt");
+    assert_ne!(arm["id"], pan["id"], "job numbers are daemon-wide");
+    let (code, busy) = request(&server, "POST", "/api/cells/pan_tilt/jobs", None);
+    assert_eq!(code, 409, "one job at a time in a cell: {busy}");
+
+    // Both running at one instant: one listing holds both states.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let states = cell_states(&server);
+        if states.iter().all(|(_, state)| state == "running") {
+            break;
+        }
+        assert!(Instant::now() < deadline, "never both running: {states:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while cell_states(&server)
+        .iter()
+        .any(|(_, state)| state != "idle")
+    {
+        assert!(Instant::now() < deadline, "jobs should end");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    for (cell, rig, joints) in [("irb120", "irb120", 6), ("pan_tilt", "pan_tilt", 3)] {
+        let (_, status) = request(&server, "GET", &format!("/api/cells/{cell}/status"), None);
+        let report = &status["last"]["report"];
+        assert_eq!(report["outcome"], "completed", "{status}");
+        assert_eq!(report["rig"], rig, "{status}");
+        assert_eq!(report["limit_violations"], 0, "{status}");
+        assert_eq!(status["actual_deg"].as_array().unwrap().len(), joints);
+        let log = rigbridge::log::read_log(std::path::Path::new(
+            report["log"]["path"].as_str().unwrap(),
+        ))
+        .unwrap();
+        assert_eq!(log.rig, rig);
+        assert_eq!(log.joint_names.len(), joints, "{:?}", log.joint_names);
+        assert!(!log.commands.is_empty() && !log.states.is_empty());
+        for sample in log.commands.iter().chain(&log.states) {
+            assert_eq!(sample.positions.len(), joints, "seq {}", sample.seq);
+        }
+    }
+    // The routes without a cell name are the first cell's.
+    let (_, first) = request(&server, "GET", "/api/status", None);
+    assert_eq!(first["cell"], "irb120");
+    assert_eq!(first["last"]["report"]["rig"], "irb120");
+}
+
+#[test]
+fn an_unknown_cell_is_404_and_the_cell_routes_need_the_token() {
+    let token = "cells-s3cret-token";
+    let server = two_cells(&pan_tilt_cell("pan_tilt", "loopback"), Some(token));
+    for path in [
+        "/api/cells/pan_tilt/jobs",
+        "/api/cells/pan_tilt/pause",
+        "/api/cells/pan_tilt/resume",
+        "/api/cells/pan_tilt/stop",
+        "/api/cells/pan_tilt/estop",
+        "/api/cells/nowhere/stop",
+    ] {
+        assert_unauthorized(request_with(&server, "POST", path, ""));
+    }
+    assert_eq!(
+        refused_with(open_live(&server, "/api/cells/pan_tilt/live", &[])),
+        401
+    );
+    let (code, missing) = request(&server, "POST", "/api/cells/nowhere/stop", None);
+    assert_eq!(code, 404, "{missing}");
+    let message = missing["error"].as_str().unwrap();
+    assert!(
+        message.contains("nowhere") && message.contains("pan_tilt"),
+        "{message}"
+    );
+    let (code, missing) = request(&server, "GET", "/api/cells/nowhere/status", None);
+    assert_eq!(code, 404, "{missing}");
+    assert_eq!(
+        request(&server, "POST", "/api/cells/pan_tilt/stop", None).0,
+        409
+    );
+    let (mut socket, _) = open_live(
+        &server,
+        &format!("/api/cells/pan_tilt/live?token={token}"),
+        &[],
+    )
+    .unwrap();
+    let scene = next_json(&mut socket);
+    assert_eq!(scene["rig"], "pan_tilt", "{scene}");
+    assert_eq!(scene["joints"].as_array().unwrap().len(), 3);
+    let (mut socket, _) = open_live(&server, &format!("/api/live?token={token}"), &[]).unwrap();
+    assert_eq!(next_json(&mut socket)["rig"], "irb120", "the first cell's");
+    let mut stream = TcpStream::connect(&server.address).unwrap();
+    write!(
+        stream,
+        "POST /api/cells/pan_tilt/estop HTTP/1.1\r\nHost: {}\r\nAuthorization: Bearer {token}\r\nOrigin: http://evil.example\r\nContent-Length: 0\r\nConnection: close\r\n\r\n",
+        server.address
+    )
+    .unwrap();
+    let mut response = String::new();
+    stream.read_to_string(&mut response).unwrap();
+    assert!(response.starts_with("HTTP/1.1 403"), "{response}");
+}
+
+fn refused_at_start(configs: &[&std::path::Path]) -> String {
+    let mut args = Vec::new();
+    for config in configs {
+        args.extend(["--config", config.to_str().unwrap()]);
+    }
+    let output = serve_command(&args, None)
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    assert!(
+        output.stdout.is_empty(),
+        "never listened: {:?}",
+        output.stdout
+    );
+    String::from_utf8_lossy(&output.stderr).into_owned()
+}
+
+#[test]
+fn two_cells_with_one_name_or_one_link_refuse_to_start() {
+    let first = pan_tilt_cell("pan_tilt", "loopback");
+    let second = pan_tilt_cell("pan_tilt", "loopback");
+    let stderr = refused_at_start(&[&first, &second]);
+    assert!(stderr.contains("`pan_tilt`"), "{stderr}");
+    for file in [&first, &second] {
+        assert!(stderr.contains(file.to_str().unwrap()), "{stderr}");
+    }
+    let first = pan_tilt_cell("left", "tcp://127.0.0.1:7000");
+    let second = pan_tilt_cell("right", "tcp://127.0.0.1:7000");
+    let stderr = refused_at_start(&[&first, &second]);
+    assert!(stderr.contains("tcp://127.0.0.1:7000"), "{stderr}");
+    for file in [&first, &second] {
+        assert!(stderr.contains(file.to_str().unwrap()), "{stderr}");
+    }
+}

@@ -1,12 +1,14 @@
-//! `rigbridge serve`: binds 127.0.0.1 (or `--bind` / `[serve] bind`) and hands the listener
-//! to the daemon's server. A non-loopback address requires a token (`RIGBRIDGE_TOKEN` or
-//! `[serve] token`).
+//! `rigbridge serve`: loads one run settings file per cell (`--config`, repeatable), binds
+//! 127.0.0.1 (or `--bind` / the first file's `[serve] bind`) and hands the listener to the
+//! daemon's server. A non-loopback address requires a token (`RIGBRIDGE_TOKEN` or the first
+//! file's `[serve] token`).
 
 use super::run::ClockChoice;
 use anyhow::Context;
 use clap::Args;
+use rigbridge::daemon::config::RunSettings;
 use rigbridge::daemon::config::{load_run_settings, token_problem};
-use rigbridge::daemon::server::{ServeOptions, run};
+use rigbridge::daemon::server::{ServeOptions, check_cells, run};
 use std::net::IpAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -16,9 +18,12 @@ const TOKEN_VAR: &str = "RIGBRIDGE_TOKEN";
 
 #[derive(Args)]
 pub struct ServeArgs {
-    /// Run settings: rig, stream rate, twin, plan and the default job.
+    /// Run settings of a cell: rig, stream rate, twin, plan and the default job. Repeat it
+    /// to serve several rigs at once, one cell each, named by its rig; the first file's
+    /// `[serve]` sets the bind address and token, and its cell answers the routes without a
+    /// cell name.
     #[arg(long, default_value = "config/rigbridge.toml")]
-    config: PathBuf,
+    config: Vec<PathBuf>,
     /// Address to listen on [default: `[serve] bind`, else 127.0.0.1]. Anything but a
     /// loopback address requires a token (RIGBRIDGE_TOKEN or `[serve] token`).
     #[arg(long, value_name = "ADDRESS")]
@@ -65,8 +70,28 @@ fn token(config_token: Option<&str>) -> anyhow::Result<Option<String>> {
     }
 }
 
+/// Every `--config` file, loaded and checked to run side by side.
+fn load_cells(files: &[PathBuf]) -> anyhow::Result<Vec<RunSettings>> {
+    let cells = files
+        .iter()
+        .map(|file| load_run_settings(file).context("cannot load run settings"))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    check_cells(&cells).context("cannot serve these run settings together")?;
+    for cell in cells.iter().skip(1) {
+        let serve = &cell.config.serve;
+        if serve.bind != "127.0.0.1" || serve.token.is_some() {
+            eprintln!(
+                "note: [serve] in {} is ignored: the first --config file's [serve] applies",
+                cell.file.display()
+            );
+        }
+    }
+    Ok(cells)
+}
+
 pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
-    let settings = load_run_settings(&args.config).context("cannot load run settings")?;
+    let cells = load_cells(&args.config)?;
+    let settings = &cells[0];
     let bind = match args.bind {
         Some(bind) => bind,
         // Validated on load.
@@ -83,7 +108,7 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
             "refusing to serve on {bind} without a token: anyone who can reach a non-loopback \
              address could move the arm. Set one in the environment ({TOKEN_VAR}=<secret>) \
              or as `token` under [serve] in {}, or bind 127.0.0.1",
-            args.config.display()
+            settings.file.display()
         );
     }
     let options = ServeOptions {
@@ -98,7 +123,7 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
                 format!("cannot bind {}", std::net::SocketAddr::new(bind, args.port))
             })?;
         println!("http://{}/", listener.local_addr()?);
-        run(listener, settings, options, shutdown_signal()).await?;
+        run(listener, cells, options, shutdown_signal()).await?;
         anyhow::Ok(())
     })?;
     Ok(ExitCode::SUCCESS)

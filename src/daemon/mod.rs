@@ -46,6 +46,8 @@ pub enum DaemonError {
     Replay(String),
     #[error("{0}")]
     Unavailable(String),
+    #[error(transparent)]
+    Cells(#[from] server::CellError),
 }
 
 /// An error and all its sources, as one line ("job refused before motion: job target 0 ...").

@@ -1,7 +1,10 @@
 //! `rigbridge serve`: the daemon that stays up. A control API over HTTP + JSON on
-//! 127.0.0.1: submit a job, status, pause/resume, stop (decelerate to standstill) and
-//! e-stop. One job streams at a time; the twin persists between jobs, so each job starts
-//! where the last one left the arm. Like mini-redis, the binary only binds the listener
+//! 127.0.0.1 for one or more cells ([`cell`]: one run settings file each, so one rig with
+//! its own twin, job slot and live view): submit a job, status, pause/resume, stop
+//! (decelerate to standstill) and e-stop, per cell under `/api/cells/{cell}/`, and for the
+//! first cell also without the prefix. One job streams at a time per cell; jobs in
+//! different cells run side by side. A cell's twin persists between jobs, so each job starts
+//! where the last one left the rig. Like mini-redis, the binary only binds the listener
 //! and hands it to [`run`] with a shutdown signal.
 //!
 //! Access: with a token ([`ServeOptions::token`]) every control route requires
@@ -11,28 +14,32 @@
 //! is not loopback a token is mandatory and every `/api` route requires it, status included.
 //! The page's static files (`/`, `/live.js`, `/live.css`) hold no state and stay open.
 //!
-//! The live view (`src/view`): a task samples the streamer's latest state 50 times a second
-//! and sends each frame to every page connected to `/api/live`.
+//! The live view (`src/view`): a task samples every cell's streamer state 50 times a second
+//! and sends each frame to every page connected to that cell's live route.
 
+mod cell;
+
+pub use cell::{CellError, check_cells};
+
+use super::DaemonError;
 use super::config::{JobConfig, RunSettings};
-use super::{DaemonError, RunReport, plan_for, stream_planned_with, twin_settings};
-use crate::clock::{Clock, VirtualClock, WallClock};
-use crate::link::LoopbackLink;
+use crate::clock::{Clock, WallClock};
 use crate::stream::StreamControl;
-use crate::twin::{SharedWorld, Twin, TwinWorld};
-use crate::view::{
-    ArmScene, JobView, LiveHub, LiveSample, LiveScene, LiveSink, LiveSlot, ToolTrace, page,
-};
+use crate::twin::TwinWorld;
+use crate::view::{ArmScene, LiveScene, ToolTrace, page};
 use axum::extract::ws::{Message as WsMessage, WebSocket, WebSocketUpgrade};
-use axum::extract::{Request, State};
+use axum::extract::{FromRequestParts, RawPathParams, Request, State};
+use axum::http::request::Parts;
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
-use serde::{Deserialize, Serialize};
+use cell::{Cell, StartRefused};
+use serde::Deserialize;
 use std::future::Future;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::{broadcast, watch};
@@ -219,54 +226,57 @@ pub async fn require_same_origin(request: Request, next: Next) -> Response {
     }
 }
 
-struct ActiveJob {
-    id: u64,
-    name: String,
-    control: Arc<StreamControl>,
-    handle: std::thread::JoinHandle<()>,
-}
-
-struct Shared {
-    settings: RunSettings,
+/// What every request handler shares: the cells, in the order of their files (the first
+/// answers the routes without a cell name), and the daemon's options.
+struct Daemon {
+    cells: Vec<Arc<Cell>>,
     options: ServeOptions,
-    link: Arc<Mutex<LoopbackLink>>,
-    job: Mutex<Option<ActiveJob>>,
-    last: Arc<Mutex<Option<JobResult>>>,
-    next_id: Mutex<u64>,
-    hub: LiveHub,
-    /// The twin's world for the current job (the twin outlives jobs; its world does not).
-    world: SharedWorld<JobWorld>,
+    /// Job numbers, daemon-wide: each job's log is `job-<id>.mcap` in the runs directory,
+    /// whichever cell ran it.
+    next_id: AtomicU64,
     /// Turns true when the server stops: live connections close.
     stopping: watch::Receiver<bool>,
 }
 
-#[derive(Debug, Clone, Serialize)]
-#[serde(tag = "result", rename_all = "snake_case")]
-enum JobResult {
-    Finished { id: u64, report: Box<RunReport> },
-    Failed { id: u64, error: String },
+impl Daemon {
+    fn cell(&self, name: &str) -> Option<&Arc<Cell>> {
+        self.cells.iter().find(|cell| cell.name() == name)
+    }
 }
 
-#[derive(Debug, Serialize)]
-struct Status {
-    state: &'static str,
-    job: Option<JobStatus>,
-    last: Option<JobResult>,
-    actual_deg: Vec<f64>,
-}
+/// The cell a request is about: the `{cell}` of `/api/cells/{cell}/...`, or the first cell
+/// for the routes without one (`/api/jobs`, `/api/status`, ...). An unknown name is 404.
+struct CellRef(Arc<Cell>);
 
-#[derive(Debug, Serialize)]
-struct JobStatus {
-    id: u64,
-    name: String,
-    progress: f64,
-    cycles: u64,
-    paused: bool,
+impl FromRequestParts<Arc<Daemon>> for CellRef {
+    type Rejection = Response;
+
+    async fn from_request_parts(
+        parts: &mut Parts,
+        daemon: &Arc<Daemon>,
+    ) -> Result<Self, Self::Rejection> {
+        let params = RawPathParams::from_request_parts(parts, daemon)
+            .await
+            .map_err(IntoResponse::into_response)?;
+        let Some((_, name)) = params.iter().find(|(key, _)| *key == "cell") else {
+            return Ok(CellRef(daemon.cells[0].clone()));
+        };
+        match daemon.cell(name) {
+            Some(cell) => Ok(CellRef(cell.clone())),
+            None => {
+                let known: Vec<&str> = daemon.cells.iter().map(|c| c.name()).collect();
+                Err(error(
+                    StatusCode::NOT_FOUND,
+                    format!("no cell named `{name}`: this daemon runs {known:?}"),
+                ))
+            }
+        }
+    }
 }
 
 #[derive(Debug, Deserialize)]
 struct JobRequest {
-    /// A job like config's `[job]`; the configured job when absent.
+    /// A job like config's `[job]`; the cell's configured job when absent.
     job: Option<JobConfig>,
 }
 
@@ -278,12 +288,13 @@ fn error(status: StatusCode, message: impl std::fmt::Display) -> Response {
         .into_response()
 }
 
-/// Serves the control API on `listener` until `shutdown` completes; then stops any job
-/// (decelerating along its path) and waits for it. Refuses a listener that is not on a
+/// Serves the control API for `cells` (one per run settings file, checked with
+/// [`check_cells`]) on `listener` until `shutdown` completes; then stops every job
+/// (decelerating along its path) and waits for them. Refuses a listener that is not on a
 /// loopback address unless `options.token` is set.
 pub async fn run(
     listener: tokio::net::TcpListener,
-    settings: RunSettings,
+    cells: Vec<RunSettings>,
     options: ServeOptions,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), DaemonError> {
@@ -295,70 +306,21 @@ pub async fn run(
              RIGBRIDGE_TOKEN or [serve] token"
         )));
     }
-    let check = TokenCheck::new(options.token.as_deref());
-    let auth = axum::middleware::from_fn_with_state(check.clone(), require_token);
-    let live_auth = axum::middleware::from_fn_with_state(check, require_live_token);
-    let world = Arc::new(Mutex::new(JobWorld(None)));
-    let twin = Twin::new(&settings.rig, twin_settings(&settings), &settings.initial())?
-        .with_world(Box::new(world.clone()));
-    let link = LoopbackLink::new(twin);
+    check_cells(&cells)?;
     std::fs::create_dir_all(&options.runs_dir).map_err(crate::link::LinkError::Io)?;
-    let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&settings.initial())));
-    let (scene, job_world) = scene_for_job(&settings, &settings.config.job);
-    if let Ok(mut world) = world.lock() {
-        world.0 = job_world;
-    }
-    let hub = LiveHub::new(
-        settings.rig.clone(),
-        settings.config.stream.rate_hz,
-        LIVE_FRAME_RATE_HZ,
-        slot,
-        scene,
-    );
+    let cells = cells
+        .into_iter()
+        .map(|settings| Cell::new(settings).map(Arc::new))
+        .collect::<Result<Vec<_>, _>>()?;
     let (stop_live, stopping) = watch::channel(false);
-    let shared = Arc::new(Shared {
-        settings,
+    let daemon = Arc::new(Daemon {
+        cells,
         options,
-        link: Arc::new(Mutex::new(link)),
-        job: Mutex::new(None),
-        last: Arc::new(Mutex::new(None)),
-        next_id: Mutex::new(1),
-        hub,
-        world,
+        next_id: AtomicU64::new(1),
         stopping,
     });
-    let same_origin = axum::middleware::from_fn(require_same_origin);
-    // Everything that moves the arm goes here: always behind the check.
-    let control = Router::new()
-        .route("/api/jobs", post(submit))
-        .route("/api/pause", post(pause))
-        .route("/api/resume", post(resume))
-        .route("/api/stop", post(stop))
-        .route("/api/estop", post(estop))
-        .route_layer(auth.clone())
-        .route_layer(same_origin.clone());
-    // The arm's state, live: as guarded as control (a browser cannot send the header).
-    let live = Router::new()
-        .route("/api/live", get(live))
-        .route_layer(live_auth)
-        .route_layer(same_origin);
-    let status = Router::new().route("/api/status", get(status));
-    // Off loopback the arm's state is sensitive too.
-    let status = if exposed {
-        status.route_layer(auth)
-    } else {
-        status
-    };
-    let assets = Router::new()
-        .route("/", get(index))
-        .route("/live.js", get(live_js))
-        .route("/live.css", get(live_css));
-    let app = assets
-        .merge(status)
-        .merge(control)
-        .merge(live)
-        .with_state(shared.clone());
-    let frames = tokio::spawn(send_frames(shared.clone()));
+    let app = routes(&daemon, exposed).with_state(daemon.clone());
+    let frames = tokio::spawn(send_frames(daemon.clone()));
     let shutdown = async move {
         shutdown.await;
         let _ = stop_live.send(true);
@@ -368,12 +330,58 @@ pub async fn run(
         .await
         .map_err(crate::link::LinkError::Io)?;
     frames.abort();
-    let active = shared.job.lock().map(|mut job| job.take()).unwrap_or(None);
-    if let Some(job) = active {
-        job.control.stop();
-        let _ = tokio::task::spawn_blocking(move || job.handle.join()).await;
-    }
+    let stopping = daemon.clone();
+    let _ = tokio::task::spawn_blocking(move || {
+        for cell in &stopping.cells {
+            cell.stop_and_wait();
+        }
+    })
+    .await;
     Ok(())
+}
+
+/// Every route, each cell's under `/api/cells/{cell}/` and the first cell's also without
+/// the prefix, with the access checks ([`require_token`], [`require_live_token`],
+/// [`require_same_origin`]) layered once per group.
+fn routes(daemon: &Arc<Daemon>, exposed: bool) -> Router<Arc<Daemon>> {
+    let check = TokenCheck::new(daemon.options.token.as_deref());
+    let auth = axum::middleware::from_fn_with_state(check.clone(), require_token);
+    let live_auth = axum::middleware::from_fn_with_state(check, require_live_token);
+    let same_origin = axum::middleware::from_fn(require_same_origin);
+    // Everything that moves a rig goes here: always behind the check.
+    let mut control = Router::new();
+    for prefix in ["/api", "/api/cells/{cell}"] {
+        control = control
+            .route(&format!("{prefix}/jobs"), post(submit))
+            .route(&format!("{prefix}/pause"), post(pause))
+            .route(&format!("{prefix}/resume"), post(resume))
+            .route(&format!("{prefix}/stop"), post(stop))
+            .route(&format!("{prefix}/estop"), post(estop));
+    }
+    let control = control
+        .route_layer(auth.clone())
+        .route_layer(same_origin.clone());
+    // A rig's state, live: as guarded as control (a browser cannot send the header).
+    let live = Router::new()
+        .route("/api/live", get(live))
+        .route("/api/cells/{cell}/live", get(live))
+        .route_layer(live_auth)
+        .route_layer(same_origin);
+    let status = Router::new()
+        .route("/api/status", get(status))
+        .route("/api/cells/{cell}/status", get(status))
+        .route("/api/cells", get(list_cells));
+    // Off loopback the rigs' state is sensitive too.
+    let status = if exposed {
+        status.route_layer(auth)
+    } else {
+        status
+    };
+    let assets = Router::new()
+        .route("/", get(index))
+        .route("/live.js", get(live_js))
+        .route("/live.css", get(live_css));
+    assets.merge(status).merge(control).merge(live)
 }
 
 async fn index() -> impl IntoResponse {
@@ -420,65 +428,36 @@ impl TwinWorld for JobWorld {
     }
 }
 
-/// The live view's frame task: samples the streamer's state at [`LIVE_FRAME_RATE_HZ`] in
-/// real time (whatever clock jobs run on: a person watches it) and sends every page the frame.
-async fn send_frames(shared: Arc<Shared>) {
+/// The live view's frame task: samples every cell's streamer state at
+/// [`LIVE_FRAME_RATE_HZ`] in real time (whatever clock jobs run on: a person watches it) and
+/// sends each cell's pages its frame.
+async fn send_frames(daemon: Arc<Daemon>) {
     let clock = WallClock::new();
     let mut ticks = tokio::time::interval(Duration::from_secs_f64(1.0 / LIVE_FRAME_RATE_HZ));
     ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     loop {
         ticks.tick().await;
-        shared.hub.tick(clock.now(), job_view(&shared));
+        for cell in &daemon.cells {
+            cell.hub().tick(clock.now(), cell.job_view());
+        }
     }
 }
 
-fn job_view(shared: &Shared) -> JobView {
-    let last = shared.last.lock().ok().and_then(|last| {
-        last.as_ref().map(|result| match result {
-            JobResult::Finished { report, .. } => serde_json::to_value(report.stream.outcome)
-                .ok()
-                .and_then(|v| v.as_str().map(String::from))
-                .unwrap_or_default(),
-            JobResult::Failed { error, .. } => format!("failed: {error}"),
-        })
-    });
-    let running = shared.job.lock().ok().and_then(|job| {
-        job.as_ref().filter(|j| !j.handle.is_finished()).map(|j| {
-            (
-                j.id,
-                j.name.clone(),
-                j.control.progress(),
-                j.control.is_paused(),
-            )
-        })
-    });
-    match running {
-        Some((id, name, progress, paused)) => JobView {
-            state: if paused { "paused" } else { "running" },
-            id: Some(id),
-            name: Some(name),
-            progress,
-            last,
-        },
-        None => JobView {
-            state: "idle",
-            last,
-            ..JobView::default()
-        },
-    }
-}
-
-async fn live(State(shared): State<Arc<Shared>>, upgrade: WebSocketUpgrade) -> Response {
+async fn live(
+    State(daemon): State<Arc<Daemon>>,
+    CellRef(cell): CellRef,
+    upgrade: WebSocketUpgrade,
+) -> Response {
+    let stopping = daemon.stopping.clone();
     upgrade
         .protocols([LIVE_PROTOCOL])
-        .on_upgrade(move |socket| serve_live(socket, shared))
+        .on_upgrade(move |socket| serve_live(socket, cell, stopping))
 }
 
-/// One page: the scene, then every frame until the page goes or the server stops. A page
-/// that falls behind skips to the present and gets the scene again (paint included).
-async fn serve_live(mut socket: WebSocket, shared: Arc<Shared>) {
-    let (scene, mut frames) = shared.hub.subscribe();
-    let mut stopping = shared.stopping.clone();
+/// One page: the cell's scene, then every frame until the page goes or the server stops. A
+/// page that falls behind skips to the present and gets the scene again (paint included).
+async fn serve_live(mut socket: WebSocket, cell: Arc<Cell>, mut stopping: watch::Receiver<bool>) {
+    let (scene, mut frames) = cell.hub().subscribe();
     if socket
         .send(WsMessage::Text((&*scene).into()))
         .await
@@ -491,7 +470,7 @@ async fn serve_live(mut socket: WebSocket, shared: Arc<Shared>) {
             frame = frames.recv() => {
                 let text = match frame {
                     Ok(text) => text,
-                    Err(broadcast::error::RecvError::Lagged(_)) => shared.hub.scene_now(),
+                    Err(broadcast::error::RecvError::Lagged(_)) => cell.hub().scene_now(),
                     Err(broadcast::error::RecvError::Closed) => return,
                 };
                 if socket.send(WsMessage::Text((&*text).into())).await.is_err() {
@@ -510,57 +489,20 @@ async fn serve_live(mut socket: WebSocket, shared: Arc<Shared>) {
     }
 }
 
-fn job_running(shared: &Shared) -> bool {
-    shared
-        .job
-        .lock()
-        .map(|job| job.as_ref().is_some_and(|j| !j.handle.is_finished()))
-        .unwrap_or(false)
+async fn list_cells(State(daemon): State<Arc<Daemon>>) -> Response {
+    let cells: Vec<_> = daemon.cells.iter().map(|cell| cell.summary()).collect();
+    Json(serde_json::json!({ "cells": cells })).into_response()
 }
 
-async fn status(State(shared): State<Arc<Shared>>) -> Response {
-    let job = shared.job.lock().ok().and_then(|job| {
-        job.as_ref()
-            .filter(|j| !j.handle.is_finished())
-            .map(|j| JobStatus {
-                id: j.id,
-                name: j.name.clone(),
-                progress: j.control.progress(),
-                cycles: j.control.cycles(),
-                paused: j.control.is_paused(),
-            })
-    });
-    let actual_deg = match shared.link.try_lock() {
-        Ok(link) => link
-            .twin()
-            .actual()
-            .iter()
-            .map(|q| q.to_degrees())
-            .collect(),
-        Err(_) => Vec::new(),
-    };
-    let state = match &job {
-        Some(j) if j.paused => "paused",
-        Some(_) => "running",
-        None => "idle",
-    };
-    let last = shared.last.lock().ok().and_then(|l| l.clone());
-    Json(Status {
-        state,
-        job,
-        last,
-        actual_deg,
-    })
-    .into_response()
+async fn status(CellRef(cell): CellRef) -> Response {
+    Json(cell.status()).into_response()
 }
 
-async fn submit(State(shared): State<Arc<Shared>>, body: axum::body::Bytes) -> Response {
-    if job_running(&shared) {
-        return error(
-            StatusCode::CONFLICT,
-            "a job is already running: stop it or wait",
-        );
-    }
+async fn submit(
+    State(daemon): State<Arc<Daemon>>,
+    CellRef(cell): CellRef,
+    body: axum::body::Bytes,
+) -> Response {
     let request: JobRequest = if body.iter().all(u8::is_ascii_whitespace) {
         JobRequest { job: None }
     } else {
@@ -574,35 +516,31 @@ async fn submit(State(shared): State<Arc<Shared>>, body: axum::body::Bytes) -> R
             }
         }
     };
-    let job = request
-        .job
-        .unwrap_or_else(|| shared.settings.config.job.clone());
-    let id = {
-        let Ok(mut next) = shared.next_id.lock() else {
+    let job = cell.job_or_default(request.job);
+    let id = daemon.next_id.fetch_add(1, Ordering::Relaxed);
+    let started = match cell.start(id, job, &daemon.options) {
+        Ok(started) => started,
+        Err(StartRefused::Busy) => {
+            return error(
+                StatusCode::CONFLICT,
+                format!(
+                    "a job is already running in cell `{}`: stop it or wait",
+                    cell.name()
+                ),
+            );
+        }
+        Err(StartRefused::Poisoned) => {
             return error(StatusCode::INTERNAL_SERVER_ERROR, "state lock poisoned");
-        };
-        *next += 1;
-        *next - 1
+        }
     };
-    let control = Arc::new(StreamControl::default());
-    let name = serde_json::to_value(&job)
-        .ok()
-        .and_then(|v| v.get("kind").and_then(|k| k.as_str().map(String::from)))
-        .unwrap_or_else(|| "job".into());
-    let (planned_tx, planned_rx) = tokio::sync::oneshot::channel::<Result<(), String>>();
-    let handle = spawn_job(shared.clone(), id, job, control.clone(), planned_tx);
-    if let Ok(mut slot) = shared.job.lock() {
-        *slot = Some(ActiveJob {
-            id,
-            name: name.clone(),
-            control,
-            handle,
-        });
-    }
-    match planned_rx.await {
+    match started.planned.await {
         Ok(Ok(())) => (
             StatusCode::ACCEPTED,
-            Json(serde_json::json!({ "id": id, "job": name })),
+            Json(serde_json::json!({
+                "id": started.id,
+                "job": started.name,
+                "cell": cell.name(),
+            })),
         )
             .into_response(),
         Ok(Err(message)) => error(StatusCode::UNPROCESSABLE_ENTITY, message),
@@ -613,88 +551,25 @@ async fn submit(State(shared): State<Arc<Shared>>, body: axum::body::Bytes) -> R
     }
 }
 
-/// Plans and streams one job on its own thread, reporting through `shared.last`. The
-/// submitter learns whether planning succeeded (a bad target is refused before motion).
-fn spawn_job(
-    shared: Arc<Shared>,
-    id: u64,
-    job: JobConfig,
-    control: Arc<StreamControl>,
-    planned: tokio::sync::oneshot::Sender<Result<(), String>>,
-) -> std::thread::JoinHandle<()> {
-    std::thread::spawn(move || {
-        let clock: Box<dyn Clock> = if shared.options.virtual_clock {
-            Box::new(VirtualClock::new())
-        } else {
-            Box::new(WallClock::new())
-        };
-        let log = shared.options.runs_dir.join(format!("job-{id}.mcap"));
-        let Ok(mut link) = shared.link.lock() else {
-            let _ = planned.send(Err("twin lock poisoned".into()));
-            return;
-        };
-        let plan = plan_for(&shared.settings, &job, &mut *link);
-        let _ = planned.send(plan.as_ref().map(|_| ()).map_err(|e| super::error_chain(e)));
-        let result = plan.and_then(|plan| {
-            let (scene, world) = scene_for_job(&shared.settings, &job);
-            // Nothing streams yet: the twin is not observing.
-            if let Ok(mut current) = shared.world.lock() {
-                current.0 = world;
-            }
-            shared.hub.set_scene(scene);
-            let rate = shared.settings.config.stream.rate_hz.round() as u64;
-            let mut live = LiveSink::new(shared.hub.slot(), rate);
-            stream_planned_with(
-                &shared.settings,
-                &plan,
-                &mut *link,
-                clock.as_ref(),
-                Some(&log),
-                &control,
-                &mut live,
-            )
-        });
-        let outcome = match result {
-            Ok(report) => JobResult::Finished {
-                id,
-                report: Box::new(report),
-            },
-            Err(e) => JobResult::Failed {
-                id,
-                error: super::error_chain(&e),
-            },
-        };
-        if let Ok(mut last) = shared.last.lock() {
-            *last = Some(outcome);
-        }
-    })
-}
-
-fn with_control(shared: &Shared, act: impl Fn(&StreamControl)) -> Response {
-    match shared.job.lock() {
-        Ok(job) => match job.as_ref().filter(|j| !j.handle.is_finished()) {
-            Some(j) => {
-                act(&j.control);
-                Json(serde_json::json!({ "id": j.id })).into_response()
-            }
-            None => error(StatusCode::CONFLICT, "no job is running"),
-        },
-        Err(_) => error(StatusCode::INTERNAL_SERVER_ERROR, "state lock poisoned"),
+fn with_control(cell: &Cell, act: impl Fn(&StreamControl)) -> Response {
+    match cell.control(act) {
+        Some(id) => Json(serde_json::json!({ "id": id })).into_response(),
+        None => error(StatusCode::CONFLICT, "no job is running"),
     }
 }
 
-async fn pause(State(shared): State<Arc<Shared>>) -> Response {
-    with_control(&shared, StreamControl::pause)
+async fn pause(CellRef(cell): CellRef) -> Response {
+    with_control(&cell, StreamControl::pause)
 }
 
-async fn resume(State(shared): State<Arc<Shared>>) -> Response {
-    with_control(&shared, StreamControl::resume)
+async fn resume(CellRef(cell): CellRef) -> Response {
+    with_control(&cell, StreamControl::resume)
 }
 
-async fn stop(State(shared): State<Arc<Shared>>) -> Response {
-    with_control(&shared, StreamControl::stop)
+async fn stop(CellRef(cell): CellRef) -> Response {
+    with_control(&cell, StreamControl::stop)
 }
 
-async fn estop(State(shared): State<Arc<Shared>>) -> Response {
-    with_control(&shared, StreamControl::estop)
+async fn estop(CellRef(cell): CellRef) -> Response {
+    with_control(&cell, StreamControl::estop)
 }

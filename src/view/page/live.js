@@ -68,6 +68,7 @@ document.getElementById('token-form').addEventListener('submit', (event) => {
   sessionStorage.setItem('rigbridge-token', token);
   document.getElementById('token-form').hidden = true;
   connect();
+  loadCells();
 });
 
 // --------------------------------------------------------------------- camera --
@@ -495,10 +496,14 @@ function setConnection(state, text) {
 // any other goes in the query string.
 const PROTOCOL_TOKEN = /^[!#$%&'*+\-.^_`|~0-9A-Za-z]+$/;
 
+// The cell on show: its routes live under /api/cells/<name>/; until the list of cells
+// arrives (and for the first cell) the routes without a name, which are the first cell's.
+let cellPrefix = '/api';
+
 let socket = null;
 function connect() {
   const scheme = location.protocol === 'https:' ? 'wss://' : 'ws://';
-  let url = scheme + location.host + '/api/live';
+  let url = scheme + location.host + cellPrefix + '/live';
   const protocols = ['rigbridge.live'];
   if (token && PROTOCOL_TOKEN.test(token)) {
     protocols.push('rigbridge.token.' + token);
@@ -506,12 +511,14 @@ function connect() {
     url += '?token=' + encodeURIComponent(token);
   }
   let opened = false;
-  socket = new WebSocket(url, protocols);
-  socket.addEventListener('open', () => {
+  const mine = new WebSocket(url, protocols);
+  socket = mine;
+  mine.addEventListener('open', () => {
     opened = true;
     setConnection('live', 'live');
   });
-  socket.addEventListener('message', (event) => {
+  mine.addEventListener('message', (event) => {
+    if (socket !== mine) return;
     health.wsMessages += 1;
     const message = JSON.parse(event.data);
     if (message.type === 'scene') {
@@ -527,7 +534,9 @@ function connect() {
       dirty = true;
     }
   });
-  socket.addEventListener('close', () => {
+  mine.addEventListener('close', () => {
+    // A socket closed because another cell was chosen: its successor is already open.
+    if (socket !== mine) return;
     if (!opened) {
       // Refused before opening: most likely a missing or wrong token.
       askForToken('refused: token?');
@@ -538,8 +547,43 @@ function connect() {
   });
 }
 
+// ----------------------------------------------------------------------- cells --
+// One daemon may run several rigs (cells); the selector shows when there is more than one.
+const cellSelect = document.getElementById('cell');
+
+async function loadCells() {
+  try {
+    const response = await fetch('/api/cells', { headers: authHeaders() });
+    if (!response.ok) return;
+    const body = await response.json();
+    const chosen = cellSelect.value;
+    cellSelect.textContent = '';
+    for (const cell of body.cells) {
+      const option = document.createElement('option');
+      option.value = cell.name;
+      option.textContent = cell.name + ' (' + cell.dof + ' axes)';
+      cellSelect.appendChild(option);
+    }
+    if (chosen) cellSelect.value = chosen;
+    cellSelect.hidden = body.cells.length < 2;
+  } catch (error) {
+    recordError('cannot list the cells: ' + error);
+  }
+}
+
+function showCell(name) {
+  cellPrefix = cellSelect.selectedIndex === 0 ? '/api' : '/api/cells/' + encodeURIComponent(name);
+  latest = null;
+  fitPending = true;
+  const old = socket;
+  connect();
+  if (old) old.close();
+}
+cellSelect.addEventListener('change', () => showCell(cellSelect.value));
+
 // -------------------------------------------------------------------- controls --
-async function control(path) {
+async function control(action) {
+  const path = cellPrefix + action;
   const result = document.getElementById('control-result');
   result.textContent = path + ' ...';
   try {
@@ -551,11 +595,12 @@ async function control(path) {
     result.textContent = path + ': ' + error;
   }
 }
-const CONTROLS = { start: '/api/jobs', pause: '/api/pause', resume: '/api/resume', stop: '/api/stop', estop: '/api/estop' };
+const CONTROLS = { start: '/jobs', pause: '/pause', resume: '/resume', stop: '/stop', estop: '/estop' };
 for (const [id, path] of Object.entries(CONTROLS)) {
   document.getElementById(id).addEventListener('click', () => control(path));
 }
 
 resize();
 connect();
+loadCells();
 requestAnimationFrame(animate);

@@ -1,0 +1,412 @@
+//! One cell of `rigbridge serve`: one run settings file, so one rig with its own twin behind
+//! its own loopback link, its own job slot (one job at a time, on its own thread with its
+//! own clock), the last job's result, and its own live hub and twin world. Cells share
+//! nothing but the daemon's options and its job numbering; jobs in different cells run
+//! concurrently. This file owns a cell's state and its job lifecycle and the startup check
+//! that cells do not clash; HTTP routing, access control and the choice of a job's live
+//! scene stay in `server.rs` (`scene_for_job`).
+
+use super::{JobWorld, LIVE_FRAME_RATE_HZ, ServeOptions, scene_for_job};
+use crate::clock::{Clock, VirtualClock, WallClock};
+use crate::daemon::config::{JobConfig, RunSettings};
+use crate::daemon::{DaemonError, RunReport, error_chain, plan_for, stream_planned_with};
+use crate::link::{LinkSpec, LoopbackLink};
+use crate::stream::StreamControl;
+use crate::twin::{SharedWorld, Twin};
+use crate::view::{JobView, LiveHub, LiveSample, LiveSink, LiveSlot};
+use serde::Serialize;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex, PoisonError};
+use thiserror::Error;
+use tokio::sync::oneshot;
+
+/// Why a set of run settings files cannot be served together.
+#[derive(Debug, Error)]
+pub enum CellError {
+    #[error("no run settings: a daemon needs at least one cell")]
+    Empty,
+    #[error(
+        "two cells named `{name}` ({first} and {second}): a cell is named by its rig's \
+         `name`, give one of the rigs another name"
+    )]
+    DuplicateName {
+        name: String,
+        first: PathBuf,
+        second: PathBuf,
+    },
+    #[error(
+        "cells `{first_cell}` ({first}) and `{second_cell}` ({second}) both use the link \
+         `{link}`: two rigs cannot share one controller connection"
+    )]
+    SharedLink {
+        link: String,
+        first_cell: String,
+        first: PathBuf,
+        second_cell: String,
+        second: PathBuf,
+    },
+}
+
+/// The device or address a link occupies, whatever its options (a serial port is the same
+/// port at any baud rate); `None` for the in-process twin, which every cell has its own of.
+fn occupied_resource(link: &str) -> Option<String> {
+    match link.parse::<LinkSpec>().ok()? {
+        LinkSpec::Loopback => None,
+        LinkSpec::Tcp { address } => Some(format!("tcp://{address}")),
+        LinkSpec::Serial { path, .. } => Some(format!("serial://{path}")),
+        LinkSpec::Can { interface } => Some(format!("can://{interface}")),
+    }
+}
+
+/// Refuses cells that cannot run side by side: none at all, two with the same name (their
+/// routes would collide), or two on the same non-loopback link.
+pub fn check_cells(cells: &[RunSettings]) -> Result<(), CellError> {
+    if cells.is_empty() {
+        return Err(CellError::Empty);
+    }
+    for (i, second) in cells.iter().enumerate() {
+        for first in &cells[..i] {
+            if first.rig.name == second.rig.name {
+                return Err(CellError::DuplicateName {
+                    name: second.rig.name.clone(),
+                    first: first.file.clone(),
+                    second: second.file.clone(),
+                });
+            }
+            let link = occupied_resource(&second.config.stream.link);
+            if link.is_some() && link == occupied_resource(&first.config.stream.link) {
+                return Err(CellError::SharedLink {
+                    link: second.config.stream.link.clone(),
+                    first_cell: first.rig.name.clone(),
+                    first: first.file.clone(),
+                    second_cell: second.rig.name.clone(),
+                    second: second.file.clone(),
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
+struct ActiveJob {
+    id: u64,
+    name: String,
+    control: Arc<StreamControl>,
+    handle: std::thread::JoinHandle<()>,
+}
+
+impl ActiveJob {
+    fn status(&self) -> JobStatus {
+        JobStatus {
+            id: self.id,
+            name: self.name.clone(),
+            progress: self.control.progress(),
+            cycles: self.control.cycles(),
+            paused: self.control.is_paused(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+#[serde(tag = "result", rename_all = "snake_case")]
+enum JobResult {
+    Finished { id: u64, report: Box<RunReport> },
+    Failed { id: u64, error: String },
+}
+
+/// `GET .../status`: the cell's job and its rig's actual position.
+#[derive(Debug, Serialize)]
+pub struct Status {
+    cell: String,
+    state: &'static str,
+    job: Option<JobStatus>,
+    last: Option<JobResult>,
+    actual_deg: Vec<f64>,
+}
+
+/// One line of `GET /api/cells`.
+#[derive(Debug, Serialize)]
+pub struct CellSummary {
+    name: String,
+    dof: usize,
+    joints: Vec<String>,
+    state: &'static str,
+    job: Option<JobStatus>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct JobStatus {
+    id: u64,
+    name: String,
+    progress: f64,
+    cycles: u64,
+    paused: bool,
+}
+
+fn state_of(job: Option<&JobStatus>) -> &'static str {
+    match job {
+        Some(j) if j.paused => "paused",
+        Some(_) => "running",
+        None => "idle",
+    }
+}
+
+/// Why a cell did not start a job.
+#[derive(Debug)]
+pub enum StartRefused {
+    Busy,
+    Poisoned,
+}
+
+/// A job handed to its thread: its number and kind, and whether planning succeeded (a bad
+/// target is refused before any motion).
+pub struct StartedJob {
+    pub id: u64,
+    pub name: String,
+    pub planned: oneshot::Receiver<Result<(), String>>,
+}
+
+pub struct Cell {
+    settings: RunSettings,
+    link: Arc<Mutex<LoopbackLink>>,
+    job: Mutex<Option<ActiveJob>>,
+    last: Mutex<Option<JobResult>>,
+    hub: LiveHub,
+    /// The twin's world for the current job (the twin outlives jobs; its world does not).
+    world: SharedWorld<JobWorld>,
+}
+
+impl Cell {
+    /// The cell of `settings`: its twin at the configured initial position, showing the
+    /// configured job's scene until a job starts.
+    pub fn new(settings: RunSettings) -> Result<Cell, DaemonError> {
+        let (scene, job_world) = scene_for_job(&settings, &settings.config.job);
+        let world = Arc::new(Mutex::new(JobWorld(job_world)));
+        let twin = Twin::new(
+            &settings.rig,
+            crate::daemon::twin_settings(&settings),
+            &settings.initial(),
+        )?
+        .with_world(Box::new(world.clone()));
+        let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&settings.initial())));
+        let hub = LiveHub::new(
+            settings.rig.clone(),
+            settings.config.stream.rate_hz,
+            LIVE_FRAME_RATE_HZ,
+            slot,
+            scene,
+        );
+        Ok(Cell {
+            settings,
+            link: Arc::new(Mutex::new(LoopbackLink::new(twin))),
+            job: Mutex::new(None),
+            last: Mutex::new(None),
+            hub,
+            world,
+        })
+    }
+
+    /// The rig's name: the cell's name in routes.
+    pub fn name(&self) -> &str {
+        &self.settings.rig.name
+    }
+
+    pub fn hub(&self) -> &LiveHub {
+        &self.hub
+    }
+
+    /// The job `request` names, or the configured one.
+    pub fn job_or_default(&self, request: Option<JobConfig>) -> JobConfig {
+        request.unwrap_or_else(|| self.settings.config.job.clone())
+    }
+
+    fn running(&self) -> Option<JobStatus> {
+        let job = self.job.lock().unwrap_or_else(PoisonError::into_inner);
+        job.as_ref()
+            .filter(|j| !j.handle.is_finished())
+            .map(ActiveJob::status)
+    }
+
+    pub fn status(&self) -> Status {
+        let job = self.running();
+        // A streaming job holds the link: the live view has the position then.
+        let actual_deg = match self.link.try_lock() {
+            Ok(link) => link
+                .twin()
+                .actual()
+                .iter()
+                .map(|q| q.to_degrees())
+                .collect(),
+            Err(_) => Vec::new(),
+        };
+        Status {
+            cell: self.name().to_string(),
+            state: state_of(job.as_ref()),
+            job,
+            last: self.last().clone(),
+            actual_deg,
+        }
+    }
+
+    pub fn summary(&self) -> CellSummary {
+        let job = self.running();
+        CellSummary {
+            name: self.name().to_string(),
+            dof: self.settings.rig.dof(),
+            joints: self
+                .settings
+                .rig
+                .joints
+                .iter()
+                .map(|j| j.name.clone())
+                .collect(),
+            state: state_of(job.as_ref()),
+            job,
+        }
+    }
+
+    fn last(&self) -> std::sync::MutexGuard<'_, Option<JobResult>> {
+        self.last.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// The job as the live view shows it.
+    pub fn job_view(&self) -> JobView {
+        let last = self.last().as_ref().map(|result| match result {
+            JobResult::Finished { report, .. } => serde_json::to_value(report.stream.outcome)
+                .ok()
+                .and_then(|v| v.as_str().map(String::from))
+                .unwrap_or_default(),
+            JobResult::Failed { error, .. } => format!("failed: {error}"),
+        });
+        match self.running() {
+            Some(job) => JobView {
+                state: state_of(Some(&job)),
+                id: Some(job.id),
+                name: Some(job.name),
+                progress: job.progress,
+                last,
+            },
+            None => JobView {
+                state: "idle",
+                last,
+                ..JobView::default()
+            },
+        }
+    }
+
+    /// Starts `job` as number `id` on its own thread, unless one is running here: the check
+    /// and the start hold the job slot together, so two requests cannot both start.
+    pub fn start(
+        self: &Arc<Self>,
+        id: u64,
+        job: JobConfig,
+        options: &ServeOptions,
+    ) -> Result<StartedJob, StartRefused> {
+        let Ok(mut slot) = self.job.lock() else {
+            return Err(StartRefused::Poisoned);
+        };
+        if slot.as_ref().is_some_and(|j| !j.handle.is_finished()) {
+            return Err(StartRefused::Busy);
+        }
+        let name = serde_json::to_value(&job)
+            .ok()
+            .and_then(|v| v.get("kind").and_then(|k| k.as_str().map(String::from)))
+            .unwrap_or_else(|| "job".into());
+        let control = Arc::new(StreamControl::default());
+        let (planned_tx, planned) = oneshot::channel();
+        let handle = self.spawn_job(id, job, control.clone(), options, planned_tx);
+        *slot = Some(ActiveJob {
+            id,
+            name: name.clone(),
+            control,
+            handle,
+        });
+        Ok(StartedJob { id, name, planned })
+    }
+
+    /// Plans and streams one job on its own thread, reporting through `last`.
+    fn spawn_job(
+        self: &Arc<Self>,
+        id: u64,
+        job: JobConfig,
+        control: Arc<StreamControl>,
+        options: &ServeOptions,
+        planned: oneshot::Sender<Result<(), String>>,
+    ) -> std::thread::JoinHandle<()> {
+        let cell = self.clone();
+        let virtual_clock = options.virtual_clock;
+        let log = options.runs_dir.join(format!("job-{id}.mcap"));
+        std::thread::spawn(move || {
+            let clock: Box<dyn Clock> = if virtual_clock {
+                Box::new(VirtualClock::new())
+            } else {
+                Box::new(WallClock::new())
+            };
+            let result = cell.run_job(&job, &control, clock.as_ref(), &log, planned);
+            let outcome = match result {
+                Ok(report) => JobResult::Finished {
+                    id,
+                    report: Box::new(report),
+                },
+                Err(e) => JobResult::Failed {
+                    id,
+                    error: error_chain(&e),
+                },
+            };
+            *cell.last() = Some(outcome);
+        })
+    }
+
+    fn run_job(
+        &self,
+        job: &JobConfig,
+        control: &StreamControl,
+        clock: &dyn Clock,
+        log: &std::path::Path,
+        planned: oneshot::Sender<Result<(), String>>,
+    ) -> Result<RunReport, DaemonError> {
+        let Ok(mut link) = self.link.lock() else {
+            let _ = planned.send(Err("twin lock poisoned".into()));
+            return Err(DaemonError::Unavailable("twin lock poisoned".into()));
+        };
+        let plan = plan_for(&self.settings, job, &mut *link);
+        let _ = planned.send(plan.as_ref().map(|_| ()).map_err(|e| error_chain(e)));
+        let plan = plan?;
+        let (scene, world) = scene_for_job(&self.settings, job);
+        // Nothing streams yet: the twin is not observing.
+        self.world.lock().unwrap_or_else(PoisonError::into_inner).0 = world;
+        self.hub.set_scene(scene);
+        let rate = self.settings.config.stream.rate_hz.round() as u64;
+        let mut live = LiveSink::new(self.hub.slot(), rate);
+        stream_planned_with(
+            &self.settings,
+            &plan,
+            &mut *link,
+            clock,
+            Some(log),
+            control,
+            &mut live,
+        )
+    }
+
+    /// Applies `act` to the running job; its number, or `None` when no job runs.
+    pub fn control(&self, act: impl Fn(&StreamControl)) -> Option<u64> {
+        let job = self.job.lock().unwrap_or_else(PoisonError::into_inner);
+        let running = job.as_ref().filter(|j| !j.handle.is_finished())?;
+        act(&running.control);
+        Some(running.id)
+    }
+
+    /// Stops any job (decelerating along its path) and waits for its thread.
+    pub fn stop_and_wait(&self) {
+        let active = self
+            .job
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take();
+        if let Some(job) = active {
+            job.control.stop();
+            let _ = job.handle.join();
+        }
+    }
+}
