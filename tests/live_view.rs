@@ -3,9 +3,11 @@
 //! `chromium-driver`; `scripts/test.sh` installs them). The page must draw its first frame
 //! within 1 s of loading, start a job from its button, redraw the canvas as the twin moves,
 //! update its status numbers, draw and receive >= 30 frames/s while streaming, and log no
-//! error. Saves a screenshot to `target/e2e/live-view.png`. The daemon runs two cells (the
-//! arm and a small pan-tilt rig): the page shows the first, and its cell selector switches
-//! to the second, whose job it starts and watches to the end.
+//! error. The daemon runs three cells: the arm (its star job), the painter in a generated
+//! room (streamed at 250 Hz) and the sloth on its branch. The page shows the first; its cell
+//! selector switches to the others, whose jobs it starts from the page and watches. Saves a
+//! screenshot of each to `target/e2e/`: `live-view.png` (the star), `live-view-room.png`
+//! (walls, openings, arm and paint) and `live-view-sloth.png`.
 //!
 //! Without Chromium the test fails, unless `RIGBRIDGE_SKIP_BROWSER=1`, when it says why it
 //! skips. `RIGBRIDGE_CHROMIUM` and `RIGBRIDGE_CHROMEDRIVER` override the binaries' paths.
@@ -47,42 +49,38 @@ fn binary(variable: &str, default: &str) -> PathBuf {
     std::env::var_os(variable).map_or_else(|| PathBuf::from(default), PathBuf::from)
 }
 
-/// A second cell for the daemon in `dir`: a three-axis pan-tilt rig named `pan_tilt` whose
-/// default job is a few joint moves.
-fn pan_tilt_cell(dir: &Path) -> PathBuf {
-    let joint = |joint: &str, z: f64, axis: &str| {
-        format!(
-            "[[joint]]\nname = \"{joint}\"\nkind = \"revolute\"\norigin_xyz_m = [0.0, 0.0, {z}]\n\
-             axis = {axis}\nlower_deg = -90.0\nupper_deg = 90.0\nmax_speed_deg_s = 60.0\n\
-             max_accel_deg_s2 = 240.0\n\n"
-        )
-    };
-    let rig = format!(
-        "name = \"pan_tilt\"\nbase_frame = \"base\"\ntool_frame = \"tool\"\n\n{}{}{}",
-        joint("pan", 0.0, "[0.0, 0.0, 1.0]"),
-        joint("tilt", 0.3, "[0.0, 1.0, 0.0]"),
-        joint("elbow", 0.25, "[0.0, 1.0, 0.0]"),
-    );
-    std::fs::write(dir.join("pan_tilt.toml"), rig).unwrap();
-    let file = dir.join("pan_tilt_cell.toml");
-    std::fs::write(
-        &file,
-        "rig = \"pan_tilt.toml\"\n\n[stream]\nrate_hz = 250.0\n\n\
-         [twin]\nbandwidth_hz = 20.0\ndelay_ms = 12.0\nwatchdog_cycles = 25\n\
-         initial_deg = [0.0, 0.0, 0.0]\n\n[plan]\nspeed_scale = 0.9\naccel_scale = 0.8\n\n\
-         [job]\nkind = \"joint_waypoints\"\nwaypoints_deg = [[50.0, 20.0, -20.0], [0.0, 0.0, 0.0]]\n",
-    )
-    .unwrap();
+/// The painting cell for the daemon in `dir`: `config/paint-run.toml` streamed at 250 Hz
+/// (the rate the live view must keep up with), its paths made absolute.
+fn painting_cell(dir: &Path) -> PathBuf {
+    let shipped = std::fs::read_to_string(repo_path("config/paint-run.toml")).unwrap();
+    let mut text = shipped.clone();
+    for (from, to) in [
+        ("rate_hz = 100.0".to_string(), "rate_hz = 250.0".to_string()),
+        (
+            "rig = \"painter.toml\"".to_string(),
+            format!("rig = {:?}", repo_path("config/painter.toml")),
+        ),
+        (
+            "paint_config = \"paint.toml\"".to_string(),
+            format!("paint_config = {:?}", repo_path("config/paint.toml")),
+        ),
+    ] {
+        assert!(text.contains(&from), "config/paint-run.toml has {from}");
+        text = text.replace(&from, &to);
+    }
+    let file = dir.join("paint-250hz.toml");
+    std::fs::write(&file, text).unwrap();
     file
 }
 
-/// `rigbridge serve` on a free port of 127.0.0.1 with the arm's cell and `second`; returns
-/// it and its page's address.
-fn start_server(runs: &Path, second: &Path) -> (Running, String) {
+/// `rigbridge serve` on a free port of 127.0.0.1 with the arm's cell, `painting` and the
+/// sloth's; returns it and its page's address.
+fn start_server(runs: &Path, painting: &Path) -> (Running, String) {
     let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
         .args(["serve", "--port", "0", "--clock", "wall"])
         .args(["--config", "config/rigbridge.toml", "--config"])
-        .arg(second)
+        .arg(painting)
+        .args(["--config", "config/gait-run.toml"])
         .arg("--runs-dir")
         .arg(runs)
         .current_dir(repo_path(""))
@@ -221,8 +219,8 @@ fn the_live_view_draws_the_twin_and_runs_a_job_in_headless_chromium() {
     let scratch = std::env::temp_dir().join(format!("rigbridge-e2e-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&scratch);
     std::fs::create_dir_all(&scratch).unwrap();
-    let second = pan_tilt_cell(&scratch);
-    let (_server, url) = start_server(&scratch.join("runs"), &second);
+    let painting = painting_cell(&scratch);
+    let (_server, url) = start_server(&scratch.join("runs"), &painting);
     let (_driver, driver_port) = start_chromedriver(&driver);
     let profile = scratch.join("profile");
 
@@ -298,20 +296,8 @@ async fn exercise_page(client: &Client, url: &str) -> Value {
     );
     let cycles_at_rest = text_of(client, "link-cycles").await;
 
-    client
-        .find(Locator::Id("start"))
-        .await
-        .unwrap()
-        .click()
-        .await
-        .unwrap();
-    wait_until(
-        client,
-        "the job to run",
-        "return document.getElementById('job-state').textContent === 'running';",
-        Duration::from_secs(10),
-    )
-    .await;
+    click(client, "start").await;
+    wait_for_state(client, "running", Duration::from_secs(10)).await;
     tokio::time::sleep(Duration::from_millis(1500)).await;
     let moving = canvas_hash(client).await;
     let cycles_early: u64 = text_of(client, "link-cycles").await.parse().unwrap();
@@ -345,30 +331,15 @@ async fn exercise_page(client: &Client, url: &str) -> Value {
         Duration::from_secs(20),
     )
     .await;
-    let screenshot = client.screenshot().await.unwrap();
-    let out = repo_path("target/e2e");
-    std::fs::create_dir_all(&out).unwrap();
-    std::fs::write(out.join("live-view.png"), &screenshot).unwrap();
+    save_screenshot(client, "live-view.png").await;
     let painted: u64 = eval(client, "return window.rigbridgeView.paintQuads;")
         .await
         .as_u64()
         .unwrap();
     assert!(painted > 20, "paint on the wall: {painted} quads");
     for (button, state) in [("pause", "paused"), ("resume", "running")] {
-        client
-            .find(Locator::Id(button))
-            .await
-            .unwrap()
-            .click()
-            .await
-            .unwrap();
-        wait_until(
-            client,
-            state,
-            &format!("return document.getElementById('job-state').textContent === '{state}';"),
-            Duration::from_secs(10),
-        )
-        .await;
+        click(client, button).await;
+        wait_for_state(client, state, Duration::from_secs(10)).await;
     }
     wait_until(
         client,
@@ -378,7 +349,8 @@ async fn exercise_page(client: &Client, url: &str) -> Value {
     )
     .await;
     assert_eq!(text_of(client, "job-last").await, "last job: completed");
-    let second_cell = watch_the_second_cell(client).await;
+    let room = paint_the_room(client).await;
+    let sloth = watch_the_sloth(client).await;
     let end = health(client).await;
     let errors = end["errors"].as_array().unwrap();
     assert!(errors.is_empty(), "errors the page collected: {errors:?}");
@@ -391,12 +363,41 @@ async fn exercise_page(client: &Client, url: &str) -> Value {
         "paint_quads": painted,
         "frames_drawn": end["framesDrawn"],
         "page_errors": errors.len(),
-        "second_cell": second_cell,
+        "room": room,
+        "sloth": sloth,
     })
 }
 
-/// Chooses the second cell in the page's selector, starts its job and watches it complete.
-async fn watch_the_second_cell(client: &Client) -> Value {
+/// Saves the page as `target/e2e/<name>`.
+async fn save_screenshot(client: &Client, name: &str) {
+    let screenshot = client.screenshot().await.unwrap();
+    let out = repo_path("target/e2e");
+    std::fs::create_dir_all(&out).unwrap();
+    std::fs::write(out.join(name), &screenshot).unwrap();
+}
+
+async fn click(client: &Client, id: &str) {
+    client
+        .find(Locator::Id(id))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+}
+
+async fn wait_for_state(client: &Client, state: &str, timeout: Duration) {
+    wait_until(
+        client,
+        &format!("the job state {state}"),
+        &format!("return document.getElementById('job-state').textContent === '{state}';"),
+        timeout,
+    )
+    .await;
+}
+
+/// Chooses `cell` in the page's selector and waits for its scene (`joints` rows).
+async fn choose_cell(client: &Client, cell: &str, joints: usize) {
     wait_until(
         client,
         "the cell selector",
@@ -406,47 +407,123 @@ async fn watch_the_second_cell(client: &Client) -> Value {
     .await;
     eval(
         client,
-        "const select = document.getElementById('cell');
-         select.value = 'pan_tilt';
-         select.dispatchEvent(new Event('change'));
-         return true;",
+        &format!(
+            "const select = document.getElementById('cell');
+             select.value = '{cell}';
+             select.dispatchEvent(new Event('change'));
+             return true;"
+        ),
     )
     .await;
     wait_until(
         client,
-        "the second cell's scene",
-        "return document.getElementById('rig-name').textContent.startsWith('pan_tilt') &&
-                document.querySelectorAll('#joints tbody tr').length === 3;",
+        &format!("the scene of the cell {cell}"),
+        &format!(
+            "return document.getElementById('rig-name').textContent.startsWith('{cell}') &&
+                    document.querySelectorAll('#joints tbody tr').length === {joints};"
+        ),
         Duration::from_secs(5),
     )
     .await;
     assert_eq!(text_of(client, "job-state").await, "idle");
-    client
-        .find(Locator::Id("start"))
-        .await
-        .unwrap()
-        .click()
-        .await
-        .unwrap();
+}
+
+/// Starts the cell's job from the page; the control line it shows.
+async fn start_from_page(client: &Client, cell: &str) -> String {
+    click(client, "start").await;
+    // The daemon answers once the job is planned (a painting room takes a moment).
     wait_until(
         client,
-        "the second cell's job to run",
-        "return document.getElementById('job-state').textContent === 'running';",
-        Duration::from_secs(10),
+        "the answer to the job request",
+        "return !document.getElementById('control-result').textContent.endsWith('...');",
+        Duration::from_secs(20),
     )
     .await;
+    wait_for_state(client, "running", Duration::from_secs(20)).await;
     let result = text_of(client, "control-result").await;
     assert!(
-        result.starts_with("/api/cells/pan_tilt/jobs: 202"),
+        result.starts_with(&format!("/api/cells/{cell}/jobs: 202")),
         "{result}"
     );
+    result
+}
+
+/// The painter's cell: its room (4 walls) before the job, then the job at 250 Hz with the
+/// room view: frame rates while it streams, paint going on, a screenshot, and a stop.
+async fn paint_the_room(client: &Client) -> Value {
+    choose_cell(client, "painter", 10).await;
+    let walls = health(client).await["sceneWalls"].as_u64().unwrap();
+    assert_eq!(walls, 4, "the room's walls are in the scene before the job");
+    let control = start_from_page(client, "painter").await;
+    tokio::time::sleep(Duration::from_millis(2000)).await;
+    let early = health(client).await;
+    let cycles_early: u64 = text_of(client, "link-cycles").await.parse().unwrap();
+    tokio::time::sleep(Duration::from_millis(1000)).await;
+    let streaming = health(client).await;
+    let cycles_later: u64 = text_of(client, "link-cycles").await.parse().unwrap();
+    assert!(
+        cycles_later > cycles_early + 150,
+        "the painter streams at 250 Hz: {cycles_early} -> {cycles_later} cycles in 1 s"
+    );
+    for figures in [&early, &streaming] {
+        assert!(
+            figures["fps"].as_f64().unwrap() >= 30.0 && figures["wsRate"].as_f64().unwrap() >= 30.0,
+            "frames drawn and received per second with the room view: {figures}"
+        );
+    }
+    // A few strokes on the first wall: paint between the openings.
     wait_until(
         client,
-        "the second cell's job to end",
-        "return document.getElementById('job-state').textContent === 'idle' &&
-                document.getElementById('job-last').textContent === 'last job: completed';",
+        "paint on the walls",
+        "return window.rigbridgeView.paintQuads >= 60;",
+        Duration::from_secs(90),
+    )
+    .await;
+    // The camera turned to face wall 0 (+x, where the painter starts), as a person would.
+    eval(
+        client,
+        "camera.yaw = 2.7; camera.pitch = 0.3; cameraMoved = true; dirty = true; return true;",
+    )
+    .await;
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    save_screenshot(client, "live-view-room.png").await;
+    let painted = health(client).await["paintQuads"].as_u64().unwrap();
+    click(client, "stop").await;
+    wait_for_state(client, "idle", Duration::from_secs(20)).await;
+    assert_eq!(text_of(client, "job-last").await, "last job: stopped");
+    json!({
+        "cell": "painter",
+        "control": control,
+        "walls": walls,
+        "fps_while_streaming": [early["fps"], streaming["fps"]],
+        "ws_messages_per_s": [early["wsRate"], streaming["wsRate"]],
+        "cycles_in_1s": cycles_later - cycles_early,
+        "paint_quads": painted,
+    })
+}
+
+/// The sloth's cell: its branch before the job, then the gait from the page to the end,
+/// with a screenshot half-way.
+async fn watch_the_sloth(client: &Client) -> Value {
+    choose_cell(client, "sloth", 26).await;
+    let cylinders = health(client).await["sceneCylinders"].as_u64().unwrap();
+    assert!(cylinders >= 1, "the branch is in the scene before the job");
+    let at_rest = canvas_hash(client).await;
+    let control = start_from_page(client, "sloth").await;
+    wait_until(
+        client,
+        "the gait half-way",
+        "return document.getElementById('job-progress').value > 0.5;",
         Duration::from_secs(30),
     )
     .await;
-    json!({ "cell": "pan_tilt", "control": result })
+    assert_ne!(
+        canvas_hash(client).await,
+        at_rest,
+        "the sloth moves on the canvas"
+    );
+    save_screenshot(client, "live-view-sloth.png").await;
+    wait_for_state(client, "idle", Duration::from_secs(30)).await;
+    assert_eq!(text_of(client, "job-last").await, "last job: completed");
+    json!({ "cell": "sloth", "control": control, "cylinders": cylinders })
 }

@@ -679,6 +679,67 @@ fn two_cells_run_their_jobs_at_the_same_time_each_on_its_own_rig() {
     assert_eq!(first["last"]["report"]["rig"], "irb120");
 }
 
+/// One daemon, the arm's cell and the sloth's (`config/gait-run.toml`): both jobs stream at
+/// once, the sloth's through the same pipeline (26 axes, its own log), and the sloth's live
+/// view shows its branch and its bones.
+#[test]
+fn one_daemon_runs_the_arm_and_the_sloth_at_the_same_time() {
+    let server = two_cells(&repo_path("config/gait-run.toml"), None);
+    let (mut live, _) = open_live(&server, "/api/cells/sloth/live", &[]).unwrap();
+    let scene = next_json(&mut live);
+    assert_eq!(scene["type"], "scene", "{scene}");
+    assert_eq!(scene["rig"], "sloth");
+    assert_eq!(scene["joints"].as_array().unwrap().len(), 26);
+    let branches = scene["scene"]["cylinders"].as_array().unwrap();
+    assert!(!branches.is_empty(), "the straight branch: {scene}");
+    let frame = next_json(&mut live);
+    let chains = frame["chains"].as_array().unwrap();
+    assert_eq!(chains.len(), 5, "the spine and four limbs: {frame}");
+
+    let (code, arm) = request(&server, "POST", "/api/cells/irb120/jobs", Some(ARM_MOVES));
+    assert_eq!(code, 202, "{arm}");
+    let (code, gait) = request(&server, "POST", "/api/cells/sloth/jobs", None);
+    assert_eq!(code, 202, "{gait}");
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let states = cell_states(&server);
+        if states.iter().all(|(_, state)| state == "running") {
+            break;
+        }
+        assert!(Instant::now() < deadline, "never both running: {states:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let deadline = Instant::now() + Duration::from_secs(40);
+    while cell_states(&server)
+        .iter()
+        .any(|(_, state)| state != "idle")
+    {
+        assert!(Instant::now() < deadline, "jobs should end");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    for (cell, job, joints) in [
+        ("irb120", "joint_waypoints", 6),
+        ("sloth", "gait straight", 26),
+    ] {
+        let (_, status) = request(&server, "GET", &format!("/api/cells/{cell}/status"), None);
+        let report = &status["last"]["report"];
+        assert_eq!(report["outcome"], "completed", "{status}");
+        assert_eq!(report["job"], job, "{status}");
+        assert_eq!(report["limit_violations"], 0, "{status}");
+        let log = rigbridge::log::read_log(std::path::Path::new(
+            report["log"]["path"].as_str().unwrap(),
+        ))
+        .unwrap();
+        assert_eq!(log.rig, cell);
+        assert_eq!(log.joint_names.len(), joints, "{:?}", log.joint_names);
+        assert!(
+            log.states.len() > 250,
+            "{cell}: {} states",
+            log.states.len()
+        );
+    }
+}
+
 #[test]
 fn an_unknown_cell_is_404_and_the_cell_routes_need_the_token() {
     let token = "cells-s3cret-token";

@@ -29,7 +29,7 @@ pub struct GaitArgs {
     /// Run settings naming the sloth rig (stream rate, twin).
     #[arg(long, default_value = "config/gait-run.toml")]
     config: PathBuf,
-    /// Record the run to this MCAP file (default: runs/gait-<unix time>.mcap).
+    /// Record the run to this MCAP file (default: runs/gait-<unix time>-<pid>.mcap).
     #[arg(long)]
     log: Option<PathBuf>,
     /// Write the gait report (JSON) here.

@@ -29,7 +29,7 @@ pub struct PaintArgs {
     paint_config: PathBuf,
     #[arg(long, value_enum, default_value = "wall")]
     clock: ClockChoice,
-    /// Record the run to this MCAP file (default: runs/paint-<unix time>.mcap).
+    /// Record the run to this MCAP file (default: runs/paint-<unix time>-<pid>.mcap).
     #[arg(long)]
     log: Option<PathBuf>,
     /// Write the paint report (JSON) here.

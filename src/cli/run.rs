@@ -32,7 +32,7 @@ pub struct RunArgs {
     /// serial:///dev/PATH?baud=N or can://IFACE.
     #[arg(long)]
     link: Option<String>,
-    /// Record the run to this MCAP file (default: runs/run-<unix time>.mcap).
+    /// Record the run to this MCAP file (default: runs/run-<unix time>-<pid>.mcap).
     #[arg(long)]
     log: Option<PathBuf>,
     /// Write the run report (JSON) here.
@@ -49,12 +49,14 @@ pub fn make_clock(choice: ClockChoice) -> Arc<dyn Clock> {
     }
 }
 
-/// The default log path, unique per run.
+/// The default log path, unique per run: the time in seconds orders runs, the process id
+/// keeps two runs started in the same second apart (the recorder never overwrites a file).
 pub fn default_log_path(prefix: &str) -> PathBuf {
     let seconds = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_secs());
-    PathBuf::from("runs").join(format!("{prefix}-{seconds}.mcap"))
+    let process = std::process::id();
+    PathBuf::from("runs").join(format!("{prefix}-{seconds}-{process}.mcap"))
 }
 
 pub fn spawn_streaming<T: Send + 'static>(

@@ -18,6 +18,7 @@
 //! and sends each frame to every page connected to that cell's live route.
 
 mod cell;
+mod scene;
 
 pub use cell::{CellError, check_cells};
 
@@ -26,7 +27,7 @@ use super::config::{JobConfig, RunSettings};
 use crate::clock::{Clock, WallClock};
 use crate::stream::StreamControl;
 use crate::twin::TwinWorld;
-use crate::view::{ArmScene, LiveScene, ToolTrace, page};
+use crate::view::page;
 use axum::extract::ws::{Message as WsMessage, WebSocket, WebSocketUpgrade};
 use axum::extract::{FromRequestParts, RawPathParams, Request, State};
 use axum::http::request::Parts;
@@ -39,8 +40,8 @@ use cell::{Cell, StartRefused};
 use serde::Deserialize;
 use std::future::Future;
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::{broadcast, watch};
 
@@ -403,18 +404,6 @@ async fn live_css() -> impl IntoResponse {
         [("content-type", "text/css; charset=utf-8")],
         page::LIVE_CSS,
     )
-}
-
-/// What the live view shows for `job`, and the twin's world that measures it: the one place
-/// a kind of job chooses its scene. The star: the arm in front of its wall, the tool's trace
-/// on the wall as paint.
-fn scene_for_job(
-    settings: &RunSettings,
-    job: &JobConfig,
-) -> (Box<dyn LiveScene>, Option<Box<dyn TwinWorld>>) {
-    let trace = Arc::new(Mutex::new(ToolTrace::new(settings.rig.clone())));
-    let scene = ArmScene::for_job(settings.rig.clone(), job, Some(trace.clone()));
-    (Box::new(scene), Some(Box::new(trace)))
 }
 
 /// The twin's world for the job at hand, swapped when a job starts.

@@ -53,12 +53,24 @@ impl PaintScene {
         }
     }
 
+    /// The quad from contact line `from` to `to`, always wound the same way on its wall
+    /// (counter-clockwise in wall coordinates): the page fills a wall's paint as one path, and
+    /// overlapping quads of opposite windings (an up stroke beside a down stroke) would cancel.
     fn quad(&self, wall: usize, from: [DVec2; 2], to: [DVec2; 2]) -> PaintQuad {
         let wall_geometry = &self.room.walls[wall];
         let at = |p: DVec2| wall_geometry.point(p.x, p.y, 0.0).to_array();
+        let corners = [from[0], from[1], to[1], to[0]];
+        let twice_area: f64 = (0..4)
+            .map(|i| corners[i].perp_dot(corners[(i + 1) % 4]))
+            .sum();
+        let [a, b, c, d] = corners.map(at);
         PaintQuad {
             wall,
-            quad: [at(from[0]), at(from[1]), at(to[1]), at(to[0])],
+            quad: if twice_area >= 0.0 {
+                [a, b, c, d]
+            } else {
+                [d, c, b, a]
+            },
         }
     }
 
@@ -216,6 +228,14 @@ mod tests {
                 .map(|p| wall.local(DVec3::from_array(*p)))
                 .collect();
             assert!(local.iter().all(|(_, _, off)| off.abs() < 1e-6));
+            // One winding for all (the page fills a wall's quads as one nonzero path).
+            let twice_area: f64 = (0..4)
+                .map(|i| {
+                    let (a, b) = (local[i], local[(i + 1) % 4]);
+                    a.0 * b.1 - a.1 * b.0
+                })
+                .sum();
+            assert!(twice_area >= 0.0, "quad wound clockwise: {quad:?}");
             let centre_s = local.iter().map(|l| l.0).sum::<f64>() / 4.0;
             let centre_v = local.iter().map(|l| l.1).sum::<f64>() / 4.0;
             assert!(

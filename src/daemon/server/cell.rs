@@ -3,10 +3,11 @@
 //! own clock), the last job's result, and its own live hub and twin world. Cells share
 //! nothing but the daemon's options and its job numbering; jobs in different cells run
 //! concurrently. This file owns a cell's state and its job lifecycle and the startup check
-//! that cells do not clash; HTTP routing, access control and the choice of a job's live
-//! scene stay in `server.rs` (`scene_for_job`).
+//! that cells do not clash; HTTP routing and access control stay in `server.rs`, the choice
+//! of a job's live scene in `scene.rs`.
 
-use super::{JobWorld, LIVE_FRAME_RATE_HZ, ServeOptions, scene_for_job};
+use super::scene::scene_for_job;
+use super::{JobWorld, LIVE_FRAME_RATE_HZ, ServeOptions};
 use crate::clock::{Clock, VirtualClock, WallClock};
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::daemon::{DaemonError, RunReport, error_chain, plan_for, stream_planned_with};

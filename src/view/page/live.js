@@ -13,6 +13,8 @@ const health = {
   wsMessages: 0,
   wsRate: 0,
   paintQuads: 0,
+  sceneWalls: 0,
+  sceneCylinders: 0,
   errors: [],
 };
 window.rigbridgeView = health;
@@ -183,9 +185,16 @@ const JOINT_RADIUS = 0.055;
 const BASE_RADIUS = 0.12;
 const FLOOR_TOLERANCE = 0.01;
 const CHAIN_COLOURS = ['#e8772e', '#2f7dd1', '#7a4fc4', '#1f9d74'];
+// Drawing order before depth: walls facing the camera, then bodies, then walls seen from
+// behind (outlines).
+const LAYER_UNDER = 0;
+const LAYER_BODY = 1;
+const LAYER_OVER = 2;
 
 function setScene(message) {
   scene = message.scene;
+  health.sceneWalls = scene.walls.length;
+  health.sceneCylinders = scene.cylinders.length;
   paintByWall = scene.walls.map(() => []);
   health.paintQuads = 0;
   addPaint(scene.paint);
@@ -242,6 +251,10 @@ function wallDrawable(v, wall, index) {
   const fromBehind = dot(normal, sub(v.eye, wall.corners[0])) < 0;
   const fill = shade([214, 209, 198], normal, v);
   return {
+    // A wall is a plane: what stands on the camera's side of a wall facing the camera is
+    // in front of all of it, whatever the centroids say; a wall seen from behind is an
+    // outline over everything.
+    layer: fromBehind ? LAYER_OVER : LAYER_UNDER,
     depth: meanDepth(outline),
     draw() {
       ctx.beginPath();
@@ -391,8 +404,11 @@ function draw() {
       chainDrawables(v, chain, CHAIN_COLOURS[i % CHAIN_COLOURS.length], drawables);
     });
   }
-  // Painter's algorithm: farthest first.
-  drawables.filter((d) => d).sort((a, b) => b.depth - a.depth).forEach((d) => d.draw());
+  // Painter's algorithm: by layer, then farthest first.
+  drawables
+    .filter((d) => d)
+    .sort((a, b) => (a.layer ?? LAYER_BODY) - (b.layer ?? LAYER_BODY) || b.depth - a.depth)
+    .forEach((d) => d.draw());
   health.framesDrawn += 1;
   if (health.firstFrameMs === null && latest) {
     health.firstFrameMs = performance.now();

@@ -1,0 +1,114 @@
+//! Which live scene (and which twin world) a cell shows for a job: the arm before its wall,
+//! the painting room with its paint, or the sloth on its branches. Owns only that choice; the
+//! scenes themselves live in `src/view`, and planning stays with the job.
+
+use crate::daemon::config::{JobConfig, RunSettings};
+use crate::task::gait::Scenario;
+use crate::task::paint::{load_paint_settings, room_for, world_for};
+use crate::twin::TwinWorld;
+use crate::view::{ArmScene, LiveScene, PaintScene, SlothScene, ToolTrace};
+use std::sync::{Arc, Mutex};
+
+/// A job's live scene and the twin world (if any) that measures what the scene shows.
+pub type JobScene = (Box<dyn LiveScene>, Option<Box<dyn TwinWorld>>);
+
+/// The scene of `job` for the cell of `settings`, and the world the twin must feed for it.
+/// A job whose room or scenario cannot be built shows the bare rig: planning the same job
+/// fails and reports why.
+pub fn scene_for_job(settings: &RunSettings, job: &JobConfig) -> JobScene {
+    match job {
+        JobConfig::Paint {
+            walls,
+            seed,
+            paint_config,
+        } => painting_room(settings, *walls, *seed, paint_config)
+            .unwrap_or_else(|| (Box::new(ArmScene::new(settings.rig.clone())), None)),
+        JobConfig::Gait {
+            scenario,
+            angle_deg,
+            gap_m,
+        } => {
+            let scene: Box<dyn LiveScene> = match (
+                &settings.sloth,
+                Scenario::build(scenario, *angle_deg, *gap_m),
+            ) {
+                (Some(sloth), Ok(scenario)) => Box::new(SlothScene::new(sloth.clone(), &scenario)),
+                _ => Box::new(ArmScene::new(settings.rig.clone())),
+            };
+            (scene, None)
+        }
+        JobConfig::WallFigure { .. } | JobConfig::JointWaypoints { .. } => {
+            let trace = Arc::new(Mutex::new(ToolTrace::new(settings.rig.clone())));
+            let scene = ArmScene::for_job(settings.rig.clone(), job, Some(trace.clone()));
+            (Box::new(scene), Some(Box::new(trace)))
+        }
+    }
+}
+
+/// The generated room with the painter in it, and its paint world (what the twin paints).
+fn painting_room(
+    settings: &RunSettings,
+    walls: u32,
+    seed: u64,
+    paint_config: &std::path::Path,
+) -> Option<JobScene> {
+    let paint = load_paint_settings(paint_config).ok()?;
+    let room = room_for(&paint, walls, seed).ok()?;
+    let world = Arc::new(Mutex::new(world_for(&paint, &room)));
+    let scene = PaintScene::new(settings.rig.clone(), world.clone());
+    Some((Box::new(scene), Some(Box::new(world))))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::daemon::config::load_run_settings;
+    use std::path::Path;
+
+    fn shipped(file: &str) -> RunSettings {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("config")
+            .join(file);
+        load_run_settings(&path).expect("a shipped run settings file loads")
+    }
+
+    #[test]
+    fn each_kind_of_job_gets_its_own_scene() {
+        let paint = shipped("paint-run.toml");
+        let (scene, world) = scene_for_job(&paint, &paint.config.job);
+        assert_eq!(scene.scene().walls.len(), 4, "the room of [job] walls = 4");
+        assert!(world.is_some(), "the twin paints the room");
+
+        let gait = shipped("gait-run.toml");
+        let (scene, world) = scene_for_job(&gait, &gait.config.job);
+        assert!(!scene.scene().cylinders.is_empty(), "the sloth's branch");
+        assert_eq!(
+            scene.chains(&gait.initial()).len(),
+            5,
+            "spine and four limbs"
+        );
+        assert!(world.is_none());
+
+        let arm = shipped("rigbridge.toml");
+        let (scene, world) = scene_for_job(&arm, &arm.config.job);
+        assert_eq!(scene.scene().walls.len(), 1, "the star's wall");
+        assert!(world.is_some(), "the tool's trace");
+    }
+
+    #[test]
+    fn a_room_that_cannot_be_built_shows_the_bare_rig() {
+        let paint = shipped("paint-run.toml");
+        let job = JobConfig::Paint {
+            walls: 2,
+            seed: 0,
+            paint_config: Path::new(env!("CARGO_MANIFEST_DIR")).join("config/paint.toml"),
+        };
+        let (scene, world) = scene_for_job(&paint, &job);
+        assert!(scene.scene().walls.is_empty());
+        assert!(world.is_none());
+        assert!(
+            !scene.chains(&paint.initial()).is_empty(),
+            "the painter still shows"
+        );
+    }
+}
