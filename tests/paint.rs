@@ -647,3 +647,34 @@ fn coverage_is_recomputed_from_the_log_and_the_report() {
     assert_eq!(in_openings, 0);
     assert!(coverage >= 0.995);
 }
+
+/// `rigbridge paint --config FILE` from another directory paints with FILE's own
+/// `[job] paint_config` (resolved next to FILE), not with a path relative to where it runs.
+#[test]
+fn the_paint_command_takes_the_paint_settings_from_its_run_settings() {
+    let dir = std::env::temp_dir().join(format!("rigbridge-paint-cli-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args(["paint", "--walls", "3", "--seed", "2", "--clock", "virtual"])
+        .arg("--config")
+        .arg(repo_path("config/paint-run.toml"))
+        .args(["--log", "p.mcap", "--report", "p.json"])
+        .current_dir(&dir)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("p.json")).unwrap()).unwrap();
+    assert_eq!(report["room"]["walls"].as_array().map(Vec::len), Some(3));
+    assert!(
+        report["totals"]["coverage"].as_f64().unwrap() >= 0.995,
+        "{}",
+        report["totals"]
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -5,7 +5,7 @@
 use super::run::{ClockChoice, default_log_path, exit_code, make_clock, print_stream_summary};
 use anyhow::Context;
 use clap::Args;
-use rigbridge::daemon::config::load_run_settings;
+use rigbridge::daemon::config::{JobConfig, load_run_settings};
 use rigbridge::daemon::paint::run_paint;
 use rigbridge::stream::StreamControl;
 use rigbridge::task::paint::{PaintReport, PaintWorld, load_paint_settings, write_svg};
@@ -24,9 +24,10 @@ pub struct PaintArgs {
     /// Run settings (stream rate, twin, plan shares); its rig must be the painter.
     #[arg(long, default_value = "config/paint-run.toml")]
     config: PathBuf,
-    /// Room, brush and coverage settings.
-    #[arg(long, default_value = "config/paint.toml")]
-    paint_config: PathBuf,
+    /// Room, brush and coverage settings [default: the run settings' `[job] paint_config`
+    /// when its job paints, else config/paint.toml].
+    #[arg(long)]
+    paint_config: Option<PathBuf>,
     #[arg(long, value_enum, default_value = "wall")]
     clock: ClockChoice,
     /// Record the run to this MCAP file (default: runs/paint-<unix time>-<pid>.mcap).
@@ -42,7 +43,12 @@ pub struct PaintArgs {
 
 pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
     let settings = load_run_settings(&args.config).context("cannot load run settings")?;
-    let paint = load_paint_settings(&args.paint_config).context("cannot load paint settings")?;
+    let paint_config = match (args.paint_config, &settings.config.job) {
+        (Some(file), _) => file,
+        (None, JobConfig::Paint { paint_config, .. }) => paint_config.clone(),
+        (None, _) => PathBuf::from("config/paint.toml"),
+    };
+    let paint = load_paint_settings(&paint_config).context("cannot load paint settings")?;
     let picture_kind = match &args.picture {
         Some(picture) => match picture.extension().and_then(|e| e.to_str()) {
             Some("svg") => Some(Picture::Svg),
