@@ -132,7 +132,7 @@ fn jobs_can_be_submitted_paused_resumed_and_stopped() {
     let server = start_server();
     let (code, idle) = request(&server, "GET", "/api/status", None);
     assert_eq!((code, idle["state"].as_str()), (200, Some("idle")));
-    assert_eq!(idle["actual_deg"].as_array().unwrap().len(), 6);
+    assert_eq!(idle["actual"].as_array().unwrap().len(), 6);
 
     let (code, accepted) = request(&server, "POST", "/api/jobs", None);
     assert_eq!(code, 202, "{accepted}");
@@ -310,7 +310,7 @@ fn a_non_loopback_bind_with_a_token_guards_status_too() {
     // The page is static code without state: a browser must be able to load it.
     let (code, page) = request_with(&server, "GET", "/", "");
     assert_eq!(code, 200, "{page}");
-    assert!(!page.contains("actual_deg"), "no state in the page");
+    assert!(!page.contains("\"actual\":"), "no state in the page");
     assert_unauthorized(request_with(
         &server,
         "GET",
@@ -626,7 +626,7 @@ fn two_cells_run_their_jobs_at_the_same_time_each_on_its_own_rig() {
     );
     let (_, status) = request(&server, "GET", "/api/cells/pan_tilt/status", None);
     assert_eq!(status["cell"], "pan_tilt");
-    assert_eq!(status["actual_deg"].as_array().unwrap().len(), 3);
+    assert_eq!(status["actual"].as_array().unwrap().len(), 3);
 
     let (code, arm) = request(&server, "POST", "/api/cells/irb120/jobs", Some(ARM_MOVES));
     assert_eq!(code, 202, "{arm}");
@@ -661,7 +661,7 @@ fn two_cells_run_their_jobs_at_the_same_time_each_on_its_own_rig() {
         assert_eq!(report["outcome"], "completed", "{status}");
         assert_eq!(report["rig"], rig, "{status}");
         assert_eq!(report["limit_violations"], 0, "{status}");
-        assert_eq!(status["actual_deg"].as_array().unwrap().len(), joints);
+        assert_eq!(status["actual"].as_array().unwrap().len(), joints);
         let log = rigbridge::log::read_log(std::path::Path::new(
             report["log"]["path"].as_str().unwrap(),
         ))
@@ -695,6 +695,21 @@ fn one_daemon_runs_the_arm_and_the_sloth_at_the_same_time() {
     let frame = next_json(&mut live);
     let chains = frame["chains"].as_array().unwrap();
     assert_eq!(chains.len(), 5, "the spine and four limbs: {frame}");
+    // Status in each axis' own unit: the body's position in metres, its bones in degrees.
+    let (_, status) = request(&server, "GET", "/api/cells/sloth/status", None);
+    let actual = status["actual"].as_array().unwrap();
+    assert_eq!(actual.len(), 26, "{status}");
+    assert_eq!(actual[0]["joint"], "body_x");
+    assert_eq!(actual[0]["unit"], "m");
+    assert!(
+        (actual[0]["value"].as_f64().unwrap() - -0.3).abs() < 1e-6,
+        "{status}"
+    );
+    assert_eq!(actual[6]["unit"], "deg");
+    assert!(
+        (actual[6]["value"].as_f64().unwrap() - 4.2).abs() < 1e-6,
+        "{status}"
+    );
 
     let (code, arm) = request(&server, "POST", "/api/cells/irb120/jobs", Some(ARM_MOVES));
     assert_eq!(code, 202, "{arm}");

@@ -12,6 +12,7 @@ use crate::clock::{Clock, VirtualClock, WallClock};
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::daemon::{DaemonError, RunReport, error_chain, plan_for, stream_planned_with};
 use crate::link::{LinkSpec, LoopbackLink};
+use crate::rig::JointKind;
 use crate::stream::StreamControl;
 use crate::twin::{SharedWorld, Twin};
 use crate::view::{JobView, LiveHub, LiveSample, LiveSink, LiveSlot};
@@ -122,7 +123,17 @@ pub struct Status {
     state: &'static str,
     job: Option<JobStatus>,
     last: Option<JobResult>,
-    actual_deg: Vec<f64>,
+    /// The twin's actual position per axis, in the axis' unit; empty while a job streams
+    /// (the live view has it then).
+    actual: Vec<AxisValue>,
+}
+
+/// One axis' value in its own unit: degrees for a revolute axis, metres for a prismatic one.
+#[derive(Debug, Serialize)]
+pub struct AxisValue {
+    joint: String,
+    value: f64,
+    unit: &'static str,
 }
 
 /// One line of `GET /api/cells`.
@@ -231,12 +242,24 @@ impl Cell {
     pub fn status(&self) -> Status {
         let job = self.running();
         // A streaming job holds the link: the live view has the position then.
-        let actual_deg = match self.link.try_lock() {
-            Ok(link) => link
-                .twin()
-                .actual()
+        let actual = match self.link.try_lock() {
+            Ok(link) => self
+                .settings
+                .rig
+                .joints
                 .iter()
-                .map(|q| q.to_degrees())
+                .zip(link.twin().actual())
+                .map(|(joint, q)| {
+                    let (value, unit) = match joint.kind {
+                        JointKind::Revolute => (q.to_degrees(), "deg"),
+                        JointKind::Prismatic => (*q, "m"),
+                    };
+                    AxisValue {
+                        joint: joint.name.clone(),
+                        value,
+                        unit,
+                    }
+                })
                 .collect(),
             Err(_) => Vec::new(),
         };
@@ -245,7 +268,7 @@ impl Cell {
             state: state_of(job.as_ref()),
             job,
             last: self.last().clone(),
-            actual_deg,
+            actual,
         }
     }
 
