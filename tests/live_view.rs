@@ -479,10 +479,12 @@ async fn paint_the_room(client: &Client) -> Value {
         Duration::from_secs(90),
     )
     .await;
-    // The camera turned to face wall 0 (+x, where the painter starts), as a person would.
+    // The camera turned to face wall 0 (+x, where the painter starts) and brought closer to
+    // the painter, as a person would.
     eval(
         client,
-        "camera.yaw = 2.7; camera.pitch = 0.3; cameraMoved = true; dirty = true; return true;",
+        "Object.assign(camera, { yaw: 2.9, pitch: 0.35, distance: 4.5, target: [0.9, -0.6, 1.0] });
+         cameraMoved = true; dirty = true; return true;",
     )
     .await;
     tokio::time::sleep(Duration::from_millis(200)).await;

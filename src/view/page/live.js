@@ -146,10 +146,32 @@ canvas.addEventListener('dblclick', () => {
 
 // Home: looking at the middle of everything there is to see (walls, cylinders, the rig),
 // from far enough for all of it to fit.
+// A long branch would shrink a small rig to a few pixels: only the part of each cylinder
+// within CYLINDER_FIT_M of the rig counts.
+const CYLINDER_FIT_M = 1.0;
+
+function cylinderNear(c, centre) {
+  const axis = sub(c.to, c.from);
+  const length = Math.hypot(axis[0], axis[1], axis[2]) || 1;
+  const along = dot(sub(centre, c.from), axis) / length;
+  const at = (d) => {
+    const k = Math.min(length, Math.max(0, d)) / length;
+    return [0, 1, 2].map((i) => c.from[i] + k * axis[i]);
+  };
+  return [at(along - CYLINDER_FIT_M), at(along + CYLINDER_FIT_M)];
+}
+
 function fitCamera(chains) {
+  linkRadius = linkRadiusFor(chains);
   const points = [];
   for (const wall of scene.walls) points.push(...wall.corners);
-  for (const c of scene.cylinders) points.push(c.from, c.to);
+  const rig = chains.flat();
+  if (rig.length > 0) {
+    const centre = [0, 1, 2].map((k) => rig.reduce((sum, p) => sum + p[k], 0) / rig.length);
+    for (const c of scene.cylinders) points.push(...cylinderNear(c, centre));
+  } else {
+    for (const c of scene.cylinders) points.push(c.from, c.to);
+  }
   for (const chain of chains) points.push(...chain);
   if (points.length === 0) return;
   const low = [0, 1, 2].map((k) => Math.min(...points.map((p) => p[k])));
@@ -158,6 +180,8 @@ function fitCamera(chains) {
   HOME_CAMERA.target = [0, 1, 2].map((k) => (low[k] + high[k]) / 2);
   const reach = Math.max(...[0, 1].flatMap((k) => [Math.abs(low[k]), Math.abs(high[k])]));
   floorHalf = Math.max(2, Math.ceil(reach + 0.5));
+  // A rig below z = 0 (the sloth hangs under its branch) gets its ground below it.
+  floorZ = low[2] < -FLOOR_TOLERANCE ? low[2] - 0.3 : 0;
   // The view's half-angle is atan(0.5 / 0.9) (focal length 0.9 of the shorter side).
   HOME_CAMERA.distance = Math.max(1.0, 1.15 * radius / Math.sin(Math.atan(0.5 / 0.9)));
   if (!cameraMoved) Object.assign(camera, HOME_CAMERA);
@@ -180,8 +204,27 @@ window.addEventListener('resize', resize);
 let scene = { walls: [], cylinders: [], paint: [] };
 let paintByWall = [];
 let latest = null;
-const LINK_RADIUS = 0.045;
-const JOINT_RADIUS = 0.055;
+// Links and joints are drawn in proportion to the rig: the IRB 120's 0.27-0.3 m links get
+// 4.5 cm, the sloth's 2-15 cm bones about 1.5 cm (set from the rig's first frame).
+const MAX_LINK_RADIUS = 0.045;
+const MIN_LINK_RADIUS = 0.008;
+const LINK_RADIUS_PER_LENGTH = 0.17;
+let linkRadius = MAX_LINK_RADIUS;
+
+function linkRadiusFor(chains) {
+  const lengths = [];
+  for (const chain of chains) {
+    for (let i = 1; i < chain.length; i++) {
+      const d = sub(chain[i], chain[i - 1]);
+      const length = Math.hypot(d[0], d[1], d[2]);
+      if (length > 0.001) lengths.push(length);
+    }
+  }
+  if (lengths.length === 0) return MAX_LINK_RADIUS;
+  lengths.sort((a, b) => a - b);
+  const median = lengths[Math.floor(lengths.length / 2)];
+  return Math.min(MAX_LINK_RADIUS, Math.max(MIN_LINK_RADIUS, LINK_RADIUS_PER_LENGTH * median));
+}
 const BASE_RADIUS = 0.12;
 const FLOOR_TOLERANCE = 0.01;
 const CHAIN_COLOURS = ['#e8772e', '#2f7dd1', '#7a4fc4', '#1f9d74'];
@@ -342,7 +385,7 @@ function chainDrawables(v, chain, colour, out) {
       draw() {
         ctx.strokeStyle = colour;
         ctx.lineCap = 'round';
-        ctx.lineWidth = Math.max(2, 2 * v.focal * LINK_RADIUS / ((a[2] + b[2]) / 2));
+        ctx.lineWidth = Math.max(2, 2 * v.focal * linkRadius / ((a[2] + b[2]) / 2));
         ctx.beginPath();
         ctx.moveTo(a[0], a[1]);
         ctx.lineTo(b[0], b[1]);
@@ -358,7 +401,7 @@ function chainDrawables(v, chain, colour, out) {
       draw() {
         ctx.fillStyle = tool ? '#111827' : '#374151';
         ctx.beginPath();
-        ctx.arc(p[0], p[1], Math.max(2, v.focal * (tool ? 0.6 : 1) * JOINT_RADIUS / p[2]), 0, 2 * Math.PI);
+        ctx.arc(p[0], p[1], Math.max(2, v.focal * (tool ? 0.6 : 1) * 1.22 * linkRadius / p[2]), 0, 2 * Math.PI);
         ctx.fill();
       },
     });
@@ -367,6 +410,7 @@ function chainDrawables(v, chain, colour, out) {
 
 // The floor's grid: 0.2 m squares, 0.5 m in scenes wider than 8 m, reaching past the scene.
 let floorHalf = 2;
+let floorZ = 0;
 function drawFloor(v) {
   ctx.strokeStyle = '#cfd5dd';
   ctx.lineWidth = 1;
@@ -376,7 +420,7 @@ function drawFloor(v) {
   for (let k = -lines; k <= lines; k++) {
     const x = k * step;
     const h = floorHalf;
-    for (const [p, q] of [[[x, -h, 0], [x, h, 0]], [[-h, x, 0], [h, x, 0]]]) {
+    for (const [p, q] of [[[x, -h, floorZ], [x, h, floorZ]], [[-h, x, floorZ], [h, x, floorZ]]]) {
       const a = project(v, p);
       const b = project(v, q);
       if (!a || !b) continue;
@@ -399,8 +443,9 @@ function draw() {
   if (latest) {
     latest.chains.forEach((chain, i) => {
       if (chain.length === 0) return;
-      // A chain that starts on the floor stands on a base plate (the arm); a limb does not.
-      if (Math.abs(chain[0][2]) < FLOOR_TOLERANCE) drawables.push(baseDrawable(v, chain[0]));
+      // The rig's first chain stands on a base plate when it starts on the floor (the arm);
+      // a limb, a brush or a contact line does not.
+      if (i === 0 && Math.abs(chain[0][2]) < FLOOR_TOLERANCE) drawables.push(baseDrawable(v, chain[0]));
       chainDrawables(v, chain, CHAIN_COLOURS[i % CHAIN_COLOURS.length], drawables);
     });
   }
@@ -591,6 +636,8 @@ function showCell(name) {
   cellPrefix = cellSelect.selectedIndex === 0 ? '/api' : '/api/cells/' + encodeURIComponent(name);
   latest = null;
   fitPending = true;
+  // Another rig in another scene: the camera a person set for the last one means nothing here.
+  cameraMoved = false;
   const old = socket;
   connect();
   if (old) old.close();
