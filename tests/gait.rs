@@ -10,24 +10,38 @@ use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::gait::{GaitRun, run_gait};
 use rigbridge::rig::ConfigError;
 use rigbridge::stream::{Outcome, StreamControl};
-use rigbridge::task::gait::{Scenario, SlothRig};
+use rigbridge::task::gait::{LimbSolver, Scenario, SlothRig};
 
 fn settings() -> RunSettings {
     load_run_settings(&repo_path("config/gait-run.toml")).expect("config/gait-run.toml loads")
 }
 
 fn walk(name: &str, angle: Option<f64>, gap: Option<f64>) -> GaitRun {
+    walk_with(settings(), name, angle, gap)
+}
+
+/// The gait's run settings with the limbs placed by `solver`.
+fn settings_with(solver: LimbSolver) -> RunSettings {
+    let mut settings = settings();
+    let mut sloth = settings.sloth.as_deref().cloned().expect("a sloth rig");
+    sloth.gait.solver = solver;
+    settings.sloth = Some(std::sync::Arc::new(sloth));
+    settings
+}
+
+fn walk_with(settings: RunSettings, name: &str, angle: Option<f64>, gap: Option<f64>) -> GaitRun {
     let scenario = Scenario::build(name, angle, gap).expect("scenario builds");
     let dir = std::env::temp_dir().join(format!("rigbridge-gait-test-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
+    let solver = settings.sloth.as_ref().map(|s| s.gait.solver);
     let log = dir.join(format!(
-        "{name}-{}-{}.mcap",
+        "{name}-{}-{}-{solver:?}.mcap",
         angle.unwrap_or(0.0),
         gap.unwrap_or(0.0)
     ));
     let _ = std::fs::remove_file(&log);
     let run = run_gait(
-        &settings(),
+        &settings,
         &scenario,
         &VirtualClock::new(),
         Some(&log),
@@ -90,6 +104,18 @@ fn assert_stops_cleanly(run: &GaitRun, reason_contains: &str) {
 #[test]
 fn straight_branch_at_the_sloths_speed() {
     let run = walk("straight", None, None);
+    assert_passes(&run);
+    assert!(
+        (run.verdict.speed_mps - 0.11).abs() <= 0.02,
+        "{}",
+        run.verdict.speed_mps
+    );
+}
+
+#[test]
+fn straight_branch_with_fabrik_limbs() {
+    let run = walk_with(settings_with(LimbSolver::Fabrik), "straight", None, None);
+    assert_eq!(run.verdict.solver, LimbSolver::Fabrik);
     assert_passes(&run);
     assert!(
         (run.verdict.speed_mps - 0.11).abs() <= 0.02,
@@ -191,6 +217,27 @@ fn a_bad_gait_setting_names_file_key_and_value() {
     assert!(message.contains("speed.toml"), "{message}");
     assert!(message.contains("gait.speed_m_s"), "{message}");
     assert!(message.contains("-1.0"), "{message}");
+}
+
+#[test]
+fn an_unknown_limb_solver_names_file_key_and_value() {
+    let message = sloth_variant("solver.toml", |t| {
+        t.replacen("solver = \"ccd\"", "solver = \"jacobian\"", 1)
+    })
+    .unwrap_err()
+    .to_string();
+    assert!(message.contains("solver.toml"), "{message}");
+    assert!(message.contains("gait.solver"), "{message}");
+    assert!(message.contains("jacobian"), "{message}");
+}
+
+#[test]
+fn fabrik_limbs_load_from_the_file() {
+    let sloth = sloth_variant("fabrik.toml", |t| {
+        t.replacen("solver = \"ccd\"", "solver = \"fabrik\"", 1)
+    })
+    .expect("solver = \"fabrik\" loads");
+    assert_eq!(sloth.gait.solver, LimbSolver::Fabrik);
 }
 
 #[test]

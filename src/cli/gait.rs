@@ -57,10 +57,7 @@ pub fn gait(args: GaitArgs) -> anyhow::Result<ExitCode> {
     let mut settings = load_run_settings(&args.config).context("cannot load run settings")?;
     if let Some(name) = &args.solver {
         let solver = LimbSolver::from_name(name).with_context(|| {
-            format!(
-                "--solver {name:?}: must be one of {:?}",
-                LimbSolver::NAMES
-            )
+            format!("--solver {name:?}: must be one of {:?}", LimbSolver::NAMES)
         })?;
         let mut sloth = settings
             .sloth
@@ -114,10 +111,11 @@ pub fn gait(args: GaitArgs) -> anyhow::Result<ExitCode> {
 
 fn print_verdict(r: &GaitReport) {
     println!(
-        "gait {} (angle {:?}, gap {:?}): {} over {} judged cycles, {:.3} m/s",
+        "gait {} (angle {:?}, gap {:?}, {:?} limbs): {} over {} judged cycles, {:.3} m/s",
         r.scenario,
         r.angle_deg,
         r.gap_m,
+        r.solver,
         if r.passed { "PASSED" } else { "FAILED" },
         r.cycles_judged,
         r.speed_mps

@@ -118,7 +118,11 @@ impl PositionFabrikSolver {
         wanted: &[DVec3],
     ) -> f64 {
         let joint = &self.rig.joints[index];
-        let mut fit = Fit::new(joint.kind, at_origin.translation, at_origin.transform_vector3(joint.axis));
+        let mut fit = Fit::new(
+            joint.kind,
+            at_origin.translation,
+            at_origin.transform_vector3(joint.axis),
+        );
         let own = chain.point_of_joint[index];
         let mut frame = *at_origin * motion(joint.kind, joint.axis, joints[index]);
         for later in index + 1..joints.len() {
@@ -266,7 +270,6 @@ impl IkSolver for PositionFabrikSolver {
     }
 }
 
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -325,7 +328,10 @@ mod tests {
                 let pose = random_joints(&rig, &mut rng);
                 let target = rig.tool_pose(&pose).unwrap();
                 // The previous frame's joints, as in the gait: within a degree or so.
-                let seed: Vec<f64> = pose.iter().map(|q| q + rng.random_range(-0.02..0.02)).collect();
+                let seed: Vec<f64> = pose
+                    .iter()
+                    .map(|q| q + rng.random_range(-0.02..0.02))
+                    .collect();
                 let solution = solver
                     .solve(&target, &seed)
                     .unwrap_or_else(|e| panic!("{}: {pose:?}: {e}", rig.name));
@@ -406,7 +412,10 @@ mod tests {
         for _ in 0..100 {
             let pose = random_joints(&rig, &mut rng);
             let target = rig.tool_pose(&pose).unwrap();
-            let seed: Vec<f64> = pose.iter().map(|q| q + rng.random_range(-0.05..0.05)).collect();
+            let seed: Vec<f64> = pose
+                .iter()
+                .map(|q| q + rng.random_range(-0.05..0.05))
+                .collect();
             let solution = solver.solve(&target, &seed).expect("reaches");
             assert_genuine(&rig, target.position, &solution);
         }
