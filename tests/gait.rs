@@ -125,6 +125,20 @@ fn straight_branch_with_fabrik_limbs() {
 }
 
 #[test]
+fn fabrik_limbs_stop_cleanly_where_their_poses_jump() {
+    // At 135 deg the FABRIK limbs find the hind foot's next pose only on another branch of
+    // the limb (a pelvis jump above the axis speed): the gait stops, never streams it.
+    let run = walk_with(
+        settings_with(LimbSolver::Fabrik),
+        "height-change",
+        Some(135.0),
+        None,
+    );
+    assert_stops_cleanly(&run, "above 95 % of its max speed");
+    assert_eq!(run.run.stream.limit_violations, 0);
+}
+
+#[test]
 fn branch_turns_from_95_to_175_degrees() {
     for angle in [95.0, 115.0, 135.0, 155.0, 175.0] {
         assert_passes(&walk("branch-turn", Some(angle), None));

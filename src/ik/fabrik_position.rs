@@ -125,14 +125,21 @@ impl PositionFabrikSolver {
         );
         let own = chain.point_of_joint[index];
         let mut frame = *at_origin * motion(joint.kind, joint.axis, joints[index]);
-        for later in index + 1..joints.len() {
-            let next = &self.rig.joints[later];
+        let beyond = self
+            .rig
+            .joints
+            .iter()
+            .zip(joints)
+            .zip(&chain.point_of_joint);
+        let mut previous_point = own;
+        for ((next, q), &point) in beyond.skip(index + 1) {
             let origin = frame * next.origin;
-            let point = chain.point_of_joint[later];
-            if point > own && chain.point_of_joint[later - 1] != point {
+            // The first joint on a point beyond this one's stands for that point.
+            if point != previous_point {
                 fit.add(origin.translation, wanted[point]);
             }
-            frame = origin * motion(next.kind, next.axis, joints[later]);
+            previous_point = point;
+            frame = origin * motion(next.kind, next.axis, *q);
         }
         let tip = wanted.len() - 1;
         if chain.point_of_joint.last().is_some_and(|last| tip > *last) {
@@ -362,7 +369,7 @@ mod tests {
                 }
             }
         }
-        assert!(solved >= 950, "{solved} of 1000 cold starts solved");
+        assert!(solved >= 990, "{solved} of 1000 cold starts solved");
     }
 
     #[test]

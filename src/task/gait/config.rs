@@ -1,6 +1,7 @@
 //! The `[gait]` table of the sloth file: speed, step search, timing, rules and the limb
-//! solver. Owns parsing and validating it (errors name the file, the key and the value);
-//! the walker reads the result, it never changes it.
+//! solver. Owns parsing and validating it (errors name the file, the key and the value),
+//! and building the chosen core solver for a limb; the walker reads the result, it never
+//! changes it.
 
 use super::rig::{Limb, check_range, invalid};
 use crate::ik::{CcdSolver, IkSolver, PositionFabrikSolver, Tolerance};
@@ -8,8 +9,8 @@ use crate::rig::{ConfigError, Rig};
 use serde::Deserialize;
 use std::path::Path;
 
-/// Which of the core's solvers places each limb.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, serde::Serialize)]
+/// Which of the core's solvers places each limb (`[gait] solver`, `rigbridge gait --solver`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum LimbSolver {
     /// Cyclic coordinate descent with per-bone limits (the thesis's solver).
