@@ -126,8 +126,8 @@ fn straight_branch_with_fabrik_limbs() {
 
 #[test]
 fn fabrik_limbs_stop_cleanly_where_their_poses_jump() {
-    // At 135 deg the FABRIK limbs find the hind foot's next pose only on another branch of
-    // the limb (a pelvis jump above the axis speed): the gait stops, never streams it.
+    // At 135 deg a FABRIK pose of the left hind limb jumps (its pelvis above the axis
+    // speed in one period): the gait stops there, and never streams the jump.
     let run = walk_with(
         settings_with(LimbSolver::Fabrik),
         "height-change",
