@@ -314,6 +314,43 @@ fn the_gait_command_reports_and_draws() {
     let svg = std::fs::read_to_string(&picture).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("gait diagram"));
     assert!(log.exists());
+    assert_eq!(json["solver"], "ccd");
+}
+
+fn gait_with_solver(solver: &str, report: &std::path::Path) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .current_dir(repo_path("."))
+        .args(["gait", "--scenario", "straight", "--clock", "virtual"])
+        .args(["--solver", solver])
+        .arg("--report")
+        .arg(report)
+        .arg("--log")
+        .arg(scratch(&format!("{solver}.mcap")))
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn the_gait_command_takes_the_limb_solver() {
+    let report = scratch("fabrik.json");
+    let output = gait_with_solver("fabrik", &report);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_eq!(json["solver"], "fabrik");
+    assert_eq!(json["passed"], true);
+
+    let refused = gait_with_solver("newton", &scratch("newton.json"));
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        stderr.contains("--solver") && stderr.contains("newton"),
+        "{stderr}"
+    );
 }
 
 #[test]
