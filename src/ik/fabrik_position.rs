@@ -4,9 +4,10 @@
 //! FABRIK's two passes (Aristidou & Lasenby 2011): forward reaching, tip to root, on the
 //! points (the tip on the target, each point on the line toward where it was, at its bone's
 //! length); then backward reaching, root to tip, *in joint space*: each joint in turn takes
-//! the angle that turns the next point toward where forward reaching put it, clamped to its
-//! limits. So every iteration ends on a real pose of the rig within its limits, and the
-//! answer is read straight off the joints: no conversion from points after the fact.
+//! the angle that best brings the points beyond it toward where forward reaching put them,
+//! clamped to its limits. So every iteration ends on a real pose of the rig within its
+//! limits, and the answer is read straight off the joints: no conversion from points after
+//! the fact. docs/kinematics.md has the measurements behind the choices.
 //! It must not touch the rig, and never clamps a final answer: the best pose found is
 //! checked by `ik::verified` (limits, then the forward-kinematics residual).
 
@@ -90,8 +91,8 @@ impl PositionFabrikSolver {
     }
 
     /// Backward reaching in joint space: root to tip, each joint turns (or slides) so that
-    /// the next point of the chain heads for `wanted`'s, within its limits. Returns the
-    /// tool's origin at the new joints.
+    /// the points beyond it head for `wanted`'s, within its limits. Returns the tool's
+    /// origin at the new joints.
     fn reach_back(&self, joints: &mut [f64], chain: &PointChain, wanted: &[DVec3]) -> DVec3 {
         let mut frame = DAffine3::IDENTITY;
         for index in 0..joints.len() {
@@ -425,6 +426,67 @@ mod tests {
                 .collect();
             let solution = solver.solve(&target, &seed).expect("reaches");
             assert_genuine(&rig, target.position, &solution);
+        }
+    }
+
+    /// A turntable carrying a telescopic boom: a revolute joint, then a prismatic one.
+    fn boom() -> Rig {
+        let joint = |name: &str, kind, origin: DVec3, axis, lower, upper| crate::rig::Joint {
+            name: name.into(),
+            kind,
+            origin: DAffine3::from_translation(origin),
+            axis,
+            limits: crate::rig::JointLimits {
+                lower,
+                upper,
+                max_speed: 1.0,
+                max_acceleration: 1.0,
+            },
+        };
+        Rig {
+            name: "boom".into(),
+            base_frame: "base".into(),
+            tool_frame: "tip".into(),
+            joints: vec![
+                joint(
+                    "turn",
+                    JointKind::Revolute,
+                    DVec3::ZERO,
+                    DVec3::Z,
+                    -2.0,
+                    2.0,
+                ),
+                joint(
+                    "reach",
+                    JointKind::Prismatic,
+                    DVec3::new(0.0, 0.0, 0.1),
+                    DVec3::X,
+                    0.0,
+                    0.3,
+                ),
+            ],
+            tool: DAffine3::from_translation(DVec3::new(0.05, 0.0, 0.0)),
+        }
+    }
+
+    #[test]
+    fn slides_a_prismatic_joint_too() {
+        let rig = boom();
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let solver = solver(rig.clone());
+        for _ in 0..100 {
+            let pose = random_joints(&rig, &mut rng);
+            let target = rig.tool_pose(&pose).unwrap();
+            let solution = solver.solve(&target, &middle(&rig)).expect("reaches");
+            assert_genuine(&rig, target.position, &solution);
+        }
+        // Beyond the boom's stroke: refused with the residual, the boom at its end stop.
+        let far = Pose::new(DVec3::new(0.5, 0.0, 0.1), DQuat::IDENTITY);
+        match solver.solve(&far, &middle(&rig)) {
+            Err(IkError::NotConverged {
+                position_error_m, ..
+            }) => assert!((position_error_m - 0.15).abs() < 1e-6, "{position_error_m}"),
+            other => panic!("{other:?}"),
         }
     }
 
