@@ -10,24 +10,38 @@ use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::gait::{GaitRun, run_gait};
 use rigbridge::rig::ConfigError;
 use rigbridge::stream::{Outcome, StreamControl};
-use rigbridge::task::gait::{Scenario, SlothRig};
+use rigbridge::task::gait::{LimbSolver, Scenario, SlothRig};
 
 fn settings() -> RunSettings {
     load_run_settings(&repo_path("config/gait-run.toml")).expect("config/gait-run.toml loads")
 }
 
 fn walk(name: &str, angle: Option<f64>, gap: Option<f64>) -> GaitRun {
+    walk_with(settings(), name, angle, gap)
+}
+
+/// The gait's run settings with the limbs placed by `solver`.
+fn settings_with(solver: LimbSolver) -> RunSettings {
+    let mut settings = settings();
+    let mut sloth = settings.sloth.as_deref().cloned().expect("a sloth rig");
+    sloth.gait.solver = solver;
+    settings.sloth = Some(std::sync::Arc::new(sloth));
+    settings
+}
+
+fn walk_with(settings: RunSettings, name: &str, angle: Option<f64>, gap: Option<f64>) -> GaitRun {
     let scenario = Scenario::build(name, angle, gap).expect("scenario builds");
     let dir = std::env::temp_dir().join(format!("rigbridge-gait-test-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
+    let solver = settings.sloth.as_ref().map(|s| s.gait.solver);
     let log = dir.join(format!(
-        "{name}-{}-{}.mcap",
+        "{name}-{}-{}-{solver:?}.mcap",
         angle.unwrap_or(0.0),
         gap.unwrap_or(0.0)
     ));
     let _ = std::fs::remove_file(&log);
     let run = run_gait(
-        &settings(),
+        &settings,
         &scenario,
         &VirtualClock::new(),
         Some(&log),
@@ -96,6 +110,32 @@ fn straight_branch_at_the_sloths_speed() {
         "{}",
         run.verdict.speed_mps
     );
+}
+
+#[test]
+fn straight_branch_with_fabrik_limbs() {
+    let run = walk_with(settings_with(LimbSolver::Fabrik), "straight", None, None);
+    assert_eq!(run.verdict.solver, LimbSolver::Fabrik);
+    assert_passes(&run);
+    assert!(
+        (run.verdict.speed_mps - 0.11).abs() <= 0.02,
+        "{}",
+        run.verdict.speed_mps
+    );
+}
+
+#[test]
+fn fabrik_limbs_stop_cleanly_where_their_poses_jump() {
+    // At 135 deg a FABRIK pose of the left hind limb jumps (its pelvis above the axis
+    // speed in one period): the gait stops there, and never streams the jump.
+    let run = walk_with(
+        settings_with(LimbSolver::Fabrik),
+        "height-change",
+        Some(135.0),
+        None,
+    );
+    assert_stops_cleanly(&run, "above 95 % of its max speed");
+    assert_eq!(run.run.stream.limit_violations, 0);
 }
 
 #[test]
@@ -194,6 +234,27 @@ fn a_bad_gait_setting_names_file_key_and_value() {
 }
 
 #[test]
+fn an_unknown_limb_solver_names_file_key_and_value() {
+    let message = sloth_variant("solver.toml", |t| {
+        t.replacen("solver = \"ccd\"", "solver = \"jacobian\"", 1)
+    })
+    .unwrap_err()
+    .to_string();
+    assert!(message.contains("solver.toml"), "{message}");
+    assert!(message.contains("gait.solver"), "{message}");
+    assert!(message.contains("jacobian"), "{message}");
+}
+
+#[test]
+fn fabrik_limbs_load_from_the_file() {
+    let sloth = sloth_variant("fabrik.toml", |t| {
+        t.replacen("solver = \"ccd\"", "solver = \"fabrik\"", 1)
+    })
+    .expect("solver = \"fabrik\" loads");
+    assert_eq!(sloth.gait.solver, LimbSolver::Fabrik);
+}
+
+#[test]
 fn an_unknown_footfall_limb_is_refused() {
     let message = sloth_variant("order.toml", |t| {
         t.replacen("\"lf\", \"lh\"", "\"lf\", \"xx\"", 1)
@@ -253,6 +314,43 @@ fn the_gait_command_reports_and_draws() {
     let svg = std::fs::read_to_string(&picture).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("gait diagram"));
     assert!(log.exists());
+    assert_eq!(json["solver"], "ccd");
+}
+
+fn gait_with_solver(solver: &str, report: &std::path::Path) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .current_dir(repo_path("."))
+        .args(["gait", "--scenario", "straight", "--clock", "virtual"])
+        .args(["--solver", solver])
+        .arg("--report")
+        .arg(report)
+        .arg("--log")
+        .arg(scratch(&format!("{solver}.mcap")))
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn the_gait_command_takes_the_limb_solver() {
+    let report = scratch("fabrik.json");
+    let output = gait_with_solver("fabrik", &report);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_eq!(json["solver"], "fabrik");
+    assert_eq!(json["passed"], true);
+
+    let refused = gait_with_solver("newton", &scratch("newton.json"));
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        stderr.contains("--solver") && stderr.contains("newton"),
+        "{stderr}"
+    );
 }
 
 #[test]

@@ -9,7 +9,7 @@ use rigbridge::daemon::RunReport;
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::daemon::gait::{GaitRun, run_gait};
 use rigbridge::stream::StreamControl;
-use rigbridge::task::gait::{GaitReport, Scenario, picture};
+use rigbridge::task::gait::{GaitReport, LimbSolver, Scenario, picture};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -40,6 +40,9 @@ pub struct GaitArgs {
     picture: Option<PathBuf>,
     #[arg(long, value_enum, default_value = "wall")]
     clock: ClockChoice,
+    /// Limb IK solver, ccd or fabrik (default: the sloth file's `[gait] solver`).
+    #[arg(long)]
+    solver: Option<String>,
 }
 
 /// What `--report` holds: the verdict and the stream's own report.
@@ -51,7 +54,19 @@ struct GaitRunReport {
 }
 
 pub fn gait(args: GaitArgs) -> anyhow::Result<ExitCode> {
-    let settings = load_run_settings(&args.config).context("cannot load run settings")?;
+    let mut settings = load_run_settings(&args.config).context("cannot load run settings")?;
+    if let Some(name) = &args.solver {
+        let solver = LimbSolver::from_name(name).with_context(|| {
+            format!("--solver {name:?}: must be one of {:?}", LimbSolver::NAMES)
+        })?;
+        let mut sloth = settings
+            .sloth
+            .as_deref()
+            .cloned()
+            .with_context(|| format!("{} names no sloth rig", args.config.display()))?;
+        sloth.gait.solver = solver;
+        settings.sloth = Some(Arc::new(sloth));
+    }
     let scenario = Scenario::build(&args.scenario, args.angle, args.gap)?;
     let log = args.log.unwrap_or_else(|| default_log_path("gait"));
     if let Some(dir) = log.parent().filter(|d| !d.as_os_str().is_empty()) {
@@ -96,10 +111,11 @@ pub fn gait(args: GaitArgs) -> anyhow::Result<ExitCode> {
 
 fn print_verdict(r: &GaitReport) {
     println!(
-        "gait {} (angle {:?}, gap {:?}): {} over {} judged cycles, {:.3} m/s",
+        "gait {} (angle {:?}, gap {:?}, {:?} limbs): {} over {} judged cycles, {:.3} m/s",
         r.scenario,
         r.angle_deg,
         r.gap_m,
+        r.solver,
         if r.passed { "PASSED" } else { "FAILED" },
         r.cycles_judged,
         r.speed_mps

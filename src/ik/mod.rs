@@ -8,12 +8,14 @@ mod base_held;
 mod ccd;
 pub mod chain;
 mod fabrik;
+mod fabrik_position;
 mod gradient;
 mod wrist;
 
 pub use base_held::BaseHeldSolver;
 pub use ccd::CcdSolver;
 pub use fabrik::{FabrikSolver, StructureError};
+pub use fabrik_position::PositionFabrikSolver;
 pub use gradient::GradientDescentSolver;
 
 use crate::rig::{DofMismatch, Pose, PoseError, Rig};

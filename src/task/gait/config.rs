@@ -1,18 +1,57 @@
 //! The `[gait]` table of the sloth file: speed, step search, timing, rules and the limb
-//! solver. Owns parsing and validating it (errors name the file, the key and the value);
-//! the walker reads the result, it never changes it.
+//! solver. Owns parsing and validating it (errors name the file, the key and the value),
+//! and building the chosen core solver for a limb; the walker reads the result, it never
+//! changes it.
 
 use super::rig::{Limb, check_range, invalid};
-use crate::rig::ConfigError;
+use crate::ik::{CcdSolver, IkSolver, PositionFabrikSolver, Tolerance};
+use crate::rig::{ConfigError, Rig};
 use serde::Deserialize;
 use std::path::Path;
 
-/// Which of the core's solvers places each limb.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, serde::Serialize)]
+/// Which of the core's solvers places each limb (`[gait] solver`, `rigbridge gait --solver`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum LimbSolver {
     /// Cyclic coordinate descent with per-bone limits (the thesis's solver).
     Ccd,
+    /// Position-only FABRIK with per-bone limits, for comparison.
+    Fabrik,
+}
+
+impl LimbSolver {
+    pub const NAMES: [&'static str; 2] = ["ccd", "fabrik"];
+
+    /// The solver named `name` as in `[gait] solver`.
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name {
+            "ccd" => Some(Self::Ccd),
+            "fabrik" => Some(Self::Fabrik),
+            _ => None,
+        }
+    }
+
+    /// The core's solver for one limb chain, placing the tool's origin only.
+    pub fn build(
+        self,
+        chain: Rig,
+        tolerance: Tolerance,
+        max_iterations: u32,
+    ) -> Box<dyn IkSolver + Send + Sync> {
+        match self {
+            Self::Ccd => Box::new(
+                CcdSolver::new(chain)
+                    .position_only()
+                    .with_tolerance(tolerance)
+                    .with_max_iterations(max_iterations),
+            ),
+            Self::Fabrik => Box::new(
+                PositionFabrikSolver::new(chain)
+                    .with_tolerance(tolerance)
+                    .with_max_iterations(max_iterations),
+            ),
+        }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -57,7 +96,7 @@ pub(super) struct RawGait {
     trunk_tilt_deg: f64,
     max_rise_deg: f64,
     max_descent_deg: f64,
-    solver: LimbSolver,
+    solver: String,
     ik_tolerance_m: f64,
     ik_max_iterations: u32,
 }
@@ -112,7 +151,14 @@ impl RawGait {
             trunk_tilt_rad: degrees("gait.trunk_tilt_deg", self.trunk_tilt_deg, 90.0)?,
             max_rise_rad: degrees("gait.max_rise_deg", self.max_rise_deg, 90.0)?,
             max_descent_rad: degrees("gait.max_descent_deg", self.max_descent_deg, 90.0)?,
-            solver: self.solver,
+            solver: LimbSolver::from_name(&self.solver).ok_or_else(|| {
+                invalid(
+                    file,
+                    "gait.solver",
+                    &self.solver,
+                    &format!("must be one of {:?}", LimbSolver::NAMES),
+                )
+            })?,
             ik_tolerance_m: check_range(
                 file,
                 "gait.ik_tolerance_m",

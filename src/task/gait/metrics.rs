@@ -2,6 +2,7 @@
 //! [`TwinWorld`]), and the verdict against the figures. Owns the measurements and
 //! the report; it must not change the twin's state or the plan.
 
+use super::config::LimbSolver;
 use super::rig::SlothRig;
 use super::scenario::Scenario;
 use super::walker::{GaitPlan, Stance};
@@ -160,6 +161,8 @@ pub struct GaitReport {
     pub scenario: String,
     pub angle_deg: Option<f64>,
     pub gap_m: Option<f64>,
+    /// The limb IK solver the gait was planned with (`[gait] solver`).
+    pub solver: LimbSolver,
     pub passed: bool,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,
@@ -304,6 +307,7 @@ pub fn judge(
         scenario: scenario.name.clone(),
         angle_deg: scenario.angle_deg,
         gap_m: scenario.gap_m,
+        solver: sloth.gait.solver,
         passed: failures.is_empty(),
         reason: (!failures.is_empty()).then(|| failures.join("; ")),
         stopped_because: plan.stop_reason.clone(),

@@ -12,7 +12,7 @@ use super::body::{body_axes, body_from_feet};
 use super::placement::{Contact, candidate_steps, check_rules, contact_at};
 use super::rig::SlothRig;
 use super::scenario::Scenario;
-use crate::ik::{CcdSolver, IkSolver, Tolerance};
+use crate::ik::{IkSolver, Tolerance};
 use crate::rig::Pose;
 use glam::{DQuat, DVec3};
 use serde::Serialize;
@@ -107,9 +107,10 @@ struct FrameCheck {
 pub struct Walker<'a> {
     sloth: &'a SlothRig,
     scenario: &'a Scenario,
-    solvers: Vec<CcdSolver>,
+    /// Each limb's solver (`[gait] solver`).
+    solvers: Vec<Box<dyn IkSolver + Send + Sync>>,
     /// The same solvers with room for the first frame's cold start from the neutral pose.
-    cold_solvers: Vec<CcdSolver>,
+    cold_solvers: Vec<Box<dyn IkSolver + Send + Sync>>,
     /// Each limb's neutral pose: the middle of every joint's range.
     neutral: Vec<Vec<f64>>,
     period_s: f64,
@@ -145,10 +146,10 @@ impl<'a> Walker<'a> {
                 .limbs
                 .iter()
                 .map(|limb| {
-                    CcdSolver::new(limb.chain.clone())
-                        .position_only()
-                        .with_tolerance(tolerance)
-                        .with_max_iterations(iterations)
+                    sloth
+                        .gait
+                        .solver
+                        .build(limb.chain.clone(), tolerance, iterations)
                 })
                 .collect()
         };
