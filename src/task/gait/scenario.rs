@@ -3,17 +3,26 @@
 //! question "which support does a limb on this side grip at route distance s?"; it must
 //! not place feet or judge a gait.
 
+use super::body::WORLD_UP;
 use super::terrain::{Cylinder, Terrain};
-use glam::DVec3;
+use glam::{DQuat, DVec3};
 use serde::Serialize;
 use thiserror::Error;
 
 /// Branch radius: the 40 mm pole of Nyakatura et al.'s experiments (seed 004, Table 2).
 pub const BRANCH_RADIUS_M: f64 = 0.02;
+/// Trunk radius: a 16 cm trunk (ours: the thesis gives no size), four times the branch's
+/// and wider than the sloth's girdles, so that the limbs hug it rather than grip around it.
+pub const TRUNK_RADIUS_M: f64 = 0.08;
+/// How far around its trunk `trunk-around` turns per metre climbed, by default.
+pub const TRUNK_AROUND_DEG_PER_M: f64 = 40.0;
 
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum ScenarioError {
-    #[error("unknown scenario `{0}`: expected straight, branch-turn, parallel or height-change")]
+    #[error(
+        "unknown scenario `{0}`: expected straight, branch-turn, parallel, height-change, \
+         trunk (= trunk-up), trunk-up, trunk-down or trunk-around"
+    )]
     Unknown(String),
     #[error("scenario {scenario}: --{name} = {value} must lie in [{low}, {high}]")]
     OutOfRange {
@@ -31,7 +40,10 @@ pub enum ScenarioError {
 }
 
 /// One stretch of the route: from `start_s` on, the path runs from `origin` along
-/// `direction`, and each side's limbs grip the given supports.
+/// `direction`, and each side's limbs grip the given supports. `up` is the side the
+/// supports are on, seen from the body, at `start_s` (the world's up under a branch; on a
+/// trunk, horizontal toward its axis); going around a trunk, it turns about `direction` by
+/// `twist_rad_per_m` per metre of route.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Leg {
     pub start_s: f64,
@@ -39,6 +51,23 @@ pub struct Leg {
     pub direction: DVec3,
     pub left: usize,
     pub right: usize,
+    pub up: DVec3,
+    pub twist_rad_per_m: f64,
+}
+
+impl Leg {
+    /// A leg under branches: the supports are above.
+    fn under(start_s: f64, origin: DVec3, direction: DVec3, left: usize, right: usize) -> Self {
+        Self {
+            start_s,
+            origin,
+            direction,
+            left,
+            right,
+            up: WORLD_UP,
+            twist_rad_per_m: 0.0,
+        }
+    }
 }
 
 /// The legs in order of `start_s` (ties: the later one wins from its start); the first one
@@ -62,6 +91,13 @@ impl Route {
         let leg = self.leg(s);
         leg.origin + leg.direction * (s - leg.start_s)
     }
+
+    /// The side the supports are on, seen from the body, at route distance `s`.
+    pub fn up(&self, s: f64) -> DVec3 {
+        let leg = self.leg(s);
+        let turn = leg.twist_rad_per_m * (s - leg.start_s);
+        DQuat::from_axis_angle(leg.direction, turn) * leg.up
+    }
 }
 
 /// A scene to walk: where, how far, and what to call it.
@@ -76,6 +112,9 @@ pub struct Scenario {
     pub start_s: f64,
     /// Gait cycles to walk before stopping (at least 3 are judged).
     pub cycles: u32,
+    /// The sloth moves tail first (down a trunk, head up): its head points against the
+    /// route's direction, and its hind limbs lead.
+    pub tail_first: bool,
 }
 
 /// Cycles every scenario walks: 3 judged plus the first, which starts from a standstill.
@@ -114,25 +153,18 @@ fn check(
 fn bent_route(second: DVec3) -> Route {
     Route {
         legs: vec![
-            Leg {
-                start_s: 0.0,
-                origin: DVec3::ZERO,
-                direction: DVec3::X,
-                left: 0,
-                right: 0,
-            },
-            Leg {
-                start_s: 0.0,
-                origin: DVec3::ZERO,
-                direction: second,
-                left: 1,
-                right: 1,
-            },
+            Leg::under(0.0, DVec3::ZERO, DVec3::X, 0, 0),
+            Leg::under(0.0, DVec3::ZERO, second, 1, 1),
         ],
     }
 }
 
 impl Scenario {
+    /// +1 when the head leads along the route, -1 going tail first.
+    pub fn heading_sign(&self) -> f64 {
+        if self.tail_first { -1.0 } else { 1.0 }
+    }
+
     /// Builds a named scenario. `angle_deg` is the angle between the branches (180: straight
     /// on); `gap_m` the distance between parallel branches' axes.
     pub fn build(
@@ -159,13 +191,7 @@ impl Scenario {
                     )],
                 };
                 let route = Route {
-                    legs: vec![Leg {
-                        start_s: 0.0,
-                        origin: DVec3::ZERO,
-                        direction: DVec3::X,
-                        left: 0,
-                        right: 0,
-                    }],
+                    legs: vec![Leg::under(0.0, DVec3::ZERO, DVec3::X, 0, 0)],
                 };
                 (terrain, route, -0.3)
             }
@@ -205,20 +231,64 @@ impl Scenario {
                         ),
                     ],
                 };
-                let leg = |start_s: f64, left: usize, right: usize| Leg {
-                    start_s,
-                    origin: DVec3::new(start_s, 0.0, 0.0),
-                    direction: DVec3::X,
-                    left,
-                    right,
+                let leg = |start_s: f64, left: usize, right: usize| {
+                    Leg::under(
+                        start_s,
+                        DVec3::new(start_s, 0.0, 0.0),
+                        DVec3::X,
+                        left,
+                        right,
+                    )
                 };
                 let route = Route {
                     legs: vec![leg(-1.0, 0, 0), leg(0.0, 0, 1), leg(0.25, 1, 1)],
                 };
                 (terrain, route, -0.45)
             }
+            "trunk" | "trunk-up" | "trunk-down" | "trunk-around" => {
+                if gap_m.is_some() {
+                    return Err(unused("gap"));
+                }
+                let twist_deg_per_m = if name == "trunk-around" {
+                    check(
+                        name,
+                        "angle",
+                        angle_deg.unwrap_or(TRUNK_AROUND_DEG_PER_M),
+                        -360.0,
+                        360.0,
+                    )?
+                } else if angle_deg.is_some() {
+                    return Err(unused("angle"));
+                } else {
+                    0.0
+                };
+                let down = name == "trunk-down";
+                // Travel runs along the trunk: up it, or down it for the tail-first descent.
+                let travel = if down { -DVec3::Z } else { DVec3::Z };
+                let terrain = Terrain {
+                    cylinders: vec![Cylinder {
+                        from: -travel * 1.0,
+                        to: travel * 2.5,
+                        radius: TRUNK_RADIUS_M,
+                    }],
+                };
+                // The sloth clings to the trunk's -x side, facing +x.
+                let route = Route {
+                    legs: vec![Leg {
+                        start_s: 0.0,
+                        origin: DVec3::ZERO,
+                        direction: travel,
+                        left: 0,
+                        right: 0,
+                        up: DVec3::X,
+                        twist_rad_per_m: twist_deg_per_m.to_radians(),
+                    }],
+                };
+                (terrain, route, -0.3)
+            }
             other => return Err(ScenarioError::Unknown(other.into())),
         };
+        let tail_first = name == "trunk-down";
         Ok(Scenario {
             name: name.into(),
             angle_deg,
@@ -227,6 +297,7 @@ impl Scenario {
             route,
             start_s,
             cycles: CYCLES,
+            tail_first,
         })
     }
 }
