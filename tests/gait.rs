@@ -135,6 +135,99 @@ fn head_first_descent_is_refused() {
     );
 }
 
+/// The spine (hind girdle to fore girdle) at every planned frame, from the rig's own
+/// forward kinematics.
+fn spines(run: &GaitRun) -> Vec<(glam::DVec3, glam::DVec3)> {
+    (0..run.plan.len())
+        .map(|k| {
+            let lines = run.sloth.bone_polylines(run.plan.frame(k)).unwrap();
+            (lines[0][0], *lines[0].last().unwrap())
+        })
+        .collect()
+}
+
+/// A trunk run: passes, stays head-up throughout, and every stance grips the trunk's
+/// surface on its own limb's side of the body. Returns the body's planned vertical travel.
+fn assert_climbs_head_up(run: &GaitRun) -> f64 {
+    assert_passes(run);
+    let spines = spines(run);
+    for (k, (tail, head)) in spines.iter().enumerate() {
+        assert!(head.z - tail.z > 0.3, "frame {k}: head {head} tail {tail}");
+    }
+    for stance in &run.plan.stances {
+        let (tail, head) = spines[stance.start];
+        let limbs = run
+            .sloth
+            .bone_polylines(run.plan.frame(stance.start))
+            .unwrap();
+        // The body's left: from the right limbs' girdles to the left ones'.
+        let girdle = |name: &str| limbs[1 + run.sloth.limb_index(name).unwrap()][0];
+        let left = (girdle("lf") + girdle("lh") - girdle("rf") - girdle("rh")).normalize();
+        let middle = (tail + head) / 2.0;
+        let point = stance.contact.point;
+        let radial = glam::DVec3::new(point.x, point.y, 0.0);
+        assert!(
+            (radial.length() - 0.08).abs() < 1e-6,
+            "on the 8 cm trunk's surface: {point}"
+        );
+        let limb = &run.sloth.limbs[stance.limb];
+        assert!(
+            (point - middle).dot(left) * limb.side.sign() > 0.03,
+            "{} grips its own side: {point}",
+            limb.name
+        );
+    }
+    let body_z = |k: usize| run.plan.frame(k)[2];
+    body_z(run.plan.len() - 1) - body_z(0)
+}
+
+#[test]
+fn climbs_a_trunk_head_up() {
+    let run = walk("trunk", None, None);
+    let rise = assert_climbs_head_up(&run);
+    assert!(rise > 0.9, "rose {rise} m");
+    assert!((run.verdict.body_rise_m - rise).abs() < 0.01);
+    assert!((run.verdict.speed_mps - 0.11).abs() <= 0.02);
+    assert_eq!(run.verdict.around_trunk_deg.map(f64::round), Some(0.0));
+}
+
+#[test]
+fn climbs_down_a_trunk_tail_first() {
+    let run = walk("trunk-down", None, None);
+    let rise = assert_climbs_head_up(&run);
+    assert!(rise < -0.9, "descended {} m", -rise);
+    assert!(run.verdict.min_head_above_tail_m > 0.3);
+    // Tail first: the hind limbs lead downward, below the fore limbs at every touchdown.
+    let lowest_fore = |k: usize| {
+        ["lf", "rf"]
+            .iter()
+            .map(|n| {
+                run.sloth.bone_polylines(run.plan.frame(k)).unwrap()
+                    [1 + run.sloth.limb_index(n).unwrap()]
+                .last()
+                .unwrap()
+                .z
+            })
+            .fold(f64::INFINITY, f64::min)
+    };
+    for (frame, limb) in &run.plan.touchdowns {
+        let lines = run.sloth.bone_polylines(run.plan.frame(*frame)).unwrap();
+        let foot = lines[1 + limb].last().unwrap().z;
+        if run.sloth.limbs[*limb].name.ends_with('h') {
+            assert!(foot < lowest_fore(*frame) - 0.1, "frame {frame}");
+        }
+    }
+}
+
+#[test]
+fn moves_around_a_trunk_while_climbing() {
+    let run = walk("trunk-around", None, None);
+    let rise = assert_climbs_head_up(&run);
+    assert!(rise > 0.9, "rose {rise} m");
+    let around = run.verdict.around_trunk_deg.expect("on a trunk");
+    assert!(around > 35.0, "went {around} deg around");
+}
+
 #[test]
 fn the_streamed_rig_fits_the_wire_protocol() {
     let sloth = SlothRig::load(&repo_path("config/sloth.toml")).unwrap();
