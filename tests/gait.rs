@@ -220,8 +220,26 @@ fn climbs_down_a_trunk_tail_first() {
 }
 
 #[test]
-fn moves_around_a_trunk_while_climbing() {
+fn side_steps_around_a_trunk() {
     let run = walk("trunk-around", None, None);
+    let rise = assert_climbs_head_up(&run);
+    assert!(rise.abs() < 0.01, "stays at its height: {rise} m");
+    let around = run.verdict.around_trunk_deg.expect("on a trunk");
+    assert!(around > 120.0, "went {around} deg around");
+    let back = walk("trunk-around", Some(-150.0), None);
+    assert_climbs_head_up(&back);
+    let around = back.verdict.around_trunk_deg.expect("on a trunk");
+    assert!(around < -150.0, "went {around} deg around the other way");
+}
+
+#[test]
+fn side_steps_too_long_for_the_limbs_stop_cleanly() {
+    assert_stops_cleanly(&walk("trunk-around", Some(180.0), None), "no next step");
+}
+
+#[test]
+fn spirals_up_a_trunk() {
+    let run = walk("trunk-spiral", None, None);
     let rise = assert_climbs_head_up(&run);
     assert!(rise > 0.9, "rose {rise} m");
     let around = run.verdict.around_trunk_deg.expect("on a trunk");

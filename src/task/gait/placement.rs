@@ -50,9 +50,16 @@ pub fn contact_at(
         super::rig::Side::Right => leg.right,
     };
     let cylinder = &scenario.terrain.cylinders[support];
-    let axis_point = cylinder.axis_point(cylinder.parameter(scenario.route.point(s)));
-    let up = scenario.route.up(s);
     let heading = cylinder.direction() * scenario.heading_sign();
+    // Side-stepping, the route turns the sloth at a fixed height: each limb grips at its
+    // girdle's height; otherwise the route runs along the support, girdles included.
+    let along = if scenario.sideways {
+        leg.origin + heading * limb.attachment().x
+    } else {
+        scenario.route.point(s)
+    };
+    let axis_point = cylinder.axis_point(cylinder.parameter(along));
+    let up = scenario.route.up(s);
     let outward = up.cross(heading).normalize_or(DVec3::Y) * limb.side.sign();
     let (expected, inward) = if cylinder.is_trunk(sloth.gait.trunk_tilt_rad) {
         let lateral = limb
@@ -141,7 +148,7 @@ pub fn check_rules(
                 this.name, limb_other.name
             ));
         }
-        if this.girdle == trailing && limb_other.girdle != trailing {
+        if !scenario.sideways && this.girdle == trailing && limb_other.girdle != trailing {
             if candidate.s > contact.s {
                 return Err(format!(
                     "{} would land ahead of {}",

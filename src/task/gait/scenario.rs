@@ -14,14 +14,16 @@ pub const BRANCH_RADIUS_M: f64 = 0.02;
 /// Trunk radius: a 16 cm trunk (ours: the thesis gives no size), four times the branch's
 /// and wider than the sloth's girdles, so that the limbs hug it rather than grip around it.
 pub const TRUNK_RADIUS_M: f64 = 0.08;
-/// How far around its trunk `trunk-around` turns per metre climbed, by default.
-pub const TRUNK_AROUND_DEG_PER_M: f64 = 40.0;
+/// How far around its trunk `trunk-around` turns per metre of route (side steps), and
+/// `trunk-spiral` per metre climbed, by default.
+pub const TRUNK_AROUND_DEG_PER_M: f64 = 120.0;
+pub const TRUNK_SPIRAL_DEG_PER_M: f64 = 40.0;
 
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum ScenarioError {
     #[error(
         "unknown scenario `{0}`: expected straight, branch-turn, parallel, height-change, \
-         trunk (= trunk-up), trunk-up, trunk-down or trunk-around"
+         trunk (= trunk-up), trunk-up, trunk-down, trunk-around or trunk-spiral"
     )]
     Unknown(String),
     #[error("scenario {scenario}: --{name} = {value} must lie in [{low}, {high}]")]
@@ -115,6 +117,10 @@ pub struct Scenario {
     /// The sloth moves tail first (down a trunk, head up): its head points against the
     /// route's direction, and its hind limbs lead.
     pub tail_first: bool,
+    /// The sloth side-steps around its trunk, head up: the route's distance turns it about
+    /// the trunk's axis (its leg's twist) at a fixed height, and each limb grips at its
+    /// girdle's height.
+    pub sideways: bool,
 }
 
 /// Cycles every scenario walks: 3 judged plus the first, which starts from a standstill.
@@ -245,22 +251,22 @@ impl Scenario {
                 };
                 (terrain, route, -0.45)
             }
-            "trunk" | "trunk-up" | "trunk-down" | "trunk-around" => {
+            "trunk" | "trunk-up" | "trunk-down" | "trunk-around" | "trunk-spiral" => {
                 if gap_m.is_some() {
                     return Err(unused("gap"));
                 }
-                let twist_deg_per_m = if name == "trunk-around" {
-                    check(
-                        name,
-                        "angle",
-                        angle_deg.unwrap_or(TRUNK_AROUND_DEG_PER_M),
-                        -360.0,
-                        360.0,
-                    )?
-                } else if angle_deg.is_some() {
-                    return Err(unused("angle"));
-                } else {
-                    0.0
+                // How far the route turns the sloth around the trunk, per metre of route.
+                let default_twist = match name {
+                    "trunk-around" => Some(TRUNK_AROUND_DEG_PER_M),
+                    "trunk-spiral" => Some(TRUNK_SPIRAL_DEG_PER_M),
+                    _ => None,
+                };
+                let twist_deg_per_m = match (default_twist, angle_deg) {
+                    (Some(default), angle) => {
+                        check(name, "angle", angle.unwrap_or(default), -180.0, 180.0)?
+                    }
+                    (None, Some(_)) => return Err(unused("angle")),
+                    (None, None) => 0.0,
                 };
                 let down = name == "trunk-down";
                 // Travel runs along the trunk: up it, or down it for the tail-first descent.
@@ -289,6 +295,7 @@ impl Scenario {
             other => return Err(ScenarioError::Unknown(other.into())),
         };
         let tail_first = name == "trunk-down";
+        let sideways = name == "trunk-around";
         Ok(Scenario {
             name: name.into(),
             angle_deg,
@@ -298,6 +305,7 @@ impl Scenario {
             start_s,
             cycles: CYCLES,
             tail_first,
+            sideways,
         })
     }
 }

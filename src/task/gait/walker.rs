@@ -193,7 +193,11 @@ impl<'a> Walker<'a> {
                 .map(stagger)
                 .collect();
             let centre = pair.iter().sum::<f64>() / pair.len() as f64;
-            let along = limb.attachment().x * self.scenario.heading_sign();
+            let along = if self.scenario.sideways {
+                0.0
+            } else {
+                limb.attachment().x * self.scenario.heading_sign()
+            };
             let s = self.scenario.start_s + along + stagger(index) - centre;
             let contact = contact_at(self.sloth, self.scenario, index, s)?;
             limbs.push(LimbState {
@@ -258,6 +262,14 @@ impl<'a> Walker<'a> {
             0.0
         };
         let axes = body_axes(&body_wanted, previous_yaw);
+        for (joint, value) in sloth.body.joints.iter().zip(axes) {
+            if !joint.limits.contains(value) {
+                return Err(format!(
+                    "{} would be {value:.4}, outside its limits [{:.4}, {:.4}]",
+                    joint.name, joint.limits.lower, joint.limits.upper
+                ));
+            }
+        }
         let mut joints = state.joints.clone();
         joints[..axes.len()].copy_from_slice(&axes);
         let body = sloth.body_frame(&joints);
