@@ -51,3 +51,58 @@ pub fn body_axes(frame: &DAffine3, previous_yaw: f64) -> [f64; 6] {
         pitch,
     ]
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Rebuilds the rotation the rig's chain turns through: yaw, then roll, then pitch.
+    fn chain_rotation(axes: &[f64; 6]) -> DMat3 {
+        DMat3::from_rotation_z(axes[3])
+            * DMat3::from_rotation_x(axes[4])
+            * DMat3::from_rotation_y(axes[5])
+    }
+
+    #[test]
+    fn a_body_heading_up_a_trunk_keeps_its_facing_in_yaw() {
+        // Head up, belly toward a trunk on its +y side: forward +z, up +y, left = up x forward.
+        let (forward, up) = (DVec3::Z, DVec3::Y);
+        let frame = DAffine3::from_mat3_translation(
+            DMat3::from_cols(forward, up.cross(forward), up),
+            DVec3::new(0.1, -0.2, 0.3),
+        );
+        let axes = body_axes(&frame, 0.0);
+        // Pitched -90 deg, the body's z is (-cos yaw, -sin yaw, 0): +y at yaw -90 deg.
+        assert!(
+            (axes[3] + std::f64::consts::FRAC_PI_2).abs() < 1e-9,
+            "{axes:?}"
+        );
+        assert!(axes[4].abs() < 1e-9, "no roll: {axes:?}");
+        assert!(
+            (axes[5] + std::f64::consts::FRAC_PI_2).abs() < 1e-9,
+            "{axes:?}"
+        );
+        assert!(chain_rotation(&axes).abs_diff_eq(frame.matrix3, 1e-9));
+        assert_eq!(&axes[..3], &[0.1, -0.2, 0.3]);
+    }
+
+    #[test]
+    fn a_level_body_turned_and_pitched_round_trips() {
+        let forward = DVec3::new(
+            0.3f64.cos() * 0.2f64.cos(),
+            0.3f64.sin() * 0.2f64.cos(),
+            0.2f64.sin(),
+        );
+        let up = (WORLD_UP - forward * forward.dot(WORLD_UP)).normalize();
+        let frame = DAffine3::from_mat3_translation(
+            DMat3::from_cols(forward, up.cross(forward), up),
+            DVec3::ZERO,
+        );
+        let axes = body_axes(&frame, 0.0);
+        assert!(
+            axes[4].abs() < 1e-9,
+            "a body under branches never rolls: {axes:?}"
+        );
+        assert!(chain_rotation(&axes).abs_diff_eq(frame.matrix3, 1e-9));
+    }
+}
