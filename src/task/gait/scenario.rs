@@ -14,9 +14,9 @@ pub const BRANCH_RADIUS_M: f64 = 0.02;
 /// Trunk radius: a 16 cm trunk (ours: the thesis gives no size), four times the branch's
 /// and wider than the sloth's girdles, so that the limbs hug it rather than grip around it.
 pub const TRUNK_RADIUS_M: f64 = 0.08;
-/// How far around its trunk `trunk-around` turns per metre of route (side steps), and
-/// `trunk-spiral` per metre climbed, by default.
+/// How far around its trunk `trunk-around` side-steps per metre of route, by default.
 pub const TRUNK_AROUND_DEG_PER_M: f64 = 120.0;
+/// How far around its trunk `trunk-spiral` turns per metre climbed, by default.
 pub const TRUNK_SPIRAL_DEG_PER_M: f64 = 40.0;
 
 #[derive(Debug, Clone, PartialEq, Error)]
@@ -172,7 +172,8 @@ impl Scenario {
     }
 
     /// Builds a named scenario. `angle_deg` is the angle between the branches (180: straight
-    /// on); `gap_m` the distance between parallel branches' axes.
+    /// on), or for `trunk-around` and `trunk-spiral` how far the route turns around the
+    /// trunk per metre (deg); `gap_m` the distance between parallel branches' axes.
     pub fn build(
         name: &str,
         angle_deg: Option<f64>,
@@ -273,7 +274,7 @@ impl Scenario {
                 let travel = if down { -DVec3::Z } else { DVec3::Z };
                 let terrain = Terrain {
                     cylinders: vec![Cylinder {
-                        from: -travel * 1.0,
+                        from: -travel,
                         to: travel * 2.5,
                         radius: TRUNK_RADIUS_M,
                     }],
