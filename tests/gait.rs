@@ -316,6 +316,27 @@ fn an_unknown_footfall_limb_is_refused() {
 }
 
 #[test]
+fn trunk_geometry_options_are_checked() {
+    let error = Scenario::build("trunk", Some(30.0), None).unwrap_err();
+    assert!(error.to_string().contains("takes no --angle"), "{error}");
+    let error = Scenario::build("trunk-down", None, Some(0.2)).unwrap_err();
+    assert!(error.to_string().contains("takes no --gap"), "{error}");
+    let error = Scenario::build("trunk-around", Some(200.0), None).unwrap_err();
+    assert!(error.to_string().contains("--angle = 200"), "{error}");
+    let up = Scenario::build("trunk", None, None).unwrap();
+    assert_eq!(
+        up.terrain,
+        Scenario::build("trunk-up", None, None).unwrap().terrain
+    );
+    assert!(!up.tail_first && !up.sideways);
+    assert!(
+        Scenario::build("trunk-down", None, None)
+            .unwrap()
+            .tail_first
+    );
+}
+
+#[test]
 fn an_unknown_scenario_is_refused_by_name() {
     let error = Scenario::build("loop-the-loop", None, None).unwrap_err();
     assert!(error.to_string().contains("loop-the-loop"));
