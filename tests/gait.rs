@@ -150,6 +150,14 @@ fn spines(run: &GaitRun) -> Vec<(glam::DVec3, glam::DVec3)> {
 /// surface on its own limb's side of the body. Returns the body's planned vertical travel.
 fn assert_climbs_head_up(run: &GaitRun) -> f64 {
     assert_passes(run);
+    let v = &run.verdict;
+    let scene = Scenario::build(&v.scenario, v.angle_deg, v.gap_m).unwrap();
+    let trunk = scene.terrain.cylinders[0];
+    assert_eq!(
+        (trunk.from.x, trunk.from.y),
+        (trunk.to.x, trunk.to.y),
+        "vertical"
+    );
     let spines = spines(run);
     for (k, (tail, head)) in spines.iter().enumerate() {
         assert!(head.z - tail.z > 0.3, "frame {k}: head {head} tail {tail}");
@@ -165,10 +173,10 @@ fn assert_climbs_head_up(run: &GaitRun) -> f64 {
         let left = (girdle("lf") + girdle("lh") - girdle("rf") - girdle("rh")).normalize();
         let middle = (tail + head) / 2.0;
         let point = stance.contact.point;
-        let radial = glam::DVec3::new(point.x, point.y, 0.0);
+        let radial = glam::DVec3::new(point.x - trunk.from.x, point.y - trunk.from.y, 0.0);
         assert!(
-            (radial.length() - 0.08).abs() < 1e-6,
-            "on the 8 cm trunk's surface: {point}"
+            (radial.length() - trunk.radius).abs() < 1e-6,
+            "on the trunk's surface: {point}"
         );
         let limb = &run.sloth.limbs[stance.limb];
         assert!(
@@ -313,6 +321,46 @@ fn an_unknown_footfall_limb_is_refused() {
     .to_string();
     assert!(message.contains("gait.footfall_order[2]"), "{message}");
     assert!(message.contains("xx"), "{message}");
+}
+
+/// A `run` or `serve` job starts from the twin's configured position (the straight scene's
+/// start) and moves to the scenario's start before walking: on a trunk, that approach keeps
+/// the torso clear of the trunk too.
+#[test]
+fn a_trunk_job_approaches_from_the_configured_start_clear_of_the_trunk() {
+    let settings = settings();
+    let sloth = settings.sloth.clone().unwrap();
+    for name in ["trunk", "trunk-down", "trunk-around", "trunk-spiral"] {
+        let scenario = Scenario::build(name, None, None).unwrap();
+        let trajectory = rigbridge::task::gait::plan_gait_job(
+            &sloth,
+            &scenario,
+            &settings.initial(),
+            &rigbridge::daemon::plan_settings(&settings),
+        )
+        .expect("the job plans");
+        let trunk = scenario.terrain.cylinders[0];
+        let least = (0..trajectory.len())
+            .map(|k| {
+                let spine = &sloth.bone_polylines(trajectory.position(k)).unwrap()[0];
+                let (tail, head) = (spine[0], *spine.last().unwrap());
+                let axis = |p: glam::DVec3| glam::DVec3::new(trunk.from.x, trunk.from.y, p.z);
+                // The torso's nearest approach to the vertical axis, sampled along the spine.
+                (0..=20)
+                    .map(|i| {
+                        let p = tail.lerp(head, i as f64 / 20.0);
+                        p.distance(axis(p))
+                    })
+                    .fold(f64::INFINITY, f64::min)
+                    - sloth.body_radius_m
+                    - trunk.radius
+            })
+            .fold(f64::INFINITY, f64::min);
+        assert!(
+            least > 0.02,
+            "{name}: the torso comes {least} m from the bark"
+        );
+    }
 }
 
 #[test]

@@ -14,6 +14,10 @@ pub const BRANCH_RADIUS_M: f64 = 0.02;
 /// Trunk radius: a 16 cm trunk (ours: the thesis gives no size), four times the branch's
 /// and wider than the sloth's girdles, so that the limbs hug it rather than grip around it.
 pub const TRUNK_RADIUS_M: f64 = 0.08;
+/// Where the trunk scenes' trunk stands: clear of a sloth hanging in the straight scene's
+/// start (config/gait-run.toml's initial position), so that a `run` or `serve` job's
+/// approach from there to the trunk never moves the body through the trunk.
+pub const TRUNK_AXIS: DVec3 = DVec3::new(0.8, 0.0, 0.0);
 /// How far around its trunk `trunk-around` side-steps per metre of route, by default.
 pub const TRUNK_AROUND_DEG_PER_M: f64 = 120.0;
 /// How far around its trunk `trunk-spiral` turns per metre climbed, by default.
@@ -274,8 +278,8 @@ impl Scenario {
                 let travel = if down { -DVec3::Z } else { DVec3::Z };
                 let terrain = Terrain {
                     cylinders: vec![Cylinder {
-                        from: -travel,
-                        to: travel * 2.5,
+                        from: TRUNK_AXIS - travel,
+                        to: TRUNK_AXIS + travel * 2.5,
                         radius: TRUNK_RADIUS_M,
                     }],
                 };
@@ -283,7 +287,7 @@ impl Scenario {
                 let route = Route {
                     legs: vec![Leg {
                         start_s: 0.0,
-                        origin: DVec3::ZERO,
+                        origin: TRUNK_AXIS,
                         direction: travel,
                         left: 0,
                         right: 0,
