@@ -175,6 +175,125 @@ fn head_first_descent_is_refused() {
     );
 }
 
+/// The spine (hind girdle to fore girdle) at every planned frame, from the rig's own
+/// forward kinematics.
+fn spines(run: &GaitRun) -> Vec<(glam::DVec3, glam::DVec3)> {
+    (0..run.plan.len())
+        .map(|k| {
+            let lines = run.sloth.bone_polylines(run.plan.frame(k)).unwrap();
+            (lines[0][0], *lines[0].last().unwrap())
+        })
+        .collect()
+}
+
+/// A trunk run: passes, stays head-up throughout, and every stance grips the trunk's
+/// surface on its own limb's side of the body. Returns the body's planned vertical travel.
+fn assert_climbs_head_up(run: &GaitRun) -> f64 {
+    assert_passes(run);
+    let v = &run.verdict;
+    let scene = Scenario::build(&v.scenario, v.angle_deg, v.gap_m).unwrap();
+    let trunk = scene.terrain.cylinders[0];
+    assert_eq!(
+        (trunk.from.x, trunk.from.y),
+        (trunk.to.x, trunk.to.y),
+        "vertical"
+    );
+    let spines = spines(run);
+    for (k, (tail, head)) in spines.iter().enumerate() {
+        assert!(head.z - tail.z > 0.3, "frame {k}: head {head} tail {tail}");
+    }
+    for stance in &run.plan.stances {
+        let (tail, head) = spines[stance.start];
+        let limbs = run
+            .sloth
+            .bone_polylines(run.plan.frame(stance.start))
+            .unwrap();
+        // The body's left: from the right limbs' girdles to the left ones'.
+        let girdle = |name: &str| limbs[1 + run.sloth.limb_index(name).unwrap()][0];
+        let left = (girdle("lf") + girdle("lh") - girdle("rf") - girdle("rh")).normalize();
+        let middle = (tail + head) / 2.0;
+        let point = stance.contact.point;
+        let radial = glam::DVec3::new(point.x - trunk.from.x, point.y - trunk.from.y, 0.0);
+        assert!(
+            (radial.length() - trunk.radius).abs() < 1e-6,
+            "on the trunk's surface: {point}"
+        );
+        let limb = &run.sloth.limbs[stance.limb];
+        assert!(
+            (point - middle).dot(left) * limb.side.sign() > 0.03,
+            "{} grips its own side: {point}",
+            limb.name
+        );
+    }
+    let body_z = |k: usize| run.plan.frame(k)[2];
+    body_z(run.plan.len() - 1) - body_z(0)
+}
+
+#[test]
+fn climbs_a_trunk_head_up() {
+    let run = walk("trunk", None, None);
+    let rise = assert_climbs_head_up(&run);
+    assert!(rise > 0.9, "rose {rise} m");
+    assert!((run.verdict.body_rise_m - rise).abs() < 0.01);
+    assert!((run.verdict.speed_mps - 0.11).abs() <= 0.02);
+    assert_eq!(run.verdict.around_trunk_deg.map(f64::round), Some(0.0));
+}
+
+#[test]
+fn climbs_down_a_trunk_tail_first() {
+    let run = walk("trunk-down", None, None);
+    let rise = assert_climbs_head_up(&run);
+    assert!(rise < -0.9, "descended {} m", -rise);
+    assert!(run.verdict.min_head_above_tail_m > 0.3);
+    // Tail first: the hind limbs lead downward, below the fore limbs at every touchdown.
+    let lowest_fore = |k: usize| {
+        ["lf", "rf"]
+            .iter()
+            .map(|n| {
+                run.sloth.bone_polylines(run.plan.frame(k)).unwrap()
+                    [1 + run.sloth.limb_index(n).unwrap()]
+                .last()
+                .unwrap()
+                .z
+            })
+            .fold(f64::INFINITY, f64::min)
+    };
+    for (frame, limb) in &run.plan.touchdowns {
+        let lines = run.sloth.bone_polylines(run.plan.frame(*frame)).unwrap();
+        let foot = lines[1 + limb].last().unwrap().z;
+        if run.sloth.limbs[*limb].name.ends_with('h') {
+            assert!(foot < lowest_fore(*frame) - 0.1, "frame {frame}");
+        }
+    }
+}
+
+#[test]
+fn side_steps_around_a_trunk() {
+    let run = walk("trunk-around", None, None);
+    let rise = assert_climbs_head_up(&run);
+    assert!(rise.abs() < 0.01, "stays at its height: {rise} m");
+    let around = run.verdict.around_trunk_deg.expect("on a trunk");
+    assert!(around > 120.0, "went {around} deg around");
+    let back = walk("trunk-around", Some(-150.0), None);
+    assert_climbs_head_up(&back);
+    let around = back.verdict.around_trunk_deg.expect("on a trunk");
+    assert!(around < -150.0, "went {around} deg around the other way");
+}
+
+#[test]
+fn side_steps_too_long_for_the_limbs_stop_cleanly() {
+    assert_stops_cleanly(&walk("trunk-around", Some(180.0), None), "no next step");
+}
+
+#[test]
+fn spirals_up_a_trunk() {
+    let run = walk("trunk-spiral", None, None);
+    let rise = assert_climbs_head_up(&run);
+    assert!(rise > 0.9, "rose {rise} m");
+    let around = run.verdict.around_trunk_deg.expect("on a trunk");
+    assert!(around > 35.0, "went {around} deg around");
+}
+
 #[test]
 fn the_streamed_rig_fits_the_wire_protocol() {
     let sloth = SlothRig::load(&repo_path("config/sloth.toml")).unwrap();
@@ -263,6 +382,67 @@ fn an_unknown_footfall_limb_is_refused() {
     .to_string();
     assert!(message.contains("gait.footfall_order[2]"), "{message}");
     assert!(message.contains("xx"), "{message}");
+}
+
+/// A `run` or `serve` job starts from the twin's configured position (the straight scene's
+/// start) and moves to the scenario's start before walking: on a trunk, that approach keeps
+/// the torso clear of the trunk too.
+#[test]
+fn a_trunk_job_approaches_from_the_configured_start_clear_of_the_trunk() {
+    let settings = settings();
+    let sloth = settings.sloth.clone().unwrap();
+    for name in ["trunk", "trunk-down", "trunk-around", "trunk-spiral"] {
+        let scenario = Scenario::build(name, None, None).unwrap();
+        let trajectory = rigbridge::task::gait::plan_gait_job(
+            &sloth,
+            &scenario,
+            &settings.initial(),
+            &rigbridge::daemon::plan_settings(&settings),
+        )
+        .expect("the job plans");
+        let trunk = scenario.terrain.cylinders[0];
+        let least = (0..trajectory.len())
+            .map(|k| {
+                let spine = &sloth.bone_polylines(trajectory.position(k)).unwrap()[0];
+                let (tail, head) = (spine[0], *spine.last().unwrap());
+                let axis = |p: glam::DVec3| glam::DVec3::new(trunk.from.x, trunk.from.y, p.z);
+                // The torso's nearest approach to the vertical axis, sampled along the spine.
+                (0..=20)
+                    .map(|i| {
+                        let p = tail.lerp(head, i as f64 / 20.0);
+                        p.distance(axis(p))
+                    })
+                    .fold(f64::INFINITY, f64::min)
+                    - sloth.body_radius_m
+                    - trunk.radius
+            })
+            .fold(f64::INFINITY, f64::min);
+        assert!(
+            least > 0.02,
+            "{name}: the torso comes {least} m from the bark"
+        );
+    }
+}
+
+#[test]
+fn trunk_geometry_options_are_checked() {
+    let error = Scenario::build("trunk", Some(30.0), None).unwrap_err();
+    assert!(error.to_string().contains("takes no --angle"), "{error}");
+    let error = Scenario::build("trunk-down", None, Some(0.2)).unwrap_err();
+    assert!(error.to_string().contains("takes no --gap"), "{error}");
+    let error = Scenario::build("trunk-around", Some(200.0), None).unwrap_err();
+    assert!(error.to_string().contains("--angle = 200"), "{error}");
+    let up = Scenario::build("trunk", None, None).unwrap();
+    assert_eq!(
+        up.terrain,
+        Scenario::build("trunk-up", None, None).unwrap().terrain
+    );
+    assert!(!up.tail_first && !up.sideways);
+    assert!(
+        Scenario::build("trunk-down", None, None)
+            .unwrap()
+            .tail_first
+    );
 }
 
 #[test]

@@ -17,10 +17,12 @@ use std::sync::Arc;
 
 #[derive(Args)]
 pub struct GaitArgs {
-    /// straight, branch-turn, parallel or height-change.
+    /// straight, branch-turn, parallel, height-change, trunk (= trunk-up), trunk-up,
+    /// trunk-down (tail first, head up) or trunk-around.
     #[arg(long)]
     scenario: String,
-    /// Angle between the branches in degrees (180: straight on): branch-turn, height-change.
+    /// Angle between the branches in degrees (180: straight on): branch-turn, height-change;
+    /// for trunk-around, degrees around the trunk per metre climbed.
     #[arg(long)]
     angle: Option<f64>,
     /// Distance between the parallel branches' axes (m): parallel.
@@ -128,6 +130,13 @@ fn print_verdict(r: &GaitReport) {
         r.footfall_order.join(" "),
         r.min_body_clearance_mm,
         r.max_ik_residual_mm
+    );
+    println!(
+        "  body rose {:.3} m; head at least {:.3} m above the tail{}",
+        r.body_rise_m,
+        r.min_head_above_tail_m,
+        r.around_trunk_deg
+            .map_or(String::new(), |d| format!("; {d:.1} deg around the trunk"))
     );
     for l in &r.limbs {
         println!(

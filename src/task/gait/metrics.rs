@@ -50,6 +50,8 @@ pub struct GaitWorld {
     pub min_body_clearance_m: f64,
     /// The body's actual position each cycle.
     pub body_path: Vec<DVec3>,
+    /// The least height of the fore girdle over the hind one (negative: head below tail).
+    pub min_head_above_tail_m: f64,
 }
 
 impl GaitWorld {
@@ -77,6 +79,7 @@ impl GaitWorld {
             limbs,
             min_body_clearance_m: f64::INFINITY,
             body_path: Vec::new(),
+            min_head_above_tail_m: f64::INFINITY,
         }
     }
 
@@ -130,6 +133,8 @@ impl TwinWorld for GaitWorld {
         let body = self.sloth.body_frame(actual);
         self.body_path.push(body.translation);
         let (hind, fore) = self.sloth.spine();
+        let head_above_tail = (body.transform_point3(fore) - body.transform_point3(hind)).z;
+        self.min_head_above_tail_m = self.min_head_above_tail_m.min(head_above_tail);
         self.min_body_clearance_m =
             self.min_body_clearance_m
                 .min(self.scenario.terrain.capsule_clearance(
@@ -176,6 +181,36 @@ pub struct GaitReport {
     pub min_body_clearance_mm: f64,
     pub max_ik_residual_mm: f64,
     pub duration_s: f64,
+    /// How far the body rose (negative: descended) from the start to the end of the run.
+    pub body_rise_m: f64,
+    /// The least height of the head's girdle over the tail's during the run (negative:
+    /// head below tail).
+    pub min_head_above_tail_m: f64,
+    /// On a trunk: how far the body went around its axis (deg, counterclockwise seen from
+    /// above).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub around_trunk_deg: Option<f64>,
+}
+
+/// The angle the body's path sweeps about the first support's axis, when that is a trunk.
+fn around_trunk(sloth: &SlothRig, scenario: &Scenario, path: &[DVec3]) -> Option<f64> {
+    let trunk = scenario.terrain.cylinders.first()?;
+    if !trunk.is_trunk(sloth.gait.trunk_tilt_rad) {
+        return None;
+    }
+    let axis = trunk.direction();
+    let bearing = |p: &DVec3| {
+        let radial = *p - trunk.axis_point(trunk.parameter(*p));
+        radial - axis * radial.dot(axis)
+    };
+    let swept: f64 = path
+        .windows(2)
+        .map(|w| {
+            let (a, b) = (bearing(&w[0]), bearing(&w[1]));
+            a.cross(b).dot(axis).atan2(a.dot(b))
+        })
+        .sum();
+    Some(swept.to_degrees())
 }
 
 /// Whole cycles walked after the first (which starts from a standstill).
@@ -300,6 +335,17 @@ pub fn judge(
     {
         failures.push(format!("footfall order {footfall_order:?}"));
     }
+    let on_trunk = scenario
+        .terrain
+        .cylinders
+        .iter()
+        .any(|c| c.is_trunk(sloth.gait.trunk_tilt_rad));
+    if on_trunk && world.min_head_above_tail_m <= 0.0 {
+        failures.push(format!(
+            "head-first on a trunk: the head came {:.3} m below the tail",
+            -world.min_head_above_tail_m
+        ));
+    }
     if scenario.name == "straight" && (speed_mps - STRAIGHT_SPEED_M_S).abs() > SPEED_TOLERANCE_M_S {
         failures.push(format!("speed {speed_mps:.3} m/s"));
     }
@@ -318,5 +364,11 @@ pub fn judge(
         min_body_clearance_mm: world.min_body_clearance_m * 1000.0,
         max_ik_residual_mm: plan.ik_residual_max_m * 1000.0,
         duration_s: plan.len().saturating_sub(1) as f64 * plan.period_s,
+        body_rise_m: match (world.body_path.first(), world.body_path.last()) {
+            (Some(first), Some(last)) => last.z - first.z,
+            _ => 0.0,
+        },
+        min_head_above_tail_m: world.min_head_above_tail_m,
+        around_trunk_deg: around_trunk(sloth, scenario, &world.body_path),
     }
 }

@@ -17,10 +17,15 @@ pub struct Contact {
     pub support: usize,
     /// Route distance the contact was found at.
     pub s: f64,
+    /// The side the supports are on, seen from the body, there (the body's z leans to it).
+    pub up: DVec3,
 }
 
 /// How far outside the expected surface the placement trace starts.
 const TRACE_START_M: f64 = 0.03;
+/// On a trunk, the farthest a grip may lie from the axis sideways, as a share of the radius
+/// (the rest of the half-circle faces away from the body).
+const TRUNK_GRIP_SHARE: f64 = 0.9;
 /// Share of a limb's reach a placement may use: a fully stretched limb has no room left
 /// for the body's motion during the stance.
 const USABLE_REACH: f64 = 0.95;
@@ -28,6 +33,10 @@ const USABLE_REACH: f64 = 0.95;
 /// The contact of a limb on `side` at route distance `s`: trace from outside toward the
 /// expected support, from that limb's side, and take the first surface hit. A hit on
 /// another support, or no hit (past the end of the branch), is refused with the reason.
+///
+/// On a branch the hand or foot grips the branch's side (the thesis's "surface + thickness
+/// / 2"). A trunk is wider than the girdles: each hand or foot grips its near half in line
+/// with its girdle, on its own side, traced from the body toward the trunk.
 pub fn contact_at(
     sloth: &SlothRig,
     scenario: &Scenario,
@@ -41,17 +50,36 @@ pub fn contact_at(
         super::rig::Side::Right => leg.right,
     };
     let cylinder = &scenario.terrain.cylinders[support];
-    let axis_point = cylinder.axis_point(cylinder.parameter(scenario.route.point(s)));
-    let left = WORLD_UP.cross(cylinder.direction()).normalize_or(DVec3::Y);
-    let normal = left * limb.side.sign();
-    let expected = axis_point + normal * cylinder.radius;
-    let start = expected + normal * (limb.claw_m + TRACE_START_M);
-    match scenario.terrain.trace(start, -normal) {
+    let heading = cylinder.direction() * scenario.heading_sign();
+    // Side-stepping, the route turns the sloth at a fixed height: each limb grips at its
+    // girdle's height; otherwise the route runs along the support, girdles included.
+    let along = if scenario.sideways {
+        leg.origin + heading * limb.attachment().x
+    } else {
+        scenario.route.point(s)
+    };
+    let axis_point = cylinder.axis_point(cylinder.parameter(along));
+    let up = scenario.route.up(s);
+    let outward = up.cross(heading).normalize_or(DVec3::Y) * limb.side.sign();
+    let (expected, inward) = if cylinder.is_trunk(sloth.gait.trunk_tilt_rad) {
+        let lateral = limb
+            .attachment()
+            .y
+            .abs()
+            .min(TRUNK_GRIP_SHARE * cylinder.radius);
+        let depth = (cylinder.radius.powi(2) - lateral.powi(2)).sqrt();
+        (axis_point + outward * lateral - up * depth, up)
+    } else {
+        (axis_point + outward * cylinder.radius, -outward)
+    };
+    let start = expected - inward * (limb.claw_m + TRACE_START_M);
+    match scenario.terrain.trace(start, inward) {
         Some(hit) if hit.support == support && hit.point.distance(expected) < 1e-6 => Ok(Contact {
             point: hit.point,
             normal: hit.normal,
             support,
             s,
+            up,
         }),
         Some(hit) => Err(format!(
             "the trace for {} at s = {s:.2} m meets support {} before support {support}",
@@ -62,6 +90,12 @@ pub fn contact_at(
             limb.name
         )),
     }
+}
+
+/// The side the supports are on, seen from the body, for a set of contacts: the mean of
+/// their own.
+pub fn toward_supports(ups: impl Iterator<Item = DVec3>) -> DVec3 {
+    ups.sum::<DVec3>().normalize_or(WORLD_UP)
 }
 
 /// Checks a candidate contact for `limb` against the rules, given where every limb is
@@ -79,6 +113,12 @@ pub fn check_rules(
     let gait = &sloth.gait;
     let cylinder = &scenario.terrain.cylinders[candidate.support];
     let slope = cylinder.slope();
+    // The girdle that follows: the hind one, or the fore one going down a trunk tail first.
+    let trailing = if scenario.tail_first {
+        Girdle::Fore
+    } else {
+        Girdle::Hind
+    };
     if !cylinder.is_trunk(gait.trunk_tilt_rad) {
         if -slope > gait.max_descent_rad {
             return Err(format!(
@@ -108,7 +148,7 @@ pub fn check_rules(
                 this.name, limb_other.name
             ));
         }
-        if this.girdle == Girdle::Hind && limb_other.girdle == Girdle::Fore {
+        if !scenario.sideways && this.girdle == trailing && limb_other.girdle != trailing {
             if candidate.s > contact.s {
                 return Err(format!(
                     "{} would land ahead of {}",
@@ -129,7 +169,9 @@ pub fn check_rules(
     }
     let mut feet: Vec<DVec3> = planned.iter().map(|c| c.point).collect();
     feet[limb] = candidate.point;
-    let body = body_from_feet(sloth, &feet);
+    let mut ups: Vec<DVec3> = planned.iter().map(|c| c.up).collect();
+    ups[limb] = candidate.up;
+    let body = body_from_feet(sloth, &feet, toward_supports(ups.into_iter()));
     let girdle = body.transform_point3(this.attachment());
     let tip = candidate.point + candidate.normal * this.claw_m;
     let distance = girdle.distance(tip);

@@ -148,8 +148,8 @@ const BODY_AXES: [&str; 6] = [
     "body_y",
     "body_z",
     "body_yaw",
-    "body_pitch",
     "body_roll",
+    "body_pitch",
 ];
 
 impl SlothRig {

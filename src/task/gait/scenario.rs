@@ -3,17 +3,32 @@
 //! question "which support does a limb on this side grip at route distance s?"; it must
 //! not place feet or judge a gait.
 
+use super::body::WORLD_UP;
 use super::terrain::{Cylinder, Terrain};
-use glam::DVec3;
+use glam::{DQuat, DVec3};
 use serde::Serialize;
 use thiserror::Error;
 
 /// Branch radius: the 40 mm pole of Nyakatura et al.'s experiments (seed 004, Table 2).
 pub const BRANCH_RADIUS_M: f64 = 0.02;
+/// Trunk radius: a 16 cm trunk (ours: the thesis gives no size), four times the branch's
+/// and wider than the sloth's girdles, so that the limbs hug it rather than grip around it.
+pub const TRUNK_RADIUS_M: f64 = 0.08;
+/// Where the trunk scenes' trunk stands: clear of a sloth hanging in the straight scene's
+/// start (config/gait-run.toml's initial position), so that a `run` or `serve` job's
+/// approach from there to the trunk never moves the body through the trunk.
+pub const TRUNK_AXIS: DVec3 = DVec3::new(0.8, 0.0, 0.0);
+/// How far around its trunk `trunk-around` side-steps per metre of route, by default.
+pub const TRUNK_AROUND_DEG_PER_M: f64 = 120.0;
+/// How far around its trunk `trunk-spiral` turns per metre climbed, by default.
+pub const TRUNK_SPIRAL_DEG_PER_M: f64 = 40.0;
 
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum ScenarioError {
-    #[error("unknown scenario `{0}`: expected straight, branch-turn, parallel or height-change")]
+    #[error(
+        "unknown scenario `{0}`: expected straight, branch-turn, parallel, height-change, \
+         trunk (= trunk-up), trunk-up, trunk-down, trunk-around or trunk-spiral"
+    )]
     Unknown(String),
     #[error("scenario {scenario}: --{name} = {value} must lie in [{low}, {high}]")]
     OutOfRange {
@@ -31,7 +46,10 @@ pub enum ScenarioError {
 }
 
 /// One stretch of the route: from `start_s` on, the path runs from `origin` along
-/// `direction`, and each side's limbs grip the given supports.
+/// `direction`, and each side's limbs grip the given supports. `up` is the side the
+/// supports are on, seen from the body, at `start_s` (the world's up under a branch; on a
+/// trunk, horizontal toward its axis); going around a trunk, it turns about `direction` by
+/// `twist_rad_per_m` per metre of route.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Leg {
     pub start_s: f64,
@@ -39,6 +57,23 @@ pub struct Leg {
     pub direction: DVec3,
     pub left: usize,
     pub right: usize,
+    pub up: DVec3,
+    pub twist_rad_per_m: f64,
+}
+
+impl Leg {
+    /// A leg under branches: the supports are above.
+    fn under(start_s: f64, origin: DVec3, direction: DVec3, left: usize, right: usize) -> Self {
+        Self {
+            start_s,
+            origin,
+            direction,
+            left,
+            right,
+            up: WORLD_UP,
+            twist_rad_per_m: 0.0,
+        }
+    }
 }
 
 /// The legs in order of `start_s` (ties: the later one wins from its start); the first one
@@ -62,6 +97,13 @@ impl Route {
         let leg = self.leg(s);
         leg.origin + leg.direction * (s - leg.start_s)
     }
+
+    /// The side the supports are on, seen from the body, at route distance `s`.
+    pub fn up(&self, s: f64) -> DVec3 {
+        let leg = self.leg(s);
+        let turn = leg.twist_rad_per_m * (s - leg.start_s);
+        DQuat::from_axis_angle(leg.direction, turn) * leg.up
+    }
 }
 
 /// A scene to walk: where, how far, and what to call it.
@@ -76,6 +118,13 @@ pub struct Scenario {
     pub start_s: f64,
     /// Gait cycles to walk before stopping (at least 3 are judged).
     pub cycles: u32,
+    /// The sloth moves tail first (down a trunk, head up): its head points against the
+    /// route's direction, and its hind limbs lead.
+    pub tail_first: bool,
+    /// The sloth side-steps around its trunk, head up: the route's distance turns it about
+    /// the trunk's axis (its leg's twist) at a fixed height, and each limb grips at its
+    /// girdle's height.
+    pub sideways: bool,
 }
 
 /// Cycles every scenario walks: 3 judged plus the first, which starts from a standstill.
@@ -114,27 +163,21 @@ fn check(
 fn bent_route(second: DVec3) -> Route {
     Route {
         legs: vec![
-            Leg {
-                start_s: 0.0,
-                origin: DVec3::ZERO,
-                direction: DVec3::X,
-                left: 0,
-                right: 0,
-            },
-            Leg {
-                start_s: 0.0,
-                origin: DVec3::ZERO,
-                direction: second,
-                left: 1,
-                right: 1,
-            },
+            Leg::under(0.0, DVec3::ZERO, DVec3::X, 0, 0),
+            Leg::under(0.0, DVec3::ZERO, second, 1, 1),
         ],
     }
 }
 
 impl Scenario {
+    /// +1 when the head leads along the route, -1 going tail first.
+    pub fn heading_sign(&self) -> f64 {
+        if self.tail_first { -1.0 } else { 1.0 }
+    }
+
     /// Builds a named scenario. `angle_deg` is the angle between the branches (180: straight
-    /// on); `gap_m` the distance between parallel branches' axes.
+    /// on), or for `trunk-around` and `trunk-spiral` how far the route turns around the
+    /// trunk per metre (deg); `gap_m` the distance between parallel branches' axes.
     pub fn build(
         name: &str,
         angle_deg: Option<f64>,
@@ -159,13 +202,7 @@ impl Scenario {
                     )],
                 };
                 let route = Route {
-                    legs: vec![Leg {
-                        start_s: 0.0,
-                        origin: DVec3::ZERO,
-                        direction: DVec3::X,
-                        left: 0,
-                        right: 0,
-                    }],
+                    legs: vec![Leg::under(0.0, DVec3::ZERO, DVec3::X, 0, 0)],
                 };
                 (terrain, route, -0.3)
             }
@@ -205,20 +242,65 @@ impl Scenario {
                         ),
                     ],
                 };
-                let leg = |start_s: f64, left: usize, right: usize| Leg {
-                    start_s,
-                    origin: DVec3::new(start_s, 0.0, 0.0),
-                    direction: DVec3::X,
-                    left,
-                    right,
+                let leg = |start_s: f64, left: usize, right: usize| {
+                    Leg::under(
+                        start_s,
+                        DVec3::new(start_s, 0.0, 0.0),
+                        DVec3::X,
+                        left,
+                        right,
+                    )
                 };
                 let route = Route {
                     legs: vec![leg(-1.0, 0, 0), leg(0.0, 0, 1), leg(0.25, 1, 1)],
                 };
                 (terrain, route, -0.45)
             }
+            "trunk" | "trunk-up" | "trunk-down" | "trunk-around" | "trunk-spiral" => {
+                if gap_m.is_some() {
+                    return Err(unused("gap"));
+                }
+                // How far the route turns the sloth around the trunk, per metre of route.
+                let default_twist = match name {
+                    "trunk-around" => Some(TRUNK_AROUND_DEG_PER_M),
+                    "trunk-spiral" => Some(TRUNK_SPIRAL_DEG_PER_M),
+                    _ => None,
+                };
+                let twist_deg_per_m = match (default_twist, angle_deg) {
+                    (Some(default), angle) => {
+                        check(name, "angle", angle.unwrap_or(default), -180.0, 180.0)?
+                    }
+                    (None, Some(_)) => return Err(unused("angle")),
+                    (None, None) => 0.0,
+                };
+                let down = name == "trunk-down";
+                // Travel runs along the trunk: up it, or down it for the tail-first descent.
+                let travel = if down { -DVec3::Z } else { DVec3::Z };
+                let terrain = Terrain {
+                    cylinders: vec![Cylinder {
+                        from: TRUNK_AXIS - travel,
+                        to: TRUNK_AXIS + travel * 2.5,
+                        radius: TRUNK_RADIUS_M,
+                    }],
+                };
+                // The sloth clings to the trunk's -x side, facing +x.
+                let route = Route {
+                    legs: vec![Leg {
+                        start_s: 0.0,
+                        origin: TRUNK_AXIS,
+                        direction: travel,
+                        left: 0,
+                        right: 0,
+                        up: DVec3::X,
+                        twist_rad_per_m: twist_deg_per_m.to_radians(),
+                    }],
+                };
+                (terrain, route, -0.3)
+            }
             other => return Err(ScenarioError::Unknown(other.into())),
         };
+        let tail_first = name == "trunk-down";
+        let sideways = name == "trunk-around";
         Ok(Scenario {
             name: name.into(),
             angle_deg,
@@ -227,6 +309,8 @@ impl Scenario {
             route,
             start_s,
             cycles: CYCLES,
+            tail_first,
+            sideways,
         })
     }
 }

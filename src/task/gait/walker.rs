@@ -9,7 +9,7 @@
 //! Owns the gait's state and schedule; it must not stream, or measure what the twin did.
 
 use super::body::{body_axes, body_from_feet};
-use super::placement::{Contact, candidate_steps, check_rules, contact_at};
+use super::placement::{Contact, candidate_steps, check_rules, contact_at, toward_supports};
 use super::rig::SlothRig;
 use super::scenario::Scenario;
 use crate::ik::{IkSolver, Tolerance};
@@ -194,7 +194,12 @@ impl<'a> Walker<'a> {
                 .map(stagger)
                 .collect();
             let centre = pair.iter().sum::<f64>() / pair.len() as f64;
-            let s = self.scenario.start_s + limb.attachment().x + stagger(index) - centre;
+            let along = if self.scenario.sideways {
+                0.0
+            } else {
+                limb.attachment().x * self.scenario.heading_sign()
+            };
+            let s = self.scenario.start_s + along + stagger(index) - centre;
             let contact = contact_at(self.sloth, self.scenario, index, s)?;
             limbs.push(LimbState {
                 contact,
@@ -220,8 +225,9 @@ impl<'a> Walker<'a> {
         let mut ground = [DVec3::ZERO; 4];
         let mut normals = [DVec3::ZERO; 4];
         let mut lifts = [0.0; 4];
+        let mut ups = [DVec3::ZERO; 4];
         for (index, limb) in state.limbs.iter().enumerate().take(limb_count) {
-            (ground[index], normals[index], lifts[index]) = match limb.swing {
+            (ground[index], normals[index], lifts[index], ups[index]) = match limb.swing {
                 Some(swing) => {
                     let phase = k.saturating_sub(swing.start) as f64
                         / (swing.end - swing.start).max(1) as f64;
@@ -235,18 +241,36 @@ impl<'a> Walker<'a> {
                         swing.from.point.lerp(limb.contact.point, m),
                         normal,
                         lift_m * swing_lift(phase),
+                        swing.from.up.lerp(limb.contact.up, m),
                     )
                 }
-                None => (limb.contact.point, limb.contact.normal, 0.0),
+                None => (
+                    limb.contact.point,
+                    limb.contact.normal,
+                    0.0,
+                    limb.contact.up,
+                ),
             };
         }
-        let body_wanted = body_from_feet(sloth, &ground[..limb_count]);
+        let body_wanted = body_from_feet(
+            sloth,
+            &ground[..limb_count],
+            toward_supports(ups[..limb_count].iter().copied()),
+        );
         let previous_yaw = if state.has_previous {
             state.joints[3]
         } else {
             0.0
         };
         let axes = body_axes(&body_wanted, previous_yaw);
+        for (joint, value) in sloth.body.joints.iter().zip(axes) {
+            if !joint.limits.contains(value) {
+                return Err(format!(
+                    "{} would be {value:.4}, outside its limits [{:.4}, {:.4}]",
+                    joint.name, joint.limits.lower, joint.limits.upper
+                ));
+            }
+        }
         let mut joints = state.joints.clone();
         joints[..axes.len()].copy_from_slice(&axes);
         let body = sloth.body_frame(&joints);
@@ -254,9 +278,15 @@ impl<'a> Walker<'a> {
         let to_body = body.inverse();
         let mut residual: f64 = 0.0;
         for (index, limb) in sloth.limbs.iter().enumerate() {
-            // Straight down, away from the branch the sloth hangs under: from a contact on
-            // the branch's side this never cuts into it, and adds no sideways reach.
-            let away = -up;
+            // Under a branch, straight down, away from it: from a contact on the branch's
+            // side this never cuts into it, and adds no sideways reach. On a trunk, straight
+            // off its surface: "down" there is toward the body, and would fold a leading hind
+            // limb against its girdle.
+            let away = if self.on_trunk(&state.limbs[index].contact) {
+                normals[index]
+            } else {
+                -up
+            };
             let claw = ground[index] + away * lifts[index];
             if lifts[index] > 0.0 {
                 let gap = self.scenario.terrain.clearance(claw);
@@ -311,6 +341,10 @@ impl<'a> Walker<'a> {
             residual,
             clearance,
         })
+    }
+
+    fn on_trunk(&self, contact: &Contact) -> bool {
+        self.scenario.terrain.cylinders[contact.support].is_trunk(self.sloth.gait.trunk_tilt_rad)
     }
 
     fn check_speeds(&self, previous: &[f64], next: &[f64]) -> Result<(), String> {
