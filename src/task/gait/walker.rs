@@ -10,11 +10,11 @@
 
 use super::body::{body_axes, body_from_feet};
 use super::placement::{Contact, candidate_steps, check_rules, contact_at};
-use super::rig::SlothRig;
+use super::rig::{Girdle, SlothRig};
 use super::scenario::Scenario;
 use crate::ik::{IkSolver, Tolerance};
 use crate::rig::Pose;
-use glam::{DQuat, DVec3};
+use glam::{DAffine3, DQuat, DVec3};
 use serde::Serialize;
 use thiserror::Error;
 
@@ -240,7 +240,12 @@ impl<'a> Walker<'a> {
                 None => (limb.contact.point, limb.contact.normal, 0.0),
             };
         }
-        let body_wanted = body_from_feet(sloth, &ground[..limb_count]);
+        let mut body_wanted = body_from_feet(sloth, &ground[..limb_count]);
+        let feet: Vec<DVec3> = (0..limb_count)
+            .map(|i| ground[i] + normals[i] * sloth.limbs[i].claw_m)
+            .collect();
+        let held_back = trailing_excess(sloth, &body_wanted, &feet);
+        body_wanted.translation -= body_wanted.matrix3.x_axis * held_back;
         let previous_yaw = if state.has_previous {
             state.joints[3]
         } else {
@@ -508,6 +513,29 @@ impl<'a> Walker<'a> {
         }
         Ok((plan, state))
     }
+}
+
+/// How far a hind foot may trail behind its girdle, along the body's forward axis. At
+/// stance height the hindlimb's rear reach within its bones' limits ends about 0.106 m
+/// behind the hip (measured: a straight stance ends at 0.1065 m, turns of 110-160 deg
+/// failed at 0.104-0.107 m with CCD 0.3-0.7 mm short); below this the body is held back.
+const MAX_HIND_TRAIL_M: f64 = 0.104;
+
+/// How far the body at `body` must be held back (against its forward axis) so that no
+/// hind foot, at `feet` (the ends of the hands and feet, world), trails more than
+/// `MAX_HIND_TRAIL_M` behind its girdle: the mean of the feet would otherwise carry a
+/// stance hind foot out of reach while a fore limb swings ahead. Zero when none trails.
+fn trailing_excess(sloth: &SlothRig, body: &DAffine3, feet: &[DVec3]) -> f64 {
+    let to_body = body.inverse();
+    sloth
+        .limbs
+        .iter()
+        .zip(feet)
+        .filter(|(limb, _)| limb.girdle == Girdle::Hind)
+        .map(|(limb, foot)| {
+            limb.attachment().x - to_body.transform_point3(*foot).x - MAX_HIND_TRAIL_M
+        })
+        .fold(0.0, f64::max)
 }
 
 /// The walker's state between two frames.
