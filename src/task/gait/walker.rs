@@ -4,7 +4,8 @@
 //! implies (every frame until all swinging limbs are down again) is possible: limb IK
 //! within the bones' limits, axis speeds, the body clear of the branches, swinging claws
 //! outside them. A move that breaks a rule is never started: the gait stops there, with
-//! the reason, after the swings under way have landed.
+//! the reason, after the swings under way have landed. The body follows the feet (body.rs),
+//! held back where a hind foot would otherwise trail out of reach.
 //!
 //! Owns the gait's state and schedule; it must not stream, or measure what the twin did.
 
@@ -517,8 +518,9 @@ impl<'a> Walker<'a> {
 
 /// How far a hind foot may trail behind its girdle, along the body's forward axis. At
 /// stance height the hindlimb's rear reach within its bones' limits ends about 0.106 m
-/// behind the hip (measured: a straight stance ends at 0.1065 m, turns of 110-160 deg
-/// failed at 0.104-0.107 m with CCD 0.3-0.7 mm short); below this the body is held back.
+/// behind the hip, less with the foot nearer the midline (measured: a straight stance ends
+/// at 0.1065 m; turns of 110-160 deg stopped at 0.104-0.107 m, CCD 0.3-0.7 mm short). Any
+/// of 0.102-0.105 m passes every required turn and height change (docs/gait.md).
 const MAX_HIND_TRAIL_M: f64 = 0.104;
 
 /// How far the body at `body` must be held back (against its forward axis) so that no
