@@ -140,21 +140,24 @@ fn fabrik_limbs_stop_cleanly_where_their_poses_jump() {
 
 #[test]
 fn branch_turns_from_95_to_175_degrees() {
-    for angle in [95.0, 115.0, 135.0, 155.0, 175.0] {
+    // 110, 150 and 160 deg stopped before the body was held back from a trailing hind foot.
+    for angle in [95.0, 110.0, 115.0, 135.0, 150.0, 155.0, 160.0, 175.0] {
         assert_passes(&walk("branch-turn", Some(angle), None));
     }
 }
 
 #[test]
 fn height_changes_from_135_to_200_degrees() {
-    for angle in [135.0, 150.0, 165.0, 180.0, 200.0] {
+    for angle in [135.0, 150.0, 155.0, 165.0, 180.0, 200.0] {
         assert_passes(&walk("height-change", Some(angle), None));
     }
 }
 
 #[test]
 fn a_change_to_a_close_parallel_branch() {
-    assert_passes(&walk("parallel", None, Some(0.10)));
+    for gap in [0.10, 0.15, 0.20] {
+        assert_passes(&walk("parallel", None, Some(gap)));
+    }
 }
 
 #[test]

@@ -4,17 +4,18 @@
 //! implies (every frame until all swinging limbs are down again) is possible: limb IK
 //! within the bones' limits, axis speeds, the body clear of the branches, swinging claws
 //! outside them. A move that breaks a rule is never started: the gait stops there, with
-//! the reason, after the swings under way have landed.
+//! the reason, after the swings under way have landed. The body follows the feet (body.rs),
+//! held back where a hind foot would otherwise trail out of reach.
 //!
 //! Owns the gait's state and schedule; it must not stream, or measure what the twin did.
 
 use super::body::{body_axes, body_from_feet};
 use super::placement::{Contact, candidate_steps, check_rules, contact_at, toward_supports};
-use super::rig::SlothRig;
+use super::rig::{Girdle, SlothRig};
 use super::scenario::Scenario;
 use crate::ik::{IkSolver, Tolerance};
 use crate::rig::Pose;
-use glam::{DQuat, DVec3};
+use glam::{DAffine3, DQuat, DVec3};
 use serde::Serialize;
 use thiserror::Error;
 
@@ -252,11 +253,23 @@ impl<'a> Walker<'a> {
                 ),
             };
         }
-        let body_wanted = body_from_feet(
+        let mut body_wanted = body_from_feet(
             sloth,
             &ground[..limb_count],
             toward_supports(ups[..limb_count].iter().copied()),
         );
+        let feet: Vec<DVec3> = (0..limb_count)
+            .map(|i| ground[i] + normals[i] * sloth.limbs[i].claw_m)
+            .collect();
+        // On a trunk the body climbs along its forward axis: holding it back there fights the
+        // climb (the trunk scenarios pass without it, and a spiral's body_z outran its speed).
+        let trunk_in_use = state.limbs.iter().take(limb_count).any(|limb| {
+            self.on_trunk(&limb.contact) || limb.swing.is_some_and(|s| self.on_trunk(&s.from))
+        });
+        if !trunk_in_use {
+            let held_back = trailing_excess(sloth, &body_wanted, &feet);
+            body_wanted.translation -= body_wanted.matrix3.x_axis * held_back;
+        }
         let previous_yaw = if state.has_previous {
             state.joints[3]
         } else {
@@ -542,6 +555,30 @@ impl<'a> Walker<'a> {
         }
         Ok((plan, state))
     }
+}
+
+/// How far a hind foot may trail behind its girdle, along the body's forward axis. At
+/// stance height the hindlimb's rear reach within its bones' limits ends about 0.106 m
+/// behind the hip, less with the foot nearer the midline (measured: a straight stance ends
+/// at 0.1065 m; turns of 110-160 deg stopped at 0.104-0.107 m, CCD 0.3-0.7 mm short). Any
+/// of 0.102-0.105 m passes every required turn and height change (docs/gait.md).
+const MAX_HIND_TRAIL_M: f64 = 0.104;
+
+/// How far the body at `body` must be held back (against its forward axis) so that no
+/// hind foot, at `feet` (the ends of the hands and feet, world), trails more than
+/// `MAX_HIND_TRAIL_M` behind its girdle: the mean of the feet would otherwise carry a
+/// stance hind foot out of reach while a fore limb swings ahead. Zero when none trails.
+fn trailing_excess(sloth: &SlothRig, body: &DAffine3, feet: &[DVec3]) -> f64 {
+    let to_body = body.inverse();
+    sloth
+        .limbs
+        .iter()
+        .zip(feet)
+        .filter(|(limb, _)| limb.girdle == Girdle::Hind)
+        .map(|(limb, foot)| {
+            limb.attachment().x - to_body.transform_point3(*foot).x - MAX_HIND_TRAIL_M
+        })
+        .fold(0.0, f64::max)
 }
 
 /// The walker's state between two frames.
