@@ -18,11 +18,12 @@ use std::sync::Arc;
 #[derive(Args)]
 pub struct GaitArgs {
     /// straight, branch-turn, parallel, height-change, trunk (= trunk-up), trunk-up,
-    /// trunk-down (tail first, head up) or trunk-around.
+    /// trunk-down (tail first, head up), trunk-around (side steps at one height) or
+    /// trunk-spiral (climbs a helix). `transfer` is not built yet.
     #[arg(long)]
     scenario: String,
     /// Angle between the branches in degrees (180: straight on): branch-turn, height-change;
-    /// for trunk-around, degrees around the trunk per metre climbed.
+    /// for trunk-around and trunk-spiral, degrees around the trunk per metre of route.
     #[arg(long)]
     angle: Option<f64>,
     /// Distance between the parallel branches' axes (m): parallel.

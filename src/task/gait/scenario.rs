@@ -30,6 +30,12 @@ pub enum ScenarioError {
          trunk (= trunk-up), trunk-up, trunk-down, trunk-around or trunk-spiral"
     )]
     Unknown(String),
+    #[error(
+        "scenario `transfer` (branch <-> trunk) is not built yet: the other scenarios are \
+         straight, branch-turn, parallel, height-change, trunk-up, trunk-down, trunk-around \
+         and trunk-spiral (docs/gait.md)"
+    )]
+    TransferNotBuilt,
     #[error("scenario {scenario}: --{name} = {value} must lie in [{low}, {high}]")]
     OutOfRange {
         scenario: String,
@@ -297,6 +303,7 @@ impl Scenario {
                 };
                 (terrain, route, -0.3)
             }
+            "transfer" => return Err(ScenarioError::TransferNotBuilt),
             other => return Err(ScenarioError::Unknown(other.into())),
         };
         let tail_first = name == "trunk-down";
