@@ -609,6 +609,25 @@ fn cell_states(server: &Server) -> Vec<(String, String)> {
         .collect()
 }
 
+/// Waits until one `/api/cells` listing shows every cell running (both jobs at one
+/// instant), then until every cell is idle again, within `to_end`.
+fn both_run_then_end(server: &Server, to_end: Duration) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let states = cell_states(server);
+        if states.iter().all(|(_, state)| state == "running") {
+            break;
+        }
+        assert!(Instant::now() < deadline, "never both running: {states:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let deadline = Instant::now() + to_end;
+    while cell_states(server).iter().any(|(_, state)| state != "idle") {
+        assert!(Instant::now() < deadline, "jobs should end");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
 #[test]
 fn two_cells_run_their_jobs_at_the_same_time_each_on_its_own_rig() {
     let server = two_cells(&pan_tilt_cell("pan_tilt", "loopback"), None);
@@ -637,24 +656,7 @@ fn two_cells_run_their_jobs_at_the_same_time_each_on_its_own_rig() {
     let (code, busy) = request(&server, "POST", "/api/cells/pan_tilt/jobs", None);
     assert_eq!(code, 409, "one job at a time in a cell: {busy}");
 
-    // Both running at one instant: one listing holds both states.
-    let deadline = Instant::now() + Duration::from_secs(10);
-    loop {
-        let states = cell_states(&server);
-        if states.iter().all(|(_, state)| state == "running") {
-            break;
-        }
-        assert!(Instant::now() < deadline, "never both running: {states:?}");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while cell_states(&server)
-        .iter()
-        .any(|(_, state)| state != "idle")
-    {
-        assert!(Instant::now() < deadline, "jobs should end");
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    both_run_then_end(&server, Duration::from_secs(30));
     for (cell, rig, joints) in [("irb120", "irb120", 6), ("pan_tilt", "pan_tilt", 3)] {
         let (_, status) = request(&server, "GET", &format!("/api/cells/{cell}/status"), None);
         let report = &status["last"]["report"];
@@ -715,23 +717,7 @@ fn one_daemon_runs_the_arm_and_the_sloth_at_the_same_time() {
     assert_eq!(code, 202, "{arm}");
     let (code, gait) = request(&server, "POST", "/api/cells/sloth/jobs", None);
     assert_eq!(code, 202, "{gait}");
-    let deadline = Instant::now() + Duration::from_secs(10);
-    loop {
-        let states = cell_states(&server);
-        if states.iter().all(|(_, state)| state == "running") {
-            break;
-        }
-        assert!(Instant::now() < deadline, "never both running: {states:?}");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    let deadline = Instant::now() + Duration::from_secs(40);
-    while cell_states(&server)
-        .iter()
-        .any(|(_, state)| state != "idle")
-    {
-        assert!(Instant::now() < deadline, "jobs should end");
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    both_run_then_end(&server, Duration::from_secs(40));
     for (cell, job, joints) in [
         ("irb120", "joint_waypoints", 6),
         ("sloth", "gait straight", 26),

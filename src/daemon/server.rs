@@ -532,7 +532,13 @@ async fn submit(
             })),
         )
             .into_response(),
-        Ok(Err(message)) => error(StatusCode::UNPROCESSABLE_ENTITY, message),
+        Ok(Err(message)) => {
+            // The refused job's thread is ending: once the refusal is answered the cell must
+            // take the next job, not answer "busy".
+            let id = started.id;
+            let _ = tokio::task::spawn_blocking(move || cell.reap(id)).await;
+            error(StatusCode::UNPROCESSABLE_ENTITY, message)
+        }
         Err(_) => error(
             StatusCode::INTERNAL_SERVER_ERROR,
             "the job thread ended before planning",

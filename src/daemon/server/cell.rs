@@ -421,6 +421,17 @@ impl Cell {
         Some(running.id)
     }
 
+    /// Waits for the thread of job `id` (refused at planning, so about to end) and frees
+    /// the cell's job slot.
+    pub fn reap(&self, id: u64) {
+        let mut slot = self.job.lock().unwrap_or_else(PoisonError::into_inner);
+        if slot.as_ref().is_some_and(|job| job.id == id)
+            && let Some(job) = slot.take()
+        {
+            let _ = job.handle.join();
+        }
+    }
+
     /// Stops any job (decelerating along its path) and waits for its thread.
     pub fn stop_and_wait(&self) {
         let active = self
