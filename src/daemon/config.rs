@@ -4,7 +4,7 @@
 
 use crate::protocol::can::{CAN_ID_BLOCK, CanMappingError, MAX_CAN_BASE_ID};
 use crate::protocol::{CanMapping, CanSender};
-use crate::rig::{ConfigError, Rig, load_rig};
+use crate::rig::{ConfigError, Rig, check_range, load_rig};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 
@@ -222,28 +222,6 @@ impl RunSettings {
     }
 }
 
-fn invalid(file: &Path, key: &str, value: impl std::fmt::Debug, reason: &str) -> ConfigError {
-    ConfigError::Invalid {
-        file: file.to_path_buf(),
-        key: key.to_string(),
-        value: format!("{value:?}"),
-        reason: reason.to_string(),
-    }
-}
-
-fn check_range(file: &Path, key: &str, value: f64, low: f64, high: f64) -> Result<(), ConfigError> {
-    if value.is_finite() && value >= low && value <= high {
-        Ok(())
-    } else {
-        Err(invalid(
-            file,
-            key,
-            value,
-            &format!("must lie in [{low}, {high}]"),
-        ))
-    }
-}
-
 /// Reads and validates run settings and the rig they name.
 pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     let text = std::fs::read_to_string(file).map_err(|source| ConfigError::Io {
@@ -270,10 +248,15 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     };
     check_range(file, "stream.rate_hz", config.stream.rate_hz, 1.0, 1000.0)?;
     if let Err(e) = config.stream.link.parse::<crate::link::LinkSpec>() {
-        return Err(invalid(file, "stream.link", &config.stream.link, &e.reason));
+        return Err(ConfigError::invalid(
+            file,
+            "stream.link",
+            &config.stream.link,
+            &e.reason,
+        ));
     }
     if !matches!(config.stream.serial_stop_bits, 1 | 2) {
-        return Err(invalid(
+        return Err(ConfigError::invalid(
             file,
             "stream.serial_stop_bits",
             config.stream.serial_stop_bits,
@@ -288,7 +271,7 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         3600.0,
     )?;
     if config.stream.can_base_id > MAX_CAN_BASE_ID {
-        return Err(invalid(
+        return Err(ConfigError::invalid(
             file,
             "stream.can_base_id",
             format_args!("{:#x}", config.stream.can_base_id),
@@ -307,7 +290,7 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     )?;
     check_range(file, "twin.delay_ms", config.twin.delay_ms, 0.0, 1000.0)?;
     if config.twin.watchdog_cycles == 0 {
-        return Err(invalid(
+        return Err(ConfigError::invalid(
             file,
             "twin.watchdog_cycles",
             0,
@@ -331,7 +314,7 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     )?;
     check_job(file, &config.job, &rig)?;
     if config.serve.bind.parse::<std::net::IpAddr>().is_err() {
-        return Err(invalid(
+        return Err(ConfigError::invalid(
             file,
             "serve.bind",
             &config.serve.bind,
@@ -339,7 +322,12 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         ));
     }
     if let Some(reason) = config.serve.token.as_deref().and_then(token_problem) {
-        return Err(invalid(file, "serve.token", "<redacted>", reason));
+        return Err(ConfigError::invalid(
+            file,
+            "serve.token",
+            "<redacted>",
+            reason,
+        ));
     }
     Ok(RunSettings {
         file: file.to_path_buf(),
@@ -364,7 +352,7 @@ fn to_si(values: &[f64], rig: &Rig) -> Vec<f64> {
 
 fn check_joints(file: &Path, key: &str, degrees: &[f64], rig: &Rig) -> Result<(), ConfigError> {
     if degrees.len() != rig.dof() {
-        return Err(invalid(
+        return Err(ConfigError::invalid(
             file,
             key,
             degrees,
@@ -373,10 +361,15 @@ fn check_joints(file: &Path, key: &str, degrees: &[f64], rig: &Rig) -> Result<()
     }
     let radians = to_si(degrees, rig);
     if degrees.iter().any(|d| !d.is_finite()) {
-        return Err(invalid(file, key, degrees, "values must be finite"));
+        return Err(ConfigError::invalid(
+            file,
+            key,
+            degrees,
+            "values must be finite",
+        ));
     }
     if let Some((index, _)) = rig.first_limit_violation(&radians) {
-        return Err(invalid(
+        return Err(ConfigError::invalid(
             file,
             &format!("{key}[{index}]"),
             degrees[index],
@@ -399,7 +392,12 @@ fn check_job(file: &Path, job: &JobConfig, rig: &Rig) -> Result<(), ConfigError>
             check_range(file, "job.centre_yz_m[1]", centre_yz_m[1], -2.0, 2.0)?;
             check_range(file, "job.radius_m", *radius_m, 0.001, 1.0)?;
             if *laps == 0 || *laps > 1000 {
-                return Err(invalid(file, "job.laps", laps, "must lie in [1, 1000]"));
+                return Err(ConfigError::invalid(
+                    file,
+                    "job.laps",
+                    laps,
+                    "must lie in [1, 1000]",
+                ));
             }
         }
         JobConfig::Paint {
@@ -409,7 +407,7 @@ fn check_job(file: &Path, job: &JobConfig, rig: &Rig) -> Result<(), ConfigError>
         } => {
             let max = crate::task::paint::room::MAX_WALLS;
             if !(3..=max).contains(walls) {
-                return Err(invalid(
+                return Err(ConfigError::invalid(
                     file,
                     "job.walls",
                     walls,
@@ -418,7 +416,7 @@ fn check_job(file: &Path, job: &JobConfig, rig: &Rig) -> Result<(), ConfigError>
             }
             let paint = crate::task::paint::load_paint_settings(paint_config)?;
             if paint.rig != *rig {
-                return Err(invalid(
+                return Err(ConfigError::invalid(
                     file,
                     "rig",
                     &rig.name,
@@ -432,7 +430,7 @@ fn check_job(file: &Path, job: &JobConfig, rig: &Rig) -> Result<(), ConfigError>
         }
         JobConfig::JointWaypoints { waypoints_deg } => {
             if waypoints_deg.is_empty() {
-                return Err(invalid(
+                return Err(ConfigError::invalid(
                     file,
                     "job.waypoints_deg",
                     "[]",
@@ -449,7 +447,12 @@ fn check_job(file: &Path, job: &JobConfig, rig: &Rig) -> Result<(), ConfigError>
             gap_m,
         } => {
             if let Err(e) = crate::task::gait::Scenario::build(scenario, *angle_deg, *gap_m) {
-                return Err(invalid(file, "job.scenario", scenario, &e.to_string()));
+                return Err(ConfigError::invalid(
+                    file,
+                    "job.scenario",
+                    scenario,
+                    &e.to_string(),
+                ));
             }
         }
     }

@@ -27,6 +27,38 @@ pub enum ConfigError {
     },
 }
 
+impl ConfigError {
+    /// `key` in `file` holds `value`, refused for `reason`.
+    pub fn invalid(file: &Path, key: &str, value: impl std::fmt::Debug, reason: &str) -> Self {
+        ConfigError::Invalid {
+            file: file.to_path_buf(),
+            key: key.to_string(),
+            value: format!("{value:?}"),
+            reason: reason.to_string(),
+        }
+    }
+}
+
+/// `value` of `key` in `file` when it is finite and within `[low, high]`.
+pub fn check_range(
+    file: &Path,
+    key: &str,
+    value: f64,
+    low: f64,
+    high: f64,
+) -> Result<f64, ConfigError> {
+    if value.is_finite() && value >= low && value <= high {
+        Ok(value)
+    } else {
+        Err(ConfigError::invalid(
+            file,
+            key,
+            value,
+            &format!("must lie in [{low}, {high}]"),
+        ))
+    }
+}
+
 /// Reads a rig from a `.toml` description or a `.urdf` file, chosen by extension.
 pub fn load_rig(path: &Path) -> Result<Rig, ConfigError> {
     let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
@@ -104,12 +136,7 @@ struct Checker<'a> {
 
 impl Checker<'_> {
     fn invalid(&self, key: String, value: impl std::fmt::Debug, reason: &str) -> ConfigError {
-        ConfigError::Invalid {
-            file: self.file.to_path_buf(),
-            key,
-            value: format!("{value:?}"),
-            reason: reason.to_string(),
-        }
+        ConfigError::invalid(self.file, &key, value, reason)
     }
 
     fn finite3(&self, key: String, v: [f64; 3]) -> Result<DVec3, ConfigError> {

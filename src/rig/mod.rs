@@ -9,7 +9,7 @@ mod fk;
 mod pose;
 mod urdf;
 
-pub use config::{ConfigError, load_rig};
+pub use config::{ConfigError, check_range, load_rig};
 pub(crate) use config::{RawJoint, RawOrigin, joints_from_raw, origin_from_raw};
 pub use fk::{DofMismatch, JointAxis};
 pub use pose::{Pose, PoseError, rotation_angle_between};

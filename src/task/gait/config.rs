@@ -3,9 +3,9 @@
 //! and building the chosen core solver for a limb; the walker reads the result, it never
 //! changes it.
 
-use super::rig::{Limb, check_range, invalid};
+use super::rig::Limb;
 use crate::ik::{CcdSolver, IkSolver, PositionFabrikSolver, Tolerance};
-use crate::rig::{ConfigError, Rig};
+use crate::rig::{ConfigError, Rig, check_range};
 use serde::Deserialize;
 use std::path::Path;
 
@@ -112,7 +112,7 @@ impl RawGait {
         let mut footfall_order = Vec::with_capacity(self.footfall_order.len());
         for (index, name) in self.footfall_order.iter().enumerate() {
             let Some(limb) = limbs.iter().position(|l| &l.name == name) else {
-                return Err(invalid(
+                return Err(ConfigError::invalid(
                     file,
                     &format!("gait.footfall_order[{index}]"),
                     name,
@@ -120,7 +120,7 @@ impl RawGait {
                 ));
             };
             if footfall_order.contains(&limb) {
-                return Err(invalid(
+                return Err(ConfigError::invalid(
                     file,
                     &format!("gait.footfall_order[{index}]"),
                     name,
@@ -130,7 +130,7 @@ impl RawGait {
             footfall_order.push(limb);
         }
         if footfall_order.len() != limbs.len() {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 file,
                 "gait.footfall_order",
                 &self.footfall_order,
@@ -152,7 +152,7 @@ impl RawGait {
             max_rise_rad: degrees("gait.max_rise_deg", self.max_rise_deg, 90.0)?,
             max_descent_rad: degrees("gait.max_descent_deg", self.max_descent_deg, 90.0)?,
             solver: LimbSolver::from_name(&self.solver).ok_or_else(|| {
-                invalid(
+                ConfigError::invalid(
                     file,
                     "gait.solver",
                     &self.solver,
@@ -169,7 +169,7 @@ impl RawGait {
             ik_max_iterations: if (1..=10_000).contains(&self.ik_max_iterations) {
                 self.ik_max_iterations
             } else {
-                return Err(invalid(
+                return Err(ConfigError::invalid(
                     file,
                     "gait.ik_max_iterations",
                     self.ik_max_iterations,

@@ -6,7 +6,8 @@
 
 use super::config::{GaitConfig, RawGait};
 use crate::rig::{
-    ConfigError, DofMismatch, Joint, RawJoint, RawOrigin, Rig, joints_from_raw, origin_from_raw,
+    ConfigError, DofMismatch, Joint, RawJoint, RawOrigin, Rig, check_range, joints_from_raw,
+    origin_from_raw,
 };
 use glam::{DAffine3, DVec3};
 use serde::Deserialize;
@@ -110,39 +111,6 @@ struct RawLimb {
     tool: RawOrigin,
 }
 
-pub(super) fn invalid(
-    file: &Path,
-    key: &str,
-    value: impl std::fmt::Debug,
-    reason: &str,
-) -> ConfigError {
-    ConfigError::Invalid {
-        file: file.to_path_buf(),
-        key: key.to_string(),
-        value: format!("{value:?}"),
-        reason: reason.to_string(),
-    }
-}
-
-pub(super) fn check_range(
-    file: &Path,
-    key: &str,
-    value: f64,
-    low: f64,
-    high: f64,
-) -> Result<f64, ConfigError> {
-    if value.is_finite() && value >= low && value <= high {
-        Ok(value)
-    } else {
-        Err(invalid(
-            file,
-            key,
-            value,
-            &format!("must lie in [{low}, {high}]"),
-        ))
-    }
-}
-
 const BODY_AXES: [&str; 6] = [
     "body_x",
     "body_y",
@@ -191,7 +159,7 @@ impl SlothRig {
             streamed_joints.extend(limb.chain.joints.iter().cloned());
         }
         if streamed_joints.len() > MAX_STREAMED_AXES {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 file,
                 "limb",
                 streamed_joints.len(),
@@ -199,7 +167,7 @@ impl SlothRig {
             ));
         }
         if let Some(name) = duplicate_name(&streamed_joints) {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 file,
                 "limb.joint.name",
                 name,
@@ -318,7 +286,7 @@ impl SlothRig {
 fn check_body_axes(file: &Path, joints: &[Joint]) -> Result<(), ConfigError> {
     let names: Vec<&str> = joints.iter().map(|j| j.name.as_str()).collect();
     if names != BODY_AXES {
-        return Err(invalid(
+        return Err(ConfigError::invalid(
             file,
             "body.joint",
             names,
@@ -336,7 +304,7 @@ fn limb_from_raw(
 ) -> Result<Limb, ConfigError> {
     let prefix = format!("limb[{index}].");
     if raw.name.trim().is_empty() {
-        return Err(invalid(
+        return Err(ConfigError::invalid(
             file,
             &format!("{prefix}name"),
             &raw.name,
@@ -353,7 +321,7 @@ fn limb_from_raw(
         .sum::<f64>()
         + tool.translation.length();
     if reach_m <= 0.0 {
-        return Err(invalid(
+        return Err(ConfigError::invalid(
             file,
             &format!("{prefix}joint"),
             reach_m,
@@ -380,14 +348,19 @@ fn limb_from_raw(
 /// Four limbs, one per girdle and side, uniquely named.
 fn check_limb_set(file: &Path, limbs: &[Limb]) -> Result<(), ConfigError> {
     if limbs.len() != 4 {
-        return Err(invalid(file, "limb", limbs.len(), "a sloth has 4 limbs"));
+        return Err(ConfigError::invalid(
+            file,
+            "limb",
+            limbs.len(),
+            "a sloth has 4 limbs",
+        ));
     }
     for (index, limb) in limbs.iter().enumerate() {
         let twin = limbs[..index]
             .iter()
             .any(|other| other.girdle == limb.girdle && other.side == limb.side);
         if twin || limbs[..index].iter().any(|other| other.name == limb.name) {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 file,
                 &format!("limb[{index}].name"),
                 &limb.name,

@@ -2,7 +2,7 @@
 //! grid, validated on load (every error names the file, the key and the value). Owns the
 //! file format only.
 
-use crate::rig::{ConfigError, Rig, load_rig};
+use crate::rig::{ConfigError, Rig, check_range, load_rig};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -77,28 +77,6 @@ pub struct PaintSettings {
 /// Axes before the arm: base x, base y, base yaw, lift.
 pub const EXTRA_AXES: usize = 4;
 
-fn invalid(file: &Path, key: &str, value: impl std::fmt::Debug, reason: &str) -> ConfigError {
-    ConfigError::Invalid {
-        file: file.to_path_buf(),
-        key: key.to_string(),
-        value: format!("{value:?}"),
-        reason: reason.to_string(),
-    }
-}
-
-fn check_range(file: &Path, key: &str, value: f64, low: f64, high: f64) -> Result<(), ConfigError> {
-    if value.is_finite() && value >= low && value <= high {
-        Ok(())
-    } else {
-        Err(invalid(
-            file,
-            key,
-            value,
-            &format!("must lie in [{low}, {high}]"),
-        ))
-    }
-}
-
 /// True when `value` is a whole multiple of `grid` (to rounding).
 fn on_grid(value: f64, grid: f64) -> bool {
     let steps = value / grid;
@@ -143,7 +121,7 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
     ] {
         check_range(file, key, value, low, high)?;
         if !on_grid(value, r.layout_grid_m) {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 file,
                 key,
                 value,
@@ -155,7 +133,7 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
         }
     }
     if r.window_sill_m + r.window_height_m > r.wall_height_m {
-        return Err(invalid(
+        return Err(ConfigError::invalid(
             file,
             "room.window_sill_m",
             r.window_sill_m,
@@ -194,7 +172,7 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
     )?;
     check_range(file, "coverage.cell_m", c.coverage.cell_m, 0.001, 0.02)?;
     if !on_grid(r.layout_grid_m, c.coverage.cell_m) {
-        return Err(invalid(
+        return Err(ConfigError::invalid(
             file,
             "coverage.cell_m",
             c.coverage.cell_m,
@@ -224,7 +202,7 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
     check_range(file, "strokes.retract_m", s.retract_m, 0.005, 0.2)?;
     check_range(file, "strokes.hold_height_m", s.hold_height_m, -0.5, 1.0)?;
     if rig.dof() != EXTRA_AXES + 6 {
-        return Err(invalid(
+        return Err(ConfigError::invalid(
             file,
             "rig",
             &c.rig,
@@ -245,7 +223,7 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
     )?;
     let top_lift = r.wall_height_m - s.hold_height_m;
     if top_lift > lift.upper || s.low_lift_m + s.hold_height_m >= r.wall_height_m {
-        return Err(invalid(
+        return Err(ConfigError::invalid(
             file,
             "strokes.hold_height_m",
             s.hold_height_m,
@@ -261,7 +239,7 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
     let travel: Vec<f64> = s.travel_arm_deg.iter().map(|d| d.to_radians()).collect();
     for (i, (q, joint)) in travel.iter().zip(&rig.joints[EXTRA_AXES..]).enumerate() {
         if !joint.limits.contains(*q) {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 file,
                 &format!("strokes.travel_arm_deg[{i}]"),
                 s.travel_arm_deg[i],
