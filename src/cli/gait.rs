@@ -18,12 +18,14 @@ use std::sync::Arc;
 #[derive(Args)]
 pub struct GaitArgs {
     /// straight, branch-turn, parallel, height-change, trunk (= trunk-up), trunk-up,
-    /// trunk-down (tail first, head up), trunk-around (side steps at one height) or
-    /// trunk-spiral (climbs a helix). `transfer` is not built yet.
+    /// trunk-down (tail first, head up), trunk-around (side steps at one height),
+    /// trunk-spiral (climbs a helix) or transfer (climbs the trunk, then onto a branch, head
+    /// first).
     #[arg(long)]
     scenario: String,
     /// Angle between the branches in degrees (180: straight on): branch-turn, height-change;
-    /// for trunk-around and trunk-spiral, degrees around the trunk per metre of route.
+    /// for trunk-around and trunk-spiral, degrees around the trunk per metre of route; for
+    /// transfer, between the trunk below the junction and the branch (90: a level branch).
     #[arg(long)]
     angle: Option<f64>,
     /// Distance between the parallel branches' axes (m): parallel.

@@ -128,11 +128,18 @@ pub fn check_rules(
                 gait.max_descent_rad.to_degrees()
             ));
         }
-        if slope > gait.max_rise_rad + 1e-9 {
+        // The thesis's limit is on the bend up from the support the limb leaves (its
+        // branch-to-branch height changes); from a trunk, a rising branch is a bend down.
+        let current = &scenario.terrain.cylinders[planned[limb].support];
+        let bend_up = slope - current.slope();
+        if bend_up > gait.max_rise_rad + 1e-9 {
             return Err(format!(
-                "support {} rises {:.1} deg, more than {:.1} deg: the body would meet the branch",
+                "support {} rises {:.1} deg, {:.1} deg more than support {}: more than {:.1} \
+                 deg, the body would meet the branch",
                 candidate.support,
                 slope.to_degrees(),
+                bend_up.to_degrees(),
+                planned[limb].support,
                 gait.max_rise_rad.to_degrees()
             ));
         }
@@ -156,7 +163,11 @@ pub fn check_rules(
                 ));
             }
             let current = planned[limb].support;
-            if limb_other.side == this.side
+            // Off a trunk the hind limbs follow only once no fore limb is still on it (seed
+            // 004's Transfer to Branch); between branches, once the fore limb of their side
+            // has left.
+            let leaving_trunk = scenario.terrain.cylinders[current].is_trunk(gait.trunk_tilt_rad);
+            if (limb_other.side == this.side || leaving_trunk)
                 && candidate.support != current
                 && contact.support == current
             {

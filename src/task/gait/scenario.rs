@@ -27,15 +27,9 @@ pub const TRUNK_SPIRAL_DEG_PER_M: f64 = 40.0;
 pub enum ScenarioError {
     #[error(
         "unknown scenario `{0}`: expected straight, branch-turn, parallel, height-change, \
-         trunk (= trunk-up), trunk-up, trunk-down, trunk-around or trunk-spiral"
+         trunk (= trunk-up), trunk-up, trunk-down, trunk-around, trunk-spiral or transfer"
     )]
     Unknown(String),
-    #[error(
-        "scenario `transfer` (branch <-> trunk) is not built yet: the other scenarios are \
-         straight, branch-turn, parallel, height-change, trunk-up, trunk-down, trunk-around \
-         and trunk-spiral (docs/gait.md)"
-    )]
-    TransferNotBuilt,
     #[error("scenario {scenario}: --{name} = {value} must lie in [{low}, {high}]")]
     OutOfRange {
         scenario: String,
@@ -175,6 +169,52 @@ fn bent_route(second: DVec3) -> Route {
     }
 }
 
+/// Height of the branch's junction above the trunk's origin in `transfer`: the sloth starts
+/// with its fore limbs about 0.4 m below it, so it climbs a step or two before it reaches up.
+const TRANSFER_JUNCTION_M: f64 = 0.3;
+
+/// Trunk to branch, head first: the sloth climbs the trunk (on its -x side, facing +x) to
+/// where a branch leaves it over the sloth's back, toward -x. `angle` is the angle between
+/// the trunk below the junction and the branch: 90 deg a level branch, more a rising one.
+fn transfer(angle: f64) -> (Terrain, Route, f64) {
+    let rise = angle - std::f64::consts::FRAC_PI_2;
+    let along_branch = DVec3::new(-rise.cos(), 0.0, rise.sin());
+    let junction = TRUNK_AXIS + DVec3::Z * TRANSFER_JUNCTION_M;
+    let terrain = Terrain {
+        cylinders: vec![
+            Cylinder {
+                from: TRUNK_AXIS - DVec3::Z,
+                to: TRUNK_AXIS + DVec3::Z * 2.5,
+                radius: TRUNK_RADIUS_M,
+            },
+            branch(junction, junction + along_branch * 1.5),
+        ],
+    };
+    let route = Route {
+        legs: vec![
+            Leg {
+                start_s: 0.0,
+                origin: TRUNK_AXIS,
+                direction: DVec3::Z,
+                left: 0,
+                right: 0,
+                up: DVec3::X,
+                twist_rad_per_m: 0.0,
+            },
+            // The branch's route starts where it leaves the bark: the part inside the trunk
+            // is no place for a hand.
+            Leg::under(
+                TRANSFER_JUNCTION_M,
+                junction + along_branch * (TRUNK_RADIUS_M + BRANCH_RADIUS_M),
+                along_branch,
+                1,
+                1,
+            ),
+        ],
+    };
+    (terrain, route, -0.3)
+}
+
 impl Scenario {
     /// +1 when the head leads along the route, -1 going tail first.
     pub fn heading_sign(&self) -> f64 {
@@ -303,7 +343,13 @@ impl Scenario {
                 };
                 (terrain, route, -0.3)
             }
-            "transfer" => return Err(ScenarioError::TransferNotBuilt),
+            "transfer" => {
+                if gap_m.is_some() {
+                    return Err(unused("gap"));
+                }
+                let angle = check(name, "angle", angle_deg.unwrap_or(90.0), 45.0, 180.0)?;
+                transfer(angle.to_radians())
+            }
             other => return Err(ScenarioError::Unknown(other.into())),
         };
         let tail_first = name == "trunk-down";

@@ -95,6 +95,10 @@ struct State {
     /// The last frame's joints (the IK's warm start and the speed check's reference).
     joints: Vec<f64>,
     has_previous: bool,
+    /// The body's hold-back in the last frame (m along its forward axis).
+    held_back_m: f64,
+    /// How far the body hung below its place in the last frame, to clear a branch.
+    lowered_m: f64,
 }
 
 /// What one frame measured in the plan.
@@ -215,6 +219,8 @@ impl<'a> Walker<'a> {
             limbs,
             joints,
             has_previous: false,
+            held_back_m: 0.0,
+            lowered_m: 0.0,
         })
     }
 
@@ -263,13 +269,36 @@ impl<'a> Walker<'a> {
             .collect();
         // On a trunk the body climbs along its forward axis: holding it back there fights the
         // climb (the trunk scenarios pass without it, and a spiral's body_z outran its speed).
-        let trunk_in_use = state.limbs.iter().take(limb_count).any(|limb| {
-            self.on_trunk(&limb.contact) || limb.swing.is_some_and(|s| self.on_trunk(&s.from))
+        // Between a trunk and a branch it is what keeps the trailing hind feet in reach.
+        let held: Vec<bool> = state
+            .limbs
+            .iter()
+            .take(limb_count)
+            .map(|limb| {
+                self.on_trunk(&limb.contact) || limb.swing.is_some_and(|s| self.on_trunk(&s.from))
+            })
+            .collect();
+        let all_on_trunk = state.limbs.iter().take(limb_count).all(|limb| {
+            self.on_trunk(&limb.contact) && limb.swing.is_none_or(|s| self.on_trunk(&s.from))
         });
-        if !trunk_in_use {
-            let held_back = trailing_excess(sloth, &body_wanted, &feet);
+        let mut held_back = 0.0;
+        if !all_on_trunk {
+            held_back = trailing_excess(sloth, &body_wanted, &feet);
+            if state.has_previous {
+                let most = HOLD_BACK_RATE_M_S * self.period_s;
+                held_back = held_back.clamp(state.held_back_m - most, state.held_back_m + most);
+            }
             body_wanted.translation -= body_wanted.matrix3.x_axis * held_back;
         }
+        let mut lowered = 0.0;
+        if held.iter().any(|h| *h) {
+            lowered = self.torso_clearing(&body_wanted);
+        }
+        if state.has_previous {
+            let most = LOWERING_RATE_M_S * self.period_s;
+            lowered = lowered.clamp(state.lowered_m - most, state.lowered_m + most);
+        }
+        body_wanted.translation -= body_wanted.matrix3.z_axis * lowered;
         let previous_yaw = if state.has_previous {
             state.joints[3]
         } else {
@@ -350,10 +379,45 @@ impl<'a> Walker<'a> {
         }
         state.joints = joints;
         state.has_previous = true;
+        state.held_back_m = held_back;
+        state.lowered_m = lowered;
         Ok(FrameCheck {
             residual,
             clearance,
         })
+    }
+
+    /// How far the body at `body` must move back along its forward axis for its torso to
+    /// clear every support by `TORSO_MARGIN_M`: reaching from a trunk for a branch over its
+    /// back, the mean of the feet brings the shoulders up against the branch (the seed moves
+    /// the head aside there). Zero when the torso is clear already.
+    fn torso_clearing(&self, body: &DAffine3) -> f64 {
+        let (hind, fore) = self.sloth.spine();
+        let clearance = |back: f64| {
+            let lowered = body.translation - body.matrix3.z_axis * back;
+            let frame = DAffine3::from_mat3_translation(body.matrix3, lowered);
+            self.scenario.terrain.capsule_clearance(
+                frame.transform_point3(hind),
+                frame.transform_point3(fore),
+                self.sloth.body_radius_m,
+            )
+        };
+        if clearance(0.0) >= TORSO_MARGIN_M {
+            return 0.0;
+        }
+        let (mut low, mut high) = (0.0, MAX_TORSO_SHIFT_M);
+        if clearance(high) < TORSO_MARGIN_M {
+            return high;
+        }
+        for _ in 0..40 {
+            let middle = 0.5 * (low + high);
+            if clearance(middle) >= TORSO_MARGIN_M {
+                high = middle;
+            } else {
+                low = middle;
+            }
+        }
+        high
     }
 
     fn on_trunk(&self, contact: &Contact) -> bool {
@@ -580,6 +644,17 @@ fn trailing_excess(sloth: &SlothRig, body: &DAffine3, feet: &[DVec3]) -> f64 {
         })
         .fold(0.0, f64::max)
 }
+
+/// How fast the hold-back may change: when the most trailing hind foot swings, the
+/// hold-back would otherwise let the body go at the foot's speed.
+const HOLD_BACK_RATE_M_S: f64 = 0.1;
+
+/// The torso's least gap to the supports while the sloth straddles a trunk and a branch.
+const TORSO_MARGIN_M: f64 = 0.02;
+/// How fast the body may lower or rise back to its place.
+const LOWERING_RATE_M_S: f64 = 0.1;
+/// The farthest the body moves back to keep that gap (a bound for the search).
+const MAX_TORSO_SHIFT_M: f64 = 0.15;
 
 /// The walker's state between two frames.
 #[derive(Debug, Clone)]
