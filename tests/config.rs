@@ -100,3 +100,15 @@ fn the_shipped_sloth_and_gait_run_settings_load() {
     let sloth = settings.sloth.expect("a gait job loads the sloth");
     assert_eq!(settings.rig.dof(), sloth.dof());
 }
+
+#[test]
+fn the_shipped_forest_loads() {
+    let sloth = rigbridge::task::gait::SlothRig::load(&repo_path("config/sloth.toml"))
+        .unwrap_or_else(|e| panic!("{e}"));
+    let forest = rigbridge::task::gait::Forest::load(
+        &repo_path("config/forest.toml"),
+        sloth.gait.trunk_tilt_rad,
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    assert!(forest.walk_names().count() >= 3);
+}

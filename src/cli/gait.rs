@@ -6,10 +6,10 @@ use super::run::{ClockChoice, default_log_path, make_clock, spawn_streaming, wai
 use anyhow::Context;
 use clap::Args;
 use rigbridge::daemon::RunReport;
-use rigbridge::daemon::config::load_run_settings;
+use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::gait::{GaitRun, run_gait};
 use rigbridge::stream::StreamControl;
-use rigbridge::task::gait::{GaitReport, LimbSolver, Scenario, picture};
+use rigbridge::task::gait::{Forest, GaitReport, LimbSolver, Scenario, picture};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -20,9 +20,14 @@ pub struct GaitArgs {
     /// straight, branch-turn, parallel, height-change, trunk (= trunk-up), trunk-up,
     /// trunk-down (tail first, head up), trunk-around (side steps at one height),
     /// trunk-spiral (climbs a helix) or transfer (climbs the trunk, then onto a branch, head
-    /// first).
+    /// first). With --forest: the name of one of that file's walks (config/forest.toml: fork,
+    /// climb, rise).
     #[arg(long)]
     scenario: String,
+    /// Terrain and walks from this file (config/forest.toml): --scenario names a walk in it,
+    /// whose supports and route the file holds (no --angle or --gap).
+    #[arg(long)]
+    forest: Option<PathBuf>,
     /// Angle between the branches in degrees (180: straight on): branch-turn, height-change;
     /// for trunk-around and trunk-spiral, degrees around the trunk per metre of route; for
     /// transfer, between the trunk below the junction and the branch (90: a level branch).
@@ -72,7 +77,10 @@ pub fn gait(args: GaitArgs) -> anyhow::Result<ExitCode> {
         sloth.gait.solver = solver;
         settings.sloth = Some(Arc::new(sloth));
     }
-    let scenario = Scenario::build(&args.scenario, args.angle, args.gap)?;
+    let scenario = match &args.forest {
+        None => Scenario::build(&args.scenario, args.angle, args.gap)?,
+        Some(forest) => walk_from(forest, &args, &settings)?,
+    };
     let log = args.log.unwrap_or_else(|| default_log_path("gait"));
     if let Some(dir) = log.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
@@ -112,6 +120,29 @@ pub fn gait(args: GaitArgs) -> anyhow::Result<ExitCode> {
     } else {
         ExitCode::from(4)
     })
+}
+
+/// The walk `--scenario` of the forest file `forest`, whose supports decide trunk or branch
+/// by the sloth's `[gait] trunk_tilt_deg`.
+fn walk_from(
+    forest: &std::path::Path,
+    args: &GaitArgs,
+    settings: &RunSettings,
+) -> anyhow::Result<Scenario> {
+    if args.angle.is_some() || args.gap.is_some() {
+        anyhow::bail!(
+            "--angle and --gap shape the built-in scenarios: walk {} of {} takes its geometry \
+             from that file",
+            args.scenario,
+            forest.display()
+        );
+    }
+    let sloth = settings
+        .sloth
+        .as_deref()
+        .with_context(|| format!("{} names no sloth rig", args.config.display()))?;
+    let forest = Forest::load(forest, sloth.gait.trunk_tilt_rad)?;
+    Ok(forest.scenario(&args.scenario)?)
 }
 
 fn print_verdict(r: &GaitReport) {

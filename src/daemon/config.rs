@@ -191,6 +191,10 @@ pub enum JobConfig {
         angle_deg: Option<f64>,
         #[serde(default, skip_serializing_if = "Option::is_none")]
         gap_m: Option<f64>,
+        /// A forest file (config/forest.toml, relative to this file, resolved on load):
+        /// `scenario` is then one of its walks.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        forest: Option<PathBuf>,
     },
     /// Paint a generated room of `walls` walls (seed `seed`) with the painter rig;
     /// `paint_config` (config/paint.toml) is relative to this file, resolved on load.
@@ -234,6 +238,13 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     })?;
     if let JobConfig::Paint { paint_config, .. } = &mut config.job {
         *paint_config = file.parent().unwrap_or(Path::new(".")).join(&*paint_config);
+    }
+    if let JobConfig::Gait {
+        forest: Some(forest),
+        ..
+    } = &mut config.job
+    {
+        *forest = file.parent().unwrap_or(Path::new(".")).join(&*forest);
     }
     let rig_path = file.parent().unwrap_or(Path::new(".")).join(&config.rig);
     let sloth = match config.job {
@@ -312,7 +323,7 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         0.01,
         0.99,
     )?;
-    check_job(file, &config.job, &rig)?;
+    check_job(file, &config.job, &rig, sloth.as_deref())?;
     if config.serve.bind.parse::<std::net::IpAddr>().is_err() {
         return Err(ConfigError::invalid(
             file,
@@ -379,7 +390,12 @@ fn check_joints(file: &Path, key: &str, degrees: &[f64], rig: &Rig) -> Result<()
     Ok(())
 }
 
-fn check_job(file: &Path, job: &JobConfig, rig: &Rig) -> Result<(), ConfigError> {
+fn check_job(
+    file: &Path,
+    job: &JobConfig,
+    rig: &Rig,
+    sloth: Option<&crate::task::gait::SlothRig>,
+) -> Result<(), ConfigError> {
     match job {
         JobConfig::WallFigure {
             wall_x_m,
@@ -443,8 +459,15 @@ fn check_job(file: &Path, job: &JobConfig, rig: &Rig) -> Result<(), ConfigError>
         }
         JobConfig::Gait {
             scenario,
+            forest: Some(forest),
             angle_deg,
             gap_m,
+        } => check_forest_walk(file, scenario, forest, *angle_deg, *gap_m, sloth)?,
+        JobConfig::Gait {
+            scenario,
+            angle_deg,
+            gap_m,
+            forest: None,
         } => {
             if let Err(e) = crate::task::gait::Scenario::build(scenario, *angle_deg, *gap_m) {
                 return Err(ConfigError::invalid(
@@ -455,6 +478,44 @@ fn check_job(file: &Path, job: &JobConfig, rig: &Rig) -> Result<(), ConfigError>
                 ));
             }
         }
+    }
+    Ok(())
+}
+
+/// A gait job's walk from a forest file: the file loads, holds the walk, and the job gives
+/// no built-in scenario's `angle_deg` or `gap_m`.
+fn check_forest_walk(
+    file: &Path,
+    walk: &str,
+    forest: &Path,
+    angle_deg: Option<f64>,
+    gap_m: Option<f64>,
+    sloth: Option<&crate::task::gait::SlothRig>,
+) -> Result<(), ConfigError> {
+    let geometry = "a walk from `forest` takes its geometry from that file";
+    if let Some(angle) = angle_deg {
+        return Err(ConfigError::invalid(file, "job.angle_deg", angle, geometry));
+    }
+    if let Some(gap) = gap_m {
+        return Err(ConfigError::invalid(file, "job.gap_m", gap, geometry));
+    }
+    // Its supports are trunks or branches by the sloth's `[gait] trunk_tilt_deg`.
+    let Some(sloth) = sloth else {
+        return Err(ConfigError::invalid(
+            file,
+            "job.forest",
+            forest,
+            "a gait job needs a sloth rig (`rig`) to walk it",
+        ));
+    };
+    let loaded = crate::task::gait::Forest::load(forest, sloth.gait.trunk_tilt_rad)?;
+    if let Err(e) = loaded.scenario(walk) {
+        return Err(ConfigError::invalid(
+            file,
+            "job.scenario",
+            walk,
+            &e.to_string(),
+        ));
     }
     Ok(())
 }

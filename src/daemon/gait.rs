@@ -51,6 +51,8 @@ pub fn run_gait(
             scenario: scenario.name.clone(),
             angle_deg: scenario.angle_deg,
             gap_m: scenario.gap_m,
+            // The job is recorded by its scenario's name: a walk's forest file is the caller's.
+            forest: None,
         },
         start,
         trajectory,

@@ -215,11 +215,18 @@ pub fn plan_for(
                 scenario,
                 angle_deg,
                 gap_m,
+                forest,
             },
             Some(sloth),
         ) => {
-            let scenario = crate::task::gait::Scenario::build(scenario, *angle_deg, *gap_m)
-                .map_err(crate::task::gait::GaitError::from)?;
+            let scenario = crate::task::gait::forest::scenario_named(
+                scenario,
+                *angle_deg,
+                *gap_m,
+                forest.as_deref(),
+                sloth.gait.trunk_tilt_rad,
+            )
+            .map_err(crate::task::gait::GaitError::from)?;
             crate::task::gait::plan_gait_job(sloth, &scenario, &start, &plan_settings(settings))?
         }
         _ => plan_job(job, &settings.rig, &start, &plan_settings(settings))?,

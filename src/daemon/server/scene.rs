@@ -3,7 +3,7 @@
 //! scenes themselves live in `src/view`, and planning stays with the job.
 
 use crate::daemon::config::{JobConfig, RunSettings};
-use crate::task::gait::Scenario;
+use crate::task::gait::forest::scenario_named;
 use crate::task::paint::{load_paint_settings, room_for, world_for};
 use crate::twin::TwinWorld;
 use crate::view::{ArmScene, LiveScene, PaintScene, SlothScene, ToolTrace};
@@ -27,13 +27,22 @@ pub fn scene_for_job(settings: &RunSettings, job: &JobConfig) -> JobScene {
             scenario,
             angle_deg,
             gap_m,
+            forest,
         } => {
-            let scene: Box<dyn LiveScene> = match (
-                &settings.sloth,
-                Scenario::build(scenario, *angle_deg, *gap_m),
-            ) {
-                (Some(sloth), Ok(scenario)) => Box::new(SlothScene::new(sloth.clone(), &scenario)),
-                _ => Box::new(ArmScene::new(settings.rig.clone())),
+            let built = settings.sloth.as_ref().and_then(|sloth| {
+                scenario_named(
+                    scenario,
+                    *angle_deg,
+                    *gap_m,
+                    forest.as_deref(),
+                    sloth.gait.trunk_tilt_rad,
+                )
+                .ok()
+                .map(|scenario| (sloth, scenario))
+            });
+            let scene: Box<dyn LiveScene> = match built {
+                Some((sloth, scenario)) => Box::new(SlothScene::new(sloth.clone(), &scenario)),
+                None => Box::new(ArmScene::new(settings.rig.clone())),
             };
             (scene, None)
         }

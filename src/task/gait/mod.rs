@@ -1,10 +1,12 @@
 //! The sloth gait of seed 004 as a second rig on the bridge's pipeline: the rig and its
-//! file, terrain, scenarios, foot placement, the walker that plans joint motion, the
-//! twin-side measurements and the report. Owns producing the sloth's joint trajectory and
-//! judging it; streaming, the twin and logging are the pipeline's.
+//! file, terrain, scenarios (built in or from a forest file), foot placement, the walker
+//! that plans joint motion, the twin-side measurements and the report. Owns producing the
+//! sloth's joint trajectory and judging it; streaming, the twin and logging are the
+//! pipeline's.
 
 pub mod body;
 pub mod config;
+pub mod forest;
 pub mod metrics;
 pub mod picture;
 pub mod pipeline;
@@ -15,6 +17,7 @@ pub mod terrain;
 pub mod walker;
 
 pub use config::{GaitConfig, LimbSolver};
+pub use forest::{Forest, ForestError};
 pub use metrics::{GaitReport, GaitWorld, judge};
 pub use pipeline::{GaitError, plan_gait, plan_gait_job, trajectory_from_plan};
 pub use rig::{Girdle, Limb, Side, SlothRig};

@@ -16,6 +16,8 @@ pub enum GaitError {
     #[error(transparent)]
     Scenario(#[from] ScenarioError),
     #[error(transparent)]
+    Forest(#[from] super::forest::ForestError),
+    #[error(transparent)]
     Walk(#[from] WalkError),
     #[error("the gait's trajectory is refused: {0}")]
     Trajectory(#[from] TrajectoryError),

@@ -141,6 +141,13 @@ impl Terrain {
 
 /// The least distance between segments `p0`-`p1` and `q0`-`q1`.
 pub fn segment_distance(p0: DVec3, p1: DVec3, q0: DVec3, q1: DVec3) -> f64 {
+    let (p, q) = segment_nearest(p0, p1, q0, q1);
+    p.distance(q)
+}
+
+/// The points of segments `p0`-`p1` and `q0`-`q1` nearest each other (the first of them
+/// along `p0`-`p1` when there are many, as for parallel segments).
+pub fn segment_nearest(p0: DVec3, p1: DVec3, q0: DVec3, q1: DVec3) -> (DVec3, DVec3) {
     let d1 = p1 - p0;
     let d2 = q1 - q0;
     let r = p0 - q0;
@@ -174,7 +181,7 @@ pub fn segment_distance(p0: DVec3, p1: DVec3, q0: DVec3, q1: DVec3) -> f64 {
             (s, t)
         }
     };
-    (p0 + d1 * s).distance(q0 + d2 * t)
+    (p0 + d1 * s, q0 + d2 * t)
 }
 
 #[cfg(test)]
