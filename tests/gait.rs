@@ -297,6 +297,80 @@ fn spirals_up_a_trunk() {
     assert!(around > 35.0, "went {around} deg around");
 }
 
+/// A trunk-to-branch transfer: passes; every limb ends on the branch; every limb leaves the
+/// trunk for the branch (never back), fore limbs first, and a hind limb lifts off the trunk
+/// only once no fore limb is still on it (seed 004); the head stays above the tail.
+fn assert_transfers_head_first(run: &GaitRun) {
+    assert_passes(run);
+    let (trunk, branch) = (0, 1);
+    let fore = |limb: usize| run.sloth.limbs[limb].name.ends_with('f');
+    let mut stances = run.plan.stances.clone();
+    stances.sort_by_key(|s| s.start);
+    for limb in 0..4 {
+        let supports: Vec<usize> = stances
+            .iter()
+            .filter(|s| s.limb == limb)
+            .map(|s| s.contact.support)
+            .collect();
+        assert_eq!(supports.first(), Some(&trunk), "{limb} starts on the trunk");
+        assert_eq!(supports.last(), Some(&branch), "{limb} ends on the branch");
+        assert!(supports.windows(2).all(|w| w[0] <= w[1]), "{supports:?}");
+    }
+    // The frame each limb lifts off the trunk for the branch: the end of its last trunk stance.
+    let leaves_trunk = |limb: usize| {
+        stances
+            .iter()
+            .filter(|s| s.limb == limb && s.contact.support == trunk)
+            .map(|s| s.end)
+            .max()
+            .unwrap()
+    };
+    let last_fore_leaves = (0..4).filter(|l| fore(*l)).map(leaves_trunk).max().unwrap();
+    let first_fore_lands = stances
+        .iter()
+        .filter(|s| fore(s.limb) && s.contact.support == branch)
+        .map(|s| s.start)
+        .min()
+        .unwrap();
+    for hind in (0..4).filter(|l| !fore(*l)) {
+        let lifts = leaves_trunk(hind);
+        assert!(
+            lifts > first_fore_lands,
+            "fore limbs reach the branch first"
+        );
+        // No fore limb holds the trunk when a hind limb lets go of it.
+        for stance in stances.iter().filter(|s| fore(s.limb)) {
+            let holds = stance.start <= lifts && lifts <= stance.end;
+            assert!(
+                !(holds && stance.contact.support == trunk),
+                "{} lifts off the trunk at frame {lifts} while {} holds it",
+                run.sloth.limbs[hind].name,
+                run.sloth.limbs[stance.limb].name
+            );
+        }
+        assert!(lifts >= last_fore_leaves);
+    }
+    assert!(run.verdict.min_head_above_tail_m > 0.0);
+}
+
+#[test]
+fn transfers_from_a_trunk_to_a_branch_head_first() {
+    for angle in [105.0, 120.0, 140.0] {
+        assert_transfers_head_first(&walk("transfer", Some(angle), None));
+    }
+}
+
+#[test]
+fn a_transfer_to_a_level_branch_stops_cleanly() {
+    assert_stops_cleanly(&walk("transfer", Some(90.0), None), "no next step");
+}
+
+#[test]
+fn a_transfer_onto_a_descending_branch_stops_cleanly() {
+    // A branch falling away 30 deg lies across the climb: the body would meet it first.
+    assert_stops_cleanly(&walk("transfer", Some(60.0), None), "no next step");
+}
+
 #[test]
 fn the_streamed_rig_fits_the_wire_protocol() {
     let sloth = SlothRig::load(&repo_path("config/sloth.toml")).unwrap();
@@ -452,7 +526,10 @@ fn trunk_geometry_options_are_checked() {
 fn an_unknown_scenario_is_refused_by_name() {
     let error = Scenario::build("loop-the-loop", None, None).unwrap_err();
     assert!(error.to_string().contains("loop-the-loop"));
-    assert!(error.to_string().contains("transfer"), "lists every name: {error}");
+    assert!(
+        error.to_string().contains("transfer"),
+        "lists every name: {error}"
+    );
 }
 
 fn scratch(name: &str) -> std::path::PathBuf {

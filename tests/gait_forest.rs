@@ -85,7 +85,7 @@ fn assert_same_scene(walk: &Scenario, built_in: &Scenario) {
 fn the_shipped_forest_loads_its_walks() {
     let forest = shipped();
     let names: Vec<&str> = forest.walk_names().collect();
-    assert_eq!(names, ["fork", "rise", "climb"]);
+    assert_eq!(names, ["fork", "rise", "climb", "climb-out"]);
     let fork = forest.scenario("fork").unwrap();
     assert_eq!(fork.name, "fork");
     // The fork's second leg starts at the bend, 1.2 m along the first branch.
@@ -564,4 +564,36 @@ fn the_fork_walk_passes_end_to_end() {
     // The sloth went round the bend: its body's path ends on the second branch, left of +x.
     let end = *run.body_path.last().expect("a body path");
     assert!(end.y > 0.1, "{end:?}");
+}
+
+#[test]
+fn the_climb_out_walk_transfers_from_the_trunk_to_the_branch() {
+    let settings =
+        load_run_settings(&repo_path("config/gait-run.toml")).unwrap_or_else(|e| panic!("{e}"));
+    let walk = shipped().scenario("climb-out").unwrap();
+    let log = log_path("climb-out.mcap");
+    let run = run_gait(
+        &settings,
+        &walk,
+        &VirtualClock::new(),
+        Some(Path::new(&log)),
+        &StreamControl::default(),
+    )
+    .expect("the walk plans and streams");
+    let v = &run.verdict;
+    assert!(v.passed, "{:?}", v.reason);
+    assert!(v.cycles_judged >= 3);
+    assert_eq!(run.run.stream.limit_violations, 0);
+    // Every limb's last stance is on the branch (support 1 of the walk's terrain).
+    for limb in 0..4 {
+        let last = run
+            .plan
+            .stances
+            .iter()
+            .filter(|s| s.limb == limb)
+            .max_by_key(|s| s.start)
+            .unwrap();
+        assert_eq!(last.contact.support, 1, "limb {limb} ends on the branch");
+    }
+    assert!(v.min_head_above_tail_m > 0.0);
 }

@@ -352,6 +352,12 @@ impl Scenario {
             }
             other => return Err(ScenarioError::Unknown(other.into())),
         };
+        // A transfer walks one cycle more: the hind limbs reach the branch in the fourth.
+        let cycles = if name == "transfer" {
+            CYCLES + 1
+        } else {
+            CYCLES
+        };
         let tail_first = name == "trunk-down";
         let sideways = name == "trunk-around";
         Ok(Scenario {
@@ -361,7 +367,7 @@ impl Scenario {
             terrain,
             route,
             start_s,
-            cycles: CYCLES,
+            cycles,
             tail_first,
             sideways,
         })
