@@ -5,7 +5,8 @@
 //! within the bones' limits, axis speeds, the body clear of the branches, swinging claws
 //! outside them. A move that breaks a rule is never started: the gait stops there, with
 //! the reason, after the swings under way have landed. The body follows the feet (body.rs),
-//! held back where a hind foot would otherwise trail out of reach.
+//! held back where a hind foot would otherwise trail out of reach, and lowered while it
+//! holds a trunk where a branch would otherwise meet its torso.
 //!
 //! Owns the gait's state and schedule; it must not stream, or measure what the twin did.
 
