@@ -531,21 +531,27 @@ fn log_path(name: &str) -> PathBuf {
     log
 }
 
-#[test]
-fn the_fork_walk_passes_end_to_end() {
+/// Runs a walk of the shipped forest end to end on the twin (virtual clock), logged.
+fn run_shipped_walk(name: &str) -> rigbridge::daemon::gait::GaitRun {
     let settings =
         load_run_settings(&repo_path("config/gait-run.toml")).unwrap_or_else(|e| panic!("{e}"));
-    let fork = shipped().scenario("fork").unwrap();
-    let log = log_path("fork.mcap");
+    let walk = shipped().scenario(name).unwrap();
+    let log = log_path(&format!("{name}.mcap"));
     let run = run_gait(
         &settings,
-        &fork,
+        &walk,
         &VirtualClock::new(),
         Some(Path::new(&log)),
         &StreamControl::default(),
     )
-    .expect("the fork plans and streams");
+    .unwrap_or_else(|e| panic!("{name} plans and streams: {e}"));
     assert!(log.exists(), "the run is logged");
+    run
+}
+
+#[test]
+fn the_fork_walk_passes_end_to_end() {
+    let run = run_shipped_walk("fork");
     let v = &run.verdict;
     assert!(v.passed, "{:?}", v.reason);
     assert_eq!(v.scenario, "fork");
@@ -568,18 +574,7 @@ fn the_fork_walk_passes_end_to_end() {
 
 #[test]
 fn the_climb_out_walk_transfers_from_the_trunk_to_the_branch() {
-    let settings =
-        load_run_settings(&repo_path("config/gait-run.toml")).unwrap_or_else(|e| panic!("{e}"));
-    let walk = shipped().scenario("climb-out").unwrap();
-    let log = log_path("climb-out.mcap");
-    let run = run_gait(
-        &settings,
-        &walk,
-        &VirtualClock::new(),
-        Some(Path::new(&log)),
-        &StreamControl::default(),
-    )
-    .expect("the walk plans and streams");
+    let run = run_shipped_walk("climb-out");
     let v = &run.verdict;
     assert!(v.passed, "{:?}", v.reason);
     assert!(v.cycles_judged >= 3);

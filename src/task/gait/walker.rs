@@ -271,7 +271,8 @@ impl<'a> Walker<'a> {
         // On a trunk the body climbs along its forward axis: holding it back there fights the
         // climb (the trunk scenarios pass without it, and a spiral's body_z outran its speed).
         // Between a trunk and a branch it is what keeps the trailing hind feet in reach.
-        let held: Vec<bool> = state
+        // Per limb: does it hold a trunk (or leave one, mid-swing)?
+        let trunk_held: Vec<bool> = state
             .limbs
             .iter()
             .take(limb_count)
@@ -292,7 +293,7 @@ impl<'a> Walker<'a> {
             body_wanted.translation -= body_wanted.matrix3.x_axis * held_back;
         }
         let mut lowered = 0.0;
-        if held.iter().any(|h| *h) {
+        if trunk_held.contains(&true) {
             lowered = self.torso_clearing(&body_wanted);
         }
         if state.has_previous {
