@@ -53,25 +53,11 @@ fn walk_with(settings: RunSettings, name: &str, angle: Option<f64>, gap: Option<
 }
 
 fn assert_passes(run: &GaitRun) {
+    common::assert_gait_figures(run);
     let v = &run.verdict;
-    assert!(
-        v.passed,
-        "{} {:?} {:?}: {:?}",
-        v.scenario, v.angle_deg, v.gap_m, v.reason
-    );
-    assert!(v.cycles_judged >= 3);
-    assert_eq!(run.run.stream.outcome, Outcome::Completed);
-    assert_eq!(run.run.stream.limit_violations, 0);
     for limb in &v.limbs {
-        assert!(limb.max_foot_to_surface_mm <= 5.0, "{limb:?}");
-        assert!(limb.max_slip_mm <= 1.0, "{limb:?}");
-        assert!(
-            limb.max_bone_excursion_deg <= limb.bone_limit_deg + 1e-9,
-            "{limb:?}"
-        );
         assert!((limb.duty_factor - 2.0 / 3.0).abs() < 0.05, "{limb:?}");
     }
-    assert!(v.min_body_clearance_mm > 0.0);
     assert!(v.max_ik_residual_mm <= 1.0);
     let order = ["rh", "lf", "lh", "rf"];
     for (i, name) in v.footfall_order.iter().enumerate() {

@@ -1,5 +1,6 @@
 //! Helpers shared by the integration tests: the shipped IRB 120 rig, the independent
-//! reference data in `../shared/reference`, and seeded random configurations.
+//! reference data in `../shared/reference`, seeded random configurations, and the issue's
+//! figures every passing gait run must meet.
 #![allow(dead_code)]
 
 use glam::{DQuat, DVec3};
@@ -63,4 +64,31 @@ pub fn random_configuration(rig: &Rig, rng: &mut impl Rng) -> Vec<f64> {
 
 pub fn degrees(radians: &[f64]) -> Vec<f64> {
     radians.iter().map(|r| r.to_degrees()).collect()
+}
+
+/// The figures every passing gait run meets (issue 6): passed over at least 3 judged cycles,
+/// streamed to the end within the limits, feet on the surface within 5 mm, slip within 1 mm,
+/// bones in range, the body clear of every support.
+pub fn assert_gait_figures(run: &rigbridge::daemon::gait::GaitRun) {
+    let v = &run.verdict;
+    assert!(
+        v.passed,
+        "{} {:?} {:?}: {:?}",
+        v.scenario, v.angle_deg, v.gap_m, v.reason
+    );
+    assert!(v.cycles_judged >= 3);
+    assert_eq!(
+        run.run.stream.outcome,
+        rigbridge::stream::Outcome::Completed
+    );
+    assert_eq!(run.run.stream.limit_violations, 0);
+    for limb in &v.limbs {
+        assert!(limb.max_foot_to_surface_mm <= 5.0, "{limb:?}");
+        assert!(limb.max_slip_mm <= 1.0, "{limb:?}");
+        assert!(
+            limb.max_bone_excursion_deg <= limb.bone_limit_deg + 1e-9,
+            "{limb:?}"
+        );
+    }
+    assert!(v.min_body_clearance_mm > 0.0);
 }
