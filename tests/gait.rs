@@ -346,6 +346,81 @@ fn transfers_from_a_trunk_to_a_branch_head_first() {
     }
 }
 
+/// A branch-to-trunk transfer (seed 004's Transfer to Trunk): passes; tail first and head up
+/// throughout; every limb ends on the trunk, having left the branch for it and never gone
+/// back; the hind limbs, which lead, reach the trunk first; the body ends well down the trunk.
+fn assert_transfers_to_the_trunk_tail_first(run: &GaitRun) {
+    assert_passes(run);
+    let (trunk, branch) = (0, 1);
+    let hind = |limb: usize| run.sloth.limbs[limb].name.ends_with('h');
+    let mut stances = run.plan.stances.clone();
+    stances.sort_by_key(|s| s.start);
+    for limb in 0..4 {
+        let supports: Vec<usize> = stances
+            .iter()
+            .filter(|s| s.limb == limb)
+            .map(|s| s.contact.support)
+            .collect();
+        assert_eq!(
+            supports.first(),
+            Some(&branch),
+            "{limb} starts on the branch"
+        );
+        assert_eq!(supports.last(), Some(&trunk), "{limb} ends on the trunk");
+        assert!(supports.windows(2).all(|w| w[0] >= w[1]), "{supports:?}");
+    }
+    let first_on_trunk = |limb: usize| {
+        stances
+            .iter()
+            .filter(|s| s.limb == limb && s.contact.support == trunk)
+            .map(|s| s.start)
+            .min()
+            .unwrap()
+    };
+    let first_hind = (0..4)
+        .filter(|l| hind(*l))
+        .map(first_on_trunk)
+        .min()
+        .unwrap();
+    let first_fore = (0..4)
+        .filter(|l| !hind(*l))
+        .map(first_on_trunk)
+        .min()
+        .unwrap();
+    assert!(
+        first_hind < first_fore,
+        "the hind limbs lead onto the trunk"
+    );
+    assert!(
+        run.verdict.min_head_above_tail_m > 0.0,
+        "head up throughout"
+    );
+    let rise = run.verdict.body_rise_m;
+    assert!(rise < -0.5, "the body went down {rise} m");
+}
+
+#[test]
+fn transfers_from_a_branch_to_a_trunk_tail_first() {
+    for angle in [120.0, 135.0, 150.0] {
+        assert_transfers_to_the_trunk_tail_first(&walk("transfer-to-trunk", Some(angle), None));
+    }
+}
+
+#[test]
+fn a_transfer_to_the_trunk_from_a_level_branch_stops_cleanly() {
+    assert_stops_cleanly(&walk("transfer-to-trunk", Some(90.0), None), "no next step");
+}
+
+#[test]
+fn a_transfer_to_the_trunk_never_goes_head_down() {
+    // A branch falling away 30 deg from the trunk: going tail first toward the trunk would
+    // put the head 30 deg down the slope.
+    assert_stops_cleanly(
+        &walk("transfer-to-trunk", Some(60.0), None),
+        "descends 30.0 deg: head-first descent",
+    );
+}
+
 #[test]
 fn a_transfer_to_a_level_branch_stops_cleanly() {
     assert_stops_cleanly(&walk("transfer", Some(90.0), None), "no next step");
@@ -454,7 +529,7 @@ fn an_unknown_footfall_limb_is_refused() {
 fn a_trunk_job_approaches_from_the_configured_start_clear_of_the_trunk() {
     let settings = settings();
     let sloth = settings.sloth.clone().unwrap();
-    for name in ["trunk", "trunk-down", "trunk-around", "trunk-spiral"] {
+    for name in ["trunk", "trunk-down", "trunk-around", "trunk-spiral", "transfer-to-trunk"] {
         let scenario = Scenario::build(name, None, None).unwrap();
         let trajectory = rigbridge::task::gait::plan_gait_job(
             &sloth,

@@ -19,8 +19,9 @@ use std::sync::Arc;
 pub struct GaitArgs {
     /// straight, branch-turn, parallel, height-change, trunk (= trunk-up), trunk-up,
     /// trunk-down (tail first, head up), trunk-around (side steps at one height),
-    /// trunk-spiral (climbs a helix) or transfer (climbs the trunk, then onto a branch, head
-    /// first). With --forest: the name of one of that file's walks (config/forest.toml: fork,
+    /// trunk-spiral (climbs a helix), transfer (climbs the trunk, then onto a branch, head
+    /// first) or transfer-to-trunk (the other way: tail first, head up, along the branch and
+    /// down the trunk). With --forest: the name of one of that file's walks (config/forest.toml: fork,
     /// climb, rise).
     #[arg(long)]
     scenario: String,
@@ -30,7 +31,8 @@ pub struct GaitArgs {
     forest: Option<PathBuf>,
     /// Angle between the branches in degrees (180: straight on): branch-turn, height-change;
     /// for trunk-around and trunk-spiral, degrees around the trunk per metre of route; for
-    /// transfer, between the trunk below the junction and the branch (90: a level branch).
+    /// transfer and transfer-to-trunk, between the trunk below the junction and the branch
+    /// (90: a level branch).
     #[arg(long)]
     angle: Option<f64>,
     /// Distance between the parallel branches' axes (m): parallel.

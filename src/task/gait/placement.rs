@@ -81,6 +81,12 @@ pub fn contact_at(
             s,
             up,
         }),
+        Some(hit) if hit.support == support => Err(format!(
+            "the trace for {} at s = {s:.2} m meets support {support} {:.3} m from its grip \
+             (the support bends there)",
+            limb.name,
+            hit.point.distance(expected)
+        )),
         Some(hit) => Err(format!(
             "the trace for {} at s = {s:.2} m meets support {} before support {support}",
             limb.name, hit.support
@@ -112,26 +118,28 @@ pub fn check_rules(
     let this = &sloth.limbs[limb];
     let gait = &sloth.gait;
     let cylinder = &scenario.terrain.cylinders[candidate.support];
-    let slope = cylinder.slope();
+    // Slopes as the head meets them: going tail first, the head points against the travel.
+    let head_slope =
+        |support: usize| scenario.terrain.cylinders[support].slope() * scenario.heading_sign();
+    let slope = head_slope(candidate.support);
     // The girdle that follows: the hind one, or the fore one going down a trunk tail first.
     let trailing = if scenario.tail_first {
         Girdle::Fore
     } else {
         Girdle::Hind
     };
+    if -slope > gait.max_descent_rad {
+        return Err(format!(
+            "support {} descends {:.1} deg: head-first descent beyond {:.1} deg",
+            candidate.support,
+            -slope.to_degrees(),
+            gait.max_descent_rad.to_degrees()
+        ));
+    }
     if !cylinder.is_trunk(gait.trunk_tilt_rad) {
-        if -slope > gait.max_descent_rad {
-            return Err(format!(
-                "support {} descends {:.1} deg: head-first descent beyond {:.1} deg",
-                candidate.support,
-                -slope.to_degrees(),
-                gait.max_descent_rad.to_degrees()
-            ));
-        }
         // The thesis's limit is on the bend up from the support the limb leaves (its
         // branch-to-branch height changes); from a trunk, a rising branch is a bend down.
-        let current = &scenario.terrain.cylinders[planned[limb].support];
-        let bend_up = slope - current.slope();
+        let bend_up = slope - head_slope(planned[limb].support);
         if bend_up > gait.max_rise_rad + 1e-9 {
             return Err(format!(
                 "support {} rises {:.1} deg, {:.1} deg more than support {}: more than {:.1} \

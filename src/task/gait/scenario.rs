@@ -27,7 +27,8 @@ pub const TRUNK_SPIRAL_DEG_PER_M: f64 = 40.0;
 pub enum ScenarioError {
     #[error(
         "unknown scenario `{0}`: expected straight, branch-turn, parallel, height-change, \
-         trunk (= trunk-up), trunk-up, trunk-down, trunk-around, trunk-spiral or transfer"
+         trunk (= trunk-up), trunk-up, trunk-down, trunk-around, trunk-spiral, transfer or \
+         transfer-to-trunk"
     )]
     Unknown(String),
     #[error("scenario {scenario}: --{name} = {value} must lie in [{low}, {high}]")]
@@ -215,6 +216,54 @@ fn transfer(angle: f64) -> (Terrain, Route, f64) {
     (terrain, route, -0.3)
 }
 
+/// How far the sloth starts along its branch from the bark in `transfer-to-trunk`.
+/// How far before the bark the body's middle starts in `transfer-to-trunk` (route
+/// distance). Where the steps fall at the junction depends on it; 0.75 m passes the most
+/// angles (docs/gait.md).
+const TO_TRUNK_START_M: f64 = 0.75;
+
+/// Branch to trunk, the seed's Transfer to Trunk: `transfer`'s scene walked the other way,
+/// tail first and head up: along the branch toward the trunk, then down the trunk. `angle`
+/// is `transfer`'s: between the trunk below the junction and the branch (90 deg a level
+/// branch, more a branch rising away from the trunk).
+fn transfer_to_trunk(angle: f64) -> (Terrain, Route, f64) {
+    let rise = angle - std::f64::consts::FRAC_PI_2;
+    let along_branch = DVec3::new(-rise.cos(), 0.0, rise.sin());
+    let junction = TRUNK_AXIS + DVec3::Z * TRANSFER_JUNCTION_M;
+    let branch_length = 1.5;
+    let far_end = junction + along_branch * branch_length;
+    // Travel runs along each support from its `from` to its `to`: in from the branch's far
+    // end, then down the trunk.
+    let terrain = Terrain {
+        cylinders: vec![
+            Cylinder {
+                from: TRUNK_AXIS + DVec3::Z * 2.5,
+                to: TRUNK_AXIS - DVec3::Z,
+                radius: TRUNK_RADIUS_M,
+            },
+            branch(far_end, junction),
+        ],
+    };
+    // The branch's route ends where it meets the bark: the part inside the trunk is no
+    // place for a foot.
+    let bark_s = branch_length - (TRUNK_RADIUS_M + BRANCH_RADIUS_M);
+    let route = Route {
+        legs: vec![
+            Leg::under(0.0, far_end, -along_branch, 1, 1),
+            Leg {
+                start_s: bark_s,
+                origin: junction,
+                direction: -DVec3::Z,
+                left: 0,
+                right: 0,
+                up: DVec3::X,
+                twist_rad_per_m: 0.0,
+            },
+        ],
+    };
+    (terrain, route, bark_s - TO_TRUNK_START_M)
+}
+
 impl Scenario {
     /// +1 when the head leads along the route, -1 going tail first.
     pub fn heading_sign(&self) -> f64 {
@@ -350,15 +399,22 @@ impl Scenario {
                 let angle = check(name, "angle", angle_deg.unwrap_or(90.0), 45.0, 180.0)?;
                 transfer(angle.to_radians())
             }
+            "transfer-to-trunk" => {
+                if gap_m.is_some() {
+                    return Err(unused("gap"));
+                }
+                let angle = check(name, "angle", angle_deg.unwrap_or(120.0), 45.0, 155.0)?;
+                transfer_to_trunk(angle.to_radians())
+            }
             other => return Err(ScenarioError::Unknown(other.into())),
         };
         // A transfer walks one cycle more: the hind limbs reach the branch in the fourth.
-        let cycles = if name == "transfer" {
+        let cycles = if name.starts_with("transfer") {
             CYCLES + 1
         } else {
             CYCLES
         };
-        let tail_first = name == "trunk-down";
+        let tail_first = name == "trunk-down" || name == "transfer-to-trunk";
         let sideways = name == "trunk-around";
         Ok(Scenario {
             name: name.into(),
