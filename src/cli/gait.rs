@@ -168,9 +168,11 @@ fn print_verdict(r: &GaitReport) {
         r.max_ik_residual_mm
     );
     println!(
-        "  body rose {:.3} m; head at least {:.3} m above the tail{}",
+        "  body rose {:.3} m; head at least {:.3} m above the tail, heading at least {:.1} deg \
+         above level{}",
         r.body_rise_m,
         r.min_head_above_tail_m,
+        r.min_heading_elevation_deg,
         r.around_trunk_deg
             .map_or(String::new(), |d| format!("; {d:.1} deg around the trunk"))
     );

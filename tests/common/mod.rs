@@ -91,4 +91,10 @@ pub fn assert_gait_figures(run: &rigbridge::daemon::gait::GaitRun) {
         );
     }
     assert!(v.min_body_clearance_mm > 0.0);
+    // No head-first descent beyond the seed's 20 deg (and a degree of the twin's lag).
+    assert!(
+        v.min_heading_elevation_deg >= -21.0,
+        "head down {} deg",
+        v.min_heading_elevation_deg
+    );
 }

@@ -20,6 +20,9 @@ pub const MIN_JUDGED_CYCLES: u32 = 3;
 /// Time after touchdown before a stance is judged: the twin's transport delay and servo
 /// lag (12 ms and 8 ms by default) are still bringing the foot down.
 pub const SETTLE_AFTER_TOUCHDOWN_S: f64 = 0.06;
+/// How far past the gait's allowed head-first descent the body's forward axis may point
+/// down before a run fails as a head-first descent (1 deg).
+pub const HEADING_SLACK_RAD: f64 = 0.017_453_292_519_943_295;
 
 /// One limb's measurements over the run.
 #[derive(Debug, Clone, Default, Serialize)]
@@ -52,6 +55,8 @@ pub struct GaitWorld {
     pub body_path: Vec<DVec3>,
     /// The least height of the fore girdle over the hind one (negative: head below tail).
     pub min_head_above_tail_m: f64,
+    /// The least elevation of the body's forward axis, head end (rad; negative: head down).
+    pub min_heading_elevation_rad: f64,
 }
 
 impl GaitWorld {
@@ -80,6 +85,7 @@ impl GaitWorld {
             min_body_clearance_m: f64::INFINITY,
             body_path: Vec::new(),
             min_head_above_tail_m: f64::INFINITY,
+            min_heading_elevation_rad: f64::INFINITY,
         }
     }
 
@@ -135,6 +141,8 @@ impl TwinWorld for GaitWorld {
         let (hind, fore) = self.sloth.spine();
         let head_above_tail = (body.transform_point3(fore) - body.transform_point3(hind)).z;
         self.min_head_above_tail_m = self.min_head_above_tail_m.min(head_above_tail);
+        let elevation = body.matrix3.x_axis.z.clamp(-1.0, 1.0).asin();
+        self.min_heading_elevation_rad = self.min_heading_elevation_rad.min(elevation);
         self.min_body_clearance_m =
             self.min_body_clearance_m
                 .min(self.scenario.terrain.capsule_clearance(
@@ -186,6 +194,9 @@ pub struct GaitReport {
     /// The least height of the head's girdle over the tail's during the run (negative:
     /// head below tail).
     pub min_head_above_tail_m: f64,
+    /// The least elevation of the body's forward axis during the run (deg; negative: the
+    /// head pointed down).
+    pub min_heading_elevation_deg: f64,
     /// On a trunk: how far the body went around its axis (deg, counterclockwise seen from
     /// above).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -335,15 +346,14 @@ pub fn judge(
     {
         failures.push(format!("footfall order {footfall_order:?}"));
     }
-    let on_trunk = scenario
-        .terrain
-        .cylinders
-        .iter()
-        .any(|c| c.is_trunk(sloth.gait.trunk_tilt_rad));
-    if on_trunk && world.min_head_above_tail_m <= 0.0 {
+    // The gait's own rule allows a descent of `max_descent` head first (under a branch); the
+    // twin's lag and the body's averaging may add a fraction of a degree.
+    let head_down_allowed = sloth.gait.max_descent_rad + HEADING_SLACK_RAD;
+    if world.min_heading_elevation_rad < -head_down_allowed {
         failures.push(format!(
-            "head-first on a trunk: the head came {:.3} m below the tail",
-            -world.min_head_above_tail_m
+            "head-first descent: the body pointed {:.1} deg down, beyond {:.1} deg",
+            -world.min_heading_elevation_rad.to_degrees(),
+            sloth.gait.max_descent_rad.to_degrees()
         ));
     }
     if scenario.name == "straight" && (speed_mps - STRAIGHT_SPEED_M_S).abs() > SPEED_TOLERANCE_M_S {
@@ -369,6 +379,7 @@ pub fn judge(
             _ => 0.0,
         },
         min_head_above_tail_m: world.min_head_above_tail_m,
+        min_heading_elevation_deg: world.min_heading_elevation_rad.to_degrees(),
         around_trunk_deg: around_trunk(sloth, scenario, &world.body_path),
     }
 }

@@ -104,6 +104,27 @@ pub fn toward_supports(ups: impl Iterator<Item = DVec3>) -> DVec3 {
     ups.sum::<DVec3>().normalize_or(WORLD_UP)
 }
 
+/// The slope a support presents to the head: going tail first, the head points against the
+/// travel.
+fn head_slope(scenario: &Scenario, support: usize) -> f64 {
+    scenario.terrain.cylinders[support].slope() * scenario.heading_sign()
+}
+
+/// Refuses a support the sloth would hang on head down beyond the gait's max descent (no
+/// head-first descent, seed 004 after Mendel [9]).
+pub fn check_descent(sloth: &SlothRig, scenario: &Scenario, support: usize) -> Result<(), String> {
+    let slope = head_slope(scenario, support);
+    let max_descent = sloth.gait.max_descent_rad;
+    if -slope > max_descent {
+        return Err(format!(
+            "support {support} descends {:.1} deg: head-first descent beyond {:.1} deg",
+            -slope.to_degrees(),
+            max_descent.to_degrees()
+        ));
+    }
+    Ok(())
+}
+
 /// Checks a candidate contact for `limb` against the rules, given where every limb is
 /// (or will be, for swinging limbs): the support's slope, never behind the paired limb,
 /// hind limbs never ahead of a fore limb nor leaving a support a fore limb of their side is
@@ -118,28 +139,18 @@ pub fn check_rules(
     let this = &sloth.limbs[limb];
     let gait = &sloth.gait;
     let cylinder = &scenario.terrain.cylinders[candidate.support];
-    // Slopes as the head meets them: going tail first, the head points against the travel.
-    let head_slope =
-        |support: usize| scenario.terrain.cylinders[support].slope() * scenario.heading_sign();
-    let slope = head_slope(candidate.support);
+    let slope = head_slope(scenario, candidate.support);
     // The girdle that follows: the hind one, or the fore one going down a trunk tail first.
     let trailing = if scenario.tail_first {
         Girdle::Fore
     } else {
         Girdle::Hind
     };
-    if -slope > gait.max_descent_rad {
-        return Err(format!(
-            "support {} descends {:.1} deg: head-first descent beyond {:.1} deg",
-            candidate.support,
-            -slope.to_degrees(),
-            gait.max_descent_rad.to_degrees()
-        ));
-    }
+    check_descent(sloth, scenario, candidate.support)?;
     if !cylinder.is_trunk(gait.trunk_tilt_rad) {
         // The thesis's limit is on the bend up from the support the limb leaves (its
         // branch-to-branch height changes); from a trunk, a rising branch is a bend down.
-        let bend_up = slope - head_slope(planned[limb].support);
+        let bend_up = slope - head_slope(scenario, planned[limb].support);
         if bend_up > gait.max_rise_rad + 1e-9 {
             return Err(format!(
                 "support {} rises {:.1} deg, {:.1} deg more than support {}: more than {:.1} \

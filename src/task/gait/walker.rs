@@ -11,9 +11,12 @@
 //! Owns the gait's state and schedule; it must not stream, or measure what the twin did.
 
 use super::body::{body_axes, body_from_feet};
-use super::placement::{Contact, candidate_steps, check_rules, contact_at, toward_supports};
+use super::placement::{
+    Contact, candidate_steps, check_descent, check_rules, contact_at, toward_supports,
+};
 use super::rig::{Girdle, SlothRig};
 use super::scenario::Scenario;
+use super::terrain::segment_nearest;
 use crate::ik::{IkSolver, Tolerance};
 use crate::rig::Pose;
 use glam::{DAffine3, DQuat, DVec3};
@@ -207,6 +210,7 @@ impl<'a> Walker<'a> {
             };
             let s = self.scenario.start_s + along + stagger(index) - centre;
             let contact = contact_at(self.sloth, self.scenario, index, s)?;
+            check_descent(self.sloth, self.scenario, contact.support)?;
             limbs.push(LimbState {
                 contact,
                 swing: None,
@@ -300,7 +304,8 @@ impl<'a> Walker<'a> {
             let most = LOWERING_RATE_M_S * self.period_s;
             lowered = lowered.clamp(state.lowered_m - most, state.lowered_m + most);
         }
-        body_wanted.translation -= body_wanted.matrix3.z_axis * lowered;
+        let clearing_direction = self.clearing_direction(&body_wanted);
+        body_wanted.translation += clearing_direction * lowered;
         let previous_yaw = if state.has_previous {
             state.joints[3]
         } else {
@@ -393,10 +398,34 @@ impl<'a> Walker<'a> {
     /// clear every support by `TORSO_MARGIN_M`: reaching from a trunk for a branch over its
     /// back, the mean of the feet brings the shoulders up against the branch (the seed moves
     /// the head aside there). Zero when the torso is clear already.
+    /// Which way the body moves to clear its torso from the supports: head first, down
+    /// (away from the branch over its back, as the seed moves the head aside); tail first,
+    /// along its own length away from the support it nears (the trunk its tail reaches for:
+    /// lowering would carry the feet still on the branch out of reach).
+    fn clearing_direction(&self, body: &DAffine3) -> DVec3 {
+        let down = -body.matrix3.z_axis;
+        if !self.scenario.tail_first {
+            return down;
+        }
+        let (hind, fore) = self.sloth.spine();
+        let (tail, head) = (body.transform_point3(hind), body.transform_point3(fore));
+        let radius = self.sloth.body_radius_m;
+        let Some(nearest) = self.scenario.terrain.cylinders.iter().min_by(|c, d| {
+            c.capsule_clearance(tail, head, radius)
+                .total_cmp(&d.capsule_clearance(tail, head, radius))
+        }) else {
+            return down;
+        };
+        let (on_torso, on_axis) = segment_nearest(tail, head, nearest.from, nearest.to);
+        let forward = body.matrix3.x_axis;
+        forward * (on_torso - on_axis).dot(forward).signum()
+    }
+
     fn torso_clearing(&self, body: &DAffine3) -> f64 {
         let (hind, fore) = self.sloth.spine();
+        let direction = self.clearing_direction(body);
         let clearance = |back: f64| {
-            let lowered = body.translation - body.matrix3.z_axis * back;
+            let lowered = body.translation + direction * back;
             let frame = DAffine3::from_mat3_translation(body.matrix3, lowered);
             self.scenario.terrain.capsule_clearance(
                 frame.transform_point3(hind),
