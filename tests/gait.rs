@@ -257,6 +257,21 @@ fn climbs_down_a_trunk_tail_first() {
 }
 
 #[test]
+fn goes_around_a_trunk_while_descending_tail_first() {
+    for (angle, least_around) in [(20.0, 19.0), (-15.0, -14.0)] {
+        let run = walk("trunk-down", Some(angle), None);
+        let rise = assert_climbs_head_up(&run);
+        assert!(rise < -0.9, "descended {} m", -rise);
+        let around = run.verdict.around_trunk_deg.expect("on a trunk");
+        // Counterclockwise seen from above for a positive angle, as `trunk-spiral`.
+        assert!(
+            around * angle.signum() > least_around * angle.signum(),
+            "{angle} deg/m: went {around} deg around"
+        );
+    }
+}
+
+#[test]
 fn side_steps_around_a_trunk() {
     let run = walk("trunk-around", None, None);
     let rise = assert_climbs_head_up(&run);

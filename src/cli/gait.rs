@@ -30,7 +30,8 @@ pub struct GaitArgs {
     #[arg(long)]
     forest: Option<PathBuf>,
     /// Angle between the branches in degrees (180: straight on): branch-turn, height-change;
-    /// for trunk-around and trunk-spiral, degrees around the trunk per metre of route; for
+    /// for trunk-around, trunk-spiral and trunk-down, degrees around the trunk per metre of
+    /// route (trunk-down: 0 by default, a descending helix otherwise); for
     /// transfer and transfer-to-trunk, between the trunk below the junction and the branch
     /// (90: a level branch).
     #[arg(long)]

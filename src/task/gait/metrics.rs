@@ -209,7 +209,8 @@ fn around_trunk(sloth: &SlothRig, scenario: &Scenario, path: &[DVec3]) -> Option
     if !trunk.is_trunk(sloth.gait.trunk_tilt_rad) {
         return None;
     }
-    let axis = trunk.direction();
+    // Counterclockwise seen from above, whichever way the trunk's axis runs.
+    let axis = trunk.direction() * trunk.direction().z.signum();
     let bearing = |p: &DVec3| {
         let radial = *p - trunk.axis_point(trunk.parameter(*p));
         radial - axis * radial.dot(axis)

@@ -271,7 +271,7 @@ impl Scenario {
     }
 
     /// Builds a named scenario. `angle_deg` is the angle between the branches (180: straight
-    /// on), or for `trunk-around` and `trunk-spiral` how far the route turns around the
+    /// on), or for `trunk-around`, `trunk-spiral` and `trunk-down` how far the route turns around the
     /// trunk per metre (deg); `gap_m` the distance between parallel branches' axes.
     pub fn build(
         name: &str,
@@ -359,6 +359,7 @@ impl Scenario {
                 let default_twist = match name {
                     "trunk-around" => Some(TRUNK_AROUND_DEG_PER_M),
                     "trunk-spiral" => Some(TRUNK_SPIRAL_DEG_PER_M),
+                    "trunk-down" => Some(0.0),
                     _ => None,
                 };
                 let twist_deg_per_m = match (default_twist, angle_deg) {
@@ -387,7 +388,9 @@ impl Scenario {
                         left: 0,
                         right: 0,
                         up: DVec3::X,
-                        twist_rad_per_m: twist_deg_per_m.to_radians(),
+                        // About the travel: positive is counterclockwise seen from above
+                        // going up, and must stay so going down.
+                        twist_rad_per_m: twist_deg_per_m.to_radians() * travel.z,
                     }],
                 };
                 (terrain, route, -0.3)
