@@ -5,8 +5,9 @@
 //! within the bones' limits, axis speeds, the body clear of the branches, swinging claws
 //! outside them. A move that breaks a rule is never started: the gait stops there, with
 //! the reason, after the swings under way have landed. The body follows the feet (body.rs),
-//! held back where a hind foot would otherwise trail out of reach, and lowered while it
-//! holds a trunk where a branch would otherwise meet its torso.
+//! held back where a hind foot would otherwise trail out of reach, and, while it holds a
+//! trunk, moved away from the support its torso would otherwise meet and, once only the
+//! hind limbs hold the trunk, brought a little closer to its supports.
 //!
 //! Owns the gait's state and schedule; it must not stream, or measure what the twin did.
 
@@ -101,8 +102,10 @@ struct State {
     has_previous: bool,
     /// The body's hold-back in the last frame (m along its forward axis).
     held_back_m: f64,
-    /// How far the body hung below its place in the last frame, to clear a branch.
-    lowered_m: f64,
+    /// How far the body was moved off its place in the last frame (world, m): away from a
+    /// support its torso would meet, and toward its supports while only the hind limbs
+    /// hold a trunk.
+    shift: DVec3,
 }
 
 /// What one frame measured in the plan.
@@ -225,7 +228,7 @@ impl<'a> Walker<'a> {
             joints,
             has_previous: false,
             held_back_m: 0.0,
-            lowered_m: 0.0,
+            shift: DVec3::ZERO,
         })
     }
 
@@ -252,7 +255,7 @@ impl<'a> Walker<'a> {
                     (
                         swing.from.point.lerp(limb.contact.point, m),
                         normal,
-                        lift_m * swing_lift(phase),
+                        lift_m * self.lift_share(index, &swing) * swing_lift(phase),
                         swing.from.up.lerp(limb.contact.up, m),
                     )
                 }
@@ -296,16 +299,31 @@ impl<'a> Walker<'a> {
             }
             body_wanted.translation -= body_wanted.matrix3.x_axis * held_back;
         }
-        let mut lowered = 0.0;
+        let mut shift = DVec3::ZERO;
         if trunk_held.contains(&true) {
-            lowered = self.torso_clearing(&body_wanted);
+            let girdle_holds = |girdle: Girdle| {
+                (0..limb_count).any(|i| sloth.limbs[i].girdle == girdle && trunk_held[i])
+            };
+            // Only head first: going tail first from a branch the hind limbs lead onto the
+            // trunk, and the fore limbs never hold it alone.
+            if !self.scenario.tail_first
+                && !girdle_holds(Girdle::Fore)
+                && girdle_holds(Girdle::Hind)
+            {
+                shift = body_wanted.matrix3.z_axis * HIND_CLIMB_RAISE_M;
+            }
+            let mut raised = body_wanted;
+            raised.translation += shift;
+            shift += self.torso_clearing(&raised);
         }
         if state.has_previous {
-            let most = LOWERING_RATE_M_S * self.period_s;
-            lowered = lowered.clamp(state.lowered_m - most, state.lowered_m + most);
+            let most = SHIFT_RATE_M_S * self.period_s;
+            let change = shift - state.shift;
+            if change.length() > most {
+                shift = state.shift + change * (most / change.length());
+            }
         }
-        let clearing_direction = self.clearing_direction(&body_wanted);
-        body_wanted.translation += clearing_direction * lowered;
+        body_wanted.translation += shift;
         let previous_yaw = if state.has_previous {
             state.joints[3]
         } else {
@@ -387,58 +405,54 @@ impl<'a> Walker<'a> {
         state.joints = joints;
         state.has_previous = true;
         state.held_back_m = held_back;
-        state.lowered_m = lowered;
+        state.shift = shift;
         Ok(FrameCheck {
             residual,
             clearance,
         })
     }
 
-    /// How far the body at `body` must move back along its forward axis for its torso to
-    /// clear every support by `TORSO_MARGIN_M`: reaching from a trunk for a branch over its
-    /// back, the mean of the feet brings the shoulders up against the branch (the seed moves
-    /// the head aside there). Zero when the torso is clear already.
-    /// Which way the body moves to clear its torso from the supports: head first, down
-    /// (away from the branch over its back, as the seed moves the head aside); tail first,
-    /// along its own length away from the support it nears (the trunk its tail reaches for:
-    /// lowering would carry the feet still on the branch out of reach).
-    fn clearing_direction(&self, body: &DAffine3) -> DVec3 {
-        let down = -body.matrix3.z_axis;
-        if !self.scenario.tail_first {
-            return down;
-        }
+    /// How far (world, m) the body at `body` must move for its torso to clear every support
+    /// by `TORSO_MARGIN_M`: reaching from a trunk for a branch over its back, the mean of the
+    /// feet brings the shoulders up against the branch (the seed moves the head aside
+    /// there). It moves straight away from the nearest support (from the nearest point of
+    /// its axis to the spine's), within the body's own plane (no sideways part): under a
+    /// level branch that is down the trunk, under a steep one mostly away from the bark.
+    /// Going tail first it moves along its own length instead. Zero when the torso is clear
+    /// already.
+    fn torso_clearing(&self, body: &DAffine3) -> DVec3 {
         let (hind, fore) = self.sloth.spine();
-        let (tail, head) = (body.transform_point3(hind), body.transform_point3(fore));
+        let (hind, fore) = (body.transform_point3(hind), body.transform_point3(fore));
         let radius = self.sloth.body_radius_m;
-        let Some(nearest) = self.scenario.terrain.cylinders.iter().min_by(|c, d| {
-            c.capsule_clearance(tail, head, radius)
-                .total_cmp(&d.capsule_clearance(tail, head, radius))
-        }) else {
-            return down;
+        let terrain = &self.scenario.terrain;
+        let nearest = terrain.cylinders.iter().min_by(|a, b| {
+            a.capsule_clearance(hind, fore, radius)
+                .total_cmp(&b.capsule_clearance(hind, fore, radius))
+        });
+        let Some(nearest) = nearest else {
+            return DVec3::ZERO;
         };
-        let (on_torso, on_axis) = segment_nearest(tail, head, nearest.from, nearest.to);
-        let forward = body.matrix3.x_axis;
-        forward * (on_torso - on_axis).dot(forward).signum()
-    }
-
-    fn torso_clearing(&self, body: &DAffine3) -> f64 {
-        let (hind, fore) = self.sloth.spine();
-        let direction = self.clearing_direction(body);
-        let clearance = |back: f64| {
-            let lowered = body.translation + direction * back;
-            let frame = DAffine3::from_mat3_translation(body.matrix3, lowered);
-            self.scenario.terrain.capsule_clearance(
-                frame.transform_point3(hind),
-                frame.transform_point3(fore),
-                self.sloth.body_radius_m,
-            )
-        };
-        if clearance(0.0) >= TORSO_MARGIN_M {
-            return 0.0;
+        if nearest.capsule_clearance(hind, fore, radius) >= TORSO_MARGIN_M {
+            return DVec3::ZERO;
         }
+        let (on_spine, on_axis) = segment_nearest(hind, fore, nearest.from, nearest.to);
+        let away = on_spine - on_axis;
+        let away = if self.scenario.tail_first {
+            // Tail first, the support it nears is the trunk its tail reaches for: it moves
+            // along its own length, away from it (moving away across its length carried the
+            // hind foot still on the branch out of reach).
+            let forward = body.matrix3.x_axis;
+            forward * away.dot(forward).signum()
+        } else {
+            let side = body.matrix3.y_axis;
+            (away - side * away.dot(side)).normalize_or(-body.matrix3.z_axis)
+        };
+        let clearance = |shift: f64| {
+            terrain.capsule_clearance(hind + away * shift, fore + away * shift, radius)
+        };
         let (mut low, mut high) = (0.0, MAX_TORSO_SHIFT_M);
         if clearance(high) < TORSO_MARGIN_M {
-            return high;
+            return away * high;
         }
         for _ in 0..40 {
             let middle = 0.5 * (low + high);
@@ -448,7 +462,18 @@ impl<'a> Walker<'a> {
                 low = middle;
             }
         }
-        high
+        away * high
+    }
+
+    /// Share of the swing lift for `limb`'s swing: a hind foot leaving a trunk grips it at
+    /// its side, where the surface normal points mostly sideways, so its lift carries the
+    /// foot out sideways (past the hindlimb's reach while its body reaches for a branch).
+    fn lift_share(&self, limb: usize, swing: &Swing) -> f64 {
+        if self.sloth.limbs[limb].girdle == Girdle::Hind && self.on_trunk(&swing.from) {
+            TRUNK_HIND_LIFT_SHARE
+        } else {
+            1.0
+        }
     }
 
     fn on_trunk(&self, contact: &Contact) -> bool {
@@ -682,9 +707,16 @@ const HOLD_BACK_RATE_M_S: f64 = 0.1;
 
 /// The torso's least gap to the supports while the sloth straddles a trunk and a branch.
 const TORSO_MARGIN_M: f64 = 0.02;
-/// How fast the body may lower or rise back to its place.
-const LOWERING_RATE_M_S: f64 = 0.1;
-/// The farthest the body moves back to keep that gap (a bound for the search).
+/// How fast the body's shift off its place (clearing, raise) may change.
+const SHIFT_RATE_M_S: f64 = 0.1;
+/// How much closer to its supports the body hangs once the fore limbs have left a trunk
+/// and a hind limb still holds it (ours, after the seed's "Offset Back" of the rear while
+/// the hind limbs climb onto the branch): the hind feet, still on the bark below the
+/// branch, are otherwise at the deep edge of their reach.
+const HIND_CLIMB_RAISE_M: f64 = 0.0075;
+/// Share of the swing lift a hind foot leaving a trunk uses (`Walker::lift_share`).
+const TRUNK_HIND_LIFT_SHARE: f64 = 0.5;
+/// The farthest the body moves to keep that gap (a bound for the search).
 const MAX_TORSO_SHIFT_M: f64 = 0.15;
 
 /// The walker's state between two frames.
