@@ -141,7 +141,8 @@ fn height_changes_from_135_to_200_degrees() {
 
 #[test]
 fn a_change_to_a_close_parallel_branch() {
-    for gap in [0.10, 0.15, 0.20] {
+    // 0.25: one step holds the body back further than usual (walker.rs, TRAIL_LIMITS_M).
+    for gap in [0.10, 0.15, 0.20, 0.25] {
         assert_passes(&walk("parallel", None, Some(gap)));
     }
 }

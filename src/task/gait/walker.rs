@@ -98,6 +98,8 @@ struct State {
     has_previous: bool,
     /// The body's hold-back in the last frame (m along its forward axis).
     held_back_m: f64,
+    /// How far a hind foot may trail behind its girdle in this step (the hold-back's limit).
+    max_trail_m: f64,
     /// How far the body hung below its place in the last frame, to clear a branch.
     lowered_m: f64,
 }
@@ -221,6 +223,7 @@ impl<'a> Walker<'a> {
             joints,
             has_previous: false,
             held_back_m: 0.0,
+            max_trail_m: MAX_HIND_TRAIL_M,
             lowered_m: 0.0,
         })
     }
@@ -285,7 +288,7 @@ impl<'a> Walker<'a> {
         });
         let mut held_back = 0.0;
         if !all_on_trunk {
-            held_back = trailing_excess(sloth, &body_wanted, &feet);
+            held_back = trailing_excess(sloth, &body_wanted, &feet, state.max_trail_m);
             if state.has_previous {
                 let most = HOLD_BACK_RATE_M_S * self.period_s;
                 held_back = held_back.clamp(state.held_back_m - most, state.held_back_m + most);
@@ -460,7 +463,32 @@ impl<'a> Walker<'a> {
 
     /// FindNextStep for `limb` lifting off at frame `k`: the first candidate (max step
     /// first, then closer) that passes the placement rules and whose motion is possible.
+    /// When none is, the same candidates again with the body held back further (each of
+    /// `TRAIL_LIMITS_M` in turn, for this step only; the hold-back's rate limit makes the
+    /// change continuous). The reason given is the usual limit's.
     fn next_step(
+        &self,
+        limb: usize,
+        k: usize,
+        state: &State,
+        swing_frames: usize,
+    ) -> Result<State, String> {
+        let mut usual_reason = None;
+        for limit in TRAIL_LIMITS_M {
+            let mut trial = state.clone();
+            trial.max_trail_m = limit;
+            match self.placement_for(limb, k, &trial, swing_frames) {
+                Ok(next) => return Ok(next),
+                Err(reason) => {
+                    usual_reason.get_or_insert(reason);
+                }
+            }
+        }
+        Err(usual_reason.unwrap_or_default())
+    }
+
+    /// FindNextStep's candidates for `limb` with the body held back as `state` says.
+    fn placement_for(
         &self,
         limb: usize,
         k: usize,
@@ -630,20 +658,26 @@ impl<'a> Walker<'a> {
 /// of 0.102-0.105 m passes every required turn and height change (docs/gait.md).
 const MAX_HIND_TRAIL_M: f64 = 0.104;
 
+/// The hind feet's trail limits a step tries, in order: the usual one, then tighter ones
+/// (4 mm at a time) for a step that finds no placement with it. Straddling parallel
+/// branches 25 cm apart, the body turns toward the new branch, which brings a trailing hind
+/// foot in toward the body's midline, where the hindlimb reaches less far back (lh 0.6 mm
+/// out of reach at 0.104 m behind its hip, 0.058 m inside it); 0.100 m lets it reach. One
+/// tighter limit for every step would lose parallel 0.15 and 0.20 (docs/gait.md).
+const TRAIL_LIMITS_M: [f64; 5] = [MAX_HIND_TRAIL_M, 0.100, 0.096, 0.092, 0.088];
+
 /// How far the body at `body` must be held back (against its forward axis) so that no
 /// hind foot, at `feet` (the ends of the hands and feet, world), trails more than
-/// `MAX_HIND_TRAIL_M` behind its girdle: the mean of the feet would otherwise carry a
+/// `max_trail_m` behind its girdle: the mean of the feet would otherwise carry a
 /// stance hind foot out of reach while a fore limb swings ahead. Zero when none trails.
-fn trailing_excess(sloth: &SlothRig, body: &DAffine3, feet: &[DVec3]) -> f64 {
+fn trailing_excess(sloth: &SlothRig, body: &DAffine3, feet: &[DVec3], max_trail_m: f64) -> f64 {
     let to_body = body.inverse();
     sloth
         .limbs
         .iter()
         .zip(feet)
         .filter(|(limb, _)| limb.girdle == Girdle::Hind)
-        .map(|(limb, foot)| {
-            limb.attachment().x - to_body.transform_point3(*foot).x - MAX_HIND_TRAIL_M
-        })
+        .map(|(limb, foot)| limb.attachment().x - to_body.transform_point3(*foot).x - max_trail_m)
         .fold(0.0, f64::max)
 }
 
