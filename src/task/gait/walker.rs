@@ -663,7 +663,7 @@ const MAX_HIND_TRAIL_M: f64 = 0.104;
 /// branches 25 cm apart, the body turns toward the new branch, which brings a trailing hind
 /// foot in toward the body's midline, where the hindlimb reaches less far back (lh 0.6 mm
 /// out of reach at 0.104 m behind its hip, 0.058 m inside it); 0.100 m lets it reach. One
-/// tighter limit for every step would lose parallel 0.15 and 0.20 (docs/gait.md).
+/// tighter limit for every step loses the 160 deg height change (docs/gait.md).
 const TRAIL_LIMITS_M: [f64; 5] = [MAX_HIND_TRAIL_M, 0.100, 0.096, 0.092, 0.088];
 
 /// How far the body at `body` must be held back (against its forward axis) so that no
