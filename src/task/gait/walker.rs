@@ -137,6 +137,16 @@ fn swing_lift(phase: f64) -> f64 {
     min_jerk(phase / LIFT_SHARE).min(min_jerk((1.0 - phase) / LIFT_SHARE))
 }
 
+/// Share of a turning-over swing spent lifting (and as much lowering): it lowers by the
+/// claw's length more than other swings, and at their pace the hand's flexion outran its
+/// speed (lf_hand 0.0403 rad per period, 0.0398 allowed, parallel 0.10-0.35).
+const TURN_OVER_LIFT_SHARE: f64 = 0.45;
+
+/// Lift over a turning-over swing, 0 to 1: as `swing_lift`, over `TURN_OVER_LIFT_SHARE`.
+fn turn_over_lift(phase: f64) -> f64 {
+    min_jerk(phase / TURN_OVER_LIFT_SHARE).min(min_jerk((1.0 - phase) / TURN_OVER_LIFT_SHARE))
+}
+
 /// Minimum-jerk progress: zero velocity and acceleration at lift-off and touchdown.
 fn min_jerk(phase: f64) -> f64 {
     let p = phase.clamp(0.0, 1.0);
@@ -243,16 +253,20 @@ impl<'a> Walker<'a> {
                     let phase = k.saturating_sub(swing.start) as f64
                         / (swing.end - swing.start).max(1) as f64;
                     let m = min_jerk((phase - LIFT_SHARE * 0.6) / (1.0 - 1.2 * LIFT_SHARE));
-                    let normal = swing
-                        .from
-                        .normal
-                        .lerp(limb.contact.normal, m)
-                        .normalize_or(limb.contact.normal);
+                    let up = swing.from.up.lerp(limb.contact.up, m);
+                    let mut normal = swing.from.normal.lerp(limb.contact.normal, m);
+                    let mut lift = lift_m * swing_lift(phase);
+                    if turns_over(&swing.from, &limb.contact) {
+                        // The hand or foot turns over through the supports' side, its end
+                        // lowered by the claw's length more, so it passes under a branch.
+                        normal += up.normalize_or_zero() * (std::f64::consts::PI * m).sin();
+                        lift = (lift_m + sloth.limbs[index].claw_m) * turn_over_lift(phase);
+                    }
                     (
                         swing.from.point.lerp(limb.contact.point, m),
-                        normal,
-                        lift_m * swing_lift(phase),
-                        swing.from.up.lerp(limb.contact.up, m),
+                        normal.normalize_or(limb.contact.normal),
+                        lift,
+                        up,
                     )
                 }
                 None => (
@@ -290,7 +304,12 @@ impl<'a> Walker<'a> {
         if !all_on_trunk {
             held_back = trailing_excess(sloth, &body_wanted, &feet, state.max_trail_m);
             if state.has_previous {
-                let most = HOLD_BACK_RATE_M_S * self.period_s;
+                let rate = if state.max_trail_m < MAX_HIND_TRAIL_M {
+                    TIGHTER_HOLD_BACK_RATE_M_S
+                } else {
+                    HOLD_BACK_RATE_M_S
+                };
+                let most = rate * self.period_s;
                 held_back = held_back.clamp(state.held_back_m - most, state.held_back_m + most);
             }
             body_wanted.translation -= body_wanted.matrix3.x_axis * held_back;
@@ -346,6 +365,16 @@ impl<'a> Walker<'a> {
                 }
             }
             let target_world = claw + normals[index] * limb.claw_m;
+            if lifts[index] > 0.0 {
+                let gap = self.scenario.terrain.clearance(target_world);
+                if gap < -PENETRATION_SLACK_M {
+                    return Err(format!(
+                        "{}'s swinging hand or foot would enter a branch by {:.1} mm",
+                        limb.name,
+                        -gap * 1000.0
+                    ));
+                }
+            }
             let target = Pose::new(to_body.transform_point3(target_world), DQuat::IDENTITY);
             let seed = &state.joints[limb.axes()];
             let solver = if state.has_previous {
@@ -684,6 +713,19 @@ fn trailing_excess(sloth: &SlothRig, body: &DAffine3, feet: &[DVec3], max_trail_
 /// How fast the hold-back may change: when the most trailing hind foot swings, the
 /// hold-back would otherwise let the body go at the foot's speed.
 const HOLD_BACK_RATE_M_S: f64 = 0.1;
+
+/// How fast the hold-back may change in a step that tightened the trail limit: at the usual
+/// rate the body, carried forward by a fore limb's swing, still outruns the tighter limit
+/// (parallel 0.30: lh ends 0.105 m behind its hip with a 0.096 m limit). Within the body's
+/// 0.5 m/s, which the speed check judges as always.
+const TIGHTER_HOLD_BACK_RATE_M_S: f64 = 0.3;
+
+/// Whether a swing from `from` to `to` turns its hand or foot over, from one side of a
+/// branch to the side facing the other way (opposite normals): lerped, the normal would
+/// flip the hand or foot's end through the claw point in one frame.
+fn turns_over(from: &Contact, to: &Contact) -> bool {
+    from.normal.dot(to.normal) < -0.5
+}
 
 /// The torso's least gap to the supports while the sloth straddles a trunk and a branch.
 const TORSO_MARGIN_M: f64 = 0.02;
