@@ -3,10 +3,11 @@
 //! each swing's target comes from FindNextStep, and is accepted only once the motion it
 //! implies (every frame until all swinging limbs are down again) is possible: limb IK
 //! within the bones' limits, axis speeds, the body clear of the branches, swinging claws
-//! outside them. A move that breaks a rule is never started: the gait stops there, with
-//! the reason, after the swings under way have landed. The body follows the feet (body.rs),
-//! held back where a hind foot would otherwise trail out of reach, and lowered while it
-//! holds a trunk where a branch would otherwise meet its torso.
+//! and the ends of swinging hands and feet outside them. A move that breaks a rule is never
+//! started: the gait stops there, with the reason, after the swings under way have landed.
+//! The body follows the feet (body.rs), held back where a hind foot would otherwise trail
+//! out of reach, and lowered while it holds a trunk where a branch would otherwise meet its
+//! torso.
 //!
 //! Owns the gait's state and schedule; it must not stream, or measure what the twin did.
 
@@ -715,9 +716,9 @@ fn trailing_excess(sloth: &SlothRig, body: &DAffine3, feet: &[DVec3], max_trail_
 const HOLD_BACK_RATE_M_S: f64 = 0.1;
 
 /// How fast the hold-back may change in a step that tightened the trail limit: at the usual
-/// rate the body, carried forward by a fore limb's swing, still outruns the tighter limit
-/// (parallel 0.30: lh ends 0.105 m behind its hip with a 0.096 m limit). Within the body's
-/// 0.5 m/s, which the speed check judges as always.
+/// rate the body, carried forward by a fore limb's swing, outruns the tighter limit (at
+/// 0.1 m/s parallel 0.30 and 0.35 stop on a hind limb's reach, at 0.2 m/s 0.35 does;
+/// docs/gait.md). Within the body's 0.5 m/s, which the speed check judges as always.
 const TIGHTER_HOLD_BACK_RATE_M_S: f64 = 0.3;
 
 /// Whether a swing from `from` to `to` turns its hand or foot over, from one side of a
