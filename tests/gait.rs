@@ -10,7 +10,7 @@ use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::gait::{GaitRun, run_gait};
 use rigbridge::rig::ConfigError;
 use rigbridge::stream::{Outcome, StreamControl};
-use rigbridge::task::gait::{LimbSolver, Scenario, SlothRig};
+use rigbridge::task::gait::{LimbSolver, Scenario, Side, SlothRig};
 
 fn settings() -> RunSettings {
     load_run_settings(&repo_path("config/gait-run.toml")).expect("config/gait-run.toml loads")
@@ -140,15 +140,55 @@ fn height_changes_from_135_to_200_degrees() {
 }
 
 #[test]
-fn a_change_to_a_close_parallel_branch() {
-    for gap in [0.10, 0.15, 0.20] {
+fn a_change_to_a_parallel_branch_10_to_35_cm_away() {
+    for gap in [0.10, 0.15, 0.20, 0.25, 0.30, 0.35] {
         assert_passes(&walk("parallel", None, Some(gap)));
     }
 }
 
 #[test]
+fn straddling_parallel_branches_the_feet_grip_the_facing_sides_and_pass_under_them() {
+    let gap = 0.35;
+    let run = walk("parallel", None, Some(gap));
+    let scenario = Scenario::build("parallel", None, Some(gap)).unwrap();
+    // The route straddles the branches (left limbs on the first, at y = 0; right limbs on
+    // the second, at y = -gap) for route distances 0..0.25 m: there each hand or foot
+    // grips the side of its branch that faces the other branch.
+    let straddling: Vec<_> = run
+        .plan
+        .stances
+        .iter()
+        .filter(|stance| (0.0..0.25).contains(&stance.contact.s))
+        .collect();
+    assert!(straddling.len() >= 4, "{straddling:?}");
+    for stance in straddling {
+        let limb = &run.sloth.limbs[stance.limb];
+        let y = stance.contact.point.y;
+        match limb.side {
+            Side::Left => assert!(y < -0.01, "{} grips y = {y}", limb.name),
+            Side::Right => assert!(y > -gap + 0.01, "{} grips y = {y}", limb.name),
+        }
+    }
+    // Turning over to the other side of a branch, a hand or foot passes under it: no
+    // hand's or foot's end enters a branch in any frame.
+    for k in 0..run.plan.len() {
+        let lines = run.sloth.bone_polylines(run.plan.frame(k)).unwrap();
+        for (limb, line) in run.sloth.limbs.iter().zip(&lines[1..]) {
+            let end = *line.last().unwrap();
+            let clearance = scenario.terrain.clearance(end);
+            assert!(
+                clearance > 0.0,
+                "frame {k}: {}'s end {end:?} is {:.1} mm inside a branch",
+                limb.name,
+                -clearance * 1000.0
+            );
+        }
+    }
+}
+
+#[test]
 fn a_parallel_branch_too_far_for_the_limbs_stops_the_gait_cleanly() {
-    assert_stops_cleanly(&walk("parallel", None, Some(0.30)), "no next step");
+    assert_stops_cleanly(&walk("parallel", None, Some(0.40)), "no next step");
 }
 
 #[test]

@@ -60,7 +60,13 @@ pub fn contact_at(
     };
     let axis_point = cylinder.axis_point(cylinder.parameter(along));
     let up = scenario.route.up(s);
-    let outward = up.cross(heading).normalize_or(DVec3::Y) * limb.side.sign();
+    let mut outward = up.cross(heading).normalize_or(DVec3::Y) * limb.side.sign();
+    if leg.left != leg.right {
+        // Straddling two supports, each hand or foot grips the side of its support that
+        // faces the other: the hind feet then stand the gap - 8 cm apart, not gap + 8 cm,
+        // which the hindlimbs' 27 cm cannot span beyond a gap of 30 cm (docs/gait.md).
+        outward = -outward;
+    }
     let (expected, inward) = if cylinder.is_trunk(sloth.gait.trunk_tilt_rad) {
         let lateral = limb
             .attachment()

@@ -3,11 +3,12 @@
 //! each swing's target comes from FindNextStep, and is accepted only once the motion it
 //! implies (every frame until all swinging limbs are down again) is possible: limb IK
 //! within the bones' limits, axis speeds, the body clear of the branches, swinging claws
-//! outside them. A move that breaks a rule is never started: the gait stops there, with
-//! the reason, after the swings under way have landed. The body follows the feet (body.rs),
-//! held back where a hind foot would otherwise trail out of reach, and, while it holds a
-//! trunk, moved away from the support its torso would otherwise meet and, once only the
-//! hind limbs hold the trunk, brought a little closer to its supports.
+//! and the ends of swinging hands and feet outside them. A move that breaks a rule is never
+//! started: the gait stops there, with the reason, after the swings under way have landed.
+//! The body follows the feet (body.rs), held back where a hind foot would otherwise trail
+//! out of reach, and, while it holds a trunk, moved away from the support its torso would
+//! otherwise meet and, once only the hind limbs hold the trunk, brought a little closer to
+//! its supports.
 //!
 //! Owns the gait's state and schedule; it must not stream, or measure what the twin did.
 
@@ -106,6 +107,8 @@ struct State {
     /// support its torso would meet, and toward its supports while only the hind limbs
     /// hold a trunk.
     shift: DVec3,
+    /// How far a hind foot may trail behind its girdle in this step (the hold-back's limit).
+    max_trail_m: f64,
 }
 
 /// What one frame measured in the plan.
@@ -139,6 +142,16 @@ const LIFT_SHARE: f64 = 0.25;
 /// Lift over the swing, 0 to 1: up, hold, down, each change minimum-jerk.
 fn swing_lift(phase: f64) -> f64 {
     min_jerk(phase / LIFT_SHARE).min(min_jerk((1.0 - phase) / LIFT_SHARE))
+}
+
+/// Share of a turning-over swing spent lifting (and as much lowering): it lowers by the
+/// claw's length more than other swings, and at their pace the hand's flexion outran its
+/// speed (lf_hand 0.0403 rad per period, 0.0398 allowed, parallel 0.10-0.35).
+const TURN_OVER_LIFT_SHARE: f64 = 0.45;
+
+/// Lift over a turning-over swing, 0 to 1: as `swing_lift`, over `TURN_OVER_LIFT_SHARE`.
+fn turn_over_lift(phase: f64) -> f64 {
+    min_jerk(phase / TURN_OVER_LIFT_SHARE).min(min_jerk((1.0 - phase) / TURN_OVER_LIFT_SHARE))
 }
 
 /// Minimum-jerk progress: zero velocity and acceleration at lift-off and touchdown.
@@ -229,6 +242,7 @@ impl<'a> Walker<'a> {
             has_previous: false,
             held_back_m: 0.0,
             shift: DVec3::ZERO,
+            max_trail_m: MAX_HIND_TRAIL_M,
         })
     }
 
@@ -247,16 +261,20 @@ impl<'a> Walker<'a> {
                     let phase = k.saturating_sub(swing.start) as f64
                         / (swing.end - swing.start).max(1) as f64;
                     let m = min_jerk((phase - LIFT_SHARE * 0.6) / (1.0 - 1.2 * LIFT_SHARE));
-                    let normal = swing
-                        .from
-                        .normal
-                        .lerp(limb.contact.normal, m)
-                        .normalize_or(limb.contact.normal);
+                    let up = swing.from.up.lerp(limb.contact.up, m);
+                    let mut normal = swing.from.normal.lerp(limb.contact.normal, m);
+                    let mut lift = lift_m * self.lift_share(index, &swing) * swing_lift(phase);
+                    if turns_over(&swing.from, &limb.contact) {
+                        // The hand or foot turns over through the supports' side, its end
+                        // lowered by the claw's length more, so it passes under a branch.
+                        normal += up.normalize_or_zero() * (std::f64::consts::PI * m).sin();
+                        lift = (lift_m + sloth.limbs[index].claw_m) * turn_over_lift(phase);
+                    }
                     (
                         swing.from.point.lerp(limb.contact.point, m),
-                        normal,
-                        lift_m * self.lift_share(index, &swing) * swing_lift(phase),
-                        swing.from.up.lerp(limb.contact.up, m),
+                        normal.normalize_or(limb.contact.normal),
+                        lift,
+                        up,
                     )
                 }
                 None => (
@@ -292,9 +310,14 @@ impl<'a> Walker<'a> {
         });
         let mut held_back = 0.0;
         if !all_on_trunk {
-            held_back = trailing_excess(sloth, &body_wanted, &feet);
+            held_back = trailing_excess(sloth, &body_wanted, &feet, state.max_trail_m);
             if state.has_previous {
-                let most = HOLD_BACK_RATE_M_S * self.period_s;
+                let rate = if state.max_trail_m < MAX_HIND_TRAIL_M {
+                    TIGHTER_HOLD_BACK_RATE_M_S
+                } else {
+                    HOLD_BACK_RATE_M_S
+                };
+                let most = rate * self.period_s;
                 held_back = held_back.clamp(state.held_back_m - most, state.held_back_m + most);
             }
             body_wanted.translation -= body_wanted.matrix3.x_axis * held_back;
@@ -366,6 +389,16 @@ impl<'a> Walker<'a> {
                 }
             }
             let target_world = claw + normals[index] * limb.claw_m;
+            if lifts[index] > 0.0 {
+                let gap = self.scenario.terrain.clearance(target_world);
+                if gap < -PENETRATION_SLACK_M {
+                    return Err(format!(
+                        "{}'s swinging hand or foot would enter a branch by {:.1} mm",
+                        limb.name,
+                        -gap * 1000.0
+                    ));
+                }
+            }
             let target = Pose::new(to_body.transform_point3(target_world), DQuat::IDENTITY);
             let seed = &state.joints[limb.axes()];
             let solver = if state.has_previous {
@@ -514,7 +547,32 @@ impl<'a> Walker<'a> {
 
     /// FindNextStep for `limb` lifting off at frame `k`: the first candidate (max step
     /// first, then closer) that passes the placement rules and whose motion is possible.
+    /// When none is, the same candidates again with the body held back further (each of
+    /// `TRAIL_LIMITS_M` in turn, for this step only; the hold-back's rate limit makes the
+    /// change continuous). The reason given is the usual limit's.
     fn next_step(
+        &self,
+        limb: usize,
+        k: usize,
+        state: &State,
+        swing_frames: usize,
+    ) -> Result<State, String> {
+        let mut usual_reason = None;
+        for limit in TRAIL_LIMITS_M {
+            let mut trial = state.clone();
+            trial.max_trail_m = limit;
+            match self.placement_for(limb, k, &trial, swing_frames) {
+                Ok(next) => return Ok(next),
+                Err(reason) => {
+                    usual_reason.get_or_insert(reason);
+                }
+            }
+        }
+        Err(usual_reason.unwrap_or_default())
+    }
+
+    /// FindNextStep's candidates for `limb` with the body held back as `state` says.
+    fn placement_for(
         &self,
         limb: usize,
         k: usize,
@@ -547,6 +605,9 @@ impl<'a> Walker<'a> {
             match verdict {
                 Ok(next) => return Ok(next),
                 Err(reason) => {
+                    if std::env::var("RB_DEBUG").is_ok() {
+                        eprintln!("DBG k={k} limb={limb} s={s:.3}: {reason}");
+                    }
                     first_reason.get_or_insert_with(|| reason.clone());
                     last_reason = Some(reason);
                 }
@@ -684,26 +745,45 @@ impl<'a> Walker<'a> {
 /// of 0.102-0.105 m passes every required turn and height change (docs/gait.md).
 const MAX_HIND_TRAIL_M: f64 = 0.104;
 
+/// The hind feet's trail limits a step tries, in order: the usual one, then tighter ones
+/// (4 mm at a time) for a step that finds no placement with it. Straddling parallel
+/// branches 25 cm apart, the body turns toward the new branch, which brings a trailing hind
+/// foot in toward the body's midline, where the hindlimb reaches less far back (lh 0.6 mm
+/// out of reach at 0.104 m behind its hip, 0.058 m inside it); 0.100 m lets it reach. One
+/// tighter limit for every step loses the 160 deg height change (docs/gait.md).
+const TRAIL_LIMITS_M: [f64; 5] = [MAX_HIND_TRAIL_M, 0.100, 0.096, 0.092, 0.088];
+
 /// How far the body at `body` must be held back (against its forward axis) so that no
 /// hind foot, at `feet` (the ends of the hands and feet, world), trails more than
-/// `MAX_HIND_TRAIL_M` behind its girdle: the mean of the feet would otherwise carry a
+/// `max_trail_m` behind its girdle: the mean of the feet would otherwise carry a
 /// stance hind foot out of reach while a fore limb swings ahead. Zero when none trails.
-fn trailing_excess(sloth: &SlothRig, body: &DAffine3, feet: &[DVec3]) -> f64 {
+fn trailing_excess(sloth: &SlothRig, body: &DAffine3, feet: &[DVec3], max_trail_m: f64) -> f64 {
     let to_body = body.inverse();
     sloth
         .limbs
         .iter()
         .zip(feet)
         .filter(|(limb, _)| limb.girdle == Girdle::Hind)
-        .map(|(limb, foot)| {
-            limb.attachment().x - to_body.transform_point3(*foot).x - MAX_HIND_TRAIL_M
-        })
+        .map(|(limb, foot)| limb.attachment().x - to_body.transform_point3(*foot).x - max_trail_m)
         .fold(0.0, f64::max)
 }
 
 /// How fast the hold-back may change: when the most trailing hind foot swings, the
 /// hold-back would otherwise let the body go at the foot's speed.
 const HOLD_BACK_RATE_M_S: f64 = 0.1;
+
+/// How fast the hold-back may change in a step that tightened the trail limit: at the usual
+/// rate the body, carried forward by a fore limb's swing, outruns the tighter limit (at
+/// 0.1 m/s parallel 0.30 and 0.35 stop on a hind limb's reach, at 0.2 m/s 0.35 does;
+/// docs/gait.md). Within the body's 0.5 m/s, which the speed check judges as always.
+const TIGHTER_HOLD_BACK_RATE_M_S: f64 = 0.3;
+
+/// Whether a swing from `from` to `to` turns its hand or foot over, from one side of a
+/// branch to the side facing the other way (opposite normals): lerped, the normal would
+/// flip the hand or foot's end through the claw point in one frame.
+fn turns_over(from: &Contact, to: &Contact) -> bool {
+    from.normal.dot(to.normal) < -0.5
+}
 
 /// The torso's least gap to the supports while the sloth straddles a trunk and a branch.
 const TORSO_MARGIN_M: f64 = 0.02;
