@@ -758,6 +758,48 @@ fn the_gait_command_takes_the_limb_solver() {
 }
 
 #[test]
+fn the_gait_command_takes_the_footfall_sequence() {
+    let gait = |sequence: &str| {
+        let report = scratch(&format!("sequence-{sequence}.json"));
+        let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+            .current_dir(repo_path("."))
+            .args(["gait", "--scenario", "straight", "--clock", "virtual"])
+            .args(["--sequence", sequence])
+            .arg("--report")
+            .arg(&report)
+            .arg("--log")
+            .arg(scratch(&format!("sequence-{sequence}.mcap")))
+            .output()
+            .unwrap();
+        (output, report)
+    };
+    let (output, report) = gait("lateral");
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_eq!(json["passed"], true);
+    let order: Vec<&str> = json["footfall_order"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
+    assert_eq!(&order[..4], ["rh", "rf", "lh", "lf"]);
+
+    let (refused, _) = gait("pace");
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        stderr.contains("--sequence") && stderr.contains("pace"),
+        "{stderr}"
+    );
+}
+
+#[test]
 fn run_takes_a_gait_job() {
     let log = scratch("run.mcap");
     let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
@@ -820,4 +862,40 @@ fn the_judge_fails_a_head_first_descent_seen_on_the_twin() {
         reason.contains("head-first descent: the body pointed 34.4 deg down"),
         "{reason}"
     );
+}
+
+/// The seed's lateral sequence (rh, rf, lh, lf), which it uses for transfers: a trunk-to-
+/// branch transfer walks and is judged in it.
+#[test]
+fn a_transfer_walks_in_the_lateral_sequence() {
+    use rigbridge::task::gait::FootfallSequence;
+    let mut settings = settings();
+    let mut sloth = settings.sloth.as_deref().cloned().unwrap();
+    sloth.gait.footfall_order = FootfallSequence::Lateral
+        .limb_names()
+        .iter()
+        .map(|name| sloth.limb_index(name).unwrap())
+        .collect();
+    settings.sloth = Some(std::sync::Arc::new(sloth));
+    let run = walk_with(settings, "transfer", Some(120.0), None);
+    common::assert_gait_figures(&run);
+    let lateral = ["rh", "rf", "lh", "lf"];
+    let order = &run.verdict.footfall_order;
+    assert!(order.len() >= 16, "{order:?}");
+    for (i, name) in order.iter().enumerate() {
+        assert_eq!(name, lateral[i % 4], "touchdown {i} of {order:?}");
+    }
+    for limb in 0..4 {
+        let last = run
+            .plan
+            .stances
+            .iter()
+            .filter(|s| s.limb == limb)
+            .max_by_key(|s| s.start);
+        assert_eq!(
+            last.map(|s| s.contact.support),
+            Some(1),
+            "{limb} ends on the branch"
+        );
+    }
 }

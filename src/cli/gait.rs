@@ -9,7 +9,7 @@ use rigbridge::daemon::RunReport;
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::gait::{GaitRun, run_gait};
 use rigbridge::stream::StreamControl;
-use rigbridge::task::gait::{Forest, GaitReport, LimbSolver, Scenario, picture};
+use rigbridge::task::gait::{FootfallSequence, Forest, GaitReport, LimbSolver, Scenario, picture};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -56,6 +56,11 @@ pub struct GaitArgs {
     /// Limb IK solver, ccd or fabrik (default: the sloth file's `[gait] solver`).
     #[arg(long)]
     solver: Option<String>,
+    /// Footfall sequence, diagonal (rh lf lh rf) or lateral (rh rf lh lf, the seed's for
+    /// transfers); the report judges the order against it (default: the sloth file's
+    /// `[gait] footfall_order`).
+    #[arg(long)]
+    sequence: Option<String>,
 }
 
 /// What `--report` holds: the verdict and the stream's own report.
@@ -68,16 +73,34 @@ struct GaitRunReport {
 
 pub fn gait(args: GaitArgs) -> anyhow::Result<ExitCode> {
     let mut settings = load_run_settings(&args.config).context("cannot load run settings")?;
-    if let Some(name) = &args.solver {
-        let solver = LimbSolver::from_name(name).with_context(|| {
-            format!("--solver {name:?}: must be one of {:?}", LimbSolver::NAMES)
-        })?;
+    if args.solver.is_some() || args.sequence.is_some() {
         let mut sloth = settings
             .sloth
             .as_deref()
             .cloned()
             .with_context(|| format!("{} names no sloth rig", args.config.display()))?;
-        sloth.gait.solver = solver;
+        if let Some(name) = &args.solver {
+            sloth.gait.solver = LimbSolver::from_name(name).with_context(|| {
+                format!("--solver {name:?}: must be one of {:?}", LimbSolver::NAMES)
+            })?;
+        }
+        if let Some(name) = &args.sequence {
+            let sequence = FootfallSequence::from_name(name).with_context(|| {
+                format!(
+                    "--sequence {name:?}: must be one of {:?}",
+                    FootfallSequence::NAMES
+                )
+            })?;
+            sloth.gait.footfall_order = sequence
+                .limb_names()
+                .iter()
+                .map(|limb| {
+                    sloth.limb_index(limb).with_context(|| {
+                        format!("--sequence {name}: the sloth rig has no limb {limb}")
+                    })
+                })
+                .collect::<anyhow::Result<_>>()?;
+        }
         settings.sloth = Some(Arc::new(sloth));
     }
     let scenario = match &args.forest {

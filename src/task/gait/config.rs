@@ -54,6 +54,35 @@ impl LimbSolver {
     }
 }
 
+/// The seed's footfall sequences by name (`rigbridge gait --sequence`): the diagonal one
+/// (DSDC, its steady gait) and the lateral one (LSDC, which it uses for transfers).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FootfallSequence {
+    Diagonal,
+    Lateral,
+}
+
+impl FootfallSequence {
+    pub const NAMES: [&'static str; 2] = ["diagonal", "lateral"];
+
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name {
+            "diagonal" => Some(Self::Diagonal),
+            "lateral" => Some(Self::Lateral),
+            _ => None,
+        }
+    }
+
+    /// The limbs in footfall order, from the right hind: diagonal, each hind limb followed
+    /// by the fore limb of the other side; lateral, by the fore limb of its own side.
+    pub fn limb_names(self) -> [&'static str; 4] {
+        match self {
+            Self::Diagonal => ["rh", "lf", "lh", "rf"],
+            Self::Lateral => ["rh", "rf", "lh", "lf"],
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq)]
 pub struct GaitConfig {
     pub speed_m_s: f64,

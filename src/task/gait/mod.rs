@@ -16,7 +16,7 @@ pub mod scenario;
 pub mod terrain;
 pub mod walker;
 
-pub use config::{GaitConfig, LimbSolver};
+pub use config::{FootfallSequence, GaitConfig, LimbSolver};
 pub use forest::{Forest, ForestError};
 pub use metrics::{GaitReport, GaitWorld, judge};
 pub use pipeline::{GaitError, plan_gait, plan_gait_job, trajectory_from_plan};
