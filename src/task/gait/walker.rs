@@ -605,9 +605,6 @@ impl<'a> Walker<'a> {
             match verdict {
                 Ok(next) => return Ok(next),
                 Err(reason) => {
-                    if std::env::var("RB_DEBUG").is_ok() {
-                        eprintln!("DBG k={k} limb={limb} s={s:.3}: {reason}");
-                    }
                     first_reason.get_or_insert_with(|| reason.clone());
                     last_reason = Some(reason);
                 }
