@@ -449,24 +449,28 @@ fn assert_transfers_to_the_trunk_tail_first(run: &GaitRun) {
         "the hind limbs lead onto the trunk"
     );
     // Head up throughout: the body's forward axis never points down (under the 5 deg branch
-    // of 95 deg the shoulders, 6 cm below the hips in the body frame, hang lower than them).
+    // of 95 deg the shoulders, 6 cm below the hips in the body frame, hang lower than them;
+    // under the level branch of 90 deg it is level, to rounding).
     let heading = run.verdict.min_heading_elevation_deg;
-    assert!(heading > 0.0, "the head pointed {heading} deg down");
+    assert!(heading > -1e-9, "the head pointed {} deg down", -heading);
     let rise = run.verdict.body_rise_m;
-    // Down the trunk: 0.26 m at 95 deg, where more of the walk is on the branch; 1.04 m at 150.
-    assert!(rise < -0.2, "the body went down {} m", -rise);
+    // Down the trunk: 0.15 m at 90 deg and 0.26 m at 95, where more of the walk is on the
+    // branch; 1.04 m at 150.
+    assert!(rise < -0.1, "the body went down {} m", -rise);
 }
 
 #[test]
 fn transfers_from_a_branch_to_a_trunk_tail_first() {
-    for angle in [95.0, 120.0, 150.0] {
+    for angle in [90.0, 95.0, 120.0, 150.0] {
         assert_transfers_to_the_trunk_tail_first(&walk("transfer-to-trunk", Some(angle), None));
     }
 }
 
 #[test]
-fn a_transfer_to_the_trunk_from_a_level_branch_stops_cleanly() {
-    assert_stops_cleanly(&walk("transfer-to-trunk", Some(90.0), None), "no next step");
+fn a_transfer_to_the_trunk_from_a_branch_leaning_down_stops_cleanly() {
+    // 85 deg: the branch falls 5 deg away from the trunk; lh, leading down the trunk, finds no
+    // next step while the fore limbs still hold the branch.
+    assert_stops_cleanly(&walk("transfer-to-trunk", Some(85.0), None), "no next step");
 }
 
 #[test]

@@ -109,6 +109,8 @@ struct State {
     shift: DVec3,
     /// How far a hind foot may trail behind its girdle in this step (the hold-back's limit).
     max_trail_m: f64,
+    /// How far the torso is kept off the supports in this step (the clearing's margin).
+    torso_margin_m: f64,
 }
 
 /// What one frame measured in the plan.
@@ -243,6 +245,7 @@ impl<'a> Walker<'a> {
             held_back_m: 0.0,
             shift: DVec3::ZERO,
             max_trail_m: MAX_HIND_TRAIL_M,
+            torso_margin_m: TORSO_MARGIN_M,
         })
     }
 
@@ -337,7 +340,7 @@ impl<'a> Walker<'a> {
             }
             let mut raised = body_wanted;
             raised.translation += shift;
-            shift += self.torso_clearing(&raised);
+            shift += self.torso_clearing(&raised, state.torso_margin_m);
         }
         if state.has_previous {
             let most = SHIFT_RATE_M_S * self.period_s;
@@ -453,7 +456,7 @@ impl<'a> Walker<'a> {
     /// level branch that is down the trunk, under a steep one mostly away from the bark.
     /// Going tail first it moves along its own length instead. Zero when the torso is clear
     /// already.
-    fn torso_clearing(&self, body: &DAffine3) -> DVec3 {
+    fn torso_clearing(&self, body: &DAffine3, margin_m: f64) -> DVec3 {
         let (hind, fore) = self.sloth.spine();
         let (hind, fore) = (body.transform_point3(hind), body.transform_point3(fore));
         let radius = self.sloth.body_radius_m;
@@ -465,7 +468,7 @@ impl<'a> Walker<'a> {
         let Some(nearest) = nearest else {
             return DVec3::ZERO;
         };
-        if nearest.capsule_clearance(hind, fore, radius) >= TORSO_MARGIN_M {
+        if nearest.capsule_clearance(hind, fore, radius) >= margin_m {
             return DVec3::ZERO;
         }
         let (on_spine, on_axis) = segment_nearest(hind, fore, nearest.from, nearest.to);
@@ -484,12 +487,12 @@ impl<'a> Walker<'a> {
             terrain.capsule_clearance(hind + away * shift, fore + away * shift, radius)
         };
         let (mut low, mut high) = (0.0, MAX_TORSO_SHIFT_M);
-        if clearance(high) < TORSO_MARGIN_M {
+        if clearance(high) < margin_m {
             return away * high;
         }
         for _ in 0..40 {
             let middle = 0.5 * (low + high);
-            if clearance(middle) >= TORSO_MARGIN_M {
+            if clearance(middle) >= margin_m {
                 high = middle;
             } else {
                 low = middle;
@@ -507,6 +510,15 @@ impl<'a> Walker<'a> {
         } else {
             1.0
         }
+    }
+
+    fn has_trunk(&self) -> bool {
+        let tilt = self.sloth.gait.trunk_tilt_rad;
+        self.scenario
+            .terrain
+            .cylinders
+            .iter()
+            .any(|c| c.is_trunk(tilt))
     }
 
     fn on_trunk(&self, contact: &Contact) -> bool {
@@ -549,7 +561,9 @@ impl<'a> Walker<'a> {
     /// first, then closer) that passes the placement rules and whose motion is possible.
     /// When none is, the same candidates again with the body held back further (each of
     /// `TRAIL_LIMITS_M` in turn, for this step only; the hold-back's rate limit makes the
-    /// change continuous). The reason given is the usual limit's.
+    /// change continuous), then, in a scene with a trunk, with the torso kept less far off
+    /// the supports (each of `TIGHTER_TORSO_MARGINS_M`, for this step only; the shift's rate
+    /// limit makes that continuous too). The reason given is the usual limit's.
     fn next_step(
         &self,
         limb: usize,
@@ -558,9 +572,19 @@ impl<'a> Walker<'a> {
         swing_frames: usize,
     ) -> Result<State, String> {
         let mut usual_reason = None;
-        for limit in TRAIL_LIMITS_M {
+        let variations = TRAIL_LIMITS_M
+            .iter()
+            .map(|limit| (*limit, TORSO_MARGIN_M))
+            .chain(
+                TIGHTER_TORSO_MARGINS_M
+                    .iter()
+                    .filter(|_| self.has_trunk())
+                    .map(|margin| (MAX_HIND_TRAIL_M, *margin)),
+            );
+        for (limit, margin) in variations {
             let mut trial = state.clone();
             trial.max_trail_m = limit;
+            trial.torso_margin_m = margin;
             match self.placement_for(limb, k, &trial, swing_frames) {
                 Ok(next) => return Ok(next),
                 Err(reason) => {
@@ -784,6 +808,13 @@ fn turns_over(from: &Contact, to: &Contact) -> bool {
 
 /// The torso's least gap to the supports while the sloth straddles a trunk and a branch.
 const TORSO_MARGIN_M: f64 = 0.02;
+/// The torso's margins a step tries, in order, once every trail limit has failed with the
+/// usual margin, in a scene with a trunk: going tail first from a level branch down a trunk
+/// the clearing moves the body along its length away from the bark, which stretches the
+/// fore limbs still on the branch toward the trunk until a fore hand's IK slides along its
+/// limits (lh's step at 90 deg: lf_hand 0.040-0.083 rad in one period); 10 mm less of
+/// clearing lets it through (docs/gait.md).
+const TIGHTER_TORSO_MARGINS_M: [f64; 2] = [0.015, 0.010];
 /// How fast the body's shift off its place (clearing, raise) may change.
 const SHIFT_RATE_M_S: f64 = 0.1;
 /// How much closer to its supports the body hangs once the fore limbs have left a trunk
