@@ -338,6 +338,15 @@ fn spirals_up_a_trunk() {
     assert!(around > 35.0, "went {around} deg around");
 }
 
+/// Every limb starts on support `from`, ends on `to`, and changes support once (never back).
+fn assert_every_limb_moves_once(run: &GaitRun, from: usize, to: usize) {
+    for limb in 0..4 {
+        let mut supports = common::supports_walked(run, limb);
+        supports.dedup();
+        assert_eq!(supports, [from, to], "limb {limb}");
+    }
+}
+
 /// A trunk-to-branch transfer: passes; every limb ends on the branch; every limb leaves the
 /// trunk for the branch (never back), fore limbs first, and a hind limb lifts off the trunk
 /// only once no fore limb is still on it (seed 004); the head stays above the tail.
@@ -347,16 +356,7 @@ fn assert_transfers_head_first(run: &GaitRun) {
     let fore = |limb: usize| run.sloth.limbs[limb].name.ends_with('f');
     let mut stances = run.plan.stances.clone();
     stances.sort_by_key(|s| s.start);
-    for limb in 0..4 {
-        let supports: Vec<usize> = stances
-            .iter()
-            .filter(|s| s.limb == limb)
-            .map(|s| s.contact.support)
-            .collect();
-        assert_eq!(supports.first(), Some(&trunk), "{limb} starts on the trunk");
-        assert_eq!(supports.last(), Some(&branch), "{limb} ends on the branch");
-        assert!(supports.windows(2).all(|w| w[0] <= w[1]), "{supports:?}");
-    }
+    assert_every_limb_moves_once(run, trunk, branch);
     // The frame each limb lifts off the trunk for the branch: the end of its last trunk stance.
     let leaves_trunk = |limb: usize| {
         stances
@@ -412,20 +412,7 @@ fn assert_transfers_to_the_trunk_tail_first(run: &GaitRun) {
     let hind = |limb: usize| run.sloth.limbs[limb].name.ends_with('h');
     let mut stances = run.plan.stances.clone();
     stances.sort_by_key(|s| s.start);
-    for limb in 0..4 {
-        let supports: Vec<usize> = stances
-            .iter()
-            .filter(|s| s.limb == limb)
-            .map(|s| s.contact.support)
-            .collect();
-        assert_eq!(
-            supports.first(),
-            Some(&branch),
-            "{limb} starts on the branch"
-        );
-        assert_eq!(supports.last(), Some(&trunk), "{limb} ends on the trunk");
-        assert!(supports.windows(2).all(|w| w[0] >= w[1]), "{supports:?}");
-    }
+    assert_every_limb_moves_once(run, branch, trunk);
     let first_on_trunk = |limb: usize| {
         stances
             .iter()
@@ -890,16 +877,7 @@ fn a_transfer_walks_in_the_lateral_sequence() {
         assert_eq!(name, lateral[i % 4], "touchdown {i} of {order:?}");
     }
     for limb in 0..4 {
-        let last = run
-            .plan
-            .stances
-            .iter()
-            .filter(|s| s.limb == limb)
-            .max_by_key(|s| s.start);
-        assert_eq!(
-            last.map(|s| s.contact.support),
-            Some(1),
-            "{limb} ends on the branch"
-        );
+        let supports = common::supports_walked(&run, limb);
+        assert_eq!(supports.last(), Some(&1), "{limb} ends on the branch");
     }
 }

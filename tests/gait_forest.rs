@@ -568,14 +568,8 @@ fn the_climb_out_walk_transfers_from_the_trunk_to_the_branch() {
     assert_eq!(run.run.stream.limit_violations, 0);
     // Every limb's last stance is on the branch (support 1 of the walk's terrain).
     for limb in 0..4 {
-        let last = run
-            .plan
-            .stances
-            .iter()
-            .filter(|s| s.limb == limb)
-            .max_by_key(|s| s.start)
-            .unwrap();
-        assert_eq!(last.contact.support, 1, "limb {limb} ends on the branch");
+        let supports = common::supports_walked(&run, limb);
+        assert_eq!(supports.last(), Some(&1), "limb {limb} ends on the branch");
     }
     assert!(v.min_head_above_tail_m > 0.0);
 }

@@ -66,6 +66,13 @@ pub fn degrees(radians: &[f64]) -> Vec<f64> {
     radians.iter().map(|r| r.to_degrees()).collect()
 }
 
+/// The supports `limb` stood on in a gait run, stance by stance in time order.
+pub fn supports_walked(run: &rigbridge::daemon::gait::GaitRun, limb: usize) -> Vec<usize> {
+    let mut stances: Vec<_> = run.plan.stances.iter().filter(|s| s.limb == limb).collect();
+    stances.sort_by_key(|s| s.start);
+    stances.iter().map(|s| s.contact.support).collect()
+}
+
 /// The figures every passing gait run meets (issue 6): passed over at least 3 judged cycles,
 /// streamed to the end within the limits, feet on the surface within 5 mm, slip within 1 mm,
 /// bones in range, the body clear of every support.

@@ -381,26 +381,12 @@ impl<'a> Walker<'a> {
                 -up
             };
             let claw = ground[index] + away * lifts[index];
-            if lifts[index] > 0.0 {
-                let gap = self.scenario.terrain.clearance(claw);
-                if gap < -PENETRATION_SLACK_M {
-                    return Err(format!(
-                        "{}'s swinging claw would enter a branch by {:.1} mm",
-                        limb.name,
-                        -gap * 1000.0
-                    ));
-                }
-            }
             let target_world = claw + normals[index] * limb.claw_m;
             if lifts[index] > 0.0 {
-                let gap = self.scenario.terrain.clearance(target_world);
-                if gap < -PENETRATION_SLACK_M {
-                    return Err(format!(
-                        "{}'s swinging hand or foot would enter a branch by {:.1} mm",
-                        limb.name,
-                        -gap * 1000.0
-                    ));
-                }
+                self.keep_out(claw, || format!("{}'s swinging claw", limb.name))?;
+                self.keep_out(target_world, || {
+                    format!("{}'s swinging hand or foot", limb.name)
+                })?;
             }
             let target = Pose::new(to_body.transform_point3(target_world), DQuat::IDENTITY);
             let seed = &state.joints[limb.axes()];
@@ -448,8 +434,21 @@ impl<'a> Walker<'a> {
         })
     }
 
+    /// Refuses a swinging `point` (named by `what`) inside a support, beyond numeric slack.
+    fn keep_out(&self, point: DVec3, what: impl Fn() -> String) -> Result<(), String> {
+        let gap = self.scenario.terrain.clearance(point);
+        if gap < -PENETRATION_SLACK_M {
+            return Err(format!(
+                "{} would enter a branch by {:.1} mm",
+                what(),
+                -gap * 1000.0
+            ));
+        }
+        Ok(())
+    }
+
     /// How far (world, m) the body at `body` must move for its torso to clear every support
-    /// by `TORSO_MARGIN_M`: reaching from a trunk for a branch over its back, the mean of the
+    /// by `margin_m` (`TORSO_MARGIN_M`, less in a step's retry): reaching from a trunk for a branch over its back, the mean of the
     /// feet brings the shoulders up against the branch (the seed moves the head aside
     /// there). It moves straight away from the nearest support (from the nearest point of
     /// its axis to the spine's), within the body's own plane (no sideways part): under a
