@@ -35,9 +35,35 @@ pub struct JointLimits {
     pub max_acceleration: f64,
 }
 
+/// Relative slack on speed and acceleration checks, for float rounding only (1e-9 of the
+/// limit): a plan made exactly at a limit must pass, nothing measurably above it may.
+pub const LIMIT_SLACK: f64 = 1e-9;
+
 impl JointLimits {
     pub fn contains(&self, position: f64) -> bool {
         position >= self.lower && position <= self.upper
+    }
+
+    /// A velocity within max speed.
+    pub fn speed_ok(&self, velocity: f64) -> bool {
+        velocity.abs() <= self.max_speed * (1.0 + LIMIT_SLACK)
+    }
+
+    /// A position step over `dt` seconds within max speed.
+    pub fn step_ok(&self, step: f64, dt: f64) -> bool {
+        step.abs() <= self.max_speed * dt * (1.0 + LIMIT_SLACK)
+    }
+
+    /// The second difference `p[k+1] - 2 p[k] + p[k-1]` of positions sampled every `dt`
+    /// within max acceleration: for any motion whose acceleration stays within `a`, it is
+    /// at most `a dt^2` (the integral of the acceleration against a triangle of area dt^2).
+    pub fn second_difference_ok(&self, second_difference: f64, dt: f64) -> bool {
+        second_difference.abs() <= self.max_acceleration * dt * dt * (1.0 + LIMIT_SLACK)
+    }
+
+    /// A velocity change over `dt` seconds within max acceleration.
+    pub fn velocity_change_ok(&self, change: f64, dt: f64) -> bool {
+        change.abs() <= self.max_acceleration * dt * (1.0 + LIMIT_SLACK)
     }
 }
 

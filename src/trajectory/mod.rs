@@ -12,8 +12,8 @@ pub use plan::{InvalidValue, PlanError, PlanSettings, plan_joint_moves};
 use crate::rig::Rig;
 use thiserror::Error;
 
-/// Relative slack on speed checks, for rounding only (1e-9 of the limit).
-pub const SPEED_SLACK: f64 = 1e-9;
+/// Relative slack on speed checks, for rounding only: the rig's [`crate::rig::LIMIT_SLACK`].
+pub const SPEED_SLACK: f64 = crate::rig::LIMIT_SLACK;
 
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum TrajectoryError {

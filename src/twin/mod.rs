@@ -18,7 +18,7 @@ use crate::protocol::{
     AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget, MAX_AXES,
 };
 use crate::rig::{JointLimits, Rig};
-use crate::trajectory::SPEED_SLACK;
+use crate::rig::LIMIT_SLACK as SPEED_SLACK;
 use std::collections::VecDeque;
 
 /// Positions cross the wire as whole micro-radians: two roundings may add 1 µrad to a step.
