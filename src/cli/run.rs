@@ -186,7 +186,7 @@ pub fn print_stream_summary(
     s: &rigbridge::stream::StreamReport,
 ) {
     println!(
-        "{} on {} over {}: {:?} after {} cycles ({:.2} s at {} Hz, {} clock)",
+        "{} on {} over {}: {} after {} cycles ({:.2} s at {} Hz, {} clock)",
         job, rig, s.link, s.outcome, s.cycles, s.duration_s, rate_hz, clock
     );
     println!(

@@ -10,7 +10,7 @@ use rigbridge::protocol::CanSender;
 use rigbridge::twin::Twin;
 use rigbridge::twin::can_port::CanPort;
 use rigbridge::twin::serial_port::SerialControllerPort;
-use rigbridge::twin::server::{ControllerPort, TcpPort, hello_for_rig, serve_twin};
+use rigbridge::twin::server::{ControllerPort, TcpPort, serve_twin};
 use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -38,10 +38,10 @@ pub struct TwinArgs {
     /// Serve on a SocketCAN interface.
     #[arg(long)]
     can: Option<String>,
-    /// Cycles without a target before holding (overrides the config: a remote twin must
-    /// hold within 2 cycles of losing the link).
-    #[arg(long, default_value_t = 2)]
-    watchdog_cycles: u32,
+    /// Cycles without a target before holding, and cycles of silence that count as link
+    /// loss (docs/protocol.md 6.5); default: the config's `[twin] watchdog_cycles`.
+    #[arg(long)]
+    watchdog_cycles: Option<u32>,
 }
 
 fn stop_on_signals() -> anyhow::Result<Arc<AtomicBool>> {
@@ -76,13 +76,14 @@ fn say(line: &str) {
 pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
     let settings = load_run_settings(&args.config).context("cannot load run settings")?;
     let mut twin_config = twin_settings(&settings);
-    twin_config.watchdog_cycles = args.watchdog_cycles.max(1);
+    if let Some(cycles) = args.watchdog_cycles {
+        anyhow::ensure!(
+            cycles >= 1,
+            "--watchdog-cycles must be at least 1, not {cycles}"
+        );
+        twin_config.watchdog_cycles = cycles;
+    }
     let mut twin = Twin::new(&settings.rig, twin_config, &settings.initial())?;
-    let hello = hello_for_rig(
-        &settings.rig,
-        settings.period_s(),
-        twin_config.watchdog_cycles,
-    );
     let mut can_stats = None;
     let mut port: Box<dyn ControllerPort> = match (&args.listen, &args.serial, args.pty, &args.can)
     {
@@ -126,20 +127,21 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
     let counters = serve_twin(
         &mut twin,
         port.as_mut(),
-        &hello,
         Duration::from_secs_f64(settings.period_s()),
         &WallClock::new(),
         &stop,
         say,
     );
     eprintln!(
-        "twin stopped after {} cycles: {} frames, {} CRC errors, {} malformed, {} connections, {} link losses",
+        "twin stopped after {} cycles: {} frames, {} CRC errors, {} malformed, {} connections, {} link losses, {} hellos, {} targets dropped before a hello",
         counters.cycles,
         counters.frames_received,
         counters.crc_errors,
         counters.malformed,
         counters.connections,
-        counters.link_losses
+        counters.link_losses,
+        counters.hellos,
+        counters.unbound_targets
     );
     if let Some(stats) = can_stats {
         eprintln!("{}", stats.summary());

@@ -92,6 +92,36 @@ pub struct StreamConfig {
     pub serial_stop_bits: u8,
     #[serde(default)]
     pub serial_flow_control: SerialFlowControl,
+    /// Following (docs/protocol.md 6.9): how far the arm may be from the target while
+    /// moving, and from the last target at the end, within `goal_time_s`. `_deg` applies
+    /// to revolute axes, `_m` to prismatic ones; each is one number or one per axis.
+    #[serde(default)]
+    pub path_tolerance_deg: Option<PerAxis>,
+    #[serde(default)]
+    pub path_tolerance_m: Option<PerAxis>,
+    #[serde(default)]
+    pub goal_tolerance_deg: Option<PerAxis>,
+    #[serde(default)]
+    pub goal_tolerance_m: Option<PerAxis>,
+    #[serde(default)]
+    pub goal_time_s: Option<f64>,
+}
+
+/// One value for every axis, or one per axis in the rig's order.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(untagged)]
+pub enum PerAxis {
+    One(f64),
+    Each(Vec<f64>),
+}
+
+impl PerAxis {
+    fn value(&self, axis: usize) -> Option<f64> {
+        match self {
+            PerAxis::One(value) => Some(*value),
+            PerAxis::Each(values) => values.get(axis).copied(),
+        }
+    }
 }
 
 #[derive(Debug, Clone, Copy, Default, Deserialize, serde::Serialize, PartialEq, Eq)]
@@ -116,7 +146,65 @@ fn default_stop_bits() -> u8 {
     1
 }
 
+/// The widest tolerance accepted: beyond it nothing would be checked.
+const MAX_TOLERANCE_DEG: f64 = 180.0;
+const MAX_TOLERANCE_M: f64 = 1.0;
+const MAX_GOAL_TIME_S: f64 = 60.0;
+
 impl StreamConfig {
+    /// The following tolerances for `rig`, defaults where unset; errors name the key.
+    pub fn tolerances(
+        &self,
+        file: &Path,
+        rig: &Rig,
+    ) -> Result<crate::stream::Tolerances, ConfigError> {
+        let mut tolerances = crate::stream::Tolerances::for_rig(rig);
+        let keys = [
+            (
+                "path_tolerance",
+                &self.path_tolerance_deg,
+                &self.path_tolerance_m,
+                &mut tolerances.path,
+            ),
+            (
+                "goal_tolerance",
+                &self.goal_tolerance_deg,
+                &self.goal_tolerance_m,
+                &mut tolerances.goal,
+            ),
+        ];
+        for (key, degrees, metres, slot) in keys {
+            for (name, given, revolute) in [("deg", degrees, true), ("m", metres, false)] {
+                let Some(given) = given else { continue };
+                let key = format!("stream.{key}_{name}");
+                if let PerAxis::Each(values) = given
+                    && values.len() != rig.dof()
+                {
+                    let reason = format!("needs one value per axis ({})", rig.dof());
+                    return Err(ConfigError::invalid(file, &key, values.len(), &reason));
+                }
+                for (axis, joint) in rig.joints.iter().enumerate() {
+                    if (joint.kind == crate::rig::JointKind::Revolute) != revolute {
+                        continue;
+                    }
+                    let value = given.value(axis).unwrap_or_default();
+                    let high = if revolute {
+                        MAX_TOLERANCE_DEG
+                    } else {
+                        MAX_TOLERANCE_M
+                    };
+                    let value = check_range(file, &key, value, 0.0, high)?;
+                    slot.as_mut_slice()[axis] = if revolute { value.to_radians() } else { value };
+                }
+            }
+        }
+        if let Some(seconds) = self.goal_time_s {
+            let seconds = check_range(file, "stream.goal_time_s", seconds, 0.0, MAX_GOAL_TIME_S)?;
+            tolerances.goal_time = std::time::Duration::from_secs_f64(seconds);
+        }
+        Ok(tolerances)
+    }
+
     /// The serial settings of these settings for a `serial://PATH?baud=N` link.
     pub fn serial_settings(&self, path: &str, baud: u32) -> crate::link::SerialSettings {
         let mut settings = crate::link::SerialSettings::new(path, baud);
@@ -281,6 +369,7 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         0.0,
         3600.0,
     )?;
+    config.stream.tolerances(file, &rig)?;
     if config.stream.can_base_id > MAX_CAN_BASE_ID {
         return Err(ConfigError::invalid(
             file,

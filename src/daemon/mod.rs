@@ -7,6 +7,7 @@ pub mod gait;
 pub mod paint;
 mod recording;
 pub mod replay;
+pub mod resume;
 pub mod server;
 
 pub use recording::RecorderSink;
@@ -15,10 +16,7 @@ use crate::clock::Clock;
 use crate::job::{JobError, plan_job};
 use crate::link::{Link, LinkError, LoopbackLink};
 use crate::log::{LogError, Recorder, RecorderStats};
-use crate::protocol::Command;
-use crate::stream::{
-    StreamControl, StreamError, StreamReport, StreamSettings, slowdown_rate, stream,
-};
+use crate::stream::{StreamControl, StreamError, StreamReport, StreamSettings, slowdown_rate};
 use crate::trajectory::PlanSettings;
 use crate::twin::{Twin, TwinError, TwinSettings};
 use config::RunSettings;
@@ -117,13 +115,31 @@ pub fn plan_settings(settings: &RunSettings) -> PlanSettings {
 }
 
 pub fn stream_settings(settings: &RunSettings) -> StreamSettings {
-    StreamSettings::new(
+    let mut streaming = StreamSettings::new(
         settings.period_s(),
         slowdown_rate(
             &settings.rig,
             settings.config.plan.speed_scale,
             settings.config.plan.accel_scale,
         ),
+    );
+    // Validated on load: only a file changed since could fail here.
+    if let Ok(tolerances) = settings
+        .config
+        .stream
+        .tolerances(&settings.file, &settings.rig)
+    {
+        streaming.tolerances = tolerances;
+    }
+    streaming
+}
+
+/// The bridge's Hello for these settings' rig and stream rate.
+pub fn bridge_hello(settings: &RunSettings) -> crate::protocol::Hello {
+    crate::link::bridge_hello(
+        &settings.rig,
+        settings.period_s(),
+        settings.config.twin.watchdog_cycles,
     )
 }
 
@@ -143,8 +159,11 @@ pub fn open_link(
     match spec {
         LinkSpec::Loopback => Ok(Box::new(loopback_twin(settings)?)),
         LinkSpec::Tcp { address } => {
-            let link = crate::link::connect_tcp(crate::link::TcpSettings::new(address.clone()))
-                .map_err(LinkError::Io)?;
+            let link = crate::link::connect_tcp(
+                crate::link::TcpSettings::new(address.clone()),
+                bridge_hello(settings),
+            )
+            .map_err(LinkError::Io)?;
             wait_for_link(
                 &link,
                 &crate::clock::WallClock::new(),
@@ -154,7 +173,8 @@ pub fn open_link(
         }
         LinkSpec::Serial { path, baud } => {
             let serial = settings.config.stream.serial_settings(path, *baud);
-            let link = crate::link::connect_serial(serial).map_err(LinkError::Io)?;
+            let link = crate::link::connect_serial(serial, bridge_hello(settings))
+                .map_err(LinkError::Io)?;
             wait_for_link(
                 &link,
                 &crate::clock::WallClock::new(),
@@ -168,7 +188,8 @@ pub fn open_link(
                 .stream
                 .can_mapping(crate::protocol::CanSender::Bridge)
                 .map_err(|e| DaemonError::Unavailable(e.to_string()))?;
-            let link = crate::link::connect_can(interface, mapping).map_err(LinkError::Io)?;
+            let link = crate::link::connect_can(interface, mapping, bridge_hello(settings))
+                .map_err(LinkError::Io)?;
             wait_for_link(
                 &link,
                 &crate::clock::WallClock::new(),
@@ -179,21 +200,27 @@ pub fn open_link(
     }
 }
 
-/// The controller's actual position, read before planning so the plan starts there.
-pub fn actual_position(link: &mut dyn Link, timeout: Duration) -> Result<Vec<f64>, DaemonError> {
-    link.send(&Command::Heartbeat)?;
-    let mut latest = link.receive(timeout)?;
-    while let Some(newer) = link.receive(Duration::ZERO)? {
-        latest = Some(newer);
+/// Where the controller holds at rest, read before planning so the plan starts there
+/// (docs/protocol.md 6.6: the first target after a hold starts from the held position).
+pub fn held_position(
+    settings: &RunSettings,
+    link: &mut dyn Link,
+    clock: &dyn Clock,
+    control: &StreamControl,
+) -> Result<Vec<f64>, DaemonError> {
+    if let Some(hello) = link.controller_hello() {
+        crate::stream::check_controller(&hello, &settings.rig, settings.period_s())
+            .map_err(StreamError::from)?;
     }
-    latest
-        .map(|f| f.positions.as_slice().to_vec())
-        .ok_or_else(|| DaemonError::NoFeedback(link.describe()))
+    match resume::wait_for_hold(settings, link, clock, control, resume::START_HOLD_TIMEOUT)? {
+        resume::Hold::At(position) => Ok(position),
+        resume::Hold::Stopped => Err(DaemonError::Unavailable("stopped before motion".into())),
+        resume::Hold::EStopped => Err(DaemonError::Unavailable("e-stopped before motion".into())),
+        resume::Hold::Faulted(text) | resume::Hold::TimedOut(text) => {
+            Err(DaemonError::NoFeedback(text))
+        }
+    }
 }
-
-/// How long to wait for a controller's first answer: a remote one may only just have seen
-/// the link come up.
-pub const FIRST_FEEDBACK_TIMEOUT: Duration = Duration::from_millis(500);
 
 /// A job planned from where the rig is: nothing has moved yet. A job with a bad target
 /// never gets this far.
@@ -207,8 +234,10 @@ pub fn plan_for(
     settings: &RunSettings,
     job: &config::JobConfig,
     link: &mut dyn Link,
+    clock: &dyn Clock,
+    control: &StreamControl,
 ) -> Result<PlannedJob, DaemonError> {
-    let start = actual_position(link, FIRST_FEEDBACK_TIMEOUT)?;
+    let start = held_position(settings, link, clock, control)?;
     let trajectory = match (job, &settings.sloth) {
         (
             config::JobConfig::Gait {
@@ -248,7 +277,7 @@ pub fn run_job(
     log: Option<&std::path::Path>,
     control: &StreamControl,
 ) -> Result<RunReport, DaemonError> {
-    let planned = plan_for(settings, job, link)?;
+    let planned = plan_for(settings, job, link, clock, control)?;
     stream_planned(settings, &planned, link, clock, log, control)
 }
 
@@ -305,26 +334,32 @@ pub fn stream_planned_with(
             recorder.event(0.0, "job_started", metadata);
             let mut recording = RecorderSink::new(recorder, settings.period_s());
             let mut sink = recording::BothSinks(&mut recording, live);
-            stream_resuming(
+            let io = resume::Streaming {
                 settings,
-                trajectory,
                 link,
                 clock,
-                &mut sink,
+                sink: &mut sink,
                 control,
-                Some(recorder),
-            )
+                events: Some(recorder),
+            };
+            resume::stream_resuming(io, trajectory)
         }
-        None => stream_resuming(settings, trajectory, link, clock, live, control, None),
+        None => {
+            let io = resume::Streaming {
+                settings,
+                link,
+                clock,
+                sink: live,
+                control,
+                events: None,
+            };
+            resume::stream_resuming(io, trajectory)
+        }
     };
     let log_report = match recorder {
         Some(recorder) => {
-            let ended = match &report {
-                Ok(r) => serde_json::to_value(r).unwrap_or_default(),
-                Err(e) => serde_json::json!({ "error": error_chain(e) }),
-            };
-            let t = report.as_ref().map_or(0.0, |r| r.duration_s);
-            recorder.event(t, "job_ended", ended);
+            let ended = serde_json::to_value(&report).unwrap_or_default();
+            recorder.event(report.duration_s, "job_ended", ended);
             let stats = recorder.finish()?;
             log.map(|path| LogReport::new(path, stats))
         }
@@ -340,98 +375,13 @@ pub fn stream_planned_with(
             "wall"
         },
         planned_duration_s: trajectory.duration_s(),
-        stream: report?,
+        stream: report,
         log: log_report,
     })
 }
 
-/// Streams `trajectory`; after a link loss, waits for the link (up to the configured
-/// reconnect timeout), reads where the rig actually is, moves it from there to where the
-/// job was interrupted and resumes from standstill: never a jump to a stale target.
-fn stream_resuming(
-    settings: &RunSettings,
-    trajectory: &crate::trajectory::Trajectory,
-    link: &mut dyn Link,
-    clock: &dyn Clock,
-    sink: &mut dyn crate::stream::CycleSink,
-    control: &StreamControl,
-    events: Option<&Recorder>,
-) -> Result<StreamReport, DaemonError> {
-    let mut streaming = stream_settings(settings);
-    let mut report = stream(
-        trajectory,
-        &settings.rig,
-        link,
-        clock,
-        sink,
-        control,
-        &streaming,
-    )?;
-    let mut remaining = trajectory.tail(report.samples_done);
-    while report.outcome == crate::stream::Outcome::LinkLost {
-        let t = report.duration_s;
-        streaming.first_seq += u32::try_from(report.cycles).unwrap_or(u32::MAX);
-        if let Some(recorder) = events {
-            recorder.event(
-                t,
-                "link_lost",
-                serde_json::json!({ "at_sample": report.samples_done }),
-            );
-        }
-        if !wait_for_link(link, clock, settings.config.stream.reconnect_timeout_s) {
-            report.fault = Some(format!(
-                "link {} lost for {} s: job aborted {:.0} % of the way",
-                link.describe(),
-                settings.config.stream.reconnect_timeout_s,
-                100.0 * report.samples_done as f64 / trajectory.len().max(1) as f64
-            ));
-            return Ok(report);
-        }
-        link.drain();
-        let actual = actual_position(link, Duration::from_millis(200))?;
-        let resume_at = remaining.position(0).to_vec();
-        if let Some(recorder) = events {
-            recorder.event(
-                t,
-                "resumed",
-                serde_json::json!({ "actual": actual, "resume_at": resume_at }),
-            );
-        }
-        let approach = crate::trajectory::plan_joint_moves(
-            &settings.rig,
-            &actual,
-            &[resume_at],
-            &plan_settings(settings),
-        )
-        .map_err(crate::job::JobError::from)?;
-        let part = stream(
-            &approach,
-            &settings.rig,
-            link,
-            clock,
-            sink,
-            control,
-            &streaming,
-        )?;
-        streaming.first_seq += u32::try_from(part.cycles).unwrap_or(u32::MAX);
-        let approached = part.outcome == crate::stream::Outcome::Completed;
-        report = report.merge(part);
-        if !approached {
-            continue;
-        }
-        let rest = StreamSettings {
-            start_scale: 0.0,
-            ..streaming
-        };
-        let part = stream(&remaining, &settings.rig, link, clock, sink, control, &rest)?;
-        remaining = remaining.tail(part.samples_done);
-        report = report.merge(part);
-    }
-    Ok(report)
-}
-
 /// Polls the link until it is up again or `timeout_s` passes.
-fn wait_for_link(link: &dyn Link, clock: &dyn Clock, timeout_s: f64) -> bool {
+pub fn wait_for_link(link: &dyn Link, clock: &dyn Clock, timeout_s: f64) -> bool {
     let deadline = clock.now() + Duration::from_secs_f64(timeout_s);
     while !link.is_up() {
         if clock.now() >= deadline {

@@ -3,7 +3,7 @@
 //! the paint report from what the twin's world measured. Owns the wiring only.
 
 use super::config::{JobConfig, RunSettings};
-use super::{DaemonError, PlannedJob, RunReport, actual_position, twin_settings};
+use super::{DaemonError, PlannedJob, RunReport, held_position, twin_settings};
 use crate::clock::Clock;
 use crate::job::JobError;
 use crate::link::LoopbackLink;
@@ -40,7 +40,7 @@ pub fn run_paint(
     let twin = Twin::new(&settings.rig, twin_settings(settings), &settings.initial())?
         .with_world(Box::new(world.clone()));
     let mut link = LoopbackLink::new(twin);
-    let start = actual_position(&mut link, super::FIRST_FEEDBACK_TIMEOUT)?;
+    let start = held_position(settings, &mut link, clock, control)?;
     let (_, plan) = plan_room(paint, walls, seed, &start, &super::plan_settings(settings))
         .map_err(JobError::Paint)?;
     planned(&plan);

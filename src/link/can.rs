@@ -3,8 +3,10 @@
 //! [`can_frames`]; the controller's frames are rebuilt into feedback by a [`CanAssembler`],
 //! which delivers a multi-frame message only when it is complete and its CRC holds.
 //!
-//! CAN has no connection: the link is up while its socket is open on an interface that is
-//! up. When the interface goes down (or away), the I/O thread closes the socket and reopens
+//! The session of `docs/protocol.md` 6 is the shared [`BridgeSession`]: a Hello on every
+//! open, nothing streamed before the controller's answer, Heartbeats, and silence as link
+//! loss. CAN has no connection: the link is open while its socket is open on an interface
+//! that is up, and up once the controller has answered. When the interface goes down (or away), the I/O thread closes the socket and reopens
 //! it with exponential backoff, like the TCP link reconnects; commands queued meanwhile are
 //! discarded, never sent late. The thread runs a current-thread tokio runtime that waits on
 //! the command channel and the socket at once, so neither direction adds latency.
@@ -13,10 +15,11 @@
 //! in CAN frames (`frames_sent`, `frames_received`: 8 and 5 a cycle for 6 axes on classic
 //! CAN); gaps and duplicates are counted on the sequence numbers the feedback echoes.
 
+use super::session::{BridgeSession, Due, Outgoing};
 use super::{ChannelLink, IoEnds, LinkShared};
 use crate::protocol::can::CAN_ID_BLOCK;
 use crate::protocol::{
-    CanAssembler, CanMapping, CanPayload, CanSender, Feedback, Message, can_frames,
+    CanAssembler, CanMapping, CanPayload, CanSender, Command, Hello, Message, can_frames,
 };
 use socketcan::{
     CanDataFrame, CanFdFrame, CanFdSocket, CanFilter, CanRawFrame, CanSocket, EmbeddedFrame,
@@ -311,7 +314,8 @@ fn explain(e: &io::Error) -> String {
 /// Starts the I/O thread and returns the link. An interface that is missing, not CAN FD
 /// for an FD mapping, or on a kernel without SocketCAN is an error now; one that is down
 /// is waited for in the background (`is_up` is false until it comes up).
-pub fn connect_can(interface: &str, mapping: CanMapping) -> io::Result<ChannelLink> {
+/// `hello` is the bridge's, sent on every open.
+pub fn connect_can(interface: &str, mapping: CanMapping, hello: Hello) -> io::Result<ChannelLink> {
     if mapping.sender() != CanSender::Bridge {
         return Err(io::Error::new(
             ErrorKind::InvalidInput,
@@ -323,14 +327,14 @@ pub fn connect_can(interface: &str, mapping: CanMapping) -> io::Result<ChannelLi
         Err(e) if e.kind() == ErrorKind::NetworkDown => None,
         Err(e) => return Err(e),
     };
-    let (link, ends) = ChannelLink::pair(describe(interface, &mapping));
+    let (link, ends, session) = ChannelLink::pair(describe(interface, &mapping), hello);
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
     let interface = interface.to_string();
     std::thread::Builder::new()
         .name("rigbridge-can".into())
-        .spawn(move || runtime.block_on(keep_open(interface, mapping, ends, first)))?;
+        .spawn(move || runtime.block_on(keep_open(interface, mapping, ends, session, first)))?;
     Ok(link)
 }
 
@@ -350,6 +354,7 @@ async fn keep_open(
     interface: String,
     mapping: CanMapping,
     mut ends: IoEnds,
+    mut bridge: BridgeSession,
     mut first: Option<CanBus>,
 ) {
     let mut backoff = BACKOFF_INITIAL;
@@ -369,7 +374,9 @@ async fn keep_open(
             assembler.reset();
             let started = Instant::now();
             ends.shared.connected.store(true, Ordering::SeqCst);
-            let ended_by_bridge = session(bus, &mut ends, &mapping, &mut assembler).await;
+            let ended_by_bridge =
+                session(bus, &mut ends, &mapping, &mut assembler, &mut bridge).await;
+            bridge.closed(&ends.shared);
             ends.shared.connected.store(false, Ordering::SeqCst);
             if ended_by_bridge {
                 return;
@@ -383,16 +390,34 @@ async fn keep_open(
     }
 }
 
-/// Feedback bookkeeping: a repeated seq is a duplicate, a jump a gap.
-fn note_feedback(shared: &LinkShared, last: &mut Option<u32>, feedback: &Feedback) {
-    if let Some(previous) = *last {
-        if feedback.seq == previous && feedback.seq != 0 {
-            LinkShared::count(&shared.duplicates);
-        } else if feedback.seq > previous.wrapping_add(1) {
-            LinkShared::count(&shared.gaps);
+/// Sends `message` as its CAN frames; false when the bus failed. A message that does not
+/// fit the wire is reported and skipped; one the bus has no room for is dropped whole
+/// (the controller drops the incomplete one).
+fn send_message(bus: &CanBus, message: &Message, mapping: &CanMapping, ends: &IoEnds) -> bool {
+    let mut frames: Vec<CanPayload> = Vec::with_capacity(64);
+    if let Err(error) = can_frames(message, mapping, &mut frames) {
+        ends.encode_failed(error);
+        return true;
+    }
+    for frame in &frames {
+        // Blocks this thread for at most SEND_PATIENCE: it has nothing else to do.
+        match bus.send_patiently(frame, SEND_PATIENCE) {
+            Ok(()) => LinkShared::count(&ends.shared.frames_sent),
+            Err(e) if e.kind() == ErrorKind::WouldBlock => {
+                LinkShared::count(&ends.shared.dropped_commands);
+                break;
+            }
+            Err(_) => return false,
         }
     }
-    *last = Some(feedback.seq);
+    true
+}
+
+fn outgoing(what: Outgoing, bridge: &BridgeSession) -> Message {
+    match what {
+        Outgoing::Hello => bridge.hello_message(),
+        Outgoing::Heartbeat => Message::Command(Command::Heartbeat),
+    }
 }
 
 /// One socket's life. True when the bridge closed the link (stop for good).
@@ -401,6 +426,7 @@ async fn session(
     ends: &mut IoEnds,
     mapping: &CanMapping,
     assembler: &mut CanAssembler,
+    bridge: &mut BridgeSession,
 ) -> bool {
     let interface = bus.interface().to_string();
     // ERROR too: the kernel reports an interface going down as a socket error alone.
@@ -411,31 +437,27 @@ async fn session(
     let Ok(bus) = registered else {
         return false;
     };
-    let mut frames: Vec<CanPayload> = Vec::with_capacity(64);
-    let mut last_seq = None;
+    let hello = bridge.opened(Instant::now(), &ends.shared);
+    if !send_message(bus.get_ref(), &outgoing(hello, bridge), mapping, ends) {
+        return false;
+    }
+    bridge.sent(Instant::now());
     let mut watch = tokio::time::interval(WATCH_PERIOD);
     watch.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut tick = tokio::time::interval(bridge.period());
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     loop {
         tokio::select! {
             command = ends.commands.recv() => {
                 let Some(command) = command else { return true };
-                frames.clear();
-                if can_frames(&Message::Command(command), mapping, &mut frames).is_err() {
+                if !bridge.may_send(&command) {
+                    LinkShared::count(&ends.shared.dropped_commands);
                     continue;
                 }
-                for frame in &frames {
-                    // Blocks this thread for at most SEND_PATIENCE: it has nothing else to do.
-                    match bus.get_ref().send_patiently(frame, SEND_PATIENCE) {
-                        Ok(()) => LinkShared::count(&ends.shared.frames_sent),
-                        Err(e) if e.kind() == ErrorKind::WouldBlock => {
-                            // The rest of this message is dropped; the controller drops
-                            // the incomplete one.
-                            LinkShared::count(&ends.shared.dropped_commands);
-                            break;
-                        }
-                        Err(_) => return false,
-                    }
+                if !send_message(bus.get_ref(), &Message::Command(command), mapping, ends) {
+                    return false;
                 }
+                bridge.sent(Instant::now());
             }
             ready = bus.ready(Interest::READABLE | Interest::ERROR) => {
                 let Ok(mut guard) = ready else { return false };
@@ -443,10 +465,14 @@ async fn session(
                     match guard.get_inner().try_receive() {
                         Ok(Some(frame)) => {
                             LinkShared::count(&ends.shared.frames_received);
-                            if let Some(Message::Feedback(feedback)) = assembler.push(&frame) {
-                                note_feedback(&ends.shared, &mut last_seq, &feedback);
-                                let _ = ends.feedback.try_send(feedback);
+                            let Some(message) = assembler.push(&frame) else { continue };
+                            let Some(answer) = bridge.received(message, Instant::now(), ends) else {
+                                continue;
+                            };
+                            if !send_message(guard.get_inner(), &outgoing(answer, bridge), mapping, ends) {
+                                return false;
                             }
+                            bridge.sent(Instant::now());
                         }
                         Ok(None) => {
                             guard.clear_ready();
@@ -459,6 +485,17 @@ async fn session(
                     .crc_errors
                     .store(assembler.counters().crc_errors, Ordering::Relaxed);
             }
+            _ = tick.tick() => {
+                let what = match bridge.due(Instant::now()) {
+                    Due::Nothing => continue,
+                    Due::Lost => return false,
+                    Due::Send(what) => what,
+                };
+                if !send_message(bus.get_ref(), &outgoing(what, bridge), mapping, ends) {
+                    return false;
+                }
+                bridge.sent(Instant::now());
+            }
             _ = watch.tick() => {
                 if ends.shared.closed.load(Ordering::SeqCst) {
                     return true;
@@ -467,6 +504,7 @@ async fn session(
                     return false;
                 }
             }
+            _ = ends.shared.restart.notified() => return false,
         }
     }
 }

@@ -1,13 +1,15 @@
 //! The cycle's side of every byte link: commands go to the link's I/O thread through a
-//! bounded channel, feedback comes back through another, so the cycle never blocks on a
-//! socket or a serial port and never allocates. The I/O threads (one file per backend)
-//! own the transport, the framing and the reconnects.
+//! bounded channel, feedback and events come back through others, so the cycle never
+//! blocks on a socket or a serial port and never allocates. The I/O threads (one file per
+//! backend) own the transport, the framing, the session ([`BridgeSession`]) and the
+//! reconnects.
 
-use super::{Link, LinkCounters, LinkError};
-use crate::protocol::{Command, Feedback};
-use std::sync::Arc;
+use super::session::BridgeSession;
+use super::{Link, LinkCounters, LinkError, LinkEvent};
+use crate::protocol::{Command, Feedback, Hello};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::mpsc::error::TrySendError;
 
@@ -25,7 +27,15 @@ pub struct LinkShared {
     pub reconnects: AtomicU64,
     /// Commands the cycle could not hand over (I/O thread behind or disconnected).
     pub dropped_commands: AtomicU64,
+    /// Commands that could not be encoded for the wire (each also an event).
+    pub encode_failures: AtomicU64,
     pub connected: AtomicBool,
+    /// Connected, and the controller answered the bridge's Hello.
+    pub established: AtomicBool,
+    pub sessions: AtomicU64,
+    pub controller_hello: Mutex<Option<Hello>>,
+    /// The cycle asks the I/O thread to close and reopen the transport.
+    pub restart: tokio::sync::Notify,
     pub closed: AtomicBool,
 }
 
@@ -51,7 +61,6 @@ impl LinkShared {
     /// counted as a duplicate: a duplicated frame, or a controller cycle that had no new
     /// target (protocol v1 feedback carries no sequence of its own to tell them apart).
     pub fn note_feedback(&self, last: &mut Option<u32>, feedback: &Feedback) {
-        Self::count(&self.frames_received);
         if let Some(previous) = *last {
             if feedback.seq == previous && feedback.seq != 0 {
                 Self::count(&self.duplicates);
@@ -69,34 +78,49 @@ pub struct IoEnds {
     /// and the cycle's `try_send` needs no runtime.
     pub commands: tokio::sync::mpsc::Receiver<Command>,
     pub feedback: SyncSender<Feedback>,
+    pub events: SyncSender<LinkEvent>,
     pub shared: Arc<LinkShared>,
+}
+
+impl IoEnds {
+    /// A command that does not fit the wire: counted and reported, never sent.
+    pub fn encode_failed(&self, error: crate::protocol::EncodeError) {
+        LinkShared::count(&self.shared.encode_failures);
+        let _ = self.events.try_send(LinkEvent::EncodeFailed(error));
+    }
 }
 
 pub struct ChannelLink {
     commands: tokio::sync::mpsc::Sender<Command>,
     feedback: Receiver<Feedback>,
+    events: Receiver<LinkEvent>,
     shared: Arc<LinkShared>,
     description: String,
 }
 
 impl ChannelLink {
-    /// A link and the ends its I/O thread works with.
-    pub fn pair(description: String) -> (Self, IoEnds) {
+    /// A link, the ends its I/O thread works with, and the session it keeps, which opens
+    /// with the bridge's `hello`.
+    pub fn pair(description: String, hello: Hello) -> (Self, IoEnds, BridgeSession) {
         let (command_tx, command_rx) = tokio::sync::mpsc::channel(CHANNEL_DEPTH);
         let (feedback_tx, feedback_rx) = std::sync::mpsc::sync_channel(CHANNEL_DEPTH);
+        let (event_tx, event_rx) = std::sync::mpsc::sync_channel(CHANNEL_DEPTH);
         let shared = Arc::new(LinkShared::default());
         (
             Self {
                 commands: command_tx,
                 feedback: feedback_rx,
+                events: event_rx,
                 shared: shared.clone(),
                 description,
             },
             IoEnds {
                 commands: command_rx,
                 feedback: feedback_tx,
+                events: event_tx,
                 shared,
             },
+            BridgeSession::new(hello),
         )
     }
 
@@ -150,10 +174,27 @@ impl Link for ChannelLink {
     }
 
     fn is_up(&self) -> bool {
-        self.is_connected()
+        self.is_connected() && self.shared.established.load(Ordering::SeqCst)
     }
 
     fn drain(&mut self) {
         while self.feedback.try_recv().is_ok() {}
+    }
+
+    fn next_event(&mut self) -> Option<LinkEvent> {
+        self.events.try_recv().ok()
+    }
+
+    fn controller_hello(&self) -> Option<Hello> {
+        self.shared.controller_hello.lock().ok()?.clone()
+    }
+
+    fn sessions(&self) -> u64 {
+        self.shared.sessions.load(Ordering::SeqCst)
+    }
+
+    fn restart(&mut self) {
+        self.shared.established.store(false, Ordering::SeqCst);
+        self.shared.restart.notify_one();
     }
 }

@@ -6,6 +6,7 @@ mod can;
 mod channel;
 mod loopback;
 mod serial;
+mod session;
 mod spec;
 mod tcp;
 
@@ -13,10 +14,11 @@ pub use can::{CanBus, SEND_PATIENCE, connect_can, interface_mtu, interface_up};
 pub use channel::{CHANNEL_DEPTH, ChannelLink, IoEnds, LinkShared};
 pub use loopback::LoopbackLink;
 pub use serial::{SerialSettings, connect_serial};
+pub use session::{BridgeSession, Due, Outgoing};
 pub use spec::{DEFAULT_BAUD, LinkSpec, LinkSpecError};
 pub use tcp::{TcpSettings, connect_tcp};
 
-use crate::protocol::{Command, Feedback};
+use crate::protocol::{Command, EncodeError, FaultReport, Feedback, Hello};
 use std::time::Duration;
 use thiserror::Error;
 
@@ -26,6 +28,40 @@ pub enum LinkError {
     Closed(String),
     #[error("link I/O error")]
     Io(#[from] std::io::Error),
+}
+
+/// What a link hears from the controller besides Feedback, in the order it happened.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LinkEvent {
+    /// The controller answered the bridge's Hello: a session is established (on the first
+    /// connect and after every reconnect). Its Hello says what it admits.
+    Session(Hello),
+    /// An unprompted controller Hello in an established session: the controller restarted
+    /// or was reset and is unbound; the link has answered it and a new session follows.
+    ControllerRestarted,
+    /// The controller latched a fault (or could not clear one), in its own words.
+    Fault(FaultReport),
+    /// A command could not be encoded for the wire, so nothing was sent.
+    EncodeFailed(EncodeError),
+}
+
+/// The bridge's Hello for `rig` (docs/protocol.md 3.1): the rig it plans for, the cycle
+/// it streams at and the watchdog it expects.
+pub fn bridge_hello(rig: &crate::rig::Rig, period_s: f64, watchdog_cycles: u32) -> Hello {
+    Hello {
+        axis_names: rig.joint_names().map(String::from).collect(),
+        lower: rig.joints.iter().map(|j| j.limits.lower).collect(),
+        upper: rig.joints.iter().map(|j| j.limits.upper).collect(),
+        max_speed: rig.joints.iter().map(|j| j.limits.max_speed).collect(),
+        max_acceleration: rig
+            .joints
+            .iter()
+            .map(|j| j.limits.max_acceleration)
+            .collect(),
+        cycle_us: (period_s * 1e6).round() as u32,
+        watchdog_cycles,
+        answer: false,
+    }
 }
 
 /// Counters every link keeps, shown in summaries and logged.
@@ -46,10 +82,25 @@ pub trait Link: Send {
     fn counters(&self) -> LinkCounters;
     /// A short description for summaries, such as `loopback` or `tcp://127.0.0.1:7000`.
     fn describe(&self) -> String;
-    /// False while the transport is down (a link that reconnects is between attempts).
+    /// True while a session is established: the transport is up and the controller has
+    /// answered the bridge's Hello (a link that reconnects is false between attempts).
     fn is_up(&self) -> bool {
         true
     }
     /// Discards feedback that arrived before now (stale after a reconnect).
     fn drain(&mut self) {}
+    /// The next event, if one is waiting (never blocks).
+    fn next_event(&mut self) -> Option<LinkEvent> {
+        None
+    }
+    /// The Hello of the controller in the current (or last) session.
+    fn controller_hello(&self) -> Option<Hello> {
+        None
+    }
+    /// Sessions established so far: a change means the controller was met anew.
+    fn sessions(&self) -> u64 {
+        1
+    }
+    /// Closes the transport and reopens it (a controller that went silent).
+    fn restart(&mut self) {}
 }

@@ -1,15 +1,20 @@
-//! Serial link (`serialport`): a writer thread frames commands onto the line, a reader
-//! thread decodes feedback off it. Device, baud, parity, stop bits and flow control come
-//! from the link address and the config. A port that disappears is reopened with backoff;
-//! commands queued meanwhile are dropped, never sent late.
+//! Serial link (`serialport`): a writer thread frames commands onto the line and keeps the
+//! session of `docs/protocol.md` 6 ([`BridgeSession`]: `0x00` and Hello on every open,
+//! nothing streamed before the controller's answer, Heartbeats, silence as link loss); a
+//! reader thread decodes what comes back. Device, baud, parity, stop bits and flow control
+//! come from the link address and the config. A port that disappears (or a controller that
+//! goes silent) is reopened with backoff; commands queued meanwhile are dropped, never sent
+//! late.
 
+use super::session::{BridgeSession, Due, Outgoing};
 use super::{ChannelLink, IoEnds, LinkShared};
 use crate::protocol::codec::{FrameDecoder, Message, encode_frame};
+use crate::protocol::{Command, Hello};
 use serialport::{DataBits, FlowControl, Parity, SerialPort, StopBits};
 use std::io::ErrorKind;
-use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::time::Duration;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct SerialSettings {
@@ -49,23 +54,38 @@ const BACKOFF_INITIAL: Duration = Duration::from_millis(10);
 const BACKOFF_MAX: Duration = Duration::from_secs(1);
 
 /// Starts the I/O threads and returns the link; it opens the port in the background.
-pub fn connect_serial(settings: SerialSettings) -> std::io::Result<ChannelLink> {
+/// `hello` is the bridge's, sent on every open.
+pub fn connect_serial(settings: SerialSettings, hello: Hello) -> std::io::Result<ChannelLink> {
     let description = format!("serial://{}?baud={}", settings.path, settings.baud);
-    let (link, ends) = ChannelLink::pair(description);
+    let (link, ends, session) = ChannelLink::pair(description, hello);
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
     std::thread::Builder::new()
         .name("rigbridge-serial".into())
-        .spawn(move || keep_open(settings, ends))?;
+        .spawn(move || runtime.block_on(keep_open(settings, ends, session)))?;
     Ok(link)
 }
 
-fn keep_open(settings: SerialSettings, mut ends: IoEnds) {
+/// What the reader thread shares with the writer: the session, and answers to send.
+struct Shared {
+    session: Mutex<BridgeSession>,
+    answers: tokio::sync::mpsc::Sender<Outgoing>,
+}
+
+async fn keep_open(settings: SerialSettings, mut ends: IoEnds, session: BridgeSession) {
     let mut backoff = BACKOFF_INITIAL;
     let mut sessions = 0u64;
+    let (answer_tx, mut answers) = tokio::sync::mpsc::channel(4);
+    let shared = Arc::new(Shared {
+        session: Mutex::new(session),
+        answers: answer_tx,
+    });
     while !ends.shared.closed.load(Ordering::SeqCst) {
         let port = match settings.open() {
             Ok(port) => port,
             Err(_) => {
-                std::thread::sleep(backoff);
+                tokio::time::sleep(backoff).await;
                 backoff = (backoff * 2).min(BACKOFF_MAX);
                 continue;
             }
@@ -76,15 +96,20 @@ fn keep_open(settings: SerialSettings, mut ends: IoEnds) {
         sessions += 1;
         backoff = BACKOFF_INITIAL;
         while ends.commands.try_recv().is_ok() {}
+        while answers.try_recv().is_ok() {}
         let Ok(reader) = port.try_clone() else {
             continue;
         };
         ends.shared.connected.store(true, Ordering::SeqCst);
-        let shared = ends.shared.clone();
-        let feedback = ends.feedback.clone();
-        let reading = std::thread::spawn(move || read_feedback(reader, &shared, &feedback));
-        let ended_by_bridge = write_commands(port, &mut ends);
+        let reading = {
+            let (shared, ends) = (shared.clone(), reader_ends(&ends));
+            std::thread::spawn(move || read_messages(reader, &shared, &ends))
+        };
+        let ended_by_bridge = write_commands(port, &mut ends, &shared, &mut answers).await;
         ends.shared.connected.store(false, Ordering::SeqCst);
+        if let Ok(mut session) = shared.session.lock() {
+            session.closed(&ends.shared);
+        }
         let _ = reading.join();
         if ended_by_bridge {
             return;
@@ -92,50 +117,121 @@ fn keep_open(settings: SerialSettings, mut ends: IoEnds) {
     }
 }
 
-/// Writes until the line fails (false) or the bridge closes the link (true).
-fn write_commands(mut port: Box<dyn SerialPort>, ends: &mut IoEnds) -> bool {
+/// The reader's copy of the ends (it needs no commands).
+fn reader_ends(ends: &IoEnds) -> IoEnds {
+    let (_, commands) = tokio::sync::mpsc::channel(1);
+    IoEnds {
+        commands,
+        feedback: ends.feedback.clone(),
+        events: ends.events.clone(),
+        shared: ends.shared.clone(),
+    }
+}
+
+fn encoded(message: &Message, opening: bool, frame: &mut Vec<u8>, ends: &IoEnds) -> bool {
+    frame.clear();
+    if opening {
+        frame.push(0);
+    }
+    match encode_frame(message, frame) {
+        Ok(()) => true,
+        Err(error) => {
+            ends.encode_failed(error);
+            false
+        }
+    }
+}
+
+fn message_for(what: Outgoing, shared: &Shared) -> Option<Message> {
+    match what {
+        Outgoing::Hello => Some(shared.session.lock().ok()?.hello_message()),
+        Outgoing::Heartbeat => Some(Message::Command(Command::Heartbeat)),
+    }
+}
+
+/// The writer's side of one open port. True when the bridge closed the link.
+async fn write_commands(
+    mut port: Box<dyn SerialPort>,
+    ends: &mut IoEnds,
+    shared: &Shared,
+    answers: &mut tokio::sync::mpsc::Receiver<Outgoing>,
+) -> bool {
     let mut frame = Vec::with_capacity(1024);
-    while let Some(command) = ends.commands.blocking_recv() {
-        frame.clear();
-        if encode_frame(&Message::Command(command), &mut frame).is_err() {
-            continue;
+    let (opening, period) = match shared.session.lock() {
+        Ok(mut session) => (
+            session.opened(Instant::now(), &ends.shared),
+            session.period(),
+        ),
+        Err(_) => return true,
+    };
+    let mut pending = message_for(opening, shared).map(|m| (m, true));
+    let mut tick = tokio::time::interval(period);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    loop {
+        if let Some((message, opening)) = pending.take() {
+            if encoded(&message, opening, &mut frame, ends) {
+                if port.write_all(&frame).is_err() {
+                    return false;
+                }
+                LinkShared::count(&ends.shared.frames_sent);
+                if let Ok(mut session) = shared.session.lock() {
+                    session.sent(Instant::now());
+                }
+            }
         }
-        if port.write_all(&frame).is_err() {
-            return false;
-        }
-        LinkShared::count(&ends.shared.frames_sent);
         if !ends.shared.connected.load(Ordering::SeqCst) {
             return false;
         }
+        tokio::select! {
+            command = ends.commands.recv() => {
+                let Some(command) = command else { return true };
+                let allowed = shared.session.lock().is_ok_and(|s| s.may_send(&command));
+                if allowed {
+                    pending = Some((Message::Command(command), false));
+                } else {
+                    LinkShared::count(&ends.shared.dropped_commands);
+                }
+            }
+            Some(answer) = answers.recv() => pending = message_for(answer, shared).map(|m| (m, false)),
+            _ = tick.tick() => {
+                let due = shared.session.lock().map_or(Due::Lost, |mut s| s.due(Instant::now()));
+                match due {
+                    Due::Nothing => {}
+                    Due::Lost => return false,
+                    Due::Send(what) => pending = message_for(what, shared).map(|m| (m, false)),
+                }
+            }
+            _ = ends.shared.restart.notified() => return false,
+        }
     }
-    true
 }
 
-fn read_feedback(
-    mut port: Box<dyn SerialPort>,
-    shared: &Arc<LinkShared>,
-    feedback: &std::sync::mpsc::SyncSender<crate::protocol::Feedback>,
-) {
+fn read_messages(mut port: Box<dyn SerialPort>, shared: &Shared, ends: &IoEnds) {
     let mut decoder = FrameDecoder::default();
     let mut buffer = [0u8; 4096];
-    let mut last_seq: Option<u32> = None;
-    while !shared.closed.load(Ordering::SeqCst) {
+    while !ends.shared.closed.load(Ordering::SeqCst) && ends.shared.connected.load(Ordering::SeqCst)
+    {
         match port.read(&mut buffer) {
             Ok(0) => {}
             Ok(n) => decoder.push(&buffer[..n]),
             Err(e) if e.kind() == ErrorKind::TimedOut => continue,
             Err(_) => {
-                shared.connected.store(false, Ordering::SeqCst);
+                ends.shared.connected.store(false, Ordering::SeqCst);
                 return;
             }
         }
         while let Some(message) = decoder.next_message() {
-            if let Message::Feedback(answer) = message {
-                shared.note_feedback(&mut last_seq, &answer);
-                let _ = feedback.try_send(answer);
+            LinkShared::count(&ends.shared.frames_received);
+            let answer = shared
+                .session
+                .lock()
+                .ok()
+                .and_then(|mut s| s.received(message, Instant::now(), ends));
+            if let Some(answer) = answer {
+                let _ = shared.answers.try_send(answer);
             }
         }
-        shared
+        ends.shared
             .crc_errors
             .store(decoder.counters().crc_errors, Ordering::Relaxed);
     }

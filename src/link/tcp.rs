@@ -1,12 +1,17 @@
-//! TCP client link (tokio): connects to a controller, frames commands with the wire codec,
-//! decodes feedback, and on any loss reconnects with exponential backoff. Stale commands
-//! queued while down are discarded, never sent late. Runs on its own thread with a
-//! current-thread runtime; the cycle only touches the channels of [`ChannelLink`].
+//! TCP client link (tokio): connects to a controller, keeps the session of
+//! `docs/protocol.md` 6 ([`BridgeSession`]: `0x00` and Hello on every connect, nothing
+//! streamed before the controller's answer, Heartbeats, silence as link loss), frames
+//! commands with the wire codec, decodes feedback, and on any loss reconnects with
+//! exponential backoff. Stale commands queued while down are discarded, never sent late.
+//! Runs on its own thread with a current-thread runtime; the cycle only touches the
+//! channels of [`ChannelLink`].
 
+use super::session::{BridgeSession, Due, Outgoing};
 use super::{ChannelLink, IoEnds, LinkShared};
+use crate::protocol::Hello;
 use crate::protocol::codec::{FrameDecoder, Message, encode_frame};
 use std::sync::atomic::Ordering;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
@@ -29,18 +34,19 @@ impl TcpSettings {
 }
 
 /// Starts the I/O thread and returns the link at once; it connects in the background.
-pub fn connect_tcp(settings: TcpSettings) -> std::io::Result<ChannelLink> {
-    let (link, ends) = ChannelLink::pair(format!("tcp://{}", settings.address));
+/// `hello` is the bridge's, sent on every connect.
+pub fn connect_tcp(settings: TcpSettings, hello: Hello) -> std::io::Result<ChannelLink> {
+    let (link, ends, session) = ChannelLink::pair(format!("tcp://{}", settings.address), hello);
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
     std::thread::Builder::new()
         .name("rigbridge-tcp".into())
-        .spawn(move || runtime.block_on(keep_connected(settings, ends)))?;
+        .spawn(move || runtime.block_on(keep_connected(settings, ends, session)))?;
     Ok(link)
 }
 
-async fn keep_connected(settings: TcpSettings, mut ends: IoEnds) {
+async fn keep_connected(settings: TcpSettings, mut ends: IoEnds, mut bridge: BridgeSession) {
     let mut backoff = settings.backoff_initial;
     let mut sessions = 0u64;
     while !ends.shared.closed.load(Ordering::SeqCst) {
@@ -54,7 +60,8 @@ async fn keep_connected(settings: TcpSettings, mut ends: IoEnds) {
                 let _ = stream.set_nodelay(true);
                 while ends.commands.try_recv().is_ok() {}
                 ends.shared.connected.store(true, Ordering::SeqCst);
-                let ended_by_bridge = session(stream, &mut ends).await;
+                let ended_by_bridge = session(stream, &mut ends, &mut bridge).await;
+                bridge.closed(&ends.shared);
                 ends.shared.connected.store(false, Ordering::SeqCst);
                 if ended_by_bridge {
                     return;
@@ -68,24 +75,60 @@ async fn keep_connected(settings: TcpSettings, mut ends: IoEnds) {
     }
 }
 
+/// Encodes `message` into `frame` (cleared first); false when it does not fit the wire,
+/// which is reported as an event, and nothing is to be sent.
+fn encode(message: &Message, frame: &mut Vec<u8>, ends: &IoEnds) -> bool {
+    frame.clear();
+    match encode_frame(message, frame) {
+        Ok(()) => true,
+        Err(error) => {
+            ends.encode_failed(error);
+            false
+        }
+    }
+}
+
+/// Encodes what the session asks for: the Hello (after a `0x00` on opening) or a Heartbeat.
+fn outgoing(what: Outgoing, bridge: &BridgeSession, opening: bool, frame: &mut Vec<u8>) -> bool {
+    frame.clear();
+    if opening {
+        frame.push(0);
+    }
+    let message = match what {
+        Outgoing::Hello => bridge.hello_message(),
+        Outgoing::Heartbeat => Message::Command(crate::protocol::Command::Heartbeat),
+    };
+    encode_frame(&message, frame).is_ok()
+}
+
 /// One connection's life. True when the bridge closed the link (stop for good).
-async fn session(stream: TcpStream, ends: &mut IoEnds) -> bool {
+async fn session(stream: TcpStream, ends: &mut IoEnds, bridge: &mut BridgeSession) -> bool {
     let (mut reader, mut writer) = stream.into_split();
     let mut decoder = FrameDecoder::default();
     let mut frame = Vec::with_capacity(1024);
     let mut buffer = [0u8; 4096];
-    let mut last_seq = None;
+    let hello = bridge.opened(Instant::now(), &ends.shared);
+    if !outgoing(hello, bridge, true, &mut frame) || writer.write_all(&frame).await.is_err() {
+        return false;
+    }
+    bridge.sent(Instant::now());
+    let mut tick = tokio::time::interval(bridge.period());
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     loop {
         tokio::select! {
             command = ends.commands.recv() => {
                 let Some(command) = command else { return true };
-                frame.clear();
-                if encode_frame(&Message::Command(command), &mut frame).is_err() {
+                if !bridge.may_send(&command) {
+                    LinkShared::count(&ends.shared.dropped_commands);
+                    continue;
+                }
+                if !encode(&Message::Command(command), &mut frame, ends) {
                     continue;
                 }
                 if writer.write_all(&frame).await.is_err() {
                     return false;
                 }
+                bridge.sent(Instant::now());
                 LinkShared::count(&ends.shared.frames_sent);
             }
             read = reader.read(&mut buffer) => {
@@ -95,13 +138,33 @@ async fn session(stream: TcpStream, ends: &mut IoEnds) -> bool {
                 };
                 decoder.push(&buffer[..n]);
                 while let Some(message) = decoder.next_message() {
-                    if let Message::Feedback(feedback) = message {
-                        ends.shared.note_feedback(&mut last_seq, &feedback);
-                        let _ = ends.feedback.try_send(feedback);
+                    LinkShared::count(&ends.shared.frames_received);
+                    let Some(answer) = bridge.received(message, Instant::now(), ends) else {
+                        continue;
+                    };
+                    if !outgoing(answer, bridge, false, &mut frame)
+                        || writer.write_all(&frame).await.is_err()
+                    {
+                        return false;
                     }
+                    LinkShared::count(&ends.shared.frames_sent);
+                    bridge.sent(Instant::now());
                 }
                 ends.shared.crc_errors.store(decoder.counters().crc_errors, Ordering::Relaxed);
             }
+            _ = tick.tick() => {
+                let what = match bridge.due(Instant::now()) {
+                    Due::Nothing => continue,
+                    Due::Lost => return false,
+                    Due::Send(what) => what,
+                };
+                if !outgoing(what, bridge, false, &mut frame) || writer.write_all(&frame).await.is_err() {
+                    return false;
+                }
+                LinkShared::count(&ends.shared.frames_sent);
+                bridge.sent(Instant::now());
+            }
+            _ = ends.shared.restart.notified() => return false,
         }
     }
 }

@@ -35,6 +35,8 @@ pub const OFFSET_TARGET_VELOCITIES: u16 = 0x14;
 pub const OFFSET_TARGET_COMMIT: u16 = 0x24;
 pub const OFFSET_HEARTBEAT_BRIDGE: u16 = 0x25;
 pub const OFFSET_HELLO_BRIDGE: u16 = 0x26;
+/// Protocol v2's Reset, after the bridge's other IDs (it is never urgent).
+pub const OFFSET_RESET: u16 = 0x27;
 // Sent by the controller:
 pub const OFFSET_FAULT: u16 = 0x40;
 /// A whole Feedback in one CAN FD frame (when it fits: up to 13 axes).
@@ -243,6 +245,7 @@ fn push_frames(
                 }
                 Command::Stop => out.push(CanPayload::new(mapping.id(OFFSET_STOP), &[], fd)),
                 Command::EStop => out.push(CanPayload::new(mapping.id(OFFSET_ESTOP), &[], fd)),
+                Command::Reset => out.push(CanPayload::new(mapping.id(OFFSET_RESET), &[], fd)),
                 Command::Heartbeat => {}
             }
         }
@@ -559,6 +562,7 @@ impl CanAssembler {
         match offset {
             OFFSET_ESTOP => empty(data, Command::EStop),
             OFFSET_STOP => empty(data, Command::Stop),
+            OFFSET_RESET => empty(data, Command::Reset),
             OFFSET_HEARTBEAT_BRIDGE | OFFSET_HEARTBEAT_CONTROLLER => {
                 empty(data, Command::Heartbeat)
             }

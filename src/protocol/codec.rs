@@ -1,4 +1,4 @@
-//! The byte encoding of protocol version 1 for byte streams (serial, TCP): message bodies,
+//! The byte encoding of protocol version 2 for byte streams (serial, TCP): message bodies,
 //! CRC-32, COBS framing, and a resynchronising [`FrameDecoder`]. `docs/protocol.md` is the
 //! normative description; this file must agree with it (tests/codec.rs checks the examples).
 //!
@@ -14,11 +14,11 @@
 use super::{AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget, MAX_AXES};
 use thiserror::Error;
 
-/// The version byte every v1 frame starts with.
-pub const PROTOCOL_VERSION: u8 = 1;
-/// The longest frame body (version through CRC) a v1 receiver accepts. The longest v1
-/// message, a Hello of 32 axes with 32-byte names, is 1455 bytes.
-pub const MAX_BODY_LEN: usize = 1536;
+/// The version byte every v2 frame starts with.
+pub const PROTOCOL_VERSION: u8 = 2;
+/// The longest frame body (version through CRC) a v2 receiver accepts. The longest v2
+/// message, a Hello of 32 axes with 32-byte names, is 1584 bytes.
+pub const MAX_BODY_LEN: usize = 1600;
 /// The longest delimited frame on the wire: the body after COBS (one byte per 254) plus
 /// the 0x00 delimiter.
 pub const MAX_FRAME_LEN: usize = MAX_BODY_LEN + MAX_BODY_LEN.div_ceil(254) + 1;
@@ -43,6 +43,9 @@ pub(super) const TYPE_ESTOP: u8 = 0x04;
 pub(super) const TYPE_HEARTBEAT: u8 = 0x05;
 pub(super) const TYPE_FEEDBACK: u8 = 0x06;
 pub(super) const TYPE_FAULT: u8 = 0x07;
+pub(super) const TYPE_RESET: u8 = 0x08;
+/// Hello flags bit 0: this Hello answers a bridge Hello (docs/protocol.md 6.1).
+const HELLO_ANSWER: u8 = 0x01;
 
 /// A controller's or bridge's description of itself, sent when a link (re)connects.
 /// Limits are rad (revolute) or m (prismatic), speeds rad/s or m/s, in joint order.
@@ -52,10 +55,16 @@ pub struct Hello {
     pub lower: Vec<f64>,
     pub upper: Vec<f64>,
     pub max_speed: Vec<f64>,
-    /// The controller's cycle (us).
+    /// rad/s² or m/s²: the most the sender plans with (bridge) or admits and brakes with
+    /// (controller).
+    pub max_acceleration: Vec<f64>,
+    /// The sender's cycle (us).
     pub cycle_us: u32,
-    /// Cycles without a target before the controller decelerates and holds.
+    /// Cycles without a target before the controller decelerates and holds; also the
+    /// cycles of silence that count as link loss.
     pub watchdog_cycles: u32,
+    /// True when this Hello answers a bridge Hello (controllers only).
+    pub answer: bool,
 }
 
 /// A controller's notice that it latched a fault, with its own words for it.
@@ -91,13 +100,14 @@ pub enum EncodeError {
     #[error("a target has {positions} positions but {velocities} velocities")]
     AxisMismatch { positions: usize, velocities: usize },
     #[error(
-        "a Hello has {names} names, {lower} lower, {upper} upper limits and {max_speed} speeds (at most {MAX_AXES}, all equal)"
+        "a Hello has {names} names, {lower} lower, {upper} upper limits, {max_speed} speeds and {max_acceleration} accelerations (at most {MAX_AXES}, all equal)"
     )]
     HelloLengths {
         names: usize,
         lower: usize,
         upper: usize,
         max_speed: usize,
+        max_acceleration: usize,
     },
     #[error("axis name {name:?} is {len} bytes; at most {MAX_NAME_LEN}")]
     NameTooLong { name: String, len: usize },
@@ -519,6 +529,8 @@ const FAULT_OUTSIDE_LIMITS: u8 = 1;
 const FAULT_OVER_SPEED: u8 = 2;
 const FAULT_AXIS_COUNT: u8 = 3;
 const FAULT_ESTOP: u8 = 4;
+const FAULT_OVER_ACCELERATION: u8 = 5;
+const FAULT_BUSY: u8 = 6;
 
 /// code, a, b: a is the axis (or the expected axis count), b the axis count received.
 fn fault_to_wire(fault: Fault) -> [u8; 3] {
@@ -527,6 +539,8 @@ fn fault_to_wire(fault: Fault) -> [u8; 3] {
         Fault::OverSpeed { axis } => [FAULT_OVER_SPEED, axis, 0],
         Fault::AxisCount { expected, got } => [FAULT_AXIS_COUNT, expected, got],
         Fault::EStop => [FAULT_ESTOP, 0, 0],
+        Fault::OverAcceleration { axis } => [FAULT_OVER_ACCELERATION, axis, 0],
+        Fault::Busy => [FAULT_BUSY, 0, 0],
     }
 }
 
@@ -537,6 +551,8 @@ fn fault_from_wire([code, a, b]: [u8; 3]) -> Option<Fault> {
         (FAULT_OVER_SPEED, 0) => Some(Fault::OverSpeed { axis: a }),
         (FAULT_AXIS_COUNT, got) => Some(Fault::AxisCount { expected: a, got }),
         (FAULT_ESTOP, 0) if a == 0 => Some(Fault::EStop),
+        (FAULT_OVER_ACCELERATION, 0) => Some(Fault::OverAcceleration { axis: a }),
+        (FAULT_BUSY, 0) if a == 0 => Some(Fault::Busy),
         _ => None,
     }
 }
@@ -556,7 +572,10 @@ fn status_from_wire([status, code, a, b]: [u8; 4]) -> Option<ControllerStatus> {
     match (status, [code, a, b]) {
         (STATUS_OK, [0, 0, 0]) => Some(ControllerStatus::Ok),
         (STATUS_HOLDING, [0, 0, 0]) => Some(ControllerStatus::Holding),
-        (STATUS_FAULT, fault) => fault_from_wire(fault).map(ControllerStatus::Fault),
+        // Busy is a notice for a Fault message, never a latched status.
+        (STATUS_FAULT, fault) => fault_from_wire(fault)
+            .filter(|f| *f != Fault::Busy)
+            .map(ControllerStatus::Fault),
         _ => None,
     }
 }
@@ -586,6 +605,10 @@ fn write_message<S: Sink>(message: &Message, sink: &mut S) -> Result<(), EncodeE
             sink.put(&[PROTOCOL_VERSION, TYPE_HEARTBEAT]);
             Ok(())
         }
+        Message::Command(Command::Reset) => {
+            sink.put(&[PROTOCOL_VERSION, TYPE_RESET]);
+            Ok(())
+        }
         Message::Feedback(feedback) => {
             let wire = WireFeedback::from_feedback(feedback)?;
             sink.put(&[PROTOCOL_VERSION, TYPE_FEEDBACK]);
@@ -597,19 +620,21 @@ fn write_message<S: Sink>(message: &Message, sink: &mut S) -> Result<(), EncodeE
 }
 
 /// axes u8 | axes x (name length u8 | UTF-8) | axes x (lower i32 | upper i32 | max speed
-/// i32) | cycle us u32 | watchdog cycles u32
+/// i32 | max acceleration i32) | cycle us u32 | watchdog cycles u32 | flags u8
 fn write_hello<S: Sink>(hello: &Hello, sink: &mut S) -> Result<(), EncodeError> {
     let axes = hello.axis_names.len();
     if axes > MAX_AXES
         || hello.lower.len() != axes
         || hello.upper.len() != axes
         || hello.max_speed.len() != axes
+        || hello.max_acceleration.len() != axes
     {
         return Err(EncodeError::HelloLengths {
             names: axes,
             lower: hello.lower.len(),
             upper: hello.upper.len(),
             max_speed: hello.max_speed.len(),
+            max_acceleration: hello.max_acceleration.len(),
         });
     }
     if let Some(name) = hello.axis_names.iter().find(|n| n.len() > MAX_NAME_LEN) {
@@ -627,9 +652,11 @@ fn write_hello<S: Sink>(hello: &Hello, sink: &mut S) -> Result<(), EncodeError> 
         sink.put(&to_micro("lower limit", hello.lower[axis])?.to_le_bytes());
         sink.put(&to_micro("upper limit", hello.upper[axis])?.to_le_bytes());
         sink.put(&to_micro("max speed", hello.max_speed[axis])?.to_le_bytes());
+        sink.put(&to_micro("max acceleration", hello.max_acceleration[axis])?.to_le_bytes());
     }
     sink.put(&hello.cycle_us.to_le_bytes());
     sink.put(&hello.watchdog_cycles.to_le_bytes());
+    sink.put(&[if hello.answer { HELLO_ANSWER } else { 0 }]);
     Ok(())
 }
 
@@ -729,6 +756,7 @@ fn read_message(kind: u8, reader: &mut Reader<'_>) -> Result<Message, DecodeErro
         TYPE_STOP => Message::Command(Command::Stop),
         TYPE_ESTOP => Message::Command(Command::EStop),
         TYPE_HEARTBEAT => Message::Command(Command::Heartbeat),
+        TYPE_RESET => Message::Command(Command::Reset),
         TYPE_FEEDBACK => Message::Feedback(
             WireFeedback::read_payload(reader)?
                 .feedback()
@@ -746,8 +774,10 @@ fn read_hello(reader: &mut Reader<'_>) -> Result<Hello, DecodeError> {
         lower: Vec::with_capacity(axes),
         upper: Vec::with_capacity(axes),
         max_speed: Vec::with_capacity(axes),
+        max_acceleration: Vec::with_capacity(axes),
         cycle_us: 0,
         watchdog_cycles: 0,
+        answer: false,
     };
     for _ in 0..axes {
         let len = usize::from(reader.u8()?);
@@ -760,9 +790,15 @@ fn read_hello(reader: &mut Reader<'_>) -> Result<Hello, DecodeError> {
         hello.lower.push(from_micro(reader.i32()?));
         hello.upper.push(from_micro(reader.i32()?));
         hello.max_speed.push(from_micro(reader.i32()?));
+        hello.max_acceleration.push(from_micro(reader.i32()?));
     }
     hello.cycle_us = reader.u32()?;
     hello.watchdog_cycles = reader.u32()?;
+    hello.answer = match reader.u8()? {
+        0 => false,
+        HELLO_ANSWER => true,
+        _ => return Err(DecodeError::Malformed("unknown Hello flag")),
+    };
     Ok(hello)
 }
 

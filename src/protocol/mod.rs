@@ -80,6 +80,8 @@ pub enum Command {
     /// Halt at once and refuse targets until reset.
     EStop,
     Heartbeat,
+    /// Clear a latched fault (e-stop included) once its cause is gone.
+    Reset,
 }
 
 /// Why a controller refuses to move.
@@ -99,6 +101,36 @@ pub enum Fault {
         got: u8,
     },
     EStop,
+    /// A target's velocity change or position second difference above the axis's max
+    /// acceleration (0-based axis index).
+    OverAcceleration {
+        axis: u8,
+    },
+    /// Bound to another bridge: sent to a second one before the controller closes it.
+    /// Only ever in a Fault message, never latched.
+    Busy,
+}
+
+impl std::fmt::Display for Fault {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Fault::OutsideLimits { axis } => {
+                write!(f, "outside limits (axis {})", u32::from(*axis) + 1)
+            }
+            Fault::OverSpeed { axis } => write!(f, "over speed (axis {})", u32::from(*axis) + 1),
+            Fault::AxisCount { expected, got } => {
+                write!(
+                    f,
+                    "axis count (controller has {expected}, target had {got})"
+                )
+            }
+            Fault::EStop => write!(f, "e-stop"),
+            Fault::OverAcceleration { axis } => {
+                write!(f, "over acceleration (axis {})", u32::from(*axis) + 1)
+            }
+            Fault::Busy => write!(f, "busy with another bridge"),
+        }
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -1,24 +1,34 @@
 //! The streamer: a fixed-rate cycle that sends the next joint target over a [`Link`] and
 //! reads the controller's feedback, measuring jitter, missed cycles, command-to-feedback
-//! latency and tracking error.
+//! latency and tracking error, and checking every cycle that the controller follows
+//! (`docs/protocol.md` 6.9): the echo advances, the status is ok, the arm stays within the
+//! path tolerance, and reaches the goal tolerance at the end. Only then is a job
+//! `completed`.
 //!
 //! Pause and stop never cut motion short: they ramp a time scale on the trajectory down to
 //! standstill (and back up on resume) at a rate that keeps every axis within its limits.
-//! A last gate checks every outgoing target against the rig's limits and speeds. The
+//! A last gate checks every outgoing target against the rig's limits, speeds and
+//! accelerations. A cycle that wakes several cycles late (a stall) sends nothing it
+//! planned and ends the stream for the daemon to resume from where the arm holds. The
 //! cycle allocates nothing and never touches the disk: records go to a [`CycleSink`].
 //! It owns the cycle only; it must not plan, encode bytes or write files.
 
+mod controller;
+mod follow;
 mod metrics;
 mod realtime;
 
+pub use controller::{Incompatible, check_controller};
+pub use follow::Tolerances;
 pub use metrics::MicrosHistogram;
 pub use realtime::raise_priority;
 
 use crate::clock::Clock;
-use crate::link::{Link, LinkCounters, LinkError};
+use crate::link::{Link, LinkCounters, LinkError, LinkEvent};
 use crate::protocol::{AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget};
 use crate::rig::{JointKind, Rig};
-use crate::trajectory::{SPEED_SLACK, Trajectory, TrajectoryError, validate};
+use crate::trajectory::{Trajectory, TrajectoryError, validate};
+use follow::Follow;
 use serde::Serialize;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Duration;
@@ -43,8 +53,12 @@ pub enum StreamError {
     },
     #[error("no feedback from {link} before streaming")]
     NoFeedback { link: String },
-    #[error("controller is in fault before streaming: {0:?}")]
+    #[error("controller is in fault before streaming: {0}")]
     FaultAtStart(Fault),
+    #[error("the controller does not admit this job")]
+    Incompatible(#[from] Incompatible),
+    #[error("no session with {link}: the controller has not answered the bridge's Hello")]
+    NoSession { link: String },
     #[error(transparent)]
     Link(#[from] LinkError),
 }
@@ -52,14 +66,45 @@ pub enum StreamError {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Outcome {
+    /// The goal was reached within tolerance: the arm got there.
     Completed,
     Stopped,
     EStopped,
     Faulted,
     /// The safety gate refused a target: a bug upstream, never sent.
     GateRefused,
-    /// No feedback for `max_silent_cycles`, or the link reports it is down.
+    /// No feedback for `max_silent_cycles`, the link reports it is down, or the
+    /// controller restarted (an unprompted Hello).
     LinkLost,
+    /// The cycle woke several cycles late: nothing planned before was sent.
+    Stalled,
+    /// The controller stopped taking targets (its echo stood still, or it held).
+    NotFollowing,
+    /// The arm left the path tolerance, or missed the goal tolerance in the goal time.
+    ToleranceExceeded,
+    /// A command did not fit the wire; nothing was sent.
+    EncodeFailed,
+    /// Refused before any motion (the trajectory, the controller, or no session).
+    Refused,
+}
+
+impl std::fmt::Display for Outcome {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let name = match self {
+            Outcome::Completed => "completed",
+            Outcome::Stopped => "stopped",
+            Outcome::EStopped => "e_stopped",
+            Outcome::Faulted => "faulted",
+            Outcome::GateRefused => "gate_refused",
+            Outcome::LinkLost => "link_lost",
+            Outcome::Stalled => "stalled",
+            Outcome::NotFollowing => "not_following",
+            Outcome::ToleranceExceeded => "tolerance_exceeded",
+            Outcome::EncodeFailed => "encode_failed",
+            Outcome::Refused => "refused",
+        };
+        f.write_str(name)
+    }
 }
 
 /// Pause, stop and e-stop requests, and progress, shared with whoever runs the job.
@@ -85,6 +130,12 @@ impl StreamControl {
     }
     pub fn estop(&self) {
         self.estop.store(true, Ordering::SeqCst);
+    }
+    pub fn is_stopping(&self) -> bool {
+        self.stop.load(Ordering::SeqCst)
+    }
+    pub fn is_estopped(&self) -> bool {
+        self.estop.load(Ordering::SeqCst)
     }
     pub fn is_paused(&self) -> bool {
         self.paused.load(Ordering::SeqCst)
@@ -132,17 +183,32 @@ pub struct StreamSettings {
     pub start_scale: f64,
     /// How fast pause and stop may change the time scale (1/s). See [`slowdown_rate`].
     pub slowdown_rate_per_s: f64,
+    /// A wake this many cycles late is a stall (docs/protocol.md 6.5).
+    pub stall_cycles: u32,
+    /// Cycles of targets without a new echo before the controller counts as not following.
+    pub echo_patience_cycles: u32,
+    pub tolerances: Tolerances,
 }
 
+/// A wake 5 cycles late (20 ms at 250 Hz) is a stall: the arm has had no new target for
+/// that long, so what was planned for those cycles is stale. Short of the controller's
+/// watchdog (25 cycles), long past the scheduling noise of a loaded machine (under 1 ms).
+pub const STALL_CYCLES: u32 = 5;
+
 impl StreamSettings {
-    /// Feedback awaited for half a period; the link counts as lost after 0.1 s of silence.
+    /// Feedback awaited for half a period; the link counts as lost after 0.1 s of silence,
+    /// and so does a controller whose echo stands still for as long.
     pub fn new(period_s: f64, slowdown_rate_per_s: f64) -> Self {
+        let silent = (0.1 / period_s).ceil() as u32;
         Self {
             feedback_timeout: Duration::from_secs_f64(period_s / 2.0),
-            max_silent_cycles: (0.1 / period_s).ceil() as u32,
+            max_silent_cycles: silent,
             first_seq: 0,
             start_scale: 1.0,
             slowdown_rate_per_s,
+            stall_cycles: STALL_CYCLES,
+            echo_patience_cycles: silent,
+            tolerances: Tolerances::default(),
         }
     }
 }
@@ -186,6 +252,16 @@ pub struct StreamReport {
 }
 
 impl StreamReport {
+    /// A report of a stream that moved nothing: refused, or ended while waiting.
+    pub fn without_motion(
+        outcome: Outcome,
+        fault: String,
+        link: String,
+        counters: LinkCounters,
+    ) -> Self {
+        Cycle::report_empty(outcome, fault, link, counters)
+    }
+
     /// One report for a job streamed in several parts (resumed after link losses): counts
     /// add up, worst cases are kept, the outcome is the last part's.
     pub fn merge(self, later: StreamReport) -> StreamReport {
@@ -224,48 +300,20 @@ pub fn stream(
     check_start(trajectory, rig, link, settings)?;
     let mut cycle = Cycle::new(trajectory, rig, settings);
     let start = clock.now();
+    let period = Duration::from_secs_f64(trajectory.period_s);
     let outcome = loop {
-        let deadline = start + Duration::from_secs_f64(cycle.seq as f64 * trajectory.period_s);
+        // Deadlines count from this stream's start: a resumed stream starts at once.
+        let deadline = start + period * (cycle.seq - cycle.first_seq);
         clock.sleep_until(deadline);
-        let woke = clock.now();
-        let late = woke.saturating_sub(deadline);
+        let late = clock.now().saturating_sub(deadline);
         cycle.record_wake(late, trajectory.period_s);
-        let late_us = (late.as_secs_f64() * 1e6) as f32;
-        if control.estop.load(Ordering::SeqCst) {
-            link.send(&Command::EStop)?;
-            break Outcome::EStopped;
-        }
-        let finished = cycle.advance(control, trajectory);
-        let Some(target) = cycle.target(trajectory, rig) else {
-            link.send(&Command::Stop)?;
-            break Outcome::GateRefused;
-        };
-        let late = latest_feedback(link)?;
-        link.send(&Command::Target(target))?;
-        cycle.sent_at[target.seq as usize % SEND_TIMES] = clock.now();
-        let feedback = await_echo(link, target.seq, settings.feedback_timeout)?.or(late);
-        let latency_us = cycle.record_feedback(feedback.as_ref(), &target, clock.now());
-        sink.record(&CycleRecord {
-            target,
-            feedback,
-            late_us,
-            latency_us: latency_us.map(|us| us as f32),
-            counters: link.counters(),
-        });
-        control.cycles.store(cycle.seq as u64, Ordering::Relaxed);
-        control
-            .progress_bits
-            .store(cycle.progress(trajectory).to_bits(), Ordering::Relaxed);
-        if let Some(ControllerStatus::Fault(fault)) = feedback.map(|f| f.status) {
-            cycle.fault = Some(format!("{fault:?}"));
-            break Outcome::Faulted;
-        }
-        if let Some(outcome) = finished {
-            link.send(&Command::Stop)?;
+        if let Some(outcome) = cycle_once(&mut cycle, trajectory, rig, link, clock, sink, control)?
+        {
             break outcome;
         }
-        if cycle.silent_cycles > settings.max_silent_cycles || !link.is_up() {
-            break Outcome::LinkLost;
+        if late > period * settings.stall_cycles {
+            link.send(&Command::Stop)?;
+            break Outcome::Stalled;
         }
     };
     Ok(cycle.report(
@@ -274,6 +322,67 @@ pub fn stream(
         link.counters(),
         link.describe(),
     ))
+}
+
+/// One cycle: events, the next target through the gate, its feedback, the following
+/// checks. `Some(outcome)` ends the stream.
+fn cycle_once(
+    cycle: &mut Cycle,
+    trajectory: &Trajectory,
+    rig: &Rig,
+    link: &mut dyn Link,
+    clock: &dyn Clock,
+    sink: &mut dyn CycleSink,
+    control: &StreamControl,
+) -> Result<Option<Outcome>, StreamError> {
+    if control.estop.load(Ordering::SeqCst) {
+        link.send(&Command::EStop)?;
+        return Ok(Some(Outcome::EStopped));
+    }
+    if let Some(outcome) = cycle.events(link) {
+        if outcome == Outcome::EncodeFailed {
+            link.send(&Command::Stop)?;
+        }
+        return Ok(Some(outcome));
+    }
+    let finished = cycle.advance(control, trajectory);
+    let Some(target) = cycle.target(trajectory, rig) else {
+        link.send(&Command::Stop)?;
+        return Ok(Some(Outcome::GateRefused));
+    };
+    let late = latest_feedback(link)?;
+    link.send(&Command::Target(target))?;
+    cycle.sent_at[target.seq as usize % SEND_TIMES] = clock.now();
+    let feedback = await_echo(link, target.seq, cycle.feedback_timeout)?.or(late);
+    let latency_us = cycle.record_feedback(feedback.as_ref(), &target, clock.now());
+    sink.record(&CycleRecord {
+        target,
+        feedback,
+        late_us: cycle.last_late_us,
+        latency_us: latency_us.map(|us| us as f32),
+        counters: link.counters(),
+    });
+    control.cycles.store(cycle.seq as u64, Ordering::Relaxed);
+    control
+        .progress_bits
+        .store(cycle.progress(trajectory).to_bits(), Ordering::Relaxed);
+    if let Some(ControllerStatus::Fault(fault)) = feedback.map(|f| f.status) {
+        cycle.fault = Some(format!("controller fault: {fault}"));
+        return Ok(Some(Outcome::Faulted));
+    }
+    let verdict = cycle
+        .follow
+        .check(feedback.as_ref(), &target, finished, clock.now());
+    if let Some(outcome) = cycle.conclude(verdict, finished) {
+        if outcome != Outcome::Completed {
+            link.send(&Command::Stop)?;
+        }
+        return Ok(Some(outcome));
+    }
+    if cycle.silent_cycles > cycle.max_silent_cycles || !link.is_up() {
+        return Ok(Some(Outcome::LinkLost));
+    }
+    Ok(None)
 }
 
 /// Whatever feedback is already waiting, newest last: read before sending, so a cycle
@@ -307,13 +416,22 @@ fn await_echo(
     Ok(latest)
 }
 
-/// Asks for feedback and checks the trajectory starts where the controller is.
+/// Checks the session and the controller's Hello, asks for feedback, and checks the
+/// trajectory starts where the controller is.
 fn check_start(
     trajectory: &Trajectory,
     rig: &Rig,
     link: &mut dyn Link,
     settings: &StreamSettings,
 ) -> Result<(), StreamError> {
+    if !link.is_up() {
+        return Err(StreamError::NoSession {
+            link: link.describe(),
+        });
+    }
+    if let Some(hello) = link.controller_hello() {
+        check_controller(&hello, rig, trajectory.period_s)?;
+    }
     link.send(&Command::Heartbeat)?;
     // A remote controller answers at its next cycle: give it a few, not half of one.
     let wait = settings.feedback_timeout.max(START_FEEDBACK_TIMEOUT);
@@ -336,7 +454,7 @@ fn check_start(
         .zip(first)
         .zip(feedback.positions.as_slice())
     {
-        if (start - actual).abs() > joint.limits.max_speed * trajectory.period_s {
+        if !joint.limits.step_ok(start - actual, trajectory.period_s) {
             return Err(StreamError::StartMismatch {
                 joint: joint.name.clone(),
                 start: *start,
@@ -355,7 +473,9 @@ struct Cycle {
     /// Time scale: 1 runs the trajectory as planned, 0 holds still.
     scale: f64,
     scale_step: f64,
-    previous: Option<AxisValues>,
+    /// The last two targets sent: the gate checks steps and accelerations against them.
+    previous: Option<(AxisValues, AxisValues)>,
+    before_previous: Option<AxisValues>,
     jitter: MicrosHistogram,
     latency: MicrosHistogram,
     missed: u64,
@@ -366,8 +486,14 @@ struct Cycle {
     fault: Option<String>,
     sent_at: [Duration; SEND_TIMES],
     silent_cycles: u32,
+    max_silent_cycles: u32,
     first_seq: u32,
     last_echo: Option<u32>,
+    last_late_us: f32,
+    feedback_timeout: Duration,
+    follow: Follow,
+    /// Why the stream is being brought to rest, when it is not the user's stop.
+    aborting: Option<Outcome>,
 }
 
 impl Cycle {
@@ -378,10 +504,12 @@ impl Cycle {
             last_echo: None,
             sent_at: [Duration::ZERO; SEND_TIMES],
             silent_cycles: 0,
+            max_silent_cycles: settings.max_silent_cycles,
             path: 0.0,
             scale: settings.start_scale.clamp(0.0, 1.0),
             scale_step: settings.slowdown_rate_per_s * trajectory.period_s,
             previous: None,
+            before_previous: None,
             jitter: MicrosHistogram::new(HISTOGRAM_CEILING_US),
             latency: MicrosHistogram::new(HISTOGRAM_CEILING_US),
             missed: 0,
@@ -394,6 +522,10 @@ impl Cycle {
                 .map(|j| j.kind == JointKind::Revolute)
                 .collect(),
             fault: None,
+            last_late_us: 0.0,
+            feedback_timeout: settings.feedback_timeout,
+            follow: Follow::new(rig, settings, trajectory.period_s),
+            aborting: None,
         }
     }
 
@@ -404,17 +536,42 @@ impl Cycle {
 
     fn record_wake(&mut self, late: Duration, period_s: f64) {
         let late_us = late.as_secs_f64() * 1e6;
+        self.last_late_us = late_us as f32;
         self.jitter.record(late_us);
         if late_us > period_s * 1e6 {
             self.missed += 1;
         }
     }
 
+    /// The link's events: a controller fault ends the stream with its words; a
+    /// controller that restarted (or a new session) is link loss; a command that did
+    /// not fit the wire ends it too.
+    fn events(&mut self, link: &mut dyn Link) -> Option<Outcome> {
+        while let Some(event) = link.next_event() {
+            match event {
+                LinkEvent::Fault(report) => {
+                    self.fault = Some(fault_text(&report.fault, &report.text));
+                    return Some(Outcome::Faulted);
+                }
+                LinkEvent::ControllerRestarted | LinkEvent::Session(_) => {
+                    self.fault = Some("the controller restarted (unprompted Hello)".into());
+                    return Some(Outcome::LinkLost);
+                }
+                LinkEvent::EncodeFailed(error) => {
+                    self.fault = Some(format!("a command does not fit the wire: {error}"));
+                    return Some(Outcome::EncodeFailed);
+                }
+            }
+        }
+        None
+    }
+
     /// Moves along the path by the time scale, ramping it toward 0 when paused or
-    /// stopping, toward 1 otherwise. Returns the outcome once the job is over.
-    fn advance(&mut self, control: &StreamControl, trajectory: &Trajectory) -> Option<Outcome> {
+    /// stopping, toward 1 otherwise. True once the path's end is reached (the goal check
+    /// then decides); `Stopped` (or the abort's reason) is decided in [`Cycle::conclude`].
+    fn advance(&mut self, control: &StreamControl, trajectory: &Trajectory) -> bool {
         self.seq += 1;
-        let stopping = control.stop.load(Ordering::SeqCst);
+        let stopping = control.stop.load(Ordering::SeqCst) || self.aborting.is_some();
         let wanted = if stopping || control.is_paused() {
             0.0
         } else {
@@ -427,12 +584,34 @@ impl Cycle {
         };
         let last = (trajectory.len() - 1) as f64;
         self.path = (self.path + self.scale).min(last);
-        if self.path >= last {
-            Some(Outcome::Completed)
-        } else if stopping && self.scale == 0.0 {
-            Some(Outcome::Stopped)
-        } else {
-            None
+        if stopping && self.scale == 0.0 && self.path < last {
+            self.aborting.get_or_insert(Outcome::Stopped);
+        }
+        self.path >= last
+    }
+
+    /// Turns the following check's verdict into the stream's end, if it is one. A path
+    /// tolerance breach brings the arm to rest along the path first.
+    fn conclude(&mut self, verdict: follow::Verdict, finished: bool) -> Option<Outcome> {
+        use follow::Verdict;
+        match verdict {
+            Verdict::Following if finished && self.aborting.is_none() => None,
+            Verdict::GoalReached if self.aborting.is_none() => Some(Outcome::Completed),
+            Verdict::NotFollowing(text) => {
+                self.fault = Some(text);
+                Some(Outcome::NotFollowing)
+            }
+            Verdict::OffPath(text) | Verdict::GoalMissed(text) if finished || self.scale == 0.0 => {
+                self.fault.get_or_insert(text);
+                Some(Outcome::ToleranceExceeded)
+            }
+            Verdict::OffPath(text) => {
+                self.fault.get_or_insert(text);
+                self.aborting = Some(Outcome::ToleranceExceeded);
+                None
+            }
+            _ if self.scale == 0.0 && self.aborting.is_some() => self.aborting,
+            _ => None,
         }
     }
 
@@ -460,16 +639,18 @@ impl Cycle {
             self.violations += 1;
             return None;
         }
-        self.previous = Some(positions);
+        self.before_previous = self.previous.map(|(p, _)| p);
+        self.previous = Some((positions, velocities));
         Some(JointTarget {
             seq: self.seq,
-            t: self.seq as f64 * trajectory.period_s,
+            t: f64::from(self.seq) * trajectory.period_s,
             positions,
             velocities,
         })
     }
 
-    /// The last line of defence: inside the limits, no step or velocity above max speed.
+    /// The last line of defence: inside the limits; no velocity, step, velocity change or
+    /// position second difference beyond the axis's speed and acceleration.
     fn gate(
         &self,
         positions: &AxisValues,
@@ -480,11 +661,16 @@ impl Cycle {
         rig.joints.iter().enumerate().all(|(axis, joint)| {
             let limits = joint.limits;
             let value = positions.as_slice()[axis];
-            let max_speed = limits.max_speed * (1.0 + SPEED_SLACK);
-            let step_ok = self
-                .previous
-                .is_none_or(|p| (value - p.as_slice()[axis]).abs() <= max_speed * period_s);
-            limits.contains(value) && velocities.as_slice()[axis].abs() <= max_speed && step_ok
+            let velocity = velocities.as_slice()[axis];
+            let moves_ok = self.previous.is_none_or(|(p, v)| {
+                limits.step_ok(value - p.as_slice()[axis], period_s)
+                    && limits.velocity_change_ok(velocity - v.as_slice()[axis], period_s)
+                    && self.before_previous.is_none_or(|b| {
+                        let second = value - 2.0 * p.as_slice()[axis] + b.as_slice()[axis];
+                        limits.second_difference_ok(second, period_s)
+                    })
+            });
+            limits.contains(value) && limits.speed_ok(velocity) && moves_ok
         })
     }
 
@@ -530,6 +716,37 @@ impl Cycle {
         latency_us
     }
 
+    fn report_empty(
+        outcome: Outcome,
+        fault: String,
+        link: String,
+        counters: LinkCounters,
+    ) -> StreamReport {
+        StreamReport {
+            outcome,
+            fault: Some(fault),
+            cycles: 0,
+            missed_cycles: 0,
+            limit_violations: 0,
+            feedback_timeouts: 0,
+            jitter_p50_us: 0.0,
+            jitter_p99_us: 0.0,
+            jitter_max_us: 0.0,
+            latency_p50_us: 0.0,
+            latency_p99_us: 0.0,
+            tracking_error_max_deg: 0.0,
+            duration_s: 0.0,
+            samples_done: 0,
+            link,
+            frames_sent: counters.frames_sent,
+            frames_received: counters.frames_received,
+            crc_errors: counters.crc_errors,
+            duplicates: counters.duplicates,
+            gaps: counters.gaps,
+            reconnects: counters.reconnects,
+        }
+    }
+
     fn report(
         self,
         outcome: Outcome,
@@ -560,5 +777,14 @@ impl Cycle {
             gaps: counters.gaps,
             reconnects: counters.reconnects,
         }
+    }
+}
+
+/// A controller's fault in words: its code, and its own text when it gave one.
+pub fn fault_text(fault: &Fault, text: &str) -> String {
+    if text.is_empty() {
+        format!("controller fault: {fault}")
+    } else {
+        format!("controller fault: {fault}: {text}")
     }
 }

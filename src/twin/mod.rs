@@ -1,11 +1,14 @@
 //! The twin: a simulated controller for any rig, the far side of every link.
 //!
 //! Per axis it models what real servo loops do to a stream of targets: a transport delay
-//! and a first-order lag of configurable bandwidth. It polices its own inputs like a real
-//! controller must: a target outside the limits, a step faster than an axis allows, or a
-//! wrong axis count is answered with a latched fault and no motion. Without targets for
-//! `watchdog_cycles` it decelerates within the limits and holds. It owns the simulated arm
-//! state only; it must not know about trajectories, jobs or logs.
+//! and a first-order lag of configurable bandwidth. It is a strict controller of
+//! `docs/protocol.md` (version 2): it drops targets until a bridge Hello binds it (and
+//! again after link loss or a reset), and answers a target outside the limits, a step or
+//! velocity faster than an axis allows, a velocity change or position second difference
+//! above its acceleration, or a wrong axis count with a latched fault, no motion and one
+//! Fault notice. Without targets for `watchdog_cycles` it decelerates within the limits
+//! and holds. It owns the simulated arm state only; it must not know about trajectories,
+//! jobs, logs or bytes (the session over a transport is `server`'s).
 
 pub mod can_port;
 pub mod serial_port;
@@ -15,15 +18,18 @@ mod world;
 pub use world::{SharedWorld, TwinWorld};
 
 use crate::protocol::{
-    AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget, MAX_AXES,
+    AxisValues, Command, ControllerStatus, Fault, FaultReport, Feedback, Hello, JointTarget,
+    MAX_AXES,
 };
-use crate::rig::{JointLimits, Rig};
-use crate::rig::LIMIT_SLACK as SPEED_SLACK;
+use crate::rig::{JointLimits, LIMIT_SLACK, Rig};
 use std::collections::VecDeque;
-
-/// Positions cross the wire as whole micro-radians: two roundings may add 1 µrad to a step.
-const WIRE_ROUNDING: f64 = 1e-6;
 use thiserror::Error;
+
+/// Values cross the wire as whole micro-units: two roundings may add 1 µrad to a step or
+/// 1 µrad/s to a velocity change (docs/protocol.md 6.6).
+const WIRE_ROUNDING: f64 = 1e-6;
+/// Three rounded positions in a second difference: up to 2 µrad (docs/protocol.md 6.6).
+const WIRE_ROUNDING_SECOND_DIFFERENCE: f64 = 2e-6;
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TwinSettings {
@@ -64,23 +70,47 @@ pub enum TwinError {
     },
 }
 
+/// What the twin counted of the targets it did not take.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct TwinCounters {
+    /// Dropped because their seq was not newer than the last accepted one.
+    pub stale_targets: u64,
+    /// Dropped because no bridge Hello had bound the twin (docs/protocol.md 6.1).
+    pub unbound_targets: u64,
+    /// Dropped because a fault was latched.
+    pub faulted_targets: u64,
+    /// Targets that were accepted.
+    pub accepted_targets: u64,
+}
+
 pub struct Twin {
     limits: Vec<JointLimits>,
+    names: Vec<String>,
     settings: TwinSettings,
     /// The position the servo loop tracks (after the transport delay).
     setpoint: AxisValues,
     /// How fast the setpoint moves: the last target's velocity, or the watchdog's ramp.
     setpoint_velocity: AxisValues,
     actual: AxisValues,
-    /// The last accepted target's position: the next one is checked against it.
+    /// The last accepted target's position and velocity: the next one is checked against
+    /// them; and the position accepted before (for the second difference).
     last_accepted: AxisValues,
+    last_velocity: AxisValues,
+    before_last: AxisValues,
+    /// Whether `before_last` is one cycle before `last_accepted` (or both are the hold).
+    second_difference_known: bool,
+    /// 0 after a bridge Hello until a target is accepted (docs/protocol.md 6.3).
     last_seq: u32,
+    bound: bool,
     in_transit: VecDeque<AxisValues>,
     delay_cycles: usize,
     cycles_without_target: u32,
+    accepted_this_cycle: bool,
     status: ControllerStatus,
     smoothing: f64,
-    stale_targets: u64,
+    counters: TwinCounters,
+    /// A fault that latched and has not been announced yet.
+    notice: Option<FaultReport>,
     world: Option<Box<dyn TwinWorld>>,
 }
 
@@ -116,17 +146,24 @@ impl Twin {
         let delay_cycles = (settings.delay_s / settings.period_s).round() as usize;
         Ok(Self {
             limits: rig.joints.iter().map(|j| j.limits).collect(),
+            names: rig.joint_names().map(String::from).collect(),
             settings,
             setpoint: positions,
             setpoint_velocity: AxisValues::zeros(rig.dof()),
             actual: positions,
             last_accepted: positions,
+            last_velocity: AxisValues::zeros(rig.dof()),
+            before_last: positions,
+            second_difference_known: true,
             last_seq: 0,
+            bound: false,
             in_transit: VecDeque::with_capacity(delay_cycles + 2),
             delay_cycles,
             cycles_without_target: 0,
+            accepted_this_cycle: false,
             status: ControllerStatus::Holding,
-            stale_targets: 0,
+            counters: TwinCounters::default(),
+            notice: None,
             world: None,
             smoothing: 1.0
                 - (-std::f64::consts::TAU * settings.bandwidth_hz * settings.period_s).exp(),
@@ -141,7 +178,53 @@ impl Twin {
 
     /// Targets dropped because their seq was not newer than the last accepted one.
     pub fn stale_targets(&self) -> u64 {
-        self.stale_targets
+        self.counters.stale_targets
+    }
+
+    pub fn settings(&self) -> &TwinSettings {
+        &self.settings
+    }
+
+    pub fn counters(&self) -> TwinCounters {
+        self.counters
+    }
+
+    /// The twin's own Hello (docs/protocol.md 3.1): its rig's limits, its cycle and
+    /// watchdog. `answer` marks a Hello sent in answer to a bridge Hello.
+    pub fn hello(&self, answer: bool) -> Hello {
+        Hello {
+            axis_names: self.names.clone(),
+            lower: self.limits.iter().map(|l| l.lower).collect(),
+            upper: self.limits.iter().map(|l| l.upper).collect(),
+            max_speed: self.limits.iter().map(|l| l.max_speed).collect(),
+            max_acceleration: self.limits.iter().map(|l| l.max_acceleration).collect(),
+            cycle_us: (self.settings.period_s * 1e6).round() as u32,
+            watchdog_cycles: self.settings.watchdog_cycles,
+            answer,
+        }
+    }
+
+    /// A bridge Hello arrived: the twin is bound, forgets its sequence tracking and holds
+    /// (docs/protocol.md 6.1).
+    pub fn bridge_hello(&mut self) {
+        self.hold();
+        self.bound = true;
+        self.last_seq = 0;
+    }
+
+    /// The link was lost (or a session ended): hold, and drop targets until a Hello.
+    pub fn link_lost(&mut self) {
+        self.hold();
+        self.bound = false;
+    }
+
+    pub fn is_bound(&self) -> bool {
+        self.bound
+    }
+
+    /// The Fault notice of a fault that latched since the last call (sent once).
+    pub fn take_fault_notice(&mut self) -> Option<FaultReport> {
+        self.notice.take()
     }
 
     pub fn status(&self) -> ControllerStatus {
@@ -157,16 +240,47 @@ impl Twin {
         match command {
             Command::Target(target) => self.accept(target),
             Command::Stop => self.hold(),
-            Command::EStop => {
-                self.setpoint = self.actual;
-                self.setpoint_velocity = AxisValues::zeros(self.actual.len());
-                self.in_transit.clear();
-                self.status = ControllerStatus::Fault(Fault::EStop);
+            Command::EStop => self.estop(),
+            Command::Reset => {
+                self.reset();
             }
             Command::Heartbeat => {}
         }
     }
 
+    fn estop(&mut self) {
+        self.setpoint = self.actual;
+        self.setpoint_velocity = AxisValues::zeros(self.actual.len());
+        self.in_transit.clear();
+        self.latch(Fault::EStop, "e-stop from the bridge");
+    }
+
+    /// Clears a latched fault: every fault of the twin's is caused by a command, so its
+    /// cause is gone once the command is. The twin then holds where it stands, unbound,
+    /// and must announce itself with an unprompted Hello (docs/protocol.md 6.7). True when
+    /// a fault was cleared.
+    pub fn reset(&mut self) -> bool {
+        if !matches!(self.status, ControllerStatus::Fault(_)) {
+            return false;
+        }
+        self.setpoint = self.actual;
+        self.setpoint_velocity = AxisValues::zeros(self.actual.len());
+        self.status = ControllerStatus::Holding;
+        self.notice = None;
+        self.link_lost();
+        true
+    }
+
+    fn latch(&mut self, fault: Fault, text: &str) {
+        self.status = ControllerStatus::Fault(fault);
+        self.notice = Some(FaultReport {
+            fault,
+            text: text.to_string(),
+        });
+    }
+
+    /// Discards queued targets and decelerates to rest from the setpoint's velocity
+    /// (docs/protocol.md 6.5).
     fn hold(&mut self) {
         if !matches!(self.status, ControllerStatus::Fault(_)) {
             self.status = ControllerStatus::Holding;
@@ -176,68 +290,124 @@ impl Twin {
 
     fn accept(&mut self, target: &JointTarget) {
         if matches!(self.status, ControllerStatus::Fault(_)) {
+            self.counters.faulted_targets += 1;
             return;
         }
+        if !self.bound {
+            self.counters.unbound_targets += 1;
+            return;
+        }
+        let first_after_hello = self.last_seq == 0 && self.status == ControllerStatus::Holding;
+        let gap = target.seq.wrapping_sub(self.last_seq);
         // A repeated or older target (a duplicate on the wire) is dropped, not applied twice.
-        if self.status == ControllerStatus::Ok && target.seq <= self.last_seq && self.last_seq != 0
-        {
-            self.stale_targets += 1;
+        if !first_after_hello && (gap == 0 || gap >= 1 << 31) {
+            self.counters.stale_targets += 1;
             return;
         }
-        if let Some(fault) = self.check(target) {
-            self.status = ControllerStatus::Fault(fault);
+        let gap = if first_after_hello { 1 } else { gap };
+        if let Some((fault, text)) = self.check(target, gap) {
             self.in_transit.clear();
             self.setpoint_velocity = AxisValues::zeros(self.actual.len());
+            self.latch(fault, &text);
             return;
         }
+        self.remember(target, gap);
+    }
+
+    fn remember(&mut self, target: &JointTarget, gap: u32) {
+        let holding = self.status == ControllerStatus::Holding;
+        self.before_last = if holding {
+            self.setpoint
+        } else {
+            self.last_accepted
+        };
+        self.second_difference_known = gap == 1;
         self.last_accepted = target.positions;
+        self.last_velocity = target.velocities;
         self.last_seq = target.seq;
         self.cycles_without_target = 0;
+        self.accepted_this_cycle = true;
+        self.counters.accepted_targets += 1;
         self.status = ControllerStatus::Ok;
         self.in_transit.push_back(target.positions);
         // Velocities are for feed-forward; the setpoint moves by the delayed positions.
         self.setpoint_velocity = target.velocities;
     }
 
-    /// A reason to refuse `target`, checked against limits and against the last accepted
-    /// position (or the held position, after a watchdog hold).
-    fn check(&self, target: &JointTarget) -> Option<Fault> {
+    /// A reason to refuse `target` after a seq gap of `gap`, checked against limits and
+    /// against the last accepted target (or the held position, at rest): the checks of
+    /// docs/protocol.md 6.6, in its order.
+    fn check(&self, target: &JointTarget, gap: u32) -> Option<(Fault, String)> {
         if target.positions.len() != self.limits.len()
             || target.velocities.len() != self.limits.len()
         {
-            return Some(Fault::AxisCount {
+            let fault = Fault::AxisCount {
                 expected: self.limits.len() as u8,
                 got: target.positions.len() as u8,
-            });
+            };
+            return Some((
+                fault,
+                format!("{} axes in a target", target.positions.len()),
+            ));
         }
-        let (reference, elapsed_cycles) = if self.status == ControllerStatus::Holding {
-            (self.setpoint, 1)
-        } else {
-            // A target after a gap of d seqs may have travelled d cycles (docs/protocol.md 6.3).
-            let gap = target
-                .seq
-                .wrapping_sub(self.last_seq)
-                .clamp(1, self.settings.watchdog_cycles.max(1));
-            (self.last_accepted, gap)
+        let holding = self.status == ControllerStatus::Holding;
+        let reference = References {
+            position: if holding {
+                self.setpoint
+            } else {
+                self.last_accepted
+            },
+            velocity: if holding {
+                AxisValues::zeros(self.limits.len())
+            } else {
+                self.last_velocity
+            },
+            before: if holding {
+                self.setpoint
+            } else {
+                self.before_last
+            },
+            second_difference: gap == 1 && (holding || self.second_difference_known),
         };
-        for (axis, limits) in self.limits.iter().enumerate() {
-            let value = target.positions.as_slice()[axis];
-            if !value.is_finite() || !limits.contains(value) {
-                return Some(Fault::OutsideLimits { axis: axis as u8 });
-            }
-            let step = (value - reference.as_slice()[axis]).abs();
-            let velocity = target.velocities.as_slice()[axis];
-            let max_step = limits.max_speed
-                * self.settings.period_s
-                * f64::from(elapsed_cycles)
-                * (1.0 + SPEED_SLACK)
-                + WIRE_ROUNDING;
-            if step > max_step
-                || !velocity.is_finite()
-                || velocity.abs() > limits.max_speed * (1.0 + SPEED_SLACK)
-            {
-                return Some(Fault::OverSpeed { axis: axis as u8 });
-            }
+        let cycles = f64::from(gap.min(self.settings.watchdog_cycles.max(1)));
+        (0..self.limits.len()).find_map(|axis| self.check_axis(target, axis, &reference, cycles))
+    }
+
+    fn check_axis(
+        &self,
+        target: &JointTarget,
+        axis: usize,
+        reference: &References,
+        cycles: f64,
+    ) -> Option<(Fault, String)> {
+        let limits = &self.limits[axis];
+        let dt = self.settings.period_s;
+        let name = &self.names[axis];
+        let index = axis as u8;
+        let value = target.positions.as_slice()[axis];
+        let velocity = target.velocities.as_slice()[axis];
+        if !value.is_finite() || !limits.contains(value) {
+            let text = format!("{name} target {value:.6} outside its limits");
+            return Some((Fault::OutsideLimits { axis: index }, text));
+        }
+        let step = (value - reference.position.as_slice()[axis]).abs();
+        let max_step = limits.max_speed * dt * cycles * (1.0 + LIMIT_SLACK) + WIRE_ROUNDING;
+        if !velocity.is_finite() || !limits.speed_ok(velocity) || step > max_step {
+            let text = format!("{name} step {step:.6} or velocity {velocity:.6} over speed");
+            return Some((Fault::OverSpeed { axis: index }, text));
+        }
+        let change = (velocity - reference.velocity.as_slice()[axis]).abs();
+        let max_change =
+            limits.max_acceleration * dt * cycles * (1.0 + LIMIT_SLACK) + WIRE_ROUNDING;
+        let second =
+            value - 2.0 * reference.position.as_slice()[axis] + reference.before.as_slice()[axis];
+        let max_second = limits.max_acceleration * dt * dt * (1.0 + LIMIT_SLACK)
+            + WIRE_ROUNDING_SECOND_DIFFERENCE;
+        if change > max_change || (reference.second_difference && second.abs() > max_second) {
+            let text = format!(
+                "{name} velocity change {change:.6} or second difference {second:.7} over acceleration"
+            );
+            return Some((Fault::OverAcceleration { axis: index }, text));
         }
         None
     }
@@ -245,11 +415,17 @@ impl Twin {
     /// Advances one cycle and reports.
     pub fn tick(&mut self) -> Feedback {
         if self.status == ControllerStatus::Ok {
-            self.cycles_without_target += 1;
-            if self.cycles_without_target > self.settings.watchdog_cycles {
-                self.hold();
+            if std::mem::take(&mut self.accepted_this_cycle) {
+                self.cycles_without_target = 0;
+            } else {
+                // The w-th cycle in a row without a target holds (docs/protocol.md 6.5).
+                self.cycles_without_target += 1;
+                if self.cycles_without_target >= self.settings.watchdog_cycles {
+                    self.hold();
+                }
             }
         }
+        self.accepted_this_cycle = false;
         if self.in_transit.len() > self.delay_cycles {
             if let Some(next) = self.in_transit.pop_front() {
                 self.setpoint = next;
@@ -296,6 +472,15 @@ impl Twin {
             *position = (*position + *velocity * dt).clamp(limits.lower, limits.upper);
         }
     }
+}
+
+/// What a target is checked against (docs/protocol.md 6.6).
+struct References {
+    position: AxisValues,
+    velocity: AxisValues,
+    before: AxisValues,
+    /// Whether the second difference applies (in-order target after an in-order one).
+    second_difference: bool,
 }
 
 fn check_setting(name: &'static str, value: f64, ok: bool) -> Result<(), TwinError> {

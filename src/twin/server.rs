@@ -1,31 +1,30 @@
-//! The twin as a separate process: the controller side of the wire protocol over a byte
-//! transport (TCP server, serial port or pty). Each cycle it reads whatever arrived,
-//! applies the commands, advances the twin and answers with feedback. When the link is
-//! lost it holds at once (the watchdog covers transports without a connection notion).
+//! The twin as a separate process: the controller side of protocol version 2
+//! (`docs/protocol.md`) over a byte transport (TCP server, serial port or pty, CAN through
+//! `can_port`). It owns the session rules: it answers every bridge Hello with its own,
+//! sends Feedback every cycle from then on, binds the twin only on a bridge Hello, sends
+//! one Fault notice when a fault latches, treats `watchdog` cycles of silence as link loss
+//! (and closes a connection silent for [`IDLE_CLOSE`]), and serves one bridge at a time.
 //! It prints one line per event (connected, lost, holding, fault) for people and tests.
+//! It must not judge targets itself: that is the [`Twin`]'s.
 
 use super::Twin;
 use crate::clock::Clock;
-use crate::protocol::codec::{FrameDecoder, Hello, Message, encode_frame};
-use crate::protocol::{Command, ControllerStatus};
+use crate::protocol::codec::{FaultReport, FrameDecoder, Message, encode_frame};
+use crate::protocol::{Command, ControllerStatus, Fault};
 use std::io::{ErrorKind, Read, Write};
+use std::os::fd::AsRawFd;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 /// How often a port without a peer looks for one.
 pub const DETACHED_POLL: Duration = Duration::from_millis(1);
-
-/// The Hello a twin of `rig` sends each new peer.
-pub fn hello_for_rig(rig: &crate::rig::Rig, period_s: f64, watchdog_cycles: u32) -> Hello {
-    Hello {
-        axis_names: rig.joint_names().map(String::from).collect(),
-        lower: rig.joints.iter().map(|j| j.limits.lower).collect(),
-        upper: rig.joints.iter().map(|j| j.limits.upper).collect(),
-        max_speed: rig.joints.iter().map(|j| j.limits.max_speed).collect(),
-        cycle_us: (period_s * 1e6).round() as u32,
-        watchdog_cycles,
-    }
-}
+/// A connection that has sent no valid frame for this long is closed, so that a bridge
+/// that vanished without closing (or a client that never speaks) frees the twin for the
+/// next one. Far above any watchdog, which already made the twin hold.
+pub const IDLE_CLOSE: Duration = Duration::from_secs(1);
+/// A write that cannot complete within this long means the peer stopped reading: the twin
+/// drops it rather than blocking its cycle.
+pub const WRITE_TIMEOUT: Duration = Duration::from_millis(20);
 
 /// A byte transport seen from the controller: non-blocking reads, whole-frame writes.
 pub trait ControllerPort {
@@ -35,38 +34,91 @@ pub trait ControllerPort {
     /// Waits up to `timeout` for bytes; Ok(0) when none came. Err when the link broke.
     fn read_within(&mut self, buffer: &mut [u8], timeout: Duration) -> std::io::Result<usize>;
     fn write_frame(&mut self, frame: &[u8]) -> std::io::Result<()>;
-    /// Forget the peer after a failure.
+    /// Forget the peer after a failure (closes a connection).
     fn detach(&mut self);
     fn describe(&self) -> String;
+    /// Whether `detach` ends the transport for the peer (a TCP connection), so that
+    /// closing an idle peer makes sense.
+    fn has_connections(&self) -> bool {
+        false
+    }
 }
 
-/// TCP: one client at a time; a new client replaces a lost one.
+/// Waits until `fd` is readable or `timeout` passes, with the precision of the kernel's
+/// high-resolution timers (ppoll). Socket receive timeouts are rounded up to whole
+/// scheduler ticks (4 ms here), which would make a 4 ms cycle run at 125 Hz.
+pub fn wait_readable(fd: &impl AsRawFd, timeout: Duration) -> std::io::Result<bool> {
+    let mut poll = libc::pollfd {
+        fd: fd.as_raw_fd(),
+        events: libc::POLLIN,
+        revents: 0,
+    };
+    let spec = libc::timespec {
+        tv_sec: timeout.as_secs() as libc::time_t,
+        tv_nsec: libc::c_long::from(timeout.subsec_nanos() as i32),
+    };
+    // SAFETY: one valid pollfd for the call's duration, a valid timespec, no signal mask.
+    let ready = unsafe { libc::ppoll(&mut poll, 1, &spec, std::ptr::null()) };
+    match ready {
+        -1 => {
+            let error = std::io::Error::last_os_error();
+            if error.kind() == ErrorKind::Interrupted {
+                Ok(false)
+            } else {
+                Err(error)
+            }
+        }
+        0 => Ok(false),
+        _ => Ok(true),
+    }
+}
+
+/// TCP: one bridge at a time. A second one gets a Fault notice (busy) and is closed; a new
+/// client replaces a lost one.
 pub struct TcpPort {
     listener: std::net::TcpListener,
     client: Option<std::net::TcpStream>,
+    busy_frame: Vec<u8>,
 }
 
 impl TcpPort {
     pub fn bind(address: &str) -> std::io::Result<Self> {
         let listener = std::net::TcpListener::bind(address)?;
         listener.set_nonblocking(true)?;
+        let mut busy_frame = vec![0];
+        let busy = Message::Fault(FaultReport {
+            fault: Fault::Busy,
+            text: "busy: another bridge is connected".into(),
+        });
+        encode_frame(&busy, &mut busy_frame).map_err(std::io::Error::other)?;
         Ok(Self {
             listener,
             client: None,
+            busy_frame,
         })
     }
 
     pub fn local_address(&self) -> std::io::Result<std::net::SocketAddr> {
         self.listener.local_addr()
     }
+
+    /// Tells a newcomer the twin is busy and closes it; never blocks.
+    fn refuse(&self, mut stream: std::net::TcpStream) {
+        let _ = stream.set_nonblocking(true);
+        let _ = stream.write(&self.busy_frame);
+        let _ = stream.shutdown(std::net::Shutdown::Both);
+    }
 }
 
 impl ControllerPort for TcpPort {
     fn attached(&mut self) -> bool {
-        if self.client.is_none()
-            && let Ok((stream, _)) = self.listener.accept()
-        {
+        while let Ok((stream, _)) = self.listener.accept() {
+            if self.client.is_some() {
+                self.refuse(stream);
+                continue;
+            }
             let _ = stream.set_nodelay(true);
+            let _ = stream.set_write_timeout(Some(WRITE_TIMEOUT));
             self.client = Some(stream);
         }
         self.client.is_some()
@@ -77,41 +129,41 @@ impl ControllerPort for TcpPort {
             std::thread::sleep(timeout.min(DETACHED_POLL));
             return Ok(0);
         };
-        client.set_read_timeout(Some(timeout.max(Duration::from_micros(1))))?;
+        if !wait_readable(client, timeout)? {
+            return Ok(0);
+        }
         match client.read(buffer) {
             Ok(0) => Err(std::io::Error::new(
                 ErrorKind::UnexpectedEof,
                 "peer closed the connection",
             )),
             Ok(n) => Ok(n),
-            Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => Ok(0),
+            Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::Interrupted) => Ok(0),
             Err(e) => Err(e),
         }
     }
 
     fn write_frame(&mut self, frame: &[u8]) -> std::io::Result<()> {
-        let Some(client) = &mut self.client else {
-            return Ok(());
-        };
-        // A frame that does not fit the socket buffer means the peer stopped reading.
-        match client.write(frame) {
-            Ok(n) if n == frame.len() => Ok(()),
-            Ok(_) => Err(std::io::Error::new(
-                ErrorKind::WriteZero,
-                "peer stopped reading",
-            )),
-            Err(e) => Err(e),
+        match &mut self.client {
+            Some(client) => client.write_all(frame),
+            None => Ok(()),
         }
     }
 
     fn detach(&mut self) {
-        self.client = None;
+        if let Some(client) = self.client.take() {
+            let _ = client.shutdown(std::net::Shutdown::Both);
+        }
     }
 
     fn describe(&self) -> String {
         self.listener
             .local_addr()
             .map_or_else(|_| "tcp".into(), |a| format!("tcp://{a}"))
+    }
+
+    fn has_connections(&self) -> bool {
+        true
     }
 }
 
@@ -124,48 +176,46 @@ pub struct TwinServeCounters {
     pub malformed: u64,
     pub connections: u64,
     pub link_losses: u64,
+    pub hellos: u64,
+    pub unbound_targets: u64,
 }
 
-/// Runs the controller loop until `stop` is set. `hello` is sent to each new peer.
+/// Runs the controller loop until `stop` is set.
 ///
-/// The twin advances one cycle per target, as soon as the target arrives, and answers at
+/// The twin advances one cycle per accepted target, as soon as it arrives, and answers at
 /// once: command-to-feedback latency is the transport's, not up to a cycle more. Without
-/// targets it still advances every `period` (1.5 periods after the last target), so the
-/// watchdog and holds run on time.
+/// targets it still advances every `period` on its own clock (1.5 periods after the last
+/// target), so the watchdog and holds run on time and Feedback keeps coming.
 pub fn serve_twin(
     twin: &mut Twin,
     port: &mut dyn ControllerPort,
-    hello: &Hello,
     period: Duration,
     clock: &dyn Clock,
     stop: &AtomicBool,
     mut say: impl FnMut(&str),
 ) -> TwinServeCounters {
-    let mut session = Session {
-        counters: TwinServeCounters::default(),
-        decoder: FrameDecoder::default(),
-        frame: Vec::with_capacity(1024),
-        attached: false,
-        last_status: twin.status(),
-    };
+    let mut session = Session::new(twin.status(), period);
     let mut buffer = [0u8; 4096];
     let mut next_tick = clock.now() + period;
     while !stop.load(Ordering::SeqCst) {
-        session.attach(port, hello, &mut say);
+        session.attach(twin, port, clock.now(), &mut say);
         let wait = next_tick.saturating_sub(clock.now()).min(period);
         match port.read_within(&mut buffer, wait) {
             Ok(n) => session.decoder.push(&buffer[..n]),
             Err(e) => session.lose(twin, port, &mut say, &e.to_string()),
         }
-        let targeted = session.attached && session.apply(twin, port, &mut say);
         let now = clock.now();
+        let targeted = session.attached && session.apply(twin, port, now, &mut say);
         if targeted {
             next_tick = now + period + period / 2;
         } else if now >= next_tick {
             session.tick(twin, port, &mut say);
-            next_tick += period;
+            session.check_silence(twin, port, now, &mut say);
+            // Keep to the cycle's grid; after a long stall start afresh rather than race.
+            next_tick = (next_tick + period).max(now);
         }
     }
+    session.counters.unbound_targets = twin.counters().unbound_targets;
     session.counters
 }
 
@@ -174,46 +224,93 @@ struct Session {
     decoder: FrameDecoder,
     frame: Vec<u8>,
     attached: bool,
+    /// Whether this connection has had a Hello from the twin: Feedback flows only then.
+    greeted: bool,
+    /// Whether the silence of `watchdog` cycles already counted as link loss.
+    silent: bool,
+    last_heard: Duration,
+    period: Duration,
     last_status: ControllerStatus,
 }
 
 impl Session {
-    fn attach(&mut self, port: &mut dyn ControllerPort, hello: &Hello, say: &mut impl FnMut(&str)) {
+    fn new(status: ControllerStatus, period: Duration) -> Self {
+        Self {
+            counters: TwinServeCounters::default(),
+            decoder: FrameDecoder::default(),
+            frame: Vec::with_capacity(1024),
+            attached: false,
+            greeted: false,
+            silent: false,
+            last_heard: Duration::ZERO,
+            period,
+            last_status: status,
+        }
+    }
+
+    fn attach(
+        &mut self,
+        twin: &mut Twin,
+        port: &mut dyn ControllerPort,
+        now: Duration,
+        say: &mut impl FnMut(&str),
+    ) {
         let attached = port.attached();
         if attached && !self.attached {
             self.counters.connections += 1;
             self.decoder = FrameDecoder::default();
+            self.greeted = false;
+            self.silent = false;
+            self.last_heard = now;
+            twin.link_lost();
             say(&format!("connected at cycle {}", self.counters.cycles));
-            self.frame.clear();
-            if encode_frame(&Message::Hello(hello.clone()), &mut self.frame).is_ok()
-                && port.write_frame(&self.frame).is_err()
-            {
+            // A sender sends one 0x00 when the link opens (docs/protocol.md 2.3).
+            if port.write_frame(&[0]).is_err() {
                 port.detach();
-                self.attached = false;
                 return;
             }
         }
         self.attached = attached;
     }
 
-    /// Hands every decoded command to the twin; each target is one cycle, answered at once
-    /// (two targets that arrive together are still two cycles, two answers). True when one
-    /// was a target.
+    fn send(&mut self, port: &mut dyn ControllerPort, message: &Message) -> bool {
+        self.frame.clear();
+        encode_frame(message, &mut self.frame).is_ok() && port.write_frame(&self.frame).is_ok()
+    }
+
+    /// Hands every decoded message to the twin; each accepted target is one cycle,
+    /// answered at once (two targets that arrive together are still two cycles, two
+    /// answers). True when one was a target.
     fn apply(
         &mut self,
         twin: &mut Twin,
         port: &mut dyn ControllerPort,
+        now: Duration,
         say: &mut impl FnMut(&str),
     ) -> bool {
         let mut targeted = false;
         while let Some(message) = self.decoder.next_message() {
             self.counters.frames_received += 1;
-            if let Message::Command(command) = message {
-                twin.handle(&command);
-                if matches!(command, Command::Target(_)) {
-                    targeted = true;
-                    self.tick(twin, port, say);
+            self.last_heard = now;
+            self.silent = false;
+            match message {
+                Message::Hello(hello) if !hello.answer => {
+                    self.counters.hellos += 1;
+                    twin.bridge_hello();
+                    self.greeted = self.send(port, &Message::Hello(twin.hello(true)));
                 }
+                Message::Command(Command::Reset) => self.reset(twin, port, say),
+                Message::Command(command) => {
+                    twin.handle(&command);
+                    self.announce_fault(twin, port);
+                    if matches!(command, Command::Target(_)) {
+                        targeted = true;
+                        self.tick(twin, port, say);
+                    }
+                }
+                // Feedback, Fault or an answer Hello from the bridge's side: ignored
+                // (docs/protocol.md 3).
+                _ => {}
             }
         }
         let decoded = self.decoder.counters();
@@ -222,16 +319,31 @@ impl Session {
         targeted
     }
 
+    /// docs/protocol.md 6.7: a cleared fault is announced by an unprompted Hello; one that
+    /// cannot be cleared is repeated in a Fault notice. Without a fault, nothing.
+    fn reset(
+        &mut self,
+        twin: &mut Twin,
+        port: &mut dyn ControllerPort,
+        say: &mut impl FnMut(&str),
+    ) {
+        if twin.reset() {
+            say(&format!("reset at cycle {}", self.counters.cycles));
+            self.greeted = self.send(port, &Message::Hello(twin.hello(false)));
+        }
+    }
+
+    fn announce_fault(&mut self, twin: &mut Twin, port: &mut dyn ControllerPort) {
+        if let Some(notice) = twin.take_fault_notice() {
+            self.send(port, &Message::Fault(notice));
+        }
+    }
+
     fn tick(&mut self, twin: &mut Twin, port: &mut dyn ControllerPort, say: &mut impl FnMut(&str)) {
         self.counters.cycles += 1;
         let feedback = twin.tick();
-        if self.attached {
-            self.frame.clear();
-            let sent = encode_frame(&Message::Feedback(feedback), &mut self.frame).is_ok()
-                && port.write_frame(&self.frame).is_ok();
-            if !sent {
-                self.lose(twin, port, say, "write failed");
-            }
+        if self.attached && self.greeted && !self.send(port, &Message::Feedback(feedback)) {
+            self.lose(twin, port, say, "write failed");
         }
         if feedback.status != self.last_status {
             say(&format!(
@@ -243,6 +355,34 @@ impl Session {
         }
     }
 
+    /// `watchdog` cycles without a valid frame are link loss (hold, unbound); a
+    /// connection silent for [`IDLE_CLOSE`] is closed.
+    fn check_silence(
+        &mut self,
+        twin: &mut Twin,
+        port: &mut dyn ControllerPort,
+        now: Duration,
+        say: &mut impl FnMut(&str),
+    ) {
+        if !self.attached {
+            return;
+        }
+        let quiet = now.saturating_sub(self.last_heard);
+        let watchdog = self.period * twin.settings().watchdog_cycles.max(1);
+        if !self.silent && quiet >= watchdog {
+            self.silent = true;
+            twin.link_lost();
+            say(&format!(
+                "silent for {} ms at cycle {}: holding",
+                quiet.as_millis(),
+                self.counters.cycles
+            ));
+        }
+        if port.has_connections() && quiet >= IDLE_CLOSE {
+            self.lose(twin, port, say, "idle connection closed");
+        }
+    }
+
     fn lose(
         &mut self,
         twin: &mut Twin,
@@ -250,9 +390,10 @@ impl Session {
         say: &mut impl FnMut(&str),
         why: &str,
     ) {
-        twin.handle(&Command::Stop);
+        twin.link_lost();
         port.detach();
         self.attached = false;
+        self.greeted = false;
         self.counters.link_losses += 1;
         say(&format!(
             "link lost at cycle {} ({why}): holding",
@@ -265,6 +406,6 @@ fn status_name(status: ControllerStatus) -> String {
     match status {
         ControllerStatus::Ok => "ok".into(),
         ControllerStatus::Holding => "holding".into(),
-        ControllerStatus::Fault(fault) => format!("fault {fault:?}"),
+        ControllerStatus::Fault(fault) => format!("fault {fault}"),
     }
 }

@@ -393,7 +393,7 @@ impl Cell {
             let _ = planned.send(Err("twin lock poisoned".into()));
             return Err(DaemonError::Unavailable("twin lock poisoned".into()));
         };
-        let plan = plan_for(&self.settings, job, &mut *link);
+        let plan = plan_for(&self.settings, job, &mut *link, clock, control);
         let _ = planned.send(plan.as_ref().map(|_| ()).map_err(|e| error_chain(e)));
         let plan = plan?;
         let (scene, world) = scene_for_job(&self.settings, job);

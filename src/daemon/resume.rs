@@ -1,0 +1,289 @@
+//! Starting and resuming from where the arm holds (`docs/protocol.md` 6.8): before a job
+//! and after a link loss, a stall or a controller restart, the bridge sends nothing it
+//! planned before. It waits for a session, asks the controller to hold, waits until the
+//! arm is at rest, reads that position, plans a move from it to where the job was
+//! interrupted and streams the rest from standstill. Stop and e-stop are honoured at every
+//! point of the wait. Owns this choreography only: the cycle is `stream`'s, the plan
+//! `trajectory`'s.
+
+use super::config::RunSettings;
+use super::{DaemonError, plan_settings, stream_settings};
+use crate::clock::Clock;
+use crate::link::{Link, LinkEvent};
+use crate::log::Recorder;
+use crate::protocol::{Command, ControllerStatus, Feedback};
+use crate::stream::{
+    CycleSink, Outcome, StreamControl, StreamReport, StreamSettings, check_controller, fault_text,
+    stream,
+};
+use crate::trajectory::Trajectory;
+use std::time::Duration;
+
+/// How long a job waits at its start for the controller to hold at rest.
+pub const START_HOLD_TIMEOUT: Duration = Duration::from_secs(2);
+/// The arm counts as at rest when two feedbacks in a row differ by at most this share of
+/// `a_max T^2` on every axis: the first target after a hold must lie within `a_max T^2`
+/// of the held position (docs/protocol.md 6.6), and a settling servo is that close then.
+const AT_REST_SHARE: f64 = 0.1;
+
+/// How the wait for a hold ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Hold {
+    /// The controller holds at rest here.
+    At(Vec<f64>),
+    Stopped,
+    EStopped,
+    Faulted(String),
+    TimedOut(String),
+}
+
+/// Waits up to `timeout` for a session and a controller that holds at rest, sending Stop
+/// once per session and Heartbeats otherwise (one a cycle).
+pub fn wait_for_hold(
+    settings: &RunSettings,
+    link: &mut dyn Link,
+    clock: &dyn Clock,
+    control: &StreamControl,
+    timeout: Duration,
+) -> Result<Hold, DaemonError> {
+    let period = Duration::from_secs_f64(settings.period_s());
+    let deadline = clock.now() + timeout;
+    let mut stopped_session = None;
+    let mut previous: Option<Feedback> = None;
+    loop {
+        if let Some(end) = requested_end(link, control)? {
+            return Ok(end);
+        }
+        if clock.now() >= deadline {
+            return Ok(Hold::TimedOut(format!(
+                "{} did not hold at rest within {:.1} s",
+                link.describe(),
+                timeout.as_secs_f64()
+            )));
+        }
+        let next = clock.now() + period;
+        if !link.is_up() {
+            previous = None;
+            clock.sleep_until(next);
+            continue;
+        }
+        while let Some(event) = link.next_event() {
+            match event {
+                LinkEvent::Fault(report) => {
+                    return Ok(Hold::Faulted(fault_text(&report.fault, &report.text)));
+                }
+                _ => previous = None,
+            }
+        }
+        let command = if stopped_session == Some(link.sessions()) {
+            Command::Heartbeat
+        } else {
+            stopped_session = Some(link.sessions());
+            Command::Stop
+        };
+        link.send(&command)?;
+        if let Some(feedback) = link.receive(period)? {
+            if let ControllerStatus::Fault(fault) = feedback.status {
+                return Ok(Hold::Faulted(format!("controller fault: {fault}")));
+            }
+            if previous.is_some_and(|p| at_rest(settings, &p, &feedback)) {
+                return Ok(Hold::At(feedback.positions.as_slice().to_vec()));
+            }
+            previous = Some(feedback);
+        }
+        clock.sleep_until(next);
+    }
+}
+
+/// A stop or e-stop asked for while waiting. An e-stop goes out as soon as the link is up.
+fn requested_end(
+    link: &mut dyn Link,
+    control: &StreamControl,
+) -> Result<Option<Hold>, DaemonError> {
+    if control.is_estopped() {
+        if link.is_up() {
+            link.send(&Command::EStop)?;
+            return Ok(Some(Hold::EStopped));
+        }
+        return Ok(None);
+    }
+    if control.is_stopping() {
+        if link.is_up() {
+            link.send(&Command::Stop)?;
+        }
+        return Ok(Some(Hold::Stopped));
+    }
+    Ok(None)
+}
+
+fn at_rest(settings: &RunSettings, before: &Feedback, now: &Feedback) -> bool {
+    now.status == ControllerStatus::Holding
+        && before.status == ControllerStatus::Holding
+        && settings
+            .rig
+            .joints
+            .iter()
+            .zip(before.positions.as_slice())
+            .zip(now.positions.as_slice())
+            .all(|((joint, a), b)| {
+                let dt = settings.period_s();
+                (a - b).abs() <= AT_REST_SHARE * joint.limits.max_acceleration * dt * dt
+            })
+}
+
+/// The report of a stream that ended while waiting for a hold.
+fn ended_waiting(mut report: StreamReport, hold: Hold) -> StreamReport {
+    let (outcome, fault) = match hold {
+        Hold::At(_) => return report,
+        Hold::Stopped => (Outcome::Stopped, None),
+        Hold::EStopped => (Outcome::EStopped, None),
+        Hold::Faulted(text) => (Outcome::Faulted, Some(text)),
+        Hold::TimedOut(text) => (report.outcome, Some(text)),
+    };
+    report.outcome = outcome;
+    if fault.is_some() {
+        report.fault = fault;
+    }
+    report
+}
+
+/// Everything a stream needs besides its trajectory and settings.
+pub struct Streaming<'a> {
+    pub settings: &'a RunSettings,
+    pub link: &'a mut dyn Link,
+    pub clock: &'a dyn Clock,
+    pub sink: &'a mut dyn CycleSink,
+    pub control: &'a StreamControl,
+    pub events: Option<&'a Recorder>,
+}
+
+impl Streaming<'_> {
+    fn run(&mut self, trajectory: &Trajectory, settings: &StreamSettings) -> StreamReport {
+        let result = stream(
+            trajectory,
+            &self.settings.rig,
+            self.link,
+            self.clock,
+            self.sink,
+            self.control,
+            settings,
+        );
+        result.unwrap_or_else(|error| {
+            StreamReport::without_motion(
+                Outcome::Refused,
+                super::error_chain(&error),
+                self.link.describe(),
+                self.link.counters(),
+            )
+        })
+    }
+
+    fn event(&self, t: f64, name: &str, detail: serde_json::Value) {
+        if let Some(recorder) = self.events {
+            recorder.event(t, name, detail);
+        }
+    }
+}
+
+/// Streams `trajectory`; after a link loss or a stall, waits (up to the configured
+/// reconnect timeout) for the controller to hold at rest, moves the arm from there to
+/// where the job was interrupted and resumes from standstill: never a jump to a stale
+/// target. Always returns a report.
+pub fn stream_resuming(mut io: Streaming<'_>, trajectory: &Trajectory) -> StreamReport {
+    let mut streaming = stream_settings(io.settings);
+    let mut report = io.run(trajectory, &streaming);
+    let mut remaining = trajectory.tail(report.samples_done);
+    while matches!(report.outcome, Outcome::LinkLost | Outcome::Stalled) {
+        let t = report.duration_s;
+        streaming.first_seq = streaming.first_seq.wrapping_add(report.cycles as u32);
+        io.event(
+            t,
+            "interrupted",
+            serde_json::json!({ "outcome": report.outcome, "at_sample": report.samples_done }),
+        );
+        let (part, approached) =
+            match resume_once(&mut io, &remaining, &mut streaming, trajectory, &report) {
+                Resumed::Ended(report) => return report,
+                Resumed::Approach(part, approached) => (part, approached),
+            };
+        report = part;
+        if !approached {
+            continue;
+        }
+        let rest = StreamSettings {
+            start_scale: 0.0,
+            ..streaming
+        };
+        let part = io.run(&remaining, &rest);
+        streaming.first_seq = streaming.first_seq.wrapping_add(part.cycles as u32);
+        remaining = remaining.tail(part.samples_done);
+        report = report.merge(part);
+    }
+    report
+}
+
+/// How one resumption went.
+enum Resumed {
+    /// The job ends here, with this report.
+    Ended(StreamReport),
+    /// The approach to the path was streamed (merged report; whether it completed).
+    Approach(StreamReport, bool),
+}
+
+/// One resumption: the wait for a hold, then the approach to where the job stopped.
+fn resume_once(
+    io: &mut Streaming<'_>,
+    remaining: &Trajectory,
+    streaming: &mut StreamSettings,
+    whole: &Trajectory,
+    report: &StreamReport,
+) -> Resumed {
+    let timeout = Duration::from_secs_f64(io.settings.config.stream.reconnect_timeout_s);
+    let hold = match wait_for_hold(io.settings, io.link, io.clock, io.control, timeout) {
+        Ok(hold) => hold,
+        Err(error) => Hold::TimedOut(super::error_chain(&error)),
+    };
+    let Hold::At(actual) = hold else {
+        let mut ended = ended_waiting(report.clone(), hold);
+        if ended.outcome == report.outcome {
+            ended.fault = Some(format!(
+                "{}: job aborted {:.0} % of the way",
+                ended.fault.unwrap_or_default(),
+                100.0 * report.samples_done as f64 / whole.len().max(1) as f64
+            ));
+        }
+        return Resumed::Ended(ended);
+    };
+    if let Some(hello) = io.link.controller_hello()
+        && let Err(error) = check_controller(&hello, &io.settings.rig, io.settings.period_s())
+    {
+        let mut ended = report.clone();
+        ended.outcome = Outcome::Refused;
+        ended.fault = Some(format!("the controller no longer admits this job: {error}"));
+        return Resumed::Ended(ended);
+    }
+    let resume_at = remaining.position(0).to_vec();
+    io.event(
+        report.duration_s,
+        "resumed",
+        serde_json::json!({ "actual": actual, "resume_at": resume_at }),
+    );
+    let approach = match crate::trajectory::plan_joint_moves(
+        &io.settings.rig,
+        &actual,
+        &[resume_at],
+        &plan_settings(io.settings),
+    ) {
+        Ok(approach) => approach,
+        Err(error) => {
+            let mut ended = report.clone();
+            ended.outcome = Outcome::Refused;
+            ended.fault = Some(format!("cannot plan the way back to the path: {error}"));
+            return Resumed::Ended(ended);
+        }
+    };
+    let part = io.run(&approach, streaming);
+    streaming.first_seq = streaming.first_seq.wrapping_add(part.cycles as u32);
+    let approached = part.outcome == Outcome::Completed;
+    Resumed::Approach(report.clone().merge(part), approached)
+}
