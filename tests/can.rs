@@ -428,13 +428,14 @@ fn an_fd_link_refuses_a_classic_interface_and_a_missing_one_says_why() {
         return skip(&why);
     }
     let mapping = CanMapping::new(0x100, true, CanSender::Bridge).unwrap();
-    match rigbridge::link::connect_can("vcan3", mapping) {
+    match rigbridge::link::connect_can("vcan3", mapping, irb_hello()) {
         Ok(_) => panic!("an FD link opened on a classic interface"),
         Err(e) => assert!(e.to_string().contains("mtu 72"), "{e}"),
     }
     match rigbridge::link::connect_can(
         "vcan-nope",
         CanMapping::new(0x100, false, CanSender::Bridge).unwrap(),
+        irb_hello(),
     ) {
         Ok(_) => panic!("a link opened on a missing interface"),
         Err(e) => assert!(e.to_string().contains("vcan-nope"), "{e}"),
@@ -468,7 +469,7 @@ fn without_socketcan_the_twin_and_the_link_say_so() {
         return;
     }
     let mapping = CanMapping::new(0x100, false, CanSender::Bridge).unwrap();
-    let Err(error) = rigbridge::link::connect_can("vcan0", mapping) else {
+    let Err(error) = rigbridge::link::connect_can("vcan0", mapping, irb_hello()) else {
         panic!("a CAN link opened without SocketCAN");
     };
     assert!(error.to_string().contains("can://vcan0"), "{error}");
@@ -535,4 +536,9 @@ fn an_interface_down_mid_job_holds_the_twin_and_the_job_resumes() {
         }
         previous = command.positions.clone();
     }
+}
+
+/// The bridge's Hello for the IRB 120 at 250 Hz.
+fn irb_hello() -> rigbridge::protocol::Hello {
+    rigbridge::link::bridge_hello(&common::irb120(), 0.004, 25)
 }

@@ -102,8 +102,12 @@ fn hello6() -> Message {
             .to_vec(),
         upper: [165.0, 110.0, 70.0, 160.0, 120.0, 400.0].map(deg).to_vec(),
         max_speed: [250.0, 250.0, 250.0, 320.0, 320.0, 420.0].map(deg).to_vec(),
+        max_acceleration: [1000.0, 1000.0, 1000.0, 1280.0, 1280.0, 1680.0]
+            .map(deg)
+            .to_vec(),
         cycle_us: 4000,
         watchdog_cycles: 25,
+        answer: true,
     })
 }
 
@@ -167,7 +171,7 @@ fn hex_lines(bytes: &[u8]) -> String {
 fn annotated(message: &Message) -> String {
     let bytes = body(message);
     let mut fields: Vec<(usize, String)> = vec![
-        (1, "version 1".to_string()),
+        (1, "version 2".to_string()),
         (
             1,
             format!("type 0x{:02x} {}", bytes[1], type_name(bytes[1])),
@@ -204,21 +208,30 @@ fn annotated(message: &Message) -> String {
             }
             for i in 0..h.axis_names.len() {
                 fields.push((
-                    12,
+                    8,
                     format!(
-                        "axis {}: lower {}, upper {} urad, max speed {} urad/s",
+                        "axis {}: lower {}, upper {} urad",
                         i + 1,
                         micro(h.lower[i]),
                         micro(h.upper[i]),
-                        micro(h.max_speed[i])
+                    ),
+                ));
+                fields.push((
+                    8,
+                    format!(
+                        "  max speed {} urad/s, max accel {} urad/s2",
+                        micro(h.max_speed[i]),
+                        micro(h.max_acceleration[i])
                     ),
                 ));
             }
             fields.push((4, format!("cycle = {} us", h.cycle_us)));
             fields.push((4, format!("watchdog = {} cycles", h.watchdog_cycles)));
+            let flags = if h.answer { "1 (an answer)" } else { "0" };
+            fields.push((1, format!("flags = {flags}")));
         }
         Message::Fault(r) => {
-            fields.push((3, format!("{:?}", r.fault)));
+            fields.push((3, format!("{}", r.fault)));
             fields.push((
                 1 + r.text.len(),
                 format!("text: length {}, {:?}", r.text.len(), r.text),
@@ -254,6 +267,7 @@ fn type_name(code: u8) -> &'static str {
         0x04 => "EStop",
         0x05 => "Heartbeat",
         0x06 => "Feedback",
+        0x08 => "Reset",
         _ => "Fault",
     }
 }
@@ -315,8 +329,10 @@ fn frame_size_table() -> String {
         lower: vec![0.0; 32],
         upper: vec![0.0; 32],
         max_speed: vec![0.0; 32],
+        max_acceleration: vec![0.0; 32],
         cycle_us: 0,
         watchdog_cycles: 0,
+        answer: false,
     });
     let cases = [
         ("Target, n axes", None),
@@ -552,6 +568,7 @@ fn fault() -> impl Strategy<Value = Fault> {
         any::<u8>().prop_map(|axis| Fault::OverSpeed { axis }),
         (any::<u8>(), any::<u8>()).prop_map(|(expected, got)| Fault::AxisCount { expected, got }),
         Just(Fault::EStop),
+        any::<u8>().prop_map(|axis| Fault::OverAcceleration { axis }),
     ]
 }
 
@@ -576,19 +593,26 @@ fn hello() -> impl Strategy<Value = Hello> {
                 vec("\\PC{0,8}", n),
                 vec(micro(), n),
                 vec(micro(), n),
-                vec(micro(), n),
-                any::<u32>(),
-                any::<u32>(),
+                (vec(micro(), n), vec(micro(), n)),
+                (any::<u32>(), any::<u32>(), any::<bool>()),
             )
         })
         .prop_map(
-            |(axis_names, lower, upper, max_speed, cycle_us, watchdog_cycles)| Hello {
+            |(
+                axis_names,
+                lower,
+                upper,
+                (max_speed, max_acceleration),
+                (cycle_us, watchdog_cycles, answer),
+            )| Hello {
                 axis_names,
                 lower,
                 upper,
                 max_speed,
+                max_acceleration,
                 cycle_us,
                 watchdog_cycles,
+                answer,
             },
         )
 }
@@ -599,6 +623,7 @@ fn message() -> impl Strategy<Value = Message> {
         1 => Just(Message::Command(Command::Stop)),
         1 => Just(Message::Command(Command::EStop)),
         1 => Just(Message::Command(Command::Heartbeat)),
+        1 => Just(Message::Command(Command::Reset)),
         4 => feedback().prop_map(Message::Feedback),
         1 => (fault(), "\\PC{0,32}").prop_map(|(fault, text)| Message::Fault(FaultReport { fault, text })),
         1 => hello().prop_map(Message::Hello),
@@ -753,7 +778,7 @@ proptest! {
             let mut frame = CanPayload::new(u32::from(BASE_ID) + offset, &data, !classic);
             frame.len = len as u8;
             if let Some(message) = assembler.push(&frame) {
-                prop_assert!(matches!(message, Message::Command(Command::Stop | Command::EStop | Command::Heartbeat)),
+                prop_assert!(matches!(message, Message::Command(Command::Stop | Command::EStop | Command::Heartbeat | Command::Reset)),
                     "{:?}", message);
             }
         }
@@ -861,8 +886,9 @@ fn unread_input_past_the_capacity_is_an_overrun_then_decoding_resumes() {
 
 #[test]
 fn another_version_with_a_good_crc_is_counted_as_such() {
+    // A version 1 frame (the version before this one), with a good CRC.
     let mut body = body(&heartbeat());
-    body[0] = 2;
+    body[0] = 1;
     let crc = crc32(&body[..body.len() - 4]);
     let n = body.len();
     body[n - 4..].copy_from_slice(&crc.to_le_bytes());
@@ -1084,10 +1110,12 @@ fn the_longest_hello_fits_every_transport() {
         lower: vec![-1.0; MAX_AXES],
         upper: vec![1.0; MAX_AXES],
         max_speed: vec![2.0; MAX_AXES],
+        max_acceleration: vec![20.0; MAX_AXES],
         cycle_us: 1000,
         watchdog_cycles: 3,
+        answer: true,
     });
-    assert_eq!(body(&longest).len(), 1455);
+    assert_eq!(body(&longest).len(), 1584);
     assert!(body(&longest).len() <= MAX_BODY_LEN);
     for fd in [false, true] {
         let frames = can(&longest, fd);

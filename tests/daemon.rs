@@ -78,7 +78,7 @@ fn the_main_command_runs_the_demo_and_logs_it_within_limits() {
     );
     let stdout = text(&output.stdout);
     assert!(
-        stdout.contains("Completed") && stdout.contains("limit violations 0"),
+        stdout.contains(": completed after") && stdout.contains("limit violations 0"),
         "{stdout}"
     );
     let commands = assert_log_within_limits(&log);

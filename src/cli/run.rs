@@ -128,7 +128,19 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
             &job_control,
         )?)
     })?;
-    let report = wait(&control, job)?;
+    let report = match wait(&control, job) {
+        Ok(report) => report,
+        Err(error) => {
+            // Refused before motion: the report still says so.
+            let refused = serde_json::json!({
+                "outcome": "refused",
+                "fault": format!("{error:#}"),
+                "cycles": 0,
+            });
+            write_report(args.report.as_deref(), &refused)?;
+            return Err(error);
+        }
+    };
     print_summary(&report);
     println!("  log: {}", log.display());
     write_report(args.report.as_deref(), &report)?;

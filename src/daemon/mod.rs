@@ -38,6 +38,8 @@ pub enum DaemonError {
     Link(#[from] LinkError),
     #[error("no feedback from {0}")]
     NoFeedback(String),
+    #[error("before motion: {0}")]
+    NotHeld(String),
     #[error("log")]
     Log(#[from] LogError),
     #[error("replay: {0}")]
@@ -217,7 +219,7 @@ pub fn held_position(
         resume::Hold::Stopped => Err(DaemonError::Unavailable("stopped before motion".into())),
         resume::Hold::EStopped => Err(DaemonError::Unavailable("e-stopped before motion".into())),
         resume::Hold::Faulted(text) | resume::Hold::TimedOut(text) => {
-            Err(DaemonError::NoFeedback(text))
+            Err(DaemonError::NotHeld(text))
         }
     }
 }

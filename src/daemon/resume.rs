@@ -50,18 +50,16 @@ pub fn wait_for_hold(
     let deadline = clock.now() + timeout;
     let mut stopped_session = None;
     let mut previous: Option<Feedback> = None;
+    let mut was_up = false;
     loop {
         if let Some(end) = requested_end(link, control)? {
             return Ok(end);
         }
         if clock.now() >= deadline {
-            return Ok(Hold::TimedOut(format!(
-                "{} did not hold at rest within {:.1} s",
-                link.describe(),
-                timeout.as_secs_f64()
-            )));
+            return Ok(Hold::TimedOut(timed_out(link, was_up, timeout)));
         }
         let next = clock.now() + period;
+        was_up |= link.is_up();
         if !link.is_up() {
             previous = None;
             clock.sleep_until(next);
@@ -92,6 +90,22 @@ pub fn wait_for_hold(
             previous = Some(feedback);
         }
         clock.sleep_until(next);
+    }
+}
+
+fn timed_out(link: &dyn Link, was_up: bool, timeout: Duration) -> String {
+    if was_up {
+        format!(
+            "{} did not hold at rest within {:.1} s",
+            link.describe(),
+            timeout.as_secs_f64()
+        )
+    } else {
+        format!(
+            "no session with {} for {:.1} s: the controller did not answer the bridge's Hello",
+            link.describe(),
+            timeout.as_secs_f64()
+        )
     }
 }
 
@@ -158,7 +172,14 @@ pub struct Streaming<'a> {
 }
 
 impl Streaming<'_> {
-    fn run(&mut self, trajectory: &Trajectory, settings: &StreamSettings) -> StreamReport {
+    /// Streams one part; the next part's sequence numbers follow this one's.
+    fn run(&mut self, trajectory: &Trajectory, settings: &mut StreamSettings) -> StreamReport {
+        let report = self.run_part(trajectory, settings);
+        settings.first_seq = settings.first_seq.wrapping_add(report.cycles as u32);
+        report
+    }
+
+    fn run_part(&mut self, trajectory: &Trajectory, settings: &StreamSettings) -> StreamReport {
         let result = stream(
             trajectory,
             &self.settings.rig,
@@ -191,15 +212,14 @@ impl Streaming<'_> {
 /// target. Always returns a report.
 pub fn stream_resuming(mut io: Streaming<'_>, trajectory: &Trajectory) -> StreamReport {
     let mut streaming = stream_settings(io.settings);
-    let mut report = io.run(trajectory, &streaming);
+    let mut report = io.run(trajectory, &mut streaming);
     let mut remaining = trajectory.tail(report.samples_done);
     while matches!(report.outcome, Outcome::LinkLost | Outcome::Stalled) {
         let t = report.duration_s;
-        streaming.first_seq = streaming.first_seq.wrapping_add(report.cycles as u32);
         io.event(
             t,
-            "interrupted",
-            serde_json::json!({ "outcome": report.outcome, "at_sample": report.samples_done }),
+            &report.outcome.to_string(),
+            serde_json::json!({ "at_sample": report.samples_done, "why": report.fault }),
         );
         let (part, approached) =
             match resume_once(&mut io, &remaining, &mut streaming, trajectory, &report) {
@@ -210,12 +230,12 @@ pub fn stream_resuming(mut io: Streaming<'_>, trajectory: &Trajectory) -> Stream
         if !approached {
             continue;
         }
-        let rest = StreamSettings {
+        let mut rest = StreamSettings {
             start_scale: 0.0,
             ..streaming
         };
-        let part = io.run(&remaining, &rest);
-        streaming.first_seq = streaming.first_seq.wrapping_add(part.cycles as u32);
+        let part = io.run(&remaining, &mut rest);
+        streaming.first_seq = rest.first_seq;
         remaining = remaining.tail(part.samples_done);
         report = report.merge(part);
     }
@@ -283,7 +303,6 @@ fn resume_once(
         }
     };
     let part = io.run(&approach, streaming);
-    streaming.first_seq = streaming.first_seq.wrapping_add(part.cycles as u32);
     let approached = part.outcome == Outcome::Completed;
     Resumed::Approach(report.clone().merge(part), approached)
 }

@@ -571,7 +571,17 @@ mod tests {
     #[test]
     fn a_controller_mapping_is_refused_for_the_bridge() {
         let mapping = CanMapping::new(0x100, false, CanSender::Controller).unwrap();
-        let Err(error) = connect_can("vcan0", mapping) else {
+        let hello = crate::protocol::Hello {
+            axis_names: vec![],
+            lower: vec![],
+            upper: vec![],
+            max_speed: vec![],
+            max_acceleration: vec![],
+            cycle_us: 4000,
+            watchdog_cycles: 25,
+            answer: false,
+        };
+        let Err(error) = connect_can("vcan0", mapping, hello) else {
             panic!("a controller-side mapping was accepted");
         };
         assert_eq!(error.kind(), ErrorKind::InvalidInput);

@@ -168,15 +168,15 @@ async fn write_commands(
     let mut tick = tokio::time::interval(period);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     loop {
-        if let Some((message, opening)) = pending.take() {
-            if encoded(&message, opening, &mut frame, ends) {
-                if port.write_all(&frame).is_err() {
-                    return false;
-                }
-                LinkShared::count(&ends.shared.frames_sent);
-                if let Ok(mut session) = shared.session.lock() {
-                    session.sent(Instant::now());
-                }
+        if let Some((message, opening)) = pending.take()
+            && encoded(&message, opening, &mut frame, ends)
+        {
+            if port.write_all(&frame).is_err() {
+                return false;
+            }
+            LinkShared::count(&ends.shared.frames_sent);
+            if let Ok(mut session) = shared.session.lock() {
+                session.sent(Instant::now());
             }
         }
         if !ends.shared.connected.load(Ordering::SeqCst) {

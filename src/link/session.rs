@@ -165,7 +165,9 @@ impl BridgeSession {
             }
             _ => {}
         }
-        if now.saturating_duration_since(self.last_sent) >= self.period {
+        // A quarter cycle of grace: a target a little late in its cycle needs no
+        // Heartbeat ahead of it (on a slow serial line that would delay it).
+        if now.saturating_duration_since(self.last_sent) >= self.period + self.period / 4 {
             return Due::Send(Outgoing::Heartbeat);
         }
         Due::Nothing

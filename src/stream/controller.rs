@@ -125,9 +125,14 @@ impl Unit {
             "max acceleration" => "/s²",
             _ => "",
         };
+        // The wire integer too: two values may differ by 1 µrad only.
+        let micro = wire(value);
         match self {
-            Unit::Degrees => format!("{:.3} deg{suffix}", value.to_degrees()),
-            Unit::Metres => format!("{value:.4} m{suffix}"),
+            Unit::Degrees => format!(
+                "{:.4} deg{suffix} ({micro} µrad{suffix})",
+                value.to_degrees()
+            ),
+            Unit::Metres => format!("{value:.6} m{suffix} ({micro} µm{suffix})"),
         }
     }
 }

@@ -136,7 +136,7 @@ impl Follow {
         } else {
             self.stale_cycles += 1;
         }
-        if self.stale_cycles > self.patience {
+        if self.stale_cycles >= self.patience {
             return Some(Verdict::NotFollowing(format!(
                 "the controller accepted no target for {} cycles (its echo stays at seq {})",
                 self.stale_cycles, feedback.seq

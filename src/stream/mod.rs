@@ -547,7 +547,8 @@ impl Cycle {
     /// controller that restarted (or a new session) is link loss; a command that did
     /// not fit the wire ends it too.
     fn events(&mut self, link: &mut dyn Link) -> Option<Outcome> {
-        while let Some(event) = link.next_event() {
+        // One event a cycle: each of them ends the stream.
+        if let Some(event) = link.next_event() {
             match event {
                 LinkEvent::Fault(report) => {
                     self.fault = Some(fault_text(&report.fault, &report.text));
