@@ -39,6 +39,10 @@ pub struct ServeConfig {
     /// The bearer token the control API requires (`RIGBRIDGE_TOKEN` overrides it).
     #[serde(default)]
     pub token: Option<String>,
+    /// Host names (besides IP addresses and `localhost`) clients may reach the daemon under:
+    /// a request with any other `Host` header is refused (DNS rebinding).
+    #[serde(default)]
+    pub hosts: Vec<String>,
 }
 
 impl Default for ServeConfig {
@@ -46,6 +50,7 @@ impl Default for ServeConfig {
         ServeConfig {
             bind: default_bind(),
             token: None,
+            hosts: Vec::new(),
         }
     }
 }
@@ -56,6 +61,7 @@ impl std::fmt::Debug for ServeConfig {
         f.debug_struct("ServeConfig")
             .field("bind", &self.bind)
             .field("token", &self.token.as_ref().map(|_| "<redacted>"))
+            .field("hosts", &self.hosts)
             .finish()
     }
 }
