@@ -25,7 +25,7 @@ pub use follow_trajectory::{FollowTrajectory, TrajectoryFileError, read_trajecto
 pub use gait::Gait;
 pub use joint_waypoints::JointWaypoints;
 pub use move_joints::MoveJoints;
-pub use move_linear::MoveLinear;
+pub use move_linear::{MoveLinear, top_tool_speed};
 pub use move_poses::MovePoses;
 pub use paint::Paint;
 pub use poses::PoseSpec;

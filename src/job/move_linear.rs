@@ -1,14 +1,14 @@
-//! `kind = "move_linear"`: straight tool lines from where the tool is through each pose,
-//! orientation slerped, solved sample by sample with the FABRIK planner (seeded by the
+//! `kind = "move_linear"`: a joint move to the first pose (inverse kinematics nearest the
+//! rig's position), then straight tool lines from pose to pose, orientation slerped, solved sample by sample with the FABRIK planner (seeded by the
 //! sample before, so the joints stay continuous across lines), staying at the last pose.
 //! Owns the tool speed cap `speed_m_s`: the Cartesian planner times each line as fast as
 //! the axes allow, and this kind slows the whole plan down until the tool keeps under it.
 
-use super::poses::{PoseSpec, check_poses};
+use super::poses::{PoseSpec, check_poses, show_xyz};
 use super::{JobContext, JobError, JobInvalid, PlanContext, in_range};
-use crate::ik::FabrikSolver;
+use crate::ik::{FabrikSolver, IkSolver};
 use crate::rig::Rig;
-use crate::trajectory::{PlanSettings, Trajectory, plan_cartesian};
+use crate::trajectory::{PlanSettings, Trajectory, plan_cartesian, plan_joint_moves};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -53,11 +53,27 @@ impl MoveLinear {
     pub fn plan(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
         let poses = check_poses("job.poses", &self.poses)?;
         let solver = FabrikSolver::new(context.rig.clone())?;
+        let first =
+            solver
+                .solve(&poses[0], context.start)
+                .map_err(|error| JobError::Unreachable {
+                    index: 0,
+                    what: format!("pose at {}", show_xyz(poses[0].position)),
+                    error,
+                })?;
+        let approach = plan_joint_moves(
+            context.rig,
+            context.start,
+            std::slice::from_ref(&first.joints),
+            context.settings,
+        )?;
         let mut settings = *context.settings;
         let mut attempt = 0;
         loop {
-            let trajectory = plan_cartesian(&solver, context.start, &poses, &settings)?;
-            let ratio = top_tool_speed(context.rig, &trajectory) / self.speed_m_s;
+            let mut trajectory = approach.clone();
+            let lines = plan_cartesian(&solver, &first.joints, &poses[1..], &settings)?;
+            let ratio = top_tool_speed(context.rig, &lines) / self.speed_m_s;
+            trajectory.append(&lines);
             attempt += 1;
             if ratio <= 1.0 {
                 return Ok(trajectory);
