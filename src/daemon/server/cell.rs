@@ -199,7 +199,7 @@ const KEPT_EVENTS: usize = 32;
 /// Where a cell's jobs stream: its own in-process twin, or a real link (`[stream] link`),
 /// opened at the first job and kept (it reconnects by itself after a loss).
 enum CellLink {
-    Twin(LoopbackLink),
+    Twin(Box<LoopbackLink>),
     Remote(Option<Box<dyn Link>>),
 }
 
@@ -238,7 +238,7 @@ impl Cell {
         );
         let link_name = settings.config.stream.link.clone();
         let link = match link_name.parse::<LinkSpec>() {
-            Ok(LinkSpec::Loopback) | Err(_) => CellLink::Twin(LoopbackLink::new(twin)),
+            Ok(LinkSpec::Loopback) | Err(_) => CellLink::Twin(Box::new(LoopbackLink::new(twin))),
             Ok(_) => CellLink::Remote(None),
         };
         Ok(Cell {
@@ -480,7 +480,7 @@ impl Cell {
             return Err(DaemonError::Unavailable("twin lock poisoned".into()));
         };
         let link: &mut dyn Link = match &mut *guard {
-            CellLink::Twin(twin) => twin,
+            CellLink::Twin(twin) => twin.as_mut(),
             CellLink::Remote(remote) => match self.remote(remote) {
                 Ok(link) => link,
                 Err(e) => {
