@@ -21,12 +21,12 @@ use std::time::Duration;
 const HOME: [f64; 6] = [0.0, 0.0, 0.0, 0.0, 0.5, 0.0];
 
 fn star_job() -> JobConfig {
-    JobConfig::WallFigure {
+    JobConfig::WallFigure(rigbridge::job::WallFigure {
         wall_x_m: 0.45,
         centre_yz_m: [0.0, 0.45],
         radius_m: 0.12,
         laps: 1,
-    }
+    })
 }
 
 fn live(c: &mut Criterion) {

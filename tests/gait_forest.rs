@@ -483,9 +483,9 @@ fn a_gait_job_walks_a_forest_walk() {
     let path = run_settings_with("job", "scenario = \"fork\"\nforest = \"forest.toml\"");
     let settings = load_run_settings(&path).unwrap_or_else(|e| panic!("{e}"));
     match &settings.config.job {
-        JobConfig::Gait {
+        JobConfig::Gait(rigbridge::job::Gait {
             scenario, forest, ..
-        } => {
+        }) => {
             assert_eq!(scenario, "fork");
             let forest = forest.as_deref().expect("the forest is kept");
             assert_eq!(forest, path.parent().unwrap().join("forest.toml"));

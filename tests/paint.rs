@@ -476,11 +476,11 @@ fn shipped_paint_configs_load_and_run_knows_the_job() {
     assert_eq!(paint.rig.name, "painter");
     let run = load_run_settings(&repo_path("config/paint-run.toml")).unwrap();
     match &run.config.job {
-        rigbridge::daemon::config::JobConfig::Paint {
+        rigbridge::daemon::config::JobConfig::Paint(rigbridge::job::Paint {
             walls,
             paint_config,
             ..
-        } => {
+        }) => {
             assert_eq!(*walls, 4);
             assert!(paint_config.ends_with("paint.toml") && paint_config.exists());
         }

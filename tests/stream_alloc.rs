@@ -89,12 +89,12 @@ fn the_cycle_does_not_allocate() {
 /// feeding the live view's slot; returns the allocations while streaming and the paint.
 fn allocations_while_streaming_live(laps: u32) -> (usize, usize) {
     let rig = irb120();
-    let job = JobConfig::WallFigure {
+    let job = JobConfig::WallFigure(rigbridge::job::WallFigure {
         wall_x_m: 0.45,
         centre_yz_m: [0.0, 0.45],
         radius_m: 0.12,
         laps,
-    };
+    });
     let trajectory = plan_job(&job, &rig, &START, &PlanSettings::default()).unwrap();
     let trace = Arc::new(Mutex::new(ToolTrace::new(rig.clone())));
     let mut scene = ArmScene::for_job(rig.clone(), &job, Some(trace.clone()));

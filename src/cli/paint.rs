@@ -45,7 +45,7 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
     let settings = load_run_settings(&args.config).context("cannot load run settings")?;
     let paint_config = match (args.paint_config, &settings.config.job) {
         (Some(file), _) => file,
-        (None, JobConfig::Paint { paint_config, .. }) => paint_config.clone(),
+        (None, JobConfig::Paint(job)) => job.paint_config.clone(),
         (None, _) => PathBuf::from("config/paint.toml"),
     };
     let paint = load_paint_settings(&paint_config).context("cannot load paint settings")?;

@@ -115,6 +115,7 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
         runs_dir: args.runs_dir,
         virtual_clock: matches!(args.clock, ClockChoice::Virtual),
         token,
+        allowed_hosts: settings.config.serve.hosts.clone(),
     };
     tokio::runtime::Runtime::new()?.block_on(async move {
         let listener = tokio::net::TcpListener::bind((bind, args.port))

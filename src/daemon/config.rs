@@ -13,8 +13,14 @@ use std::path::{Path, PathBuf};
 pub struct RunConfig {
     /// Rig description, relative to the config file.
     pub rig: PathBuf,
+    /// `[stream]`: optional, every key has a default (250 Hz to the in-process twin).
+    #[serde(default = "default_stream")]
     pub stream: StreamConfig,
+    /// `[twin]`: optional, see [`TwinConfig`]'s defaults.
+    #[serde(default)]
     pub twin: TwinConfig,
+    /// `[plan]`: optional, see [`PlanConfig`]'s defaults.
+    #[serde(default)]
     pub plan: PlanConfig,
     pub job: JobConfig,
     /// `rigbridge serve`: where to listen and the control API's bearer token.
@@ -33,6 +39,10 @@ pub struct ServeConfig {
     /// The bearer token the control API requires (`RIGBRIDGE_TOKEN` overrides it).
     #[serde(default)]
     pub token: Option<String>,
+    /// Host names (besides IP addresses and `localhost`) clients may reach the daemon under:
+    /// a request with any other `Host` header is refused (DNS rebinding).
+    #[serde(default)]
+    pub hosts: Vec<String>,
 }
 
 impl Default for ServeConfig {
@@ -40,6 +50,7 @@ impl Default for ServeConfig {
         ServeConfig {
             bind: default_bind(),
             token: None,
+            hosts: Vec::new(),
         }
     }
 }
@@ -50,6 +61,7 @@ impl std::fmt::Debug for ServeConfig {
         f.debug_struct("ServeConfig")
             .field("bind", &self.bind)
             .field("token", &self.token.as_ref().map(|_| "<redacted>"))
+            .field("hosts", &self.hosts)
             .finish()
     }
 }
@@ -72,6 +84,9 @@ pub fn token_problem(token: &str) -> Option<&'static str> {
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StreamConfig {
+    /// Streaming rate (Hz), 250 when absent: the 4 ms cycle of ABB's Externally Guided
+    /// Motion.
+    #[serde(default = "default_rate")]
     pub rate_hz: f64,
     #[serde(default = "default_link")]
     pub link: String,
@@ -232,6 +247,16 @@ impl StreamConfig {
     }
 }
 
+fn default_rate() -> f64 {
+    250.0
+}
+
+/// `[stream]` with every key at its default.
+fn default_stream() -> StreamConfig {
+    // Every key of `[stream]` has a serde default, so the empty table always parses.
+    toml::from_str("").expect("every [stream] key has a default")
+}
+
 fn default_link() -> String {
     "loopback".to_string()
 }
@@ -244,54 +269,68 @@ fn default_can_base_id() -> u16 {
     0x100
 }
 
+/// `[twin]`, the simulated controller. Every key is optional.
 #[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, default)]
 pub struct TwinConfig {
+    /// Servo bandwidth (Hz), 20 when absent: EGM users report ~20 Hz filtering.
     pub bandwidth_hz: f64,
+    /// Transport delay (ms), 12 when absent.
     pub delay_ms: f64,
+    /// Cycles without a target before the twin decelerates and holds, 25 when absent.
     pub watchdog_cycles: u32,
+    /// The twin's initial position (degrees, metres for prismatic axes). When absent: 0 on
+    /// every axis whose range holds 0, else the axis' limit nearest 0.
     pub initial_deg: Vec<f64>,
 }
 
+impl Default for TwinConfig {
+    fn default() -> Self {
+        TwinConfig {
+            bandwidth_hz: 20.0,
+            delay_ms: 12.0,
+            watchdog_cycles: 25,
+            initial_deg: Vec::new(),
+        }
+    }
+}
+
+/// `[plan]`: the shares of each axis' max speed and acceleration a plan may use. Optional.
 #[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, default)]
 pub struct PlanConfig {
+    /// 0.9 when absent: the rest is headroom for pausing and stopping along the path.
     pub speed_scale: f64,
+    /// 0.8 when absent.
     pub accel_scale: f64,
 }
 
-#[derive(Debug, Clone, Deserialize, serde::Serialize)]
-#[serde(tag = "kind", rename_all = "snake_case")]
-pub enum JobConfig {
-    /// A five-pointed star on a wall plane x = wall_x_m, tool normal to the wall.
-    WallFigure {
-        wall_x_m: f64,
-        centre_yz_m: [f64; 2],
-        radius_m: f64,
-        laps: u32,
-    },
-    /// Point-to-point joint moves through these configurations (degrees).
-    JointWaypoints { waypoints_deg: Vec<Vec<f64>> },
-    /// The sloth's gait over a scenario (`rig` must then be a sloth file, config/sloth.toml).
-    Gait {
-        scenario: String,
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        angle_deg: Option<f64>,
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        gap_m: Option<f64>,
-        /// A forest file (config/forest.toml, relative to this file, resolved on load):
-        /// `scenario` is then one of its walks.
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        forest: Option<PathBuf>,
-    },
-    /// Paint a generated room of `walls` walls (seed `seed`) with the painter rig;
-    /// `paint_config` (config/paint.toml) is relative to this file, resolved on load.
-    Paint {
-        walls: u32,
-        seed: u64,
-        paint_config: PathBuf,
-    },
+impl Default for PlanConfig {
+    fn default() -> Self {
+        PlanConfig {
+            speed_scale: 0.9,
+            accel_scale: 0.8,
+        }
+    }
 }
+
+/// The default initial position in config units: 0, or the limit nearest 0 for an axis
+/// whose range leaves 0 out.
+fn default_initial(rig: &Rig) -> Vec<f64> {
+    rig.joints
+        .iter()
+        .map(|joint| {
+            let zero = 0.0_f64.clamp(joint.limits.lower, joint.limits.upper);
+            match joint.kind {
+                crate::rig::JointKind::Revolute => zero.to_degrees(),
+                crate::rig::JointKind::Prismatic => zero,
+            }
+        })
+        .collect()
+}
+
+/// The job of a run settings file: the kinds live in [`crate::job`], one file each.
+pub use crate::job::Job as JobConfig;
 
 /// A loaded, validated configuration with its rig.
 #[derive(Debug, Clone)]
@@ -324,19 +363,10 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         file: file.to_path_buf(),
         message: e.to_string().trim_end().to_string(),
     })?;
-    if let JobConfig::Paint { paint_config, .. } = &mut config.job {
-        *paint_config = file.parent().unwrap_or(Path::new(".")).join(&*paint_config);
-    }
-    if let JobConfig::Gait {
-        forest: Some(forest),
-        ..
-    } = &mut config.job
-    {
-        *forest = file.parent().unwrap_or(Path::new(".")).join(&*forest);
-    }
-    let rig_path = file.parent().unwrap_or(Path::new(".")).join(&config.rig);
+    let base_dir = config_dir(file);
+    let rig_path = base_dir.join(&config.rig);
     let sloth = match config.job {
-        JobConfig::Gait { .. } => Some(std::sync::Arc::new(crate::task::gait::SlothRig::load(
+        JobConfig::Gait(_) => Some(std::sync::Arc::new(crate::task::gait::SlothRig::load(
             &rig_path,
         )?)),
         _ => None,
@@ -397,6 +427,9 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
             "must be at least 1",
         ));
     }
+    if config.twin.initial_deg.is_empty() {
+        config.twin.initial_deg = default_initial(&rig);
+    }
     check_joints(file, "twin.initial_deg", &config.twin.initial_deg, &rig)?;
     check_range(
         file,
@@ -412,7 +445,15 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         0.01,
         0.99,
     )?;
-    check_job(file, &config.job, &rig, sloth.as_deref())?;
+    let context = crate::job::JobContext {
+        rig: &rig,
+        sloth: sloth.as_deref(),
+        base_dir: &base_dir,
+    };
+    config.job = config
+        .job
+        .validate(&context)
+        .map_err(|e| job_refused(file, e))?;
     if config.serve.bind.parse::<std::net::IpAddr>().is_err() {
         return Err(ConfigError::invalid(
             file,
@@ -437,174 +478,35 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     })
 }
 
+/// The directory files named in `file` are relative to.
+pub fn config_dir(file: &Path) -> PathBuf {
+    match file.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() => dir.to_path_buf(),
+        _ => PathBuf::from("."),
+    }
+}
+
 /// Config joint values in SI units: revolute axes are written in degrees, prismatic ones in
 /// metres.
 fn to_si(values: &[f64], rig: &Rig) -> Vec<f64> {
-    values
-        .iter()
-        .zip(&rig.joints)
-        .map(|(v, joint)| match joint.kind {
-            crate::rig::JointKind::Revolute => v.to_radians(),
-            crate::rig::JointKind::Prismatic => *v,
-        })
-        .collect()
+    crate::job::to_si(values, rig)
 }
 
-fn check_joints(file: &Path, key: &str, degrees: &[f64], rig: &Rig) -> Result<(), ConfigError> {
-    if degrees.len() != rig.dof() {
-        return Err(ConfigError::invalid(
-            file,
-            key,
-            degrees,
-            &format!("needs {} values for rig {}", rig.dof(), rig.name),
-        ));
-    }
-    let radians = to_si(degrees, rig);
-    if degrees.iter().any(|d| !d.is_finite()) {
-        return Err(ConfigError::invalid(
-            file,
-            key,
-            degrees,
-            "values must be finite",
-        ));
-    }
-    if let Some((index, _)) = rig.first_limit_violation(&radians) {
-        return Err(ConfigError::invalid(
-            file,
-            &format!("{key}[{index}]"),
-            degrees[index],
-            &format!("outside the limits of {}", rig.joints[index].name),
-        ));
-    }
-    Ok(())
+fn check_joints(file: &Path, key: &str, values: &[f64], rig: &Rig) -> Result<(), ConfigError> {
+    crate::job::check_joints(key, values, rig).map_err(|e| job_refused(file, e))
 }
 
-fn check_job(
-    file: &Path,
-    job: &JobConfig,
-    rig: &Rig,
-    sloth: Option<&crate::task::gait::SlothRig>,
-) -> Result<(), ConfigError> {
-    match job {
-        JobConfig::WallFigure {
-            wall_x_m,
-            centre_yz_m,
-            radius_m,
-            laps,
-        } => {
-            check_range(file, "job.wall_x_m", *wall_x_m, -2.0, 2.0)?;
-            check_range(file, "job.centre_yz_m[0]", centre_yz_m[0], -2.0, 2.0)?;
-            check_range(file, "job.centre_yz_m[1]", centre_yz_m[1], -2.0, 2.0)?;
-            check_range(file, "job.radius_m", *radius_m, 0.001, 1.0)?;
-            if *laps == 0 || *laps > 1000 {
-                return Err(ConfigError::invalid(
-                    file,
-                    "job.laps",
-                    laps,
-                    "must lie in [1, 1000]",
-                ));
-            }
-        }
-        JobConfig::Paint {
-            walls,
-            paint_config,
-            ..
-        } => {
-            let max = crate::task::paint::room::MAX_WALLS;
-            if !(3..=max).contains(walls) {
-                return Err(ConfigError::invalid(
-                    file,
-                    "job.walls",
-                    walls,
-                    &format!("must lie in [3, {max}]"),
-                ));
-            }
-            let paint = crate::task::paint::load_paint_settings(paint_config)?;
-            if paint.rig != *rig {
-                return Err(ConfigError::invalid(
-                    file,
-                    "rig",
-                    &rig.name,
-                    &format!(
-                        "must be the painter rig {} named by {}",
-                        paint.rig.name,
-                        paint_config.display()
-                    ),
-                ));
-            }
-        }
-        JobConfig::JointWaypoints { waypoints_deg } => {
-            if waypoints_deg.is_empty() {
-                return Err(ConfigError::invalid(
-                    file,
-                    "job.waypoints_deg",
-                    "[]",
-                    "needs at least one waypoint",
-                ));
-            }
-            for (i, waypoint) in waypoints_deg.iter().enumerate() {
-                check_joints(file, &format!("job.waypoints_deg[{i}]"), waypoint, rig)?;
-            }
-        }
-        JobConfig::Gait {
-            scenario,
-            forest: Some(forest),
-            angle_deg,
-            gap_m,
-        } => check_forest_walk(file, scenario, forest, *angle_deg, *gap_m, sloth)?,
-        JobConfig::Gait {
-            scenario,
-            angle_deg,
-            gap_m,
-            forest: None,
-        } => {
-            if let Err(e) = crate::task::gait::Scenario::build(scenario, *angle_deg, *gap_m) {
-                return Err(ConfigError::invalid(
-                    file,
-                    "job.scenario",
-                    scenario,
-                    &e.to_string(),
-                ));
-            }
-        }
-    }
-    Ok(())
-}
-
-/// A gait job's walk from a forest file: the file loads, holds the walk, and the job gives
-/// no built-in scenario's `angle_deg` or `gap_m`.
-fn check_forest_walk(
-    file: &Path,
-    walk: &str,
-    forest: &Path,
-    angle_deg: Option<f64>,
-    gap_m: Option<f64>,
-    sloth: Option<&crate::task::gait::SlothRig>,
-) -> Result<(), ConfigError> {
-    let geometry = "a walk from `forest` takes its geometry from that file";
-    if let Some(angle) = angle_deg {
-        return Err(ConfigError::invalid(file, "job.angle_deg", angle, geometry));
-    }
-    if let Some(gap) = gap_m {
-        return Err(ConfigError::invalid(file, "job.gap_m", gap, geometry));
-    }
-    // Its supports are trunks or branches by the sloth's `[gait] trunk_tilt_deg`.
-    let Some(sloth) = sloth else {
-        return Err(ConfigError::invalid(
-            file,
-            "job.forest",
-            forest,
-            "a gait job needs a sloth rig (`rig`) to walk it",
-        ));
+/// A refused job as a config error: the same key, value and reason, and a file that would
+/// not load (only the config's author reads this) with its own error after the reason.
+fn job_refused(file: &Path, e: crate::job::JobInvalid) -> ConfigError {
+    let reason = match &e.cause {
+        Some(cause) => format!("{}: {}", e.reason, super::error_chain(cause.as_ref())),
+        None => e.reason,
     };
-    let loaded = crate::task::gait::Forest::load(forest, sloth.gait.trunk_tilt_rad)?;
-    if let Err(e) = loaded.scenario(walk) {
-        return Err(ConfigError::invalid(
-            file,
-            "job.scenario",
-            walk,
-            &e.to_string(),
-        ));
+    ConfigError::Invalid {
+        file: file.to_path_buf(),
+        key: e.key,
+        value: e.value,
+        reason,
     }
-    Ok(())
 }

@@ -47,13 +47,13 @@ pub fn run_gait(
         Twin::new(&settings.rig, twin, &start)?.with_world(Box::new(world.clone())),
     );
     let planned = PlannedJob {
-        job: JobConfig::Gait {
+        job: JobConfig::Gait(crate::job::Gait {
             scenario: scenario.name.clone(),
             angle_deg: scenario.angle_deg,
             gap_m: scenario.gap_m,
             // The job is recorded by its scenario's name: a walk's forest file is the caller's.
             forest: None,
-        },
+        }),
         start,
         trajectory,
     };

@@ -13,7 +13,7 @@ pub mod server;
 pub use recording::RecorderSink;
 
 use crate::clock::Clock;
-use crate::job::{JobError, plan_job};
+use crate::job::JobError;
 use crate::link::{Link, LinkError, LoopbackLink};
 use crate::log::{LogError, Recorder, RecorderStats};
 use crate::stream::{StreamControl, StreamError, StreamReport, StreamSettings, slowdown_rate};
@@ -240,28 +240,12 @@ pub fn plan_for(
     control: &StreamControl,
 ) -> Result<PlannedJob, DaemonError> {
     let start = held_position(settings, link, clock, control)?;
-    let trajectory = match (job, &settings.sloth) {
-        (
-            config::JobConfig::Gait {
-                scenario,
-                angle_deg,
-                gap_m,
-                forest,
-            },
-            Some(sloth),
-        ) => {
-            let scenario = crate::task::gait::forest::scenario_named(
-                scenario,
-                *angle_deg,
-                *gap_m,
-                forest.as_deref(),
-                sloth.gait.trunk_tilt_rad,
-            )
-            .map_err(crate::task::gait::GaitError::from)?;
-            crate::task::gait::plan_gait_job(sloth, &scenario, &start, &plan_settings(settings))?
-        }
-        _ => plan_job(job, &settings.rig, &start, &plan_settings(settings))?,
-    };
+    let trajectory = job.plan(&crate::job::PlanContext {
+        rig: &settings.rig,
+        sloth: settings.sloth.as_deref(),
+        start: &start,
+        settings: &plan_settings(settings),
+    })?;
     Ok(PlannedJob {
         job: job.clone(),
         start,
@@ -395,12 +379,5 @@ pub fn wait_for_link(link: &dyn Link, clock: &dyn Clock, timeout_s: f64) -> bool
 }
 
 fn job_name(job: &config::JobConfig) -> String {
-    match job {
-        config::JobConfig::WallFigure { .. } => "wall_figure".into(),
-        config::JobConfig::JointWaypoints { .. } => "joint_waypoints".into(),
-        config::JobConfig::Gait { scenario, .. } => format!("gait {scenario}"),
-        config::JobConfig::Paint { walls, seed, .. } => {
-            format!("paint ({walls} walls, seed {seed})")
-        }
-    }
+    job.name()
 }

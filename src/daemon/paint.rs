@@ -45,11 +45,11 @@ pub fn run_paint(
         .map_err(JobError::Paint)?;
     planned(&plan);
     let job = PlannedJob {
-        job: JobConfig::Paint {
+        job: JobConfig::Paint(crate::job::Paint {
             walls,
             seed,
             paint_config: paint.file.clone(),
-        },
+        }),
         start,
         trajectory: plan.trajectory.clone(),
     };

@@ -18,9 +18,13 @@
 //! and sends each frame to every page connected to that cell's live route.
 
 mod cell;
+mod connections;
+mod guard;
 mod scene;
 
 pub use cell::{CellError, check_cells};
+pub use connections::{HEADER_TIMEOUT, IDLE_TIMEOUT, connection_cap};
+pub use guard::{BODY_TIMEOUT, HostCheck, MAX_BODY_BYTES, MAX_LIVE_MESSAGE_BYTES, MAX_LIVE_PAGES};
 
 use super::DaemonError;
 use super::config::{JobConfig, RunSettings};
@@ -60,6 +64,9 @@ pub struct ServeOptions {
     pub runs_dir: PathBuf,
     pub virtual_clock: bool,
     pub token: Option<String>,
+    /// Host names requests may carry besides IP addresses and `localhost` (`[serve] hosts`):
+    /// any other `Host` is refused, so a DNS-rebinding page cannot reach the API.
+    pub allowed_hosts: Vec<String>,
 }
 
 /// Never prints the token itself.
@@ -69,6 +76,7 @@ impl std::fmt::Debug for ServeOptions {
             .field("runs_dir", &self.runs_dir)
             .field("virtual_clock", &self.virtual_clock)
             .field("token", &self.token.as_ref().map(|_| "<redacted>"))
+            .field("allowed_hosts", &self.allowed_hosts)
             .finish()
     }
 }
@@ -237,6 +245,8 @@ struct Daemon {
     next_id: AtomicU64,
     /// Turns true when the server stops: live connections close.
     stopping: watch::Receiver<bool>,
+    /// Open live pages, at most [`MAX_LIVE_PAGES`].
+    live_pages: Arc<tokio::sync::Semaphore>,
 }
 
 impl Daemon {
@@ -275,10 +285,12 @@ impl FromRequestParts<Arc<Daemon>> for CellRef {
     }
 }
 
+/// The only body `POST .../jobs` takes besides an empty one (the cell's configured job).
 #[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
 struct JobRequest {
-    /// A job like config's `[job]`; the cell's configured job when absent.
-    job: Option<JobConfig>,
+    /// A job like config's `[job]`.
+    job: JobConfig,
 }
 
 fn error(status: StatusCode, message: impl std::fmt::Display) -> Response {
@@ -314,22 +326,28 @@ pub async fn run(
         .map(|settings| Cell::new(settings).map(Arc::new))
         .collect::<Result<Vec<_>, _>>()?;
     let (stop_live, stopping) = watch::channel(false);
+    let first_id = cell::first_job_id(&options.runs_dir);
+    let hosts = HostCheck::new(local, &options.allowed_hosts);
     let daemon = Arc::new(Daemon {
         cells,
         options,
-        next_id: AtomicU64::new(1),
-        stopping,
+        next_id: AtomicU64::new(first_id),
+        stopping: stopping.clone(),
+        live_pages: Arc::new(tokio::sync::Semaphore::new(MAX_LIVE_PAGES)),
     });
-    let app = routes(&daemon, exposed).with_state(daemon.clone());
+    let app = routes(&daemon, exposed)
+        .layer(axum::middleware::from_fn_with_state(
+            hosts,
+            guard::require_known_host,
+        ))
+        .layer(axum::extract::DefaultBodyLimit::max(MAX_BODY_BYTES))
+        .with_state(daemon.clone());
     let frames = tokio::spawn(send_frames(daemon.clone()));
-    let shutdown = async move {
+    tokio::spawn(async move {
         shutdown.await;
         let _ = stop_live.send(true);
-    };
-    axum::serve(listener, app)
-        .with_graceful_shutdown(shutdown)
-        .await
-        .map_err(crate::link::LinkError::Io)?;
+    });
+    connections::serve(listener, app, connection_cap(), stopping).await;
     frames.abort();
     let stopping = daemon.clone();
     let _ = tokio::task::spawn_blocking(move || {
@@ -360,6 +378,7 @@ fn routes(daemon: &Arc<Daemon>, exposed: bool) -> Router<Arc<Daemon>> {
             .route(&format!("{prefix}/estop"), post(estop));
     }
     let control = control
+        .route_layer(axum::middleware::from_fn(guard::require_json))
         .route_layer(auth.clone())
         .route_layer(same_origin.clone());
     // A rig's state, live: as guarded as control (a browser cannot send the header).
@@ -371,7 +390,8 @@ fn routes(daemon: &Arc<Daemon>, exposed: bool) -> Router<Arc<Daemon>> {
     let status = Router::new()
         .route("/api/status", get(status))
         .route("/api/cells/{cell}/status", get(status))
-        .route("/api/cells", get(list_cells));
+        .route("/api/cells", get(list_cells))
+        .route("/api/schema", get(schema));
     // Off loopback the rigs' state is sensitive too.
     let status = if exposed {
         status.route_layer(auth)
@@ -437,10 +457,23 @@ async fn live(
     CellRef(cell): CellRef,
     upgrade: WebSocketUpgrade,
 ) -> Response {
+    let Ok(page) = daemon.live_pages.clone().try_acquire_owned() else {
+        return error(
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("{MAX_LIVE_PAGES} live pages are open already: close one"),
+        );
+    };
     let stopping = daemon.stopping.clone();
+    // A page sends nothing but a close: a small message cap bounds what a client can make
+    // the server buffer.
     upgrade
+        .max_message_size(MAX_LIVE_MESSAGE_BYTES)
+        .max_frame_size(MAX_LIVE_MESSAGE_BYTES)
         .protocols([LIVE_PROTOCOL])
-        .on_upgrade(move |socket| serve_live(socket, cell, stopping))
+        .on_upgrade(move |socket| async move {
+            serve_live(socket, cell, stopping).await;
+            drop(page);
+        })
 }
 
 /// One page: the cell's scene, then every frame until the page goes or the server stops. A
@@ -487,25 +520,41 @@ async fn status(CellRef(cell): CellRef) -> Response {
     Json(cell.status()).into_response()
 }
 
+/// `GET /api/schema`: the JSON Schema of `POST .../jobs`'s body.
+async fn schema() -> Response {
+    Json(crate::job::request_schema()).into_response()
+}
+
 async fn submit(
     State(daemon): State<Arc<Daemon>>,
     CellRef(cell): CellRef,
-    body: axum::body::Bytes,
+    request: Request,
 ) -> Response {
-    let request: JobRequest = if body.iter().all(u8::is_ascii_whitespace) {
-        JobRequest { job: None }
+    let body = match guard::read_body(request).await {
+        Ok(body) => body,
+        Err(refused) => return refused,
+    };
+    let job = if body.is_empty() {
+        cell.configured_job()
     } else {
-        match serde_json::from_slice(&body) {
+        let request: JobRequest = match serde_json::from_slice(&body) {
             Ok(request) => request,
             Err(e) => {
                 return error(
                     StatusCode::BAD_REQUEST,
-                    format!("job request is not valid: {e}"),
+                    format!(
+                        "job request is not valid: {}; send {{\"job\": {{\"kind\": ...}}}} \
+                         (GET /api/schema) or an empty body for the cell's job",
+                        guard::shorten(&e.to_string())
+                    ),
                 );
             }
+        };
+        match cell.validate(request.job) {
+            Ok(job) => job,
+            Err(refused) => return error(StatusCode::UNPROCESSABLE_ENTITY, refused),
         }
     };
-    let job = cell.job_or_default(request.job);
     let id = daemon.next_id.fetch_add(1, Ordering::Relaxed);
     let started = match cell.start(id, job, &daemon.options) {
         Ok(started) => started,
@@ -546,25 +595,25 @@ async fn submit(
     }
 }
 
-fn with_control(cell: &Cell, act: impl Fn(&StreamControl)) -> Response {
-    match cell.control(act) {
+fn with_control(cell: &Cell, what: &'static str, act: impl Fn(&StreamControl)) -> Response {
+    match cell.control(what, act) {
         Some(id) => Json(serde_json::json!({ "id": id })).into_response(),
         None => error(StatusCode::CONFLICT, "no job is running"),
     }
 }
 
 async fn pause(CellRef(cell): CellRef) -> Response {
-    with_control(&cell, StreamControl::pause)
+    with_control(&cell, "pause", StreamControl::pause)
 }
 
 async fn resume(CellRef(cell): CellRef) -> Response {
-    with_control(&cell, StreamControl::resume)
+    with_control(&cell, "resume", StreamControl::resume)
 }
 
 async fn stop(CellRef(cell): CellRef) -> Response {
-    with_control(&cell, StreamControl::stop)
+    with_control(&cell, "stop", StreamControl::stop)
 }
 
 async fn estop(CellRef(cell): CellRef) -> Response {
-    with_control(&cell, StreamControl::estop)
+    with_control(&cell, "estop", StreamControl::estop)
 }

@@ -1,13 +1,138 @@
-//! Jobs: sources of targets. A job turns its description into waypoints and hands them to
-//! the planner; the result is one trajectory from the rig's current position back to rest.
-//! A job never streams, and a target it cannot reach fails the whole job before motion.
+//! Jobs: what a user asks a rig to do. One enum, [`Job`], with one file per kind (the shape
+//! of mini-redis's `Command`): each kind parses its own keys, validates them (`validate`,
+//! which also resolves the files it names against the config's directory), plans its
+//! trajectory from the rig's current position (`plan`), and says how it is shown (`scene`)
+//! and named (`name`). The TOML loader and the HTTP API both go through [`Job::validate`],
+//! so both refuse the same jobs with the same text.
+//!
+//! Adding a kind is one file and one arm of [`Job`]. A job never streams, never opens a link
+//! and never knows where its description came from; a target it cannot reach fails the
+//! whole job before motion.
 
-use crate::daemon::config::JobConfig;
-use crate::ik::{FabrikSolver, IkError, IkSolver, StructureError};
-use crate::rig::{Pose, Rig};
-use crate::trajectory::{PlanError, PlanSettings, Trajectory, plan_cartesian, plan_joint_moves};
-use glam::{DQuat, DVec3};
+mod files;
+mod follow_trajectory;
+mod gait;
+mod joint_waypoints;
+mod move_joints;
+mod move_linear;
+mod move_poses;
+mod paint;
+mod poses;
+mod wall_figure;
+
+pub use files::resolve_file;
+pub use follow_trajectory::{FollowTrajectory, TrajectoryFileError, read_trajectory_csv};
+pub use gait::Gait;
+pub use joint_waypoints::JointWaypoints;
+pub use move_joints::MoveJoints;
+pub use move_linear::{MoveLinear, top_tool_speed};
+pub use move_poses::MovePoses;
+pub use paint::Paint;
+pub use poses::PoseSpec;
+pub use wall_figure::{WallFigure, star_poses};
+
+use crate::ik::{IkError, StructureError};
+use crate::rig::Rig;
+use crate::task::gait::SlothRig;
+use crate::trajectory::{PlanError, PlanSettings, Trajectory};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
 use thiserror::Error;
+
+/// Most targets, poses or trajectory rows one job may hold: far more than a hand-written job
+/// needs, few enough that planning a hostile job cannot exhaust the daemon's memory.
+pub const MAX_TARGETS: usize = 10_000;
+
+/// A job, as `[job]` in a run settings file or `{"job": {...}}` in `POST /api/jobs`.
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize, JsonSchema)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Job {
+    /// The demo: a five-pointed star on a wall, tool normal to the wall, then back home.
+    WallFigure(WallFigure),
+    /// Joint moves through configurations, then back to where the job started.
+    JointWaypoints(JointWaypoints),
+    /// Joint moves through configurations, staying at the last.
+    MoveJoints(MoveJoints),
+    /// Straight tool lines through poses, staying at the last.
+    MoveLinear(MoveLinear),
+    /// Joint moves to poses (inverse kinematics nearest the current position), staying at
+    /// the last.
+    MovePoses(MovePoses),
+    /// A timed joint trajectory from a CSV file next to the config.
+    FollowTrajectory(FollowTrajectory),
+    /// The sloth's gait over a scenario (the rig must be a sloth file).
+    Gait(Gait),
+    /// Paint a generated room with the painter rig.
+    Paint(Paint),
+}
+
+/// What validating a job needs: the rig it runs on, the sloth behind it for a gait, and the
+/// directory files are named relative to.
+#[derive(Clone, Copy)]
+pub struct JobContext<'a> {
+    pub rig: &'a Rig,
+    pub sloth: Option<&'a SlothRig>,
+    pub base_dir: &'a Path,
+}
+
+/// What planning a job needs: the rig, the sloth behind it for a gait, where the rig is,
+/// and how the planner may use it.
+#[derive(Clone, Copy)]
+pub struct PlanContext<'a> {
+    pub rig: &'a Rig,
+    pub sloth: Option<&'a SlothRig>,
+    pub start: &'a [f64],
+    pub settings: &'a PlanSettings,
+}
+
+/// How a job is shown in the live view: the bare rig, the rig before the wall it draws on,
+/// the painting room, or the sloth on its branches.
+pub enum Scene<'a> {
+    Arm,
+    Wall(&'a WallFigure),
+    PaintRoom(&'a Paint),
+    Sloth(&'a Gait),
+}
+
+/// A job refused before planning: the key, the value given and why. The same text comes
+/// back from the config loader (after the file's name) and from the HTTP API. A `cause`
+/// (a file that would not load) is kept as the error's source, never in its text: the API
+/// answers with the text alone, so it never quotes a file.
+#[derive(Debug, Error)]
+#[error("key `{key}` = {value}: {reason}")]
+pub struct JobInvalid {
+    pub key: String,
+    pub value: String,
+    pub reason: String,
+    #[source]
+    pub cause: Option<Box<dyn std::error::Error + Send + Sync>>,
+}
+
+/// Longest rendering of a refused value in a message: enough to recognise it, short enough
+/// that a hostile body is not echoed back whole.
+const MAX_VALUE_CHARS: usize = 80;
+
+impl JobInvalid {
+    /// `key` holds `value` (shown as JSON, shortened), refused for `reason`.
+    pub fn new(key: impl Into<String>, value: impl Serialize, reason: impl Into<String>) -> Self {
+        let mut value = serde_json::to_string(&value).unwrap_or_else(|_| "?".into());
+        if value.chars().count() > MAX_VALUE_CHARS {
+            value = value.chars().take(MAX_VALUE_CHARS).collect::<String>() + "...";
+        }
+        JobInvalid {
+            key: key.into(),
+            value,
+            reason: reason.into(),
+            cause: None,
+        }
+    }
+
+    pub fn with_cause(mut self, cause: impl std::error::Error + Send + Sync + 'static) -> Self {
+        self.cause = Some(Box::new(cause));
+        self
+    }
+}
 
 #[derive(Debug, Error)]
 pub enum JobError {
@@ -27,80 +152,175 @@ pub enum JobError {
     PaintConfig(#[from] crate::rig::ConfigError),
     #[error("paint job")]
     Paint(#[from] crate::task::paint::PaintError),
+    #[error("gait")]
+    Gait(#[from] crate::task::gait::GaitError),
+    #[error("trajectory file")]
+    TrajectoryFile(#[from] TrajectoryFileError),
+    #[error("{0}")]
+    Invalid(#[from] JobInvalid),
 }
 
-/// The points of a five-pointed star (as one closed stroke) on the wall plane x = `wall_x`,
-/// tool z axis into the wall.
-pub fn star_poses(wall_x: f64, centre_yz: [f64; 2], radius: f64, laps: u32) -> Vec<Pose> {
-    let facing_wall = DQuat::from_rotation_y(std::f64::consts::FRAC_PI_2);
-    let corner = |k: u32| {
-        // Every second vertex of a pentagon draws the star in one stroke.
-        let angle =
-            std::f64::consts::FRAC_PI_2 + f64::from(2 * k % 5) * std::f64::consts::TAU / 5.0;
-        Pose::new(
-            DVec3::new(
-                wall_x,
-                centre_yz[0] + radius * angle.cos(),
-                centre_yz[1] + radius * angle.sin(),
-            ),
-            facing_wall,
-        )
-    };
-    (0..laps * 5)
-        .map(|k| corner(k % 5))
-        .chain(std::iter::once(corner(0)))
-        .collect()
+impl Job {
+    /// The job's keys checked against the rig, every number in range and every file it
+    /// names resolved inside `context.base_dir` (so the returned job holds usable paths).
+    pub fn validate(self, context: &JobContext) -> Result<Job, JobInvalid> {
+        Ok(match self {
+            Job::WallFigure(job) => Job::WallFigure(job.validate(context)?),
+            Job::JointWaypoints(job) => Job::JointWaypoints(job.validate(context)?),
+            Job::MoveJoints(job) => Job::MoveJoints(job.validate(context)?),
+            Job::MoveLinear(job) => Job::MoveLinear(job.validate(context)?),
+            Job::MovePoses(job) => Job::MovePoses(job.validate(context)?),
+            Job::FollowTrajectory(job) => Job::FollowTrajectory(job.validate(context)?),
+            Job::Gait(job) => Job::Gait(job.validate(context)?),
+            Job::Paint(job) => Job::Paint(job.validate(context)?),
+        })
+    }
+
+    /// The whole job's trajectory from `context.start`.
+    pub fn plan(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
+        match self {
+            Job::WallFigure(job) => job.plan(context),
+            Job::JointWaypoints(job) => job.plan(context),
+            Job::MoveJoints(job) => job.plan(context),
+            Job::MoveLinear(job) => job.plan(context),
+            Job::MovePoses(job) => job.plan(context),
+            Job::FollowTrajectory(job) => job.plan(context),
+            Job::Gait(job) => job.plan(context),
+            Job::Paint(job) => job.plan(context),
+        }
+    }
+
+    /// The `kind` key of the job.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Job::WallFigure(_) => "wall_figure",
+            Job::JointWaypoints(_) => "joint_waypoints",
+            Job::MoveJoints(_) => "move_joints",
+            Job::MoveLinear(_) => "move_linear",
+            Job::MovePoses(_) => "move_poses",
+            Job::FollowTrajectory(_) => "follow_trajectory",
+            Job::Gait(_) => "gait",
+            Job::Paint(_) => "paint",
+        }
+    }
+
+    /// The job's name in reports and status: its kind, with the settings that tell two
+    /// jobs of that kind apart.
+    pub fn name(&self) -> String {
+        match self {
+            Job::Gait(job) => job.name(),
+            Job::Paint(job) => job.name(),
+            other => other.kind().to_string(),
+        }
+    }
+
+    pub fn scene(&self) -> Scene<'_> {
+        match self {
+            Job::WallFigure(job) => Scene::Wall(job),
+            Job::Gait(job) => Scene::Sloth(job),
+            Job::Paint(job) => Scene::PaintRoom(job),
+            _ => Scene::Arm,
+        }
+    }
 }
 
-/// Plans the whole job from `start` (the controller's position) back to `start`.
+/// The JSON Schema of a job request's body, `{"job": {...}}`, served at `GET /api/schema`.
+pub fn request_schema() -> serde_json::Value {
+    #[derive(JsonSchema)]
+    #[allow(dead_code)]
+    #[schemars(deny_unknown_fields)]
+    /// A job request: the job, or an empty body for the cell's configured job.
+    struct JobRequest {
+        job: Job,
+    }
+    serde_json::to_value(schemars::schema_for!(JobRequest)).unwrap_or_default()
+}
+
+/// Plans `job` from `start` on `rig` (a job that is not a gait; kept for callers that plan
+/// without a sloth).
 pub fn plan_job(
-    job: &JobConfig,
+    job: &Job,
     rig: &Rig,
     start: &[f64],
     settings: &PlanSettings,
 ) -> Result<Trajectory, JobError> {
-    match job {
-        JobConfig::WallFigure {
-            wall_x_m,
-            centre_yz_m,
-            radius_m,
-            laps,
-        } => {
-            let solver = FabrikSolver::new(rig.clone())?;
-            let poses = star_poses(*wall_x_m, *centre_yz_m, *radius_m, *laps);
-            let first = solver
-                .solve(&poses[0], start)
-                .map_err(|error| JobError::Unreachable {
-                    index: 0,
-                    what: format!("star corner at {:?}", poses[0].position),
-                    error,
-                })?;
-            let mut trajectory =
-                plan_joint_moves(rig, start, std::slice::from_ref(&first.joints), settings)?;
-            let figure = plan_cartesian(&solver, &first.joints, &poses[1..], settings)?;
-            trajectory.append(&figure);
-            let end = figure.position(figure.len() - 1).to_vec();
-            trajectory.append(&plan_joint_moves(rig, &end, &[start.to_vec()], settings)?);
-            Ok(trajectory)
-        }
-        JobConfig::Paint {
-            walls,
-            seed,
-            paint_config,
-        } => {
-            let paint = crate::task::paint::load_paint_settings(paint_config)?;
-            let (_, planned) =
-                crate::task::paint::plan_room(&paint, *walls, *seed, start, settings)?;
-            Ok(planned.trajectory)
-        }
-        JobConfig::JointWaypoints { waypoints_deg } => {
-            let mut waypoints: Vec<Vec<f64>> = waypoints_deg
-                .iter()
-                .map(|w| w.iter().map(|d| d.to_radians()).collect())
-                .collect();
-            waypoints.push(start.to_vec());
-            Ok(plan_joint_moves(rig, start, &waypoints, settings)?)
-        }
-        JobConfig::Gait { .. } => Err(JobError::NeedsSloth),
+    job.plan(&PlanContext {
+        rig,
+        sloth: None,
+        start,
+        settings,
+    })
+}
+
+/// `value` when it is finite and within `[low, high]`, else the refusal naming `key`.
+pub(crate) fn in_range(key: &str, value: f64, low: f64, high: f64) -> Result<f64, JobInvalid> {
+    if value.is_finite() && (low..=high).contains(&value) {
+        Ok(value)
+    } else {
+        Err(JobInvalid::new(
+            key,
+            value,
+            format!("must lie in [{low}, {high}]"),
+        ))
     }
+}
+
+/// Config joint values in SI units: revolute axes are written in degrees, prismatic ones in
+/// metres.
+pub fn to_si(values: &[f64], rig: &Rig) -> Vec<f64> {
+    values
+        .iter()
+        .zip(&rig.joints)
+        .map(|(v, joint)| match joint.kind {
+            crate::rig::JointKind::Revolute => v.to_radians(),
+            crate::rig::JointKind::Prismatic => *v,
+        })
+        .collect()
+}
+
+/// One configuration of `rig` in config units (degrees, metres for prismatic axes): one
+/// finite value per axis, inside the axis' limits.
+pub fn check_joints(key: &str, values: &[f64], rig: &Rig) -> Result<(), JobInvalid> {
+    if values.len() != rig.dof() {
+        return Err(JobInvalid::new(
+            key,
+            values,
+            format!("needs {} values for rig {}", rig.dof(), rig.name),
+        ));
+    }
+    if values.iter().any(|d| !d.is_finite()) {
+        return Err(JobInvalid::new(key, values, "values must be finite"));
+    }
+    if let Some((index, _)) = rig.first_limit_violation(&to_si(values, rig)) {
+        return Err(JobInvalid::new(
+            format!("{key}[{index}]"),
+            values[index],
+            format!("outside the limits of {}", rig.joints[index].name),
+        ));
+    }
+    Ok(())
+}
+
+/// A list of configurations: at least one, at most [`MAX_TARGETS`], each checked.
+pub(crate) fn check_targets(key: &str, targets: &[Vec<f64>], rig: &Rig) -> Result<(), JobInvalid> {
+    check_count(key, targets.len())?;
+    for (i, target) in targets.iter().enumerate() {
+        check_joints(&format!("{key}[{i}]"), target, rig)?;
+    }
+    Ok(())
+}
+
+/// At least one and at most [`MAX_TARGETS`] items.
+pub(crate) fn check_count(key: &str, count: usize) -> Result<(), JobInvalid> {
+    if count == 0 {
+        return Err(JobInvalid::new(key, "[]", "needs at least one entry"));
+    }
+    if count > MAX_TARGETS {
+        return Err(JobInvalid::new(
+            key,
+            format!("{count} entries"),
+            format!("at most {MAX_TARGETS} entries"),
+        ));
+    }
+    Ok(())
 }

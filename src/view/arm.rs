@@ -52,15 +52,11 @@ impl ArmScene {
 /// The wall a job draws on: the plane x = `wall_x_m` of the star job, square around its
 /// figure, standing on the floor (z = 0).
 pub fn job_wall(job: &JobConfig) -> Option<WallView> {
-    let JobConfig::WallFigure {
-        wall_x_m,
-        centre_yz_m,
-        radius_m,
-        ..
-    } = job
-    else {
+    let crate::job::Scene::Wall(figure) = job.scene() else {
         return None;
     };
+    let (wall_x_m, centre_yz_m, radius_m) =
+        (&figure.wall_x_m, &figure.centre_yz_m, &figure.radius_m);
     let half_width = (WALL_MARGIN_RADII * radius_m).max(WALL_MIN_SIZE_M / 2.0);
     let top = (centre_yz_m[1] + WALL_MARGIN_RADII * radius_m).max(WALL_MIN_SIZE_M);
     let (y0, y1) = (centre_yz_m[0] - half_width, centre_yz_m[0] + half_width);
@@ -206,12 +202,12 @@ mod tests {
 
     #[test]
     fn the_star_job_shows_its_wall_at_wall_x() {
-        let job = JobConfig::WallFigure {
+        let job = JobConfig::WallFigure(crate::job::WallFigure {
             wall_x_m: 0.45,
             centre_yz_m: [0.1, 0.45],
             radius_m: 0.12,
             laps: 1,
-        };
+        });
         let wall = job_wall(&job).unwrap();
         assert!(wall.corners.iter().all(|c| c[0] == 0.45));
         let (ys, zs): (Vec<f64>, Vec<f64>) = wall.corners.iter().map(|c| (c[1], c[2])).unzip();
@@ -228,9 +224,9 @@ mod tests {
         let [a, b, c, _] = wall.corners.map(glam::DVec3::from_array);
         let facing = (b - a).cross(c - a);
         assert!(facing.x < 0.0, "the wall's front faces the arm: {facing}");
-        let waypoints = JobConfig::JointWaypoints {
+        let waypoints = JobConfig::JointWaypoints(crate::job::JointWaypoints {
             waypoints_deg: vec![vec![0.0; 6]],
-        };
+        });
         assert!(job_wall(&waypoints).is_none());
     }
 }

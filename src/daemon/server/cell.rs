@@ -11,7 +11,7 @@ use super::{JobWorld, LIVE_FRAME_RATE_HZ, ServeOptions};
 use crate::clock::{Clock, VirtualClock, WallClock};
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::daemon::{DaemonError, RunReport, error_chain, plan_for, stream_planned_with};
-use crate::link::{LinkSpec, LoopbackLink};
+use crate::link::{Link, LinkSpec, LoopbackLink};
 use crate::rig::JointKind;
 use crate::stream::StreamControl;
 use crate::twin::{SharedWorld, Twin};
@@ -120,7 +120,11 @@ enum JobResult {
 #[derive(Debug, Serialize)]
 pub struct Status {
     cell: String,
+    /// The link the cell streams over (`[stream] link`).
+    link: String,
     state: &'static str,
+    /// The latest control events (pause, resume, stop, e-stop), oldest first.
+    events: Vec<ControlEvent>,
     job: Option<JobStatus>,
     last: Option<JobResult>,
     /// The twin's actual position per axis, in the axis' unit; empty while a job streams
@@ -140,6 +144,7 @@ pub struct AxisValue {
 #[derive(Debug, Serialize)]
 pub struct CellSummary {
     name: String,
+    link: String,
     dof: usize,
     joints: Vec<String>,
     state: &'static str,
@@ -178,9 +183,32 @@ pub struct StartedJob {
     pub planned: oneshot::Receiver<Result<(), String>>,
 }
 
+/// A control request as the cell logged it.
+#[derive(Debug, Clone, Serialize)]
+pub struct ControlEvent {
+    /// Seconds since the Unix epoch.
+    at_s: f64,
+    action: &'static str,
+    /// The job it acted on; `None` when no job was running.
+    job: Option<u64>,
+}
+
+/// How many control events a cell keeps for its status.
+const KEPT_EVENTS: usize = 32;
+
+/// Where a cell's jobs stream: its own in-process twin, or a real link (`[stream] link`),
+/// opened at the first job and kept (it reconnects by itself after a loss).
+enum CellLink {
+    Twin(Box<LoopbackLink>),
+    Remote(Option<Box<dyn Link>>),
+}
+
 pub struct Cell {
     settings: RunSettings,
-    link: Arc<Mutex<LoopbackLink>>,
+    link: Arc<Mutex<CellLink>>,
+    /// The link's address as configured.
+    link_name: String,
+    events: Mutex<std::collections::VecDeque<ControlEvent>>,
     job: Mutex<Option<ActiveJob>>,
     last: Mutex<Option<JobResult>>,
     hub: LiveHub,
@@ -208,9 +236,16 @@ impl Cell {
             slot,
             scene,
         );
+        let link_name = settings.config.stream.link.clone();
+        let link = match link_name.parse::<LinkSpec>() {
+            Ok(LinkSpec::Loopback) | Err(_) => CellLink::Twin(Box::new(LoopbackLink::new(twin))),
+            Ok(_) => CellLink::Remote(None),
+        };
         Ok(Cell {
             settings,
-            link: Arc::new(Mutex::new(LoopbackLink::new(twin))),
+            link: Arc::new(Mutex::new(link)),
+            link_name,
+            events: Mutex::default(),
             job: Mutex::new(None),
             last: Mutex::new(None),
             hub,
@@ -227,9 +262,44 @@ impl Cell {
         &self.hub
     }
 
-    /// The job `request` names, or the configured one.
-    pub fn job_or_default(&self, request: Option<JobConfig>) -> JobConfig {
-        request.unwrap_or_else(|| self.settings.config.job.clone())
+    /// The job of the cell's config (validated when it was loaded).
+    pub fn configured_job(&self) -> JobConfig {
+        self.settings.config.job.clone()
+    }
+
+    /// `job` checked for this cell's rig exactly as its config's `[job]` was, files resolved
+    /// in the config's directory. The refusal is the text a config would get; why a named
+    /// file would not load goes to the daemon's log only, never to the client.
+    pub fn validate(&self, job: JobConfig) -> Result<JobConfig, crate::job::JobInvalid> {
+        let base_dir = crate::daemon::config::config_dir(&self.settings.file);
+        let context = crate::job::JobContext {
+            rig: &self.settings.rig,
+            sloth: self.settings.sloth.as_deref(),
+            base_dir: &base_dir,
+        };
+        job.validate(&context).map_err(|mut refused| {
+            if let Some(cause) = refused.cause.take() {
+                eprintln!(
+                    "cell {}: job refused: {refused}: {}",
+                    self.name(),
+                    error_chain(cause.as_ref())
+                );
+            }
+            refused
+        })
+    }
+
+    fn log_event(&self, action: &'static str, job: Option<u64>) {
+        let at_s = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0.0, |d| d.as_secs_f64());
+        let shown = job.map_or("no job".to_string(), |id| format!("job {id}"));
+        eprintln!("cell {}: {action} ({shown})", self.name());
+        let mut events = self.events.lock().unwrap_or_else(PoisonError::into_inner);
+        if events.len() == KEPT_EVENTS {
+            events.pop_front();
+        }
+        events.push_back(ControlEvent { at_s, action, job });
     }
 
     fn running(&self) -> Option<JobStatus> {
@@ -242,8 +312,8 @@ impl Cell {
     pub fn status(&self) -> Status {
         let job = self.running();
         // A streaming job holds the link: the live view has the position then.
-        let actual = match self.link.try_lock() {
-            Ok(link) => self
+        let actual = match self.link.try_lock().as_deref() {
+            Ok(CellLink::Twin(link)) => self
                 .settings
                 .rig
                 .joints
@@ -261,10 +331,18 @@ impl Cell {
                     }
                 })
                 .collect(),
-            Err(_) => Vec::new(),
+            _ => Vec::new(),
         };
         Status {
             cell: self.name().to_string(),
+            link: self.link_name.clone(),
+            events: self
+                .events
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .iter()
+                .cloned()
+                .collect(),
             state: state_of(job.as_ref()),
             job,
             last: self.last().clone(),
@@ -276,6 +354,7 @@ impl Cell {
         let job = self.running();
         CellSummary {
             name: self.name().to_string(),
+            link: self.link_name.clone(),
             dof: self.settings.rig.dof(),
             joints: self
                 .settings
@@ -332,10 +411,7 @@ impl Cell {
         if slot.as_ref().is_some_and(|j| !j.handle.is_finished()) {
             return Err(StartRefused::Busy);
         }
-        let name = serde_json::to_value(&job)
-            .ok()
-            .and_then(|v| v.get("kind").and_then(|k| k.as_str().map(String::from)))
-            .unwrap_or_else(|| "job".into());
+        let name = job.kind().to_string();
         let control = Arc::new(StreamControl::default());
         let (planned_tx, planned) = oneshot::channel();
         let handle = self.spawn_job(id, job, control.clone(), options, planned_tx);
@@ -366,16 +442,26 @@ impl Cell {
             } else {
                 Box::new(WallClock::new())
             };
-            let result = cell.run_job(&job, &control, clock.as_ref(), &log, planned);
+            let result =
+                contain_panic(|| cell.run_job(&job, &control, clock.as_ref(), &log, planned));
             let outcome = match result {
-                Ok(report) => JobResult::Finished {
+                Ok(Ok(report)) => JobResult::Finished {
                     id,
                     report: Box::new(report),
                 },
-                Err(e) => JobResult::Failed {
+                Ok(Err(e)) => JobResult::Failed {
                     id,
                     error: error_chain(&e),
                 },
+                Err(panic) => {
+                    eprintln!("cell {}: job {id} panicked: {panic}", cell.name());
+                    // The job is gone; the next one must still find the link.
+                    cell.link.clear_poison();
+                    JobResult::Failed {
+                        id,
+                        error: format!("the job failed unexpectedly: {panic}"),
+                    }
+                }
             };
             *cell.last() = Some(outcome);
         })
@@ -389,11 +475,21 @@ impl Cell {
         log: &std::path::Path,
         planned: oneshot::Sender<Result<(), String>>,
     ) -> Result<RunReport, DaemonError> {
-        let Ok(mut link) = self.link.lock() else {
+        let Ok(mut guard) = self.link.lock() else {
             let _ = planned.send(Err("twin lock poisoned".into()));
             return Err(DaemonError::Unavailable("twin lock poisoned".into()));
         };
-        let plan = plan_for(&self.settings, job, &mut *link, clock, control);
+        let link: &mut dyn Link = match &mut *guard {
+            CellLink::Twin(twin) => twin.as_mut(),
+            CellLink::Remote(remote) => match self.remote(remote) {
+                Ok(link) => link,
+                Err(e) => {
+                    let _ = planned.send(Err(error_chain(&e)));
+                    return Err(e);
+                }
+            },
+        };
+        let plan = plan_for(&self.settings, job, link, clock, control);
         let _ = planned.send(plan.as_ref().map(|_| ()).map_err(|e| error_chain(e)));
         let plan = plan?;
         let (scene, world) = scene_for_job(&self.settings, job);
@@ -405,7 +501,7 @@ impl Cell {
         stream_planned_with(
             &self.settings,
             &plan,
-            &mut *link,
+            link,
             clock,
             Some(log),
             control,
@@ -413,12 +509,36 @@ impl Cell {
         )
     }
 
-    /// Applies `act` to the running job; its number, or `None` when no job runs.
-    pub fn control(&self, act: impl Fn(&StreamControl)) -> Option<u64> {
+    /// The remote link, opened now if it is not yet (or its last opening failed).
+    fn remote<'a>(
+        &self,
+        remote: &'a mut Option<Box<dyn Link>>,
+    ) -> Result<&'a mut dyn Link, DaemonError> {
+        if remote.is_none() {
+            let spec = self
+                .link_name
+                .parse::<LinkSpec>()
+                .map_err(|e| DaemonError::Unavailable(e.reason))?;
+            *remote = Some(crate::daemon::open_link(&spec, &self.settings)?);
+        }
+        match remote.as_deref_mut() {
+            Some(link) => Ok(link),
+            None => Err(DaemonError::Unavailable("the link did not open".into())),
+        }
+    }
+
+    /// Applies `act` (called `action` in the cell's events) to the running job; its number,
+    /// or `None` when no job runs.
+    pub fn control(&self, action: &'static str, act: impl Fn(&StreamControl)) -> Option<u64> {
         let job = self.job.lock().unwrap_or_else(PoisonError::into_inner);
-        let running = job.as_ref().filter(|j| !j.handle.is_finished())?;
-        act(&running.control);
-        Some(running.id)
+        let running = job.as_ref().filter(|j| !j.handle.is_finished());
+        if let Some(running) = running {
+            act(&running.control);
+        }
+        let id = running.map(|j| j.id);
+        drop(job);
+        self.log_event(action, id);
+        id
     }
 
     /// Waits for the thread of job `id` (refused at planning, so about to end) and frees
@@ -443,5 +563,62 @@ impl Cell {
             job.control.stop();
             let _ = job.handle.join();
         }
+    }
+}
+
+/// `work`'s result, or the message of the panic that ended it: one job's bug must not take
+/// the daemon (or another cell) down.
+fn contain_panic<T>(work: impl FnOnce() -> T) -> Result<T, String> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(work)).map_err(|payload| {
+        payload
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| payload.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "a panic without a message".into())
+    })
+}
+
+/// The first job number of a daemon logging to `runs_dir`: one past the highest
+/// `job-<n>.mcap` already there, so a restarted daemon neither collides with nor overwrites
+/// an earlier one's logs.
+pub fn first_job_id(runs_dir: &std::path::Path) -> u64 {
+    let highest = std::fs::read_dir(runs_dir)
+        .into_iter()
+        .flatten()
+        .filter_map(|entry| {
+            let name = entry.ok()?.file_name();
+            let name = name.to_str()?;
+            name.strip_prefix("job-")?
+                .strip_suffix(".mcap")?
+                .parse::<u64>()
+                .ok()
+        })
+        .max()
+        .unwrap_or(0);
+    highest.saturating_add(1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_panicking_job_is_contained() {
+        let result: Result<(), String> = contain_panic(|| panic!("boom {}", 7));
+        assert_eq!(result.unwrap_err(), "boom 7");
+        assert_eq!(contain_panic(|| 3), Ok(3));
+    }
+
+    #[test]
+    fn job_numbers_continue_after_the_logs_already_there() {
+        let dir = std::env::temp_dir().join(format!("rigbridge-ids-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        assert_eq!(first_job_id(&dir), 1, "no directory yet");
+        std::fs::create_dir_all(&dir).unwrap();
+        for name in ["job-3.mcap", "job-12.mcap", "job-x.mcap", "run-99.mcap"] {
+            std::fs::write(dir.join(name), b"").unwrap();
+        }
+        assert_eq!(first_job_id(&dir), 13);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

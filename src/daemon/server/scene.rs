@@ -3,6 +3,7 @@
 //! scenes themselves live in `src/view`, and planning stays with the job.
 
 use crate::daemon::config::{JobConfig, RunSettings};
+use crate::job::Scene;
 use crate::task::gait::forest::scenario_named;
 use crate::task::paint::{load_paint_settings, room_for, world_for};
 use crate::twin::TwinWorld;
@@ -16,25 +17,18 @@ pub type JobScene = (Box<dyn LiveScene>, Option<Box<dyn TwinWorld>>);
 /// A job whose room or scenario cannot be built shows the bare rig: planning the same job
 /// fails and reports why.
 pub fn scene_for_job(settings: &RunSettings, job: &JobConfig) -> JobScene {
-    match job {
-        JobConfig::Paint {
-            walls,
-            seed,
-            paint_config,
-        } => painting_room(settings, *walls, *seed, paint_config)
-            .unwrap_or_else(|| (Box::new(ArmScene::new(settings.rig.clone())), None)),
-        JobConfig::Gait {
-            scenario,
-            angle_deg,
-            gap_m,
-            forest,
-        } => {
+    match job.scene() {
+        Scene::PaintRoom(paint) => {
+            painting_room(settings, paint.walls, paint.seed, &paint.paint_config)
+                .unwrap_or_else(|| (Box::new(ArmScene::new(settings.rig.clone())), None))
+        }
+        Scene::Sloth(gait) => {
             let built = settings.sloth.as_ref().and_then(|sloth| {
                 scenario_named(
-                    scenario,
-                    *angle_deg,
-                    *gap_m,
-                    forest.as_deref(),
+                    &gait.scenario,
+                    gait.angle_deg,
+                    gait.gap_m,
+                    gait.forest.as_deref(),
                     sloth.gait.trunk_tilt_rad,
                 )
                 .ok()
@@ -46,7 +40,7 @@ pub fn scene_for_job(settings: &RunSettings, job: &JobConfig) -> JobScene {
             };
             (scene, None)
         }
-        JobConfig::WallFigure { .. } | JobConfig::JointWaypoints { .. } => {
+        Scene::Wall(_) | Scene::Arm => {
             let trace = Arc::new(Mutex::new(ToolTrace::new(settings.rig.clone())));
             let scene = ArmScene::for_job(settings.rig.clone(), job, Some(trace.clone()));
             (Box::new(scene), Some(Box::new(trace)))
@@ -107,11 +101,11 @@ mod tests {
     #[test]
     fn a_room_that_cannot_be_built_shows_the_bare_rig() {
         let paint = shipped("paint-run.toml");
-        let job = JobConfig::Paint {
+        let job = JobConfig::Paint(crate::job::Paint {
             walls: 2,
             seed: 0,
             paint_config: Path::new(env!("CARGO_MANIFEST_DIR")).join("config/paint.toml"),
-        };
+        });
         let (scene, world) = scene_for_job(&paint, &job);
         assert!(scene.scene().walls.is_empty());
         assert!(world.is_none());

@@ -650,7 +650,9 @@ async function control(action) {
   const result = document.getElementById('control-result');
   result.textContent = path + ' ...';
   try {
-    const response = await fetch(path, { method: 'POST', headers: authHeaders() });
+    // The API takes control requests only as JSON (a cross-site form cannot send that).
+    const headers = Object.assign({ 'Content-Type': 'application/json' }, authHeaders());
+    const response = await fetch(path, { method: 'POST', headers });
     const body = await response.json().catch(() => ({}));
     if (response.status === 401) askForToken('token needed');
     result.textContent = path + ': ' + response.status + (body.error ? ' ' + body.error : '');

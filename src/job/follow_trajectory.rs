@@ -1,0 +1,281 @@
+//! `kind = "follow_trajectory"`: a timed joint trajectory from a CSV file next to the config
+//! (`file = "t.csv"`, columns `t,j1..jN`: seconds, then degrees, metres for prismatic axes).
+//! Owns reading that file and turning its rows into a trajectory at the stream's period:
+//! a joint move from where the rig is to the first row, then the rows, joined by cubic
+//! Hermite pieces (tangents from the neighbouring rows, at rest at both ends), checked like
+//! every trajectory and for acceleration too. It stays at the last row. No error quotes the
+//! file's content: they name the row and column.
+
+use super::{JobContext, JobError, JobInvalid, PlanContext, resolve_file, to_si};
+use crate::rig::Rig;
+use crate::trajectory::{Trajectory, plan_joint_moves, validate};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use thiserror::Error;
+
+/// Most rows a trajectory file may hold: over an hour at 50 rows a second, and a bounded
+/// amount of memory for a daemon that reads it.
+pub const MAX_ROWS: usize = 200_000;
+/// Largest trajectory file (bytes), read before anything is parsed.
+const MAX_FILE_BYTES: u64 = 32 * 1024 * 1024;
+/// Longest trajectory (s): a day, so that a typo in `t` cannot make a plan of billions of
+/// samples.
+const MAX_DURATION_S: f64 = 86_400.0;
+
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct FollowTrajectory {
+    /// The CSV file, relative to the config's directory.
+    pub file: PathBuf,
+}
+
+/// Why a trajectory file is refused: where, never what it holds.
+#[derive(Debug, Error)]
+pub enum TrajectoryFileError {
+    #[error("{file}: cannot read")]
+    Io {
+        file: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{file}: larger than {MAX_FILE_BYTES} bytes")]
+    TooLarge { file: PathBuf },
+    #[error("{file}: the header must be `{expected}`")]
+    Header { file: PathBuf, expected: String },
+    #[error("{file}: row {row}: {reason}")]
+    Row {
+        file: PathBuf,
+        row: usize,
+        reason: String,
+    },
+    #[error("{file}: {reason}")]
+    Shape { file: PathBuf, reason: String },
+}
+
+/// One row: its time (s) and its joint values in SI units (rad, m).
+pub type Row = (f64, Vec<f64>);
+
+impl FollowTrajectory {
+    pub fn validate(self, context: &JobContext) -> Result<Self, JobInvalid> {
+        let file = resolve_file(context.base_dir, "job.file", &self.file)?;
+        if let Err(e) = read_trajectory_csv(&file, context.rig) {
+            return Err(JobInvalid::new(
+                "job.file",
+                self.file.display().to_string(),
+                trim_file(&e, &file),
+            ));
+        }
+        Ok(FollowTrajectory { file })
+    }
+
+    pub fn plan(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
+        let rows = read_trajectory_csv(&self.file, context.rig)?;
+        let (rig, settings) = (context.rig, context.settings);
+        let mut trajectory = plan_joint_moves(
+            rig,
+            context.start,
+            std::slice::from_ref(&rows[0].1),
+            settings,
+        )?;
+        let followed =
+            sample_rows(rig, &rows, settings.period_s).map_err(|reason| self.shape(reason))?;
+        validate(&followed, rig)
+            .map_err(|e| self.shape(format!("the sampled trajectory is refused: {e}")))?;
+        check_acceleration(rig, &followed).map_err(|reason| self.shape(reason))?;
+        trajectory.append(&followed);
+        Ok(trajectory)
+    }
+
+    fn shape(&self, reason: String) -> JobError {
+        TrajectoryFileError::Shape {
+            file: self.file.clone(),
+            reason,
+        }
+        .into()
+    }
+}
+
+/// The message of `e` without the file name in front (the refusal names the key already).
+fn trim_file(e: &TrajectoryFileError, file: &Path) -> String {
+    let text = e.to_string();
+    let prefix = format!("{}: ", file.display());
+    text.strip_prefix(&prefix).unwrap_or(&text).to_string()
+}
+
+/// The rows of a trajectory file for `rig`: header `t,j1,...,jN` (or `t` and the rig's joint
+/// names), `t` from 0 and strictly increasing, every value finite and inside its limits.
+pub fn read_trajectory_csv(file: &Path, rig: &Rig) -> Result<Vec<Row>, TrajectoryFileError> {
+    let io = |source| TrajectoryFileError::Io {
+        file: file.to_path_buf(),
+        source,
+    };
+    if std::fs::metadata(file).map_err(io)?.len() > MAX_FILE_BYTES {
+        return Err(TrajectoryFileError::TooLarge {
+            file: file.to_path_buf(),
+        });
+    }
+    let text = std::fs::read_to_string(file).map_err(io)?;
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty() && !l.trim_start().starts_with('#'));
+    check_header(file, rig, lines.next().map(|(_, l)| l))?;
+    let mut rows: Vec<Row> = Vec::new();
+    for (index, line) in lines {
+        let row = index + 1;
+        let bad = |reason: String| TrajectoryFileError::Row {
+            file: file.to_path_buf(),
+            row,
+            reason,
+        };
+        if rows.len() == MAX_ROWS {
+            return Err(bad(format!("more than {MAX_ROWS} rows")));
+        }
+        let parsed = parse_row(line, rig, rows.last().map(|r| r.0)).map_err(bad)?;
+        rows.push(parsed);
+    }
+    if rows.is_empty() {
+        return Err(TrajectoryFileError::Shape {
+            file: file.to_path_buf(),
+            reason: "no rows after the header".into(),
+        });
+    }
+    Ok(rows)
+}
+
+fn check_header(file: &Path, rig: &Rig, header: Option<&str>) -> Result<(), TrajectoryFileError> {
+    let cells: Vec<String> = header
+        .unwrap_or_default()
+        .split(',')
+        .map(|c| c.trim().to_string())
+        .collect();
+    let numbered: Vec<String> = std::iter::once("t".to_string())
+        .chain((1..=rig.dof()).map(|i| format!("j{i}")))
+        .collect();
+    let named: Vec<String> = std::iter::once("t".to_string())
+        .chain(rig.joint_names().map(str::to_owned))
+        .collect();
+    if cells == numbered || cells == named {
+        Ok(())
+    } else {
+        Err(TrajectoryFileError::Header {
+            file: file.to_path_buf(),
+            expected: numbered.join(","),
+        })
+    }
+}
+
+/// One data row; `previous` is the time of the row before.
+fn parse_row(line: &str, rig: &Rig, previous: Option<f64>) -> Result<Row, String> {
+    let cells: Vec<&str> = line.split(',').map(str::trim).collect();
+    if cells.len() != rig.dof() + 1 {
+        return Err(format!("needs {} columns", rig.dof() + 1));
+    }
+    let number = |column: usize| -> Result<f64, String> {
+        match cells[column].parse::<f64>() {
+            Ok(v) if v.is_finite() => Ok(v),
+            _ => Err(format!("column {} is not a finite number", column + 1)),
+        }
+    };
+    let t = number(0)?;
+    match previous {
+        None if t != 0.0 => return Err("the first row's t must be 0".into()),
+        Some(before) if t <= before => return Err("t must increase from row to row".into()),
+        _ if t > MAX_DURATION_S => return Err(format!("t beyond {MAX_DURATION_S} s")),
+        _ => {}
+    }
+    let values = (1..cells.len())
+        .map(number)
+        .collect::<Result<Vec<_>, _>>()?;
+    let si = to_si(&values, rig);
+    if let Some((axis, _)) = rig.first_limit_violation(&si) {
+        return Err(format!(
+            "column {} is outside the limits of {}",
+            axis + 2,
+            rig.joints[axis].name
+        ));
+    }
+    Ok((t, si))
+}
+
+/// The rows sampled every `period_s`: a cubic Hermite piece between consecutive rows, its
+/// tangents the slope over the rows either side (zero at the first and last row, so the
+/// trajectory starts and ends at rest). The last row is the last sample, exactly.
+fn sample_rows(rig: &Rig, rows: &[Row], period_s: f64) -> Result<Trajectory, String> {
+    let dof = rig.dof();
+    let tangent = |k: usize| -> Vec<f64> {
+        if k == 0 || k + 1 == rows.len() {
+            return vec![0.0; dof];
+        }
+        let (before, after) = (&rows[k - 1], &rows[k + 1]);
+        (0..dof)
+            .map(|a| (after.1[a] - before.1[a]) / (after.0 - before.0))
+            .collect()
+    };
+    let end = rows[rows.len() - 1].0;
+    let periods = (end / period_s).ceil() as usize;
+    let mut positions = Vec::with_capacity((periods + 1) * dof);
+    let mut velocities = Vec::with_capacity((periods + 1) * dof);
+    let mut piece = 0;
+    for k in 0..=periods {
+        let t = (k as f64 * period_s).min(end);
+        while piece + 2 < rows.len() && rows[piece + 1].0 <= t {
+            piece += 1;
+        }
+        let (a, b) = (&rows[piece], &rows[(piece + 1).min(rows.len() - 1)]);
+        let (ta, tb) = (tangent(piece), tangent((piece + 1).min(rows.len() - 1)));
+        let h = (b.0 - a.0).max(f64::MIN_POSITIVE);
+        let s = ((t - a.0) / h).clamp(0.0, 1.0);
+        for axis in 0..dof {
+            let (p, v) = hermite(a.1[axis], b.1[axis], ta[axis] * h, tb[axis] * h, s);
+            positions.push(p);
+            velocities.push(v / h);
+        }
+    }
+    Trajectory::new(
+        rig.name.clone(),
+        rig.joint_names().map(str::to_owned).collect(),
+        period_s,
+        positions,
+        velocities,
+    )
+    .map_err(|e| e.to_string())
+}
+
+/// Position and derivative (per unit `s`) of the cubic Hermite piece from `p0` (slope `m0`)
+/// to `p1` (slope `m1`) at `s` in [0, 1].
+fn hermite(p0: f64, p1: f64, m0: f64, m1: f64, s: f64) -> (f64, f64) {
+    let (s2, s3) = (s * s, s * s * s);
+    let p = (2.0 * s3 - 3.0 * s2 + 1.0) * p0
+        + (s3 - 2.0 * s2 + s) * m0
+        + (-2.0 * s3 + 3.0 * s2) * p1
+        + (s3 - s2) * m1;
+    let d = (6.0 * s2 - 6.0 * s) * p0
+        + (3.0 * s2 - 4.0 * s + 1.0) * m0
+        + (-6.0 * s2 + 6.0 * s) * p1
+        + (3.0 * s2 - 2.0 * s) * m1;
+    (p, d)
+}
+
+/// Every second difference of the samples (at rest before the first and after the last)
+/// within the axis' max acceleration.
+fn check_acceleration(rig: &Rig, trajectory: &Trajectory) -> Result<(), String> {
+    let n = trajectory.len();
+    let at = |k: isize| trajectory.position(k.clamp(0, n as isize - 1) as usize);
+    for k in 0..n as isize {
+        for (axis, joint) in rig.joints.iter().enumerate() {
+            let second = at(k + 1)[axis] - 2.0 * at(k)[axis] + at(k - 1)[axis];
+            if !joint
+                .limits
+                .second_difference_ok(second, trajectory.period_s)
+            {
+                return Err(format!(
+                    "{} accelerates beyond its limit at t = {:.3} s",
+                    joint.name,
+                    k as f64 * trajectory.period_s
+                ));
+            }
+        }
+    }
+    Ok(())
+}

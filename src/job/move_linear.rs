@@ -1,0 +1,109 @@
+//! `kind = "move_linear"`: a joint move to the first pose (inverse kinematics nearest the
+//! rig's position), then straight tool lines from pose to pose, orientation slerped, solved sample by sample with the FABRIK planner (seeded by the
+//! sample before, so the joints stay continuous across lines), staying at the last pose.
+//! Owns the tool speed cap `speed_m_s`: the Cartesian planner times each line as fast as
+//! the axes allow, and this kind slows the whole plan down until the tool keeps under it.
+
+use super::poses::{PoseSpec, check_poses, show_xyz};
+use super::{JobContext, JobError, JobInvalid, PlanContext, in_range};
+use crate::ik::{FabrikSolver, IkSolver};
+use crate::rig::Rig;
+use crate::trajectory::{PlanSettings, Trajectory, plan_cartesian, plan_joint_moves};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+/// The fastest tool speed a job may ask for (m/s): above the IRB 120's 6.2 m/s TCP speed
+/// (ABB, IRB 120 product specification, 3HAC035960-001, "Performance") nothing is gained.
+const MAX_TOOL_SPEED_M_S: f64 = 6.2;
+const MIN_TOOL_SPEED_M_S: f64 = 0.001;
+
+/// How often the plan is slowed down to meet `speed_m_s`, and the extra margin each time so
+/// that the sampled speed, a hair above after rounding, does not need another round.
+const MAX_SLOWDOWNS: u32 = 6;
+const SLOWDOWN_MARGIN: f64 = 1.01;
+
+/// The default tool speed (m/s): a careful 0.1 m/s, the speed of a hand-guided move.
+fn default_speed() -> f64 {
+    0.1
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct MoveLinear {
+    /// The tool poses the lines go through, in order. At least one, at most 10000.
+    pub poses: Vec<PoseSpec>,
+    /// The tool's top speed along the lines (m/s), in [0.001, 6.2]; 0.1 when absent. The
+    /// axes' limits may keep it slower.
+    #[serde(default = "default_speed")]
+    pub speed_m_s: f64,
+}
+
+impl MoveLinear {
+    pub fn validate(self, _: &JobContext) -> Result<Self, JobInvalid> {
+        check_poses("job.poses", &self.poses)?;
+        in_range(
+            "job.speed_m_s",
+            self.speed_m_s,
+            MIN_TOOL_SPEED_M_S,
+            MAX_TOOL_SPEED_M_S,
+        )?;
+        Ok(self)
+    }
+
+    pub fn plan(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
+        let poses = check_poses("job.poses", &self.poses)?;
+        let solver = FabrikSolver::new(context.rig.clone())?;
+        let first =
+            solver
+                .solve(&poses[0], context.start)
+                .map_err(|error| JobError::Unreachable {
+                    index: 0,
+                    what: format!("pose at {}", show_xyz(poses[0].position)),
+                    error,
+                })?;
+        let approach = plan_joint_moves(
+            context.rig,
+            context.start,
+            std::slice::from_ref(&first.joints),
+            context.settings,
+        )?;
+        let mut settings = *context.settings;
+        let mut attempt = 0;
+        loop {
+            let mut trajectory = approach.clone();
+            let lines = plan_cartesian(&solver, &first.joints, &poses[1..], &settings)?;
+            let ratio = top_tool_speed(context.rig, &lines) / self.speed_m_s;
+            trajectory.append(&lines);
+            attempt += 1;
+            if ratio <= 1.0 {
+                return Ok(trajectory);
+            }
+            if attempt > MAX_SLOWDOWNS {
+                return Err(JobInvalid::new(
+                    "job.speed_m_s",
+                    self.speed_m_s,
+                    format!(
+                        "the lines cannot be slowed down to this speed (still {ratio:.2} times it)"
+                    ),
+                )
+                .into());
+            }
+            // Scaling speeds by r and accelerations by r^2 is the same path, 1/r as fast.
+            let r = 1.0 / (ratio * SLOWDOWN_MARGIN);
+            settings = PlanSettings {
+                speed_scale: settings.speed_scale * r,
+                accel_scale: settings.accel_scale * r * r,
+                ..settings
+            };
+        }
+    }
+}
+
+/// The tool's fastest speed between two samples (m/s), by forward kinematics.
+pub fn top_tool_speed(rig: &Rig, trajectory: &Trajectory) -> f64 {
+    let tool = |k: usize| rig.tool_pose(trajectory.position(k)).map(|p| p.position);
+    (1..trajectory.len())
+        .filter_map(|k| Some((tool(k).ok()? - tool(k - 1).ok()?).length()))
+        .fold(0.0, f64::max)
+        / trajectory.period_s
+}
