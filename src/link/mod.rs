@@ -4,6 +4,8 @@
 
 mod can;
 mod channel;
+mod egm;
+pub mod egm_wire;
 mod loopback;
 mod serial;
 mod spec;
@@ -11,6 +13,7 @@ mod tcp;
 
 pub use can::{CanBus, SEND_PATIENCE, connect_can, interface_mtu, interface_up};
 pub use channel::{CHANNEL_DEPTH, ChannelLink, IoEnds, LinkShared};
+pub use egm::{EgmClock, EgmLink, EgmState, LINK_SILENCE, PLAYOUT_DEPTH, bind_egm};
 pub use loopback::LoopbackLink;
 pub use serial::{SerialSettings, connect_serial};
 pub use spec::{DEFAULT_BAUD, LinkSpec, LinkSpecError};
@@ -52,4 +55,8 @@ pub trait Link: Send {
     }
     /// Discards feedback that arrived before now (stale after a reconnect).
     fn drain(&mut self) {}
+    /// The clock a device-paced link (EGM: the robot's messages) makes the streamer follow.
+    fn pacing(&self) -> Option<std::sync::Arc<dyn crate::clock::Clock>> {
+        None
+    }
 }
