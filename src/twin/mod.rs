@@ -8,6 +8,7 @@
 //! state only; it must not know about trajectories, jobs or logs.
 
 pub mod can_port;
+pub mod egm;
 pub mod serial_port;
 pub mod server;
 mod world;
