@@ -74,7 +74,11 @@ fn bridge_streams_the_default_job_to_the_egm_twin_within_its_limits() {
     control.stop.store(true, Ordering::SeqCst);
     let twin = twin.join().expect("twin thread");
     let counters = twin.model().counters;
-    assert_eq!(report.stream.outcome, Outcome::Completed, "{report:?} {counters:?}");
+    assert_eq!(
+        report.stream.outcome,
+        Outcome::Completed,
+        "{report:?} {counters:?}"
+    );
     assert_eq!(report.stream.limit_violations, 0);
     assert_eq!(counters.outside_limits, 0, "{counters:?}");
     assert_eq!(counters.over_speed, 0, "{counters:?}");
@@ -91,7 +95,10 @@ fn bridge_streams_the_default_job_to_the_egm_twin_within_its_limits() {
     assert!(end > 0);
     let home = settings.initial();
     for (actual, planned) in twin.model().position().iter().zip(&home) {
-        assert!((actual - planned).abs().to_degrees() < 0.1, "{actual} vs {planned}");
+        assert!(
+            (actual - planned).abs().to_degrees() < 0.1,
+            "{actual} vs {planned}"
+        );
     }
 }
 
@@ -119,9 +126,13 @@ fn the_link_holds_until_motors_are_on_and_the_clock_follows_the_robot() {
     let start = clock.now();
     clock.sleep_until(start + period * 10);
     let spanned = link.state().messages - before;
-    assert!((10..=11).contains(&spanned), "{spanned} messages in 10 periods");
+    assert!(
+        (10..=11).contains(&spanned),
+        "{spanned} messages in 10 periods"
+    );
     // The answer is the feedback position at rest, the very position the robot reports.
-    link.send(&rigbridge::protocol::Command::Heartbeat).expect("heartbeat");
+    link.send(&rigbridge::protocol::Command::Heartbeat)
+        .expect("heartbeat");
     let feedback = link.receive(PATIENCE).expect("link").expect("feedback");
     for (actual, initial) in feedback.positions.as_slice().iter().zip(settings.initial()) {
         assert!((actual - initial).abs() < 1e-9);
@@ -284,8 +295,14 @@ fn the_egm_twin_serves_abb_robot_clients_egm_sensor() {
     let (commanded, planned, last) = (degrees("commanded"), degrees("planned"), degrees("final"));
     assert!((commanded[0] - initial[0] - 10.0).abs() < 1e-9);
     for axis in 0..6 {
-        assert!((planned[axis] - commanded[axis]).abs() < 1e-9, "planned echoes");
-        assert!((last[axis] - commanded[axis]).abs() < 0.05, "axis {axis}: {last:?}");
+        assert!(
+            (planned[axis] - commanded[axis]).abs() < 1e-9,
+            "planned echoes"
+        );
+        assert!(
+            (last[axis] - commanded[axis]).abs() < 0.05,
+            "axis {axis}: {last:?}"
+        );
     }
     let counters = twin.model().counters;
     assert_eq!(counters.violations(), 0, "{counters:?}");

@@ -8,11 +8,20 @@ use thiserror::Error;
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum LinkSpec {
     Loopback,
-    Tcp { address: String },
-    Serial { path: String, baud: u32 },
-    Can { interface: String },
+    Tcp {
+        address: String,
+    },
+    Serial {
+        path: String,
+        baud: u32,
+    },
+    Can {
+        interface: String,
+    },
     /// The UDP address to bind, such as `0.0.0.0:6510`.
-    Egm { address: String },
+    Egm {
+        address: String,
+    },
 }
 
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
@@ -63,7 +72,9 @@ impl FromStr for LinkSpec {
         }
         if let Some(address) = text.strip_prefix("egm://") {
             if address.parse::<std::net::SocketAddr>().is_err() {
-                return Err(fail("needs an IP address and port to bind, such as 0.0.0.0:6510"));
+                return Err(fail(
+                    "needs an IP address and port to bind, such as 0.0.0.0:6510",
+                ));
             }
             return Ok(LinkSpec::Egm {
                 address: address.to_string(),

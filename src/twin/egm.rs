@@ -366,9 +366,11 @@ impl EgmRobotModel {
             let wanted = match &self.reference {
                 Some((reference, speed_ref)) if self.mci == MciState::Running => {
                     let error = reference[axis] - self.position[axis];
-                    self.counters.tracking_max_rad = self.counters.tracking_max_rad.max(error.abs());
+                    self.counters.tracking_max_rad =
+                        self.counters.tracking_max_rad.max(error.abs());
                     let deviation = self.settings.max_speed_deviation;
-                    let correction = (self.settings.gain_per_s * error).clamp(-deviation, deviation);
+                    let correction =
+                        (self.settings.gain_per_s * error).clamp(-deviation, deviation);
                     utilization = utilization.max(correction.abs() / deviation);
                     speed_ref[axis] + correction
                 }
@@ -381,7 +383,11 @@ impl EgmRobotModel {
                 .clamp(-limits.max_speed, limits.max_speed);
             let moved = self.position[axis] + next * dt;
             self.position[axis] = moved.clamp(limits.lower, limits.upper);
-            self.speed[axis] = if moved == self.position[axis] { next } else { 0.0 };
+            self.speed[axis] = if moved == self.position[axis] {
+                next
+            } else {
+                0.0
+            };
         }
         self.utilization = 100.0 * utilization;
     }
@@ -390,7 +396,9 @@ impl EgmRobotModel {
 fn describe(refusal: Refusal) -> String {
     match refusal {
         Refusal::AxisCount => "reference with the wrong number of joints".into(),
-        Refusal::OutsideLimits(axis) => format!("reference outside the limits of axis {}", axis + 1),
+        Refusal::OutsideLimits(axis) => {
+            format!("reference outside the limits of axis {}", axis + 1)
+        }
         Refusal::OverSpeed(axis) => format!("reference over the max speed of axis {}", axis + 1),
         Refusal::OverAcceleration(axis) => {
             format!("reference over the max acceleration of axis {}", axis + 1)
