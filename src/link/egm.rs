@@ -114,6 +114,8 @@ struct Session {
     /// The position answered with no target to play, rad.
     hold: Option<AxisValues>,
     last_played: u32,
+    /// The last target played had a speed: holding after it is a speed step (an underrun).
+    moving: bool,
     /// Bumped at each session start: targets and feedback of an older one are stale.
     id: u64,
     /// The session the streamer's last heartbeat saw.
@@ -175,6 +177,7 @@ pub fn bind_egm(address: &str, axes: usize, period: Duration) -> std::io::Result
             flush: false,
             hold: None,
             last_played: 0,
+            moving: false,
             id: 0,
             adopted: 0,
             feedback: None,
@@ -515,15 +518,17 @@ fn next_reference(
         Some((_, target)) => {
             session.hold = Some(target.positions);
             session.last_played = target.seq;
+            session.moving = target.velocities.as_slice().iter().any(|v| *v != 0.0);
             (
                 target.positions.as_slice().to_vec(),
                 target.velocities.as_slice().to_vec(),
             )
         }
         None => {
-            if !session.flush {
+            if !session.flush && session.moving {
                 session.state.underruns += 1;
             }
+            session.moving = false;
             session.playing = false;
             (hold.as_slice().to_vec(), rest)
         }
