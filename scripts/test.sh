@@ -52,6 +52,20 @@ if [ -z "${VCANVM_KERNEL:-}" ] && ! ls "$cache"/kroot/boot/vmlinuz-* >/dev/null 
   apt_update_once
 fi
 
+# ------------------------------------ EGM peer: abb-robot-client (tests/egm.rs) --
+# A venv with PyPI's abb-robot-client, whose EGM class is the sensor tests/peers/egm_sensor.py
+# drives against our EGM twin. If it cannot be installed, tests/egm.rs prints why it skips.
+egm_venv=${CARGO_TARGET_DIR:-target}/egm-peer-venv
+if [ ! -x "$egm_venv/bin/python" ] || ! "$egm_venv/bin/python" -c 'import abb_robot_client.egm' 2>/dev/null; then
+  python3 -m venv "$egm_venv" && "$egm_venv/bin/pip" install -q abb-robot-client \
+    || echo "test.sh: cannot install abb-robot-client; the EGM peer test will skip" >&2
+fi
+if "$egm_venv/bin/python" -c 'import abb_robot_client.egm' 2>/dev/null; then
+  export RIGBRIDGE_EGM_PYTHON="$PWD/$egm_venv/bin/python"
+  [[ $egm_venv = /* ]] && export RIGBRIDGE_EGM_PYTHON="$egm_venv/bin/python"
+fi
+# ------------------------------------------------------------------ end EGM peer --
+
 # ------------------------------------------------------------- 1. on this machine --
 [ -n "$vm_only" ] || cargo test --release
 

@@ -29,7 +29,7 @@ pub struct RunArgs {
     #[arg(long, default_value = "config/rigbridge.toml")]
     config: PathBuf,
     /// Where to stream (overrides the config): loopback, tcp://HOST:PORT,
-    /// serial:///dev/PATH?baud=N or can://IFACE.
+    /// serial:///dev/PATH?baud=N, can://IFACE or egm://ADDR:PORT (bind, as an ABB EGM sensor).
     #[arg(long)]
     link: Option<String>,
     /// Record the run to this MCAP file (default: runs/run-<unix time>-<pid>.mcap).
@@ -118,6 +118,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         .parse()?;
     let job = spawn_streaming(move || {
         let mut link = open_link(&spec, &settings)?;
+        // A device-paced link (EGM) brings the clock the cycle must follow.
+        let clock = link.pacing().unwrap_or(clock);
         let job = settings.config.job.clone();
         Ok(run_job(
             &settings,

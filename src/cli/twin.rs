@@ -19,7 +19,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 #[derive(Args)]
-#[command(group(clap::ArgGroup::new("transport").required(true).args(["listen", "serial", "pty", "can"])))]
+#[command(group(clap::ArgGroup::new("transport").required(true).args(["listen", "serial", "pty", "can", "egm"])))]
 pub struct TwinArgs {
     /// Rig and twin settings (servo model, initial position, cycle).
     #[arg(long, default_value = "config/rigbridge.toml")]
@@ -38,6 +38,19 @@ pub struct TwinArgs {
     /// Serve on a SocketCAN interface.
     #[arg(long)]
     can: Option<String>,
+    /// Play an ABB controller running EGM joint mode for the sensor at udp://ADDR:PORT.
+    /// Reads `motors off`, `motors on` and `start` (EGMRunJoint again) from stdin.
+    #[arg(long)]
+    egm: Option<String>,
+    /// EGM: EGMSetupUC \CommTimeout, ms.
+    #[arg(long, default_value_t = 1000)]
+    comm_timeout_ms: u64,
+    /// EGM: EGMActJoint MaxSpeedDeviation, deg/s.
+    #[arg(long, default_value_t = 25.0)]
+    max_speed_deviation_deg_s: f64,
+    /// EGM: start with the motors off.
+    #[arg(long)]
+    motors_off: bool,
     /// Cycles without a target before holding, and cycles of silence that count as link
     /// loss (docs/protocol.md 6.5); default: the config's `[twin] watchdog_cycles`.
     #[arg(long)]
@@ -75,6 +88,9 @@ fn say(line: &str) {
 
 pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
     let settings = load_run_settings(&args.config).context("cannot load run settings")?;
+    if let Some(sensor) = &args.egm {
+        return egm_twin(&args, sensor, &settings);
+    }
     let mut twin_config = twin_settings(&settings);
     if let Some(cycles) = args.watchdog_cycles {
         anyhow::ensure!(
@@ -118,7 +134,7 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
             can_stats = Some(port.stats());
             Box::new(port)
         }
-        _ => anyhow::bail!("choose one transport: --listen, --serial, --pty or --can"),
+        _ => anyhow::bail!("choose one transport: --listen, --serial, --pty, --can or --egm"),
     };
     let stop = stop_on_signals()?;
     if let Err(e) = rigbridge::stream::raise_priority(50) {
@@ -146,5 +162,69 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
     if let Some(stats) = can_stats {
         eprintln!("{}", stats.summary());
     }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `--egm`: the EGM twin, with operator commands on stdin.
+fn egm_twin(
+    args: &TwinArgs,
+    sensor: &str,
+    settings: &rigbridge::daemon::config::RunSettings,
+) -> anyhow::Result<ExitCode> {
+    use rigbridge::twin::egm::{EgmRobotModel, EgmTwin, EgmTwinControl, EgmTwinSettings};
+    let address = sensor.strip_prefix("udp://").unwrap_or(sensor);
+    let sensor: std::net::SocketAddr = address
+        .parse()
+        .with_context(|| format!("--egm needs udp://ADDR:PORT, got {sensor}"))?;
+    let egm = EgmTwinSettings {
+        period: Duration::from_secs_f64(settings.period_s()),
+        comm_timeout: Duration::from_millis(args.comm_timeout_ms),
+        gain_per_s: std::f64::consts::TAU * settings.config.twin.bandwidth_hz,
+        max_speed_deviation: args.max_speed_deviation_deg_s.to_radians(),
+        motors_on: !args.motors_off,
+    };
+    let model = EgmRobotModel::new(&settings.rig, egm, &settings.initial())?;
+    let mut twin = EgmTwin::new(model, sensor)?;
+    let local = twin.local_address().context("no local address")?;
+    say(&format!("udp://{local} -> udp://{sensor}"));
+    let control = Arc::new(EgmTwinControl::default());
+    let stop = stop_on_signals()?;
+    let watcher = control.clone();
+    std::thread::spawn(move || {
+        while !stop.load(Ordering::SeqCst) {
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        watcher.stop.store(true, Ordering::SeqCst);
+    });
+    let operator = control.clone();
+    std::thread::spawn(move || {
+        for line in std::io::stdin().lines().map_while(Result::ok) {
+            match line.trim() {
+                "motors off" => operator.motors_off(),
+                "motors on" => operator.motors_on(),
+                "start" => operator.start_session(),
+                other => eprintln!("unknown command `{other}` (motors off, motors on, start)"),
+            }
+        }
+    });
+    if let Err(e) = rigbridge::stream::raise_priority(50) {
+        eprintln!("note: twin at normal priority (real-time scheduling refused: {e})");
+    }
+    twin.run(&control, &mut |line| say(line));
+    let c = twin.model().counters;
+    eprintln!(
+        "EGM twin stopped: {} messages, {} replies; cycles with one reply {}, none {}, several {}; {} outside limits, {} over speed, {} over acceleration, {} wrong axis count; {} comm timeouts, {} sessions",
+        c.messages_sent,
+        c.replies,
+        c.cycles_one_reply,
+        c.cycles_no_reply,
+        c.cycles_several_replies,
+        c.outside_limits,
+        c.over_speed,
+        c.over_acceleration,
+        c.axis_count,
+        c.comm_timeouts,
+        c.sessions
+    );
     Ok(ExitCode::SUCCESS)
 }

@@ -199,6 +199,14 @@ pub fn open_link(
             );
             Ok(Box::new(link))
         }
+        LinkSpec::Egm { address } => {
+            let period = Duration::from_secs_f64(settings.period_s());
+            let link = crate::link::bind_egm(address, settings.rig.dof(), period)
+                .map_err(LinkError::Io)?;
+            let timeout = settings.config.stream.reconnect_timeout_s;
+            wait_for_link(&link, &crate::clock::WallClock::new(), timeout);
+            Ok(Box::new(link))
+        }
     }
 }
 

@@ -4,6 +4,8 @@
 
 mod can;
 mod channel;
+mod egm;
+pub mod egm_wire;
 mod loopback;
 mod serial;
 mod session;
@@ -12,6 +14,7 @@ mod tcp;
 
 pub use can::{CanBus, SEND_PATIENCE, connect_can, interface_mtu, interface_up};
 pub use channel::{CHANNEL_DEPTH, ChannelLink, IoEnds, LinkShared};
+pub use egm::{EgmClock, EgmLink, EgmState, LINK_SILENCE, PLAYOUT_DEPTH, bind_egm};
 pub use loopback::LoopbackLink;
 pub use serial::{SerialSettings, connect_serial};
 pub use session::{BridgeSession, Due, Outgoing};
@@ -103,4 +106,8 @@ pub trait Link: Send {
     }
     /// Closes the transport and reopens it (a controller that went silent).
     fn restart(&mut self) {}
+    /// The clock a device-paced link (EGM: the robot's messages) makes the streamer follow.
+    fn pacing(&self) -> Option<std::sync::Arc<dyn crate::clock::Clock>> {
+        None
+    }
 }

@@ -1,5 +1,6 @@
 //! Link addresses as users write them: `loopback`, `tcp://HOST:PORT`,
-//! `serial:///dev/PATH?baud=N`, `can://IFACE`.
+//! `serial:///dev/PATH?baud=N`, `can://IFACE`, `egm://ADDR:PORT` (rigbridge as an ABB EGM
+//! sensor, bound to ADDR:PORT).
 
 use std::str::FromStr;
 use thiserror::Error;
@@ -7,14 +8,25 @@ use thiserror::Error;
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum LinkSpec {
     Loopback,
-    Tcp { address: String },
-    Serial { path: String, baud: u32 },
-    Can { interface: String },
+    Tcp {
+        address: String,
+    },
+    Serial {
+        path: String,
+        baud: u32,
+    },
+    Can {
+        interface: String,
+    },
+    /// The UDP address to bind, such as `0.0.0.0:6510`.
+    Egm {
+        address: String,
+    },
 }
 
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 #[error(
-    "link `{text}`: {reason} (expected loopback, tcp://HOST:PORT, serial:///dev/PATH?baud=N or can://IFACE)"
+    "link `{text}`: {reason} (expected loopback, tcp://HOST:PORT, serial:///dev/PATH?baud=N, can://IFACE or egm://ADDR:PORT)"
 )]
 pub struct LinkSpecError {
     pub text: String,
@@ -56,6 +68,16 @@ impl FromStr for LinkSpec {
             return Ok(LinkSpec::Serial {
                 path: path.to_string(),
                 baud,
+            });
+        }
+        if let Some(address) = text.strip_prefix("egm://") {
+            if address.parse::<std::net::SocketAddr>().is_err() {
+                return Err(fail(
+                    "needs an IP address and port to bind, such as 0.0.0.0:6510",
+                ));
+            }
+            return Ok(LinkSpec::Egm {
+                address: address.to_string(),
             });
         }
         if let Some(interface) = text.strip_prefix("can://") {
@@ -103,7 +125,15 @@ mod tests {
                 interface: "vcan0".into()
             })
         );
+        assert_eq!(
+            "egm://0.0.0.0:6510".parse(),
+            Ok(LinkSpec::Egm {
+                address: "0.0.0.0:6510".into()
+            })
+        );
         for bad in [
+            "egm://robot:6510",
+            "egm://127.0.0.1",
             "tcp://nohost",
             "tcp://h:99999",
             "serial://dev/x",

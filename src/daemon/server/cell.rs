@@ -57,6 +57,7 @@ fn occupied_resource(link: &str) -> Option<String> {
         LinkSpec::Tcp { address } => Some(format!("tcp://{address}")),
         LinkSpec::Serial { path, .. } => Some(format!("serial://{path}")),
         LinkSpec::Can { interface } => Some(format!("can://{interface}")),
+        LinkSpec::Egm { address } => Some(format!("egm://{address}")),
     }
 }
 

@@ -1,0 +1,310 @@
+//! EGM end to end over real UDP on 127.0.0.1: the bridge's EGM link against our EGM twin
+//! (the default job completes, the twin refuses nothing), the twin's sessions (motors,
+//! CommTimeout), and the twin against abb-robot-client's `EGM` sensor (tests/peers/).
+
+use prost::Message;
+use rigbridge::clock::Clock;
+use rigbridge::daemon::config::{RunSettings, load_run_settings};
+use rigbridge::daemon::run_job;
+use rigbridge::link::egm_wire::{EgmRobot, EgmSensor, MciState, MotorState};
+use rigbridge::link::{Link, bind_egm};
+use rigbridge::stream::{Outcome, StreamControl};
+use rigbridge::twin::egm::{
+    EgmRobotModel, EgmTwin, EgmTwinControl, EgmTwinSettings, spawn_egm_twin,
+};
+use std::net::{SocketAddr, UdpSocket};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+/// Patience for conditions that take a few robot cycles on an idle machine.
+const PATIENCE: Duration = Duration::from_secs(10);
+
+fn settings() -> RunSettings {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("config/rigbridge.toml");
+    load_run_settings(&path).expect("the default run settings load")
+}
+
+fn twin_towards(settings: &RunSettings, sensor: SocketAddr, egm: EgmTwinSettings) -> EgmTwin {
+    let model = EgmRobotModel::new(&settings.rig, egm, &settings.initial()).expect("model");
+    EgmTwin::new(model, sensor).expect("twin socket")
+}
+
+/// SCHED_FIFO for this thread and the threads it starts (the link's I/O thread, the twin),
+/// as `rigbridge run` and `rigbridge twin` do: on a loaded 2-core machine an ordinary thread
+/// is preempted for milliseconds, longer than an EGM cycle.
+fn real_time() {
+    if let Err(e) = rigbridge::stream::raise_priority(50) {
+        println!("note: normal priority (real-time scheduling refused: {e})");
+    }
+}
+
+fn wait_for(what: &str, mut condition: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !condition() {
+        assert!(start.elapsed() < PATIENCE, "timed out waiting for {what}");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+#[test]
+fn bridge_streams_the_default_job_to_the_egm_twin_within_its_limits() {
+    real_time();
+    let settings = settings();
+    let period = Duration::from_secs_f64(settings.period_s());
+    let mut link = bind_egm("127.0.0.1:0", settings.rig.dof(), period).expect("bind");
+    let sensor = link.local_address();
+    let control = Arc::new(EgmTwinControl::default());
+    let twin = twin_towards(&settings, sensor, EgmTwinSettings::default());
+    let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
+    wait_for("the EGM session", || link.is_up());
+    let clock = link.pacing().expect("an EGM link paces the streamer");
+    let stream_control = StreamControl::default();
+    let job = settings.config.job.clone();
+    let report = run_job(
+        &settings,
+        &job,
+        &mut link,
+        clock.as_ref(),
+        None,
+        &stream_control,
+    )
+    .expect("the job runs");
+    control.stop.store(true, Ordering::SeqCst);
+    let twin = twin.join().expect("twin thread");
+    let counters = twin.model().counters;
+    assert_eq!(
+        report.stream.outcome,
+        Outcome::Completed,
+        "{report:?} {counters:?}"
+    );
+    assert_eq!(report.stream.limit_violations, 0);
+    assert_eq!(counters.outside_limits, 0, "{counters:?}");
+    assert_eq!(counters.over_speed, 0, "{counters:?}");
+    assert_eq!(counters.over_acceleration, 0, "{counters:?}");
+    assert_eq!(counters.axis_count, 0, "{counters:?}");
+    assert_eq!(counters.comm_timeouts, 0);
+    assert_eq!(counters.sessions, 1);
+    let state = link.state();
+    assert_eq!(state.replies, state.messages, "one reply per EgmRobot");
+    assert!(state.messages > report.stream.cycles, "{state:?}");
+    assert_eq!(state.malformed, 0);
+    // The twin ends where the job does (the star returns home): within 0.1 deg.
+    let end = report.stream.cycles;
+    assert!(end > 0);
+    let home = settings.initial();
+    for (actual, planned) in twin.model().position().iter().zip(&home) {
+        assert!(
+            (actual - planned).abs().to_degrees() < 0.1,
+            "{actual} vs {planned}"
+        );
+    }
+}
+
+#[test]
+fn the_link_holds_until_motors_are_on_and_the_clock_follows_the_robot() {
+    let settings = settings();
+    let period = Duration::from_secs_f64(settings.period_s());
+    let mut link = bind_egm("127.0.0.1:0", settings.rig.dof(), period).expect("bind");
+    let egm = EgmTwinSettings {
+        motors_on: false,
+        ..EgmTwinSettings::default()
+    };
+    let control = Arc::new(EgmTwinControl::default());
+    let twin = twin_towards(&settings, link.local_address(), egm);
+    let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
+    wait_for("robot messages", || link.state().replies >= 25);
+    let state = link.state();
+    assert_eq!(state.motors, MotorState::Off);
+    assert!(!link.is_up(), "no motion while the motors are off");
+    let clock = link.clock();
+    control.motors_on();
+    wait_for("motors on and EGM running", || link.is_up());
+    // Device time: one period per EgmRobot, so a wait of 10 periods spans 10 messages.
+    let before = link.state().messages;
+    let start = clock.now();
+    clock.sleep_until(start + period * 10);
+    let spanned = link.state().messages - before;
+    assert!(
+        (10..=11).contains(&spanned),
+        "{spanned} messages in 10 periods"
+    );
+    // The answer is the feedback position at rest, the very position the robot reports.
+    link.send(&rigbridge::protocol::Command::Heartbeat)
+        .expect("heartbeat");
+    let feedback = link.receive(PATIENCE).expect("link").expect("feedback");
+    for (actual, initial) in feedback.positions.as_slice().iter().zip(settings.initial()) {
+        assert!((actual - initial).abs() < 1e-9);
+    }
+    control.stop.store(true, Ordering::SeqCst);
+    let counters = twin.join().expect("twin").model().counters;
+    assert_eq!(counters.violations(), 0, "{counters:?}");
+    assert_eq!(counters.sessions, 1);
+}
+
+#[test]
+fn without_replies_the_twin_ends_the_session_in_hold_after_comm_timeout() {
+    let settings = settings();
+    let sensor = UdpSocket::bind("127.0.0.1:0").expect("sensor socket");
+    sensor
+        .set_read_timeout(Some(Duration::from_secs(1)))
+        .expect("timeout");
+    let egm = EgmTwinSettings {
+        comm_timeout: Duration::from_millis(200),
+        ..EgmTwinSettings::default()
+    };
+    let control = Arc::new(EgmTwinControl::default());
+    let twin = twin_towards(&settings, sensor.local_addr().expect("addr"), egm);
+    let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
+    let read_from = |sensor: &UdpSocket| {
+        let mut buffer = [0u8; 2048];
+        let (len, from) = sensor.recv_from(&mut buffer).expect("an EgmRobot");
+        (EgmRobot::decode(&buffer[..len]).expect("decodes"), from)
+    };
+    let read = || read_from(&sensor).0;
+    assert_eq!(read().mci(), MciState::Running);
+    let started = Instant::now();
+    wait_for("the comm timeout", || read().mci() == MciState::Stopped);
+    assert!(started.elapsed() >= Duration::from_millis(150));
+    // Still streaming state, motors on, at the same position: HOLD, not a motors-off stop.
+    let held = read();
+    assert_eq!(held.motors(), MotorState::On);
+    let joints = held.feedback_joints().expect("joints").to_vec();
+    for (actual, initial) in joints.iter().zip(settings.initial()) {
+        assert!((actual.to_radians() - initial).abs() < 1e-9);
+    }
+    // A sensor answering again does not restart it: RAPID must run EGMRunJoint again.
+    let reply = EgmSensor::joint_correction(1, 0, &settings.initial(), &[0.0; 6]);
+    let twin_address = read_from(&sensor).1;
+    sensor
+        .send_to(&reply.encode_to_vec(), twin_address)
+        .expect("send");
+    assert_eq!(read().mci(), MciState::Stopped);
+    control.start_session();
+    wait_for("a new session", || read().mci() == MciState::Running);
+    control.stop.store(true, Ordering::SeqCst);
+    let counters = twin.join().expect("twin").model().counters;
+    assert_eq!(counters.comm_timeouts, 1);
+    assert_eq!(counters.sessions, 2);
+}
+
+#[test]
+fn a_reference_jump_is_refused_with_mci_error_and_no_motion() {
+    let settings = settings();
+    let sensor = UdpSocket::bind("127.0.0.1:0").expect("sensor socket");
+    sensor
+        .set_read_timeout(Some(Duration::from_secs(1)))
+        .expect("timeout");
+    let control = Arc::new(EgmTwinControl::default());
+    let twin = twin_towards(
+        &settings,
+        sensor.local_addr().expect("addr"),
+        EgmTwinSettings::default(),
+    );
+    let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
+    let mut buffer = [0u8; 2048];
+    let (_, twin_address) = sensor.recv_from(&mut buffer).expect("an EgmRobot");
+    // 5 degrees in one 4 ms cycle is 1250 deg/s: far over joint 1's 250 deg/s.
+    let mut jump = settings.initial();
+    jump[0] += 5f64.to_radians();
+    let reply = EgmSensor::joint_correction(1, 0, &jump, &[0.0; 6]);
+    sensor
+        .send_to(&reply.encode_to_vec(), twin_address)
+        .expect("send");
+    wait_for("the refusal", || {
+        let (len, _) = sensor.recv_from(&mut buffer).expect("an EgmRobot");
+        EgmRobot::decode(&buffer[..len]).expect("decodes").mci() == MciState::Error
+    });
+    control.stop.store(true, Ordering::SeqCst);
+    let twin = twin.join().expect("twin");
+    assert_eq!(twin.model().counters.over_speed, 1);
+    for (actual, initial) in twin.model().position().iter().zip(settings.initial()) {
+        assert!((actual - initial).abs() < 1e-9, "the robot did not move");
+    }
+}
+
+/// The Python with abb-robot-client: RIGBRIDGE_EGM_PYTHON (scripts/test.sh sets it), else
+/// `python3` if it imports the package.
+fn peer_python() -> Result<String, String> {
+    let python = std::env::var("RIGBRIDGE_EGM_PYTHON").unwrap_or_else(|_| "python3".into());
+    let probe = std::process::Command::new(&python)
+        .args(["-c", "import abb_robot_client.egm"])
+        .output()
+        .map_err(|e| format!("cannot run {python}: {e}"))?;
+    if probe.status.success() {
+        Ok(python)
+    } else {
+        Err(format!(
+            "{python} cannot import abb_robot_client (scripts/test.sh installs it): {}",
+            String::from_utf8_lossy(&probe.stderr).trim()
+        ))
+    }
+}
+
+#[test]
+fn the_egm_twin_serves_abb_robot_clients_egm_sensor() {
+    real_time();
+    let python = match peer_python() {
+        Ok(python) => python,
+        Err(reason) => {
+            println!("skipping the abb-robot-client peer test: {reason}");
+            return;
+        }
+    };
+    use std::io::BufRead;
+    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/peers/egm_sensor.py");
+    let mut peer = std::process::Command::new(python)
+        .arg(script)
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .expect("the peer starts");
+    let mut lines = std::io::BufReader::new(peer.stdout.take().expect("stdout")).lines();
+    let port: u16 = lines
+        .next()
+        .expect("a port line")
+        .expect("readable")
+        .trim()
+        .parse()
+        .expect("a port");
+    let settings = settings();
+    let control = Arc::new(EgmTwinControl::default());
+    let sensor: SocketAddr = ([127, 0, 0, 1], port).into();
+    let twin = twin_towards(&settings, sensor, EgmTwinSettings::default());
+    let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
+    let report = lines.next().expect("a report line").expect("readable");
+    let status = peer.wait().expect("the peer ends");
+    control.stop.store(true, Ordering::SeqCst);
+    let twin = twin.join().expect("twin");
+    assert!(status.success(), "peer failed: {report}");
+    let report: serde_json::Value = serde_json::from_str(&report).expect("JSON report");
+    let degrees = |key: &str| -> Vec<f64> {
+        report[key]
+            .as_array()
+            .unwrap_or_else(|| panic!("{key} in {report}"))
+            .iter()
+            .map(|v| v.as_f64().expect("a number"))
+            .collect()
+    };
+    assert_eq!(report["motors_on"], true);
+    assert_eq!(report["rapid_running"], true);
+    let initial: Vec<f64> = settings.initial().iter().map(|r| r.to_degrees()).collect();
+    for (seen, initial) in degrees("first").iter().zip(&initial) {
+        assert!((seen - initial).abs() < 1e-6, "{seen} vs {initial}");
+    }
+    let (commanded, planned, last) = (degrees("commanded"), degrees("planned"), degrees("final"));
+    assert!((commanded[0] - initial[0] - 10.0).abs() < 1e-9);
+    for axis in 0..6 {
+        assert!(
+            (planned[axis] - commanded[axis]).abs() < 1e-9,
+            "planned echoes"
+        );
+        assert!(
+            (last[axis] - commanded[axis]).abs() < 0.05,
+            "axis {axis}: {last:?}"
+        );
+    }
+    let counters = twin.model().counters;
+    assert_eq!(counters.violations(), 0, "{counters:?}");
+    assert_eq!(counters.comm_timeouts, 0);
+}
