@@ -6,8 +6,8 @@
 mod common;
 
 use common::irb120;
-use proptest::prelude::*;
 use glam::{DAffine3, DVec3};
+use proptest::prelude::*;
 use rigbridge::rig::{Joint, JointKind, JointLimits, Rig};
 use rigbridge::trajectory::{Trajectory, TrajectoryError, validate};
 
@@ -131,7 +131,10 @@ fn an_acceleration_exactly_at_the_limit_is_accepted() {
     // changing by exactly 0.008 m/s at a time.
     let positions = [0.0, 0.0, 3.2e-5, 9.6e-5, 1.28e-4, 1.28e-4];
     let velocities = [0.0, 0.0, 0.008, 0.016, 0.008, 0.0];
-    assert_eq!(validate(&on_slide(&positions, &velocities), &slide()), Ok(()));
+    assert_eq!(
+        validate(&on_slide(&positions, &velocities), &slide()),
+        Ok(())
+    );
     // The same backwards, braking first.
     let back: Vec<f64> = positions.iter().map(|p| -p).collect();
     let back_v: Vec<f64> = velocities.iter().map(|v| -v).collect();
@@ -161,7 +164,10 @@ fn an_acceleration_over_the_limit_is_refused_naming_sample_joint_and_values() {
     let message = error.to_string();
     assert!(message.contains("sample 2: carriage"), "{message}");
     assert!(message.contains("2.062500 m/s^2"), "{message}");
-    assert!(message.contains("max acceleration 2.000000 m/s^2"), "{message}");
+    assert!(
+        message.contains("max acceleration 2.000000 m/s^2"),
+        "{message}"
+    );
     // Braking as hard is refused too, at the sample where it happens.
     let braking = [6.6e-5, 6.6e-5, 6.6e-5, 3.3e-5, 0.0];
     let error = validate(&on_slide(&braking, &velocities), &slide()).unwrap_err();
@@ -194,7 +200,10 @@ fn a_velocity_change_over_the_limit_is_refused() {
     assert!(error.to_string().contains("2.025000 m/s^2"), "{error}");
     // 0.008 m/s is exactly the limit.
     let velocities = [0.0, 0.0, 0.008, 0.008];
-    assert_eq!(validate(&on_slide(&positions, &velocities), &slide()), Ok(()));
+    assert_eq!(
+        validate(&on_slide(&positions, &velocities), &slide()),
+        Ok(())
+    );
 }
 
 #[test]
@@ -205,7 +214,8 @@ fn a_revolute_axis_over_its_acceleration_is_refused_in_rad_per_s2() {
     let mut positions = vec![0.0; 18];
     positions[12] = 3e-4;
     let names = rig.joint_names().map(String::from).collect();
-    let trajectory = Trajectory::new(rig.name.clone(), names, 0.004, positions, vec![0.0; 18]).unwrap();
+    let trajectory =
+        Trajectory::new(rig.name.clone(), names, 0.004, positions, vec![0.0; 18]).unwrap();
     let error = validate(&trajectory, &rig).unwrap_err();
     assert!(
         matches!(error, TrajectoryError::OverAcceleration { sample: 1, ref joint, acceleration, unit: "rad/s^2", .. }

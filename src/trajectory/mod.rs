@@ -335,7 +335,10 @@ pub fn peak_accelerations(trajectory: &Trajectory, rig: &Rig) -> Vec<Option<Peak
     for sample in 1..trajectory.len() {
         for (axis, peak) in peaks.iter_mut().enumerate() {
             let max = rig.joints[axis].limits.max_acceleration;
-            for acceleration in accelerations_at(trajectory, sample, axis).into_iter().flatten() {
+            for acceleration in accelerations_at(trajectory, sample, axis)
+                .into_iter()
+                .flatten()
+            {
                 let ratio = acceleration.abs() / max;
                 if ratio > 0.0 && peak.is_none_or(|p: PeakAcceleration| ratio > p.ratio) {
                     *peak = Some(PeakAcceleration {

@@ -17,8 +17,8 @@ pub use world::{SharedWorld, TwinWorld};
 use crate::protocol::{
     AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget, MAX_AXES,
 };
-use crate::rig::{JointLimits, Rig};
 use crate::rig::LIMIT_SLACK as SPEED_SLACK;
+use crate::rig::{JointLimits, Rig};
 use std::collections::VecDeque;
 
 /// Positions cross the wire as whole micro-radians: two roundings may add 1 µrad to a step.

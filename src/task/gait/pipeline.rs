@@ -88,4 +88,3 @@ pub fn plan_gait_job(
     validate(&trajectory, &sloth.streamed)?;
     Ok(trajectory)
 }
-

@@ -104,7 +104,12 @@ fn moving_average(frames: &[f64], dof: usize, width: usize) -> Vec<f64> {
 fn frames_over_share(plan: &GaitPlan, rig: &Rig) -> Vec<bool> {
     let dt2 = plan.period_s * plan.period_s;
     let mut over = vec![false; plan.len()];
-    for (k, flag) in over.iter_mut().enumerate().skip(1).take(plan.len().saturating_sub(2)) {
+    for (k, flag) in over
+        .iter_mut()
+        .enumerate()
+        .skip(1)
+        .take(plan.len().saturating_sub(2))
+    {
         let (before, here, after) = (plan.frame(k - 1), plan.frame(k), plan.frame(k + 1));
         *flag = rig.joints.iter().enumerate().any(|(axis, joint)| {
             let second = after[axis] - 2.0 * here[axis] + before[axis];
@@ -170,8 +175,11 @@ fn hold_stances(plan: &mut GaitPlan, sloth: &SlothRig) {
                 for _ in 0..HOLD_STEPS {
                     correct_towards(sloth, stance.limb, frame, goal);
                 }
-                let correction: Vec<f64> =
-                    limb.axes().zip(&before).map(|(axis, b)| frame[axis] - b).collect();
+                let correction: Vec<f64> = limb
+                    .axes()
+                    .zip(&before)
+                    .map(|(axis, b)| frame[axis] - b)
+                    .collect();
                 at_lift_off.clone_from(&correction);
                 let weight = fade_in((k - stance.start) as f64 / fade as f64);
                 (weight, correction)
@@ -187,14 +195,23 @@ fn hold_stances(plan: &mut GaitPlan, sloth: &SlothRig) {
                 .zip(&correction)
                 .map(|((axis, b), c)| {
                     let limits = sloth.streamed.joints[axis].limits;
-                    let room = if *c > 0.0 { limits.upper - b } else { limits.lower - b };
-                    if (weight * c).abs() > room.abs() { room / (weight * c) } else { 1.0 }
+                    let room = if *c > 0.0 {
+                        limits.upper - b
+                    } else {
+                        limits.lower - b
+                    };
+                    if (weight * c).abs() > room.abs() {
+                        room / (weight * c)
+                    } else {
+                        1.0
+                    }
                 })
                 .fold(1.0, f64::min)
                 .clamp(0.0, 1.0);
             for ((axis, b), c) in limb.axes().zip(&before).zip(&correction) {
                 let limits = sloth.streamed.joints[axis].limits;
-                frame[axis] = (b + share * weight * c).clamp(limits.lower.min(*b), limits.upper.max(*b));
+                frame[axis] =
+                    (b + share * weight * c).clamp(limits.lower.min(*b), limits.upper.max(*b));
             }
         }
     }
