@@ -9,7 +9,7 @@ mod plan;
 pub use cartesian::plan_cartesian;
 pub use plan::{InvalidValue, PlanError, PlanSettings, plan_joint_moves};
 
-use crate::rig::Rig;
+use crate::rig::{JointKind, Rig};
 use thiserror::Error;
 
 /// Relative slack on speed checks, for rounding only: the rig's [`crate::rig::LIMIT_SLACK`].
@@ -66,6 +66,34 @@ pub enum TrajectoryError {
         velocity: f64,
         max_speed: f64,
     },
+    #[error(
+        "sample {sample}: {joint} accelerates at {acceleration:.6} {unit} (its positions' second difference over the period squared), above its max acceleration {max_acceleration:.6} {unit}"
+    )]
+    OverAcceleration {
+        sample: usize,
+        joint: String,
+        acceleration: f64,
+        max_acceleration: f64,
+        unit: &'static str,
+    },
+    #[error(
+        "sample {sample}: {joint} velocity changes at {acceleration:.6} {unit} from the sample before, above its max acceleration {max_acceleration:.6} {unit}"
+    )]
+    VelocityOverAcceleration {
+        sample: usize,
+        joint: String,
+        acceleration: f64,
+        max_acceleration: f64,
+        unit: &'static str,
+    },
+}
+
+/// The SI unit of an acceleration of `joint`.
+fn acceleration_unit(joint: &crate::rig::Joint) -> &'static str {
+    match joint.kind {
+        JointKind::Revolute => "rad/s^2",
+        JointKind::Prismatic => "m/s^2",
+    }
 }
 
 /// Samples `0..len` at times `i * period`, row-major: sample `i` holds `dof` values.
@@ -159,8 +187,19 @@ impl Trajectory {
 }
 
 /// Checks every sample against the rig: same axes, finite, inside the position limits, no
-/// step between samples beyond max speed x period, no velocity above max speed.
+/// step between samples beyond max speed x period, no velocity above max speed, and, on
+/// every axis, no acceleration above its max: neither the positions' second difference
+/// `p[k+1] - 2 p[k] + p[k-1]` beyond max acceleration x period^2, nor the sampled
+/// velocities' change `v[k+1] - v[k]` beyond max acceleration x period.
 pub fn validate(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {
+    check_axes(trajectory, rig)?;
+    for sample in 0..trajectory.len() {
+        check_sample(trajectory, rig, sample)?;
+    }
+    check_accelerations(trajectory, rig)
+}
+
+fn check_axes(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {
     if trajectory.dof() != rig.dof() {
         return Err(TrajectoryError::AxisMismatch {
             rig: rig.name.clone(),
@@ -178,49 +217,139 @@ pub fn validate(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryErro
             });
         }
     }
-    for sample in 0..trajectory.len() {
-        let positions = trajectory.position(sample);
-        let velocities = trajectory.velocity(sample);
+    Ok(())
+}
+
+/// Sample `sample` alone (and its step from the one before): finite, in limits, in speed.
+fn check_sample(trajectory: &Trajectory, rig: &Rig, sample: usize) -> Result<(), TrajectoryError> {
+    let positions = trajectory.position(sample);
+    let velocities = trajectory.velocity(sample);
+    for (axis, joint) in rig.joints.iter().enumerate() {
+        let (value, velocity) = (positions[axis], velocities[axis]);
+        let limits = joint.limits;
+        if !value.is_finite() || !velocity.is_finite() {
+            return Err(TrajectoryError::NotFinite {
+                sample,
+                joint: joint.name.clone(),
+                value: if value.is_finite() { velocity } else { value },
+            });
+        }
+        if !limits.contains(value) {
+            return Err(TrajectoryError::OutsideLimits {
+                sample,
+                joint: joint.name.clone(),
+                value,
+                lower: limits.lower,
+                upper: limits.upper,
+            });
+        }
+        if !limits.speed_ok(velocity) {
+            return Err(TrajectoryError::VelocityOverSpeed {
+                sample,
+                joint: joint.name.clone(),
+                velocity,
+                max_speed: limits.max_speed,
+            });
+        }
+        if sample > 0 {
+            let step = value - trajectory.position(sample - 1)[axis];
+            if !limits.step_ok(step, trajectory.period_s) {
+                return Err(TrajectoryError::OverSpeed {
+                    sample,
+                    joint: joint.name.clone(),
+                    step: step.abs(),
+                    max_step: limits.max_speed * trajectory.period_s,
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The raw differences behind `axis`' two accelerations at `sample`: the positions' second
+/// difference around it (none at either end) and the velocity change since the sample
+/// before (none at the first).
+fn differences_at(trajectory: &Trajectory, sample: usize, axis: usize) -> [Option<f64>; 2] {
+    let p = |k: usize| trajectory.position(k)[axis];
+    let v = |k: usize| trajectory.velocity(k)[axis];
+    let second = (sample > 0 && sample + 1 < trajectory.len())
+        .then(|| p(sample + 1) - 2.0 * p(sample) + p(sample - 1));
+    let change = (sample > 0).then(|| v(sample) - v(sample - 1));
+    [second, change]
+}
+
+/// Both accelerations of `axis` at `sample` (axis unit per second squared), from
+/// [`differences_at`].
+fn accelerations_at(trajectory: &Trajectory, sample: usize, axis: usize) -> [Option<f64>; 2] {
+    let dt = trajectory.period_s;
+    let [second, change] = differences_at(trajectory, sample, axis);
+    [second.map(|d| d / (dt * dt)), change.map(|d| d / dt)]
+}
+
+fn check_accelerations(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {
+    let dt = trajectory.period_s;
+    for sample in 1..trajectory.len() {
         for (axis, joint) in rig.joints.iter().enumerate() {
-            let (value, velocity) = (positions[axis], velocities[axis]);
             let limits = joint.limits;
-            if !value.is_finite() || !velocity.is_finite() {
-                return Err(TrajectoryError::NotFinite {
+            let [second, change] = differences_at(trajectory, sample, axis);
+            let max_acceleration = limits.max_acceleration;
+            if let Some(d) = second.filter(|d| !limits.second_difference_ok(*d, dt)) {
+                return Err(TrajectoryError::OverAcceleration {
                     sample,
                     joint: joint.name.clone(),
-                    value: if value.is_finite() { velocity } else { value },
+                    acceleration: d / (dt * dt),
+                    max_acceleration,
+                    unit: acceleration_unit(joint),
                 });
             }
-            if !limits.contains(value) {
-                return Err(TrajectoryError::OutsideLimits {
+            if let Some(d) = change.filter(|d| !limits.velocity_change_ok(*d, dt)) {
+                return Err(TrajectoryError::VelocityOverAcceleration {
                     sample,
                     joint: joint.name.clone(),
-                    value,
-                    lower: limits.lower,
-                    upper: limits.upper,
+                    acceleration: d / dt,
+                    max_acceleration,
+                    unit: acceleration_unit(joint),
                 });
             }
-            if velocity.abs() > limits.max_speed * (1.0 + SPEED_SLACK) {
-                return Err(TrajectoryError::VelocityOverSpeed {
-                    sample,
-                    joint: joint.name.clone(),
-                    velocity,
-                    max_speed: limits.max_speed,
-                });
-            }
-            if sample > 0 {
-                let step = (value - trajectory.position(sample - 1)[axis]).abs();
-                let max_step = limits.max_speed * trajectory.period_s;
-                if step > max_step * (1.0 + SPEED_SLACK) {
-                    return Err(TrajectoryError::OverSpeed {
+        }
+    }
+    Ok(())
+}
+
+/// Where a trajectory comes nearest its axes' max accelerations.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PeakAcceleration {
+    pub sample: usize,
+    pub axis: usize,
+    /// Signed, in the axis' unit per second squared.
+    pub acceleration: f64,
+    /// |acceleration| / the axis' max acceleration: at most 1 for a valid trajectory.
+    pub ratio: f64,
+}
+
+/// Per axis, the sample where its acceleration (either of `validate`'s two measures) is
+/// largest against its max, or `None` for an axis that never accelerates (fewer than two
+/// samples, or a standstill). The axes must match `rig`'s (as `validate` checks).
+pub fn peak_accelerations(trajectory: &Trajectory, rig: &Rig) -> Vec<Option<PeakAcceleration>> {
+    let mut peaks = vec![None; rig.dof().min(trajectory.dof())];
+    for sample in 1..trajectory.len() {
+        for (axis, peak) in peaks.iter_mut().enumerate() {
+            let max = rig.joints[axis].limits.max_acceleration;
+            for acceleration in accelerations_at(trajectory, sample, axis)
+                .into_iter()
+                .flatten()
+            {
+                let ratio = acceleration.abs() / max;
+                if ratio > 0.0 && peak.is_none_or(|p: PeakAcceleration| ratio > p.ratio) {
+                    *peak = Some(PeakAcceleration {
                         sample,
-                        joint: joint.name.clone(),
-                        step,
-                        max_step,
+                        axis,
+                        acceleration,
+                        ratio,
                     });
                 }
             }
         }
     }
-    Ok(())
+    peaks
 }

@@ -201,6 +201,30 @@ pub struct GaitReport {
     /// above).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub around_trunk_deg: Option<f64>,
+    /// The largest commanded acceleration of any axis against its max (the positions'
+    /// second difference over the period squared): at most the gait's share, 0.8.
+    pub peak_acceleration_ratio: f64,
+    /// The axis where it is.
+    pub peak_acceleration_joint: String,
+}
+
+/// The plan's largest acceleration against its axis' max, as (ratio, axis): from the
+/// second differences of the commanded positions (the central-difference velocities the
+/// trajectory carries change by the mean of two of them, never more).
+pub fn peak_acceleration(sloth: &SlothRig, plan: &GaitPlan) -> (f64, usize) {
+    let dt2 = plan.period_s * plan.period_s;
+    let mut peak = (0.0, 0);
+    for k in 1..plan.len().saturating_sub(1) {
+        let (before, here, after) = (plan.frame(k - 1), plan.frame(k), plan.frame(k + 1));
+        for (axis, joint) in sloth.streamed.joints.iter().enumerate() {
+            let second = after[axis] - 2.0 * here[axis] + before[axis];
+            let ratio = second.abs() / (joint.limits.max_acceleration * dt2);
+            if ratio > peak.0 {
+                peak = (ratio, axis);
+            }
+        }
+    }
+    peak
 }
 
 /// The angle the body's path sweeps about the first support's axis, when that is a trunk.
@@ -296,6 +320,7 @@ pub fn judge(
         })
         .collect();
     let speed_mps = speed(world, plan, from, to);
+    let (peak_acceleration_ratio, peak_axis) = peak_acceleration(sloth, plan);
     let mut failures = Vec::new();
     if let Some(reason) = &plan.stop_reason {
         failures.push(format!("stopped: {reason}"));
@@ -382,5 +407,7 @@ pub fn judge(
         min_head_above_tail_m: world.min_head_above_tail_m,
         min_heading_elevation_deg: world.min_heading_elevation_rad.to_degrees(),
         around_trunk_deg: around_trunk(sloth, scenario, &world.body_path),
+        peak_acceleration_ratio,
+        peak_acceleration_joint: sloth.streamed.joints[peak_axis].name.clone(),
     }
 }

@@ -13,6 +13,7 @@ pub mod pipeline;
 pub mod placement;
 pub mod rig;
 pub mod scenario;
+pub mod smooth;
 pub mod terrain;
 pub mod walker;
 

@@ -5,6 +5,7 @@
 
 use super::rig::SlothRig;
 use super::scenario::{Scenario, ScenarioError};
+use super::smooth::smooth_plan;
 use super::walker::{GaitPlan, WalkError, Walker};
 use crate::trajectory::{
     PlanError, PlanSettings, Trajectory, TrajectoryError, plan_joint_moves, validate,
@@ -56,7 +57,8 @@ pub fn plan_gait(
     scenario: &Scenario,
     period_s: f64,
 ) -> Result<(GaitPlan, Trajectory), GaitError> {
-    let plan = Walker::new(sloth, scenario, period_s).plan()?;
+    let mut plan = Walker::new(sloth, scenario, period_s).plan()?;
+    smooth_plan(&mut plan, sloth);
     if plan.is_empty() {
         return Err(GaitError::Empty {
             scenario: scenario.name.clone(),
