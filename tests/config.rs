@@ -112,3 +112,18 @@ fn the_shipped_forest_loads() {
     .unwrap_or_else(|e| panic!("{e}"));
     assert!(forest.walk_names().count() >= 3);
 }
+
+#[test]
+fn a_limit_beyond_the_wire_range_is_refused_when_the_rig_loads() {
+    // ±1e7 rad does not fit an i32 of µrad (±2147.48 rad): no target could be sent.
+    let path = write_variant("huge.toml", |t| {
+        t.replacen("upper_deg = 165.0", "upper_deg = 572957795.0", 1)
+    });
+    match load_rig(&path).unwrap_err() {
+        ConfigError::Invalid { key, reason, .. } => {
+            assert_eq!(key, "joint[0].upper_deg");
+            assert!(reason.contains("wire range"), "{reason}");
+        }
+        other => panic!("expected Invalid, got {other}"),
+    }
+}

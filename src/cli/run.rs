@@ -116,6 +116,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         .as_deref()
         .unwrap_or(&settings.config.stream.link)
         .parse()?;
+    // A real controller keeps real time: a virtual clock would stream faster than it runs.
+    anyhow::ensure!(
+        matches!(args.clock, ClockChoice::Wall) || spec == LinkSpec::Loopback,
+        "--clock virtual needs the loopback twin: a controller behind --link {} runs in real time",
+        args.link.as_deref().unwrap_or(&settings.config.stream.link)
+    );
     let job = spawn_streaming(move || {
         let mut link = open_link(&spec, &settings)?;
         // A device-paced link (EGM) brings the clock the cycle must follow.

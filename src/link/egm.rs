@@ -449,7 +449,9 @@ fn answer(
     session.feedback = Some(Feedback {
         seq: session.last_played,
         positions: actual,
-        status: if ready {
+        // Holding (docs/protocol.md 3.4): the robot keeps the last reference, at rest, when
+        // no target is playing or motion is not allowed.
+        status: if ready && session.playing {
             ControllerStatus::Ok
         } else {
             ControllerStatus::Holding

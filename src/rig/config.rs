@@ -128,6 +128,10 @@ enum RawKind {
     Prismatic,
 }
 
+/// The largest magnitude an i32 of micro-units carries: every position, speed and
+/// acceleration the protocol sends (docs/protocol.md 1).
+const WIRE_LIMIT: f64 = i32::MAX as f64 / 1e6;
+
 struct Checker<'a> {
     file: &'a Path,
     /// Where the joint tables sit in the file (`""` for a rig, `limb[2].` for a sloth limb).
@@ -236,6 +240,14 @@ impl Checker<'_> {
         }
         if accel <= 0.0 {
             return Err(self.invalid(k(values[3].0), accel, "must be positive"));
+        }
+        // Every limit must travel on the wire (docs/protocol.md 1): i32 of micro-units.
+        for (value, (field, _)) in v.iter().zip(values) {
+            if (value * unit_scale).abs() > WIRE_LIMIT {
+                let reason =
+                    format!("is beyond the wire range of ±{WIRE_LIMIT} (rad, m, per s or per s²)");
+                return Err(self.invalid(k(field), value, &reason));
+            }
         }
         Ok((
             kind,
