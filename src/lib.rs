@@ -1,10 +1,22 @@
 //! rigbridge: plans joint motion for robot rigs and streams it to controllers or to a
 //! simulated twin.
 //!
-//! The crate is laid out by pipeline stage:
-//! - [`rig`]: rig models, their TOML/URDF descriptions and forward kinematics;
+//! The crate is laid out by pipeline stage, in the order data flows (imports point down
+//! this list, never up; `docs/architecture.md`):
+//! - [`job`]: job kinds, one file each: validation, file resolution, planning, scene;
+//! - [`task`]: tasks that produce targets from generated worlds (painting, the sloth gait);
 //! - [`ik`]: inverse-kinematics solvers behind one trait (FABRIK planner, CCD, gradient descent);
-//! - [`batch`]: the CSV contract of the `fk` and `ik` batch tools.
+//! - [`trajectory`]: fixed-period joint trajectories, their planning and `validate`;
+//! - [`stream`]: the fixed-rate cycle, its safety gate and the following checks;
+//! - [`link`]: one transport per backend and the bridge's side of the protocol's session;
+//! - [`protocol`]: the messages and their byte and CAN encodings (`docs/protocol.md`);
+//! - [`twin`]: the strict simulated controller, in process or on the far side of a link;
+//! - [`log`]: MCAP recording and reading, summaries;
+//! - [`view`]: the live 3D view;
+//! - [`daemon`]: the wiring of the stages for `run`, `serve` and `replay`, and resuming;
+//!
+//! and beside the chain: [`rig`] (rig models, TOML/URDF descriptions, forward kinematics),
+//! [`clock`] (wall and virtual clocks) and [`batch`] (the CSV contract of `fk` and `ik`).
 
 pub mod batch;
 pub mod clock;
