@@ -25,6 +25,9 @@ pub const START_HOLD_TIMEOUT: Duration = Duration::from_secs(2);
 /// `a_max T^2` on every axis: the first target after a hold must lie within `a_max T^2`
 /// of the held position (docs/protocol.md 6.6), and a settling servo is that close then.
 const AT_REST_SHARE: f64 = 0.1;
+/// Positions travel as integers of 1e-6 rad (or m) (docs/protocol.md 1): an axis held on
+/// its limit is reported as the integer nearest it, up to half of this beyond.
+const WIRE_QUANTUM: f64 = 1e-6;
 
 /// How the wait for a hold ended.
 #[derive(Debug, Clone, PartialEq)]
@@ -85,7 +88,10 @@ pub fn wait_for_hold(
                 return Ok(Hold::Faulted(format!("controller fault: {fault}")));
             }
             if previous.is_some_and(|p| at_rest(settings, &p, &feedback)) {
-                return Ok(Hold::At(feedback.positions.as_slice().to_vec()));
+                return Ok(Hold::At(held_on_the_wire(
+                    settings,
+                    feedback.positions.as_slice(),
+                )));
             }
             previous = Some(feedback);
         }
@@ -128,6 +134,30 @@ fn requested_end(
         return Ok(Some(Hold::Stopped));
     }
     Ok(None)
+}
+
+/// The held position, read as the controller compares it (docs/protocol.md 6.6: on the
+/// wire integers): an axis reported within half a wire quantum beyond a limit is on that
+/// limit, which the wire cannot tell apart from it (a rig whose first pose sits on a limit,
+/// like the sloth's pelvis at 4.2 deg, is read back 0.2 urad outside it). Anything farther
+/// out is kept as it is, for the planner to refuse.
+fn held_on_the_wire(settings: &RunSettings, positions: &[f64]) -> Vec<f64> {
+    settings
+        .rig
+        .joints
+        .iter()
+        .zip(positions)
+        .map(|(joint, &p)| {
+            let limits = joint.limits;
+            if p > limits.upper && p - limits.upper <= WIRE_QUANTUM / 2.0 {
+                limits.upper
+            } else if p < limits.lower && limits.lower - p <= WIRE_QUANTUM / 2.0 {
+                limits.lower
+            } else {
+                p
+            }
+        })
+        .collect()
 }
 
 fn at_rest(settings: &RunSettings, before: &Feedback, now: &Feedback) -> bool {
