@@ -223,7 +223,12 @@ pub fn print_stream_summary(
     );
     println!(
         "  link: {} frames sent, {} received, {} CRC errors, {} gaps, {} duplicates, {} reconnects",
-        s.frames_sent, s.frames_received, s.crc_errors, s.gaps, s.duplicates, s.reconnects
+        s.counters.frames_sent,
+        s.counters.frames_received,
+        s.counters.crc_errors,
+        s.counters.gaps,
+        s.counters.duplicates,
+        s.counters.reconnects
     );
     if let Some(fault) = &s.fault {
         println!("  fault: {fault}");

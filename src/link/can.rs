@@ -450,7 +450,7 @@ async fn session(
         tokio::select! {
             command = ends.commands.recv() => {
                 let Some(command) = command else { return true };
-                if !bridge.may_send(&command) {
+                if !bridge.may_send(&command, &ends.shared) {
                     LinkShared::count(&ends.shared.dropped_commands);
                     continue;
                 }

@@ -33,6 +33,8 @@ pub struct LinkShared {
     /// Connected, and the controller answered the bridge's Hello.
     pub established: AtomicBool,
     pub sessions: AtomicU64,
+    /// The session the streamer streams in (see `Link::adopt_session`).
+    pub adopted: AtomicU64,
     pub controller_hello: Mutex<Option<Hello>>,
     /// The cycle asks the I/O thread to close and reopen the transport.
     pub restart: tokio::sync::Notify,
@@ -191,6 +193,11 @@ impl Link for ChannelLink {
 
     fn sessions(&self) -> u64 {
         self.shared.sessions.load(Ordering::SeqCst)
+    }
+
+    fn adopt_session(&mut self) {
+        let current = self.shared.sessions.load(Ordering::SeqCst);
+        self.shared.adopted.store(current, Ordering::SeqCst);
     }
 
     fn restart(&mut self) {

@@ -67,8 +67,8 @@ pub fn bridge_hello(rig: &crate::rig::Rig, period_s: f64, watchdog_cycles: u32) 
     }
 }
 
-/// Counters every link keeps, shown in summaries and logged.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+/// Counters every link keeps, shown in summaries and logged (and flattened into reports).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
 pub struct LinkCounters {
     pub frames_sent: u64,
     pub frames_received: u64,
@@ -106,6 +106,10 @@ pub trait Link: Send {
     }
     /// Closes the transport and reopens it (a controller that went silent).
     fn restart(&mut self) {}
+    /// The streamer starts streaming in the current session: targets go out in this one
+    /// only, and are dropped in any later session until it is adopted in turn (a session
+    /// that changes mid-stream must not receive targets planned for the one before).
+    fn adopt_session(&mut self) {}
     /// The clock a device-paced link (EGM: the robot's messages) makes the streamer follow.
     fn pacing(&self) -> Option<std::sync::Arc<dyn crate::clock::Clock>> {
         None

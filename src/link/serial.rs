@@ -185,7 +185,10 @@ async fn write_commands(
         tokio::select! {
             command = ends.commands.recv() => {
                 let Some(command) = command else { return true };
-                let allowed = shared.session.lock().is_ok_and(|s| s.may_send(&command));
+                let allowed = shared
+                    .session
+                    .lock()
+                    .is_ok_and(|s| s.may_send(&command, &ends.shared));
                 if allowed {
                     pending = Some((Message::Command(command), false));
                 } else {

@@ -91,9 +91,11 @@ impl BridgeSession {
     }
 
     /// Whether `command` may go out now: only Heartbeat, Stop, EStop and Reset before
-    /// the controller's answer (docs/protocol.md 6.1, step 5).
-    pub fn may_send(&self, command: &Command) -> bool {
-        self.state == State::Established || !matches!(command, Command::Target(_))
+    /// the controller's answer (docs/protocol.md 6.1, step 5), and targets only in the
+    /// session the streamer adopted.
+    pub fn may_send(&self, command: &Command, shared: &LinkShared) -> bool {
+        let adopted = shared.adopted.load(Ordering::SeqCst) == shared.sessions.load(Ordering::SeqCst);
+        !matches!(command, Command::Target(_)) || (self.state == State::Established && adopted)
     }
 
     pub fn sent(&mut self, now: Instant) {

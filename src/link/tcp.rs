@@ -118,7 +118,7 @@ async fn session(stream: TcpStream, ends: &mut IoEnds, bridge: &mut BridgeSessio
         tokio::select! {
             command = ends.commands.recv() => {
                 let Some(command) = command else { return true };
-                if !bridge.may_send(&command) {
+                if !bridge.may_send(&command, &ends.shared) {
                     LinkShared::count(&ends.shared.dropped_commands);
                     continue;
                 }

@@ -243,12 +243,8 @@ pub struct StreamReport {
     /// Whole trajectory samples passed when streaming ended (where to resume after a loss).
     pub samples_done: usize,
     pub link: String,
-    pub frames_sent: u64,
-    pub frames_received: u64,
-    pub crc_errors: u64,
-    pub duplicates: u64,
-    pub gaps: u64,
-    pub reconnects: u64,
+    #[serde(flatten)]
+    pub counters: LinkCounters,
 }
 
 impl StreamReport {
@@ -307,13 +303,18 @@ pub fn stream(
         clock.sleep_until(deadline);
         let late = clock.now().saturating_sub(deadline);
         cycle.record_wake(late, trajectory.period_s);
+        // Checked before anything is sent: what was planned for the stalled cycles is stale.
+        if late > period * settings.stall_cycles {
+            link.send(&Command::Stop)?;
+            cycle.fault = Some(format!(
+                "the cycle woke {:.1} ms late",
+                late.as_secs_f64() * 1e3
+            ));
+            break Outcome::Stalled;
+        }
         if let Some(outcome) = cycle_once(&mut cycle, trajectory, rig, link, clock, sink, control)?
         {
             break outcome;
-        }
-        if late > period * settings.stall_cycles {
-            link.send(&Command::Stop)?;
-            break Outcome::Stalled;
         }
     };
     Ok(cycle.report(
@@ -432,6 +433,8 @@ fn check_start(
     if let Some(hello) = link.controller_hello() {
         check_controller(&hello, rig, trajectory.period_s)?;
     }
+    // Targets flow in this session only: a later one needs a new start from a hold.
+    link.adopt_session();
     link.send(&Command::Heartbeat)?;
     // A remote controller answers at its next cycle: give it a few, not half of one.
     let wait = settings.feedback_timeout.max(START_FEEDBACK_TIMEOUT);
@@ -739,12 +742,7 @@ impl Cycle {
             duration_s: 0.0,
             samples_done: 0,
             link,
-            frames_sent: counters.frames_sent,
-            frames_received: counters.frames_received,
-            crc_errors: counters.crc_errors,
-            duplicates: counters.duplicates,
-            gaps: counters.gaps,
-            reconnects: counters.reconnects,
+            counters,
         }
     }
 
@@ -771,12 +769,7 @@ impl Cycle {
             duration_s: f64::from(self.seq - self.first_seq) * period_s,
             samples_done: self.path.floor() as usize,
             link,
-            frames_sent: counters.frames_sent,
-            frames_received: counters.frames_received,
-            crc_errors: counters.crc_errors,
-            duplicates: counters.duplicates,
-            gaps: counters.gaps,
-            reconnects: counters.reconnects,
+            counters,
         }
     }
 }

@@ -387,7 +387,11 @@ impl Twin {
         let index = axis as u8;
         let value = target.positions.as_slice()[axis];
         let velocity = target.velocities.as_slice()[axis];
-        if !value.is_finite() || !limits.contains(value) {
+        // On the wire integers (docs/protocol.md 6.6): a target planned exactly at a limit
+        // passes whatever the float rounding of its decoding.
+        let wire = |v: f64| (v * 1e6).round();
+        if !value.is_finite() || wire(value) < wire(limits.lower) || wire(value) > wire(limits.upper)
+        {
             let text = format!("{name} target {value:.6} outside its limits");
             return Some((Fault::OutsideLimits { axis: index }, text));
         }

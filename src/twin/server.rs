@@ -377,6 +377,11 @@ impl Session {
                 quiet.as_millis(),
                 self.counters.cycles
             ));
+            // Unbound now: say so, so that a bridge that still hears us knows its targets
+            // will be dropped until its Hello (docs/protocol.md 6.5).
+            if self.greeted {
+                self.send(port, &Message::Hello(twin.hello(false)));
+            }
         }
         if port.has_connections() && quiet >= IDLE_CLOSE {
             self.lose(twin, port, say, "idle connection closed");
