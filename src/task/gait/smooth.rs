@@ -40,6 +40,11 @@ pub fn smooth_plan(plan: &mut GaitPlan, sloth: &SlothRig) {
     // The holds' fades add a little acceleration of their own: once more, then hold again.
     smooth_locally(plan, &sloth.streamed);
     hold_stances(plan, sloth);
+    // Each stance is held on its contact once its correction has faded in.
+    let fade = ((HOLD_FADE_S / plan.period_s).round() as usize).max(1);
+    for stance in &mut plan.stances {
+        stance.settled = stance.settled.max((stance.start + fade).min(stance.end));
+    }
 }
 
 fn smooth_frames(plan: &mut GaitPlan, rig: &Rig) {
