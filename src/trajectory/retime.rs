@@ -479,3 +479,154 @@ pub fn peak_ratio(positions: &[f64], rig: &Rig, period_s: f64) -> f64 {
     }
     peak
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rig::{Joint, JointKind, JointLimits};
+    use crate::trajectory::{Trajectory, validate};
+    use glam::{DAffine3, DVec3};
+
+    const PERIOD_S: f64 = 0.004;
+    const SHARE: f64 = 0.8;
+
+    fn rig(axes: usize, upper: f64) -> Rig {
+        Rig {
+            name: "slides".into(),
+            base_frame: "base".into(),
+            tool_frame: "tool".into(),
+            joints: (0..axes)
+                .map(|axis| Joint {
+                    name: format!("x{axis}"),
+                    kind: JointKind::Prismatic,
+                    origin: DAffine3::IDENTITY,
+                    axis: DVec3::X,
+                    limits: JointLimits {
+                        lower: -1.0,
+                        upper,
+                        max_speed: 0.5,
+                        max_acceleration: 2.0,
+                    },
+                })
+                .collect(),
+            tool: DAffine3::IDENTITY,
+        }
+    }
+
+    /// `samples` with central-difference velocities, zero at both ends, as the gait builds.
+    fn trajectory(rig: &Rig, positions: &[f64]) -> Trajectory {
+        let dof = rig.dof();
+        let len = positions.len() / dof;
+        let mut velocities = vec![0.0; positions.len()];
+        for k in 1..len - 1 {
+            for axis in 0..dof {
+                velocities[k * dof + axis] = (positions[(k + 1) * dof + axis]
+                    - positions[(k - 1) * dof + axis])
+                    / (2.0 * PERIOD_S);
+            }
+        }
+        let names = rig.joints.iter().map(|j| j.name.clone()).collect();
+        Trajectory::new(
+            rig.name.clone(),
+            names,
+            PERIOD_S,
+            positions.to_vec(),
+            velocities,
+        )
+        .expect("whole samples")
+    }
+
+    /// At rest, then at `speed` from one sample to the next (an unbounded acceleration),
+    /// then at rest again at `to`: axis 1 follows axis 0 at `ratio`.
+    fn abrupt_line(speed: f64, to: f64, ratio: f64) -> Vec<f64> {
+        let step = speed * PERIOD_S;
+        let moving = (to / step).ceil() as usize;
+        let mut path = Vec::new();
+        for k in 0..50 + moving + 50 {
+            let x = (k.saturating_sub(50) as f64 * step).min(to);
+            path.extend([x, ratio * x]);
+        }
+        path
+    }
+
+    #[test]
+    fn an_abrupt_start_and_stop_is_slowed_into_the_share_along_the_same_line() {
+        let rig = rig(2, 1.0);
+        let path = abrupt_line(0.4, 0.3, -0.5);
+        assert!(validate(&trajectory(&rig, &path), &rig).is_err());
+        let retimed = retime(&path, &rig, PERIOD_S, SHARE).expect("retimes");
+        assert!(retimed.peak_ratio <= SHARE, "{}", retimed.peak_ratio);
+        validate(&trajectory(&rig, &retimed.positions), &rig).expect("valid");
+        // Past a corner of the samples the cubic may overshoot by up to 4/27 of its
+        // tangent there (half a step): never more than a quarter of a step.
+        let slack = 0.25 * 0.4 * PERIOD_S;
+        for sample in retimed.positions.chunks(2) {
+            // Every new sample lies on the planned line, between its ends.
+            assert!((sample[1] + 0.5 * sample[0]).abs() < 1e-12, "{sample:?}");
+            assert!((-slack..=0.3 + slack).contains(&sample[0]), "{sample:?}");
+        }
+        let last = retimed.positions.len() - 2;
+        assert_eq!(&retimed.positions[..2], &path[..2]);
+        assert_eq!(&retimed.positions[last..], &path[path.len() - 2..]);
+        // 0.4 m/s reached from rest at 1.6 m/s^2 takes 0.25 s each way: longer than planned.
+        let planned = (path.len() / 2 - 1) as f64 * PERIOD_S;
+        let now = (retimed.positions.len() / 2 - 1) as f64 * PERIOD_S;
+        assert!(now > planned + 0.2, "{now} s against {planned} s");
+    }
+
+    #[test]
+    fn a_gentle_motion_keeps_its_timing() {
+        let rig = rig(1, 1.0);
+        // A cosine bell of 0.1 m over 2 s: peak acceleration 0.05 pi^2 / 4 = 0.12 m/s^2.
+        let path: Vec<f64> = (0..=500)
+            .map(|k| 0.05 * (1.0 - (std::f64::consts::PI * k as f64 / 500.0).cos()))
+            .collect();
+        let retimed = retime(&path, &rig, PERIOD_S, SHARE).expect("retimes");
+        for (k, t) in retimed.sample_times_s.iter().enumerate() {
+            // Never faster than planned, and at most a sample's worth of start-up later.
+            assert!(*t >= k as f64 * PERIOD_S - 1e-9, "sample {k} at {t}");
+            assert!(*t <= (k + 1) as f64 * PERIOD_S, "sample {k} at {t}");
+        }
+        assert!(retimed.positions.len().abs_diff(path.len()) <= 1);
+    }
+
+    #[test]
+    fn a_path_stopping_at_a_limit_never_passes_it_between_samples() {
+        let upper = 0.2;
+        let rig = rig(1, upper);
+        // Runs into the upper limit at full speed and stays there: a central-difference
+        // interpolant would overshoot it in the first interval at the limit.
+        let path: Vec<f64> = (0..200)
+            .map(|k| (k as f64 * 0.45 * PERIOD_S).min(upper))
+            .collect();
+        let retimed = retime(&path, &rig, PERIOD_S, SHARE).expect("retimes");
+        assert!(
+            retimed.positions.iter().all(|x| *x <= upper),
+            "past the limit"
+        );
+        validate(&trajectory(&rig, &retimed.positions), &rig).expect("valid");
+    }
+
+    #[test]
+    fn ragged_samples_and_shares_outside_zero_to_one_are_refused() {
+        let rig = rig(2, 1.0);
+        assert!(matches!(
+            retime(&[0.0; 3], &rig, PERIOD_S, SHARE),
+            Err(RetimeError::Ragged {
+                values: 3,
+                dof: 2,
+                ..
+            })
+        ));
+        for share in [0.0, 1.5, f64::NAN] {
+            assert!(matches!(
+                retime(&[0.0; 4], &rig, PERIOD_S, share),
+                Err(RetimeError::BadShare { .. })
+            ));
+        }
+        assert!(matches!(
+            retime(&[0.0; 4], &rig, 0.0, SHARE),
+            Err(RetimeError::BadPeriod { .. })
+        ));
+    }
+}

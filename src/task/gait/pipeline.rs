@@ -5,13 +5,18 @@
 
 use super::rig::SlothRig;
 use super::scenario::{Scenario, ScenarioError};
-use super::smooth::{ACCEL_SHARE, smooth_plan};
+use super::smooth::smooth_plan;
 use super::walker::{GaitPlan, WalkError, Walker};
 use crate::trajectory::{
     PlanError, PlanSettings, RetimeError, Trajectory, TrajectoryError, plan_joint_moves, retime,
     validate,
 };
 use thiserror::Error;
+
+/// Share of each axis' max acceleration the gait plans within: the plan's default
+/// `accel_scale` (`PlanSettings`), so that the streamer's pause and stop ramps, sized for
+/// that share, keep the total within the limit (docs/architecture.md).
+pub const ACCEL_SHARE: f64 = 0.8;
 
 #[derive(Debug, Error)]
 pub enum GaitError {
