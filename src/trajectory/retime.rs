@@ -85,7 +85,7 @@ pub fn retime(
     share: f64,
 ) -> Result<Retimed, RetimeError> {
     let dof = rig.dof();
-    if dof == 0 || positions.len() % dof != 0 {
+    if dof == 0 || !positions.len().is_multiple_of(dof) {
         return Err(RetimeError::Ragged {
             rig: rig.name.clone(),
             values: positions.len(),
