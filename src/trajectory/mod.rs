@@ -5,9 +5,11 @@
 
 mod cartesian;
 mod plan;
+mod retime;
 
 pub use cartesian::plan_cartesian;
 pub use plan::{InvalidValue, PlanError, PlanSettings, plan_joint_moves};
+pub use retime::{RetimeError, Retimed, peak_ratio, retime};
 
 use crate::rig::{JointKind, Rig};
 use thiserror::Error;

@@ -98,6 +98,13 @@ pub fn assert_gait_figures(run: &rigbridge::daemon::gait::GaitRun) {
         );
     }
     assert!(v.min_body_clearance_mm > 0.0);
+    // Issue 14: no axis commanded above its max acceleration (the plan keeps 0.8 of it).
+    assert!(
+        v.peak_acceleration_ratio <= 1.0,
+        "{} x max acceleration on {}",
+        v.peak_acceleration_ratio,
+        v.peak_acceleration_joint
+    );
     // No head-first descent beyond the seed's 20 deg (and a degree of the twin's lag).
     assert!(
         v.min_heading_elevation_deg >= -21.0,

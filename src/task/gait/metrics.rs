@@ -91,10 +91,9 @@ impl GaitWorld {
 
     fn measure_limb(&mut self, index: usize, frame: usize, actual: &[f64], body: &glam::DAffine3) {
         let limb = &self.sloth.limbs[index];
-        let stance = self.stances[index]
-            .iter()
-            .enumerate()
-            .find(|(_, s)| frame >= s.start + self.settle_frames && frame <= s.end);
+        let stance = self.stances[index].iter().enumerate().find(|(_, s)| {
+            frame >= (s.start + self.settle_frames).max(s.settled) && frame <= s.end
+        });
         let measure = &mut self.limbs[index];
         for (joint, q) in limb.chain.joints.iter().zip(&actual[limb.axes()]) {
             let middle = 0.5 * (joint.limits.lower + joint.limits.upper);
@@ -251,11 +250,7 @@ fn around_trunk(sloth: &SlothRig, scenario: &Scenario, path: &[DVec3]) -> Option
 
 /// Whole cycles walked after the first (which starts from a standstill).
 fn judged_cycles(plan: &GaitPlan, scenario: &Scenario) -> u32 {
-    let walked = plan
-        .len()
-        .saturating_sub(plan.first_swing)
-        .checked_div(plan.cycle_frames)
-        .unwrap_or(0) as u32;
+    let walked = plan.cycle_starts.len().saturating_sub(1) as u32;
     walked.min(scenario.cycles).saturating_sub(1)
 }
 
@@ -295,8 +290,9 @@ pub fn judge(
     streamed_completely: bool,
 ) -> GaitReport {
     let cycles_judged = judged_cycles(plan, scenario);
-    let from = plan.first_swing + plan.cycle_frames;
-    let to = plan.first_swing + (cycles_judged as usize + 1) * plan.cycle_frames;
+    let cycle_start = |cycle: usize| plan.cycle_starts.get(cycle).copied().unwrap_or(0);
+    let from = cycle_start(1);
+    let to = cycle_start(cycles_judged as usize + 1);
     let footfall_order: Vec<String> = plan
         .touchdowns
         .iter()

@@ -8,9 +8,15 @@ use super::scenario::{Scenario, ScenarioError};
 use super::smooth::smooth_plan;
 use super::walker::{GaitPlan, WalkError, Walker};
 use crate::trajectory::{
-    PlanError, PlanSettings, Trajectory, TrajectoryError, plan_joint_moves, validate,
+    PlanError, PlanSettings, RetimeError, Trajectory, TrajectoryError, plan_joint_moves, retime,
+    validate,
 };
 use thiserror::Error;
+
+/// Share of each axis' max acceleration the gait plans within: the plan's default
+/// `accel_scale` (`PlanSettings`), so that the streamer's pause and stop ramps, sized for
+/// that share, keep the total within the limit (docs/architecture.md).
+pub const ACCEL_SHARE: f64 = 0.8;
 
 #[derive(Debug, Error)]
 pub enum GaitError {
@@ -22,6 +28,8 @@ pub enum GaitError {
     Walk(#[from] WalkError),
     #[error("the gait's trajectory is refused: {0}")]
     Trajectory(#[from] TrajectoryError),
+    #[error("re-timing the gait within its accelerations: {0}")]
+    Retime(#[from] RetimeError),
     #[error("the move to the gait's first pose: {0}")]
     Approach(#[from] PlanError),
     #[error("scenario {scenario}: the gait stopped before its first frame: {reason}")]
@@ -65,6 +73,7 @@ pub fn plan_gait(
             reason: plan.stop_reason.unwrap_or_default(),
         });
     }
+    retime_plan(&mut plan, sloth)?;
     let trajectory = trajectory_from_plan(sloth, &plan)?;
     Ok((plan, trajectory))
 }
@@ -87,4 +96,35 @@ pub fn plan_gait_job(
     trajectory.append(&gait);
     validate(&trajectory, &sloth.streamed)?;
     Ok(trajectory)
+}
+
+/// Re-times the plan's samples along their own path so every axis stays within
+/// `ACCEL_SHARE` of its max acceleration (`trajectory::retime`: never faster than planned,
+/// so the same positions in the same order, slower where the motion was too abrupt), and
+/// moves every frame number the plan carries (stances, touchdowns, cycles) onto the new
+/// sample passing the same point of the path.
+pub fn retime_plan(plan: &mut GaitPlan, sloth: &SlothRig) -> Result<(), GaitError> {
+    let retimed = retime(&plan.frames, &sloth.streamed, plan.period_s, ACCEL_SHARE)?;
+    let (old_len, dof, period_s) = (plan.len(), plan.dof, plan.period_s);
+    let map = |frame: usize| {
+        if frame >= old_len {
+            // One past the last frame (the end of the last whole cycle): one past the new last.
+            retimed.positions.len() / dof
+        } else {
+            retimed.sample_of(frame, period_s, dof)
+        }
+    };
+    for stance in &mut plan.stances {
+        stance.start = map(stance.start);
+        stance.end = map(stance.end);
+        stance.settled = map(stance.settled).clamp(stance.start, stance.end);
+    }
+    for (frame, _) in &mut plan.touchdowns {
+        *frame = map(*frame);
+    }
+    for frame in &mut plan.cycle_starts {
+        *frame = map(*frame);
+    }
+    plan.frames = retimed.positions;
+    Ok(())
 }

@@ -1,24 +1,22 @@
-//! Smoothing the walker's joint samples so that every axis stays within its share of max
-//! acceleration. The walker solves each frame's limbs by IK from the frame before; the
-//! solver moves the hands and feet's last joints first, so they swing across their range
-//! and stop at a limit within a few frames (a commanded 10-18 x their max acceleration),
-//! and the body follows the feet's mean, whose corners are sharp where a foot lands.
+//! Smoothing the walker's joint samples before they are re-timed within the axes'
+//! accelerations (`pipeline::retime_plan`). The walker solves each frame's limbs by IK from
+//! the frame before; the solver moves the hands and feet's last joints first, so they swing
+//! across their range and stop at a limit within a few frames (a commanded 10-18 x their
+//! max acceleration), and the body follows the feet's mean, whose corners are sharp where a
+//! foot lands. Re-timing those spikes alone would slow the walk to a crawl around each;
+//! after this filter the samples ask at most about 1.8 x, which re-timing absorbs in brief
+//! slow-downs.
 //!
 //! Owns that filter only: the same moving averages on every axis at once (so a stance
 //! foot, held still by all its axes together, stays where it was up to second-order
 //! terms), which keeps every sample inside the limits and every step within max speed (an
-//! average of in-limit values and steps). It must not change the walker's schedule, and
-//! it does not pretend: whatever is left above max acceleration `validate` refuses.
+//! average of in-limit values and steps), then each stance's hold on its contact. It must
+//! not change the walker's schedule, and it does not depend on the axes' accelerations:
+//! the same samples for any, so the geometry the judge measures is the re-timing's input.
 
 use super::rig::SlothRig;
 use super::walker::GaitPlan;
-use crate::rig::Rig;
 use glam::{DMat3, DVec3};
-
-/// Share of each axis' max acceleration the gait plans within: the plan's default
-/// `accel_scale` (`PlanSettings`), so that the streamer's pause and stop ramps, sized for
-/// that share, keep the total within the limit (docs/architecture.md).
-pub const ACCEL_SHARE: f64 = 0.8;
 
 /// The moving average every frame gets: 60 ms, three times (a 180 ms bell). Wider smears
 /// a limb's lift-off and touchdown into its stance (the twin judges slip from 60 ms after
@@ -27,46 +25,21 @@ pub const ACCEL_SHARE: f64 = 0.8;
 const BASE_WIDTH_S: f64 = 0.06;
 const BASE_PASSES: usize = 3;
 
-/// Where an axis still needs more than its share after that: further passes of the same
-/// average, blended in within this of each such frame, at most this many times.
-const LOCAL_RADIUS_S: f64 = 0.1;
-const LOCAL_PASSES: usize = 16;
-
-/// Smooths `plan`'s frames in place against the streamed rig's accelerations, then brings
-/// every stance hand or foot back onto its planned place.
+/// Smooths `plan`'s frames in place, then brings every stance hand or foot back onto its
+/// planned place. The local passes of more averaging where an axis still asked more than
+/// its share, tried before re-timing, are gone: they depended on the accelerations, and on
+/// the sloth's own ones they widened the stance holds' failures on transfer-to-trunk
+/// (slip 2-3 mm; docs/gait.md, "Acceleration").
 pub fn smooth_plan(plan: &mut GaitPlan, sloth: &SlothRig) {
-    smooth_frames(plan, &sloth.streamed);
-    hold_stances(plan, sloth);
-    // The holds' fades add a little acceleration of their own: once more, then hold again.
-    smooth_locally(plan, &sloth.streamed);
-    hold_stances(plan, sloth);
-}
-
-fn smooth_frames(plan: &mut GaitPlan, rig: &Rig) {
     let width = odd_frames(BASE_WIDTH_S, plan.period_s);
     for _ in 0..BASE_PASSES {
         plan.frames = moving_average(&plan.frames, plan.dof, width);
     }
-    smooth_locally(plan, rig);
-}
-
-/// Further passes of the average where an axis still needs more than its share.
-fn smooth_locally(plan: &mut GaitPlan, rig: &Rig) {
-    let width = odd_frames(BASE_WIDTH_S, plan.period_s);
-    let radius = (LOCAL_RADIUS_S / plan.period_s).round() as usize;
-    for _ in 0..LOCAL_PASSES {
-        let over = frames_over_share(plan, rig);
-        if !over.contains(&true) {
-            break;
-        }
-        let mask = blend_mask(&over, radius);
-        let averaged = moving_average(&plan.frames, plan.dof, width);
-        for (k, m) in mask.iter().enumerate() {
-            for axis in 0..plan.dof {
-                let i = k * plan.dof + axis;
-                plan.frames[i] += m * (averaged[i] - plan.frames[i]);
-            }
-        }
+    hold_stances(plan, sloth);
+    // Each stance is held on its contact once its correction has faded in.
+    let fade = ((HOLD_FADE_S / plan.period_s).round() as usize).max(1);
+    for stance in &mut plan.stances {
+        stance.settled = stance.settled.max((stance.start + fade).min(stance.end));
     }
 }
 
@@ -98,40 +71,6 @@ fn moving_average(frames: &[f64], dof: usize, width: usize) -> Vec<f64> {
         }
     }
     out
-}
-
-/// Per frame: does any axis' second difference there exceed its share of max acceleration?
-fn frames_over_share(plan: &GaitPlan, rig: &Rig) -> Vec<bool> {
-    let dt2 = plan.period_s * plan.period_s;
-    let mut over = vec![false; plan.len()];
-    for (k, flag) in over
-        .iter_mut()
-        .enumerate()
-        .skip(1)
-        .take(plan.len().saturating_sub(2))
-    {
-        let (before, here, after) = (plan.frame(k - 1), plan.frame(k), plan.frame(k + 1));
-        *flag = rig.joints.iter().enumerate().any(|(axis, joint)| {
-            let second = after[axis] - 2.0 * here[axis] + before[axis];
-            second.abs() > ACCEL_SHARE * joint.limits.max_acceleration * dt2
-        });
-    }
-    over
-}
-
-/// 1 within `radius` frames of a flagged frame, easing to 0 over as many frames again
-/// beyond (a ramp averaged twice, so the blend itself adds no sharp corner).
-fn blend_mask(over: &[bool], radius: usize) -> Vec<f64> {
-    let len = over.len();
-    let mut mask = vec![0.0; len];
-    for (k, _) in over.iter().enumerate().filter(|(_, o)| **o) {
-        for m in &mut mask[k.saturating_sub(radius)..(k + radius + 1).min(len)] {
-            *m = 1.0;
-        }
-    }
-    let ease = (radius.max(1) | 1).min(len.max(1) | 1);
-    let mask = moving_average(&mask, 1, ease);
-    moving_average(&mask, 1, ease)
 }
 
 /// Frames over which a stance's correction fades in after touchdown and out after lift-off:

@@ -44,6 +44,9 @@ pub struct Stance {
     pub limb: usize,
     pub start: usize,
     pub end: usize,
+    /// The first frame from which the plan holds the hand or foot on its contact (after
+    /// any fade-in of a correction); re-timing keeps it on the same moment of the path.
+    pub settled: usize,
     pub contact: Contact,
 }
 
@@ -57,9 +60,10 @@ pub struct GaitPlan {
     pub stances: Vec<Stance>,
     /// (frame, limb) of every touchdown after a swing, in time order.
     pub touchdowns: Vec<(usize, usize)>,
-    /// Frames per gait cycle and the first swing's frame.
-    pub cycle_frames: usize,
-    pub first_swing: usize,
+    /// The frame where each whole gait cycle starts, the first at the first swing, and
+    /// the frame after the last whole cycle walked: frame numbers, so that re-timing the
+    /// samples moves them with the events they mark.
+    pub cycle_starts: Vec<usize>,
     /// Why the gait stopped before walking all its cycles.
     pub stop_reason: Option<String>,
     pub ik_residual_max_m: f64,
@@ -684,8 +688,7 @@ impl<'a> Walker<'a> {
             frames: Vec::new(),
             stances: Vec::new(),
             touchdowns: Vec::new(),
-            cycle_frames,
-            first_swing,
+            cycle_starts: Vec::new(),
             stop_reason: None,
             ik_residual_max_m: 0.0,
             plan_clearance_min_m: f64::INFINITY,
@@ -708,6 +711,7 @@ impl<'a> Walker<'a> {
                                 limb,
                                 start: stance_start[limb],
                                 end: k,
+                                settled: stance_start[limb],
                                 contact: state.limbs[limb].contact,
                             });
                             state = next;
@@ -743,6 +747,10 @@ impl<'a> Walker<'a> {
                 plan.frames.extend_from_slice(&last_frame);
             }
         }
+        plan.cycle_starts = (0..)
+            .map(|cycle| first_swing + cycle * cycle_frames)
+            .take_while(|frame| cycle_frames > 0 && *frame <= plan.len())
+            .collect();
         let last = plan.len().saturating_sub(1);
         for (limb, start) in stance_start.into_iter().enumerate() {
             if state.limbs[limb].swing.is_none() {
@@ -750,6 +758,7 @@ impl<'a> Walker<'a> {
                     limb,
                     start,
                     end: last,
+                    settled: start,
                     contact: state.limbs[limb].contact,
                 });
             }
