@@ -405,11 +405,13 @@ fn check_log(run: &Run, rig: &Rig, period: f64, verdict: &mut Verdict) {
             .failures
             .push(format!("log not closed: {:?}", log.stopped));
     }
-    let held: Vec<Vec<f64>> = log
+    // Each resumption by its time: the first command after it starts from the held
+    // position at rest (docs/protocol.md 6.8).
+    let held: Vec<(f64, Vec<f64>)> = log
         .events
         .iter()
         .filter(|e| e.kind == "resumed")
-        .filter_map(|e| serde_json::from_value(e.detail["actual"].clone()).ok())
+        .filter_map(|e| Some((e.t, serde_json::from_value(e.detail["actual"].clone()).ok()?)))
         .collect();
     let mut next_hold = 0;
     let (mut previous, mut before_previous): (Option<(Vec<f64>, Vec<f64>)>, Option<Vec<f64>>) =
@@ -417,7 +419,15 @@ fn check_log(run: &Run, rig: &Rig, period: f64, verdict: &mut Verdict) {
     for command in &log.commands {
         verdict.log_commands += 1;
         let (p, v) = (&command.positions, &command.velocities);
-        let mut problem = axis_check(
+        let mut resumed = false;
+        while next_hold < held.len() && held[next_hold].0 < command.t - 1e-9 {
+            let h = held[next_hold].1.clone();
+            previous = Some((h.clone(), vec![0.0; p.len()]));
+            before_previous = Some(h);
+            next_hold += 1;
+            resumed = true;
+        }
+        let problem = axis_check(
             rig,
             period,
             p,
@@ -425,28 +435,12 @@ fn check_log(run: &Run, rig: &Rig, period: f64, verdict: &mut Verdict) {
             previous.as_ref().map(|(q, w)| (q.as_slice(), w.as_slice())),
             before_previous.as_deref(),
         );
-        if problem.is_some() {
-            // A resume: the plan starts again from where the arm holds, at rest.
-            if let Some(offset) = held[next_hold..]
-                .iter()
-                .position(|h| within_step(rig, period, p, h))
-            {
-                let h = &held[next_hold + offset];
-                next_hold += offset + 1;
-                let rest = vec![0.0; p.len()];
-                problem = axis_check(rig, period, p, v, Some((h, &rest)), Some(h))
-                    .map(|why| format!("first command after a resume: {why}"));
-                before_previous = Some(h.clone());
-                previous = Some((p.clone(), v.clone()));
-                if let Some(why) = problem {
-                    verdict
-                        .failures
-                        .push(format!("log seq {}: {why}", command.seq));
-                }
-                continue;
-            }
-        }
         if let Some(why) = problem {
+            let why = if resumed {
+                format!("first command after a resume: {why}")
+            } else {
+                why
+            };
             verdict
                 .failures
                 .push(format!("log seq {}: {why}", command.seq));
@@ -457,6 +451,15 @@ fn check_log(run: &Run, rig: &Rig, period: f64, verdict: &mut Verdict) {
     if log.commands.is_empty() {
         verdict.failures.push("log holds no command".into());
     }
+}
+
+/// Whether the twin echoed `seq` on connection `conn`: it accepted that target.
+fn accepted(run: &Run, conn: u32, seq: u32) -> bool {
+    run.entries
+        .iter()
+        .filter(|e| e.conn == conn)
+        .filter_map(feedback_of)
+        .any(|f| f.seq == seq)
 }
 
 fn target_of(entry: &Entry) -> Option<&JointTarget> {
@@ -516,6 +519,9 @@ fn check_wire(run: &Run, rig: &Rig, period: f64, verdict: &mut Verdict) {
         if held {
             hold_delivered = None;
         }
+        // A target the twin never accepted (it was unbound, or the frame was lost) moved
+        // nothing: the rule for the first target after a hold is the accepted one's.
+        let held = held && accepted(run, entry.conn, target.seq);
         let problem = if held {
             verdict.resumed_targets += 1;
             let reference = since.last().map(|(_, f)| f.positions.as_slice().to_vec());
