@@ -7,6 +7,7 @@ pub mod gait;
 pub mod paint;
 mod recording;
 pub mod replay;
+pub mod reset;
 pub mod resume;
 pub mod server;
 
