@@ -336,23 +336,8 @@ pub fn stream_job_with(
         "start": job.start,
         "link": link.describe(),
     });
-    // Under a virtual clock nothing is real time: the cycle waits for the log writer
-    // rather than dropping records, so the log holds every cycle.
-    let options = crate::log::RecorderOptions {
-        wait_when_full: clock.is_virtual(),
-        ..crate::log::RecorderOptions::for_rig(&settings.rig)
-    };
-    let names: Vec<String> = settings.rig.joint_names().map(str::to_owned).collect();
     let recorder = log
-        .map(|path| {
-            Recorder::create_with(
-                path,
-                &settings.rig.name,
-                &names,
-                metadata.clone(),
-                options.clone(),
-            )
-        })
+        .map(|path| create_recorder(settings, path, &metadata, clock.is_virtual()))
         .transpose()?;
     let report = match &recorder {
         Some(recorder) => {
@@ -403,6 +388,29 @@ pub fn stream_job_with(
         stream: report,
         log: log_report,
     })
+}
+
+/// The job's recorder at `path`, its metadata written first. Under a virtual clock nothing
+/// is real time: the cycle waits for the log writer rather than dropping records, so the
+/// log holds every cycle.
+fn create_recorder(
+    settings: &RunSettings,
+    path: &std::path::Path,
+    metadata: &serde_json::Value,
+    virtual_clock: bool,
+) -> Result<Recorder, DaemonError> {
+    let options = crate::log::RecorderOptions {
+        wait_when_full: virtual_clock,
+        ..crate::log::RecorderOptions::for_rig(&settings.rig)
+    };
+    let names: Vec<String> = settings.rig.joint_names().map(str::to_owned).collect();
+    Ok(Recorder::create_with(
+        path,
+        &settings.rig.name,
+        &names,
+        metadata.clone(),
+        options,
+    )?)
 }
 
 /// Polls the link until it is up again or `timeout_s` passes.

@@ -559,29 +559,7 @@ async fn submit(
     let id = daemon.next_id.fetch_add(1, Ordering::Relaxed);
     let started = match cell.start(id, job, &daemon.options) {
         Ok(started) => started,
-        Err(StartRefused::Busy) => {
-            return error(
-                StatusCode::CONFLICT,
-                format!(
-                    "a job is already running in cell `{}`: stop it or wait",
-                    cell.name()
-                ),
-            );
-        }
-        Err(StartRefused::Poisoned) => {
-            return error(StatusCode::INTERNAL_SERVER_ERROR, "state lock poisoned");
-        }
-        Err(StartRefused::Faulted(fault)) => {
-            return error(
-                StatusCode::CONFLICT,
-                format!(
-                    "the controller of cell `{}` has a latched fault ({fault}): reset it \
-                     first (POST /api/cells/{}/reset) once its cause is gone",
-                    cell.name(),
-                    cell.name()
-                ),
-            );
-        }
+        Err(refused) => return start_refused(&cell, refused),
     };
     match started.planned.await {
         Ok(Ok(())) => (
@@ -603,6 +581,28 @@ async fn submit(
         Err(_) => error(
             StatusCode::INTERNAL_SERVER_ERROR,
             "the job thread ended before planning",
+        ),
+    }
+}
+
+/// The answer to a job the cell would not start.
+fn start_refused(cell: &Cell, refused: StartRefused) -> Response {
+    match refused {
+        StartRefused::Busy => error(
+            StatusCode::CONFLICT,
+            format!(
+                "a job is already running in cell `{}`: stop it or wait",
+                cell.name()
+            ),
+        ),
+        StartRefused::Poisoned => error(StatusCode::INTERNAL_SERVER_ERROR, "state lock poisoned"),
+        StartRefused::Faulted(fault) => error(
+            StatusCode::CONFLICT,
+            format!(
+                "the controller of cell `{0}` has a latched fault ({fault}): reset it first \
+                 (POST /api/cells/{0}/reset) once its cause is gone",
+                cell.name()
+            ),
         ),
     }
 }
