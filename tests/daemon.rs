@@ -42,7 +42,12 @@ fn assert_log_within_limits(path: &Path) -> usize {
         .events
         .iter()
         .filter(|e| e.kind == "resumed")
-        .map(|e| (e.t, serde_json::from_value(e.detail["actual"].clone()).unwrap()))
+        .map(|e| {
+            (
+                e.t,
+                serde_json::from_value(e.detail["actual"].clone()).unwrap(),
+            )
+        })
         .collect();
     let mut next_resume = 0;
     for command in &log.commands {

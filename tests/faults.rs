@@ -411,7 +411,12 @@ fn check_log(run: &Run, rig: &Rig, period: f64, verdict: &mut Verdict) {
         .events
         .iter()
         .filter(|e| e.kind == "resumed")
-        .filter_map(|e| Some((e.t, serde_json::from_value(e.detail["actual"].clone()).ok()?)))
+        .filter_map(|e| {
+            Some((
+                e.t,
+                serde_json::from_value(e.detail["actual"].clone()).ok()?,
+            ))
+        })
         .collect();
     let mut next_hold = 0;
     let (mut previous, mut before_previous): (Option<(Vec<f64>, Vec<f64>)>, Option<Vec<f64>>) =

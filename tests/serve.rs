@@ -185,6 +185,60 @@ fn estop_halts_the_job_and_a_bad_job_is_refused_before_motion() {
     assert_eq!(done["last"]["report"]["outcome"], "e_stopped", "{done}");
 }
 
+#[test]
+fn after_an_estop_jobs_are_refused_until_a_reset_then_a_job_completes() {
+    let server = start_server();
+    let (code, idle) = request(&server, "POST", "/api/reset", None);
+    assert_eq!(code, 200, "{idle}");
+    assert_eq!(idle["result"], "nothing_latched", "{idle}");
+
+    assert_eq!(request(&server, "POST", "/api/jobs", None).0, 202);
+    wait_for(&server, "motion", |s| {
+        s["job"]["cycles"].as_u64().unwrap_or(0) > 100
+    });
+    let (code, busy) = request(&server, "POST", "/api/reset", None);
+    assert_eq!(code, 409, "no reset while a job runs: {busy}");
+    assert_eq!(request(&server, "POST", "/api/estop", None).0, 200);
+    let stopped = wait_for(&server, "e-stop", |s| s["state"] == "idle");
+    assert_eq!(stopped["last"]["report"]["outcome"], "e_stopped");
+    assert_eq!(stopped["controller"]["status"], "fault", "{stopped}");
+    assert_eq!(stopped["controller"]["fault"], "e-stop", "{stopped}");
+
+    for path in ["/api/jobs", "/api/cells/irb120/jobs"] {
+        let (code, refused) = request(&server, "POST", path, None);
+        assert_eq!(code, 409, "{path}: {refused}");
+        let text = refused["error"].as_str().unwrap();
+        assert!(text.contains("e-stop") && text.contains("reset"), "{text}");
+    }
+
+    let (code, cleared) = request(&server, "POST", "/api/cells/irb120/reset", None);
+    assert_eq!(code, 200, "{cleared}");
+    assert_eq!(cleared["result"], "cleared", "{cleared}");
+    assert!(
+        cleared["message"].as_str().unwrap().contains("holding"),
+        "{cleared}"
+    );
+    let (_, status) = request(&server, "GET", "/api/status", None);
+    assert_eq!(status["controller"]["status"], "holding", "{status}");
+    assert!(status["controller"]["fault"].is_null(), "{status}");
+    let logged: Vec<&str> = status["events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|e| e["action"].as_str())
+        .collect();
+    assert_eq!(logged, ["reset", "estop", "reset"], "{status}");
+
+    let short =
+        r#"{"job": {"kind": "move_joints", "targets_deg": [[10.0, 0.0, 0.0, 0.0, 30.0, 0.0]]}}"#;
+    let (code, accepted) = request(&server, "POST", "/api/jobs", Some(short));
+    assert_eq!(code, 202, "{accepted}");
+    let done = wait_for(&server, "the job after the reset", |s| {
+        s["state"] == "idle" && s["last"]["id"] == accepted["id"]
+    });
+    assert_eq!(done["last"]["report"]["outcome"], "completed", "{done}");
+}
+
 /// One request with exactly these extra header lines (no token of the server's own).
 fn request_with(server: &Server, method: &str, path: &str, headers: &str) -> (u16, String) {
     assert!(server.address.starts_with("127.0.0.1:"));
@@ -242,6 +296,8 @@ fn a_token_guards_the_control_routes_on_loopback() {
         "/api/pause",
         "/api/resume",
         "/api/estop",
+        "/api/reset",
+        "/api/cells/irb120/reset",
     ] {
         assert_unauthorized(request_with(&server, "POST", path, ""));
     }

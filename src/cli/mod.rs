@@ -6,6 +6,7 @@ mod gait;
 mod paint;
 mod plot;
 mod replay;
+mod reset;
 mod run;
 mod serve;
 mod twin;
@@ -35,8 +36,11 @@ enum Command {
     Run(run::RunArgs),
     /// Stay up with a control API on 127.0.0.1: submit jobs, status, pause/resume, stop, e-stop.
     Serve(serve::ServeArgs),
-    /// Re-stream a recorded run's commands with their timing, validated again against the rig.
+    /// Re-stream a recorded run over any link, from where the controller holds, at the
+    /// stream's rate, validated again against the rig.
     Replay(replay::ReplayArgs),
+    /// Ask a controller to clear its latched fault or e-stop (exit 0 once it reports none).
+    Reset(reset::ResetArgs),
     /// The simulated controller as its own process, on a TCP port, a serial line, a pty or CAN.
     Twin(twin::TwinArgs),
     /// The sloth gait over a scenario, streamed to the twin and judged from what it did.
@@ -56,6 +60,7 @@ pub fn run() -> anyhow::Result<ExitCode> {
         Command::Serve(args) => serve::serve(args),
         Command::Replay(args) => replay::replay_command(args),
         Command::Log(command) => replay::log_command(command),
+        Command::Reset(args) => reset::reset(args),
         Command::Twin(args) => twin::twin(args),
         Command::Gait(args) => gait::gait(args),
         Command::Paint(args) => paint::paint(args),

@@ -1,5 +1,5 @@
-//! `rigbridge replay` and `rigbridge log info`: re-stream a recorded run against the twin,
-//! and summarise a log.
+//! `rigbridge replay` and `rigbridge log info`: re-stream a recorded run over any link (from
+//! where its controller holds, at the stream's rate), and summarise a log.
 
 use super::run::{
     ClockChoice, make_clock, print_stream_summary, spawn_streaming, wait, write_report,
@@ -7,12 +7,11 @@ use super::run::{
 use anyhow::Context;
 use clap::{Args, Subcommand};
 use rigbridge::daemon::config::load_run_settings;
+use rigbridge::daemon::open_link;
 use rigbridge::daemon::replay::{replay, replay_trajectory};
-use rigbridge::daemon::twin_settings;
-use rigbridge::link::LoopbackLink;
+use rigbridge::link::LinkSpec;
 use rigbridge::log::{read_log, summarize};
 use rigbridge::stream::StreamControl;
-use rigbridge::twin::Twin;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
@@ -24,10 +23,12 @@ pub struct ReplayArgs {
     /// Run settings for the rig and the twin (the log's rig must match).
     #[arg(long, default_value = "config/rigbridge.toml")]
     config: PathBuf,
-    /// Where to stream: only the in-process twin so far.
-    #[arg(long, default_value = "loopback")]
-    link: String,
-    /// Time factor: 2 replays twice as fast (refused if that breaks a speed limit).
+    /// Where to stream (overrides the config): loopback, tcp://HOST:PORT,
+    /// serial:///dev/PATH?baud=N, can://IFACE or egm://ADDR:PORT, as for `run`.
+    #[arg(long)]
+    link: Option<String>,
+    /// Time factor at the stream's own rate: 0.5 takes twice as long, 2 half as long
+    /// (refused, naming the axis, if that breaks a speed or acceleration limit).
     #[arg(long, default_value_t = 1.0)]
     speed: f64,
     /// Record the replay to this MCAP file.
@@ -53,11 +54,6 @@ pub enum LogCommand {
 }
 
 pub fn replay_command(args: ReplayArgs) -> anyhow::Result<ExitCode> {
-    anyhow::ensure!(
-        args.link == "loopback",
-        "--link {}: only `loopback` is available so far",
-        args.link
-    );
     let settings = load_run_settings(&args.config).context("cannot load run settings")?;
     let log = read_log(&args.log).with_context(|| format!("cannot read {}", args.log.display()))?;
     if log.truncated {
@@ -66,46 +62,54 @@ pub fn replay_command(args: ReplayArgs) -> anyhow::Result<ExitCode> {
             args.log.display()
         );
     }
-    anyhow::ensure!(
-        log.rig == settings.rig.name,
-        "{} records rig `{}`, {} describes `{}`",
-        args.log.display(),
-        log.rig,
-        args.config.display(),
-        settings.rig.name
-    );
-    let (_, start) = replay_trajectory(&log, args.speed)?;
-    let twin = Twin::new(&settings.rig, twin_settings(&settings), &start)?;
+    let spec: LinkSpec = args
+        .link
+        .as_deref()
+        .unwrap_or(&settings.config.stream.link)
+        .parse()?;
+    // Refused before any link is opened when the log cannot be replayed at all.
+    replay_trajectory(&log, &settings, args.speed)
+        .with_context(|| format!("cannot replay {}", args.log.display()))?;
     let control = Arc::new(StreamControl::default());
     let clock = make_clock(args.clock);
     let job_control = control.clone();
     let speed = args.speed;
-    let clock_name = match args.clock {
-        ClockChoice::Wall => "wall",
-        ClockChoice::Virtual => "virtual",
-    };
     let record = args.record.clone();
     let job = spawn_streaming(move || {
-        let mut link = LoopbackLink::new(twin);
+        let mut link = open_link(&spec, &settings)?;
+        // A device-paced link (EGM) brings the clock the cycle must follow.
+        let clock = link.pacing().unwrap_or(clock);
         Ok(replay(
             &log,
             &settings,
             speed,
-            &mut link,
+            link.as_mut(),
             clock.as_ref(),
             record.as_deref(),
             &job_control,
         )?)
     })?;
     let report = wait(&control, job)?;
-    let rate_hz = report.stream.cycles as f64 / report.stream.duration_s.max(f64::MIN_POSITIVE);
-    print_stream_summary("replay", &report.rig, rate_hz, clock_name, &report.stream);
+    let run = &report.run;
+    print_stream_summary("replay", &run.rig, run.rate_hz, run.clock, &run.stream);
     println!(
-        "  {} recorded commands, same sequence: {}, max deviation from the recording {:.6} deg",
-        report.recorded_commands, report.same_sequence, report.max_deviation_from_recording_deg
+        "  {} recorded commands every {:.3} ms at {} x speed{}; approach {} samples, stop ramp {} samples",
+        report.recorded_commands,
+        report.recorded_period_s * 1e3,
+        report.speed,
+        if report.resampled { ", resampled" } else { "" },
+        report.approach_samples,
+        report.stop_ramp_samples
     );
+    match report.max_deviation_from_recording_deg {
+        Some(deviation) => println!(
+            "  same sequence: {}, max deviation from the recording {deviation:.6} deg",
+            report.same_sequence
+        ),
+        None => println!("  resampled: no cycle to compare one for one with the recording"),
+    }
     write_report(args.report.as_deref(), &report)?;
-    Ok(super::run::exit_code(report.stream.outcome))
+    Ok(super::run::exit_code(run.stream.outcome))
 }
 
 pub fn log_command(command: LogCommand) -> anyhow::Result<ExitCode> {

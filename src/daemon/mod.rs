@@ -7,6 +7,7 @@ pub mod gait;
 pub mod paint;
 mod recording;
 pub mod replay;
+pub mod reset;
 pub mod resume;
 pub mod server;
 
@@ -42,8 +43,8 @@ pub enum DaemonError {
     NotHeld(String),
     #[error("log")]
     Log(#[from] LogError),
-    #[error("replay: {0}")]
-    Replay(String),
+    #[error("replay")]
+    Replay(#[from] replay::ReplayError),
     #[error("{0}")]
     Unavailable(String),
     #[error(transparent)]
@@ -296,32 +297,47 @@ pub fn stream_planned_with(
     control: &StreamControl,
     live: &mut dyn crate::stream::CycleSink,
 ) -> Result<RunReport, DaemonError> {
-    let trajectory = &planned.trajectory;
+    let job = JobToStream {
+        name: job_name(&planned.job),
+        description: serde_json::to_value(&planned.job).unwrap_or_default(),
+        start: &planned.start,
+        trajectory: &planned.trajectory,
+    };
+    stream_job_with(settings, &job, link, clock, log, control, live)
+}
+
+/// What the resuming stream needs of a job, whatever made its trajectory (a planned job, a
+/// replayed log): its name and description for the log and report, the held position it
+/// was planned from, and the trajectory.
+pub struct JobToStream<'a> {
+    pub name: String,
+    pub description: serde_json::Value,
+    pub start: &'a [f64],
+    pub trajectory: &'a crate::trajectory::Trajectory,
+}
+
+/// Streams `job` through [`resume::stream_resuming`] (link loss and stalls resume from the
+/// held position), recording to `log` and handing every cycle to `live`.
+pub fn stream_job_with(
+    settings: &RunSettings,
+    job: &JobToStream<'_>,
+    link: &mut dyn Link,
+    clock: &dyn Clock,
+    log: Option<&std::path::Path>,
+    control: &StreamControl,
+    live: &mut dyn crate::stream::CycleSink,
+) -> Result<RunReport, DaemonError> {
+    let trajectory = job.trajectory;
     let metadata = serde_json::json!({
-        "job": planned.job,
+        "job": job.description,
         "config": settings.file.display().to_string(),
         "rate_hz": settings.config.stream.rate_hz,
         "period_s": settings.period_s(),
-        "start": planned.start,
+        "start": job.start,
         "link": link.describe(),
     });
-    // Under a virtual clock nothing is real time: the cycle waits for the log writer
-    // rather than dropping records, so the log holds every cycle.
-    let options = crate::log::RecorderOptions {
-        wait_when_full: clock.is_virtual(),
-        ..crate::log::RecorderOptions::for_rig(&settings.rig)
-    };
-    let names: Vec<String> = settings.rig.joint_names().map(str::to_owned).collect();
     let recorder = log
-        .map(|path| {
-            Recorder::create_with(
-                path,
-                &settings.rig.name,
-                &names,
-                metadata.clone(),
-                options.clone(),
-            )
-        })
+        .map(|path| create_recorder(settings, path, &metadata, clock.is_virtual()))
         .transpose()?;
     let report = match &recorder {
         Some(recorder) => {
@@ -361,7 +377,7 @@ pub fn stream_planned_with(
     };
     Ok(RunReport {
         rig: settings.rig.name.clone(),
-        job: job_name(&planned.job),
+        job: job.name.clone(),
         rate_hz: settings.config.stream.rate_hz,
         clock: if clock.is_virtual() {
             "virtual"
@@ -372,6 +388,29 @@ pub fn stream_planned_with(
         stream: report,
         log: log_report,
     })
+}
+
+/// The job's recorder at `path`, its metadata written first. Under a virtual clock nothing
+/// is real time: the cycle waits for the log writer rather than dropping records, so the
+/// log holds every cycle.
+fn create_recorder(
+    settings: &RunSettings,
+    path: &std::path::Path,
+    metadata: &serde_json::Value,
+    virtual_clock: bool,
+) -> Result<Recorder, DaemonError> {
+    let options = crate::log::RecorderOptions {
+        wait_when_full: virtual_clock,
+        ..crate::log::RecorderOptions::for_rig(&settings.rig)
+    };
+    let names: Vec<String> = settings.rig.joint_names().map(str::to_owned).collect();
+    Ok(Recorder::create_with(
+        path,
+        &settings.rig.name,
+        &names,
+        metadata.clone(),
+        options,
+    )?)
 }
 
 /// Polls the link until it is up again or `timeout_s` passes.

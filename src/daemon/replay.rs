@@ -1,34 +1,91 @@
-//! Replay: re-streams a recorded run's commands with their timing (optionally faster or
-//! slower) after validating them again against the rig, and compares what the controller
-//! does now with what it did then. Owns that comparison; reading the log is `log`'s job.
+//! Replay: a recorded run's commands as a job like any other. The recorded path is taken
+//! at the stream's own rate and `speed` x its pace (resampled when that is not the log's
+//! period), ended with a stop ramp when the recording ends with the axes moving, approached
+//! from where the controller holds, validated against the rig, and streamed through the same
+//! resuming path as `run` over any link. Owns that construction and the comparison of what
+//! the controller does now with what it did then; reading the log is `log`'s job, the
+//! cycle `stream`'s, the limits `trajectory::validate`'s.
 
-use super::{DaemonError, LogReport, RecorderSink, stream_settings};
+use super::{DaemonError, JobToStream, RunReport, held_position, plan_settings, stream_job_with};
 use crate::clock::Clock;
 use crate::daemon::config::RunSettings;
 use crate::link::Link;
-use crate::log::{LogError, Recorder, RunLog};
-use crate::stream::{CycleRecord, CycleSink, StreamControl, StreamReport, stream};
-use crate::trajectory::Trajectory;
+use crate::log::RunLog;
+use crate::stream::{CycleRecord, CycleSink, StreamControl};
+use crate::trajectory::{
+    PlanError, Trajectory, TrajectoryError, plan_joint_moves, ramp_to_rest, resample, validate,
+};
 use serde::Serialize;
 use std::collections::HashMap;
 use std::path::Path;
+use thiserror::Error;
+
+/// The held position counts as the recorded start when every axis is this share of
+/// `a_max T^2` from it: the first step then stays within the axis' acceleration from rest
+/// (docs/protocol.md 6.6), so no approach is needed. Farther, an approach is planned.
+const SAME_START_SHARE: f64 = 0.01;
+
+#[derive(Debug, Error)]
+pub enum ReplayError {
+    #[error("speed {speed} must be a positive number")]
+    BadSpeed { speed: f64 },
+    #[error(
+        "the log's metadata has no start position or period (was it written by `rigbridge run`?)"
+    )]
+    NoMetadata,
+    #[error("the log records rig `{log}`, the run settings describe `{settings}`")]
+    RigMismatch { log: String, settings: String },
+    #[error(
+        "the log ({recorded_ms:.3} ms a command) replayed at {speed} x speed every {period_ms:.3} ms is refused"
+    )]
+    Refused {
+        recorded_ms: f64,
+        period_ms: f64,
+        speed: f64,
+        #[source]
+        source: TrajectoryError,
+    },
+    #[error("the stop ramp after the log's last command is refused")]
+    Ramp(#[source] TrajectoryError),
+    #[error("cannot plan the approach from where the controller holds to the log's start")]
+    Approach(#[source] PlanError),
+}
 
 #[derive(Debug, Clone, Serialize)]
 pub struct ReplayReport {
-    pub rig: String,
     pub speed: f64,
     pub recorded_commands: usize,
-    /// True when every recorded command was sent again, in order, with its seq.
+    /// The log's period (s), and whether the path was resampled to the stream's.
+    pub recorded_period_s: f64,
+    pub resampled: bool,
+    /// Samples of the planned approach from the held position to the log's start (0: it
+    /// held there), and of the stop ramp after the log's last command (0: it ended at rest).
+    pub approach_samples: usize,
+    pub stop_ramp_samples: usize,
+    /// True when every recorded command was sent again, one a cycle, in order and unchanged
+    /// (the numbering shifted by the approach); false when resampled, resumed or cut short.
     pub same_sequence: bool,
-    /// Largest difference between the actual positions now and in the recording (deg).
-    pub max_deviation_from_recording_deg: f64,
+    /// Largest difference between the actual positions now and in the recording (deg), over
+    /// the cycles that sent a recorded command again; none when resampled (no cycle of the
+    /// replay is one of the recording's).
+    pub max_deviation_from_recording_deg: Option<f64>,
     #[serde(flatten)]
-    pub stream: StreamReport,
-    pub log: Option<LogReport>,
+    pub run: RunReport,
+}
+
+/// The recorded path at the stream's rate, ready to be approached and streamed.
+#[derive(Debug, Clone)]
+pub struct Replayed {
+    pub trajectory: Trajectory,
+    pub recorded_period_s: f64,
+    pub resampled: bool,
+    pub stop_ramp_samples: usize,
+    /// The seq the recording gave its trajectory's sample 0 (its first command's, less 1).
+    pub recorded_first_seq: u32,
 }
 
 /// Where the recorded run started and its period, from the log's metadata.
-fn recorded_start(log: &RunLog) -> Result<(Vec<f64>, f64), DaemonError> {
+fn recorded_start(log: &RunLog) -> Result<(Vec<f64>, f64), ReplayError> {
     let start: Option<Vec<f64>> = log
         .metadata
         .get("start")
@@ -39,64 +96,136 @@ fn recorded_start(log: &RunLog) -> Result<(Vec<f64>, f64), DaemonError> {
         .and_then(serde_json::Value::as_f64);
     match (start, period) {
         (Some(start), Some(period)) if start.len() == log.joint_names.len() => Ok((start, period)),
-        _ => Err(DaemonError::Replay(
-            "the log's metadata has no start position or period (was it written by `rigbridge run`?)".into(),
-        )),
+        _ => Err(ReplayError::NoMetadata),
     }
 }
 
-/// The start position, then every recorded command, at `period_s`.
-pub fn replay_trajectory(log: &RunLog, speed: f64) -> Result<(Trajectory, Vec<f64>), DaemonError> {
+/// The log's path (its start, then every recorded command) at `settings`' stream period and
+/// `speed` x the recorded pace, ending at rest, validated against the rig.
+pub fn replay_trajectory(
+    log: &RunLog,
+    settings: &RunSettings,
+    speed: f64,
+) -> Result<Replayed, DaemonError> {
     if !(speed.is_finite() && speed > 0.0) {
-        return Err(DaemonError::Replay(format!(
-            "speed {speed} must be a positive number"
-        )));
+        return Err(ReplayError::BadSpeed { speed }.into());
     }
-    let (start, period) = recorded_start(log)?;
-    let commands = log.to_trajectory(period)?;
+    if log.rig != settings.rig.name {
+        return Err(ReplayError::RigMismatch {
+            log: log.rig.clone(),
+            settings: settings.rig.name.clone(),
+        }
+        .into());
+    }
+    let (start, recorded_period) = recorded_start(log)?;
+    let commands = log.to_trajectory(recorded_period)?;
     let mut positions = start.clone();
     let mut velocities = vec![0.0; start.len()];
     for sample in 0..commands.len() {
         positions.extend_from_slice(commands.position(sample));
-        velocities.extend(commands.velocity(sample).iter().map(|v| v * speed));
+        velocities.extend_from_slice(commands.velocity(sample));
     }
-    let trajectory = Trajectory::new(
+    let recorded = Trajectory::new(
         log.rig.clone(),
         log.joint_names.clone(),
-        period / speed,
+        recorded_period,
         positions,
         velocities,
     )
-    .map_err(LogError::from)?;
-    Ok((trajectory, start))
+    .map_err(crate::log::LogError::from)?;
+    let period = settings.period_s();
+    let refused = |source| ReplayError::Refused {
+        recorded_ms: recorded_period * 1e3,
+        period_ms: period * 1e3,
+        speed,
+        source,
+    };
+    let resampled = resample(&recorded, period, speed).map_err(refused)?;
+    validate(&resampled, &settings.rig).map_err(refused)?;
+    let accel_share = settings.config.plan.accel_scale;
+    let (trajectory, ramp) =
+        ramp_to_rest(&resampled, &settings.rig, accel_share).map_err(ReplayError::Ramp)?;
+    validate(&trajectory, &settings.rig).map_err(ReplayError::Ramp)?;
+    let verbatim = resampled.len() == recorded.len()
+        && (0..recorded.len()).all(|k| resampled.position(k) == recorded.position(k));
+    Ok(Replayed {
+        trajectory,
+        recorded_period_s: recorded_period,
+        resampled: !verbatim,
+        stop_ramp_samples: ramp,
+        recorded_first_seq: log.commands.first().map_or(0, |c| c.seq.wrapping_sub(1)),
+    })
 }
 
-/// Collects the replayed cycles for the comparison, and passes them on to the recorder.
+/// The move from `held` to the replay's first sample, when they differ (else `None`).
+fn approach(
+    settings: &RunSettings,
+    held: &[f64],
+    first: &[f64],
+) -> Result<Option<Trajectory>, ReplayError> {
+    let dt = settings.period_s();
+    let same = settings
+        .rig
+        .joints
+        .iter()
+        .zip(held.iter().zip(first))
+        .all(|(joint, (h, f))| {
+            (h - f).abs() <= SAME_START_SHARE * joint.limits.max_acceleration * dt * dt
+        });
+    if same {
+        return Ok(None);
+    }
+    plan_joint_moves(
+        &settings.rig,
+        held,
+        &[first.to_vec()],
+        &plan_settings(settings),
+    )
+    .map(Some)
+    .map_err(ReplayError::Approach)
+}
+
+/// Compares the replayed cycles with the recording's, matched by seq (shifted by the
+/// approach): whether the recorded commands went out again one for one, and how far the
+/// controller is from where it was then on those cycles.
 struct Comparison<'a> {
-    recorded: HashMap<u32, &'a [f64]>,
-    recorded_seqs: Vec<u32>,
-    sent_seqs: Vec<u32>,
+    log: &'a RunLog,
+    states: HashMap<u32, &'a [f64]>,
+    /// Replay seq minus recording seq, for the same sample of the recorded path.
+    offset: u32,
+    /// Recorded commands sent again, in order and unchanged, so far.
+    matched: usize,
+    /// A cycle inside the recorded range sent something else (resampled, or resumed).
+    broken: bool,
     max_deviation: f64,
-    recorder: Option<RecorderSink<'a>>,
 }
 
 impl CycleSink for Comparison<'_> {
     fn record(&mut self, cycle: &CycleRecord) {
-        self.sent_seqs.push(cycle.target.seq);
-        if let (Some(feedback), Some(then)) =
-            (&cycle.feedback, self.recorded.get(&cycle.target.seq))
-        {
+        let Some(first) = self.log.commands.first() else {
+            return;
+        };
+        let seq = cycle.target.seq.wrapping_sub(self.offset);
+        let index = seq.wrapping_sub(first.seq) as usize;
+        if self.broken || index >= self.log.commands.len() {
+            return;
+        }
+        let recorded = &self.log.commands[index];
+        if index != self.matched || cycle.target.positions.as_slice() != recorded.positions {
+            self.broken = true;
+            return;
+        }
+        self.matched += 1;
+        if let (Some(feedback), Some(then)) = (&cycle.feedback, self.states.get(&seq)) {
             for (now, then) in feedback.positions.as_slice().iter().zip(then.iter()) {
                 self.max_deviation = self.max_deviation.max((now - then).abs().to_degrees());
             }
         }
-        if let Some(recorder) = &mut self.recorder {
-            recorder.record(cycle);
-        }
     }
 }
 
-/// Streams `log`'s commands over `link` (whose controller must be at the recorded start).
+/// Replays `log` over `link`: from where its controller holds, at `settings`' stream rate
+/// and `speed` x the recorded pace, recording to `record_to` when given.
 pub fn replay(
     log: &RunLog,
     settings: &RunSettings,
@@ -106,51 +235,64 @@ pub fn replay(
     record_to: Option<&Path>,
     control: &StreamControl,
 ) -> Result<ReplayReport, DaemonError> {
-    let (trajectory, _) = replay_trajectory(log, speed)?;
-    let recorder = record_to
-        .map(|path| Recorder::for_rig(path, &settings.rig, log.metadata.clone()))
-        .transpose()?;
+    let replayed = replay_trajectory(log, settings, speed)?;
+    let held = held_position(settings, link, clock, control)?;
+    let trajectory = match approach(settings, &held, replayed.trajectory.position(0))? {
+        Some(mut moved) => {
+            moved.append(&replayed.trajectory);
+            moved
+        }
+        None => replayed.trajectory.clone(),
+    };
+    let approach_samples = trajectory.len() - replayed.trajectory.len();
+    validate(&trajectory, &settings.rig).map_err(|source| ReplayError::Refused {
+        recorded_ms: replayed.recorded_period_s * 1e3,
+        period_ms: settings.period_s() * 1e3,
+        speed,
+        source,
+    })?;
     let mut comparison = Comparison {
-        recorded: log
+        log,
+        states: log
             .states
             .iter()
             .map(|s| (s.seq, s.positions.as_slice()))
             .collect(),
-        recorded_seqs: log.commands.iter().map(|c| c.seq).collect(),
-        sent_seqs: Vec::with_capacity(log.commands.len()),
+        offset: (approach_samples as u32).wrapping_sub(replayed.recorded_first_seq),
+        matched: 0,
+        broken: false,
         max_deviation: 0.0,
-        recorder: recorder
-            .as_ref()
-            .map(|r| RecorderSink::new(r, trajectory.period_s)),
     };
-    let mut streaming = stream_settings(settings);
-    streaming.feedback_timeout = std::time::Duration::from_secs_f64(trajectory.period_s / 2.0);
-    let result = stream(
-        &trajectory,
-        &settings.rig,
+    let job = JobToStream {
+        name: "replay".into(),
+        description: serde_json::json!({
+            "kind": "replay",
+            "speed": speed,
+            "recorded_period_s": replayed.recorded_period_s,
+            "recorded_job": log.metadata.get("job"),
+        }),
+        start: &held,
+        trajectory: &trajectory,
+    };
+    let run = stream_job_with(
+        settings,
+        &job,
         link,
         clock,
-        &mut comparison,
+        record_to,
         control,
-        &streaming,
-    );
-    let same_sequence = comparison.sent_seqs == comparison.recorded_seqs;
-    let max_deviation = comparison.max_deviation;
-    drop(comparison);
-    let log_report = match recorder {
-        Some(recorder) => record_to
-            .map(|path| recorder.finish().map(|stats| LogReport::new(path, stats)))
-            .transpose()?,
-        None => None,
-    };
-    let report = result?;
+        &mut comparison,
+    )?;
+    let same_sequence = !comparison.broken && comparison.matched == log.commands.len();
     Ok(ReplayReport {
-        rig: settings.rig.name.clone(),
         speed,
         recorded_commands: log.commands.len(),
+        recorded_period_s: replayed.recorded_period_s,
+        resampled: replayed.resampled,
+        approach_samples,
+        stop_ramp_samples: replayed.stop_ramp_samples,
         same_sequence,
-        max_deviation_from_recording_deg: max_deviation,
-        stream: report,
-        log: log_report,
+        max_deviation_from_recording_deg: (!replayed.resampled).then_some(comparison.max_deviation),
+        run,
     })
 }

@@ -1,7 +1,7 @@
 //! `rigbridge serve`: the daemon that stays up. A control API over HTTP + JSON on
 //! 127.0.0.1 for one or more cells ([`cell`]: one run settings file each, so one rig with
 //! its own twin, job slot and live view): submit a job, status, pause/resume, stop
-//! (decelerate to standstill) and e-stop, per cell under `/api/cells/{cell}/`, and for the
+//! (decelerate to standstill), e-stop and reset (clear a latched fault), per cell under `/api/cells/{cell}/`, and for the
 //! first cell also without the prefix. One job streams at a time per cell; jobs in
 //! different cells run side by side. A cell's twin persists between jobs, so each job starts
 //! where the last one left the rig. Like mini-redis, the binary only binds the listener
@@ -40,7 +40,7 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
-use cell::{Cell, StartRefused};
+use cell::{Cell, ResetRefused, StartRefused};
 use serde::Deserialize;
 use std::future::Future;
 use std::path::PathBuf;
@@ -375,7 +375,8 @@ fn routes(daemon: &Arc<Daemon>, exposed: bool) -> Router<Arc<Daemon>> {
             .route(&format!("{prefix}/pause"), post(pause))
             .route(&format!("{prefix}/resume"), post(resume))
             .route(&format!("{prefix}/stop"), post(stop))
-            .route(&format!("{prefix}/estop"), post(estop));
+            .route(&format!("{prefix}/estop"), post(estop))
+            .route(&format!("{prefix}/reset"), post(reset));
     }
     let control = control
         .route_layer(axum::middleware::from_fn(guard::require_json))
@@ -558,18 +559,7 @@ async fn submit(
     let id = daemon.next_id.fetch_add(1, Ordering::Relaxed);
     let started = match cell.start(id, job, &daemon.options) {
         Ok(started) => started,
-        Err(StartRefused::Busy) => {
-            return error(
-                StatusCode::CONFLICT,
-                format!(
-                    "a job is already running in cell `{}`: stop it or wait",
-                    cell.name()
-                ),
-            );
-        }
-        Err(StartRefused::Poisoned) => {
-            return error(StatusCode::INTERNAL_SERVER_ERROR, "state lock poisoned");
-        }
+        Err(refused) => return start_refused(&cell, refused),
     };
     match started.planned.await {
         Ok(Ok(())) => (
@@ -595,6 +585,28 @@ async fn submit(
     }
 }
 
+/// The answer to a job the cell would not start.
+fn start_refused(cell: &Cell, refused: StartRefused) -> Response {
+    match refused {
+        StartRefused::Busy => error(
+            StatusCode::CONFLICT,
+            format!(
+                "a job is already running in cell `{}`: stop it or wait",
+                cell.name()
+            ),
+        ),
+        StartRefused::Poisoned => error(StatusCode::INTERNAL_SERVER_ERROR, "state lock poisoned"),
+        StartRefused::Faulted(fault) => error(
+            StatusCode::CONFLICT,
+            format!(
+                "the controller of cell `{0}` has a latched fault ({fault}): reset it first \
+                 (POST /api/cells/{0}/reset) once its cause is gone",
+                cell.name()
+            ),
+        ),
+    }
+}
+
 fn with_control(cell: &Cell, what: &'static str, act: impl Fn(&StreamControl)) -> Response {
     match cell.control(what, act) {
         Some(id) => Json(serde_json::json!({ "id": id })).into_response(),
@@ -616,4 +628,39 @@ async fn stop(CellRef(cell): CellRef) -> Response {
 
 async fn estop(CellRef(cell): CellRef) -> Response {
     with_control(&cell, "estop", StreamControl::estop)
+}
+
+/// `POST .../reset`: asks the cell's controller to clear its latched fault (docs/protocol.md
+/// 6.7), when no job runs. 200 with the controller's state once it reports none; 409 when
+/// a job runs or the controller keeps its fault (its words); 503 when it cannot be asked.
+async fn reset(CellRef(cell): CellRef) -> Response {
+    let name = cell.name().to_string();
+    let outcome = match tokio::task::spawn_blocking(move || cell.reset()).await {
+        Ok(outcome) => outcome,
+        Err(_) => {
+            return error(
+                StatusCode::INTERNAL_SERVER_ERROR,
+                "the reset failed unexpectedly",
+            );
+        }
+    };
+    match outcome {
+        Ok(outcome) if outcome.is_clear() => {
+            let result = match outcome {
+                super::reset::ResetOutcome::Cleared { .. } => "cleared",
+                _ => "nothing_latched",
+            };
+            Json(serde_json::json!({ "result": result, "message": outcome.to_string() }))
+                .into_response()
+        }
+        Ok(kept) => error(StatusCode::CONFLICT, kept),
+        Err(ResetRefused::Busy) => error(
+            StatusCode::CONFLICT,
+            format!("a job is running in cell `{name}`: stop it before a reset"),
+        ),
+        Err(ResetRefused::Failed(why)) => error(
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("cannot reset the controller of cell `{name}`: {why}"),
+        ),
+    }
 }

@@ -94,7 +94,8 @@ impl BridgeSession {
     /// the controller's answer (docs/protocol.md 6.1, step 5), and targets only in the
     /// session the streamer adopted.
     pub fn may_send(&self, command: &Command, shared: &LinkShared) -> bool {
-        let adopted = shared.adopted.load(Ordering::SeqCst) == shared.sessions.load(Ordering::SeqCst);
+        let adopted =
+            shared.adopted.load(Ordering::SeqCst) == shared.sessions.load(Ordering::SeqCst);
         !matches!(command, Command::Target(_)) || (self.state == State::Established && adopted)
     }
 

@@ -5,10 +5,12 @@
 
 mod cartesian;
 mod plan;
+mod resample;
 mod retime;
 
 pub use cartesian::plan_cartesian;
 pub use plan::{InvalidValue, PlanError, PlanSettings, plan_joint_moves};
+pub use resample::{ramp_to_rest, resample};
 pub use retime::{RetimeError, Retimed, peak_ratio, retime};
 
 use crate::rig::{JointKind, Rig};
@@ -36,6 +38,12 @@ pub enum TrajectoryError {
     Ragged { values: usize, dof: usize },
     #[error("period {period_s} s must be positive and finite")]
     BadPeriod { period_s: f64 },
+    #[error("time scale {speed} must be positive and finite")]
+    BadTimeScale { speed: f64 },
+    #[error(
+        "bringing the axes to rest from the last sample within their accelerations takes {samples:.0} samples, more than {max}"
+    )]
+    RampTooLong { samples: f64, max: usize },
     #[error("sample {sample}: {joint} = {value} is not finite")]
     NotFinite {
         sample: usize,

@@ -390,7 +390,9 @@ impl Twin {
         // On the wire integers (docs/protocol.md 6.6): a target planned exactly at a limit
         // passes whatever the float rounding of its decoding.
         let wire = |v: f64| (v * 1e6).round();
-        if !value.is_finite() || wire(value) < wire(limits.lower) || wire(value) > wire(limits.upper)
+        if !value.is_finite()
+            || wire(value) < wire(limits.lower)
+            || wire(value) > wire(limits.upper)
         {
             let text = format!("{name} target {value:.6} outside its limits");
             return Some((Fault::OutsideLimits { axis: index }, text));

@@ -29,6 +29,9 @@ pub struct JobView {
     pub progress: f64,
     /// How the last job ended (`completed`, `stopped`, `e_stopped`, ... or an error).
     pub last: Option<String>,
+    /// The controller's latched fault (an e-stop included) until a reset clears it: the
+    /// page shows it in place of the last cycle's status, which predates the latch.
+    pub controller: Option<String>,
 }
 
 struct HubState {
@@ -206,7 +209,7 @@ fn status_text(status: Option<ControllerStatus>) -> String {
         None => "none".into(),
         Some(ControllerStatus::Ok) => "ok".into(),
         Some(ControllerStatus::Holding) => "holding".into(),
-        Some(ControllerStatus::Fault(fault)) => format!("fault: {fault:?}"),
+        Some(ControllerStatus::Fault(fault)) => format!("fault: {fault}"),
     }
 }
 

@@ -10,10 +10,12 @@ use super::scene::scene_for_job;
 use super::{JobWorld, LIVE_FRAME_RATE_HZ, ServeOptions};
 use crate::clock::{Clock, VirtualClock, WallClock};
 use crate::daemon::config::{JobConfig, RunSettings};
+use crate::daemon::reset::{RESET_TIMEOUT, ResetOutcome, reset_controller};
 use crate::daemon::{DaemonError, RunReport, error_chain, plan_for, stream_planned_with};
 use crate::link::{Link, LinkSpec, LoopbackLink};
+use crate::protocol::ControllerStatus;
 use crate::rig::JointKind;
-use crate::stream::StreamControl;
+use crate::stream::{Outcome, StreamControl};
 use crate::twin::{SharedWorld, Twin};
 use crate::view::{JobView, LiveHub, LiveSample, LiveSink, LiveSlot};
 use serde::Serialize;
@@ -124,13 +126,24 @@ pub struct Status {
     /// The link the cell streams over (`[stream] link`).
     link: String,
     state: &'static str,
-    /// The latest control events (pause, resume, stop, e-stop), oldest first.
+    /// The latest control events (pause, resume, stop, e-stop, reset), oldest first.
     events: Vec<ControlEvent>,
+    /// The controller's state as the cell knows it: a latched fault shows here until a
+    /// reset clears it, whatever the last streamed cycle said.
+    controller: ControllerView,
     job: Option<JobStatus>,
     last: Option<JobResult>,
     /// The twin's actual position per axis, in the axis' unit; empty while a job streams
     /// (the live view has it then).
     actual: Vec<AxisValue>,
+}
+
+/// The controller's state: `status` is `ok`, `holding`, `fault` or `unknown` (a remote
+/// controller between jobs, with no fault known); `fault` says which, in words.
+#[derive(Debug, Clone, Serialize)]
+pub struct ControllerView {
+    pub status: &'static str,
+    pub fault: Option<String>,
 }
 
 /// One axis' value in its own unit: degrees for a revolute axis, metres for a prismatic one.
@@ -174,6 +187,8 @@ fn state_of(job: Option<&JobStatus>) -> &'static str {
 pub enum StartRefused {
     Busy,
     Poisoned,
+    /// The controller has this fault latched: it must be reset first.
+    Faulted(String),
 }
 
 /// A job handed to its thread: its number and kind, and whether planning succeeded (a bad
@@ -192,6 +207,9 @@ pub struct ControlEvent {
     action: &'static str,
     /// The job it acted on; `None` when no job was running.
     job: Option<u64>,
+    /// What came of it, where that is more than "applied" (a reset: the controller's words).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    result: Option<String>,
 }
 
 /// How many control events a cell keeps for its status.
@@ -215,6 +233,19 @@ pub struct Cell {
     hub: LiveHub,
     /// The twin's world for the current job (the twin outlives jobs; its world does not).
     world: SharedWorld<JobWorld>,
+    /// The fault the controller latched, as last learnt (a job that ended e-stopped or
+    /// faulted, a reset it refused); cleared by a reset it carried out. The in-process
+    /// twin's own status wins whenever the link is free to read it.
+    latched: Mutex<Option<String>>,
+}
+
+/// Why a cell did not reset its controller.
+#[derive(Debug)]
+pub enum ResetRefused {
+    /// A job is running (or holds the link).
+    Busy,
+    /// The link did not open, or the controller did not answer.
+    Failed(String),
 }
 
 impl Cell {
@@ -251,6 +282,7 @@ impl Cell {
             last: Mutex::new(None),
             hub,
             world,
+            latched: Mutex::new(None),
         })
     }
 
@@ -290,17 +322,25 @@ impl Cell {
         })
     }
 
-    fn log_event(&self, action: &'static str, job: Option<u64>) {
+    fn log_event(&self, action: &'static str, job: Option<u64>, result: Option<String>) {
         let at_s = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0.0, |d| d.as_secs_f64());
         let shown = job.map_or("no job".to_string(), |id| format!("job {id}"));
-        eprintln!("cell {}: {action} ({shown})", self.name());
+        match &result {
+            Some(result) => eprintln!("cell {}: {action} ({shown}): {result}", self.name()),
+            None => eprintln!("cell {}: {action} ({shown})", self.name()),
+        }
         let mut events = self.events.lock().unwrap_or_else(PoisonError::into_inner);
         if events.len() == KEPT_EVENTS {
             events.pop_front();
         }
-        events.push_back(ControlEvent { at_s, action, job });
+        events.push_back(ControlEvent {
+            at_s,
+            action,
+            job,
+            result,
+        });
     }
 
     fn running(&self) -> Option<JobStatus> {
@@ -312,6 +352,7 @@ impl Cell {
 
     pub fn status(&self) -> Status {
         let job = self.running();
+        let controller = self.controller();
         // A streaming job holds the link: the live view has the position then.
         let actual = match self.link.try_lock().as_deref() {
             Ok(CellLink::Twin(link)) => self
@@ -344,10 +385,87 @@ impl Cell {
                 .iter()
                 .cloned()
                 .collect(),
+            controller,
             state: state_of(job.as_ref()),
             job,
             last: self.last().clone(),
             actual,
+        }
+    }
+
+    /// The controller's state: the in-process twin's own when the link is free, otherwise
+    /// the fault last learnt (none known: `ok` while a job streams, `unknown` between jobs
+    /// on a remote link).
+    pub fn controller(&self) -> ControllerView {
+        if let Ok(guard) = self.link.try_lock()
+            && let CellLink::Twin(link) = &*guard
+        {
+            let status = link.twin().status();
+            return ControllerView {
+                status: match status {
+                    ControllerStatus::Ok => "ok",
+                    ControllerStatus::Holding => "holding",
+                    ControllerStatus::Fault(_) => "fault",
+                },
+                fault: match status {
+                    ControllerStatus::Fault(fault) => Some(fault.to_string()),
+                    _ => None,
+                },
+            };
+        }
+        let latched = self.latched_fault();
+        ControllerView {
+            status: match (&latched, self.running()) {
+                (Some(_), _) => "fault",
+                (None, Some(_)) => "ok",
+                (None, None) => "unknown",
+            },
+            fault: latched,
+        }
+    }
+
+    fn latched_fault(&self) -> Option<String> {
+        self.latched
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+
+    fn set_latched(&self, fault: Option<String>) {
+        *self.latched.lock().unwrap_or_else(PoisonError::into_inner) = fault;
+    }
+
+    /// Sends Reset to the cell's controller when no job runs, and waits for its answer
+    /// (docs/protocol.md 6.7). Logged like the other control actions.
+    pub fn reset(&self) -> Result<ResetOutcome, ResetRefused> {
+        if self.running().is_some() {
+            return Err(ResetRefused::Busy);
+        }
+        let result = {
+            let Ok(mut guard) = self.link.try_lock() else {
+                return Err(ResetRefused::Busy);
+            };
+            match &mut *guard {
+                CellLink::Twin(twin) => reset_controller(twin.as_mut(), RESET_TIMEOUT),
+                CellLink::Remote(remote) => self
+                    .remote(remote)
+                    .and_then(|link| reset_controller(link, RESET_TIMEOUT)),
+            }
+        };
+        match result {
+            Ok(outcome) => {
+                self.set_latched(match &outcome {
+                    ResetOutcome::Kept(words) => Some(words.clone()),
+                    _ => None,
+                });
+                self.log_event("reset", None, Some(outcome.to_string()));
+                Ok(outcome)
+            }
+            Err(error) => {
+                let text = error_chain(&error);
+                self.log_event("reset", None, Some(format!("failed: {text}")));
+                Err(ResetRefused::Failed(text))
+            }
         }
     }
 
@@ -382,6 +500,7 @@ impl Cell {
                 .unwrap_or_default(),
             JobResult::Failed { error, .. } => format!("failed: {error}"),
         });
+        let controller = self.controller().fault;
         match self.running() {
             Some(job) => JobView {
                 state: state_of(Some(&job)),
@@ -389,10 +508,12 @@ impl Cell {
                 name: Some(job.name),
                 progress: job.progress,
                 last,
+                controller,
             },
             None => JobView {
                 state: "idle",
                 last,
+                controller,
                 ..JobView::default()
             },
         }
@@ -411,6 +532,9 @@ impl Cell {
         };
         if slot.as_ref().is_some_and(|j| !j.handle.is_finished()) {
             return Err(StartRefused::Busy);
+        }
+        if let Some(fault) = self.controller().fault {
+            return Err(StartRefused::Faulted(fault));
         }
         let name = job.kind().to_string();
         let control = Arc::new(StreamControl::default());
@@ -445,6 +569,9 @@ impl Cell {
             };
             let result =
                 contain_panic(|| cell.run_job(&job, &control, clock.as_ref(), &log, planned));
+            if let Ok(Ok(report)) = &result {
+                cell.learn_from(report);
+            }
             let outcome = match result {
                 Ok(Ok(report)) => JobResult::Finished {
                     id,
@@ -510,6 +637,21 @@ impl Cell {
         )
     }
 
+    /// What a finished job tells of the controller: an e-stop or a fault it latched.
+    fn learn_from(&self, report: &RunReport) {
+        let stream = &report.stream;
+        match stream.outcome {
+            Outcome::EStopped => self.set_latched(Some("e-stop".into())),
+            Outcome::Faulted => self.set_latched(Some(
+                stream
+                    .fault
+                    .clone()
+                    .unwrap_or_else(|| "controller fault".into()),
+            )),
+            _ => {}
+        }
+    }
+
     /// The remote link, opened now if it is not yet (or its last opening failed).
     fn remote<'a>(
         &self,
@@ -538,7 +680,7 @@ impl Cell {
         }
         let id = running.map(|j| j.id);
         drop(job);
-        self.log_event(action, id);
+        self.log_event(action, id, None);
         id
     }
 

@@ -523,6 +523,11 @@ function showStatus(frame) {
     document.getElementById('link-' + key).textContent = text(frame.link);
   }
   const job = frame.job;
+  // A latched fault outlives the last streamed cycle's status (which predates it): it
+  // shows until a reset clears it, never "ok" beside an e-stop.
+  const controller = document.getElementById('link-status');
+  if (job.controller) controller.textContent = 'fault: ' + job.controller + ' (reset to clear)';
+  controller.classList.toggle('fault', Boolean(job.controller));
   document.getElementById('job-state').textContent = job.state;
   document.getElementById('job-name').textContent = job.name ? '(' + job.name + ' #' + job.id + ')' : '';
   document.getElementById('job-progress').value = job.progress;
@@ -660,7 +665,7 @@ async function control(action) {
     result.textContent = path + ': ' + error;
   }
 }
-const CONTROLS = { start: '/jobs', pause: '/pause', resume: '/resume', stop: '/stop', estop: '/estop' };
+const CONTROLS = { start: '/jobs', pause: '/pause', resume: '/resume', stop: '/stop', estop: '/estop', reset: '/reset' };
 for (const [id, path] of Object.entries(CONTROLS)) {
   document.getElementById(id).addEventListener('click', () => control(path));
 }

@@ -1,0 +1,344 @@
+//! `rigbridge replay` as a job like any other, checked from the logs alone: a 100 Hz log
+//! into a 250 Hz stream, a truncated log that must end at rest, `--speed 0.5`, and a replay
+//! over TCP to `rigbridge twin --listen` started away from the log's start.
+
+mod common;
+
+use common::{irb120, repo_path};
+use rigbridge::log::{RunLog, read_log};
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::Duration;
+
+/// Rounding slack on the limit checks below, the same as the rig's.
+const SLACK: f64 = 1e-9;
+
+fn rigbridge() -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
+    command.current_dir(repo_path(""));
+    command
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("rigbridge-replay-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(name);
+    let _ = std::fs::remove_file(&path);
+    path
+}
+
+fn run(args: &[&str]) -> Output {
+    rigbridge().args(args).output().unwrap()
+}
+
+fn text(bytes: &[u8]) -> String {
+    String::from_utf8_lossy(bytes).into_owned()
+}
+
+fn succeeded(output: &Output) {
+    assert!(
+        output.status.success(),
+        "{}{}",
+        text(&output.stdout),
+        text(&output.stderr)
+    );
+}
+
+/// A copy of the default run settings with `edit` applied, next to it (the rig path is
+/// relative to the file).
+fn write_config(name: &str, edit: impl Fn(String) -> String) -> ConfigFile {
+    let original = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    let path = repo_path("config").join(format!(".test-replay-{}-{name}", std::process::id()));
+    std::fs::write(&path, edit(original)).unwrap();
+    ConfigFile(path)
+}
+
+struct ConfigFile(PathBuf);
+
+impl Drop for ConfigFile {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
+}
+
+fn record_run(name: &str, config: Option<&Path>) -> PathBuf {
+    let log = scratch(name);
+    let mut args = vec!["run", "--clock", "virtual", "--log", log.to_str().unwrap()];
+    if let Some(config) = config {
+        args.extend(["--config", config.to_str().unwrap()]);
+    }
+    succeeded(&run(&args));
+    log
+}
+
+fn report(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// Where the stream resumed from a hold (after a stall or a link loss on a loaded machine):
+/// the job time of each `resumed` event and the actual position it resumed from.
+fn resumptions(log: &RunLog) -> Vec<(f64, Vec<f64>)> {
+    log.events
+        .iter()
+        .filter(|e| e.kind == "resumed")
+        .map(|e| {
+            let actual = serde_json::from_value(e.detail["actual"].clone()).unwrap();
+            (e.t, actual)
+        })
+        .collect()
+}
+
+/// Checks every command the log holds against the IRB 120's limits from the log alone,
+/// starting from the recorded start at rest (and, after a resumption, from the held
+/// position it names): inside the limits, each step within one cycle's travel at max
+/// speed, velocities within max speed, and the positions' second difference within max
+/// acceleration x period^2. Returns the largest step as a share of one cycle's travel.
+fn assert_within_limits(log: &RunLog) -> f64 {
+    let rig = irb120();
+    let period = log.metadata["period_s"].as_f64().unwrap();
+    let start: Vec<f64> = serde_json::from_value(log.metadata["start"].clone()).unwrap();
+    let mut resumed = resumptions(log).into_iter().peekable();
+    let mut before = start.clone();
+    let mut previous = start;
+    let mut largest_step = 0.0_f64;
+    for command in &log.commands {
+        let seq = command.seq;
+        if let Some((_, actual)) = resumed.next_if(|(t, _)| command.t > *t + 1e-9) {
+            before = actual.clone();
+            previous = actual;
+        }
+        assert_eq!(rig.first_limit_violation(&command.positions), None, "{seq}");
+        for (axis, joint) in rig.joints.iter().enumerate() {
+            let limits = joint.limits;
+            let q = command.positions[axis];
+            let step = (q - previous[axis]).abs();
+            let travel = limits.max_speed * period;
+            largest_step = largest_step.max(step / travel);
+            assert!(step <= travel * (1.0 + SLACK), "seq {seq} {}", joint.name);
+            assert!(command.velocities[axis].abs() <= limits.max_speed * (1.0 + SLACK));
+            let second = (q - 2.0 * previous[axis] + before[axis]).abs();
+            let max_second = limits.max_acceleration * period * period;
+            assert!(
+                second <= max_second * (1.0 + SLACK),
+                "seq {seq} {}: {second} > {max_second}",
+                joint.name
+            );
+        }
+        before = std::mem::replace(&mut previous, command.positions.clone());
+    }
+    largest_step
+}
+
+#[test]
+fn a_100_hz_log_replays_into_a_250_hz_stream_one_cycle_step_at_a_time() {
+    let config = write_config("100hz.toml", |t| {
+        t.replace("rate_hz = 250.0", "rate_hz = 100.0")
+    });
+    let recorded = record_run("100hz.mcap", Some(&config.0));
+    let source = read_log(&recorded).unwrap();
+    assert_eq!(source.metadata["period_s"], 0.01);
+    let again = scratch("100hz-again.mcap");
+    let json = scratch("100hz.json");
+    let output = run(&[
+        "replay",
+        recorded.to_str().unwrap(),
+        "--clock",
+        "virtual",
+        "--record",
+        again.to_str().unwrap(),
+        "--report",
+        json.to_str().unwrap(),
+    ]);
+    succeeded(&output);
+    let report = report(&json);
+    assert_eq!(report["outcome"], "completed", "{report}");
+    assert_eq!(report["resampled"], true);
+    let replayed = read_log(&again).unwrap();
+    assert_eq!(replayed.metadata["period_s"], 0.004);
+    let largest = assert_within_limits(&replayed);
+    assert!(largest > 0.1, "the replay moved: {largest}");
+    // Same motion in time: 2.5 cycles of the stream for each recorded command.
+    let expected = source.commands.len() as f64 * 2.5;
+    let got = replayed.commands.len() as f64;
+    assert!((got - expected).abs() <= 10.0, "{got} cycles, {expected}");
+    let (last, end) = (
+        &source.commands.last().unwrap().positions,
+        &replayed.commands.last().unwrap().positions,
+    );
+    for (a, b) in last.iter().zip(end) {
+        assert!((a - b).abs() < 1e-9, "ends where the recording ended");
+    }
+}
+
+#[test]
+fn a_truncated_log_ends_with_a_stop_ramp_to_rest_within_acceleration() {
+    let recorded = record_run("whole.mcap", None);
+    let bytes = std::fs::read(&recorded).unwrap();
+    let cut = scratch("cut.mcap");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let source = read_log(&cut).unwrap();
+    assert!(source.truncated);
+    let last = source.commands.last().unwrap();
+    let moving = last.velocities.iter().map(|v| v.abs()).fold(0.0, f64::max);
+    assert!(moving > 0.05, "the cut falls mid-motion: {moving} rad/s");
+    let again = scratch("cut-again.mcap");
+    let json = scratch("cut.json");
+    succeeded(&run(&[
+        "replay",
+        cut.to_str().unwrap(),
+        "--clock",
+        "virtual",
+        "--record",
+        again.to_str().unwrap(),
+        "--report",
+        json.to_str().unwrap(),
+    ]));
+    let report = report(&json);
+    assert_eq!(report["outcome"], "completed", "{report}");
+    assert!(
+        report["stop_ramp_samples"].as_u64().unwrap() > 1,
+        "{report}"
+    );
+    let replayed = read_log(&again).unwrap();
+    assert_within_limits(&replayed);
+    let n = replayed.commands.len();
+    assert!(n > source.commands.len());
+    let (end, before) = (&replayed.commands[n - 1], &replayed.commands[n - 2]);
+    assert!(
+        end.velocities.iter().all(|v| *v == 0.0),
+        "{:?}",
+        end.velocities
+    );
+    assert_eq!(end.positions, before.positions, "at rest: no last step");
+    for (a, b) in source.commands.iter().zip(&replayed.commands) {
+        assert_eq!(a.positions, b.positions, "the recorded part unchanged");
+    }
+}
+
+#[test]
+fn half_speed_takes_twice_as_long_at_the_same_rate() {
+    let recorded = record_run("speed.mcap", None);
+    let mut cycles = Vec::new();
+    for speed in ["1", "0.5"] {
+        let again = scratch(&format!("speed-{speed}.mcap"));
+        let json = scratch(&format!("speed-{speed}.json"));
+        succeeded(&run(&[
+            "replay",
+            recorded.to_str().unwrap(),
+            "--clock",
+            "virtual",
+            "--speed",
+            speed,
+            "--record",
+            again.to_str().unwrap(),
+            "--report",
+            json.to_str().unwrap(),
+        ]));
+        let report = report(&json);
+        assert_eq!(report["outcome"], "completed", "{report}");
+        assert_eq!(report["rate_hz"], 250.0);
+        let replayed = read_log(&again).unwrap();
+        assert_eq!(replayed.metadata["period_s"], 0.004);
+        assert_within_limits(&replayed);
+        cycles.push(replayed.commands.len() as f64);
+    }
+    let recorded_cycles = read_log(&recorded).unwrap().commands.len() as f64;
+    assert!((cycles[0] - recorded_cycles).abs() <= 3.0, "{cycles:?}");
+    assert!(
+        (cycles[1] - 2.0 * recorded_cycles).abs() <= 6.0,
+        "{cycles:?} for {recorded_cycles} recorded"
+    );
+}
+
+#[test]
+fn a_speed_that_breaks_an_acceleration_limit_is_refused_naming_the_axis() {
+    let recorded = record_run("fast.mcap", None);
+    let output = run(&[
+        "replay",
+        recorded.to_str().unwrap(),
+        "--clock",
+        "virtual",
+        "--speed",
+        "1.3",
+    ]);
+    assert_eq!(output.status.code(), Some(1));
+    let stderr = text(&output.stderr);
+    assert!(
+        stderr.contains("above its max acceleration") && stderr.contains("joint_"),
+        "{stderr}"
+    );
+}
+
+struct TwinProcess(Child);
+
+impl Drop for TwinProcess {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// `rigbridge twin --listen` on a free port with `config`; returns it and its address.
+fn start_twin(config: &Path) -> (TwinProcess, String) {
+    let mut child = rigbridge()
+        .args(["twin", "--listen", "tcp://127.0.0.1:0", "--config"])
+        .arg(config)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stdout = child.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let address = rx
+        .recv_timeout(Duration::from_secs(10))
+        .expect("the twin prints its address");
+    assert!(address.starts_with("tcp://127.0.0.1:"), "{address}");
+    (TwinProcess(child), address)
+}
+
+#[test]
+fn a_replay_over_tcp_starts_where_the_twin_holds_and_completes() {
+    let recorded = record_run("tcp-source.mcap", None);
+    let bytes = std::fs::read(&recorded).unwrap();
+    let cut = scratch("tcp-cut.mcap");
+    // A shorter log keeps the real-time run short; it also ends mid-motion.
+    std::fs::write(&cut, &bytes[..bytes.len() / 3]).unwrap();
+    let elsewhere = write_config("elsewhere.toml", |t| {
+        t.replace(
+            "initial_deg = [0.0, 0.0, 0.0, 0.0, 30.0, 0.0]",
+            "initial_deg = [20.0, -10.0, 5.0, 0.0, 45.0, 0.0]",
+        )
+    });
+    let (_twin, address) = start_twin(&elsewhere.0);
+    let again = scratch("tcp-again.mcap");
+    let json = scratch("tcp.json");
+    let output = run(&[
+        "replay",
+        cut.to_str().unwrap(),
+        "--link",
+        &address,
+        "--record",
+        again.to_str().unwrap(),
+        "--report",
+        json.to_str().unwrap(),
+    ]);
+    succeeded(&output);
+    let report = report(&json);
+    assert_eq!(report["outcome"], "completed", "{report}");
+    assert!(report["approach_samples"].as_u64().unwrap() > 0, "{report}");
+    assert!(report["link"].as_str().unwrap().starts_with("tcp://"));
+    let replayed = read_log(&again).unwrap();
+    let start: Vec<f64> = serde_json::from_value(replayed.metadata["start"].clone()).unwrap();
+    for (got, deg) in start.iter().zip([20.0_f64, -10.0, 5.0, 0.0, 45.0, 0.0]) {
+        assert!((got - deg.to_radians()).abs() < 1e-3, "held at {start:?}");
+    }
+    assert_within_limits(&replayed);
+}
