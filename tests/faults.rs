@@ -419,8 +419,8 @@ fn check_log(run: &Run, rig: &Rig, period: f64, verdict: &mut Verdict) {
         })
         .collect();
     let mut next_hold = 0;
-    let (mut previous, mut before_previous): (Option<(Vec<f64>, Vec<f64>)>, Option<Vec<f64>>) =
-        (None, None);
+    let mut previous: Option<(Vec<f64>, Vec<f64>)> = None;
+    let mut before_previous: Option<Vec<f64>> = None;
     for command in &log.commands {
         verdict.log_commands += 1;
         let (p, v) = (&command.positions, &command.velocities);
@@ -497,6 +497,10 @@ fn at_rest(rig: &Rig, period: f64, a: &Feedback, b: &Feedback) -> bool {
 /// acceleration between consecutive targets; after every hold the first target within
 /// one cycle's step (and the twin's from-rest acceleration rule) of the held position;
 /// and the resume latency from the hold at rest the bridge could see to that target.
+/// The twin answers a target within this long (it ticks as a target arrives: about
+/// 0.2 ms here), so a Feedback that passes the proxy later was written after the target.
+const TWIN_TURNAROUND: Duration = Duration::from_millis(1);
+
 fn check_wire(run: &Run, rig: &Rig, period: f64, verdict: &mut Verdict) {
     let mut last_target: Option<&JointTarget> = None;
     let mut before_last: Option<&JointTarget> = None;
@@ -506,10 +510,14 @@ fn check_wire(run: &Run, rig: &Rig, period: f64, verdict: &mut Verdict) {
     // When the bridge was first handed a holding status it has not yet answered: a target
     // sent a cycle (and the transport's slack) after it is the bridge's answer to the hold.
     let mut hold_delivered: Option<Duration> = None;
+    let mut last_delivered: Option<Duration> = None;
     let informed = Duration::from_secs_f64(period) + INFORMED_SLACK;
     for entry in &run.entries {
         if let Some(feedback) = feedback_of(entry) {
-            if entry.delivered && feedback.status == ControllerStatus::Holding {
+            // A holding Feedback the twin wrote before the last target reached it (the two
+            // cross on the wire) says nothing about that target: only one written after.
+            let after_last = last_delivered.is_none_or(|d| entry.at >= d + TWIN_TURNAROUND);
+            if entry.delivered && feedback.status == ControllerStatus::Holding && after_last {
                 hold_delivered.get_or_insert(entry.at);
             }
             since.push((entry, feedback));
@@ -518,6 +526,9 @@ fn check_wire(run: &Run, rig: &Rig, period: f64, verdict: &mut Verdict) {
         let Some(target) = target_of(entry) else {
             continue;
         };
+        if entry.delivered {
+            last_delivered = Some(entry.at);
+        }
         verdict.wire_targets += 1;
         let (p, v) = (target.positions.as_slice(), target.velocities.as_slice());
         let held = hold_delivered.is_some_and(|h| entry.at >= h + informed);
@@ -561,10 +572,11 @@ fn check_wire(run: &Run, rig: &Rig, period: f64, verdict: &mut Verdict) {
                 entry.conn
             ));
         }
-        if held && !first_target {
-            if let Some(ms) = resume_latency_ms(run, rig, period, entry, &since) {
-                verdict.latencies_ms.push(ms);
-            }
+        if held
+            && !first_target
+            && let Some(ms) = resume_latency_ms(run, rig, period, entry, &since)
+        {
+            verdict.latencies_ms.push(ms);
         }
         first_target = false;
         before_last = if held { None } else { last_target };

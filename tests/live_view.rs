@@ -50,26 +50,19 @@ fn binary(variable: &str, default: &str) -> PathBuf {
 }
 
 /// The painting cell for the daemon in `dir`: `config/paint-run.toml` streamed at 250 Hz
-/// (the rate the live view must keep up with), its paths made absolute.
+/// (the rate the live view must keep up with), beside copies of the files it names (a job's
+/// files must lie in its config's directory).
 fn painting_cell(dir: &Path) -> PathBuf {
     let shipped = std::fs::read_to_string(repo_path("config/paint-run.toml")).unwrap();
-    let mut text = shipped.clone();
-    for (from, to) in [
-        ("rate_hz = 100.0".to_string(), "rate_hz = 250.0".to_string()),
-        (
-            "rig = \"painter.toml\"".to_string(),
-            format!("rig = {:?}", repo_path("config/painter.toml")),
-        ),
-        (
-            "paint_config = \"paint.toml\"".to_string(),
-            format!("paint_config = {:?}", repo_path("config/paint.toml")),
-        ),
-    ] {
-        assert!(text.contains(&from), "config/paint-run.toml has {from}");
-        text = text.replace(&from, &to);
+    assert!(
+        shipped.contains("rate_hz = 100.0"),
+        "config/paint-run.toml streams at 100 Hz"
+    );
+    for name in ["painter.toml", "paint.toml"] {
+        std::fs::copy(repo_path(&format!("config/{name}")), dir.join(name)).unwrap();
     }
     let file = dir.join("paint-250hz.toml");
-    std::fs::write(&file, text).unwrap();
+    std::fs::write(&file, shipped.replace("rate_hz = 100.0", "rate_hz = 250.0")).unwrap();
     file
 }
 
