@@ -531,7 +531,8 @@ impl EgmTwin {
             if left.is_zero() {
                 return replies;
             }
-            if !wait_readable(&self.socket, left) {
+            // ppoll, not a socket timeout: those round up to whole 4 ms scheduler ticks.
+            if !super::server::wait_readable(&self.socket, left).unwrap_or(false) {
                 continue;
             }
             let Ok((len, _)) = self.socket.recv_from(&mut buffer) else {
@@ -552,25 +553,6 @@ impl EgmTwin {
             }
         }
     }
-}
-
-/// Waits at most `timeout` for a datagram. A socket read timeout will not do: Linux rounds
-/// it up to whole scheduler ticks (4 ms at HZ=250), a whole EGM cycle; ppoll's is precise.
-fn wait_readable(socket: &UdpSocket, timeout: Duration) -> bool {
-    use std::os::fd::AsRawFd;
-    let mut poll = libc::pollfd {
-        fd: socket.as_raw_fd(),
-        events: libc::POLLIN,
-        revents: 0,
-    };
-    let timeout = libc::timespec {
-        tv_sec: timeout.as_secs() as libc::time_t,
-        tv_nsec: libc::c_long::from(timeout.subsec_nanos() as i32),
-    };
-    // SAFETY: `poll` and `timeout` live across the call, which reads one pollfd and writes
-    // its revents; a null signal mask keeps the thread's own.
-    let ready = unsafe { libc::ppoll(&mut poll, 1, &timeout, std::ptr::null()) };
-    ready > 0 && poll.revents & libc::POLLIN != 0
 }
 
 /// Starts a twin on its own thread; the handle returns the twin when `control.stop` is set.
