@@ -13,8 +13,8 @@ use crate::link::{Link, LinkEvent};
 use crate::log::Recorder;
 use crate::protocol::{Command, ControllerStatus, Feedback};
 use crate::stream::{
-    CycleSink, Outcome, StreamControl, StreamReport, StreamSettings, check_controller, fault_text,
-    stream,
+    CycleSink, Outcome, StreamControl, StreamError, StreamReport, StreamSettings, check_controller,
+    fault_text, stream,
 };
 use crate::trajectory::Trajectory;
 use std::time::Duration;
@@ -220,8 +220,16 @@ impl Streaming<'_> {
             settings,
         );
         result.unwrap_or_else(|error| {
+            // A link that fails before the first target (no session, no feedback) is lost,
+            // and resumed like any loss; a trajectory or controller refused is final.
+            let outcome = match error {
+                StreamError::NoFeedback { .. }
+                | StreamError::NoSession { .. }
+                | StreamError::Link(_) => Outcome::LinkLost,
+                _ => Outcome::Refused,
+            };
             StreamReport::without_motion(
-                Outcome::Refused,
+                outcome,
                 super::error_chain(&error),
                 self.link.describe(),
                 self.link.counters(),

@@ -7,7 +7,7 @@
 use super::session::BridgeSession;
 use super::{Link, LinkCounters, LinkError, LinkEvent};
 use crate::protocol::{Command, Feedback, Hello};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -35,6 +35,9 @@ pub struct LinkShared {
     pub sessions: AtomicU64,
     /// The session the streamer streams in (see `Link::adopt_session`).
     pub adopted: AtomicU64,
+    /// Targets up to this seq were planned before a Stop or EStop: any still queued for
+    /// the I/O thread are stale and never sent.
+    pub stale_up_to: AtomicU32,
     pub controller_hello: Mutex<Option<Hello>>,
     /// The cycle asks the I/O thread to close and reopen the transport.
     pub restart: tokio::sync::Notify,
@@ -93,6 +96,8 @@ impl IoEnds {
 }
 
 pub struct ChannelLink {
+    /// The seq of the last target handed to the I/O thread.
+    last_target: u32,
     commands: tokio::sync::mpsc::Sender<Command>,
     feedback: Receiver<Feedback>,
     events: Receiver<LinkEvent>,
@@ -110,6 +115,7 @@ impl ChannelLink {
         let shared = Arc::new(LinkShared::default());
         (
             Self {
+                last_target: 0,
                 commands: command_tx,
                 feedback: feedback_rx,
                 events: event_rx,
@@ -143,6 +149,16 @@ impl Drop for ChannelLink {
 
 impl Link for ChannelLink {
     fn send(&mut self, command: &Command) -> Result<(), LinkError> {
+        match command {
+            Command::Target(target) => self.last_target = target.seq,
+            // Targets still queued behind a Stop were planned before it: stale.
+            Command::Stop | Command::EStop => {
+                self.shared
+                    .stale_up_to
+                    .store(self.last_target, Ordering::SeqCst);
+            }
+            _ => {}
+        }
         match self.commands.try_send(*command) {
             Ok(()) => Ok(()),
             Err(TrySendError::Full(_)) => {

@@ -96,7 +96,15 @@ impl BridgeSession {
     pub fn may_send(&self, command: &Command, shared: &LinkShared) -> bool {
         let adopted =
             shared.adopted.load(Ordering::SeqCst) == shared.sessions.load(Ordering::SeqCst);
-        !matches!(command, Command::Target(_)) || (self.state == State::Established && adopted)
+        match command {
+            // Targets queued behind a Stop or EStop were planned before it: stale.
+            Command::Target(target) => {
+                self.state == State::Established
+                    && adopted
+                    && target.seq > shared.stale_up_to.load(Ordering::SeqCst)
+            }
+            _ => true,
+        }
     }
 
     pub fn sent(&mut self, now: Instant) {
