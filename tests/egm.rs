@@ -14,12 +14,19 @@ use rigbridge::twin::egm::{
 };
 use std::net::{SocketAddr, UdpSocket};
 use std::path::PathBuf;
-use std::sync::Arc;
 use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 /// Patience for conditions that take a few robot cycles on an idle machine.
 const PATIENCE: Duration = Duration::from_secs(10);
+
+/// The tests here run one at a time: each holds 4 ms cycles in real time, and on a 2-core
+/// machine a neighbour (the Python peer starting, another twin) would take those cycles.
+fn one_at_a_time() -> MutexGuard<'static, ()> {
+    static CYCLES: Mutex<()> = Mutex::new(());
+    CYCLES.lock().unwrap_or_else(|p| p.into_inner())
+}
 
 fn settings() -> RunSettings {
     let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("config/rigbridge.toml");
@@ -50,6 +57,7 @@ fn wait_for(what: &str, mut condition: impl FnMut() -> bool) {
 
 #[test]
 fn bridge_streams_the_default_job_to_the_egm_twin_within_its_limits() {
+    let _cycles = one_at_a_time();
     real_time();
     let settings = settings();
     let period = Duration::from_secs_f64(settings.period_s());
@@ -104,6 +112,7 @@ fn bridge_streams_the_default_job_to_the_egm_twin_within_its_limits() {
 
 #[test]
 fn the_link_holds_until_motors_are_on_and_the_clock_follows_the_robot() {
+    let _cycles = one_at_a_time();
     let settings = settings();
     let period = Duration::from_secs_f64(settings.period_s());
     let mut link = bind_egm("127.0.0.1:0", settings.rig.dof(), period).expect("bind");
@@ -145,6 +154,7 @@ fn the_link_holds_until_motors_are_on_and_the_clock_follows_the_robot() {
 
 #[test]
 fn without_replies_the_twin_ends_the_session_in_hold_after_comm_timeout() {
+    let _cycles = one_at_a_time();
     let settings = settings();
     let sensor = UdpSocket::bind("127.0.0.1:0").expect("sensor socket");
     sensor
@@ -191,6 +201,7 @@ fn without_replies_the_twin_ends_the_session_in_hold_after_comm_timeout() {
 
 #[test]
 fn a_reference_jump_is_refused_with_mci_error_and_no_motion() {
+    let _cycles = one_at_a_time();
     let settings = settings();
     let sensor = UdpSocket::bind("127.0.0.1:0").expect("sensor socket");
     sensor
@@ -244,6 +255,7 @@ fn peer_python() -> Result<String, String> {
 
 #[test]
 fn the_egm_twin_serves_abb_robot_clients_egm_sensor() {
+    let _cycles = one_at_a_time();
     real_time();
     let python = match peer_python() {
         Ok(python) => python,

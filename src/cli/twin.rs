@@ -213,7 +213,7 @@ fn egm_twin(
     twin.run(&control, &mut |line| say(line));
     let c = twin.model().counters;
     eprintln!(
-        "EGM twin stopped: {} messages, {} replies; cycles with one reply {}, none {}, several {}; {} outside limits, {} over speed, {} over acceleration, {} wrong axis count; {} comm timeouts, {} sessions",
+        "EGM twin stopped: {} messages, {} replies; cycles with one reply {}, none {}, several {}; {} outside limits, {} over speed, {} over acceleration, {} wrong axis count; {} comm timeouts, {} sessions, {} host stalls",
         c.messages_sent,
         c.replies,
         c.cycles_one_reply,
@@ -224,7 +224,8 @@ fn egm_twin(
         c.over_acceleration,
         c.axis_count,
         c.comm_timeouts,
-        c.sessions
+        c.sessions,
+        c.host_stalls
     );
     Ok(ExitCode::SUCCESS)
 }

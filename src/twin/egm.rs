@@ -89,6 +89,8 @@ pub struct EgmTwinCounters {
     pub axis_count: u64,
     pub comm_timeouts: u64,
     pub sessions: u64,
+    /// Cycles that started over a period late (the host held the twin): each stretched.
+    pub host_stalls: u64,
     /// Largest |reference - actual| seen while running, rad.
     pub tracking_max_rad: f64,
 }
@@ -481,6 +483,14 @@ impl EgmTwin {
                 self.model.counters.messages_sent += 1;
             }
             deadline += period;
+            let now = clock.now();
+            if now > deadline {
+                // The host held this thread past a whole cycle. A controller's cycle is its
+                // own clock: it stretches instead of sending the missed ones in a burst,
+                // which no robot does and which would starve any sensor's play-out.
+                deadline = now + period;
+                self.model.counters.host_stalls += 1;
+            }
             let replies = self.collect(&clock, deadline, sent, say);
             if replies > 0 {
                 last_reply = Instant::now();
