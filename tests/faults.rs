@@ -474,6 +474,13 @@ fn target_of(entry: &Entry) -> Option<&JointTarget> {
     }
 }
 
+fn is_stop(entry: &Entry) -> bool {
+    matches!(
+        entry.message,
+        Some(Message::Command(Command::Stop | Command::EStop))
+    )
+}
+
 fn feedback_of(entry: &Entry) -> Option<&Feedback> {
     match &entry.message {
         Some(Message::Feedback(f)) if !entry.up => Some(f),
@@ -511,6 +518,12 @@ fn check_wire(run: &Run, rig: &Rig, period: f64, verdict: &mut Verdict) {
     // sent a cycle (and the transport's slack) after it is the bridge's answer to the hold.
     let mut hold_delivered: Option<Duration> = None;
     let mut last_delivered: Option<Duration> = None;
+    // A Stop the bridge sent after its last target, then whether the twin's holding
+    // status reached the bridge after it: the bridge sends nothing planned before a Stop
+    // (docs/protocol.md 6.8), so its next target is a start from that hold, whenever the
+    // holding feedbacks happened to arrive (a loaded host bunches them).
+    let mut stopped = false;
+    let mut hold_after_stop = false;
     let informed = Duration::from_secs_f64(period) + INFORMED_SLACK;
     for entry in &run.entries {
         if let Some(feedback) = feedback_of(entry) {
@@ -519,9 +532,13 @@ fn check_wire(run: &Run, rig: &Rig, period: f64, verdict: &mut Verdict) {
             let after_last = last_delivered.is_none_or(|d| entry.at >= d + TWIN_TURNAROUND);
             if entry.delivered && feedback.status == ControllerStatus::Holding && after_last {
                 hold_delivered.get_or_insert(entry.at);
+                hold_after_stop |= stopped;
             }
             since.push((entry, feedback));
             continue;
+        }
+        if entry.up && entry.delivered && is_stop(entry) {
+            stopped = true;
         }
         let Some(target) = target_of(entry) else {
             continue;
@@ -531,10 +548,12 @@ fn check_wire(run: &Run, rig: &Rig, period: f64, verdict: &mut Verdict) {
         }
         verdict.wire_targets += 1;
         let (p, v) = (target.positions.as_slice(), target.velocities.as_slice());
-        let held = hold_delivered.is_some_and(|h| entry.at >= h + informed);
+        let held = hold_after_stop || hold_delivered.is_some_and(|h| entry.at >= h + informed);
         if held {
             hold_delivered = None;
         }
+        stopped = false;
+        hold_after_stop = false;
         // A target the twin never accepted (it was unbound, or the frame was lost) moved
         // nothing: the rule for the first target after a hold is the accepted one's.
         let held = held && accepted(run, entry.conn, target.seq);
