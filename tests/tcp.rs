@@ -454,3 +454,30 @@ fn a_virtual_clock_over_a_real_link_is_refused() {
         "{stderr}"
     );
 }
+
+#[test]
+fn serve_refuses_a_virtual_clock_for_a_cell_on_a_real_link() {
+    let dir = std::env::temp_dir().join(format!("rigbridge-serve-virtual-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let settings = std::fs::read_to_string(repo_path("config/rigbridge.toml"))
+        .unwrap()
+        .replace(
+            "rig = \"irb120.toml\"",
+            &format!("rig = {:?}", repo_path("config/irb120.toml")),
+        )
+        .replace("link = \"loopback\"", "link = \"tcp://127.0.0.1:9\"");
+    let file = dir.join("cell.toml");
+    std::fs::write(&file, settings).unwrap();
+    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args(["serve", "--clock", "virtual", "--port", "0", "--config"])
+        .arg(&file)
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("--clock virtual needs the loopback twin")
+            && stderr.contains("tcp://127.0.0.1:9"),
+        "{stderr}"
+    );
+}

@@ -9,6 +9,7 @@ use clap::Args;
 use rigbridge::daemon::config::RunSettings;
 use rigbridge::daemon::config::{load_run_settings, token_problem};
 use rigbridge::daemon::server::{ServeOptions, check_cells, run};
+use rigbridge::link::LinkSpec;
 use std::net::IpAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -89,6 +90,23 @@ fn load_cells(files: &[PathBuf]) -> anyhow::Result<Vec<RunSettings>> {
     Ok(cells)
 }
 
+/// A real controller keeps real time: a virtual clock would stream faster than it runs.
+fn refuse_virtual_clock_with_real_links(cells: &[RunSettings]) -> anyhow::Result<()> {
+    for cell in cells {
+        let link = &cell.config.stream.link;
+        let spec: LinkSpec = link
+            .parse()
+            .with_context(|| format!("[stream] link in {}", cell.file.display()))?;
+        anyhow::ensure!(
+            spec == LinkSpec::Loopback,
+            "--clock virtual needs the loopback twin: the cell of {} streams to {link}, a \
+             controller that runs in real time",
+            cell.file.display()
+        );
+    }
+    Ok(())
+}
+
 pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
     let cells = load_cells(&args.config)?;
     let settings = &cells[0];
@@ -110,6 +128,9 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
              or as `token` under [serve] in {}, or bind 127.0.0.1",
             settings.file.display()
         );
+    }
+    if matches!(args.clock, ClockChoice::Virtual) {
+        refuse_virtual_clock_with_real_links(&cells)?;
     }
     let options = ServeOptions {
         runs_dir: args.runs_dir,

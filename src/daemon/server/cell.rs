@@ -617,6 +617,9 @@ impl Cell {
                 }
             },
         };
+        // A device-paced link (EGM) brings the clock the cycle must follow, as in `run`.
+        let pacing = link.pacing();
+        let clock: &dyn Clock = pacing.as_deref().unwrap_or(clock);
         let plan = plan_for(&self.settings, job, link, clock, control);
         let _ = planned.send(plan.as_ref().map(|_| ()).map_err(|e| error_chain(e)));
         let plan = plan?;
