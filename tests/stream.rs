@@ -274,3 +274,59 @@ fn estop_halts_at_once() {
     assert_eq!(report.outcome, Outcome::EStopped);
     assert_eq!(lever.records.len(), 501);
 }
+
+/// The trajectory run backwards: from its end to its start.
+fn reversed(rig: &Rig, trajectory: &Trajectory) -> Trajectory {
+    let (mut positions, mut velocities) = (Vec::new(), Vec::new());
+    for i in (0..trajectory.len()).rev() {
+        positions.extend_from_slice(trajectory.position(i));
+        velocities.extend(trajectory.velocity(i).iter().map(|v| -v));
+    }
+    let names = rig.joint_names().map(String::from).collect();
+    Trajectory::new(rig.name.clone(), names, PERIOD, positions, velocities).unwrap()
+}
+
+#[test]
+fn a_second_stream_on_the_same_session_numbers_on_and_is_followed() {
+    // The controller drops a target not newer than the last it took (protocol 6.3): the
+    // next job on a daemon's link must not start again from seq 1.
+    let rig = irb120();
+    let out = sweep(&rig, 0.5, 301);
+    let back = reversed(&rig, &out);
+    let mut link = link(&rig);
+    let clock = VirtualClock::new();
+    let mut first = Recorded::default();
+    let control = StreamControl::default();
+    let report = stream(
+        &out,
+        &rig,
+        &mut link,
+        &clock,
+        &mut first,
+        &control,
+        &settings(&rig),
+    )
+    .unwrap();
+    assert_eq!(report.outcome, Outcome::Completed);
+    let last = first.0.last().unwrap().target.seq;
+    assert_eq!(report.last_seq, last);
+    let mut second = Recorded::default();
+    let report = stream(
+        &back,
+        &rig,
+        &mut link,
+        &clock,
+        &mut second,
+        &control,
+        &settings(&rig),
+    )
+    .unwrap();
+    assert_eq!(report.outcome, Outcome::Completed, "{report:?}");
+    assert_eq!(second.0[0].target.seq, last + 1);
+    assert!(
+        second
+            .0
+            .iter()
+            .any(|r| r.feedback.is_some_and(|f| f.seq > last))
+    );
+}

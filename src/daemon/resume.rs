@@ -205,7 +205,7 @@ impl Streaming<'_> {
     /// Streams one part; the next part's sequence numbers follow this one's.
     fn run(&mut self, trajectory: &Trajectory, settings: &mut StreamSettings) -> StreamReport {
         let report = self.run_part(trajectory, settings);
-        settings.first_seq = settings.first_seq.wrapping_add(report.cycles as u32);
+        settings.first_seq = report.last_seq;
         report
     }
 
@@ -228,12 +228,16 @@ impl Streaming<'_> {
                 | StreamError::Link(_) => Outcome::LinkLost,
                 _ => Outcome::Refused,
             };
-            StreamReport::without_motion(
-                outcome,
-                super::error_chain(&error),
-                self.link.describe(),
-                self.link.counters(),
-            )
+            StreamReport {
+                // Nothing was sent: the numbering goes on from where it was.
+                last_seq: settings.first_seq,
+                ..StreamReport::without_motion(
+                    outcome,
+                    super::error_chain(&error),
+                    self.link.describe(),
+                    self.link.counters(),
+                )
+            }
         })
     }
 

@@ -242,6 +242,8 @@ pub struct StreamReport {
     pub duration_s: f64,
     /// Whole trajectory samples passed when streaming ended (where to resume after a loss).
     pub samples_done: usize,
+    /// The seq of the last target sent (the first seq of a stream that continues it).
+    pub last_seq: u32,
     pub link: String,
     #[serde(flatten)]
     pub counters: LinkCounters,
@@ -293,7 +295,14 @@ pub fn stream(
     settings: &StreamSettings,
 ) -> Result<StreamReport, StreamError> {
     validate(trajectory, rig)?;
-    check_start(trajectory, rig, link, settings)?;
+    let echo = check_start(trajectory, rig, link, settings)?;
+    // Within one session the controller drops a target not newer than the last it took
+    // (docs/protocol.md 6.3): a stream after another (the next job on a daemon's link)
+    // numbers on from the controller's echo.
+    let settings = &StreamSettings {
+        first_seq: newer_seq(settings.first_seq, echo),
+        ..*settings
+    };
     let mut cycle = Cycle::new(trajectory, rig, settings);
     let start = clock.now();
     let period = Duration::from_secs_f64(trajectory.period_s);
@@ -417,14 +426,20 @@ fn await_echo(
     Ok(latest)
 }
 
+/// The newer of two wrapping sequence numbers (docs/protocol.md 6.3).
+fn newer_seq(ours: u32, echo: u32) -> u32 {
+    let d = echo.wrapping_sub(ours);
+    if d != 0 && d < 1 << 31 { echo } else { ours }
+}
+
 /// Checks the session and the controller's Hello, asks for feedback, and checks the
-/// trajectory starts where the controller is.
+/// trajectory starts where the controller is. Returns the seq the controller echoes.
 fn check_start(
     trajectory: &Trajectory,
     rig: &Rig,
     link: &mut dyn Link,
     settings: &StreamSettings,
-) -> Result<(), StreamError> {
+) -> Result<u32, StreamError> {
     if !link.is_up() {
         return Err(StreamError::NoSession {
             link: link.describe(),
@@ -465,7 +480,7 @@ fn check_start(
             });
         }
     }
-    Ok(())
+    Ok(feedback.seq)
 }
 
 /// The cycle's state and measurements.
@@ -741,6 +756,7 @@ impl Cycle {
             tracking_error_max_deg: 0.0,
             duration_s: 0.0,
             samples_done: 0,
+            last_seq: 0,
             link,
             counters,
         }
@@ -768,6 +784,7 @@ impl Cycle {
             tracking_error_max_deg: self.tracking_max,
             duration_s: f64::from(self.seq - self.first_seq) * period_s,
             samples_done: self.path.floor() as usize,
+            last_seq: self.seq,
             link,
             counters,
         }
