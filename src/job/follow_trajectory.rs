@@ -8,7 +8,7 @@
 
 use super::{JobContext, JobError, JobInvalid, PlanContext, resolve_file, to_si};
 use crate::rig::Rig;
-use crate::trajectory::{Trajectory, plan_joint_moves, validate};
+use crate::trajectory::{Trajectory, TrajectoryError, plan_joint_moves, validate};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -46,10 +46,42 @@ pub enum TrajectoryFileError {
     Row {
         file: PathBuf,
         row: usize,
-        reason: String,
+        reason: RowProblem,
     },
     #[error("{file}: {reason}")]
-    Shape { file: PathBuf, reason: String },
+    Shape { file: PathBuf, reason: ShapeProblem },
+}
+
+/// What is wrong with one row of a trajectory file.
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum RowProblem {
+    #[error("more than {MAX_ROWS} rows")]
+    TooMany,
+    #[error("needs {0} columns")]
+    Columns(usize),
+    #[error("column {0} is not a finite number")]
+    NotANumber(usize),
+    #[error("the first row's t must be 0")]
+    FirstNotZero,
+    #[error("t must increase from row to row")]
+    NotIncreasing,
+    #[error("t beyond {MAX_DURATION_S} s")]
+    TooLong,
+    #[error("column {column} is outside the limits of {joint}")]
+    OutsideLimits { column: usize, joint: String },
+}
+
+/// What is wrong with the trajectory a file's rows make.
+#[derive(Debug, Error)]
+pub enum ShapeProblem {
+    #[error("no rows after the header")]
+    NoRows,
+    #[error(transparent)]
+    Samples(Box<TrajectoryError>),
+    #[error("the sampled trajectory is refused: {0}")]
+    Refused(Box<TrajectoryError>),
+    #[error("{joint} accelerates beyond its limit at t = {t_s:.3} s")]
+    Accelerates { joint: String, t_s: f64 },
 }
 
 /// One row: its time (s) and its joint values in SI units (rad, m).
@@ -77,16 +109,15 @@ impl FollowTrajectory {
             std::slice::from_ref(&rows[0].1),
             settings,
         )?;
-        let followed =
-            sample_rows(rig, &rows, settings.period_s).map_err(|reason| self.shape(reason))?;
-        validate(&followed, rig)
-            .map_err(|e| self.shape(format!("the sampled trajectory is refused: {e}")))?;
+        let followed = sample_rows(rig, &rows, settings.period_s)
+            .map_err(|e| self.shape(ShapeProblem::Samples(Box::new(e))))?;
+        validate(&followed, rig).map_err(|e| self.shape(ShapeProblem::Refused(Box::new(e))))?;
         check_acceleration(rig, &followed).map_err(|reason| self.shape(reason))?;
         trajectory.append(&followed);
         Ok(trajectory)
     }
 
-    fn shape(&self, reason: String) -> JobError {
+    fn shape(&self, reason: ShapeProblem) -> JobError {
         TrajectoryFileError::Shape {
             file: self.file.clone(),
             reason,
@@ -123,13 +154,13 @@ pub fn read_trajectory_csv(file: &Path, rig: &Rig) -> Result<Vec<Row>, Trajector
     let mut rows: Vec<Row> = Vec::new();
     for (index, line) in lines {
         let row = index + 1;
-        let bad = |reason: String| TrajectoryFileError::Row {
+        let bad = |reason: RowProblem| TrajectoryFileError::Row {
             file: file.to_path_buf(),
             row,
             reason,
         };
         if rows.len() == MAX_ROWS {
-            return Err(bad(format!("more than {MAX_ROWS} rows")));
+            return Err(bad(RowProblem::TooMany));
         }
         let parsed = parse_row(line, rig, rows.last().map(|r| r.0)).map_err(bad)?;
         rows.push(parsed);
@@ -137,7 +168,7 @@ pub fn read_trajectory_csv(file: &Path, rig: &Rig) -> Result<Vec<Row>, Trajector
     if rows.is_empty() {
         return Err(TrajectoryFileError::Shape {
             file: file.to_path_buf(),
-            reason: "no rows after the header".into(),
+            reason: ShapeProblem::NoRows,
         });
     }
     Ok(rows)
@@ -166,22 +197,22 @@ fn check_header(file: &Path, rig: &Rig, header: Option<&str>) -> Result<(), Traj
 }
 
 /// One data row; `previous` is the time of the row before.
-fn parse_row(line: &str, rig: &Rig, previous: Option<f64>) -> Result<Row, String> {
+fn parse_row(line: &str, rig: &Rig, previous: Option<f64>) -> Result<Row, RowProblem> {
     let cells: Vec<&str> = line.split(',').map(str::trim).collect();
     if cells.len() != rig.dof() + 1 {
-        return Err(format!("needs {} columns", rig.dof() + 1));
+        return Err(RowProblem::Columns(rig.dof() + 1));
     }
-    let number = |column: usize| -> Result<f64, String> {
+    let number = |column: usize| -> Result<f64, RowProblem> {
         match cells[column].parse::<f64>() {
             Ok(v) if v.is_finite() => Ok(v),
-            _ => Err(format!("column {} is not a finite number", column + 1)),
+            _ => Err(RowProblem::NotANumber(column + 1)),
         }
     };
     let t = number(0)?;
     match previous {
-        None if t != 0.0 => return Err("the first row's t must be 0".into()),
-        Some(before) if t <= before => return Err("t must increase from row to row".into()),
-        _ if t > MAX_DURATION_S => return Err(format!("t beyond {MAX_DURATION_S} s")),
+        None if t != 0.0 => return Err(RowProblem::FirstNotZero),
+        Some(before) if t <= before => return Err(RowProblem::NotIncreasing),
+        _ if t > MAX_DURATION_S => return Err(RowProblem::TooLong),
         _ => {}
     }
     let values = (1..cells.len())
@@ -189,11 +220,10 @@ fn parse_row(line: &str, rig: &Rig, previous: Option<f64>) -> Result<Row, String
         .collect::<Result<Vec<_>, _>>()?;
     let si = to_si(&values, rig);
     if let Some((axis, _)) = rig.first_limit_violation(&si) {
-        return Err(format!(
-            "column {} is outside the limits of {}",
-            axis + 2,
-            rig.joints[axis].name
-        ));
+        return Err(RowProblem::OutsideLimits {
+            column: axis + 2,
+            joint: rig.joints[axis].name.clone(),
+        });
     }
     Ok((t, si))
 }
@@ -201,7 +231,7 @@ fn parse_row(line: &str, rig: &Rig, previous: Option<f64>) -> Result<Row, String
 /// The rows sampled every `period_s`: a cubic Hermite piece between consecutive rows, its
 /// tangents the slope over the rows either side (zero at the first and last row, so the
 /// trajectory starts and ends at rest). The last row is the last sample, exactly.
-fn sample_rows(rig: &Rig, rows: &[Row], period_s: f64) -> Result<Trajectory, String> {
+fn sample_rows(rig: &Rig, rows: &[Row], period_s: f64) -> Result<Trajectory, TrajectoryError> {
     let dof = rig.dof();
     let tangent = |k: usize| -> Vec<f64> {
         if k == 0 || k + 1 == rows.len() {
@@ -239,7 +269,6 @@ fn sample_rows(rig: &Rig, rows: &[Row], period_s: f64) -> Result<Trajectory, Str
         positions,
         velocities,
     )
-    .map_err(|e| e.to_string())
 }
 
 /// Position and derivative (per unit `s`) of the cubic Hermite piece from `p0` (slope `m0`)
@@ -259,7 +288,7 @@ fn hermite(p0: f64, p1: f64, m0: f64, m1: f64, s: f64) -> (f64, f64) {
 
 /// Every second difference of the samples (at rest before the first and after the last)
 /// within the axis' max acceleration.
-fn check_acceleration(rig: &Rig, trajectory: &Trajectory) -> Result<(), String> {
+fn check_acceleration(rig: &Rig, trajectory: &Trajectory) -> Result<(), ShapeProblem> {
     let n = trajectory.len();
     let at = |k: isize| trajectory.position(k.clamp(0, n as isize - 1) as usize);
     for k in 0..n as isize {
@@ -269,11 +298,10 @@ fn check_acceleration(rig: &Rig, trajectory: &Trajectory) -> Result<(), String> 
                 .limits
                 .second_difference_ok(second, trajectory.period_s)
             {
-                return Err(format!(
-                    "{} accelerates beyond its limit at t = {:.3} s",
-                    joint.name,
-                    k as f64 * trajectory.period_s
-                ));
+                return Err(ShapeProblem::Accelerates {
+                    joint: joint.name.clone(),
+                    t_s: k as f64 * trajectory.period_s,
+                });
             }
         }
     }
