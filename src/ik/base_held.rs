@@ -6,7 +6,10 @@
 //! coverage planner picks base stations). Must not move the held axes: a target the arm
 //! cannot reach from there is an [`IkError`], never a base move.
 
-use super::{FabrikSolver, IkError, IkSolution, IkSolver, StructureError, check_seed, verified};
+use super::{
+    FabrikSolver, IkError, IkSolution, IkSolver, StructureError, StructureProblem, check_seed,
+    verified,
+};
 use crate::rig::{Pose, Rig};
 
 pub struct BaseHeldSolver {
@@ -20,7 +23,10 @@ impl BaseHeldSolver {
     pub fn new(rig: Rig, held: usize) -> Result<Self, StructureError> {
         let arm_rig = rig.sub_chain(held).ok_or_else(|| StructureError {
             rig: rig.name.clone(),
-            reason: format!("holding {held} of {} axes leaves no arm", rig.dof()),
+            reason: StructureProblem::NoArmLeft {
+                held,
+                dof: rig.dof(),
+            },
         })?;
         let arm = FabrikSolver::new(arm_rig)?;
         Ok(Self { rig, held, arm })

@@ -12,7 +12,7 @@
 use super::chain::{ChainSettings, JointConstraint, fabrik};
 use super::wrist::SphericalWrist;
 use super::{IkError, IkSolution, IkSolver, Tolerance, check_seed, verified};
-use crate::rig::{JointKind, Pose, Rig};
+use crate::rig::{DofMismatch, JointKind, JointList, Pose, Rig};
 use glam::{DAffine3, DMat3, DQuat, DVec3};
 use std::cell::Cell;
 use std::f64::consts::{PI, TAU};
@@ -36,7 +36,32 @@ const CLOSING_DISTANCE: f64 = 1e-3;
 #[error("rig {rig} does not suit the FABRIK arm planner: {reason}")]
 pub struct StructureError {
     pub rig: String,
-    pub reason: String,
+    pub reason: StructureProblem,
+}
+
+/// What about a rig's structure the FABRIK arm planner cannot work with.
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum StructureProblem {
+    #[error("needs 6 revolute joints, has {0} joints")]
+    NotSixRevolute(usize),
+    #[error("holding {held} of {dof} axes leaves no arm")]
+    NoArmLeft { held: usize, dof: usize },
+    #[error("axis 2 must be perpendicular to axis 1")]
+    ShoulderNotPerpendicular,
+    #[error("axes 2 and 3 must be parallel")]
+    ElbowNotParallel,
+    #[error("axes 4 and 5 must intersect")]
+    WristAxesMiss,
+    #[error("axis {axis} misses the wrist centre by {off_m} m")]
+    OffWristCentre { axis: usize, off_m: f64 },
+    #[error("{0} lies off the plane of axis 1 (lateral offset)")]
+    OffPlane(&'static str),
+    #[error("axes 4 and 6 must be parallel and axis 5 perpendicular to them")]
+    WristNotSpherical,
+    #[error("{0}")]
+    Dof(#[from] DofMismatch),
+    #[error("self-check failed at {joints}: {source}")]
+    SelfCheck { joints: JointList, source: IkError },
 }
 
 /// Plane coordinates: x along the arm's reach (away from axis 1), z along axis 1.
@@ -203,15 +228,12 @@ impl FabrikSolver {
 
     pub fn with_tolerance(rig: Rig, tolerance: Tolerance) -> Result<Self, StructureError> {
         let rig_name = rig.name.clone();
-        let fail = |reason: String| StructureError {
+        let fail = |reason: StructureProblem| StructureError {
             rig: rig_name.clone(),
             reason,
         };
         if rig.dof() != 6 || rig.joints.iter().any(|j| j.kind != JointKind::Revolute) {
-            return Err(fail(format!(
-                "needs 6 revolute joints, has {} joints",
-                rig.dof()
-            )));
+            return Err(fail(StructureProblem::NotSixRevolute(rig.dof())));
         }
         let arm = ArmGeometry::read(&rig).map_err(&fail)?;
         let rotation = |t: &DAffine3| t.matrix3;
@@ -220,9 +242,7 @@ impl FabrikSolver {
             [3, 4, 5].map(|i| rig.joints[i].axis),
             rotation(&rig.tool),
         )
-        .ok_or_else(|| {
-            fail("axes 4 and 6 must be parallel and axis 5 perpendicular to them".into())
-        })?;
+        .ok_or_else(|| fail(StructureProblem::WristNotSpherical))?;
         let window = |index: usize, zero_angle: f64, sign: f64| {
             let limits = rig.joints[index].limits;
             HingeWindow::new(
@@ -252,7 +272,7 @@ impl FabrikSolver {
 
     /// Round-trips a spread of in-limit configurations: a rig whose structure was misread
     /// (say, a wrist whose axes only nearly meet) fails here rather than in use.
-    fn self_check(&self) -> Result<(), String> {
+    fn self_check(&self) -> Result<(), StructureProblem> {
         for step in 1..=24 {
             let joints: Vec<f64> = self
                 .rig
@@ -264,9 +284,12 @@ impl FabrikSolver {
                     j.limits.lower + (j.limits.upper - j.limits.lower) * (0.05 + 0.9 * fraction)
                 })
                 .collect();
-            let pose = self.rig.tool_pose(&joints).map_err(|e| e.to_string())?;
+            let pose = self.rig.tool_pose(&joints)?;
             self.solve(&pose, &joints)
-                .map_err(|e| format!("self-check failed at {joints:?}: {e}"))?;
+                .map_err(|source| StructureProblem::SelfCheck {
+                    joints: JointList(joints.clone()),
+                    source,
+                })?;
         }
         Ok(())
     }
@@ -442,12 +465,10 @@ impl FabrikSolver {
 }
 
 impl ArmGeometry {
-    fn read(rig: &Rig) -> Result<Self, String> {
+    fn read(rig: &Rig) -> Result<Self, StructureProblem> {
         let zero = [0.0; 6];
         let mut axes = Vec::with_capacity(6);
-        let tool_frame = rig
-            .forward_with_axes(&zero, &mut axes)
-            .map_err(|e| e.to_string())?;
+        let tool_frame = rig.forward_with_axes(&zero, &mut axes)?;
         let base = rig.joints[0].origin;
         let to_base = base.inverse();
         let point = |i: usize| to_base.transform_point3(axes[i].point);
@@ -455,19 +476,22 @@ impl ArmGeometry {
         let up = axis(0);
         let hinge = axis(1);
         if up.dot(hinge).abs() > GEOMETRY_TOLERANCE {
-            return Err("axis 2 must be perpendicular to axis 1".into());
+            return Err(StructureProblem::ShoulderNotPerpendicular);
         }
         if (hinge.dot(axis(2)).abs() - 1.0).abs() > GEOMETRY_TOLERANCE {
-            return Err("axes 2 and 3 must be parallel".into());
+            return Err(StructureProblem::ElbowNotParallel);
         }
         let wrist_centre = closest_point_between_lines(point(3), axis(3), point(4), axis(4))
-            .ok_or("axes 4 and 5 must intersect")?;
+            .ok_or(StructureProblem::WristAxesMiss)?;
         for i in [3, 4, 5] {
             let off = (wrist_centre - point(i))
                 .reject_from_normalized(axis(i))
                 .length();
             if off > GEOMETRY_TOLERANCE {
-                return Err(format!("axis {} misses the wrist centre by {off} m", i + 1));
+                return Err(StructureProblem::OffWristCentre {
+                    axis: i + 1,
+                    off_m: off,
+                });
             }
         }
         let (shoulder, elbow) = (point(1), point(2));
@@ -477,9 +501,7 @@ impl ArmGeometry {
             ("the wrist centre", wrist_centre),
         ] {
             if p.dot(hinge).abs() > GEOMETRY_TOLERANCE {
-                return Err(format!(
-                    "{name} lies off the plane of axis 1 (lateral offset)"
-                ));
+                return Err(StructureProblem::OffPlane(name));
             }
         }
         let reach = hinge.cross(up);

@@ -14,7 +14,7 @@ mod wrist;
 
 pub use base_held::BaseHeldSolver;
 pub use ccd::CcdSolver;
-pub use fabrik::{FabrikSolver, StructureError};
+pub use fabrik::{FabrikSolver, StructureError, StructureProblem};
 pub use fabrik_position::PositionFabrikSolver;
 pub use gradient::GradientDescentSolver;
 

@@ -52,7 +52,7 @@ pub enum TrajectoryFileError {
     Shape { file: PathBuf, reason: ShapeProblem },
 }
 
-/// What is wrong with one row: its place, never its content.
+/// What is wrong with one row of a trajectory file.
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum RowProblem {
     #[error("more than {MAX_ROWS} rows")]
@@ -60,26 +60,28 @@ pub enum RowProblem {
     #[error("needs {0} columns")]
     Columns(usize),
     #[error("column {0} is not a finite number")]
-    NotFinite(usize),
+    NotANumber(usize),
     #[error("the first row's t must be 0")]
-    FirstNotAtZero,
+    FirstNotZero,
     #[error("t must increase from row to row")]
-    TimeNotIncreasing,
+    NotIncreasing,
     #[error("t beyond {MAX_DURATION_S} s")]
     TooLong,
     #[error("column {column} is outside the limits of {joint}")]
     OutsideLimits { column: usize, joint: String },
 }
 
-/// What is wrong with the trajectory the rows make.
+/// What is wrong with the trajectory a file's rows make.
 #[derive(Debug, Error)]
 pub enum ShapeProblem {
     #[error("no rows after the header")]
     NoRows,
+    #[error(transparent)]
+    Samples(Box<TrajectoryError>),
     #[error("the sampled trajectory is refused: {0}")]
-    Refused(#[source] TrajectoryError),
+    Refused(Box<TrajectoryError>),
     #[error("{joint} accelerates beyond its limit at t = {t_s:.3} s")]
-    Acceleration { joint: String, t_s: f64 },
+    Accelerates { joint: String, t_s: f64 },
 }
 
 /// One row: its time (s) and its joint values in SI units (rad, m).
@@ -107,9 +109,9 @@ impl FollowTrajectory {
             std::slice::from_ref(&rows[0].1),
             settings,
         )?;
-        let refused = |e| self.shape(ShapeProblem::Refused(e));
-        let followed = sample_rows(rig, &rows, settings.period_s).map_err(refused)?;
-        validate(&followed, rig).map_err(refused)?;
+        let followed = sample_rows(rig, &rows, settings.period_s)
+            .map_err(|e| self.shape(ShapeProblem::Samples(Box::new(e))))?;
+        validate(&followed, rig).map_err(|e| self.shape(ShapeProblem::Refused(Box::new(e))))?;
         check_acceleration(rig, &followed).map_err(|reason| self.shape(reason))?;
         trajectory.append(&followed);
         Ok(trajectory)
@@ -203,13 +205,13 @@ fn parse_row(line: &str, rig: &Rig, previous: Option<f64>) -> Result<Row, RowPro
     let number = |column: usize| -> Result<f64, RowProblem> {
         match cells[column].parse::<f64>() {
             Ok(v) if v.is_finite() => Ok(v),
-            _ => Err(RowProblem::NotFinite(column + 1)),
+            _ => Err(RowProblem::NotANumber(column + 1)),
         }
     };
     let t = number(0)?;
     match previous {
-        None if t != 0.0 => return Err(RowProblem::FirstNotAtZero),
-        Some(before) if t <= before => return Err(RowProblem::TimeNotIncreasing),
+        None if t != 0.0 => return Err(RowProblem::FirstNotZero),
+        Some(before) if t <= before => return Err(RowProblem::NotIncreasing),
         _ if t > MAX_DURATION_S => return Err(RowProblem::TooLong),
         _ => {}
     }
@@ -296,7 +298,7 @@ fn check_acceleration(rig: &Rig, trajectory: &Trajectory) -> Result<(), ShapePro
                 .limits
                 .second_difference_ok(second, trajectory.period_s)
             {
-                return Err(ShapeProblem::Acceleration {
+                return Err(ShapeProblem::Accelerates {
                     joint: joint.name.clone(),
                     t_s: k as f64 * trajectory.period_s,
                 });

@@ -25,7 +25,7 @@ pub use recorder::{
 };
 pub use replay::TIME_TOLERANCE_S;
 pub use summary::{ChannelSummary, LogSummary, SeqGap, TrackingError, summarize};
-pub use wire::{EVENTS_TOPIC, METADATA_NAME, command_topic, state_topic};
+pub use wire::{EVENTS_TOPIC, LogDecodeError, METADATA_NAME, command_topic, state_topic};
 
 use crate::rig::JointKind;
 use crate::trajectory::TrajectoryError;
@@ -50,15 +50,21 @@ pub enum LogError {
     #[error("not a rigbridge run log: {0}")]
     NotARunLog(String),
     #[error("metadata record `{name}`: {reason}")]
-    BadMetadata { name: String, reason: String },
+    BadMetadata {
+        name: String,
+        reason: LogDecodeError,
+    },
     #[error("channel {topic}: {reason}")]
-    BadChannel { topic: String, reason: String },
+    BadChannel {
+        topic: String,
+        reason: LogDecodeError,
+    },
     #[error("{topic} message {index} (0-based, byte {offset}): {reason}")]
     BadMessage {
         topic: String,
         index: usize,
         offset: u64,
-        reason: String,
+        reason: LogDecodeError,
     },
     #[error("the log holds no commands to replay")]
     NoCommands,

@@ -10,7 +10,7 @@
 //! of the whole chunk before any record of it is used, so a chunk counts all or nothing.
 
 use super::records;
-use super::wire::{self, Identity, METADATA_NAME, Role, key};
+use super::wire::{self, Identity, LogDecodeError, METADATA_NAME, Role, key};
 use super::{LogError, LoggedEvent, LoggedSample, ReadStop, RunLog};
 use mcap::McapError;
 use mcap::records::op;
@@ -20,6 +20,7 @@ use std::fs::File;
 use std::io::Read;
 use std::ops::Range;
 use std::path::Path;
+use thiserror::Error;
 
 /// Bytes asked of the source at a time, whatever a damaged length field asks for: memory
 /// grows with what the file really holds, not with what it claims.
@@ -139,8 +140,19 @@ struct ChunkContent {
     records: Vec<(u8, Range<usize>)>,
 }
 
+/// Why a chunk is not used: its framing, its compression or its CRC.
+#[derive(Debug, Error)]
+enum ChunkError {
+    #[error(transparent)]
+    Record(#[from] records::RecordError),
+    #[error(transparent)]
+    Mcap(#[from] McapError),
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+}
+
 /// Unpacks one chunk record body, all or nothing.
-fn decode_chunk(body: &[u8]) -> Result<ChunkContent, String> {
+fn decode_chunk(body: &[u8]) -> Result<ChunkContent, ChunkError> {
     // Re-frame the chunk without any padding after its records, so the reader can never be
     // handed bytes beyond them (its uncompressed-chunk arithmetic relies on that).
     let len = records::chunk_len_without_padding(body)?;
@@ -157,9 +169,9 @@ fn decode_chunk(body: &[u8]) -> Result<ChunkContent, String> {
     );
     let mut content = ChunkContent::default();
     while let Some(event) = reader.next_event() {
-        match event.map_err(|e| e.to_string())? {
+        match event? {
             LinearReadEvent::ReadRequest(want) => {
-                feed(&mut reader, &mut source, want).map_err(|e| e.to_string())?;
+                feed(&mut reader, &mut source, want)?;
             }
             LinearReadEvent::Record { opcode, data } => {
                 let start = content.bytes.len();
@@ -211,7 +223,7 @@ impl Collector {
                 }
                 Flow::Continue
             }
-            Err(reason) => Flow::Stop(reason),
+            Err(reason) => Flow::Stop(reason.to_string()),
         }
     }
 
@@ -234,11 +246,11 @@ impl Collector {
         match opcode {
             op::CHANNEL => match records::channel(body) {
                 Ok(channel) => self.channel(channel).map(|()| Flow::Continue),
-                Err(reason) => Ok(Flow::Stop(reason)),
+                Err(reason) => Ok(Flow::Stop(reason.to_string())),
             },
             op::MESSAGE => match records::message(body) {
                 Ok(message) => self.message(&message, offset).map(|()| Flow::Continue),
-                Err(reason) => Ok(Flow::Stop(reason)),
+                Err(reason) => Ok(Flow::Stop(reason.to_string())),
             },
             _ => Ok(Flow::Continue),
         }
@@ -246,16 +258,14 @@ impl Collector {
 
     fn channel(&mut self, channel: records::Channel) -> Result<(), LogError> {
         let role = Role::of_topic(&channel.topic);
-        let bad = |reason: String| LogError::BadChannel {
+        let bad = |reason: LogDecodeError| LogError::BadChannel {
             topic: channel.topic.clone(),
             reason,
         };
         if role != Role::Other && channel.message_encoding != wire::MESSAGE_ENCODING {
-            return Err(bad(format!(
-                "message encoding `{}`, expected `{}`",
-                channel.message_encoding,
-                wire::MESSAGE_ENCODING
-            )));
+            return Err(bad(LogDecodeError::Encoding {
+                found: channel.message_encoding.clone(),
+            }));
         }
         if matches!(role, Role::Command | Role::State) {
             if self.topic_rig.is_none() {
@@ -342,7 +352,7 @@ impl Collector {
         let Some(map) = &self.metadata else {
             return Ok((self.channel_identity.clone(), serde_json::Value::Null));
         };
-        let bad = |reason: String| LogError::BadMetadata {
+        let bad = |reason: LogDecodeError| LogError::BadMetadata {
             name: METADATA_NAME.to_owned(),
             reason,
         };
@@ -352,9 +362,12 @@ impl Collector {
         identity.joint_names = identity.joint_names.or(fallback.joint_names);
         identity.joint_kinds = identity.joint_kinds.or(fallback.joint_kinds);
         let metadata = match map.get(key::METADATA) {
-            Some(text) => {
-                serde_json::from_str(text).map_err(|e| bad(format!("{}: {e}", key::METADATA)))?
-            }
+            Some(text) => serde_json::from_str(text).map_err(|source| {
+                bad(LogDecodeError::Entry {
+                    key: key::METADATA,
+                    source,
+                })
+            })?,
             None => serde_json::Value::Null,
         };
         Ok((identity, metadata))

@@ -6,6 +6,25 @@
 //! strings and maps); must not decide what a record means for a run log.
 
 use std::collections::BTreeMap;
+use thiserror::Error;
+
+/// Why a record's bytes do not parse.
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+pub enum RecordError {
+    #[error("{what} record: field of {len} bytes at byte {pos} runs past its end ({total} bytes)")]
+    RunsPast {
+        what: &'static str,
+        len: usize,
+        pos: usize,
+        total: usize,
+    },
+    #[error("length {0} does not fit in memory")]
+    TooLong(u64),
+    #[error("{what} record: a string is not UTF-8")]
+    NotUtf8 { what: &'static str },
+    #[error("{what} record: a map repeats a key")]
+    RepeatedKey { what: &'static str },
+}
 
 pub(super) struct Channel {
     pub id: u16,
@@ -24,7 +43,7 @@ pub(super) struct Metadata {
     pub map: BTreeMap<String, String>,
 }
 
-pub(super) fn channel(body: &[u8]) -> Result<Channel, String> {
+pub(super) fn channel(body: &[u8]) -> Result<Channel, RecordError> {
     let mut cursor = Cursor::new(body, "channel");
     let id = cursor.u16()?;
     let _schema_id = cursor.u16()?;
@@ -36,7 +55,7 @@ pub(super) fn channel(body: &[u8]) -> Result<Channel, String> {
     })
 }
 
-pub(super) fn message(body: &[u8]) -> Result<Message<'_>, String> {
+pub(super) fn message(body: &[u8]) -> Result<Message<'_>, RecordError> {
     let mut cursor = Cursor::new(body, "message");
     let channel_id = cursor.u16()?;
     let _sequence = cursor.u32()?;
@@ -48,7 +67,7 @@ pub(super) fn message(body: &[u8]) -> Result<Message<'_>, String> {
     })
 }
 
-pub(super) fn metadata(body: &[u8]) -> Result<Metadata, String> {
+pub(super) fn metadata(body: &[u8]) -> Result<Metadata, RecordError> {
     let mut cursor = Cursor::new(body, "metadata");
     Ok(Metadata {
         name: cursor.string()?,
@@ -58,7 +77,7 @@ pub(super) fn metadata(body: &[u8]) -> Result<Metadata, String> {
 
 /// The length of a chunk record's body without any padding after its `records` field: the
 /// header (times, sizes, CRC, compression) plus `compressed_size` bytes.
-pub(super) fn chunk_len_without_padding(body: &[u8]) -> Result<usize, String> {
+pub(super) fn chunk_len_without_padding(body: &[u8]) -> Result<usize, RecordError> {
     let mut cursor = Cursor::new(body, "chunk");
     let _start_time = cursor.u64()?;
     let _end_time = cursor.u64()?;
@@ -72,8 +91,8 @@ pub(super) fn chunk_len_without_padding(body: &[u8]) -> Result<usize, String> {
     Ok(header_len + compressed_size)
 }
 
-fn usize_of(value: u64) -> Result<usize, String> {
-    usize::try_from(value).map_err(|_| format!("length {value} does not fit in memory"))
+fn usize_of(value: u64) -> Result<usize, RecordError> {
+    usize::try_from(value).map_err(|_| RecordError::TooLong(value))
 }
 
 struct Cursor<'a> {
@@ -91,50 +110,47 @@ impl<'a> Cursor<'a> {
         }
     }
 
-    fn take(&mut self, len: usize) -> Result<&'a [u8], String> {
+    fn take(&mut self, len: usize) -> Result<&'a [u8], RecordError> {
         let end = self
             .pos
             .checked_add(len)
             .filter(|end| *end <= self.bytes.len())
-            .ok_or_else(|| {
-                format!(
-                    "{} record: field of {len} bytes at byte {} runs past its end ({} bytes)",
-                    self.what,
-                    self.pos,
-                    self.bytes.len()
-                )
+            .ok_or(RecordError::RunsPast {
+                what: self.what,
+                len,
+                pos: self.pos,
+                total: self.bytes.len(),
             })?;
         let slice = &self.bytes[self.pos..end];
         self.pos = end;
         Ok(slice)
     }
 
-    fn array<const N: usize>(&mut self) -> Result<[u8; N], String> {
+    fn array<const N: usize>(&mut self) -> Result<[u8; N], RecordError> {
         let mut out = [0; N];
         out.copy_from_slice(self.take(N)?);
         Ok(out)
     }
 
-    fn u16(&mut self) -> Result<u16, String> {
+    fn u16(&mut self) -> Result<u16, RecordError> {
         Ok(u16::from_le_bytes(self.array()?))
     }
 
-    fn u32(&mut self) -> Result<u32, String> {
+    fn u32(&mut self) -> Result<u32, RecordError> {
         Ok(u32::from_le_bytes(self.array()?))
     }
 
-    fn u64(&mut self) -> Result<u64, String> {
+    fn u64(&mut self) -> Result<u64, RecordError> {
         Ok(u64::from_le_bytes(self.array()?))
     }
 
-    fn string(&mut self) -> Result<String, String> {
+    fn string(&mut self) -> Result<String, RecordError> {
         let len = usize_of(u64::from(self.u32()?))?;
         let bytes = self.take(len)?;
-        String::from_utf8(bytes.to_vec())
-            .map_err(|_| format!("{} record: a string is not UTF-8", self.what))
+        String::from_utf8(bytes.to_vec()).map_err(|_| RecordError::NotUtf8 { what: self.what })
     }
 
-    fn string_map(&mut self) -> Result<BTreeMap<String, String>, String> {
+    fn string_map(&mut self) -> Result<BTreeMap<String, String>, RecordError> {
         let len = usize_of(u64::from(self.u32()?))?;
         let mut entries = Cursor::new(self.take(len)?, self.what);
         let mut map = BTreeMap::new();
@@ -142,7 +158,7 @@ impl<'a> Cursor<'a> {
             let key = entries.string()?;
             let value = entries.string()?;
             if map.insert(key, value).is_some() {
-                return Err(format!("{} record: a map repeats a key", self.what));
+                return Err(RecordError::RepeatedKey { what: self.what });
             }
         }
         Ok(map)

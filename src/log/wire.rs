@@ -8,6 +8,25 @@ use super::{LoggedEvent, LoggedSample};
 use crate::rig::JointKind;
 use serde::{Deserialize, Deserializer, Serialize};
 use std::collections::BTreeMap;
+use thiserror::Error;
+
+/// Why a well-framed record's content is not what a run log holds.
+#[derive(Debug, Error)]
+pub enum LogDecodeError {
+    /// A message that is not the JSON its channel's schema describes.
+    #[error("{0}")]
+    Json(#[from] serde_json::Error),
+    /// An identity or metadata entry whose value is not the JSON it should be.
+    #[error("{key}: {source}")]
+    Entry {
+        key: &'static str,
+        source: serde_json::Error,
+    },
+    #[error("{}: unknown joint kind `{kind}`", key::JOINT_KINDS)]
+    UnknownJointKind { kind: String },
+    #[error("message encoding `{found}`, expected `{}`", MESSAGE_ENCODING)]
+    Encoding { found: String },
+}
 
 /// Topic of job events (started, ended, pause, stop, fault, link errors).
 pub const EVENTS_TOPIC: &str = "/rigbridge/events";
@@ -174,8 +193,8 @@ fn nullable_f64<'de, D: Deserializer<'de>>(deserializer: D) -> Result<f64, D::Er
     Ok(Option::<f64>::deserialize(deserializer)?.unwrap_or(f64::NAN))
 }
 
-pub(super) fn decode_sample(json: &[u8]) -> Result<LoggedSample, String> {
-    let sample: SampleIn = serde_json::from_slice(json).map_err(|e| e.to_string())?;
+pub(super) fn decode_sample(json: &[u8]) -> Result<LoggedSample, LogDecodeError> {
+    let sample: SampleIn = serde_json::from_slice(json)?;
     let nan_for_null = |values: Vec<Option<f64>>| -> Vec<f64> {
         values.into_iter().map(|v| v.unwrap_or(f64::NAN)).collect()
     };
@@ -192,8 +211,8 @@ pub(super) fn decode_sample(json: &[u8]) -> Result<LoggedSample, String> {
     })
 }
 
-pub(super) fn decode_event(json: &[u8]) -> Result<LoggedEvent, String> {
-    let event: EventIn = serde_json::from_slice(json).map_err(|e| e.to_string())?;
+pub(super) fn decode_event(json: &[u8]) -> Result<LoggedEvent, LogDecodeError> {
+    let event: EventIn = serde_json::from_slice(json)?;
     Ok(LoggedEvent {
         t: refine_number(json, "t", event.t),
         kind: event.kind,
@@ -239,12 +258,14 @@ pub(super) struct Identity {
     pub joint_kinds: Option<Vec<JointKind>>,
 }
 
-pub(super) fn parse_identity(map: &BTreeMap<String, String>) -> Result<Identity, String> {
+pub(super) fn parse_identity(map: &BTreeMap<String, String>) -> Result<Identity, LogDecodeError> {
     let joint_names = match map.get(key::JOINT_NAMES) {
-        Some(text) => Some(
-            serde_json::from_str::<Vec<String>>(text)
-                .map_err(|e| format!("{}: {e}", key::JOINT_NAMES))?,
-        ),
+        Some(text) => Some(serde_json::from_str::<Vec<String>>(text).map_err(|source| {
+            LogDecodeError::Entry {
+                key: key::JOINT_NAMES,
+                source,
+            }
+        })?),
         None => None,
     };
     let joint_kinds = match map.get(key::JOINT_KINDS) {
@@ -258,18 +279,20 @@ pub(super) fn parse_identity(map: &BTreeMap<String, String>) -> Result<Identity,
     })
 }
 
-fn parse_kinds(text: &str) -> Result<Vec<JointKind>, String> {
+fn parse_kinds(text: &str) -> Result<Vec<JointKind>, LogDecodeError> {
     let names: Vec<String> =
-        serde_json::from_str(text).map_err(|e| format!("{}: {e}", key::JOINT_KINDS))?;
+        serde_json::from_str(text).map_err(|source| LogDecodeError::Entry {
+            key: key::JOINT_KINDS,
+            source,
+        })?;
     names
         .iter()
         .map(|name| match name.as_str() {
             "revolute" => Ok(JointKind::Revolute),
             "prismatic" => Ok(JointKind::Prismatic),
-            other => Err(format!(
-                "{}: unknown joint kind `{other}`",
-                key::JOINT_KINDS
-            )),
+            other => Err(LogDecodeError::UnknownJointKind {
+                kind: other.to_owned(),
+            }),
         })
         .collect()
 }

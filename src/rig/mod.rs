@@ -17,6 +17,23 @@ pub use urdf::rig_from_urdf;
 
 use glam::{DAffine3, DQuat, DVec3};
 
+/// Joint values as a user reads them: `[a, b, ...]` (rad or m, as each axis is).
+#[derive(Debug, Clone, PartialEq)]
+pub struct JointList(pub Vec<f64>);
+
+impl std::fmt::Display for JointList {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("[")?;
+        for (i, q) in self.0.iter().enumerate() {
+            if i > 0 {
+                f.write_str(", ")?;
+            }
+            write!(f, "{q}")?;
+        }
+        f.write_str("]")
+    }
+}
+
 /// How a joint moves its child link.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum JointKind {

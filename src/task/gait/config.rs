@@ -185,7 +185,7 @@ impl RawGait {
                     file,
                     "gait.solver",
                     &self.solver,
-                    &format!("must be one of {:?}", LimbSolver::NAMES),
+                    &format!("must be one of {}", LimbSolver::NAMES.join(", ")),
                 )
             })?,
             ik_tolerance_m: check_range(

@@ -4,6 +4,7 @@
 //! and logging are the daemon's.
 
 use super::rig::SlothRig;
+use super::rule::RuleBroken;
 use super::scenario::{Scenario, ScenarioError};
 use super::smooth::smooth_plan;
 use super::walker::{GaitPlan, WalkError, Walker};
@@ -32,8 +33,19 @@ pub enum GaitError {
     Retime(#[from] RetimeError),
     #[error("the move to the gait's first pose: {0}")]
     Approach(#[from] PlanError),
-    #[error("scenario {scenario}: the gait stopped before its first frame: {reason}")]
-    Empty { scenario: String, reason: String },
+    #[error("scenario {scenario}: the gait stopped before its first frame{}", because(.reason))]
+    Empty {
+        scenario: String,
+        reason: Option<RuleBroken>,
+    },
+}
+
+/// `: reason`, or nothing when the walker gave none.
+fn because(reason: &Option<RuleBroken>) -> String {
+    reason
+        .as_ref()
+        .map(|r| format!(": {r}"))
+        .unwrap_or_default()
 }
 
 /// The plan's samples with central-difference velocities (zero at both ends), validated
@@ -70,7 +82,7 @@ pub fn plan_gait(
     if plan.is_empty() {
         return Err(GaitError::Empty {
             scenario: scenario.name.clone(),
-            reason: plan.stop_reason.unwrap_or_default(),
+            reason: plan.stop_reason,
         });
     }
     retime_plan(&mut plan, sloth)?;

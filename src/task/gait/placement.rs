@@ -5,6 +5,7 @@
 
 use super::body::{WORLD_UP, body_from_feet};
 use super::rig::{Girdle, SlothRig};
+use super::rule::RuleBroken;
 use super::scenario::Scenario;
 use glam::DVec3;
 
@@ -42,7 +43,7 @@ pub fn contact_at(
     scenario: &Scenario,
     limb: usize,
     s: f64,
-) -> Result<Contact, String> {
+) -> Result<Contact, RuleBroken> {
     let limb = &sloth.limbs[limb];
     let leg = scenario.route.leg(s);
     let support = match limb.side {
@@ -87,20 +88,23 @@ pub fn contact_at(
             s,
             up,
         }),
-        Some(hit) if hit.support == support => Err(format!(
-            "the trace for {} at s = {s:.2} m meets support {support} {:.3} m from its grip \
-             (the support bends there)",
-            limb.name,
-            hit.point.distance(expected)
-        )),
-        Some(hit) => Err(format!(
-            "the trace for {} at s = {s:.2} m meets support {} before support {support}",
-            limb.name, hit.support
-        )),
-        None => Err(format!(
-            "the trace for {} at s = {s:.2} m finds no surface (end of support {support})",
-            limb.name
-        )),
+        Some(hit) if hit.support == support => Err(RuleBroken::TraceOffGrip {
+            limb: limb.name.clone(),
+            s,
+            support,
+            off_m: hit.point.distance(expected),
+        }),
+        Some(hit) => Err(RuleBroken::TraceMeetsOther {
+            limb: limb.name.clone(),
+            s,
+            hit: hit.support,
+            support,
+        }),
+        None => Err(RuleBroken::TraceNoSurface {
+            limb: limb.name.clone(),
+            s,
+            support,
+        }),
     }
 }
 
@@ -118,15 +122,19 @@ fn head_slope(scenario: &Scenario, support: usize) -> f64 {
 
 /// Refuses a support the sloth would hang on head down beyond the gait's max descent (no
 /// head-first descent, seed 004 after Mendel [9]).
-pub fn check_descent(sloth: &SlothRig, scenario: &Scenario, support: usize) -> Result<(), String> {
+pub fn check_descent(
+    sloth: &SlothRig,
+    scenario: &Scenario,
+    support: usize,
+) -> Result<(), RuleBroken> {
     let slope = head_slope(scenario, support);
     let max_descent = sloth.gait.max_descent_rad;
     if -slope > max_descent {
-        return Err(format!(
-            "support {support} descends {:.1} deg: head-first descent beyond {:.1} deg",
-            -slope.to_degrees(),
-            max_descent.to_degrees()
-        ));
+        return Err(RuleBroken::HeadFirstDescent {
+            support,
+            descent_rad: -slope,
+            max_rad: max_descent,
+        });
     }
     Ok(())
 }
@@ -141,7 +149,7 @@ pub fn check_rules(
     limb: usize,
     candidate: &Contact,
     planned: &[Contact],
-) -> Result<(), String> {
+) -> Result<(), RuleBroken> {
     let this = &sloth.limbs[limb];
     let gait = &sloth.gait;
     let cylinder = &scenario.terrain.cylinders[candidate.support];
@@ -158,15 +166,13 @@ pub fn check_rules(
         // branch-to-branch height changes); from a trunk, a rising branch is a bend down.
         let bend_up = slope - head_slope(scenario, planned[limb].support);
         if bend_up > gait.max_rise_rad + 1e-9 {
-            return Err(format!(
-                "support {} rises {:.1} deg, {:.1} deg more than support {}: more than {:.1} \
-                 deg, the body would meet the branch",
-                candidate.support,
-                slope.to_degrees(),
-                bend_up.to_degrees(),
-                planned[limb].support,
-                gait.max_rise_rad.to_degrees()
-            ));
+            return Err(RuleBroken::TooSteepRise {
+                support: candidate.support,
+                slope_rad: slope,
+                bend_rad: bend_up,
+                from: planned[limb].support,
+                max_rad: gait.max_rise_rad,
+            });
         }
     }
     for (other, (limb_other, contact)) in sloth.limbs.iter().zip(planned).enumerate() {
@@ -175,17 +181,17 @@ pub fn check_rules(
         }
         let same_girdle = limb_other.girdle == this.girdle;
         if same_girdle && candidate.s < contact.s {
-            return Err(format!(
-                "{} would land behind its pair {}",
-                this.name, limb_other.name
-            ));
+            return Err(RuleBroken::BehindPair {
+                limb: this.name.clone(),
+                pair: limb_other.name.clone(),
+            });
         }
         if !scenario.sideways && this.girdle == trailing && limb_other.girdle != trailing {
             if candidate.s > contact.s {
-                return Err(format!(
-                    "{} would land ahead of {}",
-                    this.name, limb_other.name
-                ));
+                return Err(RuleBroken::AheadOf {
+                    limb: this.name.clone(),
+                    other: limb_other.name.clone(),
+                });
             }
             let current = planned[limb].support;
             // Off a trunk the hind limbs follow only once no fore limb is still on it (seed
@@ -196,10 +202,12 @@ pub fn check_rules(
                 && candidate.support != current
                 && contact.support == current
             {
-                return Err(format!(
-                    "{} follows to support {} only once {} has left support {current}",
-                    this.name, candidate.support, limb_other.name
-                ));
+                return Err(RuleBroken::FollowsTooSoon {
+                    limb: this.name.clone(),
+                    to: candidate.support,
+                    other: limb_other.name.clone(),
+                    from: current,
+                });
             }
         }
     }
@@ -212,12 +220,12 @@ pub fn check_rules(
     let tip = candidate.point + candidate.normal * this.claw_m;
     let distance = girdle.distance(tip);
     if distance > USABLE_REACH * this.reach_m {
-        return Err(format!(
-            "{} would reach {distance:.3} m, beyond {:.0} % of its {:.3} m",
-            this.name,
-            USABLE_REACH * 100.0,
-            this.reach_m
-        ));
+        return Err(RuleBroken::OutOfReach {
+            limb: this.name.clone(),
+            distance_m: distance,
+            share: USABLE_REACH,
+            reach_m: this.reach_m,
+        });
     }
     Ok(())
 }

@@ -17,6 +17,7 @@ use super::placement::{
     Contact, candidate_steps, check_descent, check_rules, contact_at, toward_supports,
 };
 use super::rig::{Girdle, SlothRig};
+use super::rule::{Point, RuleBroken, SwingPart};
 use super::scenario::Scenario;
 use super::terrain::segment_nearest;
 use crate::ik::{IkSolver, Tolerance};
@@ -28,7 +29,10 @@ use thiserror::Error;
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum WalkError {
     #[error("scenario {scenario}: the sloth cannot stand at its start: {reason}")]
-    NoStart { scenario: String, reason: String },
+    NoStart {
+        scenario: String,
+        reason: RuleBroken,
+    },
 }
 
 /// Standstill before the first swing and after the last landing.
@@ -65,7 +69,7 @@ pub struct GaitPlan {
     /// samples moves them with the events they mark.
     pub cycle_starts: Vec<usize>,
     /// Why the gait stopped before walking all its cycles.
-    pub stop_reason: Option<String>,
+    pub stop_reason: Option<RuleBroken>,
     pub ik_residual_max_m: f64,
     /// Worst body-to-branch gap in the plan (the twin's world measures the actual one).
     pub plan_clearance_min_m: f64,
@@ -211,7 +215,7 @@ impl<'a> Walker<'a> {
     /// Where each limb stands at the start: staggered as in the steady gait (a limb that
     /// swings later in the cycle stands further ahead, so that every step can be the max
     /// step), each girdle's pair straddling its girdle.
-    fn start_state(&self) -> Result<State, String> {
+    fn start_state(&self) -> Result<State, RuleBroken> {
         let gait = &self.sloth.gait;
         let order = &gait.footfall_order;
         let stagger = |index: usize| {
@@ -254,7 +258,7 @@ impl<'a> Walker<'a> {
     }
 
     /// Computes frame `k` from `state` into `state.joints`, or says which rule it breaks.
-    fn step(&self, k: usize, state: &mut State) -> Result<FrameCheck, String> {
+    fn step(&self, k: usize, state: &mut State) -> Result<FrameCheck, RuleBroken> {
         let sloth = self.sloth;
         let lift_m = sloth.gait.swing_lift_m;
         let limb_count = sloth.limbs.len();
@@ -362,10 +366,12 @@ impl<'a> Walker<'a> {
         let axes = body_axes(&body_wanted, previous_yaw);
         for (joint, value) in sloth.body.joints.iter().zip(axes) {
             if !joint.limits.contains(value) {
-                return Err(format!(
-                    "{} would be {value:.4}, outside its limits [{:.4}, {:.4}]",
-                    joint.name, joint.limits.lower, joint.limits.upper
-                ));
+                return Err(RuleBroken::BodyOutsideLimits {
+                    joint: joint.name.clone(),
+                    value,
+                    lower: joint.limits.lower,
+                    upper: joint.limits.upper,
+                });
             }
         }
         let mut joints = state.joints.clone();
@@ -387,10 +393,8 @@ impl<'a> Walker<'a> {
             let claw = ground[index] + away * lifts[index];
             let target_world = claw + normals[index] * limb.claw_m;
             if lifts[index] > 0.0 {
-                self.keep_out(claw, || format!("{}'s swinging claw", limb.name))?;
-                self.keep_out(target_world, || {
-                    format!("{}'s swinging hand or foot", limb.name)
-                })?;
+                self.keep_out(claw, &limb.name, SwingPart::Claw)?;
+                self.keep_out(target_world, &limb.name, SwingPart::End)?;
             }
             let target = Pose::new(to_body.transform_point3(target_world), DQuat::IDENTITY);
             let seed = &state.joints[limb.axes()];
@@ -404,11 +408,11 @@ impl<'a> Walker<'a> {
             let solution = solver
                 .solve(&target, seed)
                 .or_else(|_| self.cold_solvers[index].solve(&target, &self.neutral[index]))
-                .map_err(|e| {
-                    format!(
-                        "{} cannot reach {:.3?} (body frame) at frame {k}: {e}",
-                        limb.name, target.position
-                    )
+                .map_err(|source| RuleBroken::Unreachable {
+                    limb: limb.name.clone(),
+                    target: Point(target.position),
+                    frame: k,
+                    source: Box::new(source),
                 })?;
             joints[limb.axes()].copy_from_slice(&solution.joints);
             residual = residual.max(sloth.limb_tip(&body, limb, &joints).distance(target_world));
@@ -423,10 +427,9 @@ impl<'a> Walker<'a> {
             sloth.body_radius_m,
         );
         if clearance <= 0.0 {
-            return Err(format!(
-                "the body would touch a branch (clearance {:.1} mm)",
-                clearance * 1000.0
-            ));
+            return Err(RuleBroken::BodyTouches {
+                clearance_m: clearance,
+            });
         }
         state.joints = joints;
         state.has_previous = true;
@@ -438,15 +441,15 @@ impl<'a> Walker<'a> {
         })
     }
 
-    /// Refuses a swinging `point` (named by `what`) inside a support, beyond numeric slack.
-    fn keep_out(&self, point: DVec3, what: impl Fn() -> String) -> Result<(), String> {
+    /// Refuses a swinging `point` (`part` of `limb`) inside a support, beyond numeric slack.
+    fn keep_out(&self, point: DVec3, limb: &str, part: SwingPart) -> Result<(), RuleBroken> {
         let gap = self.scenario.terrain.clearance(point);
         if gap < -PENETRATION_SLACK_M {
-            return Err(format!(
-                "{} would enter a branch by {:.1} mm",
-                what(),
-                -gap * 1000.0
-            ));
+            return Err(RuleBroken::EntersBranch {
+                limb: limb.to_owned(),
+                part,
+                depth_m: -gap,
+            });
         }
         Ok(())
     }
@@ -528,16 +531,15 @@ impl<'a> Walker<'a> {
         self.scenario.terrain.cylinders[contact.support].is_trunk(self.sloth.gait.trunk_tilt_rad)
     }
 
-    fn check_speeds(&self, previous: &[f64], next: &[f64]) -> Result<(), String> {
+    fn check_speeds(&self, previous: &[f64], next: &[f64]) -> Result<(), RuleBroken> {
         for ((joint, a), b) in self.sloth.streamed.joints.iter().zip(previous).zip(next) {
             let max_step = SPEED_SHARE * joint.limits.max_speed * self.period_s;
             if (b - a).abs() > max_step {
-                return Err(format!(
-                    "{} would move {:.5} in one period, above {:.0} % of its max speed",
-                    joint.name,
-                    (b - a).abs(),
-                    SPEED_SHARE * 100.0
-                ));
+                return Err(RuleBroken::TooFast {
+                    joint: joint.name.clone(),
+                    step: (b - a).abs(),
+                    share: SPEED_SHARE,
+                });
             }
         }
         Ok(())
@@ -545,7 +547,7 @@ impl<'a> Walker<'a> {
 
     /// Runs frames from `k` with no new swings until every limb is down: proof that the
     /// gait can stop cleanly after the swings now under way.
-    fn look_ahead(&self, k: usize, state: &State) -> Result<(), String> {
+    fn look_ahead(&self, k: usize, state: &State) -> Result<(), RuleBroken> {
         let mut trial = state.clone();
         let last = trial
             .limbs
@@ -573,8 +575,9 @@ impl<'a> Walker<'a> {
         k: usize,
         state: &State,
         swing_frames: usize,
-    ) -> Result<State, String> {
+    ) -> Result<State, RuleBroken> {
         let mut usual_reason = None;
+        let limb_name = &self.sloth.limbs[limb].name;
         let variations = TRAIL_LIMITS_M
             .iter()
             .map(|limit| (*limit, TORSO_MARGIN_M))
@@ -595,7 +598,9 @@ impl<'a> Walker<'a> {
                 }
             }
         }
-        Err(usual_reason.unwrap_or_default())
+        Err(usual_reason.unwrap_or_else(|| RuleBroken::NoCandidates {
+            limb: limb_name.clone(),
+        }))
     }
 
     /// FindNextStep's candidates for `limb` with the body held back as `state` says.
@@ -605,7 +610,7 @@ impl<'a> Walker<'a> {
         k: usize,
         state: &State,
         swing_frames: usize,
-    ) -> Result<State, String> {
+    ) -> Result<State, RuleBroken> {
         let current = state.limbs[limb].contact;
         let planned: Vec<Contact> = state.limbs.iter().map(|l| l.contact).collect();
         let mut first_reason = None;
@@ -637,12 +642,15 @@ impl<'a> Walker<'a> {
                 }
             }
         }
-        Err(format!(
-            "no next step for {}: at the max step {}; at the min step {}",
-            self.sloth.limbs[limb].name,
-            first_reason.unwrap_or_default(),
-            last_reason.unwrap_or_default()
-        ))
+        let limb = self.sloth.limbs[limb].name.clone();
+        match (first_reason, last_reason) {
+            (Some(at_max), Some(at_min)) => Err(RuleBroken::NoNextStep {
+                limb,
+                at_max: Box::new(at_max),
+                at_min: Box::new(at_min),
+            }),
+            _ => Err(RuleBroken::NoCandidates { limb }),
+        }
     }
 
     /// Walks the scenario's cycles (or until a rule stops the gait) and returns the plan.
@@ -661,7 +669,7 @@ impl<'a> Walker<'a> {
 
     /// One frame of the whole gait (swing interpolation, body pose, IK of every limb),
     /// advancing `state`; no new swings start. Returns the streamed joint vector.
-    pub fn step_frame<'s>(&self, state: &'s mut GaitState) -> Result<&'s [f64], String> {
+    pub fn step_frame<'s>(&self, state: &'s mut GaitState) -> Result<&'s [f64], RuleBroken> {
         self.step(state.next_frame, &mut state.state)?;
         land(&mut state.state, state.next_frame);
         state.next_frame += 1;
@@ -728,7 +736,10 @@ impl<'a> Walker<'a> {
                 }
                 Err(reason) => {
                     // Only reachable if the look-ahead and the walk disagree: stop here.
-                    plan.stop_reason = Some(format!("stopped mid-motion at frame {k}: {reason}"));
+                    plan.stop_reason = Some(RuleBroken::StoppedMidMotion {
+                        frame: k,
+                        reason: Box::new(reason),
+                    });
                     break;
                 }
             }

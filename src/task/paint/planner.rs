@@ -20,7 +20,7 @@ use super::body::{Body, Scratch};
 use super::config::{EXTRA_AXES, PaintSettings};
 use super::room::{Room, Wall};
 use crate::ik::{BaseHeldSolver, IkSolver, StructureError};
-use crate::rig::{Pose, Rig};
+use crate::rig::{JointList, Pose, Rig};
 use crate::trajectory::{
     PlanError, PlanSettings, Trajectory, TrajectoryError, plan_cartesian, plan_joint_moves,
     validate,
@@ -38,18 +38,76 @@ pub enum PaintPlanError {
     Plan(#[from] PlanError),
     #[error(transparent)]
     Trajectory(#[from] TrajectoryError),
-    #[error("start position {start:?}: {reason}")]
-    BadStart { start: Vec<f64>, reason: String },
-    #[error("no collision-free route from wall {from_wall} to wall {to_wall}: {reason}")]
+    #[error("start position {start}: the painter rig has {dof} axes")]
+    BadStart { start: JointList, dof: usize },
+    #[error(
+        "no collision-free route from wall {from_wall} to wall {to_wall}: from {from} to {to}: \
+         {tries}"
+    )]
     NoRoute {
         from_wall: usize,
         to_wall: usize,
-        reason: String,
+        from: JointList,
+        to: JointList,
+        tries: RouteTries,
     },
     #[error(
         "plan check: sample {sample} comes {clearance_m:.4} m from a wall (body must stay clear)"
     )]
     Collides { sample: usize, clearance_m: f64 },
+}
+
+/// Why a column, a stroke or a move between strokes is refused.
+#[derive(Debug, Error)]
+pub enum PlanRefusal {
+    #[error("no candidate")]
+    NoCandidate,
+    #[error("no base position at standoff {standoff_m:.2} m")]
+    NoBasePosition { standoff_m: f64 },
+    #[error("body comes {clearance_m:.3} m from a wall (needs {needed_m:.3})")]
+    BodyTooClose { clearance_m: f64, needed_m: f64 },
+    #[error("arm cannot paint up to {height_m:.3} m above its base")]
+    CannotPaint { height_m: f64 },
+    #[error("arm cannot retract at {height_m:.3} m above its base")]
+    CannotRetract { height_m: f64 },
+    #[error("the body would come {clearance_m:.3} m from a wall")]
+    RouteCollides { clearance_m: f64 },
+    #[error("the brush would come {off_m:.4} m from a wall (needs {needed_m:.4})")]
+    BrushNearWall { off_m: f64, needed_m: f64 },
+    #[error(transparent)]
+    Trajectory(#[from] TrajectoryError),
+    #[error(transparent)]
+    Plan(#[from] PlanError),
+}
+
+/// One way a free move was tried.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RouteTry {
+    Direct,
+    BackingOff { distance_m: f64 },
+    ViaCentre,
+}
+
+/// Every way a free move was tried, and why each was refused.
+#[derive(Debug, Default)]
+pub struct RouteTries(pub Vec<(RouteTry, PlanRefusal)>);
+
+impl std::fmt::Display for RouteTries {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        for (i, (route, why)) in self.0.iter().enumerate() {
+            if i > 0 {
+                f.write_str("; ")?;
+            }
+            match route {
+                RouteTry::Direct => write!(f, "direct: {why}")?,
+                RouteTry::BackingOff { distance_m } => {
+                    write!(f, "backing off {distance_m} m: {why}")?
+                }
+                RouteTry::ViaCentre => write!(f, "via the centre: {why}")?,
+            }
+        }
+        Ok(())
+    }
 }
 
 /// A stroke the planner could not reach, reported before motion.
@@ -286,7 +344,7 @@ impl<'a> Planner<'a> {
         wall: &Wall,
         station: Station,
         lift: f64,
-    ) -> Result<Trajectory, PaintPlanError> {
+    ) -> Result<Trajectory, TrajectoryError> {
         let base = self.joints_at(wall, station, lift, &[]);
         let dof = piece.dof();
         let mut positions = Vec::with_capacity(piece.len() * dof);
@@ -297,13 +355,13 @@ impl<'a> Planner<'a> {
             velocities.extend_from_slice(&[0.0; EXTRA_AXES]);
             velocities.extend_from_slice(&piece.velocity(i)[EXTRA_AXES..]);
         }
-        Ok(Trajectory::new(
+        Trajectory::new(
             piece.rig.clone(),
             piece.joint_names.clone(),
             piece.period_s,
             positions,
             velocities,
-        )?)
+        )
     }
 
     /// Worst body clearance over `trajectory`'s samples (every `stride`-th and the last).
@@ -436,16 +494,18 @@ impl<'a> Planner<'a> {
         band: Band,
         corner: bool,
         segments: &[(f64, f64)],
-    ) -> Result<Column, String> {
+    ) -> Result<Column, PlanRefusal> {
         let strokes = &self.settings.config.strokes;
         let reach = strokes.reach_m;
         let standoffs = [reach, reach - 0.08, reach + 0.07, reach - 0.15];
-        let mut last_reason = String::from("no candidate");
+        let mut last_reason = PlanRefusal::NoCandidate;
         for attitude in self.attitudes(band, corner) {
             let s = self.band_centre(band, attitude);
             for standoff in standoffs {
                 let Some((lo, hi)) = self.base_range(wall, standoff) else {
-                    last_reason = format!("no base position at standoff {standoff:.2} m");
+                    last_reason = PlanRefusal::NoBasePosition {
+                        standoff_m: standoff,
+                    };
                     continue;
                 };
                 let mut tried: Vec<f64> = Vec::new();
@@ -484,16 +544,20 @@ impl<'a> Planner<'a> {
     }
 
     /// Plans every stroke of a column and checks its clearance (cached per shape).
-    fn check_column(&mut self, wall: &Wall, column: &Column) -> Result<Vec<Trajectory>, String> {
+    fn check_column(
+        &mut self,
+        wall: &Wall,
+        column: &Column,
+    ) -> Result<Vec<Trajectory>, PlanRefusal> {
         let mut strokes = Vec::with_capacity(column.segments.len());
         for segment in &column.segments {
             let stroke = self.stroke(wall, column, *segment)?;
             let clearance = self.worst_clearance(&stroke, 4);
             if clearance < self.margin() {
-                return Err(format!(
-                    "body comes {clearance:.3} m from a wall (needs {:.3})",
-                    self.margin()
-                ));
+                return Err(PlanRefusal::BodyTooClose {
+                    clearance_m: clearance,
+                    needed_m: self.margin(),
+                });
             }
             strokes.push(stroke);
         }
@@ -507,7 +571,7 @@ impl<'a> Planner<'a> {
         wall: &Wall,
         column: &Column,
         (from, to): (f64, f64),
-    ) -> Result<Trajectory, String> {
+    ) -> Result<Trajectory, PlanRefusal> {
         let strokes = &self.settings.config.strokes;
         let (hold, low_lift, retract) =
             (strokes.hold_height_m, strokes.low_lift_m, strokes.retract_m);
@@ -526,7 +590,7 @@ impl<'a> Planner<'a> {
         }
         let approach = self
             .piece(station, attitude, lateral, &path, None)
-            .ok_or_else(|| format!("arm cannot paint up to {arm_top:.3} m above its base"))?;
+            .ok_or(PlanRefusal::CannotPaint { height_m: arm_top })?;
         let held_arm = approach.position(approach.len() - 1)[EXTRA_AXES..].to_vec();
         let retreat = self
             .piece(
@@ -536,21 +600,16 @@ impl<'a> Planner<'a> {
                 &[(0.0, arm_top), (retract, arm_top)],
                 Some(&held_arm),
             )
-            .ok_or_else(|| format!("arm cannot retract at {arm_top:.3} m above its base"))?;
-        let mut trajectory = self
-            .placed(&approach, wall, station, lift_from)
-            .map_err(|e| e.to_string())?;
+            .ok_or(PlanRefusal::CannotRetract { height_m: arm_top })?;
+        let mut trajectory = self.placed(&approach, wall, station, lift_from)?;
         let held = trajectory.position(trajectory.len() - 1).to_vec();
         if lift_to > lift_from {
             let mut top = held.clone();
             top[3] = lift_to;
-            let lift =
-                plan_joint_moves(self.rig, &held, &[top], &self.plan).map_err(|e| e.to_string())?;
+            let lift = plan_joint_moves(self.rig, &held, &[top], &self.plan)?;
             trajectory.append(&lift);
         }
-        let retreat = self
-            .placed(&retreat, wall, station, lift_to)
-            .map_err(|e| e.to_string())?;
+        let retreat = self.placed(&retreat, wall, station, lift_to)?;
         trajectory.append(&retreat);
         Ok(trajectory)
     }
@@ -642,7 +701,7 @@ impl<'a> Planner<'a> {
                     s_m: self.band_centre(band, level),
                     v_from_m: segments[0].0,
                     v_to_m: segments[segments.len() - 1].1,
-                    reason,
+                    reason: reason.to_string(),
                 });
                 None
             }
@@ -712,11 +771,11 @@ impl<'a> Planner<'a> {
             .zip(&to[EXTRA_AXES..])
             .all(|(a, b)| (a - b).abs() < 1e-6)
             && (from[2] - to[2]).abs() < 1e-9;
-        let mut reasons: Vec<String> = Vec::new();
+        let mut tries = RouteTries::default();
         if same_arm {
             match self.try_route(from, to, &[]) {
                 Ok(direct) => return Ok(direct),
-                Err(why) => reasons.push(format!("direct: {why}")),
+                Err(why) => tries.0.push((RouteTry::Direct, why)),
             }
         }
         for backoff in BACKOFFS {
@@ -729,7 +788,12 @@ impl<'a> Planner<'a> {
             let via = [out_from, travel_from, travel_to, out_to];
             match self.try_route(from, to, &via) {
                 Ok(route) => return Ok(route),
-                Err(why) => reasons.push(format!("backing off {backoff} m: {why}")),
+                Err(why) => tries.0.push((
+                    RouteTry::BackingOff {
+                        distance_m: backoff,
+                    },
+                    why,
+                )),
             }
             // Through the room's centre, where the arm turns freely.
             let mut centre_from = via[1].clone();
@@ -746,13 +810,15 @@ impl<'a> Planner<'a> {
             ];
             match self.try_route(from, to, &via) {
                 Ok(route) => return Ok(route),
-                Err(why) => reasons.push(format!("via the centre: {why}")),
+                Err(why) => tries.0.push((RouteTry::ViaCentre, why)),
             }
         }
         Err(PaintPlanError::NoRoute {
             from_wall: walls.0,
             to_wall: walls.1,
-            reason: format!("from {from:?} to {to:?}: {}", reasons.join("; ")),
+            from: JointList(from.to_vec()),
+            to: JointList(to.to_vec()),
+            tries,
         })
     }
 
@@ -772,22 +838,24 @@ impl<'a> Planner<'a> {
         from: &[f64],
         to: &[f64],
         via: &[Vec<f64>],
-    ) -> Result<Trajectory, String> {
+    ) -> Result<Trajectory, PlanRefusal> {
         let mut waypoints: Vec<Vec<f64>> = via.to_vec();
         waypoints.push(to.to_vec());
         waypoints.dedup_by(|a, b| a == b);
-        let route =
-            plan_joint_moves(self.rig, from, &waypoints, &self.plan).map_err(|e| e.to_string())?;
+        let route = plan_joint_moves(self.rig, from, &waypoints, &self.plan)?;
         let clearance = self.worst_clearance(&route, 2);
         if clearance < 0.0 {
-            return Err(format!("the body would come {clearance:.3} m from a wall"));
+            return Err(PlanRefusal::RouteCollides {
+                clearance_m: clearance,
+            });
         }
         let off_wall = self.brush_off_wall(&route);
         let needed = FREE_MOVE_OFF_WALL * self.settings.config.brush.contact_tolerance_m;
         if off_wall <= needed {
-            return Err(format!(
-                "the brush would come {off_wall:.4} m from a wall (needs {needed:.4})"
-            ));
+            return Err(PlanRefusal::BrushNearWall {
+                off_m: off_wall,
+                needed_m: needed,
+            });
         }
         Ok(route)
     }
@@ -796,8 +864,8 @@ impl<'a> Planner<'a> {
     pub fn plan(mut self, start: &[f64]) -> Result<PaintPlan, PaintPlanError> {
         if start.len() != self.rig.dof() {
             return Err(PaintPlanError::BadStart {
-                start: start.to_vec(),
-                reason: format!("the painter rig has {} axes", self.rig.dof()),
+                start: JointList(start.to_vec()),
+                dof: self.rig.dof(),
             });
         }
         let mut unreachable = Vec::new();
