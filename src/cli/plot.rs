@@ -44,7 +44,7 @@ pub fn plot_command(args: PlotArgs) -> anyhow::Result<ExitCode> {
     }
     plot(&run, &args.output, (args.width, args.height))
         .with_context(|| format!("cannot draw {}", args.output.display()))?;
-    println!(
+    say!(
         "{}: {} commands, {} states -> {}",
         args.log.display(),
         run.commands.len(),
@@ -68,8 +68,7 @@ pub(super) fn register_font() -> anyhow::Result<()> {
 /// How one axis' values are shown: the factor from the log's unit and the label.
 fn axis_unit(kinds: Option<&[JointKind]>, axis: usize) -> (f64, &'static str) {
     match kinds.and_then(|k| k.get(axis)) {
-        Some(JointKind::Revolute) => (180.0 / std::f64::consts::PI, "deg"),
-        Some(JointKind::Prismatic) => (1.0, "m"),
+        Some(kind) => (kind.to_user(1.0), kind.unit()),
         None => (1.0, "rad|m"),
     }
 }

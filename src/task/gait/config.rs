@@ -22,6 +22,14 @@ pub enum LimbSolver {
 impl LimbSolver {
     pub const NAMES: [&'static str; 2] = ["ccd", "fabrik"];
 
+    /// The name `[gait] solver` and `--solver` use.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Ccd => "ccd",
+            Self::Fabrik => "fabrik",
+        }
+    }
+
     /// The solver named `name` as in `[gait] solver`.
     pub fn from_name(name: &str) -> Option<Self> {
         match name {
@@ -185,7 +193,7 @@ impl RawGait {
                     file,
                     "gait.solver",
                     &self.solver,
-                    &format!("must be one of {:?}", LimbSolver::NAMES),
+                    &format!("must be one of {}", LimbSolver::NAMES.join(", ")),
                 )
             })?,
             ik_tolerance_m: check_range(
