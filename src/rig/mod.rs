@@ -13,7 +13,7 @@ mod urdf;
 pub use config::{ConfigError, Shown, Verbatim, check_range, load_rig, load_rig_with_tool};
 pub(crate) use config::{RawJoint, RawOrigin, joints_from_raw, origin_from_raw};
 pub use fk::{DofMismatch, JointAxis};
-pub use pose::{Pose, PoseError, rotation_angle_between};
+pub use pose::{Pose, PoseError, UNIT_QUATERNION_TOLERANCE, rotation_angle_between};
 pub use urdf::rig_from_urdf;
 
 use glam::{DAffine3, DQuat, DVec3};
