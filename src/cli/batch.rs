@@ -139,7 +139,11 @@ impl Output {
     fn finish(self) -> anyhow::Result<()> {
         if let Output::File { temporary, target } = &self {
             std::fs::rename(temporary, target).with_context(|| {
-                format!("cannot move {} to {}", temporary.display(), target.display())
+                format!(
+                    "cannot move {} to {}",
+                    temporary.display(),
+                    target.display()
+                )
             })?;
             std::mem::forget(self);
         }

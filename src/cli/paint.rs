@@ -127,8 +127,11 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
         match kind {
             Picture::Svg => std::fs::write(picture, write_svg(&world, &run.paint))
                 .with_context(|| format!("cannot write picture {}", picture.display()))?,
-            Picture::Png => write_png(&world, &run.paint, picture)
-                .with_context(|| format!("cannot write picture {}", picture.display()))?,
+            Picture::Png => {
+                super::plot::register_font()?;
+                super::plot::write_picture(picture, |path| write_png(&world, &run.paint, path))
+                    .with_context(|| format!("cannot write picture {}", picture.display()))?
+            }
         }
         say!("  picture: {}", picture.display());
     }

@@ -265,8 +265,13 @@ impl FabrikSolver {
                 })
                 .collect();
             let pose = self.rig.tool_pose(&joints).map_err(|e| e.to_string())?;
-            self.solve(&pose, &joints)
-                .map_err(|e| format!("self-check failed at {joints:?}: {e}"))?;
+            self.solve(&pose, &joints).map_err(|e| {
+                let degrees: Vec<f64> = joints.iter().map(|q| q.to_degrees()).collect();
+                format!(
+                    "self-check failed at {} deg: {e}",
+                    crate::rig::Shown::shown(&degrees)
+                )
+            })?;
         }
         Ok(())
     }

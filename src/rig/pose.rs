@@ -31,6 +31,18 @@ pub enum PoseError {
     NotUnitQuaternion { orientation: DQuat, norm: f64 },
 }
 
+/// As messages show a pose: position in metres, quaternion w first.
+impl std::fmt::Display for Pose {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let (p, q) = (self.position, self.orientation);
+        write!(
+            f,
+            "position ({:.4}, {:.4}, {:.4}) m, quaternion (w {:.4}, x {:.4}, y {:.4}, z {:.4})",
+            p.x, p.y, p.z, q.w, q.x, q.y, q.z
+        )
+    }
+}
+
 impl Pose {
     pub fn new(position: DVec3, orientation: DQuat) -> Self {
         Self {
@@ -110,7 +122,10 @@ mod tests {
     #[test]
     fn a_nearly_unit_quaternion_is_normalised_and_a_far_one_refused() {
         // 4 decimals of a unit quaternion: norm about 1 + 2e-5.
-        let rounded = Pose::new(DVec3::ZERO, DQuat::from_xyzw(0.1830, 0.1830, 0.6830, 0.6830));
+        let rounded = Pose::new(
+            DVec3::ZERO,
+            DQuat::from_xyzw(0.1830, 0.1830, 0.6830, 0.6830),
+        );
         let fixed = rounded.validated().expect("within 1e-3 of unit");
         assert!((fixed.orientation.length() - 1.0).abs() < 1e-12);
         let off = Pose::new(DVec3::ZERO, DQuat::from_xyzw(0.0, 0.0, 0.0, 1.002));

@@ -195,8 +195,9 @@ fn support(file: &Path, index: usize, raw: &RawSupport) -> Result<Named, ConfigE
             &key("to_m"),
             raw.to_m,
             &format!(
-                "support {} must be at least {MIN_SUPPORT_LENGTH_M} m long: from_m is {:?}",
-                raw.name, raw.from_m
+                "support {} must be at least {MIN_SUPPORT_LENGTH_M} m long: from_m is {}",
+                raw.name,
+                crate::rig::Shown::shown(&raw.from_m)
             ),
         ));
     }

@@ -366,7 +366,7 @@ pub fn judge(
         .enumerate()
         .any(|(i, name)| name != expected[i % expected.len()])
     {
-        failures.push(format!("footfall order {footfall_order:?}"));
+        failures.push(format!("footfall order {}", footfall_order.join(" ")));
     }
     // The gait's own rule allows a descent of `max_descent` head first (under a branch); the
     // twin's lag and the body's averaging may add a fraction of a degree.

@@ -287,7 +287,10 @@ fn check_body_axes(file: &Path, joints: &[Joint]) -> Result<(), ConfigError> {
             file,
             "body.joint",
             names,
-            &format!("the body's virtual axes must be {BODY_AXES:?}, in that order"),
+            &format!(
+                "the body's virtual axes must be {}, in that order",
+                BODY_AXES.join(", ")
+            ),
         ));
     }
     Ok(())

@@ -406,8 +406,8 @@ impl<'a> Walker<'a> {
                 .or_else(|_| self.cold_solvers[index].solve(&target, &self.neutral[index]))
                 .map_err(|e| {
                     format!(
-                        "{} cannot reach {:.3?} (body frame) at frame {k}: {e}",
-                        limb.name, target.position
+                        "{} cannot reach ({:.3}, {:.3}, {:.3}) m (body frame) at frame {k}: {e}",
+                        limb.name, target.position.x, target.position.y, target.position.z
                     )
                 })?;
             joints[limb.axes()].copy_from_slice(&solution.joints);

@@ -38,7 +38,10 @@ pub enum PaintPlanError {
     Plan(#[from] PlanError),
     #[error(transparent)]
     Trajectory(#[from] TrajectoryError),
-    #[error("start position {start:?}: {reason}")]
+    #[error(
+        "start position {} (m and rad): {reason}",
+        crate::rig::Shown::shown(start)
+    )]
     BadStart { start: Vec<f64>, reason: String },
     #[error("no collision-free route from wall {from_wall} to wall {to_wall}: {reason}")]
     NoRoute {
@@ -752,7 +755,12 @@ impl<'a> Planner<'a> {
         Err(PaintPlanError::NoRoute {
             from_wall: walls.0,
             to_wall: walls.1,
-            reason: format!("from {from:?} to {to:?}: {}", reasons.join("; ")),
+            reason: format!(
+                "from {} to {} (m and rad): {}",
+                crate::rig::Shown::shown(from),
+                crate::rig::Shown::shown(to),
+                reasons.join("; ")
+            ),
         })
     }
 
