@@ -114,8 +114,13 @@ pub trait Shown {
 }
 
 impl Shown for f64 {
+    /// As TOML writes a float: a whole number keeps its `.0`.
     fn shown(&self) -> String {
-        self.to_string()
+        if self.is_finite() && self.fract() == 0.0 && self.abs() < 1e15 {
+            format!("{self:.1}")
+        } else {
+            self.to_string()
+        }
     }
 }
 
