@@ -5,9 +5,11 @@ mod cli;
 fn main() -> std::process::ExitCode {
     match cli::run() {
         Ok(code) => code,
+        // The reader of our output went away (`| head`): the output ends there, cleanly.
+        Err(_) if cli::stdout_closed() => std::process::ExitCode::SUCCESS,
         Err(error) => {
             eprintln!("error: {error:#}");
-            std::process::ExitCode::FAILURE
+            cli::exit_code_for(&error)
         }
     }
 }

@@ -73,7 +73,7 @@ fn ik_keeps_going_past_bad_rows_and_reports_them() {
     let output = rigbridge(&["ik", "--input", "-", "--output", "-"], Some(&input));
     assert_eq!(
         output.status.code(),
-        Some(2),
+        Some(3),
         "{}",
         String::from_utf8_lossy(&output.stderr)
     );
@@ -85,7 +85,7 @@ fn ik_keeps_going_past_bad_rows_and_reports_them() {
     );
     let statuses: Vec<&str> = lines[1..]
         .iter()
-        .map(|l| l.rsplit(',').next().unwrap())
+        .map(|l| l.rsplit(',').next().unwrap().split(':').next().unwrap())
         .collect();
     assert_eq!(
         statuses,
@@ -111,7 +111,7 @@ fn ik_keeps_going_past_bad_rows_and_reports_them() {
 #[test]
 fn ik_refuses_a_seed_of_the_wrong_length() {
     let output = rigbridge(&["ik", "--seed", "1,2,3"], Some("x,y,z,qw,qx,qy,qz\n"));
-    assert_eq!(output.status.code(), Some(1));
+    assert_eq!(output.status.code(), Some(2), "a usage error");
     assert!(String::from_utf8_lossy(&output.stderr).contains("--seed has 3 values"));
 }
 

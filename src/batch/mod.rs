@@ -1,12 +1,15 @@
 //! The CSV contract of the `fk` and `ik` batch tools, as library functions over any reader
 //! and writer (the binary only opens files and draws progress).
 //!
-//! Joint files: header `j1..jN`, degrees. Pose files: header `x,y,z,qw,qx,qy,qz`, metres and
-//! a unit quaternion, tool frame in base frame. Columns are found by name; extra columns are
-//! ignored. A bad row never stops a batch: it gets an error status and the batch goes on.
+//! Joint files: header `j1..jN`, degrees for revolute axes and metres for prismatic ones
+//! ([`crate::rig::JointKind::unit`], read and written alike). Pose files: header
+//! `x,y,z,qw,qx,qy,qz`, metres and a unit quaternion (within
+//! [`crate::rig::UNIT_QUATERNION_TOLERANCE`], then normalised), tool frame in base frame.
+//! Columns are found by name; extra columns are ignored. A bad row never stops a batch: it
+//! gets an error status and the batch goes on. Opening files is the binary's business.
 
 use crate::ik::{IkError, IkSolver};
-use crate::rig::{Pose, Rig};
+use crate::rig::{Pose, PoseError, Rig, UNIT_QUATERNION_TOLERANCE};
 use glam::{DQuat, DVec3};
 use std::collections::BTreeMap;
 use std::io::{Read, Write};
@@ -79,12 +82,28 @@ pub fn joint_columns(dof: usize) -> Vec<String> {
     (1..=dof).map(|i| format!("j{i}")).collect()
 }
 
-/// Parses one joint row into radians.
-fn joints_from(record: &csv::StringRecord, columns: &[usize]) -> Option<Vec<f64>> {
+/// Parses one joint row into SI units (radians, metres for prismatic axes).
+fn joints_from(rig: &Rig, record: &csv::StringRecord, columns: &[usize]) -> Option<Vec<f64>> {
     columns
         .iter()
-        .map(|&c| field(record, c).map(f64::to_radians))
+        .zip(&rig.joints)
+        .map(|(&c, joint)| field(record, c).map(|v| joint.kind.from_user(v)))
         .collect()
+}
+
+/// The status of a row whose target was refused: its kind, and for a pose that could not be
+/// used, why (the quaternion's norm), in words without commas so the CSV stays one column.
+fn failed_status(error: &IkError) -> String {
+    match error {
+        IkError::InvalidTarget(PoseError::NotUnitQuaternion { norm, .. }) => format!(
+            "{}: quaternion norm {norm:.6} is not 1 within {UNIT_QUATERNION_TOLERANCE}",
+            error.kind()
+        ),
+        IkError::InvalidTarget(PoseError::Unparsable) => {
+            format!("{}: a value is missing or not a number", error.kind())
+        }
+        other => other.kind().to_string(),
+    }
 }
 
 fn pose_from(record: &csv::StringRecord, columns: &[usize; 7]) -> Option<Pose> {
@@ -117,7 +136,7 @@ pub fn fk_batch(
     let mut record = csv::StringRecord::new();
     while reader.read_record(&mut record)? {
         summary.rows += 1;
-        match joints_from(&record, &columns) {
+        match joints_from(rig, &record, &columns) {
             Some(joints) => {
                 let pose = rig
                     .tool_pose(&joints)
@@ -180,8 +199,8 @@ pub fn ik_batch(
         };
         match result {
             Ok(solution) => {
-                for q in &solution.joints {
-                    write!(out, "{:.9},", q.to_degrees())?;
+                for (q, joint) in solution.joints.iter().zip(&solver.rig().joints) {
+                    write!(out, "{:.9},", joint.kind.to_user(*q))?;
                 }
                 writeln!(
                     out,
@@ -198,7 +217,7 @@ pub fn ik_batch(
             }
             Err(error) => {
                 summary.fail(error.kind());
-                writeln!(out, "{empty_joints},,,{}", error.kind())?;
+                writeln!(out, "{empty_joints},,,{}", failed_status(&error))?;
             }
         }
         progress(summary.rows);

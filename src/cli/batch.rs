@@ -1,24 +1,40 @@
 //! `rigbridge fk` and `rigbridge ik`: files or stdin/stdout, a progress bar on long batches,
-//! and a closing summary on stderr.
+//! and a closing summary on stderr. An output file is written beside itself under a
+//! temporary name and renamed over the target only once the batch ended, so a failed batch
+//! leaves the old file whole; an input that is also the output is refused before anything
+//! is opened for writing.
 
-use anyhow::{Context, bail};
+use super::Usage;
+use anyhow::Context;
 use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use rigbridge::batch::{BatchSummary, fk_batch, ik_batch};
 use rigbridge::ik::{CcdSolver, FabrikSolver, GradientDescentSolver, IkSolver};
-use rigbridge::rig::{Rig, load_rig};
+use rigbridge::rig::{Rig, load_rig_with_tool, shipped};
 use std::fs::File;
 use std::io::{BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
+/// Where the rig comes from and where its chain ends.
+#[derive(Args)]
+struct RigArgs {
+    /// Rig description: a TOML or URDF file (recognised by its content); the default is the
+    /// built-in IRB 120.
+    #[arg(long, default_value = shipped::DEFAULT_RIG)]
+    rig: PathBuf,
+    /// The tool frame of a URDF rig: the link its chain ends at [default: the only leaf
+    /// link a moving joint leads to; with several, the error lists them].
+    #[arg(long, value_name = "NAME")]
+    tool_frame: Option<String>,
+}
+
 #[derive(Args)]
 pub struct FkArgs {
-    /// Rig description: a TOML file from config/ or a URDF file.
-    #[arg(long, default_value = "config/irb120.toml")]
-    rig: PathBuf,
-    /// Joint rows, header j1..jN in degrees; `-` reads stdin.
+    #[command(flatten)]
+    rig: RigArgs,
+    /// Joint rows, header j1..jN in degrees (metres for prismatic axes); `-` reads stdin.
     #[arg(long, default_value = "-")]
     input: PathBuf,
     /// Where the poses go (x,y,z,qw,qx,qy,qz,status); `-` writes stdout.
@@ -38,17 +54,17 @@ enum SolverChoice {
 
 #[derive(Args)]
 pub struct IkArgs {
-    /// Rig description: a TOML file from config/ or a URDF file.
-    #[arg(long, default_value = "config/irb120.toml")]
-    rig: PathBuf,
+    #[command(flatten)]
+    rig: RigArgs,
     /// Tool poses, header x,y,z,qw,qx,qy,qz (metres, unit quaternion w first); `-` reads stdin.
     #[arg(long, default_value = "-")]
     input: PathBuf,
-    /// Where the joints go (j1..jN in degrees, pos_err_m, rot_err_rad, iterations, status); `-` writes stdout.
+    /// Where the joints go (j1..jN in degrees, metres for prismatic axes, pos_err_m,
+    /// rot_err_rad, iterations, status); `-` writes stdout.
     #[arg(long, default_value = "-")]
     output: PathBuf,
-    /// Seed for the first row, comma-separated degrees (default all zeros). Later rows are
-    /// seeded by the previous row's solution.
+    /// Seed for the first row, comma-separated degrees (metres for prismatic axes; default
+    /// all zeros). Later rows are seeded by the previous row's solution.
     #[arg(long, value_delimiter = ',', allow_negative_numbers = true)]
     seed: Option<Vec<f64>>,
     #[arg(long, value_enum, default_value = "fabrik")]
@@ -76,13 +92,72 @@ fn open_input(path: &Path) -> anyhow::Result<(Box<dyn Read>, ProgressBar)> {
     Ok((Box::new(bar.wrap_read(BufReader::new(file))), bar))
 }
 
-fn open_output(path: &Path) -> anyhow::Result<Box<dyn Write>> {
-    if path == Path::new("-") {
-        return Ok(Box::new(std::io::stdout().lock()));
+/// Where a batch writes: stdout, or a temporary file beside the output that [`Output::finish`]
+/// renames over it (dropped unfinished, the temporary file is removed and the target kept).
+enum Output {
+    Stdout,
+    File { temporary: PathBuf, target: PathBuf },
+}
+
+impl Output {
+    /// Refuses `output` = `input` (the same file by canonical path, links followed) before
+    /// creating anything, then opens the temporary file.
+    fn open(input: &Path, output: &Path) -> anyhow::Result<(Output, Box<dyn Write>)> {
+        if output == Path::new("-") {
+            return Ok((Output::Stdout, Box::new(super::stdout())));
+        }
+        if input != Path::new("-")
+            && let (Ok(a), Ok(b)) = (input.canonicalize(), output.canonicalize())
+            && a == b
+        {
+            anyhow::bail!(Usage(format!(
+                "--output {} is the input file: writing it would destroy the input; choose another output",
+                output.display()
+            )));
+        }
+        let dir = match output.parent() {
+            Some(dir) if !dir.as_os_str().is_empty() => dir,
+            _ => Path::new("."),
+        };
+        let name = output
+            .file_name()
+            .with_context(|| format!("--output {}: not a file name", output.display()))?;
+        // Hidden, beside the target (a rename within one directory is atomic), and unique to
+        // this process so two batches never share one.
+        let temporary = dir.join(format!(
+            ".{}.{}.tmp",
+            name.to_string_lossy(),
+            std::process::id()
+        ));
+        let file = File::create_new(&temporary)
+            .with_context(|| format!("cannot create output {}", temporary.display()))?;
+        let target = output.to_path_buf();
+        Ok((Output::File { temporary, target }, Box::new(file)))
     }
-    let file =
-        File::create(path).with_context(|| format!("cannot create output {}", path.display()))?;
-    Ok(Box::new(file))
+
+    /// The batch ended: the output file takes the batch's rows.
+    fn finish(self) -> anyhow::Result<()> {
+        if let Output::File { temporary, target } = &self {
+            std::fs::rename(temporary, target).with_context(|| {
+                format!(
+                    "cannot move {} to {}",
+                    temporary.display(),
+                    target.display()
+                )
+            })?;
+            std::mem::forget(self);
+        }
+        Ok(())
+    }
+}
+
+impl Drop for Output {
+    fn drop(&mut self) {
+        if let Output::File { temporary, .. } = self {
+            // Best effort: the batch already failed and says why; a leftover is only litter.
+            let _ = std::fs::remove_file(temporary);
+        }
+    }
 }
 
 /// Row counts on the bar, every 1,000 rows (formatting each row would cost more than it shows).
@@ -92,8 +167,8 @@ fn show_rows(bar: &ProgressBar, rows: usize) {
     }
 }
 
-fn load(rig: &Path) -> anyhow::Result<Rig> {
-    load_rig(rig).context("cannot load the rig")
+fn load(args: &RigArgs) -> anyhow::Result<Rig> {
+    load_rig_with_tool(&args.rig, args.tool_frame.as_deref()).context("cannot load the rig")
 }
 
 fn report(summary: &BatchSummary, elapsed: std::time::Duration, with_errors: bool) {
@@ -133,18 +208,18 @@ fn exit_code(summary: &BatchSummary) -> ExitCode {
     if summary.failed.is_empty() {
         ExitCode::SUCCESS
     } else {
-        // Distinct from 1 (could not run at all): the batch ran, some rows failed.
-        ExitCode::from(2)
+        ExitCode::from(super::EXIT_FAILED_ROWS)
     }
 }
 
 pub fn fk(args: FkArgs) -> anyhow::Result<ExitCode> {
     let rig = load(&args.rig)?;
     let (input, bar) = open_input(&args.input)?;
-    let output = open_output(&args.output)?;
+    let (output, writer) = Output::open(&args.input, &args.output)?;
     let start = Instant::now();
-    let summary = fk_batch(&rig, input, output, |n| show_rows(&bar, n))
+    let summary = fk_batch(&rig, input, writer, |n| show_rows(&bar, n))
         .with_context(|| format!("fk batch on {}", args.input.display()))?;
+    output.finish()?;
     bar.finish_and_clear();
     report(&summary, start.elapsed(), false);
     Ok(exit_code(&summary))
@@ -153,31 +228,37 @@ pub fn fk(args: FkArgs) -> anyhow::Result<ExitCode> {
 pub fn ik(args: IkArgs) -> anyhow::Result<ExitCode> {
     let rig = load(&args.rig)?;
     let seed = match args.seed {
-        Some(degrees) if degrees.len() != rig.dof() => {
-            bail!(
+        Some(values) if values.len() != rig.dof() => {
+            anyhow::bail!(Usage(format!(
                 "--seed has {} values, rig {} has {} joints",
-                degrees.len(),
+                values.len(),
                 rig.name,
                 rig.dof()
-            )
+            )))
         }
-        Some(degrees) => degrees.iter().map(|d| d.to_radians()).collect(),
+        Some(values) => values
+            .iter()
+            .zip(&rig.joints)
+            .map(|(v, joint)| joint.kind.from_user(*v))
+            .collect(),
         None => vec![0.0; rig.dof()],
     };
     let solver: Box<dyn IkSolver> = match args.solver {
-        SolverChoice::Fabrik => {
-            Box::new(FabrikSolver::new(rig).context("the FABRIK planner cannot drive this rig")?)
-        }
+        SolverChoice::Fabrik => Box::new(FabrikSolver::new(rig).context(
+            "the FABRIK planner cannot drive this rig (it needs a six-axis arm with a \
+             spherical wrist); try --solver ccd",
+        )?),
         SolverChoice::Ccd => Box::new(CcdSolver::new(rig)),
         SolverChoice::Gd => Box::new(GradientDescentSolver::new(rig)),
     };
     let (input, bar) = open_input(&args.input)?;
-    let output = open_output(&args.output)?;
+    let (output, writer) = Output::open(&args.input, &args.output)?;
     let start = Instant::now();
-    let summary = ik_batch(solver.as_ref(), &seed, input, output, |n| {
+    let summary = ik_batch(solver.as_ref(), &seed, input, writer, |n| {
         show_rows(&bar, n)
     })
     .with_context(|| format!("ik batch on {}", args.input.display()))?;
+    output.finish()?;
     bar.finish_and_clear();
     report(&summary, start.elapsed(), true);
     Ok(exit_code(&summary))

@@ -40,7 +40,7 @@ pub struct GaitArgs {
     #[arg(long)]
     gap: Option<f64>,
     /// Run settings naming the sloth rig (stream rate, twin).
-    #[arg(long, default_value = "config/gait-run.toml")]
+    #[arg(long, default_value = "embedded:/gait-run.toml")]
     config: PathBuf,
     /// Record the run to this MCAP file (default: runs/gait-<unix time>-<pid>.mcap).
     #[arg(long)]
@@ -81,14 +81,17 @@ pub fn gait(args: GaitArgs) -> anyhow::Result<ExitCode> {
             .with_context(|| format!("{} names no sloth rig", args.config.display()))?;
         if let Some(name) = &args.solver {
             sloth.gait.solver = LimbSolver::from_name(name).with_context(|| {
-                format!("--solver {name:?}: must be one of {:?}", LimbSolver::NAMES)
+                format!(
+                    "--solver {name}: must be one of {}",
+                    LimbSolver::NAMES.join(", ")
+                )
             })?;
         }
         if let Some(name) = &args.sequence {
             let sequence = FootfallSequence::from_name(name).with_context(|| {
                 format!(
-                    "--sequence {name:?}: must be one of {:?}",
-                    FootfallSequence::NAMES
+                    "--sequence {name}: must be one of {}",
+                    FootfallSequence::NAMES.join(", ")
                 )
             })?;
             sloth.gait.footfall_order = sequence
@@ -130,8 +133,8 @@ pub fn gait(args: GaitArgs) -> anyhow::Result<ExitCode> {
         body_path,
         sloth,
     } = wait(&control, job)?;
-    print_verdict(&verdict);
-    println!("  log: {}", log.display());
+    print_verdict(&verdict)?;
+    say!("  log: {}", log.display());
     if let Some(path) = &args.picture {
         std::fs::write(path, picture::render(&sloth, &scenario, &plan, &body_path))
             .with_context(|| format!("cannot write picture {}", path.display()))?;
@@ -171,27 +174,30 @@ fn walk_from(
     Ok(forest.scenario(&args.scenario)?)
 }
 
-fn print_verdict(r: &GaitReport) {
-    println!(
-        "gait {} (angle {:?}, gap {:?}, {:?} limbs): {} over {} judged cycles, {:.3} m/s",
+fn print_verdict(r: &GaitReport) -> anyhow::Result<()> {
+    let shown = |value: Option<f64>, unit: &str| {
+        value.map_or("none".to_string(), |v| format!("{v} {unit}"))
+    };
+    say!(
+        "gait {} (angle {}, gap {}, {} limbs): {} over {} judged cycles, {:.3} m/s",
         r.scenario,
-        r.angle_deg,
-        r.gap_m,
-        r.solver,
+        shown(r.angle_deg, "deg"),
+        shown(r.gap_m, "m"),
+        r.solver.name(),
         if r.passed { "PASSED" } else { "FAILED" },
         r.cycles_judged,
         r.speed_mps
     );
     if let Some(reason) = &r.reason {
-        println!("  reason: {reason}");
+        say!("  reason: {reason}");
     }
-    println!(
+    say!(
         "  footfalls: {}; min body clearance {:.1} mm; max IK residual {:.3} mm",
         r.footfall_order.join(" "),
         r.min_body_clearance_mm,
         r.max_ik_residual_mm
     );
-    println!(
+    say!(
         "  body rose {:.3} m; head at least {:.3} m above the tail, heading at least {:.1} deg \
          above level{}",
         r.body_rise_m,
@@ -201,7 +207,7 @@ fn print_verdict(r: &GaitReport) {
             .map_or(String::new(), |d| format!("; {d:.1} deg around the trunk"))
     );
     for l in &r.limbs {
-        println!(
+        say!(
             "  {}: duty {:.2}, foot-to-surface {:.3} mm, slip {:.3} mm, {} {:.1} of {:.1} deg",
             l.limb,
             l.duty_factor,
@@ -212,4 +218,5 @@ fn print_verdict(r: &GaitReport) {
             l.bone_limit_deg
         );
     }
+    Ok(())
 }

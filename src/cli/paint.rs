@@ -22,10 +22,10 @@ pub struct PaintArgs {
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Run settings (stream rate, twin, plan shares); its rig must be the painter.
-    #[arg(long, default_value = "config/paint-run.toml")]
+    #[arg(long, default_value = "embedded:/paint-run.toml")]
     config: PathBuf,
     /// Room, brush and coverage settings [default: the run settings' `[job] paint_config`
-    /// when its job paints, else config/paint.toml].
+    /// when its job paints, else embedded:/paint.toml].
     #[arg(long)]
     paint_config: Option<PathBuf>,
     #[arg(long, value_enum, default_value = "wall")]
@@ -46,7 +46,7 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
     let paint_config = match (args.paint_config, &settings.config.job) {
         (Some(file), _) => file,
         (None, JobConfig::Paint(job)) => job.paint_config.clone(),
-        (None, _) => PathBuf::from("config/paint.toml"),
+        (None, _) => rigbridge::rig::shipped::path("paint.toml"),
     };
     let paint = load_paint_settings(&paint_config).context("cannot load paint settings")?;
     let picture_kind = match &args.picture {
@@ -78,7 +78,12 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
             Some(&job_log),
             &job_control,
             &mut |plan| {
-                println!(
+                // On the streaming thread: a closed stdout must not stop the job here; the
+                // summary after it ends the output.
+                use std::io::Write as _;
+                let mut out = super::stdout();
+                let _ = writeln!(
+                    out,
                     "planned {} strokes ({:.0} s of motion) in {:.2} s{}",
                     plan.strokes.len(),
                     plan.trajectory.duration_s(),
@@ -93,7 +98,8 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
                     }
                 );
                 for stroke in &plan.unreachable {
-                    println!(
+                    let _ = writeln!(
+                        out,
                         "  wall {} at s = {:.3} m, v {:.3}..{:.3} m: {}",
                         stroke.wall, stroke.s_m, stroke.v_from_m, stroke.v_to_m, stroke.reason
                     );
@@ -103,9 +109,9 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
     })?;
     let run = super::run::wait(&control, job)?;
     let r = &run.run;
-    print_stream_summary(&r.job, &r.rig, r.rate_hz, r.clock, &r.stream);
+    print_stream_summary(&r.job, &r.rig, r.rate_hz, r.clock, &r.stream)?;
     let t = &run.paint.totals;
-    println!(
+    say!(
         "  paint: coverage {:.3} % of {:.3} m2 ({:.3} m2 painted), paint in openings {:.4} m2, collisions {}, limit violations {}",
         t.coverage * 100.0,
         t.paintable_m2,
@@ -114,17 +120,20 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
         t.collisions,
         t.limit_violations
     );
-    println!("  log: {}", log.display());
+    say!("  log: {}", log.display());
     super::run::write_report(args.report.as_deref(), &run.paint)?;
     if let (Some(picture), Some(kind)) = (&args.picture, picture_kind) {
         let world = run.world.lock().unwrap_or_else(PoisonError::into_inner);
         match kind {
             Picture::Svg => std::fs::write(picture, write_svg(&world, &run.paint))
                 .with_context(|| format!("cannot write picture {}", picture.display()))?,
-            Picture::Png => write_png(&world, &run.paint, picture)
-                .with_context(|| format!("cannot write picture {}", picture.display()))?,
+            Picture::Png => {
+                super::plot::register_font()?;
+                super::plot::write_picture(picture, |path| write_png(&world, &run.paint, path))
+                    .with_context(|| format!("cannot write picture {}", picture.display()))?
+            }
         }
-        println!("  picture: {}", picture.display());
+        say!("  picture: {}", picture.display());
     }
     Ok(exit_code(r.stream.outcome))
 }

@@ -42,9 +42,12 @@ pub fn plot_command(args: PlotArgs) -> anyhow::Result<ExitCode> {
             args.log.display()
         );
     }
-    plot(&run, &args.output, (args.width, args.height))
-        .with_context(|| format!("cannot draw {}", args.output.display()))?;
-    println!(
+    // Before drawing: inside it, only the backend's failure is reported.
+    register_font()?;
+    write_picture(&args.output, |path| {
+        plot(&run, path, (args.width, args.height))
+    })?;
+    say!(
         "{}: {} commands, {} states -> {}",
         args.log.display(),
         run.commands.len(),
@@ -52,6 +55,46 @@ pub fn plot_command(args: PlotArgs) -> anyhow::Result<ExitCode> {
         args.output.display()
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// Draws a picture with `draw` into a temporary file beside `path`, then renames it over
+/// `path`. The temporary file is created here first, so a directory that is missing or not
+/// writable gets a plain I/O error (the plotting backend's own errors print Rust debug
+/// text), and a failed drawing leaves `path` as it was.
+pub(super) fn write_picture(
+    path: &Path,
+    draw: impl FnOnce(&Path) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
+    let dir = match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() => dir,
+        _ => Path::new("."),
+    };
+    let name = path
+        .file_name()
+        .with_context(|| format!("{}: not a file name", path.display()))?;
+    // The backend picks the format by extension: keep it last.
+    let temporary = dir.join(format!(
+        ".{}.{}",
+        std::process::id(),
+        name.to_string_lossy()
+    ));
+    std::fs::File::create_new(&temporary)
+        .with_context(|| format!("cannot write {} (in {})", path.display(), dir.display()))?;
+    let drawn = draw(&temporary).map_err(|_| {
+        anyhow::anyhow!(
+            "cannot draw {}: the plotting backend failed to render or encode it",
+            path.display()
+        )
+    });
+    let moved = drawn.and_then(|()| {
+        std::fs::rename(&temporary, path)
+            .with_context(|| format!("cannot move {} to {}", temporary.display(), path.display()))
+    });
+    if moved.is_err() {
+        // Best effort: the error says what failed; a leftover would only be litter.
+        let _ = std::fs::remove_file(&temporary);
+    }
+    moved
 }
 
 pub(super) const FONT: &str = "sans-serif";
@@ -68,8 +111,7 @@ pub(super) fn register_font() -> anyhow::Result<()> {
 /// How one axis' values are shown: the factor from the log's unit and the label.
 fn axis_unit(kinds: Option<&[JointKind]>, axis: usize) -> (f64, &'static str) {
     match kinds.and_then(|k| k.get(axis)) {
-        Some(JointKind::Revolute) => (180.0 / std::f64::consts::PI, "deg"),
-        Some(JointKind::Prismatic) => (1.0, "m"),
+        Some(kind) => (kind.to_user(1.0), kind.unit()),
         None => (1.0, "rad|m"),
     }
 }

@@ -21,7 +21,7 @@ pub struct ReplayArgs {
     /// The MCAP log of a run.
     log: PathBuf,
     /// Run settings for the rig and the twin (the log's rig must match).
-    #[arg(long, default_value = "config/rigbridge.toml")]
+    #[arg(long, env = "RIGBRIDGE_CONFIG", default_value = rigbridge::rig::shipped::DEFAULT_RUN_SETTINGS)]
     config: PathBuf,
     /// Where to stream (overrides the config): loopback, tcp://HOST:PORT,
     /// serial:///dev/PATH?baud=N, can://IFACE or egm://ADDR:PORT, as for `run`.
@@ -54,7 +54,8 @@ pub enum LogCommand {
 }
 
 pub fn replay_command(args: ReplayArgs) -> anyhow::Result<ExitCode> {
-    let settings = load_run_settings(&args.config).context("cannot load run settings")?;
+    let settings =
+        load_run_settings(&args.config).with_context(|| super::settings_context(&args.config))?;
     let log = read_log(&args.log).with_context(|| format!("cannot read {}", args.log.display()))?;
     if log.truncated {
         eprintln!(
@@ -91,8 +92,8 @@ pub fn replay_command(args: ReplayArgs) -> anyhow::Result<ExitCode> {
     })?;
     let report = wait(&control, job)?;
     let run = &report.run;
-    print_stream_summary("replay", &run.rig, run.rate_hz, run.clock, &run.stream);
-    println!(
+    print_stream_summary("replay", &run.rig, run.rate_hz, run.clock, &run.stream)?;
+    say!(
         "  {} recorded commands every {:.3} ms at {} x speed{}; approach {} samples, stop ramp {} samples",
         report.recorded_commands,
         report.recorded_period_s * 1e3,
@@ -102,11 +103,11 @@ pub fn replay_command(args: ReplayArgs) -> anyhow::Result<ExitCode> {
         report.stop_ramp_samples
     );
     match report.max_deviation_from_recording_deg {
-        Some(deviation) => println!(
+        Some(deviation) => say!(
             "  same sequence: {}, max deviation from the recording {deviation:.6} deg",
             report.same_sequence
         ),
-        None => println!("  resampled: no cycle to compare one for one with the recording"),
+        None => say!("  resampled: no cycle to compare one for one with the recording"),
     }
     write_report(args.report.as_deref(), &report)?;
     Ok(super::run::exit_code(run.stream.outcome))
@@ -118,9 +119,9 @@ pub fn log_command(command: LogCommand) -> anyhow::Result<ExitCode> {
             let run = read_log(&log).with_context(|| format!("cannot read {}", log.display()))?;
             let summary = summarize(&run);
             if json {
-                println!("{}", serde_json::to_string_pretty(&summary)?);
+                say!("{}", serde_json::to_string_pretty(&summary)?);
             } else {
-                println!("{summary}");
+                say!("{summary}");
             }
             Ok(ExitCode::SUCCESS)
         }

@@ -18,7 +18,7 @@ pub struct ResetArgs {
     #[arg(long)]
     link: Option<String>,
     /// Run settings: the rig and stream rate the bridge's Hello announces.
-    #[arg(long, default_value = "config/rigbridge.toml")]
+    #[arg(long, env = "RIGBRIDGE_CONFIG", default_value = rigbridge::rig::shipped::DEFAULT_RUN_SETTINGS)]
     config: PathBuf,
 }
 
@@ -26,7 +26,8 @@ pub struct ResetArgs {
 const KEPT_EXIT: u8 = 3;
 
 pub fn reset(args: ResetArgs) -> anyhow::Result<ExitCode> {
-    let settings = load_run_settings(&args.config).context("cannot load run settings")?;
+    let settings =
+        load_run_settings(&args.config).with_context(|| super::settings_context(&args.config))?;
     let spec: LinkSpec = args
         .link
         .as_deref()
@@ -35,7 +36,7 @@ pub fn reset(args: ResetArgs) -> anyhow::Result<ExitCode> {
     let mut link = open_link(&spec, &settings).context("cannot open the link")?;
     let outcome = reset_controller(link.as_mut(), RESET_TIMEOUT)
         .with_context(|| format!("reset over {}", link.describe()))?;
-    println!("reset over {}: {outcome}", link.describe());
+    say!("reset over {}: {outcome}", link.describe());
     Ok(if outcome.is_clear() {
         ExitCode::SUCCESS
     } else {

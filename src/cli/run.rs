@@ -26,7 +26,7 @@ pub enum ClockChoice {
 #[derive(Args)]
 pub struct RunArgs {
     /// Run settings: rig, stream rate, twin, plan and job.
-    #[arg(long, default_value = "config/rigbridge.toml")]
+    #[arg(long, env = "RIGBRIDGE_CONFIG", default_value = rigbridge::rig::shipped::DEFAULT_RUN_SETTINGS)]
     config: PathBuf,
     /// Where to stream (overrides the config): loopback, tcp://HOST:PORT,
     /// serial:///dev/PATH?baud=N, can://IFACE or egm://ADDR:PORT (bind, as an ABB EGM sensor).
@@ -102,7 +102,8 @@ fn stop(control: &StreamControl, bar: &ProgressBar) {
 }
 
 pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
-    let settings = load_run_settings(&args.config).context("cannot load run settings")?;
+    let settings =
+        load_run_settings(&args.config).with_context(|| super::settings_context(&args.config))?;
     let log = args.log.unwrap_or_else(|| default_log_path("run"));
     if let Some(dir) = log.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
@@ -149,8 +150,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
             return Err(error);
         }
     };
-    print_summary(&report);
-    println!("  log: {}", log.display());
+    print_summary(&report)?;
+    say!("  log: {}", log.display());
     write_report(args.report.as_deref(), &report)?;
     Ok(exit_code(report.stream.outcome))
 }
@@ -188,14 +189,14 @@ pub fn write_report(
     Ok(())
 }
 
-fn print_summary(report: &RunReport) {
+fn print_summary(report: &RunReport) -> anyhow::Result<()> {
     print_stream_summary(
         &report.job,
         &report.rig,
         report.rate_hz,
         report.clock,
         &report.stream,
-    );
+    )
 }
 
 pub fn print_stream_summary(
@@ -204,16 +205,25 @@ pub fn print_stream_summary(
     rate_hz: f64,
     clock: &str,
     s: &rigbridge::stream::StreamReport,
-) {
-    println!(
+) -> anyhow::Result<()> {
+    say!(
         "{} on {} over {}: {} after {} cycles ({:.2} s at {} Hz, {} clock)",
-        job, rig, s.link, s.outcome, s.cycles, s.duration_s, rate_hz, clock
+        job,
+        rig,
+        s.link,
+        s.outcome,
+        s.cycles,
+        s.duration_s,
+        rate_hz,
+        clock
     );
-    println!(
+    say!(
         "  missed cycles {}, limit violations {}, feedback timeouts {}",
-        s.missed_cycles, s.limit_violations, s.feedback_timeouts
+        s.missed_cycles,
+        s.limit_violations,
+        s.feedback_timeouts
     );
-    println!(
+    say!(
         "  jitter p50 {:.0} us, p99 {:.0} us, max {:.0} us; latency p99 {:.0} us; tracking error max {:.3} deg",
         s.jitter_p50_us,
         s.jitter_p99_us,
@@ -221,7 +231,7 @@ pub fn print_stream_summary(
         s.latency_p99_us,
         s.tracking_error_max_deg
     );
-    println!(
+    say!(
         "  link: {} frames sent, {} received, {} CRC errors, {} gaps, {} duplicates, {} reconnects",
         s.counters.frames_sent,
         s.counters.frames_received,
@@ -231,6 +241,7 @@ pub fn print_stream_summary(
         s.counters.reconnects
     );
     if let Some(fault) = &s.fault {
-        println!("  fault: {fault}");
+        say!("  fault: {fault}");
     }
+    Ok(())
 }

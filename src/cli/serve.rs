@@ -23,7 +23,7 @@ pub struct ServeArgs {
     /// to serve several rigs at once, one cell each, named by its rig; the first file's
     /// `[serve]` sets the bind address and token, and its cell answers the routes without a
     /// cell name.
-    #[arg(long, default_value = "config/rigbridge.toml")]
+    #[arg(long, env = "RIGBRIDGE_CONFIG", default_value = rigbridge::rig::shipped::DEFAULT_RUN_SETTINGS)]
     config: Vec<PathBuf>,
     /// Address to listen on [default: `[serve] bind`, else 127.0.0.1]. Anything but a
     /// loopback address requires a token (RIGBRIDGE_TOKEN or `[serve] token`).
@@ -144,7 +144,7 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
             .with_context(|| {
                 format!("cannot bind {}", std::net::SocketAddr::new(bind, args.port))
             })?;
-        println!("http://{}/", listener.local_addr()?);
+        say!("http://{}/", listener.local_addr()?);
         run(listener, cells, options, shutdown_signal()).await?;
         anyhow::Ok(())
     })?;

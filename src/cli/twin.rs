@@ -22,7 +22,7 @@ use std::time::Duration;
 #[command(group(clap::ArgGroup::new("transport").required(true).args(["listen", "serial", "pty", "can", "egm"])))]
 pub struct TwinArgs {
     /// Rig and twin settings (servo model, initial position, cycle).
-    #[arg(long, default_value = "config/rigbridge.toml")]
+    #[arg(long, env = "RIGBRIDGE_CONFIG", default_value = rigbridge::rig::shipped::DEFAULT_RUN_SETTINGS)]
     config: PathBuf,
     /// Serve TCP: tcp://HOST:PORT (port 0 picks a free one).
     #[arg(long)]
@@ -87,7 +87,8 @@ fn say(line: &str) {
 }
 
 pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
-    let settings = load_run_settings(&args.config).context("cannot load run settings")?;
+    let settings =
+        load_run_settings(&args.config).with_context(|| super::settings_context(&args.config))?;
     if let Some(sensor) = &args.egm {
         return egm_twin(&args, sensor, &settings);
     }

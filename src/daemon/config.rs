@@ -321,10 +321,7 @@ fn default_initial(rig: &Rig) -> Vec<f64> {
         .iter()
         .map(|joint| {
             let zero = 0.0_f64.clamp(joint.limits.lower, joint.limits.upper);
-            match joint.kind {
-                crate::rig::JointKind::Revolute => zero.to_degrees(),
-                crate::rig::JointKind::Prismatic => zero,
-            }
+            joint.kind.to_user(zero)
         })
         .collect()
 }
@@ -355,10 +352,7 @@ impl RunSettings {
 
 /// Reads and validates run settings and the rig they name.
 pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
-    let text = std::fs::read_to_string(file).map_err(|source| ConfigError::Io {
-        file: file.to_path_buf(),
-        source,
-    })?;
+    let text = crate::rig::shipped::read(file)?;
     let mut config: RunConfig = toml::from_str(&text).map_err(|e| ConfigError::Parse {
         file: file.to_path_buf(),
         message: e.to_string().trim_end().to_string(),
@@ -404,7 +398,7 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         return Err(ConfigError::invalid(
             file,
             "stream.can_base_id",
-            format_args!("{:#x}", config.stream.can_base_id),
+            crate::rig::Verbatim(format!("{:#x}", config.stream.can_base_id)),
             &format!(
                 "must be at most {MAX_CAN_BASE_ID:#x}: the protocol's {CAN_ID_BLOCK:#x} \
                  identifiers from the base must fit the 11-bit range"
@@ -466,7 +460,7 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         return Err(ConfigError::invalid(
             file,
             "serve.token",
-            "<redacted>",
+            crate::rig::Verbatim("<redacted>"),
             reason,
         ));
     }

@@ -21,6 +21,21 @@ pub fn resolve_file(base_dir: &Path, key: &str, name: &Path) -> Result<PathBuf, 
         ));
     }
     let path = base_dir.join(name);
+    if crate::rig::shipped::is_shipped(base_dir) {
+        // The config is built in: so are the files it names, and nothing on disk is reachable.
+        return match crate::rig::shipped::find(&path) {
+            Some(_) => Ok(path),
+            None => Err(JobInvalid::new(
+                key,
+                shown,
+                format!(
+                    "no such built-in file {} (built in: {})",
+                    path.display(),
+                    crate::rig::shipped::names()
+                ),
+            )),
+        };
+    }
     let (Ok(real), Ok(real_base)) = (path.canonicalize(), base_dir.canonicalize()) else {
         return Err(JobInvalid::new(
             key,

@@ -271,10 +271,7 @@ pub fn to_si(values: &[f64], rig: &Rig) -> Vec<f64> {
     values
         .iter()
         .zip(&rig.joints)
-        .map(|(v, joint)| match joint.kind {
-            crate::rig::JointKind::Revolute => v.to_radians(),
-            crate::rig::JointKind::Prismatic => *v,
-        })
+        .map(|(v, joint)| joint.kind.from_user(*v))
         .collect()
 }
 

@@ -184,18 +184,11 @@ fn kind(log: &RunLog, axis: usize) -> Option<JointKind> {
 }
 
 fn unit(log: &RunLog, axis: usize) -> &'static str {
-    match kind(log, axis) {
-        Some(JointKind::Revolute) => "deg",
-        Some(JointKind::Prismatic) => "m",
-        None => "rad|m",
-    }
+    kind(log, axis).map_or("rad|m", JointKind::unit)
 }
 
 fn in_unit(log: &RunLog, axis: usize, value: f64) -> f64 {
-    match kind(log, axis) {
-        Some(JointKind::Revolute) => value.to_degrees(),
-        _ => value,
-    }
+    kind(log, axis).map_or(value, |kind| kind.to_user(value))
 }
 
 impl fmt::Display for LogSummary {

@@ -109,7 +109,7 @@ pub enum EncodeError {
         max_speed: usize,
         max_acceleration: usize,
     },
-    #[error("axis name {name:?} is {len} bytes; at most {MAX_NAME_LEN}")]
+    #[error("axis name `{name}` is {len} bytes; at most {MAX_NAME_LEN}")]
     NameTooLong { name: String, len: usize },
     #[error("fault text is {len} bytes; at most {MAX_TEXT_LEN}")]
     TextTooLong { len: usize },

@@ -11,11 +11,15 @@ use thiserror::Error;
 
 #[derive(Debug, Error)]
 pub enum ConfigError {
-    #[error("{file}: cannot read")]
+    #[error("{file}: cannot read (looked for {looked})")]
     Io {
         file: PathBuf,
+        /// Where it was looked for, absolute (see [`super::shipped::read`]).
+        looked: String,
         source: std::io::Error,
     },
+    #[error("{file}: no such built-in file (built in: {names})")]
+    NotShipped { file: PathBuf, names: String },
     #[error("{file}: {message}")]
     Parse { file: PathBuf, message: String },
     #[error("{file}: key `{key}` = {value}: {reason}")]
@@ -29,11 +33,11 @@ pub enum ConfigError {
 
 impl ConfigError {
     /// `key` in `file` holds `value`, refused for `reason`.
-    pub fn invalid(file: &Path, key: &str, value: impl std::fmt::Debug, reason: &str) -> Self {
+    pub fn invalid(file: &Path, key: &str, value: impl Shown, reason: &str) -> Self {
         ConfigError::Invalid {
             file: file.to_path_buf(),
             key: key.to_string(),
-            value: format!("{value:?}"),
+            value: value.shown(),
             reason: reason.to_string(),
         }
     }
@@ -59,15 +63,38 @@ pub fn check_range(
     }
 }
 
-/// Reads a rig from a `.toml` description or a `.urdf` file, chosen by extension.
+/// Reads a rig from a TOML description or a URDF file (a shipped one or one on disk).
 pub fn load_rig(path: &Path) -> Result<Rig, ConfigError> {
-    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
-        file: path.to_path_buf(),
-        source,
-    })?;
-    match path.extension().and_then(|e| e.to_str()) {
-        Some("urdf") => super::rig_from_urdf(&text, path),
-        _ => rig_from_toml(&text, path),
+    load_rig_with_tool(path, None)
+}
+
+/// True when `text` is XML (a URDF): TOML cannot start with `<`, so the content decides,
+/// whatever the file's extension.
+fn is_xml(text: &str) -> bool {
+    text.trim_start_matches('\u{feff}')
+        .trim_start()
+        .starts_with('<')
+}
+
+/// [`load_rig`] ending at `tool_frame` when given: any link of a URDF; for a TOML rig, only
+/// the frame its file names (a TOML rig has one tool frame).
+pub fn load_rig_with_tool(path: &Path, tool_frame: Option<&str>) -> Result<Rig, ConfigError> {
+    let text = super::shipped::read(path)?;
+    if is_xml(&text) || path.extension().is_some_and(|e| e == "urdf") {
+        return super::urdf::rig_from_urdf_to(&text, path, tool_frame);
+    }
+    let rig = rig_from_toml(&text, path)?;
+    match tool_frame {
+        Some(frame) if frame != rig.tool_frame => Err(ConfigError::invalid(
+            path,
+            "tool_frame",
+            rig.tool_frame.as_str(),
+            &format!(
+                "a TOML rig has the one tool frame it names, not `{frame}` (choosing among \
+                 frames applies to URDF rigs)"
+            ),
+        )),
+        _ => Ok(rig),
     }
 }
 
@@ -79,6 +106,81 @@ pub fn rig_from_toml(text: &str, file: &Path) -> Result<Rig, ConfigError> {
     })?;
     raw.validate(file)
 }
+
+/// A value as a message shows it: numbers and lists as TOML writes them, text quoted, a
+/// missing value as `missing` (never Rust's debug form, such as `Some(120.0)`).
+pub trait Shown {
+    fn shown(&self) -> String;
+}
+
+impl Shown for f64 {
+    /// As TOML writes a float: a whole number keeps its `.0`.
+    fn shown(&self) -> String {
+        if self.is_finite() && self.fract() == 0.0 && self.abs() < 1e15 {
+            format!("{self:.1}")
+        } else {
+            self.to_string()
+        }
+    }
+}
+
+impl Shown for str {
+    fn shown(&self) -> String {
+        format!("\"{}\"", self.escape_default())
+    }
+}
+
+impl Shown for String {
+    fn shown(&self) -> String {
+        self.as_str().shown()
+    }
+}
+
+impl<T: Shown + ?Sized> Shown for &T {
+    fn shown(&self) -> String {
+        (**self).shown()
+    }
+}
+
+impl<T: Shown> Shown for Option<T> {
+    fn shown(&self) -> String {
+        self.as_ref()
+            .map_or_else(|| "missing".to_string(), T::shown)
+    }
+}
+
+impl<T: Shown> Shown for [T] {
+    fn shown(&self) -> String {
+        let items: Vec<String> = self.iter().map(T::shown).collect();
+        format!("[{}]", items.join(", "))
+    }
+}
+
+impl<T: Shown, const N: usize> Shown for [T; N] {
+    fn shown(&self) -> String {
+        self.as_slice().shown()
+    }
+}
+
+impl<T: Shown> Shown for Vec<T> {
+    fn shown(&self) -> String {
+        self.as_slice().shown()
+    }
+}
+
+/// Text that is shown as is, not quoted: a placeholder such as `[]` or a formatted number.
+pub struct Verbatim<T>(pub T);
+
+impl<T: std::fmt::Display> Shown for Verbatim<T> {
+    fn shown(&self) -> String {
+        self.0.to_string()
+    }
+}
+
+macro_rules! shown_as_display {
+    ($($t:ty),*) => { $(impl Shown for $t { fn shown(&self) -> String { self.to_string() } })* };
+}
+shown_as_display!(u8, u16, u32, u64, usize, i32, i64, bool);
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -139,7 +241,7 @@ struct Checker<'a> {
 }
 
 impl Checker<'_> {
-    fn invalid(&self, key: String, value: impl std::fmt::Debug, reason: &str) -> ConfigError {
+    fn invalid(&self, key: String, value: impl Shown, reason: &str) -> ConfigError {
         ConfigError::invalid(self.file, &key, value, reason)
     }
 
@@ -169,7 +271,11 @@ impl Checker<'_> {
         match value {
             Some(v) if v.is_finite() => Ok(v),
             Some(v) => Err(self.invalid(key, v, "must be a finite number")),
-            None => Err(self.invalid(key, "missing", &format!("required for a {kind} joint"))),
+            None => Err(self.invalid(
+                key,
+                Verbatim("missing"),
+                &format!("required for a {kind} joint"),
+            )),
         }
     }
 
@@ -301,7 +407,7 @@ pub(crate) fn joints_from_raw(
     if raw.is_empty() {
         return Err(checker.invalid(
             format!("{prefix}joint"),
-            "[]",
+            crate::rig::Verbatim("[]"),
             "a chain needs at least one joint",
         ));
     }

@@ -7,12 +7,13 @@
 mod config;
 mod fk;
 mod pose;
+pub mod shipped;
 mod urdf;
 
-pub use config::{ConfigError, check_range, load_rig};
+pub use config::{ConfigError, Shown, Verbatim, check_range, load_rig, load_rig_with_tool};
 pub(crate) use config::{RawJoint, RawOrigin, joints_from_raw, origin_from_raw};
 pub use fk::{DofMismatch, JointAxis};
-pub use pose::{Pose, PoseError, rotation_angle_between};
+pub use pose::{Pose, PoseError, UNIT_QUATERNION_TOLERANCE, rotation_angle_between};
 pub use urdf::rig_from_urdf;
 
 use glam::{DAffine3, DQuat, DVec3};
@@ -41,6 +42,34 @@ pub enum JointKind {
     Revolute,
     /// Translation along the axis; positions in metres.
     Prismatic,
+}
+
+impl JointKind {
+    /// The unit people read and write this kind of axis' positions in (CSV files, configs,
+    /// summaries, plots, the live view): degrees for a revolute axis, metres for a prismatic
+    /// one. The library works in radians and metres; this is the one place that decides.
+    pub fn unit(self) -> &'static str {
+        match self {
+            JointKind::Revolute => "deg",
+            JointKind::Prismatic => "m",
+        }
+    }
+
+    /// A position (or a speed, an acceleration, a tolerance) in SI units, in [`Self::unit`].
+    pub fn to_user(self, si: f64) -> f64 {
+        match self {
+            JointKind::Revolute => si.to_degrees(),
+            JointKind::Prismatic => si,
+        }
+    }
+
+    /// A value given in [`Self::unit`], in SI units (radians or metres).
+    pub fn from_user(self, value: f64) -> f64 {
+        match self {
+            JointKind::Revolute => value.to_radians(),
+            JointKind::Prismatic => value,
+        }
+    }
 }
 
 /// Position, speed and acceleration bounds of one joint, in SI units (rad or m).

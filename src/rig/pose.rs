@@ -3,8 +3,11 @@
 use glam::{DAffine3, DQuat, DVec3};
 use thiserror::Error;
 
-/// How far a quaternion's norm may stray from 1 before it is refused rather than normalised.
-pub const UNIT_QUATERNION_TOLERANCE: f64 = 1e-6;
+/// How far a quaternion's norm may stray from 1 before it is refused rather than normalised:
+/// 1e-3 admits a unit quaternion written with 4 decimals (each component off by up to
+/// 5e-5, the norm by at most 1e-4), while a scaled or mistyped one (a component dropped,
+/// a digit wrong) is off by far more and is refused.
+pub const UNIT_QUATERNION_TOLERANCE: f64 = 1e-3;
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Pose {
@@ -16,10 +19,28 @@ pub struct Pose {
 pub enum PoseError {
     #[error("pose row has a missing or unparsable value")]
     Unparsable,
-    #[error("pose has a non-finite component: position {position:?}, quaternion {orientation:?}")]
+    #[error(
+        "pose has a non-finite component: position ({}, {}, {}) m, quaternion (w {}, x {}, y {}, z {})",
+        position.x, position.y, position.z, orientation.w, orientation.x, orientation.y, orientation.z
+    )]
     NotFinite { position: DVec3, orientation: DQuat },
-    #[error("quaternion {orientation:?} is not unit: norm {norm}")]
+    #[error(
+        "quaternion (w {}, x {}, y {}, z {}) has norm {norm:.6}, not 1 within {UNIT_QUATERNION_TOLERANCE}",
+        orientation.w, orientation.x, orientation.y, orientation.z
+    )]
     NotUnitQuaternion { orientation: DQuat, norm: f64 },
+}
+
+/// As messages show a pose: position in metres, quaternion w first.
+impl std::fmt::Display for Pose {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let (p, q) = (self.position, self.orientation);
+        write!(
+            f,
+            "position ({:.4}, {:.4}, {:.4}) m, quaternion (w {:.4}, x {:.4}, y {:.4}, z {:.4})",
+            p.x, p.y, p.z, q.w, q.x, q.y, q.z
+        )
+    }
 }
 
 impl Pose {
@@ -96,6 +117,21 @@ mod tests {
     fn rotation_angle_treats_q_and_minus_q_alike() {
         let a = DQuat::from_rotation_y(0.5);
         assert!(rotation_angle_between(a, -a) < 1e-15);
+    }
+
+    #[test]
+    fn a_nearly_unit_quaternion_is_normalised_and_a_far_one_refused() {
+        // 4 decimals of a unit quaternion: norm about 1 + 2e-5.
+        let rounded = Pose::new(
+            DVec3::ZERO,
+            DQuat::from_xyzw(0.1830, 0.1830, 0.6830, 0.6830),
+        );
+        let fixed = rounded.validated().expect("within 1e-3 of unit");
+        assert!((fixed.orientation.length() - 1.0).abs() < 1e-12);
+        let off = Pose::new(DVec3::ZERO, DQuat::from_xyzw(0.0, 0.0, 0.0, 1.002));
+        let refused = off.validated().unwrap_err().to_string();
+        assert!(refused.contains("norm 1.002000"), "{refused}");
+        assert!(!refused.contains("DQuat"), "{refused}");
     }
 
     #[test]

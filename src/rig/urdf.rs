@@ -1,44 +1,55 @@
-//! URDF import: the serial chain from the root link to the deepest leaf becomes a [`Rig`].
+//! URDF import: the serial chain from the root link to the tool frame (named, or the only
+//! leaf a moving joint leads to) becomes a [`Rig`].
 //! Fixed joints fold into the next joint's origin (or the tool transform). URDF carries no
 //! acceleration limit before version 1.2; where it is absent we assume the axis reaches full
 //! speed in [`DEFAULT_TIME_TO_FULL_SPEED_S`].
 
 use super::config::origin_from_xyz_rpy;
-use super::{ConfigError, Joint, JointKind, JointLimits, Rig};
+use super::{ConfigError, Joint, JointKind, JointLimits, Rig, Verbatim};
 use glam::{DAffine3, DVec3};
 use std::path::Path;
 
 pub const DEFAULT_TIME_TO_FULL_SPEED_S: f64 = 0.25;
 
-/// Builds a rig from URDF text; `file` names the source in errors.
+/// Builds a rig from URDF text, ending at the only leaf frame reached through a moving
+/// joint; `file` names the source in errors. See [`rig_from_urdf_to`].
 pub fn rig_from_urdf(text: &str, file: &Path) -> Result<Rig, ConfigError> {
+    rig_from_urdf_to(text, file, None)
+}
+
+/// Builds a rig from URDF text, from the root link to `tool_frame` (any link), or when it
+/// is `None` to the one leaf link that a moving joint leads to: with several, the error
+/// names them all, since guessing the tool would plan for the wrong point.
+pub fn rig_from_urdf_to(
+    text: &str,
+    file: &Path,
+    tool_frame: Option<&str>,
+) -> Result<Rig, ConfigError> {
     let robot = urdf_rs::read_from_string(text).map_err(|e| ConfigError::Parse {
         file: file.to_path_buf(),
         message: e.to_string(),
     })?;
-    let invalid = |key: String, value: String, reason: &str| ConfigError::Invalid {
-        file: file.to_path_buf(),
-        key,
-        value,
-        reason: reason.to_string(),
+    let invalid = |key: &str, value: &str, reason: &str| {
+        ConfigError::invalid(file, key, Verbatim(value), reason)
     };
     let is_child = |link: &str| robot.joints.iter().any(|j| j.child.link == link);
     let root = robot
         .links
         .iter()
         .find(|l| !is_child(&l.name))
-        .ok_or_else(|| {
-            invalid(
-                "link".into(),
-                "(all)".into(),
-                "no root link: the links form a cycle",
-            )
-        })?;
-    let path = deepest_path(&robot, &root.name);
-    let tip = path
-        .last()
-        .map(|j| j.child.link.clone())
-        .unwrap_or_else(|| root.name.clone());
+        .ok_or_else(|| invalid("link", "(all)", "no root link: the links form a cycle"))?;
+    let tip = match tool_frame {
+        Some(frame) => frame.to_string(),
+        None => only_tool_candidate(&robot, &root.name, file)?,
+    };
+    let path = path_to(&robot, &root.name, &tip).ok_or_else(|| {
+        let reason = format!(
+            "no link `{tip}` below the root link {}; its leaf frames: {}",
+            root.name,
+            tool_candidates(&robot, &root.name).join(", ")
+        );
+        ConfigError::invalid(file, "tool frame", Verbatim(&tip), &reason)
+    })?;
 
     let mut joints = Vec::new();
     let mut pending = DAffine3::IDENTITY;
@@ -58,8 +69,8 @@ pub fn rig_from_urdf(text: &str, file: &Path) -> Result<Rig, ConfigError> {
             urdf_rs::JointType::Prismatic => JointKind::Prismatic,
             ref other => {
                 return Err(invalid(
-                    format!("{key}.type"),
-                    format!("{other:?}"),
+                    &format!("{key}.type"),
+                    joint_type_name(other),
                     "only revolute, prismatic and fixed joints are supported (a rig needs finite limits)",
                 ));
             }
@@ -67,15 +78,15 @@ pub fn rig_from_urdf(text: &str, file: &Path) -> Result<Rig, ConfigError> {
         let limit = &urdf_joint.limit;
         if !(limit.lower.is_finite() && limit.upper.is_finite() && limit.lower < limit.upper) {
             return Err(invalid(
-                format!("{key}.limit"),
-                format!("lower={} upper={}", limit.lower, limit.upper),
+                &format!("{key}.limit"),
+                &format!("lower={} upper={}", limit.lower, limit.upper),
                 "needs finite lower < upper",
             ));
         }
         if !(limit.velocity.is_finite() && limit.velocity > 0.0) {
             return Err(invalid(
-                format!("{key}.limit.velocity"),
-                limit.velocity.to_string(),
+                &format!("{key}.limit.velocity"),
+                &limit.velocity.to_string(),
                 "must be positive",
             ));
         }
@@ -87,8 +98,8 @@ pub fn rig_from_urdf(text: &str, file: &Path) -> Result<Rig, ConfigError> {
         let axis = DVec3::from_array(*urdf_joint.axis.xyz);
         if !axis.is_finite() || axis.length() < 1e-9 {
             return Err(invalid(
-                format!("{key}.axis"),
-                format!("{axis:?}"),
+                &format!("{key}.axis"),
+                &format!("[{}, {}, {}]", axis.x, axis.y, axis.z),
                 "must be a non-zero finite vector",
             ));
         }
@@ -108,8 +119,8 @@ pub fn rig_from_urdf(text: &str, file: &Path) -> Result<Rig, ConfigError> {
     }
     if joints.is_empty() {
         return Err(invalid(
-            "joint".into(),
-            "(none)".into(),
+            "joint",
+            "(none)",
             "the chain has no revolute or prismatic joint",
         ));
     }
@@ -122,17 +133,80 @@ pub fn rig_from_urdf(text: &str, file: &Path) -> Result<Rig, ConfigError> {
     })
 }
 
-/// The joints from `root` to the leaf reached through the most joints.
-fn deepest_path<'a>(robot: &'a urdf_rs::Robot, root: &str) -> Vec<&'a urdf_rs::Joint> {
+/// The joints from `root` down to the link `tip`, when `tip` lies below `root`.
+fn path_to<'a>(
+    robot: &'a urdf_rs::Robot,
+    root: &str,
+    tip: &str,
+) -> Option<Vec<&'a urdf_rs::Joint>> {
+    if root == tip {
+        return Some(Vec::new());
+    }
     robot
         .joints
         .iter()
         .filter(|j| j.parent.link == root)
-        .map(|j| {
-            let mut path = vec![j];
-            path.extend(deepest_path(robot, &j.child.link));
-            path
+        .find_map(|j| {
+            let mut rest = path_to(robot, &j.child.link, tip)?;
+            rest.insert(0, j);
+            Some(rest)
         })
-        .max_by_key(|p| p.len())
-        .unwrap_or_default()
+}
+
+/// The leaf links below `root` that a revolute or prismatic joint leads to: the frames a
+/// tool may be (a leaf hanging from the base by fixed joints only moves with nothing).
+fn tool_candidates(robot: &urdf_rs::Robot, root: &str) -> Vec<String> {
+    fn walk(robot: &urdf_rs::Robot, link: &str, moved: bool, out: &mut Vec<String>) {
+        let children: Vec<&urdf_rs::Joint> = robot
+            .joints
+            .iter()
+            .filter(|j| j.parent.link == link)
+            .collect();
+        if children.is_empty() && moved {
+            out.push(link.to_string());
+        }
+        for joint in children {
+            let moving = !matches!(joint.joint_type, urdf_rs::JointType::Fixed);
+            walk(robot, &joint.child.link, moved || moving, out);
+        }
+    }
+    let mut out = Vec::new();
+    walk(robot, root, false, &mut out);
+    out
+}
+
+fn only_tool_candidate(
+    robot: &urdf_rs::Robot,
+    root: &str,
+    file: &Path,
+) -> Result<String, ConfigError> {
+    let mut candidates = tool_candidates(robot, root);
+    match candidates.len() {
+        1 => Ok(candidates.remove(0)),
+        0 => Err(ConfigError::invalid(
+            file,
+            "joint",
+            Verbatim("(none)"),
+            "no revolute or prismatic joint leads to a leaf link",
+        )),
+        _ => Err(ConfigError::invalid(
+            file,
+            "tool frame",
+            Verbatim(candidates.join(", ")),
+            "several leaf frames could be the tool: choose one with --tool-frame NAME",
+        )),
+    }
+}
+
+/// A URDF joint type as the file writes it.
+fn joint_type_name(kind: &urdf_rs::JointType) -> &'static str {
+    match kind {
+        urdf_rs::JointType::Revolute => "revolute",
+        urdf_rs::JointType::Continuous => "continuous",
+        urdf_rs::JointType::Prismatic => "prismatic",
+        urdf_rs::JointType::Fixed => "fixed",
+        urdf_rs::JointType::Floating => "floating",
+        urdf_rs::JointType::Planar => "planar",
+        urdf_rs::JointType::Spherical => "spherical",
+    }
 }

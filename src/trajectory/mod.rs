@@ -21,7 +21,7 @@ pub const SPEED_SLACK: f64 = crate::rig::LIMIT_SLACK;
 
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum TrajectoryError {
-    #[error("trajectory has {got} axes ({names:?}), rig {rig} has {expected}")]
+    #[error("trajectory has {got} axes ({}), rig {rig} has {expected}", names.join(", "))]
     AxisMismatch {
         rig: String,
         expected: usize,
@@ -50,13 +50,18 @@ pub enum TrajectoryError {
         joint: String,
         value: f64,
     },
-    #[error("sample {sample}: {joint} = {value:.6} is outside its limits [{lower:.6}, {upper:.6}]")]
+    #[error(
+        "sample {sample}: {joint} = {:.4} {unit} is outside its limits [{:.4}, {:.4}] {unit}",
+        kind.to_user(*value), kind.to_user(*lower), kind.to_user(*upper), unit = kind.unit()
+    )]
     OutsideLimits {
         sample: usize,
         joint: String,
+        /// SI units (radians or metres); the message shows them in the user's unit.
         value: f64,
         lower: f64,
         upper: f64,
+        kind: crate::rig::JointKind,
     },
     #[error(
         "sample {sample}: {joint} steps {step:.6} in one period, more than its max {max_step:.6}"
@@ -251,6 +256,7 @@ fn check_sample(trajectory: &Trajectory, rig: &Rig, sample: usize) -> Result<(),
                 value,
                 lower: limits.lower,
                 upper: limits.upper,
+                kind: joint.kind,
             });
         }
         if !limits.speed_ok(velocity) {

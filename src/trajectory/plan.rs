@@ -96,16 +96,37 @@ impl PlanSettings {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum InvalidValue {
     NotFinite,
-    OutsideLimits { lower: f64, upper: f64 },
+    /// Limits in SI units; `kind` says how a message shows them (degrees or metres).
+    OutsideLimits {
+        lower: f64,
+        upper: f64,
+        kind: crate::rig::JointKind,
+    },
+}
+
+impl InvalidValue {
+    /// The refused `value` (SI units) as a message shows it: in the unit the user wrote.
+    pub fn shown(&self, value: f64) -> String {
+        match self {
+            InvalidValue::NotFinite => value.to_string(),
+            InvalidValue::OutsideLimits { kind, .. } => {
+                format!("{:.4} {}", kind.to_user(value), kind.unit())
+            }
+        }
+    }
 }
 
 impl fmt::Display for InvalidValue {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             InvalidValue::NotFinite => write!(f, "is not finite"),
-            InvalidValue::OutsideLimits { lower, upper } => {
-                write!(f, "is outside its limits [{lower:.6}, {upper:.6}]")
-            }
+            InvalidValue::OutsideLimits { lower, upper, kind } => write!(
+                f,
+                "is outside its limits [{:.4}, {:.4}] {}",
+                kind.to_user(*lower),
+                kind.to_user(*upper),
+                kind.unit()
+            ),
         }
     }
 }
@@ -132,7 +153,7 @@ pub enum PlanError {
         expected: usize,
         got: usize,
     },
-    #[error("start: {joint} = {value} {reason}")]
+    #[error("start: {joint} = {} {reason}", reason.shown(*value))]
     InvalidStart {
         joint: String,
         value: f64,
@@ -145,7 +166,7 @@ pub enum PlanError {
         expected: usize,
         got: usize,
     },
-    #[error("waypoint {waypoint}: {joint} = {value} {reason}")]
+    #[error("waypoint {waypoint}: {joint} = {} {reason}", reason.shown(*value))]
     InvalidWaypoint {
         waypoint: usize,
         joint: String,
@@ -154,7 +175,7 @@ pub enum PlanError {
     },
     #[error("waypoint {waypoint}: {error}")]
     InvalidPose { waypoint: usize, error: PoseError },
-    #[error("move to waypoint {waypoint}: target {sample_pose:?} is unreachable: {error}")]
+    #[error("move to waypoint {waypoint}: target {sample_pose} is unreachable: {error}")]
     Unreachable {
         waypoint: usize,
         /// Boxed to keep every `Result<_, PlanError>` small.
@@ -236,6 +257,7 @@ fn first_invalid(rig: &Rig, values: &[f64]) -> Option<(usize, InvalidValue)> {
                     InvalidValue::OutsideLimits {
                         lower: limits.lower,
                         upper: limits.upper,
+                        kind: joint.kind,
                     },
                 ))
             } else {
@@ -408,7 +430,10 @@ impl JointMove<'_> {
         let mut profile = rsruckig::prelude::Trajectory::<0>::new(Some(dof));
         match otg.calculate(&input, &mut profile) {
             Ok(RuckigResult::Working | RuckigResult::Finished) => {}
-            Ok(other) => return Err(self.profile_error(format!("{other:?}"))),
+            Ok(other) => {
+                let code = other as i32;
+                return Err(self.profile_error(format!("the profile generator's result {code}")));
+            }
             Err(e) => return Err(self.profile_error(e.to_string())),
         }
         let duration = profile.get_duration();

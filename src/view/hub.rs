@@ -186,10 +186,7 @@ impl LiveHub {
             .joints
             .iter()
             .zip(values.as_slice())
-            .map(|(joint, value)| match joint.kind {
-                JointKind::Revolute => value.to_degrees(),
-                JointKind::Prismatic => *value,
-            })
+            .map(|(joint, value)| joint.kind.to_user(*value))
             .collect()
     }
 

@@ -96,10 +96,7 @@ impl JointLabel {
             .iter()
             .map(|joint| JointLabel {
                 name: joint.name.clone(),
-                unit: match joint.kind {
-                    crate::rig::JointKind::Revolute => "deg",
-                    crate::rig::JointKind::Prismatic => "m",
-                },
+                unit: joint.kind.unit(),
             })
             .collect()
     }

@@ -22,6 +22,14 @@ pub enum LimbSolver {
 impl LimbSolver {
     pub const NAMES: [&'static str; 2] = ["ccd", "fabrik"];
 
+    /// The name `[gait] solver` and `--solver` use.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Ccd => "ccd",
+            Self::Fabrik => "fabrik",
+        }
+    }
+
     /// The solver named `name` as in `[gait] solver`.
     pub fn from_name(name: &str) -> Option<Self> {
         match name {

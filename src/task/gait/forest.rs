@@ -77,10 +77,7 @@ impl Forest {
     /// Reads and validates a forest file. `trunk_tilt_rad` is the sloth's `[gait]
     /// trunk_tilt_deg`: a support tilted more is a trunk, which decides each leg's up.
     pub fn load(file: &Path, trunk_tilt_rad: f64) -> Result<Forest, ConfigError> {
-        let text = std::fs::read_to_string(file).map_err(|source| ConfigError::Io {
-            file: file.to_path_buf(),
-            source,
-        })?;
+        let text = crate::rig::shipped::read(file)?;
         let raw: RawForest = toml::from_str(&text).map_err(|e| ConfigError::Parse {
             file: file.to_path_buf(),
             message: e.to_string().trim_end().to_string(),
@@ -96,7 +93,7 @@ impl Forest {
             return Err(ConfigError::invalid(
                 file,
                 "walk",
-                "[]",
+                crate::rig::Verbatim("[]"),
                 "needs at least one [[walk]]",
             ));
         }
@@ -253,7 +250,7 @@ struct WalkBuilder<'a> {
 }
 
 impl WalkBuilder<'_> {
-    fn invalid(&self, field: &str, value: impl std::fmt::Debug, reason: &str) -> ConfigError {
+    fn invalid(&self, field: &str, value: impl crate::rig::Shown, reason: &str) -> ConfigError {
         ConfigError::invalid(self.file, &format!("{}.{field}", self.key), value, reason)
     }
 

@@ -123,10 +123,7 @@ const BODY_AXES: [&str; 6] = [
 impl SlothRig {
     /// Reads and validates a sloth description; errors name the file, the key and the value.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
-            file: path.to_path_buf(),
-            source,
-        })?;
+        let text = crate::rig::shipped::read(path)?;
         Self::from_toml(&text, path)
     }
 

@@ -85,10 +85,7 @@ fn on_grid(value: f64, grid: f64) -> bool {
 
 /// Reads and validates `config/paint.toml` and the rig it names.
 pub fn load_paint_settings(file: &Path) -> Result<PaintSettings, ConfigError> {
-    let text = std::fs::read_to_string(file).map_err(|source| ConfigError::Io {
-        file: file.to_path_buf(),
-        source,
-    })?;
+    let text = crate::rig::shipped::read(file)?;
     let config: PaintConfig = toml::from_str(&text).map_err(|e| ConfigError::Parse {
         file: file.to_path_buf(),
         message: e.to_string().trim_end().to_string(),
@@ -205,7 +202,7 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
         return Err(ConfigError::invalid(
             file,
             "rig",
-            &c.rig,
+            c.rig.display().to_string(),
             &format!(
                 "the painter needs {EXTRA_AXES} extra axes and a six-axis arm, rig {} has {} axes",
                 rig.name,
