@@ -116,6 +116,7 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
         virtual_clock: matches!(args.clock, ClockChoice::Virtual),
         token,
         allowed_hosts: settings.config.serve.hosts.clone(),
+        before_job: None,
     };
     tokio::runtime::Runtime::new()?.block_on(async move {
         let listener = tokio::net::TcpListener::bind((bind, args.port))
