@@ -119,11 +119,9 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
         before_job: None,
     };
     tokio::runtime::Runtime::new()?.block_on(async move {
-        let listener = tokio::net::TcpListener::bind((bind, args.port))
-            .await
-            .with_context(|| {
-                format!("cannot bind {}", std::net::SocketAddr::new(bind, args.port))
-            })?;
+        let address = std::net::SocketAddr::new(bind, args.port);
+        let listener =
+            rigbridge::daemon::server::bind(address).with_context(|| format!("cannot bind {address}"))?;
         println!("http://{}/", listener.local_addr()?);
         run(listener, cells, options, shutdown_signal()).await?;
         anyhow::Ok(())

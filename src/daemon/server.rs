@@ -23,7 +23,7 @@ mod guard;
 mod scene;
 
 pub use cell::{CellError, check_cells};
-pub use connections::{HEADER_TIMEOUT, IDLE_TIMEOUT, connection_cap};
+pub use connections::{HEADER_TIMEOUT, IDLE_TIMEOUT, LISTEN_BACKLOG, bind, connection_cap};
 pub use guard::{BODY_TIMEOUT, HostCheck, MAX_BODY_BYTES, MAX_LIVE_MESSAGE_BYTES, MAX_LIVE_PAGES};
 
 use super::DaemonError;
