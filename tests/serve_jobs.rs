@@ -167,13 +167,13 @@ fn a_job_over_serve_to_a_tcp_twin_reports_that_link_and_numbers_survive_a_restar
     let (first, status) = run_job(address, "irb120", MOVE_TO_10);
     let report = &status["last"]["report"];
     assert_eq!(status["last"]["result"], "finished", "{status}");
-    assert_eq!(report["stream"]["outcome"], "completed", "{status}");
-    let described = report["stream"]["link"].as_str().unwrap();
+    assert_eq!(report["outcome"], "completed", "{status}");
+    let described = report["link"].as_str().unwrap();
     assert!(
         described.contains(link.trim_start_matches("tcp://")),
         "the report names {described}, not {link}"
     );
-    let cycles = report["stream"]["cycles"].as_u64().unwrap();
+    let cycles = report["cycles"].as_u64().unwrap();
     // The twin moved: the next job starts from where the first one left the remote arm.
     let (second, _) = run_job(address, "irb120", MOVE_HOME);
     let start = start_of(&runs.join(format!("job-{second}.mcap")));
@@ -189,7 +189,7 @@ fn a_job_over_serve_to_a_tcp_twin_reports_that_link_and_numbers_survive_a_restar
     let (server, address) = serve(&config, &runs);
     let (third, status) = run_job(address, "irb120", MOVE_TO_10);
     assert_eq!(
-        status["last"]["report"]["stream"]["outcome"], "completed",
+        status["last"]["report"]["outcome"], "completed",
         "{status}"
     );
     assert!(third > second && second > first, "{first} {second} {third}");
@@ -236,6 +236,7 @@ fn log_sizes(runs: &Path) -> std::collections::BTreeMap<String, u64> {
 // ------------------------------------------------------------------- events --
 
 /// An action as the client saw it: when it was sent and answered (Unix seconds).
+#[derive(Clone, Copy)]
 struct Sent {
     action: &'static str,
     from_s: f64,
@@ -367,32 +368,33 @@ fn control_actions_are_events_of_the_job_log_and_the_cell_journal_with_their_tim
     wait_for(address, "/api/status", "the pause", |s| s["state"] == "paused");
     sent.push(act(address, "resume", 200));
     wait_for(address, "/api/status", "more progress", progressed(0.2));
-    sent.push(act(address, "stop", 200));
-    wait_for(address, "/api/status", "the stop", |s| s["state"] == "idle");
+    sent.push(act(address, "estop", 200));
+    wait_for(address, "/api/status", "the e-stop", |s| s["state"] == "idle");
+    sent.push(act(address, "reset", 200));
     let (code, started) = call(address, "POST", "/api/jobs", "");
     assert_eq!(code, 202, "{started}");
     let second = started["id"].as_u64().unwrap();
     wait_for(address, "/api/status", "the second job", progressed(0.05));
-    let estop = act(address, "estop", 200);
-    wait_for(address, "/api/status", "the e-stop", |s| s["state"] == "idle");
-    let reset = act(address, "reset", 200);
+    let stop = act(address, "stop", 200);
+    wait_for(address, "/api/status", "the stop", |s| s["state"] == "idle");
     server.terminate();
 
     // The job's log: its actions between job_started and job_ended, at its own times.
+    let job_actions = [sent[0], sent[1], sent[2]];
     let log = runs.join(format!("job-{first}.mcap"));
     let logged = events(&log);
-    let times = find_actions(&logged, &sent);
+    let times = find_actions(&logged, &job_actions);
     let ended = logged.iter().find(|(_, k, _)| k == "job_ended").unwrap().0;
     assert!(times[0] > 0.0 && *times.last().unwrap() <= ended, "{logged:?}");
     for (_, kind, detail) in &logged {
-        if ["pause", "resume", "stop"].contains(&kind.as_str()) {
+        if ["pause", "resume", "estop"].contains(&kind.as_str()) {
             assert_eq!(detail["job"], first, "{detail}");
         }
     }
     both_readers_agree(&log, &logged);
     let log = runs.join(format!("job-{second}.mcap"));
     let logged = events(&log);
-    find_actions(&logged, std::slice::from_ref(&estop));
+    find_actions(&logged, std::slice::from_ref(&stop));
     both_readers_agree(&log, &logged);
 
     // The cell's journal: all five, the reset (no job) included.
@@ -406,8 +408,7 @@ fn control_actions_are_events_of_the_job_log_and_the_cell_journal_with_their_tim
         })
         .expect("the cell's journal");
     let logged = events(&journal);
-    sent.push(estop);
-    sent.push(reset);
+    sent.push(stop);
     find_actions(&logged, &sent);
     let reset_event = logged.iter().find(|(_, k, _)| k == "reset").unwrap();
     assert!(reset_event.2["job"].is_null(), "{reset_event:?}");
@@ -498,13 +499,13 @@ fn a_panicking_job_fails_alone_while_the_daemon_and_the_other_cell_go_on() {
     assert_eq!(pan_tilt["state"], "running", "{pan_tilt}");
     // The arm's cell takes its next job and completes it, meanwhile.
     let (_, arm) = run_job(address, "irb120", MOVE_TO_10);
-    assert_eq!(arm["last"]["report"]["stream"]["outcome"], "completed", "{arm}");
+    assert_eq!(arm["last"]["report"]["outcome"], "completed", "{arm}");
     let pan_tilt = wait_for(address, "/api/cells/pan_tilt/status", "its end", |s| {
         s["state"] == "idle"
     });
     assert_eq!(pan_tilt["last"]["id"], other);
     assert_eq!(
-        pan_tilt["last"]["report"]["stream"]["outcome"], "completed",
+        pan_tilt["last"]["report"]["outcome"], "completed",
         "{pan_tilt}"
     );
     let _ = stop.send(());

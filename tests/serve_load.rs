@@ -156,7 +156,7 @@ fn an_estop_is_answered_under_500_idle_and_50_slow_connections_at_256_descriptor
     });
     let last = status(&server);
     assert_eq!(
-        last["last"]["report"]["stream"]["outcome"], "e_stopped",
+        last["last"]["report"]["outcome"], "e_stopped",
         "{last}"
     );
     let (answer, _) = http(server.address, "POST", "/api/reset", JSON, "", ANSWERED_WITHIN);

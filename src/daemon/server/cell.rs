@@ -583,13 +583,16 @@ impl Cell {
         job: JobConfig,
         options: &ServeOptions,
     ) -> Result<StartedJob, StartRefused> {
+        // Asked before the job slot is taken: for a remote link `controller` reads the slot
+        // itself, and a second lock of it on this thread would never return.
+        let fault = self.controller().fault;
         let Ok(mut slot) = self.job.lock() else {
             return Err(StartRefused::Poisoned);
         };
         if slot.as_ref().is_some_and(|j| !j.handle.is_finished()) {
             return Err(StartRefused::Busy);
         }
-        if let Some(fault) = self.controller().fault {
+        if let Some(fault) = fault {
             return Err(StartRefused::Faulted(fault));
         }
         let name = job.kind().to_string();
