@@ -104,7 +104,13 @@ fn report(label: &str, tries: &[(Option<u16>, Duration)]) {
     // An unanswered try counts as at least GIVE_UP, never as fast.
     let times: Vec<Duration> = tries
         .iter()
-        .map(|(code, took)| if code.is_some() { *took } else { (*took).max(GIVE_UP) })
+        .map(|(code, took)| {
+            if code.is_some() {
+                *took
+            } else {
+                (*took).max(GIVE_UP)
+            }
+        })
         .collect();
     let answered = tries.iter().filter(|(code, _)| code.is_some()).count();
     let ms = |d: Duration| d.as_secs_f64() * 1e3;

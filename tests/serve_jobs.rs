@@ -22,7 +22,8 @@ use std::time::{Duration, Instant};
 const ANSWERED_WITHIN: Duration = Duration::from_secs(30);
 const JSON: &str = "Content-Type: application/json\r\n";
 /// A short job: one joint move and stay.
-const MOVE_TO_10: &str = r#"{"job": {"kind": "move_joints", "targets_deg": [[10.0, 0.0, 0.0, 0.0, 30.0, 0.0]]}}"#;
+const MOVE_TO_10: &str =
+    r#"{"job": {"kind": "move_joints", "targets_deg": [[10.0, 0.0, 0.0, 0.0, 30.0, 0.0]]}}"#;
 const MOVE_HOME: &str =
     r#"{"job": {"kind": "move_joints", "targets_deg": [[0.0, 0.0, 0.0, 0.0, 30.0, 0.0]]}}"#;
 
@@ -132,7 +133,10 @@ fn wait_for(
         if done(&status) {
             return status;
         }
-        assert!(Instant::now() < deadline, "timed out waiting for {what}: {status}");
+        assert!(
+            Instant::now() < deadline,
+            "timed out waiting for {what}: {status}"
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
 }
@@ -188,10 +192,7 @@ fn a_job_over_serve_to_a_tcp_twin_reports_that_link_and_numbers_survive_a_restar
     server.terminate();
     let (server, address) = serve(&config, &runs);
     let (third, status) = run_job(address, "irb120", MOVE_TO_10);
-    assert_eq!(
-        status["last"]["report"]["outcome"], "completed",
-        "{status}"
-    );
+    assert_eq!(status["last"]["report"]["outcome"], "completed", "{status}");
     assert!(third > second && second > first, "{first} {second} {third}");
     let after = log_sizes(&runs);
     for (name, size) in &before {
@@ -208,7 +209,10 @@ fn a_job_over_serve_to_a_tcp_twin_reports_that_link_and_numbers_survive_a_restar
         .and_then(|rest| rest.split(' ').next())
         .and_then(|n| n.parse().ok())
         .unwrap_or_else(|| panic!("no frame count in the twin's summary: {summary}"));
-    assert!(frames >= cycles, "the twin got {frames} frames for {cycles} cycles");
+    assert!(
+        frames >= cycles,
+        "the twin got {frames} frames for {cycles} cycles"
+    );
 }
 
 fn start_of(log: &Path) -> Vec<f64> {
@@ -305,7 +309,9 @@ fn mcap_python() -> Result<String, String> {
     if probe.status.success() {
         Ok(python)
     } else {
-        Err(format!("{python} cannot import mcap (scripts/test.sh installs it)"))
+        Err(format!(
+            "{python} cannot import mcap (scripts/test.sh installs it)"
+        ))
     }
 }
 
@@ -365,11 +371,15 @@ fn control_actions_are_events_of_the_job_log_and_the_cell_journal_with_their_tim
     };
     wait_for(address, "/api/status", "the job to move", progressed(0.05));
     let mut sent = vec![act(address, "pause", 200)];
-    wait_for(address, "/api/status", "the pause", |s| s["state"] == "paused");
+    wait_for(address, "/api/status", "the pause", |s| {
+        s["state"] == "paused"
+    });
     sent.push(act(address, "resume", 200));
     wait_for(address, "/api/status", "more progress", progressed(0.2));
     sent.push(act(address, "estop", 200));
-    wait_for(address, "/api/status", "the e-stop", |s| s["state"] == "idle");
+    wait_for(address, "/api/status", "the e-stop", |s| {
+        s["state"] == "idle"
+    });
     sent.push(act(address, "reset", 200));
     let (code, started) = call(address, "POST", "/api/jobs", "");
     assert_eq!(code, 202, "{started}");
@@ -385,7 +395,10 @@ fn control_actions_are_events_of_the_job_log_and_the_cell_journal_with_their_tim
     let logged = events(&log);
     let times = find_actions(&logged, &job_actions);
     let ended = logged.iter().find(|(_, k, _)| k == "job_ended").unwrap().0;
-    assert!(times[0] > 0.0 && *times.last().unwrap() <= ended, "{logged:?}");
+    assert!(
+        times[0] > 0.0 && *times.last().unwrap() <= ended,
+        "{logged:?}"
+    );
     for (_, kind, detail) in &logged {
         if ["pause", "resume", "estop"].contains(&kind.as_str()) {
             assert_eq!(detail["job"], first, "{detail}");
@@ -509,6 +522,8 @@ fn a_panicking_job_fails_alone_while_the_daemon_and_the_other_cell_go_on() {
         "{pan_tilt}"
     );
     let _ = stop.send(());
-    let result = runtime.block_on(server).expect("the server task did not panic");
+    let result = runtime
+        .block_on(server)
+        .expect("the server task did not panic");
     assert!(result.is_ok(), "the daemon stopped cleanly");
 }

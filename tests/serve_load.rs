@@ -97,7 +97,14 @@ fn wait_until(what: &str, timeout: Duration, mut done: impl FnMut() -> bool) {
 const JSON: &str = "Content-Type: application/json\r\n";
 
 fn status(server: &Server) -> serde_json::Value {
-    let (answer, _) = http(server.address, "GET", "/api/status", "", "", ANSWERED_WITHIN);
+    let (answer, _) = http(
+        server.address,
+        "GET",
+        "/api/status",
+        "",
+        "",
+        ANSWERED_WITHIN,
+    );
     let (code, body) = answer.expect("status answered");
     assert_eq!(code, 200, "{body}");
     serde_json::from_str(&body).unwrap()
@@ -125,11 +132,25 @@ fn an_estop_is_answered_under_500_idle_and_50_slow_connections_at_256_descriptor
     let held = open_descriptors(server.pid());
     assert!(held >= 150, "the server holds only {held} descriptors");
 
-    let (answer, _) = http(server.address, "POST", "/api/jobs", JSON, "", ANSWERED_WITHIN);
+    let (answer, _) = http(
+        server.address,
+        "POST",
+        "/api/jobs",
+        JSON,
+        "",
+        ANSWERED_WITHIN,
+    );
     let (code, body) = answer.expect("a job submitted under load is answered");
     assert_eq!(code, 202, "{body}");
     let id = serde_json::from_str::<serde_json::Value>(&body).unwrap()["id"].clone();
-    let (answer, _) = http(server.address, "POST", "/api/estop", "", "", ANSWERED_WITHIN);
+    let (answer, _) = http(
+        server.address,
+        "POST",
+        "/api/estop",
+        "",
+        "",
+        ANSWERED_WITHIN,
+    );
     let (code, body) = answer.expect("the e-stop under load is answered");
     assert_eq!(code, 200, "{body}");
     assert_eq!(
@@ -138,7 +159,14 @@ fn an_estop_is_answered_under_500_idle_and_50_slow_connections_at_256_descriptor
     );
     // Again and again: with the job gone, each is a 409, answered.
     for _ in 0..20 {
-        let (answer, _) = http(server.address, "POST", "/api/estop", "", "", ANSWERED_WITHIN);
+        let (answer, _) = http(
+            server.address,
+            "POST",
+            "/api/estop",
+            "",
+            "",
+            ANSWERED_WITHIN,
+        );
         let (code, body) = answer.expect("every e-stop under load is answered");
         assert!(code == 200 || code == 409, "{code} {body}");
     }
@@ -155,13 +183,24 @@ fn an_estop_is_answered_under_500_idle_and_50_slow_connections_at_256_descriptor
         status(&server)["state"] == "idle"
     });
     let last = status(&server);
-    assert_eq!(
-        last["last"]["report"]["outcome"], "e_stopped",
-        "{last}"
+    assert_eq!(last["last"]["report"]["outcome"], "e_stopped", "{last}");
+    let (answer, _) = http(
+        server.address,
+        "POST",
+        "/api/reset",
+        JSON,
+        "",
+        ANSWERED_WITHIN,
     );
-    let (answer, _) = http(server.address, "POST", "/api/reset", JSON, "", ANSWERED_WITHIN);
     assert_eq!(answer.expect("reset answered").0, 200);
-    let (answer, _) = http(server.address, "POST", "/api/jobs", JSON, "", ANSWERED_WITHIN);
+    let (answer, _) = http(
+        server.address,
+        "POST",
+        "/api/jobs",
+        JSON,
+        "",
+        ANSWERED_WITHIN,
+    );
     assert_eq!(answer.expect("a job after the load").0, 202);
     wait_until("the next job to run", Duration::from_secs(10), || {
         status(&server)["state"] == "running"

@@ -120,8 +120,8 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
     };
     tokio::runtime::Runtime::new()?.block_on(async move {
         let address = std::net::SocketAddr::new(bind, args.port);
-        let listener =
-            rigbridge::daemon::server::bind(address).with_context(|| format!("cannot bind {address}"))?;
+        let listener = rigbridge::daemon::server::bind(address)
+            .with_context(|| format!("cannot bind {address}"))?;
         println!("http://{}/", listener.local_addr()?);
         run(listener, cells, options, shutdown_signal()).await?;
         anyhow::Ok(())

@@ -5,9 +5,9 @@
 //! the job they act on from another thread.
 
 use crate::log::{EventSender, LogRecord, Recorder};
-use std::sync::{Mutex, PoisonError};
 use crate::protocol::AxisValues;
 use crate::stream::{CycleRecord, CycleSink};
+use std::sync::{Mutex, PoisonError};
 
 pub struct RecorderSink<'a> {
     recorder: &'a Recorder,

@@ -79,7 +79,9 @@ pub type BeforeJob = Arc<dyn Fn(&str, u64) + Send + Sync>;
 // A job's panic is contained by unwinding its thread (`cell::contain_panic`); with
 // `panic = "abort"` one job's bug would kill every cell.
 #[cfg(not(panic = "unwind"))]
-compile_error!("rigbridge's daemon needs panic = \"unwind\": it contains a job's panic to that job");
+compile_error!(
+    "rigbridge's daemon needs panic = \"unwind\": it contains a job's panic to that job"
+);
 
 /// Never prints the token itself.
 impl std::fmt::Debug for ServeOptions {
@@ -351,7 +353,11 @@ pub async fn run(
         .collect::<Result<Vec<_>, _>>()?;
     for cell in &cells {
         let journal = cell.open_journal(&options.runs_dir)?;
-        eprintln!("cell {}: control actions logged to {}", cell.name(), journal.display());
+        eprintln!(
+            "cell {}: control actions logged to {}",
+            cell.name(),
+            journal.display()
+        );
     }
     let (stop_live, stopping) = watch::channel(false);
     let first_id = cell::first_job_id(&options.runs_dir);
@@ -483,7 +489,10 @@ async fn send_frames(daemon: Arc<Daemon>) {
             if std::panic::catch_unwind(std::panic::AssertUnwindSafe(tick)).is_err()
                 && !std::mem::replace(reported, true)
             {
-                eprintln!("cell {}: its live view failed; other cells go on", cell.name());
+                eprintln!(
+                    "cell {}: its live view failed; other cells go on",
+                    cell.name()
+                );
             }
         }
     }

@@ -14,8 +14,8 @@ use crate::daemon::reset::{RESET_TIMEOUT, ResetOutcome, reset_controller};
 use crate::daemon::{
     ActionLog, DaemonError, RunReport, error_chain, plan_for, stream_planned_with,
 };
-use crate::log::Recorder;
 use crate::link::{Link, LinkSpec, LoopbackLink};
+use crate::log::Recorder;
 use crate::protocol::ControllerStatus;
 use crate::rig::JointKind;
 use crate::stream::{Outcome, StreamControl};
@@ -382,7 +382,11 @@ impl Cell {
             // The cycle it reached: the time base of the log's `job_ended` (cycles x period).
             let seq = control.cycles();
             detail["seq"] = seq.into();
-            actions.record(seq as f64 * self.settings.period_s(), action, detail.clone());
+            actions.record(
+                seq as f64 * self.settings.period_s(),
+                action,
+                detail.clone(),
+            );
         }
         if let Some(journal) = &*self.journal.lock().unwrap_or_else(PoisonError::into_inner) {
             journal.record(action, detail);
@@ -818,7 +822,13 @@ impl Journal {
             .rig
             .name
             .chars()
-            .map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' })
+            .map(|c| {
+                if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                    c
+                } else {
+                    '_'
+                }
+            })
             .collect();
         let path = runs_dir.join(format!("cell-{name}-{unix_s}-{}.mcap", std::process::id()));
         let options = crate::log::RecorderOptions {
@@ -832,8 +842,7 @@ impl Journal {
             "link": settings.config.stream.link,
             "unix_s": unix_s,
         });
-        let recorder =
-            Recorder::create_with(&path, &settings.rig.name, &names, metadata, options)?;
+        let recorder = Recorder::create_with(&path, &settings.rig.name, &names, metadata, options)?;
         Ok(Journal {
             path,
             recorder,
