@@ -71,6 +71,23 @@ if "$egm_venv/bin/python" -c 'import abb_robot_client.egm' 2>/dev/null; then
 fi
 # ------------------------------------------------------------------ end EGM peer --
 
+# ------------------------------- MCAP reader: PyPI's mcap (tests/serve_jobs.rs) --
+# The control events in serve's logs are read back with Foxglove's reference reader too
+# (tests/peers/mcap_events.py); without it, that test reads them with rigbridge's only.
+mcap_venv=${CARGO_TARGET_DIR:-target}/mcap-venv
+if [ ! -x "$mcap_venv/bin/python" ] || ! "$mcap_venv/bin/python" -c 'import mcap.reader' 2>/dev/null; then
+  python3 -m venv "$mcap_venv" && "$mcap_venv/bin/pip" install -q mcap \
+    || echo "test.sh: cannot install mcap; tests/serve_jobs.rs reads logs with rigbridge's reader only" >&2
+fi
+if [ "${CI:-}" = true ] && ! "$mcap_venv/bin/python" -c 'import mcap.reader' 2>/dev/null; then
+  echo "test.sh: CI must read the logs with PyPI's mcap, and it could not be installed" >&2
+  exit 1
+fi
+if "$mcap_venv/bin/python" -c 'import mcap.reader' 2>/dev/null; then
+  export RIGBRIDGE_MCAP_PYTHON="$PWD/$mcap_venv/bin/python"
+  [[ $mcap_venv = /* ]] && export RIGBRIDGE_MCAP_PYTHON="$mcap_venv/bin/python"
+fi
+
 # ------------------------------------------------------------- 1. on this machine --
 [ -n "$vm_only" ] || cargo test --release
 

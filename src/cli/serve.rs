@@ -137,13 +137,12 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
         virtual_clock: matches!(args.clock, ClockChoice::Virtual),
         token,
         allowed_hosts: settings.config.serve.hosts.clone(),
+        before_job: None,
     };
     tokio::runtime::Runtime::new()?.block_on(async move {
-        let listener = tokio::net::TcpListener::bind((bind, args.port))
-            .await
-            .with_context(|| {
-                format!("cannot bind {}", std::net::SocketAddr::new(bind, args.port))
-            })?;
+        let address = std::net::SocketAddr::new(bind, args.port);
+        let listener = rigbridge::daemon::server::bind(address)
+            .with_context(|| format!("cannot bind {address}"))?;
         say!("http://{}/", listener.local_addr()?);
         run(listener, cells, options, shutdown_signal()).await?;
         anyhow::Ok(())

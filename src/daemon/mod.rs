@@ -11,7 +11,7 @@ pub mod reset;
 pub mod resume;
 pub mod server;
 
-pub use recording::RecorderSink;
+pub use recording::{ActionLog, RecorderSink};
 
 use crate::clock::Clock;
 use crate::job::JobError;
@@ -284,10 +284,12 @@ pub fn stream_planned(
     log: Option<&std::path::Path>,
     control: &StreamControl,
 ) -> Result<RunReport, DaemonError> {
-    stream_planned_with(settings, planned, link, clock, log, control, &mut ())
+    stream_planned_with(settings, planned, link, clock, log, control, &mut (), None)
 }
 
-/// [`stream_planned`], also handing every cycle to `live` (the live view's sink).
+/// [`stream_planned`], also handing every cycle to `live` (the live view's sink), and
+/// opening `actions` on the job's log while it streams.
+#[allow(clippy::too_many_arguments)]
 pub fn stream_planned_with(
     settings: &RunSettings,
     planned: &PlannedJob,
@@ -296,6 +298,7 @@ pub fn stream_planned_with(
     log: Option<&std::path::Path>,
     control: &StreamControl,
     live: &mut dyn crate::stream::CycleSink,
+    actions: Option<&recording::ActionLog>,
 ) -> Result<RunReport, DaemonError> {
     let job = JobToStream {
         name: job_name(&planned.job),
@@ -303,7 +306,7 @@ pub fn stream_planned_with(
         start: &planned.start,
         trajectory: &planned.trajectory,
     };
-    stream_job_with(settings, &job, link, clock, log, control, live)
+    stream_job_with(settings, &job, link, clock, log, control, live, actions)
 }
 
 /// What the resuming stream needs of a job, whatever made its trajectory (a planned job, a
@@ -317,7 +320,9 @@ pub struct JobToStream<'a> {
 }
 
 /// Streams `job` through [`resume::stream_resuming`] (link loss and stalls resume from the
-/// held position), recording to `log` and handing every cycle to `live`.
+/// held position), recording to `log` and handing every cycle to `live`; `actions` writes
+/// to the log from other threads while the job streams.
+#[allow(clippy::too_many_arguments)]
 pub fn stream_job_with(
     settings: &RunSettings,
     job: &JobToStream<'_>,
@@ -326,6 +331,7 @@ pub fn stream_job_with(
     log: Option<&std::path::Path>,
     control: &StreamControl,
     live: &mut dyn crate::stream::CycleSink,
+    actions: Option<&recording::ActionLog>,
 ) -> Result<RunReport, DaemonError> {
     let trajectory = job.trajectory;
     let metadata = serde_json::json!({
@@ -342,6 +348,9 @@ pub fn stream_job_with(
     let report = match &recorder {
         Some(recorder) => {
             recorder.event(0.0, "job_started", metadata);
+            if let Some(actions) = actions {
+                actions.open(recorder);
+            }
             let mut recording = RecorderSink::new(recorder, settings.period_s());
             let mut sink = recording::BothSinks(&mut recording, live);
             let io = resume::Streaming {
@@ -368,6 +377,9 @@ pub fn stream_job_with(
     };
     let log_report = match recorder {
         Some(recorder) => {
+            if let Some(actions) = actions {
+                actions.close();
+            }
             let ended = serde_json::to_value(&report).unwrap_or_default();
             recorder.event(report.duration_s, "job_ended", ended);
             let stats = recorder.finish()?;

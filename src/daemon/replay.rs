@@ -282,6 +282,7 @@ pub fn replay(
         record_to,
         control,
         &mut comparison,
+        None,
     )?;
     let same_sequence = !comparison.broken && comparison.matched == log.commands.len();
     Ok(ReplayReport {

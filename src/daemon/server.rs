@@ -23,7 +23,7 @@ mod guard;
 mod scene;
 
 pub use cell::{CellError, check_cells};
-pub use connections::{HEADER_TIMEOUT, IDLE_TIMEOUT, connection_cap};
+pub use connections::{HEADER_TIMEOUT, IDLE_TIMEOUT, LISTEN_BACKLOG, bind, connection_cap};
 pub use guard::{BODY_TIMEOUT, HostCheck, MAX_BODY_BYTES, MAX_LIVE_MESSAGE_BYTES, MAX_LIVE_PAGES};
 
 use super::DaemonError;
@@ -32,7 +32,7 @@ use crate::clock::{Clock, WallClock};
 use crate::stream::StreamControl;
 use crate::twin::TwinWorld;
 use crate::view::page;
-use axum::extract::ws::{Message as WsMessage, WebSocket, WebSocketUpgrade};
+use axum::extract::ws::{CloseFrame, Message as WsMessage, WebSocket, WebSocketUpgrade};
 use axum::extract::{FromRequestParts, RawPathParams, Request, State};
 use axum::http::request::Parts;
 use axum::http::{HeaderValue, StatusCode, header};
@@ -67,7 +67,21 @@ pub struct ServeOptions {
     /// Host names requests may carry besides IP addresses and `localhost` (`[serve] hosts`):
     /// any other `Host` is refused, so a DNS-rebinding page cannot reach the API.
     pub allowed_hosts: Vec<String>,
+    /// Called on each job's own thread before it plans, with the cell's name and the job's
+    /// number (a hook for instrumentation). Whatever it does, a panic in it is contained
+    /// like any panic of the job: that job fails, the daemon and the other cells go on.
+    pub before_job: Option<BeforeJob>,
 }
+
+/// See [`ServeOptions::before_job`].
+pub type BeforeJob = Arc<dyn Fn(&str, u64) + Send + Sync>;
+
+// A job's panic is contained by unwinding its thread (`cell::contain_panic`); with
+// `panic = "abort"` one job's bug would kill every cell.
+#[cfg(not(panic = "unwind"))]
+compile_error!(
+    "rigbridge's daemon needs panic = \"unwind\": it contains a job's panic to that job"
+);
 
 /// Never prints the token itself.
 impl std::fmt::Debug for ServeOptions {
@@ -77,6 +91,7 @@ impl std::fmt::Debug for ServeOptions {
             .field("virtual_clock", &self.virtual_clock)
             .field("token", &self.token.as_ref().map(|_| "<redacted>"))
             .field("allowed_hosts", &self.allowed_hosts)
+            .field("before_job", &self.before_job.as_ref().map(|_| "<hook>"))
             .finish()
     }
 }
@@ -253,6 +268,17 @@ impl Daemon {
     fn cell(&self, name: &str) -> Option<&Arc<Cell>> {
         self.cells.iter().find(|cell| cell.name() == name)
     }
+
+    /// The next job number whose log name is free: numbering starts past the logs already
+    /// in the runs directory, and skips any that appeared since (another daemon there).
+    fn next_job_id(&self) -> u64 {
+        loop {
+            let id = self.next_id.fetch_add(1, Ordering::Relaxed);
+            if !self.options.runs_dir.join(cell::job_log_name(id)).exists() {
+                return id;
+            }
+        }
+    }
 }
 
 /// The cell a request is about: the `{cell}` of `/api/cells/{cell}/...`, or the first cell
@@ -325,6 +351,14 @@ pub async fn run(
         .into_iter()
         .map(|settings| Cell::new(settings).map(Arc::new))
         .collect::<Result<Vec<_>, _>>()?;
+    for cell in &cells {
+        let journal = cell.open_journal(&options.runs_dir)?;
+        eprintln!(
+            "cell {}: control actions logged to {}",
+            cell.name(),
+            journal.display()
+        );
+    }
     let (stop_live, stopping) = watch::channel(false);
     let first_id = cell::first_job_id(&options.runs_dir);
     let hosts = HostCheck::new(local, &options.allowed_hosts);
@@ -353,6 +387,7 @@ pub async fn run(
     let _ = tokio::task::spawn_blocking(move || {
         for cell in &stopping.cells {
             cell.stop_and_wait();
+            cell.close_journal();
         }
     })
     .await;
@@ -445,10 +480,20 @@ async fn send_frames(daemon: Arc<Daemon>) {
     let clock = WallClock::new();
     let mut ticks = tokio::time::interval(Duration::from_secs_f64(1.0 / LIVE_FRAME_RATE_HZ));
     ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut reported = vec![false; daemon.cells.len()];
     loop {
         ticks.tick().await;
-        for cell in &daemon.cells {
-            cell.hub().tick(clock.now(), cell.job_view());
+        for (cell, reported) in daemon.cells.iter().zip(&mut reported) {
+            // One cell's broken scene must not freeze every cell's view.
+            let tick = || cell.hub().tick(clock.now(), cell.job_view());
+            if std::panic::catch_unwind(std::panic::AssertUnwindSafe(tick)).is_err()
+                && !std::mem::replace(reported, true)
+            {
+                eprintln!(
+                    "cell {}: its live view failed; other cells go on",
+                    cell.name()
+                );
+            }
         }
     }
 }
@@ -501,6 +546,17 @@ async fn serve_live(mut socket: WebSocket, cell: Arc<Cell>, mut stopping: watch:
                 }
             }
             incoming = socket.recv() => match incoming {
+                Some(Err(e)) if is_too_big(&e) => {
+                    let close = CloseFrame {
+                        code: CLOSE_MESSAGE_TOO_BIG,
+                        reason: format!(
+                            "a message to the live view is at most {MAX_LIVE_MESSAGE_BYTES} bytes"
+                        )
+                        .into(),
+                    };
+                    let _ = socket.send(WsMessage::Close(Some(close))).await;
+                    return;
+                }
                 None | Some(Err(_)) | Some(Ok(WsMessage::Close(_))) => return,
                 Some(Ok(_)) => {}
             },
@@ -510,6 +566,18 @@ async fn serve_live(mut socket: WebSocket, cell: Arc<Cell>, mut stopping: watch:
             }
         }
     }
+}
+
+/// RFC 6455 7.4.1: "1009 indicates that an endpoint is terminating the connection because
+/// it has received a message that is too big for it to process".
+const CLOSE_MESSAGE_TOO_BIG: u16 = 1009;
+
+/// Whether a WebSocket read failed on [`MAX_LIVE_MESSAGE_BYTES`] (a frame, or the frames
+/// of an unfinished message together).
+fn is_too_big(error: &axum::Error) -> bool {
+    std::error::Error::source(error)
+        .and_then(|inner| inner.downcast_ref::<tungstenite::Error>())
+        .is_some_and(|e| matches!(e, tungstenite::Error::Capacity(_)))
 }
 
 async fn list_cells(State(daemon): State<Arc<Daemon>>) -> Response {
@@ -556,7 +624,7 @@ async fn submit(
             Err(refused) => return error(StatusCode::UNPROCESSABLE_ENTITY, refused),
         }
     };
-    let id = daemon.next_id.fetch_add(1, Ordering::Relaxed);
+    let id = daemon.next_job_id();
     let started = match cell.start(id, job, &daemon.options) {
         Ok(started) => started,
         Err(refused) => return start_refused(&cell, refused),

@@ -20,8 +20,8 @@ mod wire;
 
 pub use reader::{read_log, read_log_from};
 pub use recorder::{
-    DEFAULT_CAPACITY, DEFAULT_CHUNK_BYTES, DEFAULT_CHUNK_INTERVAL, LogRecord, MAX_CHUNK_BYTES,
-    Recorder, RecorderOptions, RecorderStats,
+    DEFAULT_CAPACITY, DEFAULT_CHUNK_BYTES, DEFAULT_CHUNK_INTERVAL, EventSender, LogRecord,
+    MAX_CHUNK_BYTES, Recorder, RecorderOptions, RecorderStats,
 };
 pub use replay::TIME_TOLERANCE_S;
 pub use summary::{ChannelSummary, LogSummary, SeqGap, TrackingError, summarize};

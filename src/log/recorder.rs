@@ -136,6 +136,25 @@ struct Written {
     bytes: u64,
 }
 
+/// Queues events into a [`Recorder`] from any thread, like [`Recorder::event`]. Once the
+/// recorder has finished its file, events sent through it are refused.
+#[derive(Clone)]
+pub struct EventSender(Sender<EventMessage>);
+
+impl EventSender {
+    /// Queues one event; `false` when the log is closed already (one sent in the very
+    /// moment the writer closes the file may still be lost).
+    pub fn event(&self, t: f64, kind: &str, detail: serde_json::Value) -> bool {
+        self.0
+            .send(EventMessage {
+                t,
+                kind: kind.to_owned(),
+                detail,
+            })
+            .is_ok()
+    }
+}
+
 /// Records one run to one MCAP file (layout: `docs/logs.md`).
 pub struct Recorder {
     path: PathBuf,
@@ -233,6 +252,12 @@ impl Recorder {
                 detail,
             });
         }
+    }
+
+    /// A handle that queues events from another thread (an operator's action arriving
+    /// over HTTP while the job streams); `None` once the recorder is finishing.
+    pub fn event_sender(&self) -> Option<EventSender> {
+        self.events.clone().map(EventSender)
     }
 
     /// Records dropped so far.

@@ -11,8 +11,11 @@ use super::{JobWorld, LIVE_FRAME_RATE_HZ, ServeOptions};
 use crate::clock::{Clock, VirtualClock, WallClock};
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::daemon::reset::{RESET_TIMEOUT, ResetOutcome, reset_controller};
-use crate::daemon::{DaemonError, RunReport, error_chain, plan_for, stream_planned_with};
+use crate::daemon::{
+    ActionLog, DaemonError, RunReport, error_chain, plan_for, stream_planned_with,
+};
 use crate::link::{Link, LinkSpec, LoopbackLink};
+use crate::log::Recorder;
 use crate::protocol::ControllerStatus;
 use crate::rig::JointKind;
 use crate::stream::{Outcome, StreamControl};
@@ -97,6 +100,8 @@ struct ActiveJob {
     id: u64,
     name: String,
     control: Arc<StreamControl>,
+    /// The job's log while it streams, for the actions taken on it.
+    actions: Arc<ActionLog>,
     handle: std::thread::JoinHandle<()>,
 }
 
@@ -233,6 +238,9 @@ pub struct Cell {
     hub: LiveHub,
     /// The twin's world for the current job (the twin outlives jobs; its world does not).
     world: SharedWorld<JobWorld>,
+    /// The cell's journal: every control action (reset included, which acts on no job) as an
+    /// event, in `runs/cell-<name>-<time>-<pid>.mcap`; `None` until the daemon opens it.
+    journal: Mutex<Option<Journal>>,
     /// The fault the controller latched, as last learnt (a job that ended e-stopped or
     /// faulted, a reset it refused); cleared by a reset it carried out. The in-process
     /// twin's own status wins whenever the link is free to read it.
@@ -282,8 +290,35 @@ impl Cell {
             last: Mutex::new(None),
             hub,
             world,
+            journal: Mutex::new(None),
             latched: Mutex::new(None),
         })
+    }
+
+    /// Opens the cell's journal in `runs_dir` (see [`Journal`]); its path.
+    pub fn open_journal(&self, runs_dir: &std::path::Path) -> Result<PathBuf, DaemonError> {
+        let journal = Journal::create(runs_dir, &self.settings)?;
+        let path = journal.path.clone();
+        *self.journal.lock().unwrap_or_else(PoisonError::into_inner) = Some(journal);
+        Ok(path)
+    }
+
+    /// Writes out and closes the journal (the daemon is stopping).
+    pub fn close_journal(&self) {
+        let journal = self
+            .journal
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take();
+        if let Some(journal) = journal
+            && let Err(e) = journal.recorder.finish()
+        {
+            eprintln!(
+                "cell {}: closing its journal: {}",
+                self.name(),
+                error_chain(&e)
+            );
+        }
     }
 
     /// The rig's name: the cell's name in routes.
@@ -322,7 +357,15 @@ impl Cell {
         })
     }
 
-    fn log_event(&self, action: &'static str, job: Option<u64>, result: Option<String>) {
+    /// Logs a control action: on stderr, in the status' events, in the cell's journal, and
+    /// (`on_job`: the job it acted on) in that job's log, at the job's time (its cycle).
+    fn log_event(
+        &self,
+        action: &'static str,
+        job: Option<u64>,
+        result: Option<String>,
+        on_job: Option<(&ActionLog, &StreamControl)>,
+    ) {
         let at_s = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0.0, |d| d.as_secs_f64());
@@ -330,6 +373,23 @@ impl Cell {
         match &result {
             Some(result) => eprintln!("cell {}: {action} ({shown}): {result}", self.name()),
             None => eprintln!("cell {}: {action} ({shown})", self.name()),
+        }
+        let mut detail = serde_json::json!({ "job": job, "unix_s": at_s });
+        if let Some(result) = &result {
+            detail["result"] = result.clone().into();
+        }
+        if let Some((actions, control)) = on_job {
+            // The cycle it reached: the time base of the log's `job_ended` (cycles x period).
+            let seq = control.cycles();
+            detail["seq"] = seq.into();
+            actions.record(
+                seq as f64 * self.settings.period_s(),
+                action,
+                detail.clone(),
+            );
+        }
+        if let Some(journal) = &*self.journal.lock().unwrap_or_else(PoisonError::into_inner) {
+            journal.record(action, detail);
         }
         let mut events = self.events.lock().unwrap_or_else(PoisonError::into_inner);
         if events.len() == KEPT_EVENTS {
@@ -458,12 +518,12 @@ impl Cell {
                     ResetOutcome::Kept(words) => Some(words.clone()),
                     _ => None,
                 });
-                self.log_event("reset", None, Some(outcome.to_string()));
+                self.log_event("reset", None, Some(outcome.to_string()), None);
                 Ok(outcome)
             }
             Err(error) => {
                 let text = error_chain(&error);
-                self.log_event("reset", None, Some(format!("failed: {text}")));
+                self.log_event("reset", None, Some(format!("failed: {text}")), None);
                 Err(ResetRefused::Failed(text))
             }
         }
@@ -527,48 +587,63 @@ impl Cell {
         job: JobConfig,
         options: &ServeOptions,
     ) -> Result<StartedJob, StartRefused> {
+        // Asked before the job slot is taken: for a remote link `controller` reads the slot
+        // itself, and a second lock of it on this thread would never return.
+        let fault = self.controller().fault;
         let Ok(mut slot) = self.job.lock() else {
             return Err(StartRefused::Poisoned);
         };
         if slot.as_ref().is_some_and(|j| !j.handle.is_finished()) {
             return Err(StartRefused::Busy);
         }
-        if let Some(fault) = self.controller().fault {
+        if let Some(fault) = fault {
             return Err(StartRefused::Faulted(fault));
         }
         let name = job.kind().to_string();
         let control = Arc::new(StreamControl::default());
+        let actions = Arc::new(ActionLog::default());
         let (planned_tx, planned) = oneshot::channel();
-        let handle = self.spawn_job(id, job, control.clone(), options, planned_tx);
+        let job_io = JobIo {
+            control: control.clone(),
+            actions: actions.clone(),
+            planned: planned_tx,
+        };
+        let handle = self.spawn_job(id, job, job_io, options);
         *slot = Some(ActiveJob {
             id,
             name: name.clone(),
             control,
+            actions,
             handle,
         });
         Ok(StartedJob { id, name, planned })
     }
 
-    /// Plans and streams one job on its own thread, reporting through `last`.
+    /// Plans and streams one job on its own thread, reporting through `last`. A panic in
+    /// the job (or in `options.before_job`) ends only this job.
     fn spawn_job(
         self: &Arc<Self>,
         id: u64,
         job: JobConfig,
-        control: Arc<StreamControl>,
+        io: JobIo,
         options: &ServeOptions,
-        planned: oneshot::Sender<Result<(), String>>,
     ) -> std::thread::JoinHandle<()> {
         let cell = self.clone();
         let virtual_clock = options.virtual_clock;
-        let log = options.runs_dir.join(format!("job-{id}.mcap"));
+        let before_job = options.before_job.clone();
+        let log = options.runs_dir.join(job_log_name(id));
         std::thread::spawn(move || {
             let clock: Box<dyn Clock> = if virtual_clock {
                 Box::new(VirtualClock::new())
             } else {
                 Box::new(WallClock::new())
             };
-            let result =
-                contain_panic(|| cell.run_job(&job, &control, clock.as_ref(), &log, planned));
+            let result = contain_panic(|| {
+                if let Some(hook) = &before_job {
+                    hook(cell.name(), id);
+                }
+                cell.run_job(&job, io, clock.as_ref(), &log)
+            });
             if let Ok(Ok(report)) = &result {
                 cell.learn_from(report);
             }
@@ -598,11 +673,16 @@ impl Cell {
     fn run_job(
         &self,
         job: &JobConfig,
-        control: &StreamControl,
+        io: JobIo,
         clock: &dyn Clock,
         log: &std::path::Path,
-        planned: oneshot::Sender<Result<(), String>>,
     ) -> Result<RunReport, DaemonError> {
+        let JobIo {
+            control,
+            actions,
+            planned,
+        } = io;
+        let control = &*control;
         let Ok(mut guard) = self.link.lock() else {
             let _ = planned.send(Err("twin lock poisoned".into()));
             return Err(DaemonError::Unavailable("twin lock poisoned".into()));
@@ -637,6 +717,7 @@ impl Cell {
             Some(log),
             control,
             &mut live,
+            Some(&actions),
         )
     }
 
@@ -682,8 +763,8 @@ impl Cell {
             act(&running.control);
         }
         let id = running.map(|j| j.id);
-        drop(job);
-        self.log_event(action, id, None);
+        let on_job = running.map(|j| (&*j.actions, &*j.control));
+        self.log_event(action, id, None, on_job);
         id
     }
 
@@ -712,6 +793,72 @@ impl Cell {
     }
 }
 
+/// What a job's thread shares with the cell: its controls, its log's action slot, and
+/// where to say whether planning succeeded (a bad target is refused before any motion).
+struct JobIo {
+    control: Arc<StreamControl>,
+    actions: Arc<ActionLog>,
+    planned: oneshot::Sender<Result<(), String>>,
+}
+
+/// A cell's journal: an MCAP log (`docs/logs.md`) holding only events, one per control
+/// action on the cell (`pause`, `resume`, `stop`, `estop`, `reset`), at seconds since the
+/// daemon started, with the job acted on, the Unix time and the result. Unlike a job's log
+/// it also holds the resets, which act on no job.
+struct Journal {
+    path: PathBuf,
+    recorder: Recorder,
+    clock: WallClock,
+}
+
+/// A journal records no cycles: the smallest record channel will do.
+const JOURNAL_RECORD_CAPACITY: usize = 1;
+
+impl Journal {
+    fn create(runs_dir: &std::path::Path, settings: &RunSettings) -> Result<Journal, DaemonError> {
+        let clock = WallClock::new();
+        let unix_s = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        // The rig's name, as a file name: anything but letters, digits, `-` and `_` is `_`.
+        let name: String = settings
+            .rig
+            .name
+            .chars()
+            .map(|c| {
+                if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                    c
+                } else {
+                    '_'
+                }
+            })
+            .collect();
+        let path = runs_dir.join(format!("cell-{name}-{unix_s}-{}.mcap", std::process::id()));
+        let options = crate::log::RecorderOptions {
+            capacity: JOURNAL_RECORD_CAPACITY,
+            ..crate::log::RecorderOptions::for_rig(&settings.rig)
+        };
+        let names: Vec<String> = settings.rig.joint_names().map(str::to_owned).collect();
+        let metadata = serde_json::json!({
+            "journal": settings.rig.name,
+            "config": settings.file.display().to_string(),
+            "link": settings.config.stream.link,
+            "unix_s": unix_s,
+        });
+        let recorder = Recorder::create_with(&path, &settings.rig.name, &names, metadata, options)?;
+        Ok(Journal {
+            path,
+            recorder,
+            clock,
+        })
+    }
+
+    fn record(&self, action: &str, detail: serde_json::Value) {
+        self.recorder
+            .event(self.clock.now().as_secs_f64(), action, detail);
+    }
+}
+
 /// `work`'s result, or the message of the panic that ended it: one job's bug must not take
 /// the daemon (or another cell) down.
 fn contain_panic<T>(work: impl FnOnce() -> T) -> Result<T, String> {
@@ -722,6 +869,11 @@ fn contain_panic<T>(work: impl FnOnce() -> T) -> Result<T, String> {
             .or_else(|| payload.downcast_ref::<String>().cloned())
             .unwrap_or_else(|| "a panic without a message".into())
     })
+}
+
+/// The file name of job `id`'s log in the runs directory.
+pub fn job_log_name(id: u64) -> String {
+    format!("job-{id}.mcap")
 }
 
 /// The first job number of a daemon logging to `runs_dir`: one past the highest

@@ -5,16 +5,23 @@
 //! Why not `axum::serve`: it never closes an idle or slow connection and keeps accepting
 //! until the process runs out of descriptors, after which nobody (an e-stop included) gets
 //! in. Here every connection is registered; at the cap, or when `accept` fails for lack of
-//! descriptors, the oldest connection that is not in the middle of a request is closed (the
-//! oldest of all if every one is), so a new client always gets in: an e-stop is answered
-//! however many clients hold connections open.
+//! descriptors, one connection is closed so a new client always gets in: an e-stop is
+//! answered however many clients hold connections open. Which one: the oldest of those that
+//! have sent nothing yet (idle), else the oldest of those in the middle of a request's
+//! headers (slow), else the oldest of all. A client that sends its request as it connects,
+//! as an operator's e-stop does, is never closed for an idle newcomer, even when a flood
+//! of them turns the whole table over before its task first runs: before an idle-looking
+//! connection is closed, the kernel is asked whether bytes wait on it.
 
 use axum::Router;
 use hyper::body::Incoming;
 use hyper_util::rt::{TokioIo, TokioTimer};
 use std::collections::BTreeMap;
+use std::os::fd::AsRawFd;
+use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
+use std::task::{Context, Poll};
 use std::time::{Duration, Instant};
 use tokio::net::TcpListener;
 use tokio::sync::watch;
@@ -34,8 +41,30 @@ const RESERVED_DESCRIPTORS: u64 = 64;
 /// The connection cap's bounds, whatever the descriptor limit says.
 const MIN_CONNECTIONS: u64 = 16;
 const MAX_CONNECTIONS: u64 = 1024;
+/// How long to wait for descriptors when every connection holding one has spoken: long
+/// enough for closed connections' tasks to run and let theirs go.
+const DESCRIPTOR_WAIT: Duration = Duration::from_millis(1);
 /// How long to wait after `accept` failed for a reason other than the descriptor limit.
 const ACCEPT_BACKOFF: Duration = Duration::from_millis(10);
+
+/// Connections the kernel may hold complete but not yet accepted (the kernel caps it at
+/// `net.core.somaxconn`). The standard library's 128 overflows under a few hundred
+/// clients reconnecting at once: the kernel then drops handshakes, and a client that lost
+/// one (an e-stop) retries only after a second.
+pub const LISTEN_BACKLOG: u32 = 4096;
+
+/// A listener on `address` with [`LISTEN_BACKLOG`].
+pub fn bind(address: std::net::SocketAddr) -> std::io::Result<TcpListener> {
+    let socket = if address.is_ipv4() {
+        tokio::net::TcpSocket::new_v4()?
+    } else {
+        tokio::net::TcpSocket::new_v6()?
+    };
+    // As std's bind does: a restarted daemon gets its port back at once.
+    socket.set_reuseaddr(true)?;
+    socket.bind(address)?;
+    socket.listen(LISTEN_BACKLOG)
+}
 
 /// The connection cap for this process: its descriptor limit less a reserve.
 pub fn connection_cap() -> usize {
@@ -55,10 +84,41 @@ pub fn connection_cap() -> usize {
     usize::try_from(cap).unwrap_or(usize::MAX)
 }
 
-/// One open connection: whether a request is being served on it, and its task.
+/// One open connection: whether it has sent anything, whether a request is being served
+/// on it, and its task.
 struct Entry {
+    /// The socket, to ask the kernel about (never to close: the task owns it).
+    fd: std::os::fd::RawFd,
+    spoke: Arc<AtomicBool>,
     busy: Arc<AtomicBool>,
     abort: AbortHandle,
+}
+
+impl Entry {
+    /// Which connections go first when one must: 0 idle, 1 in a request's headers, 2
+    /// serving one.
+    fn keep_rank(&self) -> u8 {
+        if self.busy.load(Ordering::Relaxed) {
+            2
+        } else if self.spoke.load(Ordering::Relaxed) {
+            1
+        } else {
+            0
+        }
+    }
+
+    /// Idle as far as the server has read, and nothing waiting in the kernel either; a
+    /// connection found with bytes waiting counts as having spoken from then on.
+    fn is_silent(&self) -> bool {
+        if self.keep_rank() != 0 {
+            return false;
+        }
+        if bytes_waiting(self.fd) {
+            self.spoke.store(true, Ordering::Relaxed);
+            return false;
+        }
+        true
+    }
 }
 
 #[derive(Default)]
@@ -72,16 +132,24 @@ impl Registry {
         self.open.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
-    /// Closes the oldest connection not serving a request, or the oldest of all.
-    fn evict_one(&self) {
+    /// Closes the oldest silent connection, or with `any`, failing that, the oldest of the
+    /// lowest [`Entry::keep_rank`]; whether it closed one.
+    fn evict_one(&self, any: bool) -> bool {
         let mut open = self.open();
-        let victim = open
-            .iter()
-            .find(|(_, e)| !e.busy.load(Ordering::Relaxed))
-            .or_else(|| open.iter().next())
-            .map(|(id, _)| *id);
-        if let Some(entry) = victim.and_then(|id| open.remove(&id)) {
-            entry.abort.abort();
+        // Ids grow with age: the first found is the oldest. The kernel is asked only until
+        // a silent one turns up, usually the first.
+        let silent = open.iter().find(|(_, e)| e.is_silent()).map(|(id, _)| *id);
+        let victim = silent.or_else(|| {
+            any.then(|| open.iter().min_by_key(|(id, e)| (e.keep_rank(), **id)))
+                .flatten()
+                .map(|(id, _)| *id)
+        });
+        match victim.and_then(|id| open.remove(&id)) {
+            Some(entry) => {
+                entry.abort.abort();
+                true
+            }
+            None => false,
         }
     }
 }
@@ -110,12 +178,17 @@ pub async fn serve(
         tokio::select! {
             accepted = listener.accept() => match accepted {
                 Ok((stream, _)) => {
-                    while registry.open().len() >= cap {
-                        registry.evict_one();
-                    }
+                    while registry.open().len() >= cap && registry.evict_one(true) {}
                     spawn_connection(stream, app.clone(), &registry);
                 }
-                Err(e) if is_out_of_descriptors(&e) => registry.evict_one(),
+                // Descriptors run out below the cap while closed connections' tasks have yet
+                // to let go of theirs: close a silent one, never one that spoke (an e-stop)
+                // for a newcomer nobody has heard yet; else wait for them.
+                Err(e) if is_out_of_descriptors(&e) => {
+                    if !registry.evict_one(false) {
+                        tokio::time::sleep(DESCRIPTOR_WAIT).await;
+                    }
+                }
                 Err(_) => tokio::time::sleep(ACCEPT_BACKOFF).await,
             },
             _ = stopping.changed() => break,
@@ -133,8 +206,21 @@ fn is_out_of_descriptors(e: &std::io::Error) -> bool {
     matches!(e.raw_os_error(), Some(libc::EMFILE | libc::ENFILE))
 }
 
+/// Whether bytes wait to be read on socket `fd` (FIONREAD). Should the connection have
+/// closed and its number gone to another socket meanwhile, the answer is about that one:
+/// at worst a wrong choice of whom to close, never a wrong close.
+fn bytes_waiting(fd: std::os::fd::RawFd) -> bool {
+    let mut pending: libc::c_int = 0;
+    // SAFETY: FIONREAD writes one int to the pointer it is given; on a descriptor that is
+    // not a socket (or not open) it fails, which reads as "nothing waiting".
+    let asked = unsafe { libc::ioctl(fd, libc::FIONREAD, &mut pending) };
+    asked == 0 && pending > 0
+}
+
 fn spawn_connection(stream: tokio::net::TcpStream, app: Router, registry: &Arc<Registry>) {
     let id = registry.next.fetch_add(1, Ordering::Relaxed);
+    let fd = stream.as_raw_fd();
+    let spoke = Arc::new(AtomicBool::new(bytes_waiting(fd)));
     let busy = Arc::new(AtomicBool::new(false));
     let last_done = Arc::new(Mutex::new(Instant::now()));
     let guard = Registered {
@@ -156,6 +242,7 @@ fn spawn_connection(stream: tokio::net::TcpStream, app: Router, registry: &Arc<R
         })
     };
     let watched = busy.clone();
+    let heard = spoke.clone();
     // Registered before the task runs, so the cap counts it at once.
     let mut open = registry.open();
     let task = tokio::spawn(async move {
@@ -164,6 +251,10 @@ fn spawn_connection(stream: tokio::net::TcpStream, app: Router, registry: &Arc<R
         builder
             .timer(TokioTimer::new())
             .header_read_timeout(HEADER_TIMEOUT);
+        let stream = Heard {
+            inner: stream,
+            spoke: heard,
+        };
         let connection = builder
             .serve_connection(TokioIo::new(stream), service)
             .with_upgrades();
@@ -175,6 +266,8 @@ fn spawn_connection(stream: tokio::net::TcpStream, app: Router, registry: &Arc<R
     open.insert(
         id,
         Entry {
+            fd,
+            spoke,
             busy,
             abort: task.abort_handle(),
         },
@@ -192,5 +285,56 @@ async fn idle(busy: &AtomicBool, last_done: &Mutex<Instant>) {
         if !busy.load(Ordering::Relaxed) && since >= IDLE_TIMEOUT {
             return;
         }
+    }
+}
+
+/// A connection's stream that notes when the client first sends a byte.
+struct Heard {
+    inner: tokio::net::TcpStream,
+    spoke: Arc<AtomicBool>,
+}
+
+impl tokio::io::AsyncRead for Heard {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut tokio::io::ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        let before = buf.filled().len();
+        let polled = Pin::new(&mut self.inner).poll_read(cx, buf);
+        if buf.filled().len() > before {
+            self.spoke.store(true, Ordering::Relaxed);
+        }
+        polled
+    }
+}
+
+impl tokio::io::AsyncWrite for Heard {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        Pin::new(&mut self.inner).poll_write(cx, buf)
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.inner).poll_flush(cx)
+    }
+
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.inner).poll_shutdown(cx)
+    }
+
+    fn poll_write_vectored(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        bufs: &[std::io::IoSlice<'_>],
+    ) -> Poll<std::io::Result<usize>> {
+        Pin::new(&mut self.inner).poll_write_vectored(cx, bufs)
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.inner.is_write_vectored()
     }
 }
