@@ -2,6 +2,7 @@
 //! Everything it runs lives in the library; errors gain their context here.
 
 mod batch;
+mod dynamixel;
 mod gait;
 mod paint;
 mod plot;

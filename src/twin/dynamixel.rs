@@ -564,14 +564,36 @@ fn register_value(servo: &Servo, at: u16) -> i32 {
     }
 }
 
-/// Serves the bus on `port` until `stop`: answers every packet at once, and moves the
-/// servos one period at a time on its own clock. Tells `say` about peers and bad packets.
+/// Operator actions from another thread: a servo's hardware error, shut down.
+#[derive(Debug, Default)]
+pub struct DynamixelTwinControl {
+    hardware_errors: std::sync::Mutex<Vec<(usize, u8)>>,
+    pub stop: AtomicBool,
+}
+
+impl DynamixelTwinControl {
+    /// Sets Hardware Error Status `bits` on `axis`' servo at its next period.
+    pub fn hardware_error(&self, axis: usize, bits: u8) {
+        self.hardware_errors
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .push((axis, bits));
+    }
+
+    fn take(&self) -> Vec<(usize, u8)> {
+        std::mem::take(&mut *self.hardware_errors.lock().unwrap_or_else(|p| p.into_inner()))
+    }
+}
+
+/// Serves the bus on `port` until `control.stop`: answers every packet at once, and moves
+/// the servos one period at a time on its own clock. Tells `say` about peers and faults.
 pub fn serve_dynamixel(
     bus: &mut DynamixelBus,
     port: &mut dyn ControllerPort,
-    stop: &AtomicBool,
+    control: &DynamixelTwinControl,
     say: &mut dyn FnMut(&str),
 ) {
+    let stop = &control.stop;
     let period = bus.settings.period;
     let mut decoder = PacketDecoder::default();
     let mut buffer = vec![0u8; READ_CHUNK];
@@ -581,6 +603,10 @@ pub fn serve_dynamixel(
     while !stop.load(Ordering::SeqCst) {
         let now = Instant::now();
         if now >= next_tick {
+            for (axis, bits) in control.take() {
+                bus.inject_hardware_error(axis, bits);
+                say(&format!("hardware error status {bits:#04x} on axis {}", axis + 1));
+            }
             bus.step();
             next_tick += period;
             if next_tick < now {
