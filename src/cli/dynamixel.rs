@@ -40,8 +40,8 @@ pub fn dynamixel_twin(
     let mut port: Box<dyn ControllerPort> = match serial {
         Some((path, baud)) => {
             let serial = settings.config.stream.serial_settings(&path, baud);
-            let port =
-                SerialControllerPort::open(&serial).with_context(|| format!("cannot open {path}"))?;
+            let port = SerialControllerPort::open(&serial)
+                .with_context(|| format!("cannot open {path}"))?;
             super::twin::say(&port.describe());
             Box::new(port)
         }

@@ -99,7 +99,10 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
         return egm_twin(&args, sensor, &settings);
     }
     if args.dynamixel {
-        let serial = args.serial.as_ref().map(|p| (p.display().to_string(), args.baud));
+        let serial = args
+            .serial
+            .as_ref()
+            .map(|p| (p.display().to_string(), args.baud));
         return super::dynamixel::dynamixel_twin(&settings, &args.ids, serial, stop_on_signals()?);
     }
     let mut twin_config = twin_settings(&settings);

@@ -57,7 +57,12 @@ impl DynamixelConfig {
         let defaults = crate::link::dynamixel_wire::AxisTicks::default();
         let mut axes = vec![defaults; rig.dof()];
         let keys = [
-            ("dynamixel.ticks_per_turn", &self.ticks_per_turn, 1.0, MAX_TICKS_PER_TURN),
+            (
+                "dynamixel.ticks_per_turn",
+                &self.ticks_per_turn,
+                1.0,
+                MAX_TICKS_PER_TURN,
+            ),
             (
                 "dynamixel.zero_tick",
                 &self.zero_tick,
@@ -74,9 +79,15 @@ impl DynamixelConfig {
                 return Err(ConfigError::invalid(file, key, values.len(), &reason));
             }
             for (axis, ticks) in axes.iter_mut().enumerate() {
-                let value = check_range(file, key, given.value(axis).unwrap_or_default(), low, high)?;
+                let value =
+                    check_range(file, key, given.value(axis).unwrap_or_default(), low, high)?;
                 if value.fract() != 0.0 {
-                    return Err(ConfigError::invalid(file, key, value, "must be a whole number"));
+                    return Err(ConfigError::invalid(
+                        file,
+                        key,
+                        value,
+                        "must be a whole number",
+                    ));
                 }
                 if index == 0 {
                     ticks.ticks_per_turn = value;

@@ -179,7 +179,8 @@ pub fn open_link(
             baud,
             dynamixel: Some(ids),
         } => {
-            let link = crate::link::connect_dynamixel(dynamixel_settings(settings, path, *baud, ids)?)?;
+            let link =
+                crate::link::connect_dynamixel(dynamixel_settings(settings, path, *baud, ids)?)?;
             let timeout = settings.config.stream.reconnect_timeout_s;
             wait_for_link(&link, &crate::clock::WallClock::new(), timeout);
             Ok(Box::new(link))

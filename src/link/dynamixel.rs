@@ -294,7 +294,10 @@ impl Link for DynamixelLink {
                 match goals {
                     Ok(goals) => self.push(Job::Goals(target.seq, goals)),
                     Err(e) => {
-                        self.shared.lock().events.push_back(LinkEvent::EncodeFailed(e));
+                        self.shared
+                            .lock()
+                            .events
+                            .push_back(LinkEvent::EncodeFailed(e));
                         Ok(())
                     }
                 }
@@ -388,11 +391,11 @@ impl Bus {
 
     fn write_out(&mut self, shared: &Shared) -> Result<(), BusError> {
         // Anything unread belongs to an earlier exchange: a late answer is not this one's.
+        // (Dropped from the decoder only: flushing the port's input is a syscall a cycle,
+        // and draining its output (tcdrain) waits on the far side.)
         self.decoder.clear();
-        let _ = self.port.clear(serialport::ClearBuffer::Input);
         self.port
             .write_all(&self.out)
-            .and_then(|()| self.port.flush())
             .map_err(|e| BusError::Lost(format!("write failed: {e}")))?;
         shared.lock().counters.frames_sent += 1;
         Ok(())
@@ -498,7 +501,11 @@ impl Bus {
     /// Hardware Error Status says why.
     fn drive_error(&mut self, shared: &Shared, axis: usize, code: u8) -> BusError {
         let id = shared.settings.ids[axis];
-        let mut text = format!("servo id {id} (axis {}): {}", axis + 1, describe_error(code));
+        let mut text = format!(
+            "servo id {id} (axis {}): {}",
+            axis + 1,
+            describe_error(code)
+        );
         if code & error::ALERT != 0 {
             encode_packet(
                 id,
@@ -684,10 +691,8 @@ fn latch(shared: &Shared, axis: usize, text: &str) {
         fault,
         text: text.to_string(),
     }));
-    if let Some(mut feedback) = state.feedback {
-        feedback.status = ControllerStatus::Fault(fault);
-        publish(shared, &mut state, feedback);
-    }
+    // No feedback now: the streamer reads the event first, with its words, next cycle;
+    // every feedback after it carries the fault.
 }
 
 /// After a fault at set-up: nothing moves until a Reset (or the link is dropped).

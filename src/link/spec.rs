@@ -118,10 +118,16 @@ fn parse_dynamixel(rest: &str) -> Result<LinkSpec, String> {
             Some(("ids", list)) => {
                 let parsed: Result<Vec<u8>, _> = list.split(',').map(str::parse::<u8>).collect();
                 match parsed {
-                    Ok(list) if list.iter().all(|id| *id <= super::dynamixel_wire::MAX_SERVO_ID) => {
+                    Ok(list)
+                        if list
+                            .iter()
+                            .all(|id| *id <= super::dynamixel_wire::MAX_SERVO_ID) =>
+                    {
                         ids = Some(list)
                     }
-                    _ => return Err("ids must be servo ids from 0 to 252, such as ids=1,2,3".into()),
+                    _ => {
+                        return Err("ids must be servo ids from 0 to 252, such as ids=1,2,3".into());
+                    }
                 }
             }
             _ => return Err("the options are baud=N and ids=1,2,...".into()),

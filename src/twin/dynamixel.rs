@@ -36,6 +36,10 @@ const SINGLE_TURN_MAX: i64 = 4095;
 /// A bus without a goal for this many periods is at rest: the next goal's step and second
 /// difference are judged from the goal in force (25, the streamer's patience).
 const REST_PERIODS: u32 = 25;
+/// A goal after at least this many periods without one may also be a start from rest (a
+/// master resuming after a hold): it passes if it passes either way, by order or from the
+/// goal in force, since a late goal of a moving stream is judged by order.
+const PAUSE_PERIODS: u32 = 2;
 /// Rounding to ticks moves a goal by up to half a tick: a step by up to one, a second
 /// difference by up to two.
 const STEP_ROUNDING_TICKS: f64 = 1.0;
@@ -80,7 +84,10 @@ pub struct DynamixelTwinCounters {
 
 impl DynamixelTwinCounters {
     pub fn violations(&self) -> u64 {
-        self.outside_limits + self.over_speed + self.over_acceleration + self.stale_goal_at_torque_on
+        self.outside_limits
+            + self.over_speed
+            + self.over_acceleration
+            + self.stale_goal_at_torque_on
     }
 }
 
@@ -477,8 +484,8 @@ impl DynamixelBus {
         }
         let servo = &mut self.servos[index];
         match at {
-            address::ID if (0..=i64::from(crate::link::dynamixel_wire::MAX_SERVO_ID))
-                .contains(&value) =>
+            address::ID
+                if (0..=i64::from(crate::link::dynamixel_wire::MAX_SERVO_ID)).contains(&value) =>
             {
                 servo.id = value as u8
             }
@@ -497,8 +504,7 @@ impl DynamixelBus {
                 if value == 1 && servo.hardware_error != 0 {
                     return error::RESULT_FAIL;
                 }
-                if value == 1 && !servo.torque && (servo.goal as f64 - servo.present).abs() > 1.0
-                {
+                if value == 1 && !servo.torque && (servo.goal as f64 - servo.present).abs() > 1.0 {
                     self.counters.stale_goal_at_torque_on += 1;
                 }
                 servo.torque = value == 1;
@@ -519,18 +525,26 @@ impl DynamixelBus {
             self.counters.outside_limits += 1;
             return error::DATA_LIMIT;
         }
-        if servo.periods_since_goal >= REST_PERIODS || !servo.torque {
+        if servo.periods_since_goal >= REST_PERIODS {
             // At rest: the goal in force was held every period since.
             servo.history = [servo.goal, servo.goal];
         }
         let scale = servo.ticks.ticks_per_turn / std::f64::consts::TAU;
-        let last = servo.history[1] as f64;
-        let before = servo.history[0] as f64;
-        let step = (goal as f64 - last).abs();
-        let max_step = servo.limits.max_speed * scale * dt * (1.0 + LIMIT_SLACK) + STEP_ROUNDING_TICKS;
-        let second = (goal as f64 - 2.0 * last + before).abs();
+        let max_step =
+            servo.limits.max_speed * scale * dt * (1.0 + LIMIT_SLACK) + STEP_ROUNDING_TICKS;
         let max_second = servo.limits.max_acceleration * scale * dt * dt * (1.0 + LIMIT_SLACK)
             + SECOND_DIFFERENCE_ROUNDING_TICKS;
+        let judge = |[before, last]: [i64; 2]| {
+            let (g, last, before) = (goal as f64, last as f64, before as f64);
+            ((g - last).abs(), (g - 2.0 * last + before).abs())
+        };
+        let (mut step, mut second) = judge(servo.history);
+        if servo.periods_since_goal >= PAUSE_PERIODS {
+            let (rest_step, rest_second) = judge([servo.goal, servo.goal]);
+            if rest_step <= max_step && rest_second <= max_second {
+                (step, second) = (rest_step, rest_second);
+            }
+        }
         if servo.torque {
             if step > max_step {
                 self.counters.over_speed += 1;
@@ -539,7 +553,12 @@ impl DynamixelBus {
                 self.counters.over_acceleration += 1;
             }
         }
-        servo.history = [servo.history[1], goal];
+        // Without torque nothing follows the goal: the next one is judged from it at rest.
+        servo.history = if servo.torque {
+            [servo.history[1], goal]
+        } else {
+            [goal, goal]
+        };
         servo.goal = goal;
         servo.periods_since_goal = 0;
         self.counters.goals += 1;
@@ -581,7 +600,12 @@ impl DynamixelTwinControl {
     }
 
     fn take(&self) -> Vec<(usize, u8)> {
-        std::mem::take(&mut *self.hardware_errors.lock().unwrap_or_else(|p| p.into_inner()))
+        std::mem::take(
+            &mut *self
+                .hardware_errors
+                .lock()
+                .unwrap_or_else(|p| p.into_inner()),
+        )
     }
 }
 
@@ -605,7 +629,10 @@ pub fn serve_dynamixel(
         if now >= next_tick {
             for (axis, bits) in control.take() {
                 bus.inject_hardware_error(axis, bits);
-                say(&format!("hardware error status {bits:#04x} on axis {}", axis + 1));
+                say(&format!(
+                    "hardware error status {bits:#04x} on axis {}",
+                    axis + 1
+                ));
             }
             bus.step();
             next_tick += period;
@@ -691,14 +718,20 @@ mod tests {
         assert_eq!(answer.len(), 1);
         assert_eq!(answer[0].status(), Some((0, &[0x06, 0x04, 0x26][..])));
         assert!(exchange(&mut bus, 9, instruction::PING, &[]).is_empty());
-        assert_eq!(exchange(&mut bus, BROADCAST_ID, instruction::PING, &[]).len(), 6);
+        assert_eq!(
+            exchange(&mut bus, BROADCAST_ID, instruction::PING, &[]).len(),
+            6
+        );
     }
 
     #[test]
     fn eeprom_is_locked_while_torque_is_on_and_bad_values_are_refused() {
         let mut bus = bus();
         let mode = write_params(address::OPERATING_MODE, &[EXTENDED_POSITION_MODE]);
-        assert_eq!(error_of(&exchange(&mut bus, 6, instruction::WRITE, &mode)), 0);
+        assert_eq!(
+            error_of(&exchange(&mut bus, 6, instruction::WRITE, &mode)),
+            0
+        );
         let torque_on = write_params(address::TORQUE_ENABLE, &[1]);
         // The goal register was left 100 ticks away: torque on makes the servo jump.
         exchange(&mut bus, 6, instruction::WRITE, &torque_on);
@@ -742,13 +775,26 @@ mod tests {
         assert_eq!(bus.counters.outside_limits, 1);
         let hold = write_params(address::GOAL_POSITION, &2048i32.to_le_bytes());
         exchange(&mut bus, 2, instruction::WRITE, &hold);
-        exchange(&mut bus, 2, instruction::WRITE, &write_params(address::TORQUE_ENABLE, &[1]));
+        exchange(
+            &mut bus,
+            2,
+            instruction::WRITE,
+            &write_params(address::TORQUE_ENABLE, &[1]),
+        );
         // 250 deg/s is 11.4 ticks a 4 ms period: 40 ticks is over speed.
         let jump = write_params(address::GOAL_POSITION, &2088i32.to_le_bytes());
-        assert_eq!(error_of(&exchange(&mut bus, 2, instruction::WRITE, &jump)), 0);
+        assert_eq!(
+            error_of(&exchange(&mut bus, 2, instruction::WRITE, &jump)),
+            0
+        );
         assert_eq!(bus.counters.over_speed, 1);
         assert_eq!(bus.counters.over_acceleration, 1);
-        let read = exchange(&mut bus, 2, instruction::READ, &read_params(address::GOAL_POSITION, 4));
+        let read = exchange(
+            &mut bus,
+            2,
+            instruction::READ,
+            &read_params(address::GOAL_POSITION, 4),
+        );
         assert_eq!(read[0].status(), Some((0, &2088i32.to_le_bytes()[..])));
     }
 

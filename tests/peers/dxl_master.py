@@ -19,7 +19,8 @@ OPERATING_MODE = 11
 TORQUE_ENABLE = 64
 GOAL_POSITION = 116
 PRESENT_POSITION = 132
-STEP_TICKS = 20
+RAMP = [1, 2, 3, 4, 4, 3, 2, 1]
+CYCLE_S = 0.004
 PATIENCE_S = 5.0
 
 port = PortHandler(sys.argv[1])
@@ -61,21 +62,36 @@ if result != COMM_SUCCESS:
 report["eeprom_with_torque_error"] = error & 0x7F
 
 writer = GroupSyncWrite(port, packets, GOAL_POSITION, 4)
-goals = [p + STEP_TICKS for p in report["start"]]
-for dxl_id, goal in zip(IDS, goals):
-    data = [DXL_LOBYTE(DXL_LOWORD(goal)), DXL_HIBYTE(DXL_LOWORD(goal)),
-            DXL_LOBYTE(DXL_HIWORD(goal)), DXL_HIBYTE(DXL_HIWORD(goal))]
-    if not writer.addParam(dxl_id, data):
-        raise SystemExit(f"sync write param {dxl_id}")
-result = writer.txPacket()
-if result != COMM_SUCCESS:
-    raise SystemExit(f"sync write: {packets.getTxRxResult(result)}")
-report["goals"] = goals
-
 reader = GroupSyncRead(port, packets, PRESENT_POSITION, 4)
 for dxl_id in IDS:
     if not reader.addParam(dxl_id):
         raise SystemExit(f"sync read param {dxl_id}")
+
+
+def sync_write(goals):
+    writer.clearParam()
+    for dxl_id, goal in zip(IDS, goals):
+        data = [DXL_LOBYTE(DXL_LOWORD(goal)), DXL_HIBYTE(DXL_LOWORD(goal)),
+                DXL_LOBYTE(DXL_HIWORD(goal)), DXL_HIBYTE(DXL_HIWORD(goal))]
+        if not writer.addParam(dxl_id, data):
+            raise SystemExit(f"sync write param {dxl_id}")
+    result = writer.txPacket()
+    if result != COMM_SUCCESS:
+        raise SystemExit(f"sync write: {packets.getTxRxResult(result)}")
+
+
+# The goals ramp up and down, one sync write each (the servos judge one a cycle): steps of
+# at most 4 ticks (0.35 deg), 1 tick more or less each time, far inside every axis' speed
+# and acceleration, 20 ticks in all.
+offset = 0
+for step in RAMP:
+    offset += step
+    sync_write([p + offset for p in report["start"]])
+    time.sleep(CYCLE_S)
+goals = [p + offset for p in report["start"]]
+report["goals"] = goals
+report["sync_writes"] = len(RAMP)
+
 deadline = time.monotonic() + PATIENCE_S
 while True:
     result = reader.txRxPacket()
