@@ -529,9 +529,12 @@ fn i32_of(data: &[u8]) -> Option<i32> {
     Some(i32::from_le_bytes(data.get(..4)?.try_into().ok()?))
 }
 
+/// Each servo's Goal Position range and present position, ticks.
+type SetUp = (Vec<(i64, i64)>, Vec<i32>);
+
 /// The set-up of docs/dynamixel.md; returns each servo's Goal Position range and the
 /// present positions (ticks).
-fn set_up(bus: &mut Bus, shared: &Shared) -> Result<(Vec<(i64, i64)>, Vec<i32>), BusError> {
+fn set_up(bus: &mut Bus, shared: &Shared) -> Result<SetUp, BusError> {
     let settings = &shared.settings;
     let axes = settings.ids.len();
     for axis in 0..axes {

@@ -229,39 +229,37 @@ impl PacketDecoder {
     /// The next complete packet, if the buffer holds one. A packet with a bad CRC or
     /// length is dropped (its header skipped) and reported once.
     pub fn next_packet(&mut self) -> Option<Result<Packet, DecodeError>> {
-        loop {
-            let start = self.buffer.windows(4).position(|w| w == HEADER);
-            let Some(start) = start else {
-                // Keep a possible partial header at the end.
-                let keep = self.buffer.len().min(3);
-                let drop = self.buffer.len() - keep;
-                self.skipped += drop as u64;
-                self.buffer.drain(..drop);
-                return None;
-            };
-            self.skipped += start as u64;
-            self.buffer.drain(..start);
-            if self.buffer.len() < 7 {
-                return None;
-            }
-            let length = usize::from(u16::from_le_bytes([self.buffer[5], self.buffer[6]]));
-            if !(3..=MAX_PACKET).contains(&length) {
-                self.buffer.drain(..4);
-                return Some(Err(DecodeError::Length(length)));
-            }
-            let total = 7 + length;
-            if self.buffer.len() < total {
-                return None;
-            }
-            let crc = u16::from_le_bytes([self.buffer[total - 2], self.buffer[total - 1]]);
-            if crc16(&self.buffer[..total - 2]) != crc {
-                self.buffer.drain(..4);
-                return Some(Err(DecodeError::Crc));
-            }
-            let packet = unstuffed(&self.buffer[..total - 2]);
-            self.buffer.drain(..total);
-            return Some(Ok(packet));
+        let start = self.buffer.windows(4).position(|w| w == HEADER);
+        let Some(start) = start else {
+            // Keep a possible partial header at the end.
+            let keep = self.buffer.len().min(3);
+            let drop = self.buffer.len() - keep;
+            self.skipped += drop as u64;
+            self.buffer.drain(..drop);
+            return None;
+        };
+        self.skipped += start as u64;
+        self.buffer.drain(..start);
+        if self.buffer.len() < 7 {
+            return None;
         }
+        let length = usize::from(u16::from_le_bytes([self.buffer[5], self.buffer[6]]));
+        if !(3..=MAX_PACKET).contains(&length) {
+            self.buffer.drain(..4);
+            return Some(Err(DecodeError::Length(length)));
+        }
+        let total = 7 + length;
+        if self.buffer.len() < total {
+            return None;
+        }
+        let crc = u16::from_le_bytes([self.buffer[total - 2], self.buffer[total - 1]]);
+        if crc16(&self.buffer[..total - 2]) != crc {
+            self.buffer.drain(..4);
+            return Some(Err(DecodeError::Crc));
+        }
+        let packet = unstuffed(&self.buffer[..total - 2]);
+        self.buffer.drain(..total);
+        Some(Ok(packet))
     }
 }
 
