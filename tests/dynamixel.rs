@@ -184,6 +184,18 @@ fn a_servo_hardware_error_stops_the_job_with_a_drive_fault() {
     assert!(report.stream.cycles > 200);
 }
 
+#[test]
+fn a_rate_the_line_cannot_carry_is_refused_before_anything_opens() {
+    let settings = settings();
+    // Six servos at 57600 baud: 34.7 Hz at most (docs/dynamixel.md), not 250.
+    let error = dynamixel_settings(&settings, "/dev/null", 57_600, &IDS)
+        .err()
+        .expect("refused");
+    let text = error.to_string();
+    assert!(text.contains("250 Hz") && text.contains("35 Hz"), "{text}");
+    assert!(dynamixel_settings(&settings, "/dev/null", 1_000_000, &IDS).is_ok());
+}
+
 /// The Python with dynamixel-sdk: RIGBRIDGE_DXL_PYTHON (scripts/test.sh sets it), else
 /// `python3` if it imports the package.
 fn peer_python() -> Result<String, String> {

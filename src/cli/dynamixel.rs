@@ -63,25 +63,7 @@ pub fn dynamixel_twin(
         }
         watcher.stop.store(true, Ordering::SeqCst);
     });
-    let operator = control.clone();
-    std::thread::spawn(move || {
-        // `hardware error AXIS BITS`: a servo's fault, as an overload or overheating sets.
-        for line in std::io::stdin().lines().map_while(Result::ok) {
-            let words: Vec<&str> = line.split_whitespace().collect();
-            let parsed = match words.as_slice() {
-                ["hardware", "error", axis, bits] => axis
-                    .parse::<usize>()
-                    .ok()
-                    .filter(|a| *a >= 1)
-                    .zip(u8::from_str_radix(bits.trim_start_matches("0x"), 16).ok()),
-                _ => None,
-            };
-            match parsed {
-                Some((axis, bits)) => operator.hardware_error(axis - 1, bits),
-                None => eprintln!("unknown command `{line}` (hardware error AXIS HEXBITS)"),
-            }
-        }
-    });
+    read_operator(control.clone());
     serve_dynamixel(&mut bus, port.as_mut(), &control, &mut |line| {
         super::twin::say(line)
     });
@@ -102,4 +84,27 @@ pub fn dynamixel_twin(
         c.stale_goal_at_torque_on
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// Operator commands on stdin: `hardware error AXIS HEXBITS` (axis from 1), as an
+/// overload (0x20) or overheating (0x04) would set.
+fn read_operator(operator: Arc<DynamixelTwinControl>) {
+    std::thread::spawn(move || {
+        // `hardware error AXIS BITS`: a servo's fault, as an overload or overheating sets.
+        for line in std::io::stdin().lines().map_while(Result::ok) {
+            let words: Vec<&str> = line.split_whitespace().collect();
+            let parsed = match words.as_slice() {
+                ["hardware", "error", axis, bits] => axis
+                    .parse::<usize>()
+                    .ok()
+                    .filter(|a| *a >= 1)
+                    .zip(u8::from_str_radix(bits.trim_start_matches("0x"), 16).ok()),
+                _ => None,
+            };
+            match parsed {
+                Some((axis, bits)) => operator.hardware_error(axis - 1, bits),
+                None => eprintln!("unknown command `{line}` (hardware error AXIS HEXBITS)"),
+            }
+        }
+    });
 }

@@ -466,5 +466,8 @@ mod tests {
         assert!((budget.max_rate_hz - 602.4).abs() < 0.1);
         let slow = line_budget(6, 1_000_000, 500.0);
         assert!((slow.cycle_s - 4.66e-3).abs() < 1e-12);
+        // 57600 baud: 1660 bits / 57600 = 28.82 ms, 34.7 Hz.
+        let factory = line_budget(6, 57_600, 0.0);
+        assert!((factory.max_rate_hz - 57_600.0 / 1660.0).abs() < 1e-9);
     }
 }
