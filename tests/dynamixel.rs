@@ -196,6 +196,59 @@ fn a_rate_the_line_cannot_carry_is_refused_before_anything_opens() {
     assert!(dynamixel_settings(&settings, "/dev/null", 1_000_000, &IDS).is_ok());
 }
 
+#[test]
+fn tick_settings_are_checked_on_load_and_errors_name_the_file_key_and_value() {
+    let rig = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("config/irb120.toml");
+    let dir = std::env::temp_dir().join(format!("rigbridge-dxl-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let write = |name: &str, section: &str| {
+        let file = dir.join(name);
+        let text = format!(
+            "rig = {rig:?}\n[job]\nkind = \"move_joints\"\ntargets_deg = [[0, 0, 0, 0, 30, 0]]\n{section}\n"
+        );
+        std::fs::write(&file, text).expect("write");
+        file
+    };
+    let good = write(
+        "good.toml",
+        "[dynamixel]\nticks_per_turn = 4096\nzero_tick = [2048, 2048, 2048, 2048, 1024, 2048]",
+    );
+    let settings = load_run_settings(&good).expect("loads");
+    let axes = settings
+        .config
+        .dynamixel
+        .axes(&settings.file, &settings.rig)
+        .expect("axes");
+    assert_eq!(axes[4].zero_tick, 1024.0);
+    assert_eq!(axes[0].ticks_per_turn, 4096.0);
+    for (name, section, key, value) in [
+        (
+            "fraction.toml",
+            "[dynamixel]\nticks_per_turn = 4096.5",
+            "dynamixel.ticks_per_turn",
+            "4096.5",
+        ),
+        (
+            "zero.toml",
+            "[dynamixel]\nticks_per_turn = 0",
+            "dynamixel.ticks_per_turn",
+            "0",
+        ),
+        (
+            "count.toml",
+            "[dynamixel]\nzero_tick = [2048, 2048]",
+            "dynamixel.zero_tick",
+            "2",
+        ),
+    ] {
+        let file = write(name, section);
+        let error = load_run_settings(&file).err().expect("refused").to_string();
+        assert!(error.contains(name), "{error}");
+        assert!(error.contains(key), "{error}");
+        assert!(error.contains(value), "{error}");
+    }
+}
+
 /// The Python with dynamixel-sdk: RIGBRIDGE_DXL_PYTHON (scripts/test.sh sets it), else
 /// `python3` if it imports the package.
 fn peer_python() -> Result<String, String> {
