@@ -188,9 +188,7 @@ fn a_servo_hardware_error_stops_the_job_with_a_drive_fault() {
 fn a_rate_the_line_cannot_carry_is_refused_before_anything_opens() {
     let settings = settings();
     // Six servos at 57600 baud: 34.7 Hz at most (docs/dynamixel.md), not 250.
-    let error = dynamixel_settings(&settings, "/dev/null", 57_600, &IDS)
-        .err()
-        .expect("refused");
+    let error = dynamixel_settings(&settings, "/dev/null", 57_600, &IDS).expect_err("refused");
     let text = error.to_string();
     assert!(text.contains("250 Hz") && text.contains("35 Hz"), "{text}");
     assert!(dynamixel_settings(&settings, "/dev/null", 1_000_000, &IDS).is_ok());
@@ -242,7 +240,7 @@ fn tick_settings_are_checked_on_load_and_errors_name_the_file_key_and_value() {
         ),
     ] {
         let file = write(name, section);
-        let error = load_run_settings(&file).err().expect("refused").to_string();
+        let error = load_run_settings(&file).expect_err("refused").to_string();
         assert!(error.contains(name), "{error}");
         assert!(error.contains(key), "{error}");
         assert!(error.contains(value), "{error}");
