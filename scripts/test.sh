@@ -87,6 +87,25 @@ if "$mcap_venv/bin/python" -c 'import mcap.reader' 2>/dev/null; then
   export RIGBRIDGE_MCAP_PYTHON="$PWD/$mcap_venv/bin/python"
   [[ $mcap_venv = /* ]] && export RIGBRIDGE_MCAP_PYTHON="$mcap_venv/bin/python"
 fi
+# ------------------------------ Dynamixel peer: dynamixel-sdk (tests/dynamixel.rs) --
+# A venv with PyPI's dynamixel-sdk (ROBOTIS), the Protocol 2.0 master tests/peers/dxl_master.py
+# drives against our twin's servos over a pty. If it cannot be installed, tests/dynamixel.rs
+# prints why it skips.
+dxl_venv=${CARGO_TARGET_DIR:-target}/dxl-peer-venv
+if [ ! -x "$dxl_venv/bin/python" ] || ! "$dxl_venv/bin/python" -c 'import dynamixel_sdk' 2>/dev/null; then
+  python3 -m venv "$dxl_venv" && "$dxl_venv/bin/pip" install -q dynamixel-sdk \
+    || echo "test.sh: cannot install dynamixel-sdk; the Dynamixel peer test will skip" >&2
+fi
+# CI reaches PyPI: there a missing peer is a failure, not a skip.
+if [ "${CI:-}" = true ] && ! "$dxl_venv/bin/python" -c 'import dynamixel_sdk' 2>/dev/null; then
+  echo "test.sh: CI must test the Dynamixel twin against dynamixel-sdk, and it could not be installed" >&2
+  exit 1
+fi
+if "$dxl_venv/bin/python" -c 'import dynamixel_sdk' 2>/dev/null; then
+  export RIGBRIDGE_DXL_PYTHON="$PWD/$dxl_venv/bin/python"
+  [[ $dxl_venv = /* ]] && export RIGBRIDGE_DXL_PYTHON="$dxl_venv/bin/python"
+fi
+# ------------------------------------------------------------ end Dynamixel peer --
 
 # ------------------------------------------------------------- 1. on this machine --
 [ -n "$vm_only" ] || cargo test --release

@@ -51,13 +51,20 @@ pub struct TwinArgs {
     /// EGM: start with the motors off.
     #[arg(long)]
     motors_off: bool,
+    /// Play Dynamixel Protocol 2.0 servos, one per axis, on --pty or --serial
+    /// (docs/dynamixel.md), instead of rigbridge's protocol.
+    #[arg(long)]
+    pub dynamixel: bool,
+    /// Dynamixel: the servo ids in axis order (default 1, 2, ... one per axis).
+    #[arg(long, value_delimiter = ',')]
+    pub ids: Vec<u8>,
     /// Cycles without a target before holding, and cycles of silence that count as link
     /// loss (docs/protocol.md 6.5); default: the config's `[twin] watchdog_cycles`.
     #[arg(long)]
     watchdog_cycles: Option<u32>,
 }
 
-fn stop_on_signals() -> anyhow::Result<Arc<AtomicBool>> {
+pub fn stop_on_signals() -> anyhow::Result<Arc<AtomicBool>> {
     let stop = Arc::new(AtomicBool::new(false));
     let flag = stop.clone();
     let runtime = tokio::runtime::Builder::new_current_thread()
@@ -80,7 +87,7 @@ fn stop_on_signals() -> anyhow::Result<Arc<AtomicBool>> {
     Ok(stop)
 }
 
-fn say(line: &str) {
+pub fn say(line: &str) {
     let mut out = std::io::stdout().lock();
     let _ = writeln!(out, "{line}");
     let _ = out.flush();
@@ -91,6 +98,13 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
         load_run_settings(&args.config).with_context(|| super::settings_context(&args.config))?;
     if let Some(sensor) = &args.egm {
         return egm_twin(&args, sensor, &settings);
+    }
+    if args.dynamixel {
+        let serial = args
+            .serial
+            .as_ref()
+            .map(|p| (p.display().to_string(), args.baud));
+        return super::dynamixel::dynamixel_twin(&settings, &args.ids, serial, stop_on_signals()?);
     }
     let mut twin_config = twin_settings(&settings);
     if let Some(cycles) = args.watchdog_cycles {

@@ -26,6 +26,78 @@ pub struct RunConfig {
     /// `rigbridge serve`: where to listen and the control API's bearer token.
     #[serde(default)]
     pub serve: ServeConfig,
+    /// `[dynamixel]`: how axes map to servo ticks on `dynamixel://` links (and in the
+    /// twin's servos). Optional.
+    #[serde(default)]
+    pub dynamixel: DynamixelConfig,
+}
+
+/// `[dynamixel]`: per axis, tick = zero_tick + rad * ticks_per_turn / 2 pi (docs/dynamixel.md).
+/// Each key is one number for every axis or one per axis; whole numbers.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DynamixelConfig {
+    /// 4096 when absent (X series: 0.088 deg a tick).
+    pub ticks_per_turn: Option<PerAxis>,
+    /// 2048 when absent: the centre of an X-series servo's single-turn range.
+    pub zero_tick: Option<PerAxis>,
+}
+
+/// Largest ticks a turn accepted: the finest Dynamixel-P resolution (1,003,846) fits.
+const MAX_TICKS_PER_TURN: f64 = 4_194_304.0;
+
+impl DynamixelConfig {
+    /// Each axis' tick map; errors name the key and value. Revolute axes only: a tick
+    /// is a fraction of a turn.
+    pub fn axes(
+        &self,
+        file: &Path,
+        rig: &Rig,
+    ) -> Result<Vec<crate::link::dynamixel_wire::AxisTicks>, ConfigError> {
+        let defaults = crate::link::dynamixel_wire::AxisTicks::default();
+        let mut axes = vec![defaults; rig.dof()];
+        let keys = [
+            (
+                "dynamixel.ticks_per_turn",
+                &self.ticks_per_turn,
+                1.0,
+                MAX_TICKS_PER_TURN,
+            ),
+            (
+                "dynamixel.zero_tick",
+                &self.zero_tick,
+                -(crate::link::dynamixel_wire::EXTENDED_RANGE as f64),
+                crate::link::dynamixel_wire::EXTENDED_RANGE as f64,
+            ),
+        ];
+        for (index, (key, given, low, high)) in keys.into_iter().enumerate() {
+            let Some(given) = given else { continue };
+            if let PerAxis::Each(values) = given
+                && values.len() != rig.dof()
+            {
+                let reason = format!("needs one value per axis ({})", rig.dof());
+                return Err(ConfigError::invalid(file, key, values.len(), &reason));
+            }
+            for (axis, ticks) in axes.iter_mut().enumerate() {
+                let value =
+                    check_range(file, key, given.value(axis).unwrap_or_default(), low, high)?;
+                if value.fract() != 0.0 {
+                    return Err(ConfigError::invalid(
+                        file,
+                        key,
+                        value,
+                        "must be a whole number",
+                    ));
+                }
+                if index == 0 {
+                    ticks.ticks_per_turn = value;
+                } else {
+                    ticks.zero_tick = value;
+                }
+            }
+        }
+        Ok(axes)
+    }
 }
 
 /// `[serve]`: optional; without it `serve` binds 127.0.0.1 with no token.
@@ -394,6 +466,7 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         3600.0,
     )?;
     config.stream.tolerances(file, &rig)?;
+    config.dynamixel.axes(file, &rig)?;
     if config.stream.can_base_id > MAX_CAN_BASE_ID {
         return Err(ConfigError::invalid(
             file,

@@ -174,7 +174,22 @@ pub fn open_link(
             );
             Ok(Box::new(link))
         }
-        LinkSpec::Serial { path, baud } => {
+        LinkSpec::Serial {
+            path,
+            baud,
+            dynamixel: Some(ids),
+        } => {
+            let link =
+                crate::link::connect_dynamixel(dynamixel_settings(settings, path, *baud, ids)?)?;
+            let timeout = settings.config.stream.reconnect_timeout_s;
+            wait_for_link(&link, &crate::clock::WallClock::new(), timeout);
+            Ok(Box::new(link))
+        }
+        LinkSpec::Serial {
+            path,
+            baud,
+            dynamixel: None,
+        } => {
             let serial = settings.config.stream.serial_settings(path, *baud);
             let link = crate::link::connect_serial(serial, bridge_hello(settings))
                 .map_err(LinkError::Io)?;
@@ -209,6 +224,54 @@ pub fn open_link(
             Ok(Box::new(link))
         }
     }
+}
+
+/// The Dynamixel link's settings for servos `ids` on `path`: the axes' tick maps from
+/// `[dynamixel]`, their limits, and a cycle that fits the line (docs/dynamixel.md).
+pub fn dynamixel_settings(
+    settings: &RunSettings,
+    path: &str,
+    baud: u32,
+    ids: &[u8],
+) -> Result<crate::link::DynamixelSettings, DaemonError> {
+    let rig = &settings.rig;
+    if let Some(joint) = rig
+        .joints
+        .iter()
+        .find(|j| j.kind != crate::rig::JointKind::Revolute)
+    {
+        return Err(DaemonError::Unavailable(format!(
+            "a Dynamixel link drives revolute axes only; {} is prismatic",
+            joint.name
+        )));
+    }
+    let axes = settings
+        .config
+        .dynamixel
+        .axes(&settings.file, rig)
+        .map_err(|e| DaemonError::Unavailable(e.to_string()))?;
+    // The best case, servos answering at once: a rate above it cannot be kept.
+    let budget = crate::link::dynamixel_wire::line_budget(ids.len(), baud, 0.0);
+    if settings.config.stream.rate_hz > budget.max_rate_hz {
+        return Err(DaemonError::Unavailable(format!(
+            "{} Hz does not fit a Dynamixel bus of {} servos at {baud} baud: one cycle takes up to {:.2} ms, {:.0} Hz at most (docs/dynamixel.md)",
+            settings.config.stream.rate_hz,
+            ids.len(),
+            budget.cycle_s * 1e3,
+            budget.max_rate_hz
+        )));
+    }
+    Ok(crate::link::DynamixelSettings {
+        serial: settings.config.stream.serial_settings(path, baud),
+        ids: ids.to_vec(),
+        axes,
+        limits: rig
+            .joints
+            .iter()
+            .map(|j| (j.limits.lower, j.limits.upper))
+            .collect(),
+        cycle_timeout: Duration::from_secs_f64(settings.period_s()),
+    })
 }
 
 /// Where the controller holds at rest, read before planning so the plan starts there

@@ -4,6 +4,8 @@
 
 mod can;
 mod channel;
+mod dynamixel;
+pub mod dynamixel_wire;
 mod egm;
 pub mod egm_wire;
 mod loopback;
@@ -14,11 +16,15 @@ mod tcp;
 
 pub use can::{CanBus, SEND_PATIENCE, connect_can, interface_mtu, interface_up};
 pub use channel::{CHANNEL_DEPTH, ChannelLink, IoEnds, LinkShared};
+pub use dynamixel::{
+    DynamixelError, DynamixelLink, DynamixelSettings, LOST_AFTER_CYCLES, connect_dynamixel,
+    operating_mode,
+};
 pub use egm::{EgmClock, EgmLink, EgmState, LINK_SILENCE, PLAYOUT_DEPTH, bind_egm};
 pub use loopback::LoopbackLink;
 pub use serial::{SerialSettings, connect_serial};
 pub use session::{BridgeSession, Due, Outgoing};
-pub use spec::{DEFAULT_BAUD, LinkSpec, LinkSpecError};
+pub use spec::{DEFAULT_BAUD, DYNAMIXEL_DEFAULT_BAUD, LinkSpec, LinkSpecError};
 pub use tcp::{TcpSettings, connect_tcp};
 
 use crate::protocol::{Command, EncodeError, FaultReport, Feedback, Hello};

@@ -1,6 +1,7 @@
 //! Link addresses as users write them: `loopback`, `tcp://HOST:PORT`,
 //! `serial:///dev/PATH?baud=N`, `can://IFACE`, `egm://ADDR:PORT` (rigbridge as an ABB EGM
-//! sensor, bound to ADDR:PORT).
+//! sensor, bound to ADDR:PORT), `dynamixel:///dev/PATH?baud=N&ids=1,2,...` (rigbridge as
+//! the Dynamixel Protocol 2.0 master of one servo per axis, ids in axis order).
 
 use std::str::FromStr;
 use thiserror::Error;
@@ -11,9 +12,12 @@ pub enum LinkSpec {
     Tcp {
         address: String,
     },
+    /// A serial line: rigbridge's own protocol, or with `dynamixel` the servo ids (in axis
+    /// order) of a Dynamixel Protocol 2.0 bus (the same device either way).
     Serial {
         path: String,
         baud: u32,
+        dynamixel: Option<Vec<u8>>,
     },
     Can {
         interface: String,
@@ -26,7 +30,7 @@ pub enum LinkSpec {
 
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 #[error(
-    "link `{text}`: {reason} (expected loopback, tcp://HOST:PORT, serial:///dev/PATH?baud=N, can://IFACE or egm://ADDR:PORT)"
+    "link `{text}`: {reason} (expected loopback, tcp://HOST:PORT, serial:///dev/PATH?baud=N, can://IFACE, egm://ADDR:PORT or dynamixel:///dev/PATH?baud=N&ids=1,2,...)"
 )]
 pub struct LinkSpecError {
     pub text: String,
@@ -34,6 +38,8 @@ pub struct LinkSpecError {
 }
 
 pub const DEFAULT_BAUD: u32 = 115_200;
+/// A Dynamixel X-series servo's factory baud rate (XM430 e-manual, "Baud Rate (8)").
+pub const DYNAMIXEL_DEFAULT_BAUD: u32 = 57_600;
 
 impl FromStr for LinkSpec {
     type Err = LinkSpecError;
@@ -68,7 +74,11 @@ impl FromStr for LinkSpec {
             return Ok(LinkSpec::Serial {
                 path: path.to_string(),
                 baud,
+                dynamixel: None,
             });
+        }
+        if let Some(rest) = text.strip_prefix("dynamixel://") {
+            return parse_dynamixel(rest).map_err(|reason| fail(&reason));
         }
         if let Some(address) = text.strip_prefix("egm://") {
             if address.parse::<std::net::SocketAddr>().is_err() {
@@ -92,6 +102,45 @@ impl FromStr for LinkSpec {
     }
 }
 
+/// `PATH?baud=N&ids=1,2,...`: ids required (one per axis, in axis order), baud optional.
+fn parse_dynamixel(rest: &str) -> Result<LinkSpec, String> {
+    let (path, query) = rest.split_once('?').unwrap_or((rest, ""));
+    if !path.starts_with('/') {
+        return Err("needs an absolute device path".into());
+    }
+    let mut baud = DYNAMIXEL_DEFAULT_BAUD;
+    let mut ids = None;
+    for option in query.split('&').filter(|o| !o.is_empty()) {
+        match option.split_once('=') {
+            Some(("baud", b)) => {
+                baud = b.parse().map_err(|_| "baud must be a whole number")?;
+            }
+            Some(("ids", list)) => {
+                let parsed: Result<Vec<u8>, _> = list.split(',').map(str::parse::<u8>).collect();
+                match parsed {
+                    Ok(list)
+                        if list
+                            .iter()
+                            .all(|id| *id <= super::dynamixel_wire::MAX_SERVO_ID) =>
+                    {
+                        ids = Some(list)
+                    }
+                    _ => {
+                        return Err("ids must be servo ids from 0 to 252, such as ids=1,2,3".into());
+                    }
+                }
+            }
+            _ => return Err("the options are baud=N and ids=1,2,...".into()),
+        }
+    }
+    let ids = ids.ok_or("needs ids=1,2,... (one servo id per axis, in axis order)")?;
+    Ok(LinkSpec::Serial {
+        path: path.to_string(),
+        baud,
+        dynamixel: Some(ids),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -109,14 +158,32 @@ mod tests {
             "serial:///dev/ttyUSB0?baud=1000000".parse(),
             Ok(LinkSpec::Serial {
                 path: "/dev/ttyUSB0".into(),
-                baud: 1_000_000
+                baud: 1_000_000,
+                dynamixel: None
             })
         );
         assert_eq!(
             "serial:///dev/pts/3".parse(),
             Ok(LinkSpec::Serial {
                 path: "/dev/pts/3".into(),
-                baud: DEFAULT_BAUD
+                baud: DEFAULT_BAUD,
+                dynamixel: None
+            })
+        );
+        assert_eq!(
+            "dynamixel:///dev/ttyUSB0?baud=1000000&ids=1,2,3,4,5,6".parse(),
+            Ok(LinkSpec::Serial {
+                path: "/dev/ttyUSB0".into(),
+                baud: 1_000_000,
+                dynamixel: Some(vec![1, 2, 3, 4, 5, 6])
+            })
+        );
+        assert_eq!(
+            "dynamixel:///dev/pts/4?ids=7".parse(),
+            Ok(LinkSpec::Serial {
+                path: "/dev/pts/4".into(),
+                baud: DYNAMIXEL_DEFAULT_BAUD,
+                dynamixel: Some(vec![7])
             })
         );
         assert_eq!(
@@ -139,6 +206,10 @@ mod tests {
             "serial://dev/x",
             "udp://x:1",
             "can://",
+            "dynamixel:///dev/ttyUSB0",
+            "dynamixel:///dev/ttyUSB0?ids=1,300",
+            "dynamixel://ttyUSB0?ids=1",
+            "dynamixel:///dev/ttyUSB0?ids=1&parity=odd",
         ] {
             let error = bad.parse::<LinkSpec>().unwrap_err();
             assert!(error.to_string().contains(bad), "{error}");

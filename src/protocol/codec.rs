@@ -531,6 +531,7 @@ const FAULT_AXIS_COUNT: u8 = 3;
 const FAULT_ESTOP: u8 = 4;
 const FAULT_OVER_ACCELERATION: u8 = 5;
 const FAULT_BUSY: u8 = 6;
+const FAULT_DRIVE: u8 = 7;
 
 /// code, a, b: a is the axis (or the expected axis count), b the axis count received.
 fn fault_to_wire(fault: Fault) -> [u8; 3] {
@@ -541,6 +542,7 @@ fn fault_to_wire(fault: Fault) -> [u8; 3] {
         Fault::EStop => [FAULT_ESTOP, 0, 0],
         Fault::OverAcceleration { axis } => [FAULT_OVER_ACCELERATION, axis, 0],
         Fault::Busy => [FAULT_BUSY, 0, 0],
+        Fault::Drive { axis } => [FAULT_DRIVE, axis, 0],
     }
 }
 
@@ -553,6 +555,7 @@ fn fault_from_wire([code, a, b]: [u8; 3]) -> Option<Fault> {
         (FAULT_ESTOP, 0) if a == 0 => Some(Fault::EStop),
         (FAULT_OVER_ACCELERATION, 0) => Some(Fault::OverAcceleration { axis: a }),
         (FAULT_BUSY, 0) if a == 0 => Some(Fault::Busy),
+        (FAULT_DRIVE, 0) => Some(Fault::Drive { axis: a }),
         _ => None,
     }
 }

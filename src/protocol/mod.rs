@@ -109,6 +109,11 @@ pub enum Fault {
     /// Bound to another bridge: sent to a second one before the controller closes it.
     /// Only ever in a Fault message, never latched.
     Busy,
+    /// The axis's drive reported an error of its own (a servo's status error or hardware
+    /// error: Dynamixel, docs/dynamixel.md), 0-based axis index.
+    Drive {
+        axis: u8,
+    },
 }
 
 impl std::fmt::Display for Fault {
@@ -129,6 +134,7 @@ impl std::fmt::Display for Fault {
                 write!(f, "over acceleration (axis {})", u32::from(*axis) + 1)
             }
             Fault::Busy => write!(f, "busy with another bridge"),
+            Fault::Drive { axis } => write!(f, "drive error (axis {})", u32::from(*axis) + 1),
         }
     }
 }

@@ -1,0 +1,895 @@
+//! The Dynamixel link: rigbridge as the Protocol 2.0 master of a bus of servos, one per
+//! axis, on a serial line (`dynamixel:///dev/ttyUSB0?baud=1000000&ids=1,2,3,4,5,6`).
+//!
+//! An I/O thread owns the port. On every open it sets the servos up (docs/dynamixel.md):
+//! ping each id, torque off, Hardware Error Status (70) read, Operating Mode (11) = 4 when
+//! an axis' range exceeds +-180 deg (else 3), the position limits checked against the
+//! axes, Present Position (132) read as the start, Goal Position (116) = Present Position
+//! (a servo drives to a stale goal register when torque comes on), torque on. Then each
+//! command from the streamer is one bus cycle: a Target is a Sync Write of Goal Position
+//! followed by a Sync Read of Present Position, anything else the Sync Read alone; the
+//! positions read are the feedback.
+//!
+//! A status packet with a non-zero error byte, or a non-zero Hardware Error Status (read
+//! when the alert bit is set), latches a drive fault: a `LinkEvent::Fault` and a faulted
+//! status in every feedback until a Reset sets the bus up again. Missing status packets
+//! are counted (`gaps`); [`LOST_AFTER_CYCLES`] cycles in a row with one missing are link
+//! loss, and the bus is opened and set up anew. A target whose tick falls outside a
+//! servo's range is refused before anything is written, never clamped. It owns the port
+//! and the bus cycle; it must not plan or check speeds (the streamer's gate does).
+
+use super::dynamixel_wire::{
+    AxisTicks, EXTENDED_POSITION_MODE, EXTENDED_RANGE, POSITION_MODE, Packet, PacketDecoder,
+    address, describe_error, encode_packet, encode_sync_read, encode_sync_write_i32, error,
+    instruction, read_params, write_params,
+};
+use super::{Link, LinkCounters, LinkError, LinkEvent, SerialSettings};
+use crate::protocol::codec::{EncodeError, FaultReport};
+use crate::protocol::{AxisValues, Command, ControllerStatus, Fault, Feedback};
+use serialport::SerialPort;
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+use thiserror::Error;
+
+/// Cycles in a row with a status packet missing that mean the bus is lost: 25, the
+/// streamer's own patience (0.1 s at 250 Hz) for a silent controller.
+pub const LOST_AFTER_CYCLES: u32 = 25;
+/// How long a set-up request waits for its status packet: generous, set-up is not cyclic.
+const SETUP_TIMEOUT: Duration = Duration::from_millis(100);
+/// Set-up requests are retried this often before the open counts as failed (a servo
+/// still booting, a packet lost to noise).
+const SETUP_ATTEMPTS: u32 = 3;
+/// How often the I/O thread wakes without commands to notice the link was dropped.
+const POLL: Duration = Duration::from_millis(50);
+const BACKOFF_INITIAL: Duration = Duration::from_millis(10);
+const BACKOFF_MAX: Duration = Duration::from_secs(1);
+/// Commands waiting for the bus: the streamer sends one a cycle and waits for its answer.
+const QUEUE_CAPACITY: usize = 16;
+/// Degrees beyond which an axis needs extended position mode (issue 16): one turn is
+/// +-180 deg about the centre tick.
+const HALF_TURN: f64 = std::f64::consts::PI;
+
+/// What the link needs to know: the port, the servos in axis order and their tick maps,
+/// the axes' limits (to choose the mode and check each servo's range) and the cycle.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DynamixelSettings {
+    pub serial: SerialSettings,
+    pub ids: Vec<u8>,
+    pub axes: Vec<AxisTicks>,
+    /// Per axis (lower, upper), rad.
+    pub limits: Vec<(f64, f64)>,
+    /// How long a cycle waits for its status packets: the stream period.
+    pub cycle_timeout: Duration,
+}
+
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum DynamixelError {
+    #[error("{ids} servo ids for {axes} axes: give one id per axis, in axis order")]
+    IdCount { ids: usize, axes: usize },
+    #[error("servo id {0} appears twice")]
+    DuplicateId(u8),
+    #[error(
+        "axis {axis}: its limits are ticks {low} .. {high}, outside the extended position range +-{EXTENDED_RANGE}"
+    )]
+    OutOfRange { axis: usize, low: f64, high: f64 },
+}
+
+/// Why a set-up or a cycle could not go on.
+#[derive(Debug)]
+enum BusError {
+    /// The port failed or a servo did not answer: reopen and set up again.
+    Lost(String),
+    /// A servo reported an error: latch a fault on this axis.
+    Drive { axis: usize, text: String },
+}
+
+/// What a queued command does on the bus.
+#[derive(Debug, Clone, Copy)]
+enum Job {
+    /// Sync Write these goals (ticks), then Sync Read; the target's seq.
+    Goals(u32, [i32; crate::protocol::MAX_AXES]),
+    /// Sync Read only; true for Stop (the servos hold their goal: the status says so).
+    Read { holding: bool },
+    /// Goal = Present Position at once, and latch the e-stop.
+    EStop,
+    /// Set the bus up again, clearing a latched fault if the servos report none.
+    Reset,
+}
+
+struct State {
+    queue: VecDeque<Job>,
+    up: bool,
+    sessions: u64,
+    adopted: u64,
+    feedback: Option<Feedback>,
+    generation: u64,
+    events: VecDeque<LinkEvent>,
+    counters: LinkCounters,
+    latched: Option<Fault>,
+    /// Each servo's Goal Position range in ticks, known once it is set up.
+    ranges: Vec<(i64, i64)>,
+    restart: bool,
+    /// Why the last open or set-up failed, for people reading a timeout.
+    problem: Option<String>,
+}
+
+struct Shared {
+    state: Mutex<State>,
+    /// Feedback arrived (for the streamer).
+    feedback: Condvar,
+    /// A command arrived (for the I/O thread).
+    command: Condvar,
+    closed: AtomicBool,
+    settings: DynamixelSettings,
+}
+
+impl Shared {
+    fn lock(&self) -> MutexGuard<'_, State> {
+        // A panicking holder leaves plain data behind: keep using it.
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+pub struct DynamixelLink {
+    shared: Arc<Shared>,
+    seen: u64,
+    description: String,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+/// Checks `settings` and starts the I/O thread, which opens the port and sets the bus up
+/// in the background (and again after every loss).
+pub fn connect_dynamixel(settings: DynamixelSettings) -> Result<DynamixelLink, LinkError> {
+    check_settings(&settings).map_err(|e| LinkError::Closed(e.to_string()))?;
+    let description = format!(
+        "dynamixel://{}?baud={}&ids={}",
+        settings.serial.path,
+        settings.serial.baud,
+        settings
+            .ids
+            .iter()
+            .map(u8::to_string)
+            .collect::<Vec<_>>()
+            .join(",")
+    );
+    let shared = Arc::new(Shared {
+        state: Mutex::new(State {
+            queue: VecDeque::with_capacity(QUEUE_CAPACITY),
+            up: false,
+            sessions: 0,
+            adopted: 0,
+            feedback: None,
+            generation: 0,
+            events: VecDeque::new(),
+            counters: LinkCounters::default(),
+            latched: None,
+            ranges: Vec::new(),
+            restart: false,
+            problem: None,
+        }),
+        feedback: Condvar::new(),
+        command: Condvar::new(),
+        closed: AtomicBool::new(false),
+        settings,
+    });
+    let io = shared.clone();
+    let thread = std::thread::Builder::new()
+        .name("rigbridge-dynamixel".into())
+        .spawn(move || keep_open(&io))?;
+    Ok(DynamixelLink {
+        shared,
+        seen: 0,
+        description,
+        thread: Some(thread),
+    })
+}
+
+fn check_settings(settings: &DynamixelSettings) -> Result<(), DynamixelError> {
+    if settings.ids.len() != settings.axes.len() || settings.ids.len() != settings.limits.len() {
+        return Err(DynamixelError::IdCount {
+            ids: settings.ids.len(),
+            axes: settings.axes.len(),
+        });
+    }
+    for (i, id) in settings.ids.iter().enumerate() {
+        if settings.ids[..i].contains(id) {
+            return Err(DynamixelError::DuplicateId(*id));
+        }
+    }
+    for (axis, (ticks, (lower, upper))) in settings.axes.iter().zip(&settings.limits).enumerate() {
+        let (low, high) = (ticks.tick(*lower), ticks.tick(*upper));
+        if low.min(high) < -(EXTENDED_RANGE as f64) || low.max(high) > EXTENDED_RANGE as f64 {
+            return Err(DynamixelError::OutOfRange {
+                axis: axis + 1,
+                low,
+                high,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Operating Mode for an axis: extended position when its range exceeds +-180 deg.
+pub fn operating_mode(lower: f64, upper: f64) -> u8 {
+    if lower < -HALF_TURN || upper > HALF_TURN {
+        EXTENDED_POSITION_MODE
+    } else {
+        POSITION_MODE
+    }
+}
+
+impl Drop for DynamixelLink {
+    fn drop(&mut self) {
+        self.shared.closed.store(true, Ordering::SeqCst);
+        self.shared.command.notify_all();
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+impl DynamixelLink {
+    fn push(&mut self, job: Job) -> Result<(), LinkError> {
+        let mut state = self.shared.lock();
+        if state.queue.len() >= QUEUE_CAPACITY {
+            return Err(LinkError::Io(std::io::Error::other(
+                "Dynamixel command queue full: the bus is behind the streamer",
+            )));
+        }
+        if matches!(job, Job::EStop | Job::Read { holding: true }) {
+            // Targets planned before a Stop or EStop are stale: never sent.
+            state.queue.retain(|j| !matches!(j, Job::Goals(..)));
+        }
+        state.queue.push_back(job);
+        drop(state);
+        self.shared.command.notify_all();
+        Ok(())
+    }
+
+    /// The goal ticks of `positions`, or the first axis whose tick is outside its servo's
+    /// range (never clamped).
+    fn goals(
+        &self,
+        state: &State,
+        positions: &[f64],
+    ) -> Result<[i32; crate::protocol::MAX_AXES], EncodeError> {
+        let mut goals = [0i32; crate::protocol::MAX_AXES];
+        for (axis, (ticks, &rad)) in self.shared.settings.axes.iter().zip(positions).enumerate() {
+            let tick = ticks.tick(rad);
+            let (low, high) = state.ranges.get(axis).copied().unwrap_or((0, -1));
+            if !tick.is_finite() || tick < low as f64 || tick > high as f64 {
+                return Err(EncodeError::OutOfRange {
+                    field: "goal position tick",
+                    value: tick,
+                    range: "the servo's position range",
+                });
+            }
+            goals[axis] = tick as i32;
+        }
+        Ok(goals)
+    }
+}
+
+impl DynamixelLink {
+    /// Why the last open or set-up of the bus failed, if one did.
+    pub fn problem(&self) -> Option<String> {
+        self.shared.lock().problem.clone()
+    }
+}
+
+impl Link for DynamixelLink {
+    fn send(&mut self, command: &Command) -> Result<(), LinkError> {
+        match command {
+            Command::Target(target) => {
+                let state = self.shared.lock();
+                // A target for another session (planned before the bus was set up anew),
+                // or while a fault is latched, is never written.
+                if !state.up || state.sessions != state.adopted || state.latched.is_some() {
+                    return Ok(());
+                }
+                let goals = self.goals(&state, target.positions.as_slice());
+                drop(state);
+                match goals {
+                    Ok(goals) => self.push(Job::Goals(target.seq, goals)),
+                    Err(e) => {
+                        self.shared
+                            .lock()
+                            .events
+                            .push_back(LinkEvent::EncodeFailed(e));
+                        Ok(())
+                    }
+                }
+            }
+            Command::Stop => self.push(Job::Read { holding: true }),
+            Command::EStop => self.push(Job::EStop),
+            Command::Reset => self.push(Job::Reset),
+            Command::Heartbeat => {
+                self.adopt_session();
+                self.push(Job::Read { holding: false })
+            }
+        }
+    }
+
+    fn receive(&mut self, timeout: Duration) -> Result<Option<Feedback>, LinkError> {
+        let deadline = Instant::now() + timeout;
+        let mut state = self.shared.lock();
+        loop {
+            if state.generation > self.seen {
+                self.seen = state.generation;
+                return Ok(state.feedback);
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Ok(None);
+            }
+            state = self
+                .shared
+                .feedback
+                .wait_timeout(state, deadline - now)
+                .unwrap_or_else(|p| p.into_inner())
+                .0;
+        }
+    }
+
+    fn counters(&self) -> LinkCounters {
+        self.shared.lock().counters
+    }
+
+    fn describe(&self) -> String {
+        self.description.clone()
+    }
+
+    fn is_up(&self) -> bool {
+        self.shared.lock().up
+    }
+
+    fn drain(&mut self) {
+        self.seen = self.shared.lock().generation;
+    }
+
+    fn next_event(&mut self) -> Option<LinkEvent> {
+        self.shared.lock().events.pop_front()
+    }
+
+    fn sessions(&self) -> u64 {
+        self.shared.lock().sessions
+    }
+
+    fn restart(&mut self) {
+        self.shared.lock().restart = true;
+        self.shared.command.notify_all();
+    }
+
+    fn adopt_session(&mut self) {
+        let mut state = self.shared.lock();
+        state.adopted = state.sessions;
+    }
+}
+
+/// The port and the bytes in flight on it.
+struct Bus {
+    port: Box<dyn SerialPort>,
+    decoder: PacketDecoder,
+    out: Vec<u8>,
+    read: Vec<u8>,
+}
+
+impl Bus {
+    fn open(settings: &SerialSettings) -> Result<Self, BusError> {
+        let port = settings
+            .open()
+            .map_err(|e| BusError::Lost(format!("cannot open {}: {e}", settings.path)))?;
+        Ok(Self {
+            port,
+            decoder: PacketDecoder::default(),
+            out: Vec::with_capacity(256),
+            read: vec![0; 512],
+        })
+    }
+
+    fn write_out(&mut self, shared: &Shared) -> Result<(), BusError> {
+        // Anything unread belongs to an earlier exchange: a late answer is not this one's.
+        // (Dropped from the decoder only: flushing the port's input is a syscall a cycle,
+        // and draining its output (tcdrain) waits on the far side.)
+        self.decoder.clear();
+        self.port
+            .write_all(&self.out)
+            .map_err(|e| BusError::Lost(format!("write failed: {e}")))?;
+        shared.lock().counters.frames_sent += 1;
+        Ok(())
+    }
+
+    /// The next status packet from `id` before `deadline`; `None` when none came.
+    fn status_from(
+        &mut self,
+        shared: &Shared,
+        id: u8,
+        deadline: Instant,
+    ) -> Result<Option<Packet>, BusError> {
+        loop {
+            while let Some(decoded) = self.decoder.next_packet() {
+                let mut state = shared.lock();
+                match decoded {
+                    Ok(packet) if packet.instruction == instruction::STATUS => {
+                        state.counters.frames_received += 1;
+                        if packet.id == id {
+                            return Ok(Some(packet));
+                        }
+                    }
+                    Ok(_) => {}
+                    Err(_) => state.counters.crc_errors += 1,
+                }
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Ok(None);
+            }
+            let wait = (deadline - now).max(Duration::from_micros(100));
+            self.port
+                .set_timeout(wait)
+                .map_err(|e| BusError::Lost(format!("port: {e}")))?;
+            match self.port.read(&mut self.read) {
+                Ok(n) => self.decoder.push(&self.read[..n]),
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::TimedOut | std::io::ErrorKind::WouldBlock
+                    ) => {}
+                Err(e) => return Err(BusError::Lost(format!("read failed: {e}"))),
+            }
+        }
+    }
+
+    /// One instruction to `id` and its status parameters, retried; a status error is a
+    /// drive fault of `axis`.
+    fn request(
+        &mut self,
+        shared: &Shared,
+        axis: usize,
+        instruction: u8,
+        params: &[u8],
+    ) -> Result<Vec<u8>, BusError> {
+        let id = shared.settings.ids[axis];
+        for _ in 0..SETUP_ATTEMPTS {
+            encode_packet(id, instruction, params, &mut self.out);
+            self.write_out(shared)?;
+            let Some(packet) = self.status_from(shared, id, Instant::now() + SETUP_TIMEOUT)? else {
+                shared.lock().counters.gaps += 1;
+                continue;
+            };
+            let (code, data) = packet.status().unwrap_or((error::RESULT_FAIL, &[]));
+            if code != 0 {
+                return Err(self.drive_error(shared, axis, code));
+            }
+            return Ok(data.to_vec());
+        }
+        Err(BusError::Lost(format!("servo id {id} did not answer")))
+    }
+
+    fn read_register(
+        &mut self,
+        shared: &Shared,
+        axis: usize,
+        at: u16,
+        size: u16,
+    ) -> Result<Vec<u8>, BusError> {
+        let data = self.request(shared, axis, instruction::READ, &read_params(at, size))?;
+        if data.len() != usize::from(size) {
+            return Err(BusError::Lost(format!(
+                "servo id {} answered {} bytes for {size} at address {at}",
+                shared.settings.ids[axis],
+                data.len()
+            )));
+        }
+        Ok(data)
+    }
+
+    fn write_register(
+        &mut self,
+        shared: &Shared,
+        axis: usize,
+        at: u16,
+        data: &[u8],
+    ) -> Result<(), BusError> {
+        self.request(shared, axis, instruction::WRITE, &write_params(at, data))
+            .map(|_| ())
+    }
+
+    /// The drive fault for status error `code` of `axis`: with the alert bit, its
+    /// Hardware Error Status says why.
+    fn drive_error(&mut self, shared: &Shared, axis: usize, code: u8) -> BusError {
+        let id = shared.settings.ids[axis];
+        let mut text = format!(
+            "servo id {id} (axis {}): {}",
+            axis + 1,
+            describe_error(code)
+        );
+        if code & error::ALERT != 0 {
+            encode_packet(
+                id,
+                instruction::READ,
+                &read_params(address::HARDWARE_ERROR_STATUS, 1),
+                &mut self.out,
+            );
+            if self.write_out(shared).is_ok()
+                && let Ok(Some(packet)) =
+                    self.status_from(shared, id, Instant::now() + SETUP_TIMEOUT)
+                && let Some((_, [bits])) = packet.status()
+            {
+                text.push_str(&format!("; hardware error status {bits:#04x}"));
+            }
+        }
+        BusError::Drive { axis, text }
+    }
+}
+
+fn i32_of(data: &[u8]) -> Option<i32> {
+    Some(i32::from_le_bytes(data.get(..4)?.try_into().ok()?))
+}
+
+/// Each servo's Goal Position range and present position, ticks.
+type SetUp = (Vec<(i64, i64)>, Vec<i32>);
+
+/// The set-up of docs/dynamixel.md; returns each servo's Goal Position range and the
+/// present positions (ticks).
+fn set_up(bus: &mut Bus, shared: &Shared) -> Result<SetUp, BusError> {
+    let settings = &shared.settings;
+    let axes = settings.ids.len();
+    for axis in 0..axes {
+        bus.request(shared, axis, instruction::PING, &[])?;
+    }
+    for axis in 0..axes {
+        bus.write_register(shared, axis, address::TORQUE_ENABLE, &[0])?;
+        let [bits] = bus.read_register(shared, axis, address::HARDWARE_ERROR_STATUS, 1)?[..] else {
+            return Err(BusError::Lost("short hardware error status".into()));
+        };
+        if bits != 0 {
+            return Err(BusError::Drive {
+                axis,
+                text: format!(
+                    "servo id {} (axis {}): hardware error status {bits:#04x}",
+                    settings.ids[axis],
+                    axis + 1
+                ),
+            });
+        }
+    }
+    let mut ranges = Vec::with_capacity(axes);
+    for axis in 0..axes {
+        let (lower, upper) = settings.limits[axis];
+        let mode = operating_mode(lower, upper);
+        bus.write_register(shared, axis, address::OPERATING_MODE, &[mode])?;
+        ranges.push(servo_range(bus, shared, axis, mode)?);
+    }
+    let mut present = Vec::with_capacity(axes);
+    for axis in 0..axes {
+        let data = bus.read_register(shared, axis, address::PRESENT_POSITION, 4)?;
+        let tick = i32_of(&data).ok_or_else(|| BusError::Lost("short position".into()))?;
+        bus.write_register(shared, axis, address::GOAL_POSITION, &tick.to_le_bytes())?;
+        present.push(tick);
+    }
+    for axis in 0..axes {
+        bus.write_register(shared, axis, address::TORQUE_ENABLE, &[1])?;
+    }
+    Ok((ranges, present))
+}
+
+/// The Goal Position range of `axis`' servo in `mode`: its position limits (48, 52) in
+/// position mode, which must cover the axis' limits, or the extended range.
+fn servo_range(
+    bus: &mut Bus,
+    shared: &Shared,
+    axis: usize,
+    mode: u8,
+) -> Result<(i64, i64), BusError> {
+    if mode == EXTENDED_POSITION_MODE {
+        return Ok((-EXTENDED_RANGE, EXTENDED_RANGE));
+    }
+    let read = |bus: &mut Bus, at| -> Result<i64, BusError> {
+        let data = bus.read_register(shared, axis, at, 4)?;
+        i32_of(&data)
+            .map(i64::from)
+            .ok_or_else(|| BusError::Lost("short position limit".into()))
+    };
+    let max = read(bus, address::MAX_POSITION_LIMIT)?;
+    let min = read(bus, address::MIN_POSITION_LIMIT)?;
+    let ticks = shared.settings.axes[axis];
+    let (lower, upper) = shared.settings.limits[axis];
+    let (low, high) = (ticks.tick(lower), ticks.tick(upper));
+    if low.min(high) < min as f64 || low.max(high) > max as f64 {
+        return Err(BusError::Drive {
+            axis,
+            text: format!(
+                "servo id {} (axis {}): its position limits {min} .. {max} do not cover the axis' limits, ticks {low} .. {high}",
+                shared.settings.ids[axis],
+                axis + 1
+            ),
+        });
+    }
+    Ok((min, max))
+}
+
+/// Opens, sets up and runs the bus until the link is dropped, again after every loss.
+fn keep_open(shared: &Shared) {
+    let mut backoff = BACKOFF_INITIAL;
+    while !shared.closed.load(Ordering::SeqCst) {
+        let mut bus = match Bus::open(&shared.settings.serial) {
+            Ok(bus) => bus,
+            Err(BusError::Lost(problem) | BusError::Drive { text: problem, .. }) => {
+                shared.lock().problem = Some(problem);
+                std::thread::sleep(backoff);
+                backoff = (backoff * 2).min(BACKOFF_MAX);
+                continue;
+            }
+        };
+        match begin_session(&mut bus, shared) {
+            Ok(()) => {
+                backoff = BACKOFF_INITIAL;
+                run_cycles(&mut bus, shared);
+            }
+            Err(BusError::Drive { axis, text }) => {
+                latch(shared, axis, &text);
+                wait_for_reset(shared);
+            }
+            Err(BusError::Lost(problem)) => {
+                shared.lock().problem = Some(problem);
+                std::thread::sleep(backoff);
+                backoff = (backoff * 2).min(BACKOFF_MAX);
+            }
+        }
+        let mut state = shared.lock();
+        state.up = false;
+        state.queue.clear();
+    }
+}
+
+/// Sets the bus up and publishes the session and its first feedback (holding).
+fn begin_session(bus: &mut Bus, shared: &Shared) -> Result<(), BusError> {
+    let (ranges, present) = set_up(bus, shared)?;
+    let positions = radians(shared, &present);
+    let mut state = shared.lock();
+    state.ranges = ranges;
+    state.up = true;
+    state.sessions += 1;
+    state.counters.reconnects = state.sessions - 1;
+    state.latched = None;
+    state.restart = false;
+    state.queue.clear();
+    publish(
+        shared,
+        &mut state,
+        Feedback {
+            seq: 0,
+            positions,
+            status: ControllerStatus::Holding,
+        },
+    );
+    Ok(())
+}
+
+fn radians(shared: &Shared, ticks: &[i32]) -> AxisValues {
+    let values: Vec<f64> = shared
+        .settings
+        .axes
+        .iter()
+        .zip(ticks)
+        .map(|(axis, &t)| axis.radians(i64::from(t)))
+        .collect();
+    AxisValues::from_slice(&values).unwrap_or(AxisValues::zeros(0))
+}
+
+fn publish(shared: &Shared, state: &mut State, feedback: Feedback) {
+    state.feedback = Some(feedback);
+    state.generation += 1;
+    shared.feedback.notify_all();
+}
+
+fn latch(shared: &Shared, axis: usize, text: &str) {
+    let fault = Fault::Drive { axis: axis as u8 };
+    let mut state = shared.lock();
+    state.latched = Some(fault);
+    state.events.push_back(LinkEvent::Fault(FaultReport {
+        fault,
+        text: text.to_string(),
+    }));
+    // No feedback now: the streamer reads the event first, with its words, next cycle;
+    // every feedback after it carries the fault.
+}
+
+/// After a fault at set-up: nothing moves until a Reset (or the link is dropped).
+fn wait_for_reset(shared: &Shared) {
+    let mut state = shared.lock();
+    while !shared.closed.load(Ordering::SeqCst) {
+        if let Some(index) = state.queue.iter().position(|j| matches!(j, Job::Reset)) {
+            state.queue.drain(..=index);
+            return;
+        }
+        state.queue.clear();
+        state = shared
+            .command
+            .wait_timeout(state, POLL)
+            .unwrap_or_else(|p| p.into_inner())
+            .0;
+    }
+}
+
+/// The next command, or `None` when the link was dropped or asked to restart.
+fn next_job(shared: &Shared) -> Option<Job> {
+    let mut state = shared.lock();
+    loop {
+        if shared.closed.load(Ordering::SeqCst) || state.restart {
+            return None;
+        }
+        if let Some(job) = state.queue.pop_front() {
+            return Some(job);
+        }
+        state = shared
+            .command
+            .wait_timeout(state, POLL)
+            .unwrap_or_else(|p| p.into_inner())
+            .0;
+    }
+}
+
+/// Bus cycles, one per command, until loss, a fault reset or the link is dropped.
+fn run_cycles(bus: &mut Bus, shared: &Shared) {
+    let mut missing_cycles = 0u32;
+    let mut last_seq = 0u32;
+    let mut holding = true;
+    let mut present: Vec<i32> = Vec::new();
+    while let Some(job) = next_job(shared) {
+        let latched = shared.lock().latched.is_some();
+        match job {
+            Job::Reset => return,
+            Job::Goals(seq, goals) if !latched => {
+                let axes = shared.settings.ids.len();
+                let values: Vec<(u8, i32)> = shared
+                    .settings
+                    .ids
+                    .iter()
+                    .copied()
+                    .zip(goals[..axes].iter().copied())
+                    .collect();
+                encode_sync_write_i32(address::GOAL_POSITION, &values, &mut bus.out);
+                if bus.write_out(shared).is_err() {
+                    return;
+                }
+                last_seq = seq;
+                holding = false;
+            }
+            Job::Goals(..) => {}
+            Job::Read { holding: hold } => holding |= hold,
+            Job::EStop => {
+                estop(bus, shared, &present);
+                holding = true;
+            }
+        }
+        match sync_read(bus, shared) {
+            Ok(Some(ticks)) => {
+                missing_cycles = 0;
+                let mut state = shared.lock();
+                let status = match state.latched {
+                    Some(fault) => ControllerStatus::Fault(fault),
+                    None if holding => ControllerStatus::Holding,
+                    None => ControllerStatus::Ok,
+                };
+                let positions = radians(shared, &ticks);
+                present = ticks;
+                publish(
+                    shared,
+                    &mut state,
+                    Feedback {
+                        seq: last_seq,
+                        positions,
+                        status,
+                    },
+                );
+            }
+            Ok(None) => {
+                missing_cycles += 1;
+                if missing_cycles >= LOST_AFTER_CYCLES {
+                    return;
+                }
+            }
+            Err(BusError::Drive { axis, text }) => latch(shared, axis, &text),
+            Err(BusError::Lost(_)) => return,
+        }
+    }
+}
+
+/// E-stop: every goal set to where its servo is, and the fault latched until a Reset.
+fn estop(bus: &mut Bus, shared: &Shared, present: &[i32]) {
+    if present.len() == shared.settings.ids.len() {
+        let values: Vec<(u8, i32)> = shared
+            .settings
+            .ids
+            .iter()
+            .copied()
+            .zip(present.iter().copied())
+            .collect();
+        encode_sync_write_i32(address::GOAL_POSITION, &values, &mut bus.out);
+        let _ = bus.write_out(shared);
+    }
+    let mut state = shared.lock();
+    state.latched = Some(Fault::EStop);
+    state.events.push_back(LinkEvent::Fault(FaultReport {
+        fault: Fault::EStop,
+        text: "e-stop: every servo's goal set to its present position".into(),
+    }));
+}
+
+/// Sync Read of Present Position: every servo's ticks, `None` when a status is missing
+/// (each counted as a gap), a drive error for a status with an error byte.
+fn sync_read(bus: &mut Bus, shared: &Shared) -> Result<Option<Vec<i32>>, BusError> {
+    let ids = &shared.settings.ids;
+    encode_sync_read(address::PRESENT_POSITION, 4, ids, &mut bus.out);
+    bus.write_out(shared)?;
+    let deadline = Instant::now() + shared.settings.cycle_timeout;
+    let mut ticks = Vec::with_capacity(ids.len());
+    for (axis, &id) in ids.iter().enumerate() {
+        let Some(packet) = bus.status_from(shared, id, deadline)? else {
+            shared.lock().counters.gaps += (ids.len() - axis) as u64;
+            return Ok(None);
+        };
+        match packet.status() {
+            Some((0, data)) => match i32_of(data) {
+                Some(tick) => ticks.push(tick),
+                None => return Err(BusError::Lost(format!("servo id {id}: short position"))),
+            },
+            Some((code, _)) => return Err(bus.drive_error(shared, axis, code)),
+            None => return Ok(None),
+        }
+    }
+    Ok(Some(ticks))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn extended_mode_only_beyond_half_a_turn() {
+        assert_eq!(operating_mode(-2.88, 2.88), POSITION_MODE);
+        assert_eq!(operating_mode(-HALF_TURN, HALF_TURN), POSITION_MODE);
+        assert_eq!(
+            operating_mode(-400f64.to_radians(), 400f64.to_radians()),
+            EXTENDED_POSITION_MODE
+        );
+    }
+
+    #[test]
+    fn settings_are_refused_with_the_wrong_ids_or_an_axis_beyond_the_extended_range() {
+        let settings = DynamixelSettings {
+            serial: SerialSettings::new("/dev/null", 1_000_000),
+            ids: vec![1, 2],
+            axes: vec![AxisTicks::default(); 2],
+            limits: vec![(-1.0, 1.0); 2],
+            cycle_timeout: Duration::from_millis(4),
+        };
+        assert_eq!(check_settings(&settings), Ok(()));
+        let twice = DynamixelSettings {
+            ids: vec![3, 3],
+            ..settings.clone()
+        };
+        assert_eq!(check_settings(&twice), Err(DynamixelError::DuplicateId(3)));
+        let short = DynamixelSettings {
+            ids: vec![1],
+            ..settings.clone()
+        };
+        assert!(matches!(
+            check_settings(&short),
+            Err(DynamixelError::IdCount { ids: 1, axes: 2 })
+        ));
+        // 300 turns at 4096 ticks a turn: beyond +-256 turns.
+        let far = DynamixelSettings {
+            limits: vec![(-1.0, 1.0), (0.0, 300.0 * std::f64::consts::TAU)],
+            ..settings
+        };
+        assert!(matches!(
+            check_settings(&far),
+            Err(DynamixelError::OutOfRange { axis: 2, .. })
+        ));
+    }
+}
