@@ -8,12 +8,17 @@ mod config;
 mod fk;
 mod pose;
 mod urdf;
+mod urdf_out;
 
 pub use config::{ConfigError, check_range, load_rig};
-pub(crate) use config::{RawJoint, RawOrigin, joints_from_raw, origin_from_raw};
+pub(crate) use config::{
+    RawJoint, RawOrigin, joints_from_raw, origin_from_raw, origin_from_xyz_rpy,
+};
 pub use fk::{DofMismatch, JointAxis};
 pub use pose::{Pose, PoseError, rotation_angle_between};
+pub(crate) use urdf::deepest_path;
 pub use urdf::rig_from_urdf;
+pub use urdf_out::{generated_link_names, rig_to_urdf};
 
 use glam::{DAffine3, DQuat, DVec3};
 

@@ -123,7 +123,7 @@ pub fn rig_from_urdf(text: &str, file: &Path) -> Result<Rig, ConfigError> {
 }
 
 /// The joints from `root` to the leaf reached through the most joints.
-fn deepest_path<'a>(robot: &'a urdf_rs::Robot, root: &str) -> Vec<&'a urdf_rs::Joint> {
+pub(crate) fn deepest_path<'a>(robot: &'a urdf_rs::Robot, root: &str) -> Vec<&'a urdf_rs::Joint> {
     robot
         .joints
         .iter()
