@@ -403,7 +403,11 @@ fn create_recorder(
         wait_when_full: virtual_clock,
         ..crate::log::RecorderOptions::for_rig(&settings.rig)
     };
-    if let Some(urdf) = rig_urdf(settings)? {
+    if settings.sloth.is_some() {
+        // The sloth's streamed axes are its body and four limbs side by side, not one chain:
+        // their serial FK is no pose of the sloth, so it gets no /tf rather than a wrong one.
+        options.robot = None;
+    } else if let Some(urdf) = rig_urdf(settings)? {
         let robot = crate::log::RobotDescription::from_urdf(&settings.rig, urdf)?;
         options.robot = Some(std::sync::Arc::new(robot));
     }
@@ -421,7 +425,7 @@ fn create_recorder(
 /// as is; other rigs get a URDF generated from the model).
 fn rig_urdf(settings: &RunSettings) -> Result<Option<String>, DaemonError> {
     let path = config::config_dir(&settings.file).join(&settings.config.rig);
-    if settings.sloth.is_some() || path.extension().and_then(|e| e.to_str()) != Some("urdf") {
+    if path.extension().and_then(|e| e.to_str()) != Some("urdf") {
         return Ok(None);
     }
     std::fs::read_to_string(&path).map(Some).map_err(|source| {

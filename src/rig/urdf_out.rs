@@ -40,7 +40,12 @@ pub fn rig_to_urdf(rig: &Rig) -> String {
     let mut out = String::new();
     // Writing to a String cannot fail; the results are ignored for that reason only.
     let _ = writeln!(out, "<?xml version=\"1.0\"?>");
-    let _ = writeln!(out, "<robot name=\"{}\">", xml_escape(&rig.name));
+    // Version 1.2: the first with `acceleration` on `<limit>` (urdf-rs ignores it before).
+    let _ = writeln!(
+        out,
+        "<robot name=\"{}\" version=\"1.2\">",
+        xml_escape(&rig.name)
+    );
     let next_origins = rig
         .joints
         .iter()
