@@ -277,7 +277,8 @@ impl FoxgloveLog {
     ) -> Result<usize, LogError> {
         let due = self
             .last_t
-            .is_none_or(|last| !(t - last < TF_PERIOD_S - TIME_SLACK_S));
+            // Time going back (a log restarted at 0) starts the decimation afresh.
+            .is_none_or(|last| t - last >= TF_PERIOD_S - TIME_SLACK_S || t < last);
         if !due || !positions.iter().all(|q| q.is_finite()) {
             return Ok(0);
         }
