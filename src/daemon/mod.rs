@@ -474,10 +474,18 @@ fn create_recorder(
     metadata: &serde_json::Value,
     virtual_clock: bool,
 ) -> Result<Recorder, DaemonError> {
-    let options = crate::log::RecorderOptions {
+    let mut options = crate::log::RecorderOptions {
         wait_when_full: virtual_clock,
         ..crate::log::RecorderOptions::for_rig(&settings.rig)
     };
+    if settings.sloth.is_some() {
+        // The sloth's streamed axes are its body and four limbs side by side, not one chain:
+        // their serial FK is no pose of the sloth, so it gets no /tf rather than a wrong one.
+        options.robot = None;
+    } else if let Some(urdf) = rig_urdf(settings)? {
+        let robot = crate::log::RobotDescription::from_urdf(&settings.rig, urdf)?;
+        options.robot = Some(std::sync::Arc::new(robot));
+    }
     let names: Vec<String> = settings.rig.joint_names().map(str::to_owned).collect();
     Ok(Recorder::create_with(
         path,
@@ -486,6 +494,21 @@ fn create_recorder(
         metadata.clone(),
         options,
     )?)
+}
+
+/// The text of the rig's URDF file, when the rig was loaded from one (the log attaches it
+/// as is; other rigs get a URDF generated from the model).
+fn rig_urdf(settings: &RunSettings) -> Result<Option<String>, DaemonError> {
+    let path = config::config_dir(&settings.file).join(&settings.config.rig);
+    if path.extension().and_then(|e| e.to_str()) != Some("urdf") {
+        return Ok(None);
+    }
+    std::fs::read_to_string(&path).map(Some).map_err(|source| {
+        DaemonError::Log(LogError::Io {
+            context: format!("reading the rig's URDF {} to attach it", path.display()),
+            source,
+        })
+    })
 }
 
 /// Polls the link until it is up again or `timeout_s` passes.

@@ -1,10 +1,11 @@
 //! Recording a run without ever making the streaming cycle wait. The cycle hands over `Copy`
 //! records through a preallocated bounded channel (`try_send`: no allocation, no lock held
-//! across I/O, a full channel drops and counts); one writer thread serialises them to JSON and
-//! writes MCAP chunks. Owns the writer thread and the file it writes; must not touch the
+//! across I/O, a full channel drops and counts); one writer thread serialises them to JSON
+//! (and, for a rig, to Foxglove protobuf: `foxglove.rs`) and writes MCAP chunks. Owns the writer thread and the file it writes; must not touch the
 //! link, the controller or the cycle's timing, and never blocks the caller of `record`.
 
 use super::LogError;
+use super::foxglove::{FoxgloveLog, RobotDescription};
 use super::wire::{
     self, EVENT_SCHEMA_NAME, EVENTS_TOPIC, EventOut, MESSAGE_ENCODING, METADATA_NAME,
     SAMPLE_SCHEMA_NAME, SCHEMA_ENCODING, SampleOut, key,
@@ -86,6 +87,9 @@ pub struct RecorderOptions {
     /// time (a virtual clock outruns any writer; waiting there costs no deadline and keeps
     /// the log complete).
     pub wait_when_full: bool,
+    /// The rig's links and URDF: the log gains `/tf`, `/joint_states` and the URDF
+    /// attachment (`docs/foxglove.md`), encoded on the writer thread.
+    pub robot: Option<Arc<RobotDescription>>,
 }
 
 impl Default for RecorderOptions {
@@ -96,6 +100,7 @@ impl Default for RecorderOptions {
             chunk_interval: DEFAULT_CHUNK_INTERVAL,
             joint_kinds: None,
             wait_when_full: false,
+            robot: None,
         }
     }
 }
@@ -105,6 +110,7 @@ impl RecorderOptions {
     pub fn for_rig(rig: &Rig) -> Self {
         Self {
             joint_kinds: Some(rig.joints.iter().map(|j| j.kind).collect()),
+            robot: Some(Arc::new(RobotDescription::generated(rig))),
             ..Self::default()
         }
     }
@@ -340,6 +346,7 @@ struct Sink {
     chunk_bytes: usize,
     chunk_interval: Duration,
     written: Written,
+    foxglove: Option<FoxgloveLog>,
 }
 
 impl Sink {
@@ -377,6 +384,10 @@ impl Sink {
         })?;
         let (command_channel, state_channel, event_channel) =
             add_channels(&mut writer, rig, &channel_metadata)?;
+        let foxglove = match &options.robot {
+            Some(robot) => Some(FoxgloveLog::open(&mut writer, Arc::clone(robot))?),
+            None => None,
+        };
         // The first chunk holds only schemas and channels, on disk before the first cycle.
         writer.flush()?;
         Ok(Self {
@@ -392,6 +403,7 @@ impl Sink {
             chunk_bytes: options.chunk_bytes,
             chunk_interval: options.chunk_interval,
             written: Written::default(),
+            foxglove,
         })
     }
 
@@ -506,6 +518,11 @@ impl Sink {
             self.written.commands += 1;
         } else {
             self.written.states += 1;
+            if let Some(foxglove) = &mut self.foxglove {
+                let (p, v) = (positions.as_slice(), velocities.as_slice());
+                let bytes = foxglove.state(&mut self.writer, *t, job_time_ns(*t), p, v)?;
+                self.count_chunk_bytes(bytes)?;
+            }
         }
         Ok(())
     }
@@ -535,7 +552,11 @@ impl Sink {
             publish_time: time,
         };
         self.writer.write_to_known_channel(&header, &self.json)?;
-        self.open_chunk_bytes += self.json.len();
+        self.count_chunk_bytes(self.json.len())
+    }
+
+    fn count_chunk_bytes(&mut self, bytes: usize) -> Result<(), LogError> {
+        self.open_chunk_bytes += bytes;
         self.chunk_opened.get_or_insert_with(Instant::now);
         if self.open_chunk_bytes >= self.chunk_bytes {
             self.close_chunk()?;

@@ -391,7 +391,7 @@ impl Checker<'_> {
 }
 
 /// URDF's convention: rotate about fixed x (roll), then y (pitch), then z (yaw).
-pub(super) fn origin_from_xyz_rpy(xyz: DVec3, rpy_rad: DVec3) -> DAffine3 {
+pub(crate) fn origin_from_xyz_rpy(xyz: DVec3, rpy_rad: DVec3) -> DAffine3 {
     let rotation = DQuat::from_euler(EulerRot::ZYX, rpy_rad.z, rpy_rad.y, rpy_rad.x);
     DAffine3::from_rotation_translation(rotation, xyz)
 }

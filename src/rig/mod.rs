@@ -9,12 +9,17 @@ mod fk;
 mod pose;
 pub mod shipped;
 mod urdf;
+mod urdf_out;
 
 pub use config::{ConfigError, Shown, Verbatim, check_range, load_rig, load_rig_with_tool};
-pub(crate) use config::{RawJoint, RawOrigin, joints_from_raw, origin_from_raw};
+pub(crate) use config::{
+    RawJoint, RawOrigin, joints_from_raw, origin_from_raw, origin_from_xyz_rpy,
+};
 pub use fk::{DofMismatch, JointAxis};
 pub use pose::{Pose, PoseError, UNIT_QUATERNION_TOLERANCE, rotation_angle_between};
+pub(crate) use urdf::path_to;
 pub use urdf::rig_from_urdf;
+pub use urdf_out::{generated_link_names, rig_to_urdf};
 
 use glam::{DAffine3, DQuat, DVec3};
 

@@ -134,7 +134,7 @@ pub fn rig_from_urdf_to(
 }
 
 /// The joints from `root` down to the link `tip`, when `tip` lies below `root`.
-fn path_to<'a>(
+pub(crate) fn path_to<'a>(
     robot: &'a urdf_rs::Robot,
     root: &str,
     tip: &str,

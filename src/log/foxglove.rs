@@ -1,0 +1,412 @@
+//! The Foxglove-native part of a run log (`docs/foxglove.md`): `/tf` as protobuf
+//! `foxglove.FrameTransforms` from forward kinematics of the controller's actual positions,
+//! `/joint_states` as `foxglove.JointStates`, and the rig's URDF as the attachment
+//! `robot_description.urdf`, so Foxglove's 3D panel draws the robot moving. Message types and
+//! schemas come from the `foxglove` crate (Foxglove SDK). Runs on the recorder's writer
+//! thread only: the streaming cycle never encodes protobuf. Owns these channels and the
+//! per-link transforms; it must not touch the JSON channels replay reads, nor the rig.
+
+use super::LogError;
+use crate::rig::{
+    Joint, Rig, path_to, generated_link_names, origin_from_xyz_rpy, rig_to_urdf,
+};
+use foxglove::Encode;
+use foxglove::messages::{
+    FrameTransform, FrameTransforms, JointState, JointStates, Quaternion, Timestamp, Vector3,
+};
+use glam::{DAffine3, DQuat, DVec3};
+use mcap::records::MessageHeader;
+use mcap::{Attachment, Writer};
+use std::borrow::Cow;
+use std::collections::BTreeMap;
+use std::io::{Seek, Write};
+use std::sync::Arc;
+
+/// Foxglove's conventional transform topic.
+pub const TF_TOPIC: &str = "/tf";
+pub const JOINT_STATES_TOPIC: &str = "/joint_states";
+/// The attachment name Foxglove's URDF layer is pointed at (`docs/foxglove.md`).
+pub const URDF_ATTACHMENT: &str = "robot_description.urdf";
+const URDF_MEDIA_TYPE: &str = "application/xml";
+const PROTOBUF: &str = "protobuf";
+
+/// Decimation step of `/tf` and `/joint_states`, in job time: at most one message per
+/// 16 ms. At the default 250 Hz that is every 4th cycle (62.5 Hz), at 1 kHz every 16th;
+/// above the 50 Hz a smooth 3D view needs, with margin, at a quarter of the JSON states'
+/// size. Streams slower than 62.5 Hz get every cycle.
+pub const TF_PERIOD_S: f64 = 0.016;
+/// Job times are sums of float periods: a step 1e-15 s short must still count as due.
+const TIME_SLACK_S: f64 = 1e-9;
+/// A URDF given for a rig must reproduce its forward kinematics to this (rounding only).
+const FK_AGREEMENT_M: f64 = 1e-9;
+
+/// How one link sits on its parent.
+#[derive(Debug, Clone, PartialEq)]
+enum Motion {
+    /// A fixed joint of the URDF, or the rig's tool transform.
+    Fixed(DAffine3),
+    /// The rig's joint `index`, with the origin the URDF gives it (before any folding).
+    Joint { index: usize, joint: Joint },
+}
+
+#[derive(Debug, Clone, PartialEq)]
+struct Segment {
+    parent: String,
+    child: String,
+    motion: Motion,
+}
+
+/// A rig's URDF and its chain of links, base frame to tool frame: what `/tf` is computed from.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RobotDescription {
+    urdf: String,
+    joint_names: Vec<String>,
+    segments: Vec<Segment>,
+}
+
+impl RobotDescription {
+    /// The URDF generated from the rig ([`rig_to_urdf`]): links named by
+    /// [`generated_link_names`], the rig's own joint transforms, then its tool transform.
+    pub fn generated(rig: &Rig) -> Self {
+        let links = generated_link_names(rig);
+        let parents = std::iter::once(&rig.base_frame).chain(links.iter());
+        let mut segments: Vec<Segment> = rig
+            .joints
+            .iter()
+            .zip(parents.zip(&links))
+            .enumerate()
+            .map(|(index, (joint, (parent, child)))| Segment {
+                parent: parent.clone(),
+                child: child.clone(),
+                motion: Motion::Joint {
+                    index,
+                    joint: joint.clone(),
+                },
+            })
+            .collect();
+        segments.push(Segment {
+            parent: links.last().unwrap_or(&rig.base_frame).clone(),
+            child: rig.tool_frame.clone(),
+            motion: Motion::Fixed(rig.tool),
+        });
+        Self {
+            urdf: rig_to_urdf(rig),
+            joint_names: rig.joint_names().map(str::to_owned).collect(),
+            segments,
+        }
+    }
+
+    /// A URDF file the rig was loaded from: its links, fixed ones included, along the chain
+    /// `rig_from_urdf` took. Refused unless its actuated joints are the rig's, in order, and
+    /// it gives the rig's forward kinematics.
+    pub fn from_urdf(rig: &Rig, urdf: String) -> Result<Self, LogError> {
+        let bad = |reason: String| LogError::Setup(format!("URDF for rig {}: {reason}", rig.name));
+        let robot = urdf_rs::read_from_string(&urdf).map_err(|e| bad(e.to_string()))?;
+        let is_child = |link: &str| robot.joints.iter().any(|j| j.child.link == link);
+        let root = robot
+            .links
+            .iter()
+            .find(|l| !is_child(&l.name))
+            .ok_or_else(|| bad("no root link".to_owned()))?;
+        let mut segments = Vec::new();
+        let mut actuated = rig.joints.iter().enumerate();
+        let chain = path_to(&robot, &root.name, &rig.tool_frame)
+            .ok_or_else(|| bad(format!("no chain from {} to {}", root.name, rig.tool_frame)))?;
+        for urdf_joint in chain {
+            let origin = origin_from_xyz_rpy(
+                DVec3::from_array(*urdf_joint.origin.xyz),
+                DVec3::from_array(*urdf_joint.origin.rpy),
+            );
+            let motion = if urdf_joint.joint_type == urdf_rs::JointType::Fixed {
+                Motion::Fixed(origin)
+            } else {
+                match actuated.next() {
+                    Some((index, joint)) if joint.name == urdf_joint.name => Motion::Joint {
+                        index,
+                        joint: Joint {
+                            origin,
+                            ..joint.clone()
+                        },
+                    },
+                    _ => return Err(bad(format!("joint {} is not the rig's", urdf_joint.name))),
+                }
+            };
+            segments.push(Segment {
+                parent: urdf_joint.parent.link.clone(),
+                child: urdf_joint.child.link.clone(),
+                motion,
+            });
+        }
+        let description = Self {
+            urdf,
+            joint_names: rig.joint_names().map(str::to_owned).collect(),
+            segments,
+        };
+        description.check_against(rig).map_err(bad)?;
+        Ok(description)
+    }
+
+    /// The URDF text, as attached to the log.
+    pub fn urdf(&self) -> &str {
+        &self.urdf
+    }
+
+    /// `(parent, child)` frame ids, base frame first, tool frame last.
+    pub fn frames(&self) -> impl Iterator<Item = (&str, &str)> {
+        self.segments
+            .iter()
+            .map(|s| (s.parent.as_str(), s.child.as_str()))
+    }
+
+    /// Each link's transform from its parent at `positions`, in [`Self::frames`] order
+    /// (composed, they give the rig's tool frame). `None` when the count is wrong.
+    pub fn link_transforms<'a>(
+        &'a self,
+        positions: &'a [f64],
+    ) -> Option<impl Iterator<Item = DAffine3> + 'a> {
+        (positions.len() == self.joint_names.len()).then(|| {
+            self.segments.iter().map(|segment| match &segment.motion {
+                Motion::Fixed(transform) => *transform,
+                Motion::Joint { index, joint } => joint.transform(positions[*index]),
+            })
+        })
+    }
+
+    fn check_against(&self, rig: &Rig) -> Result<(), String> {
+        if self.segments.last().map(|s| s.child.as_str()) != Some(rig.tool_frame.as_str()) {
+            return Err(format!("the chain does not end at {}", rig.tool_frame));
+        }
+        let used = self
+            .segments
+            .iter()
+            .filter(|s| matches!(s.motion, Motion::Joint { .. }))
+            .count();
+        if used != rig.dof() {
+            return Err(format!("{used} actuated joints for {} axes", rig.dof()));
+        }
+        // Mid-range positions: every axis away from zero, so every origin and axis counts.
+        let probe: Vec<f64> = rig
+            .joints
+            .iter()
+            .map(|j| 0.37 * j.limits.lower + 0.63 * j.limits.upper)
+            .collect();
+        let composed = self
+            .link_transforms(&probe)
+            .map(|links| links.fold(DAffine3::IDENTITY, |frame, link| frame * link));
+        let expected = rig.forward(&probe).map_err(|e| e.to_string())?;
+        match composed {
+            Some(tool)
+                if (tool.translation - expected.translation).length() <= FK_AGREEMENT_M
+                    && tool.matrix3.abs_diff_eq(expected.matrix3, FK_AGREEMENT_M) =>
+            {
+                Ok(())
+            }
+            _ => Err("its links do not compose to the rig's forward kinematics".to_owned()),
+        }
+    }
+}
+
+/// The writer thread's Foxglove channels and the messages it refills for each state.
+pub(super) struct FoxgloveLog {
+    robot: Arc<RobotDescription>,
+    tf_channel: u16,
+    joints_channel: u16,
+    last_t: Option<f64>,
+    sequence: u32,
+    tf: FrameTransforms,
+    joints: JointStates,
+    buffer: Vec<u8>,
+}
+
+impl FoxgloveLog {
+    /// Adds the schemas, the two channels and the URDF attachment.
+    pub(super) fn open<W: Write + Seek>(
+        writer: &mut Writer<W>,
+        robot: Arc<RobotDescription>,
+    ) -> Result<Self, LogError> {
+        let tf_channel = add_channel::<FrameTransforms, W>(writer, TF_TOPIC)?;
+        let joints_channel = add_channel::<JointStates, W>(writer, JOINT_STATES_TOPIC)?;
+        writer.attach(&Attachment {
+            log_time: 0,
+            create_time: 0,
+            name: URDF_ATTACHMENT.to_owned(),
+            media_type: URDF_MEDIA_TYPE.to_owned(),
+            data: Cow::Borrowed(robot.urdf.as_bytes()),
+        })?;
+        let tf = FrameTransforms {
+            transforms: robot
+                .frames()
+                .map(|(parent, child)| FrameTransform {
+                    parent_frame_id: parent.to_owned(),
+                    child_frame_id: child.to_owned(),
+                    ..FrameTransform::default()
+                })
+                .collect(),
+        };
+        let joints = JointStates {
+            timestamp: None,
+            joints: robot
+                .joint_names
+                .iter()
+                .map(|name| JointState {
+                    name: name.clone(),
+                    ..JointState::default()
+                })
+                .collect(),
+        };
+        Ok(Self {
+            robot,
+            tf_channel,
+            joints_channel,
+            last_t: None,
+            sequence: 0,
+            tf,
+            joints,
+            buffer: Vec::with_capacity(2048),
+        })
+    }
+
+    /// Writes `/tf` and `/joint_states` for one measured state when one is due
+    /// ([`TF_PERIOD_S`]); returns the message bytes written (0 when none was due, or when a
+    /// position is not finite: no transform can be drawn from it).
+    pub(super) fn state<W: Write + Seek>(
+        &mut self,
+        writer: &mut Writer<W>,
+        t: f64,
+        log_time: u64,
+        positions: &[f64],
+        velocities: &[f64],
+    ) -> Result<usize, LogError> {
+        let due = self
+            .last_t
+            // Time going back (a log restarted at 0) starts the decimation afresh.
+            .is_none_or(|last| t - last >= TF_PERIOD_S - TIME_SLACK_S || t < last);
+        if !due || !positions.iter().all(|q| q.is_finite()) {
+            return Ok(0);
+        }
+        let Some(links) = self.robot.link_transforms(positions) else {
+            return Ok(0);
+        };
+        self.last_t = Some(t);
+        let stamp = timestamp(log_time);
+        for (message, link) in self.tf.transforms.iter_mut().zip(links) {
+            let (_, rotation, translation) = link.to_scale_rotation_translation();
+            message.timestamp = Some(stamp);
+            message.translation = Some(vector(translation));
+            message.rotation = Some(quaternion(rotation));
+        }
+        self.joints.timestamp = Some(stamp);
+        for ((joint, q), v) in self.joints.joints.iter_mut().zip(positions).zip(velocities) {
+            joint.position = Some(*q);
+            joint.velocity = v.is_finite().then_some(*v);
+        }
+        let header = |channel_id| MessageHeader {
+            channel_id,
+            sequence: self.sequence,
+            log_time,
+            publish_time: log_time,
+        };
+        let mut bytes = 0;
+        for (channel, message) in [
+            (self.tf_channel, &self.tf as &dyn Protobuf),
+            (self.joints_channel, &self.joints),
+        ] {
+            self.buffer.clear();
+            message.encode_into(&mut self.buffer)?;
+            writer.write_to_known_channel(&header(channel), &self.buffer)?;
+            bytes += self.buffer.len();
+        }
+        self.sequence = self.sequence.wrapping_add(1);
+        Ok(bytes)
+    }
+}
+
+/// The two message types, encoded through one loop.
+trait Protobuf {
+    fn encode_into(&self, buffer: &mut Vec<u8>) -> Result<(), LogError>;
+}
+
+impl<T: Encode<Error = prost::EncodeError>> Protobuf for T {
+    fn encode_into(&self, buffer: &mut Vec<u8>) -> Result<(), LogError> {
+        self.encode(buffer)
+            .map_err(|e| LogError::Setup(format!("protobuf encoding: {e}")))
+    }
+}
+
+fn add_channel<T: Encode, W: Write + Seek>(
+    writer: &mut Writer<W>,
+    topic: &str,
+) -> Result<u16, LogError> {
+    let schema = T::get_schema()
+        .ok_or_else(|| LogError::Setup(format!("{topic}: the foxglove crate gave no schema")))?;
+    let id = writer.add_schema(&schema.name, &schema.encoding, &schema.data)?;
+    Ok(writer.add_channel(id, topic, PROTOBUF, &BTreeMap::new())?)
+}
+
+fn timestamp(nanos: u64) -> Timestamp {
+    const NANOS: u64 = 1_000_000_000;
+    // Job times under 136 years fit u32 seconds; saturate beyond, as job_time_ns does.
+    let sec = u32::try_from(nanos / NANOS).unwrap_or(u32::MAX);
+    Timestamp::new(sec, (nanos % NANOS) as u32)
+}
+
+fn vector(v: DVec3) -> Vector3 {
+    Vector3 {
+        x: v.x,
+        y: v.y,
+        z: v.z,
+    }
+}
+
+fn quaternion(q: DQuat) -> Quaternion {
+    Quaternion {
+        x: q.x,
+        y: q.y,
+        z: q.z,
+        w: q.w,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rig::load_rig;
+    use std::path::Path;
+
+    fn irb120() -> Rig {
+        load_rig(&Path::new(env!("CARGO_MANIFEST_DIR")).join("config/irb120.toml")).unwrap()
+    }
+
+    #[test]
+    fn generated_links_compose_to_the_tool_pose() {
+        let rig = irb120();
+        let robot = RobotDescription::generated(&rig);
+        let q = [0.3, -0.4, 0.5, -1.1, 0.7, 2.0];
+        let tool = robot
+            .link_transforms(&q)
+            .unwrap()
+            .fold(DAffine3::IDENTITY, |a, b| a * b);
+        let expected = rig.forward(&q).unwrap();
+        assert!((tool.translation - expected.translation).length() < 1e-12);
+        let frames: Vec<_> = robot.frames().collect();
+        assert_eq!(frames.len(), 7);
+        assert_eq!(frames[0], ("base_link", "joint_1"));
+        assert_eq!(frames[6], ("joint_6", "tool0"));
+    }
+
+    #[test]
+    fn a_urdf_file_keeps_its_fixed_links_and_a_wrong_one_is_refused() {
+        let rig = irb120();
+        let text = rig_to_urdf(&rig);
+        let robot = RobotDescription::from_urdf(&rig, text.clone()).unwrap();
+        assert_eq!(
+            robot.frames().collect::<Vec<_>>(),
+            RobotDescription::generated(&rig)
+                .frames()
+                .collect::<Vec<_>>()
+        );
+        let moved = text.replacen("xyz=\"0 0 0.29\"", "xyz=\"0 0 0.3\"", 1);
+        assert_ne!(moved, text);
+        assert!(RobotDescription::from_urdf(&rig, moved).is_err());
+    }
+}

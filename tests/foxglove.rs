@@ -1,0 +1,240 @@
+//! The Foxglove-native channels of a run log, read by a peer we did not write: PyPI's `mcap`
+//! with `mcap-protobuf-support` (tests/peers/foxglove_log.py) decodes every `/tf` message and
+//! composes the base-to-tool transform; we compare it with our own FK of the actual positions
+//! logged at the same time, count the `/tf` rate over log time, and read the URDF attachment
+//! back. Run through the binary (`rigbridge run --clock virtual --log X`), for a TOML rig (the
+//! URDF generated from the model) and a URDF rig (the file attached as is, fixed links kept).
+
+mod common;
+
+use common::{reference_path, repo_path};
+use rigbridge::log::{TF_TOPIC, URDF_ATTACHMENT, read_log};
+use rigbridge::rig::{Rig, load_rig, rig_from_urdf};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// The figures: /tf agrees with our FK at tool0 to 1e-9 m, at 50 Hz or more.
+const MAX_TOOL_DEVIATION_M: f64 = 1e-9;
+const MIN_TF_RATE_HZ: f64 = 50.0;
+
+/// The venv's Python (scripts/test.sh sets RIGBRIDGE_FOXGLOVE_PYTHON), else `python3` if it
+/// imports both packages.
+fn peer_python() -> Result<String, String> {
+    let python = std::env::var("RIGBRIDGE_FOXGLOVE_PYTHON").unwrap_or_else(|_| "python3".into());
+    let probe = Command::new(&python)
+        .args(["-c", "import mcap.reader, mcap_protobuf.decoder"])
+        .output()
+        .map_err(|e| format!("cannot run {python}: {e}"))?;
+    if probe.status.success() {
+        Ok(python)
+    } else {
+        Err(format!(
+            "{python} cannot import mcap and mcap_protobuf (scripts/test.sh installs them): {}",
+            String::from_utf8_lossy(&probe.stderr).trim()
+        ))
+    }
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir =
+        std::env::temp_dir().join(format!("rigbridge-foxglove-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn record_run(config: &Path, log: &Path) {
+    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .arg("run")
+        .arg("--config")
+        .arg(config)
+        .args(["--clock", "virtual", "--log"])
+        .arg(log)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "rigbridge run failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
+
+/// The default run settings with `rig` pointing at the reference URDF.
+fn urdf_run_settings(dir: &Path) -> PathBuf {
+    let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    let urdf = reference_path("irb120_3_58.urdf");
+    let replaced = text.replacen(
+        "rig = \"irb120.toml\"",
+        &format!("rig = {}", toml_string(&urdf)),
+        1,
+    );
+    assert_ne!(
+        replaced, text,
+        "config/rigbridge.toml names its rig differently"
+    );
+    let path = dir.join("urdf-run.toml");
+    std::fs::write(&path, replaced).unwrap();
+    path
+}
+
+fn toml_string(path: &Path) -> String {
+    format!("\"{}\"", path.display().to_string().replace('\\', "\\\\"))
+}
+
+struct Peer {
+    rows: Vec<serde_json::Value>,
+    summary: serde_json::Value,
+}
+
+fn run_peer(python: &str, log: &Path, rig: &Rig) -> Peer {
+    let output = Command::new(python)
+        .arg(repo_path("tests/peers/foxglove_log.py"))
+        .arg(log)
+        .args([&rig.base_frame, &rig.tool_frame])
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "the peer failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let mut rows: Vec<serde_json::Value> = String::from_utf8(output.stdout)
+        .unwrap()
+        .lines()
+        .map(|line| serde_json::from_str(line).unwrap())
+        .collect();
+    let summary = rows.pop().unwrap()["summary"].clone();
+    Peer { rows, summary }
+}
+
+fn numbers(value: &serde_json::Value) -> Vec<f64> {
+    value
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect()
+}
+
+/// Largest distance at the tool between the peer's composed /tf and our FK of the positions.
+fn max_tool_deviation(peer: &Peer, rig: &Rig) -> (f64, f64) {
+    let (mut position, mut rotation) = (0.0_f64, 0.0_f64);
+    for row in &peer.rows {
+        let q = numbers(&row["positions"]);
+        let ours = rig.forward(&q).unwrap();
+        let tool = numbers(&row["tool"]);
+        let d = ours.translation - glam::DVec3::new(tool[0], tool[1], tool[2]);
+        position = position.max(d.length());
+        let r = numbers(&row["rotation"]);
+        let theirs = glam::DQuat::from_xyzw(r[1], r[2], r[3], r[0]);
+        let ours_q = glam::DQuat::from_mat3(&ours.matrix3);
+        // q and -q are the same rotation.
+        rotation = rotation.max(1.0 - ours_q.dot(theirs).abs());
+    }
+    (position, rotation)
+}
+
+fn check_log(name: &str, config: &Path, rig: &Rig, python: &str) {
+    let dir = scratch(name);
+    let log = dir.join("run.mcap");
+    record_run(config, &log);
+    let ours = read_log(&log).unwrap();
+    assert!(
+        !ours.truncated && ours.states.len() > 1000,
+        "{name}: a full run"
+    );
+
+    let peer = run_peer(python, &log, rig);
+    let count = peer.rows.len();
+    assert_eq!(peer.summary["tf_messages"].as_u64(), Some(count as u64));
+    assert!(
+        peer.rows.iter().all(|r| r["positions"].is_array()),
+        "{name}: each /tf has its state"
+    );
+    let (deviation, rotation) = max_tool_deviation(&peer, rig);
+    let first = peer.summary["first_log_time"].as_f64().unwrap();
+    let last = peer.summary["last_log_time"].as_f64().unwrap();
+    let rate = (count - 1) as f64 / ((last - first) * 1e-9);
+    let span = ours.states.last().unwrap().t - ours.states[0].t;
+    println!(
+        "{name}: {count} /tf messages over {span:.3} s of states, {rate:.2} Hz; max deviation at {}: {deviation:.3e} m, rotation 1-|dot| {rotation:.3e}; log {} bytes",
+        rig.tool_frame,
+        std::fs::metadata(&log).unwrap().len()
+    );
+    assert!(
+        deviation <= MAX_TOOL_DEVIATION_M,
+        "{name}: {deviation} m at the tool"
+    );
+    assert!(
+        rotation <= 1e-12,
+        "{name}: tool rotation differs by {rotation}"
+    );
+    assert!(rate >= MIN_TF_RATE_HZ, "{name}: /tf at {rate} Hz");
+    // The /tf messages cover the whole run, not just a part at that rate.
+    assert!(
+        (last - first) * 1e-9 >= span - 0.05,
+        "{name}: /tf stops early"
+    );
+    check_attachment(name, &log, rig, &peer);
+    assert!(
+        ours.other_messages >= count as u64,
+        "{name}: our reader skips {TF_TOPIC}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// robot_description.urdf is there for the peer, and it is the rig: it loads with urdf-rs and
+/// gives the rig's FK.
+fn check_attachment(name: &str, log: &Path, rig: &Rig, peer: &Peer) {
+    let attachments: Vec<&str> = peer.summary["attachments"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
+    assert_eq!(attachments, [URDF_ATTACHMENT], "{name}");
+    let links: Vec<&str> = peer.summary["urdf_links"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
+    assert!(links.contains(&rig.base_frame.as_str()) && links.contains(&rig.tool_frame.as_str()));
+    let bytes = std::fs::read(log).unwrap();
+    let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
+    assert_eq!(summary.attachment_indexes.len(), 1);
+    let attachment = mcap::read::attachment(&bytes, &summary.attachment_indexes[0]).unwrap();
+    let text = std::str::from_utf8(&attachment.data).unwrap();
+    let back = rig_from_urdf(text, Path::new(URDF_ATTACHMENT)).unwrap();
+    let q = [0.4, -0.3, 0.2, 1.0, -0.8, 2.5];
+    let (a, b) = (back.forward(&q).unwrap(), rig.forward(&q).unwrap());
+    assert!(
+        (a.translation - b.translation).length() <= 1e-12,
+        "{name}: URDF FK differs"
+    );
+}
+
+#[test]
+fn foxglove_channels_agree_with_our_fk_for_a_reader_we_did_not_write() {
+    let python = match peer_python() {
+        Ok(python) => python,
+        Err(reason) if std::env::var("CI").as_deref() == Ok("true") => {
+            panic!("CI must test the log against PyPI's mcap: {reason}")
+        }
+        Err(reason) => {
+            println!("skipping the mcap-protobuf-support peer test: {reason}");
+            return;
+        }
+    };
+    let toml_rig = load_rig(&repo_path("config/irb120.toml")).unwrap();
+    check_log(
+        "toml-rig",
+        &repo_path("config/rigbridge.toml"),
+        &toml_rig,
+        &python,
+    );
+    let dir = scratch("urdf-settings");
+    let urdf_rig = load_rig(&reference_path("irb120_3_58.urdf")).unwrap();
+    check_log("urdf-rig", &urdf_run_settings(&dir), &urdf_rig, &python);
+    let _ = std::fs::remove_dir_all(&dir);
+}
