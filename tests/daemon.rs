@@ -275,7 +275,7 @@ fn ctrl_c_brings_the_rig_to_rest_then_closes_log_and_report() {
     let (log, report) = (scratch("sigint.mcap"), scratch("sigint.json"));
     let child = spawn_run(&log, &report);
     std::thread::sleep(Duration::from_millis(2500));
-    unsafe_kill(child.id(), "INT");
+    send_signal(child.id(), "INT");
     let output = child.wait_with_output().unwrap();
     assert_eq!(output.status.code(), Some(130), "{}", text(&output.stderr));
     let report: serde_json::Value =
@@ -309,7 +309,7 @@ fn sigkill_leaves_a_log_readable_up_to_its_last_chunk() {
 }
 
 /// Sends a signal with the system's `kill`, keeping the test free of unsafe code.
-fn unsafe_kill(pid: u32, signal: &str) {
+fn send_signal(pid: u32, signal: &str) {
     let status = Command::new("kill")
         .args([&format!("-{signal}"), &pid.to_string()])
         .status()

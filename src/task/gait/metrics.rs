@@ -298,7 +298,55 @@ pub fn judge(
         .iter()
         .map(|(_, limb)| sloth.limbs[*limb].name.clone())
         .collect();
-    let limbs: Vec<LimbReport> = sloth
+    let limbs = limb_reports(sloth, plan, world, from, to);
+    let speed_mps = speed(world, plan, from, to);
+    let (peak_acceleration_ratio, peak_axis) = peak_acceleration(sloth, plan);
+    let mut failures = run_failures(plan, streamed_completely, cycles_judged);
+    failures.extend(limb_failures(&limbs, world));
+    failures.extend(motion_failures(
+        sloth,
+        scenario,
+        plan,
+        world,
+        &footfall_order,
+        speed_mps,
+    ));
+    GaitReport {
+        scenario: scenario.name.clone(),
+        angle_deg: scenario.angle_deg,
+        gap_m: scenario.gap_m,
+        solver: sloth.gait.solver,
+        passed: failures.is_empty(),
+        reason: (!failures.is_empty()).then(|| failures.join("; ")),
+        stopped_because: plan.stop_reason.as_ref().map(ToString::to_string),
+        speed_mps,
+        cycles_judged,
+        footfall_order,
+        limbs,
+        min_body_clearance_mm: world.min_body_clearance_m * 1000.0,
+        max_ik_residual_mm: plan.ik_residual_max_m * 1000.0,
+        duration_s: plan.len().saturating_sub(1) as f64 * plan.period_s,
+        body_rise_m: match (world.body_path.first(), world.body_path.last()) {
+            (Some(first), Some(last)) => last.z - first.z,
+            _ => 0.0,
+        },
+        min_head_above_tail_m: world.min_head_above_tail_m,
+        min_heading_elevation_deg: world.min_heading_elevation_rad.to_degrees(),
+        around_trunk_deg: around_trunk(sloth, scenario, &world.body_path),
+        peak_acceleration_ratio,
+        peak_acceleration_joint: sloth.streamed.joints[peak_axis].name.clone(),
+    }
+}
+
+/// Each limb's figures between frames `from` and `to`.
+fn limb_reports(
+    sloth: &SlothRig,
+    plan: &GaitPlan,
+    world: &GaitWorld,
+    from: usize,
+    to: usize,
+) -> Vec<LimbReport> {
+    sloth
         .limbs
         .iter()
         .enumerate()
@@ -314,9 +362,12 @@ pub fn judge(
                 bone_limit_deg: m.excursion_limit_deg,
             }
         })
-        .collect();
-    let speed_mps = speed(world, plan, from, to);
-    let (peak_acceleration_ratio, peak_axis) = peak_acceleration(sloth, plan);
+        .collect()
+}
+
+/// Whether the run itself went the distance: no rule stopped it, the stream completed,
+/// enough whole cycles to judge.
+fn run_failures(plan: &GaitPlan, streamed_completely: bool, cycles_judged: u32) -> Vec<String> {
     let mut failures = Vec::new();
     if let Some(reason) = &plan.stop_reason {
         failures.push(format!("stopped: {reason}"));
@@ -329,6 +380,12 @@ pub fn judge(
             "{cycles_judged} full cycles judged, fewer than {MIN_JUDGED_CYCLES}"
         ));
     }
+    failures
+}
+
+/// Each limb against the thresholds: on the surface, not slipping, bones within limits.
+fn limb_failures(limbs: &[LimbReport], world: &GaitWorld) -> Vec<String> {
+    let mut failures = Vec::new();
     for (limb, measure) in limbs.iter().zip(&world.limbs) {
         if measure.max_surface_error_m > MAX_SURFACE_ERROR_M {
             failures.push(format!(
@@ -343,6 +400,20 @@ pub fn judge(
             failures.push(format!("{}: a bone left its limits", limb.limb));
         }
     }
+    failures
+}
+
+/// The whole body's motion against the thresholds: clear of the branches, IK residual,
+/// footfall order, no head-first descent, and on a straight branch the speed.
+fn motion_failures(
+    sloth: &SlothRig,
+    scenario: &Scenario,
+    plan: &GaitPlan,
+    world: &GaitWorld,
+    footfall_order: &[String],
+    speed_mps: f64,
+) -> Vec<String> {
+    let mut failures = Vec::new();
     if world.min_body_clearance_m <= 0.0 {
         failures.push(format!(
             "body-to-branch clearance {:.1} mm",
@@ -381,29 +452,5 @@ pub fn judge(
     if scenario.name == "straight" && (speed_mps - STRAIGHT_SPEED_M_S).abs() > SPEED_TOLERANCE_M_S {
         failures.push(format!("speed {speed_mps:.3} m/s"));
     }
-    GaitReport {
-        scenario: scenario.name.clone(),
-        angle_deg: scenario.angle_deg,
-        gap_m: scenario.gap_m,
-        solver: sloth.gait.solver,
-        passed: failures.is_empty(),
-        reason: (!failures.is_empty()).then(|| failures.join("; ")),
-        stopped_because: plan.stop_reason.as_ref().map(ToString::to_string),
-        speed_mps,
-        cycles_judged,
-        footfall_order,
-        limbs,
-        min_body_clearance_mm: world.min_body_clearance_m * 1000.0,
-        max_ik_residual_mm: plan.ik_residual_max_m * 1000.0,
-        duration_s: plan.len().saturating_sub(1) as f64 * plan.period_s,
-        body_rise_m: match (world.body_path.first(), world.body_path.last()) {
-            (Some(first), Some(last)) => last.z - first.z,
-            _ => 0.0,
-        },
-        min_head_above_tail_m: world.min_head_above_tail_m,
-        min_heading_elevation_deg: world.min_heading_elevation_rad.to_degrees(),
-        around_trunk_deg: around_trunk(sloth, scenario, &world.body_path),
-        peak_acceleration_ratio,
-        peak_acceleration_joint: sloth.streamed.joints[peak_axis].name.clone(),
-    }
+    failures
 }

@@ -211,6 +211,18 @@ pub fn check_rules(
             }
         }
     }
+    check_reach(sloth, limb, candidate, planned)
+}
+
+/// Refuses a candidate contact beyond the limb's usable reach from where the body will be
+/// (over every limb's planned contact, `limb`'s at `candidate`).
+fn check_reach(
+    sloth: &SlothRig,
+    limb: usize,
+    candidate: &Contact,
+    planned: &[Contact],
+) -> Result<(), RuleBroken> {
+    let this = &sloth.limbs[limb];
     let mut feet: Vec<DVec3> = planned.iter().map(|c| c.point).collect();
     feet[limb] = candidate.point;
     let mut ups: Vec<DVec3> = planned.iter().map(|c| c.up).collect();

@@ -264,6 +264,114 @@ fn transfer_to_trunk(angle: f64) -> (Terrain, Route, f64) {
     (terrain, route, bark_s - TO_TRUNK_START_M)
 }
 
+/// One level branch along +x, walked from its start.
+fn straight() -> (Terrain, Route, f64) {
+    let terrain = Terrain {
+        cylinders: vec![branch(
+            DVec3::new(-1.0, 0.0, 0.0),
+            DVec3::new(2.0, 0.0, 0.0),
+        )],
+    };
+    let route = Route {
+        legs: vec![Leg::under(0.0, DVec3::ZERO, DVec3::X, 0, 0)],
+    };
+    (terrain, route, -0.3)
+}
+
+/// A level branch, then one at `angle_deg` to it (180: straight on): turning left when
+/// `turn`, else rising (below 180 deg) or descending (above).
+fn bend(turn: bool, angle_deg: f64) -> (Terrain, Route, f64) {
+    let bend = (180.0 - angle_deg).to_radians();
+    let second = if turn {
+        DVec3::new(bend.cos(), bend.sin(), 0.0)
+    } else {
+        DVec3::new(bend.cos(), 0.0, bend.sin())
+    };
+    let terrain = Terrain {
+        cylinders: vec![
+            branch(DVec3::new(-1.2, 0.0, 0.0), DVec3::ZERO),
+            branch(DVec3::ZERO, second * 1.5),
+        ],
+    };
+    (terrain, bent_route(second), -0.55)
+}
+
+/// Two parallel level branches `gap` apart (axes), overlapping where the sloth straddles
+/// them.
+fn parallel(gap: f64) -> (Terrain, Route, f64) {
+    let right = DVec3::new(0.0, -gap, 0.0);
+    let terrain = Terrain {
+        cylinders: vec![
+            branch(DVec3::new(-1.0, 0.0, 0.0), DVec3::new(0.6, 0.0, 0.0)),
+            branch(
+                DVec3::new(-0.4, 0.0, 0.0) + right,
+                DVec3::new(2.0, 0.0, 0.0) + right,
+            ),
+        ],
+    };
+    let leg = |start_s: f64, left: usize, right: usize| {
+        Leg::under(
+            start_s,
+            DVec3::new(start_s, 0.0, 0.0),
+            DVec3::X,
+            left,
+            right,
+        )
+    };
+    let route = Route {
+        legs: vec![leg(-1.0, 0, 0), leg(0.0, 0, 1), leg(0.25, 1, 1)],
+    };
+    (terrain, route, -0.45)
+}
+
+/// How far the route of trunk scenario `name` turns the sloth around the trunk, per metre
+/// of route (deg): `angle_deg`, or the scenario's default; none for a straight climb.
+fn trunk_twist(name: &str, angle_deg: Option<f64>) -> Result<f64, ScenarioError> {
+    let default_twist = match name {
+        "trunk-around" => Some(TRUNK_AROUND_DEG_PER_M),
+        "trunk-spiral" => Some(TRUNK_SPIRAL_DEG_PER_M),
+        "trunk-down" => Some(0.0),
+        _ => None,
+    };
+    match (default_twist, angle_deg) {
+        (Some(default), angle) => check(name, "angle", angle.unwrap_or(default), -180.0, 180.0),
+        (None, Some(_)) => Err(ScenarioError::Unused {
+            scenario: name.into(),
+            name: "angle",
+        }),
+        (None, None) => Ok(0.0),
+    }
+}
+
+/// A vertical trunk, climbed (or descended tail first when `down`), the route turning
+/// `twist_deg_per_m` around it per metre.
+fn trunk(down: bool, twist_deg_per_m: f64) -> (Terrain, Route, f64) {
+    // Travel runs along the trunk: up it, or down it for the tail-first descent.
+    let travel = if down { -DVec3::Z } else { DVec3::Z };
+    let terrain = Terrain {
+        cylinders: vec![Cylinder {
+            from: TRUNK_AXIS - travel,
+            to: TRUNK_AXIS + travel * 2.5,
+            radius: TRUNK_RADIUS_M,
+        }],
+    };
+    // The sloth clings to the trunk's -x side, facing +x.
+    let route = Route {
+        legs: vec![Leg {
+            start_s: 0.0,
+            origin: TRUNK_AXIS,
+            direction: travel,
+            left: 0,
+            right: 0,
+            up: DVec3::X,
+            // About the travel: positive is counterclockwise seen from above going up, and
+            // must stay so going down.
+            twist_rad_per_m: twist_deg_per_m.to_radians() * travel.z,
+        }],
+    };
+    (terrain, route, -0.3)
+}
+
 impl Scenario {
     /// +1 when the head leads along the route, -1 going tail first.
     pub fn heading_sign(&self) -> f64 {
@@ -290,110 +398,26 @@ impl Scenario {
                 if gap_m.is_some() {
                     return Err(unused("gap"));
                 }
-                let terrain = Terrain {
-                    cylinders: vec![branch(
-                        DVec3::new(-1.0, 0.0, 0.0),
-                        DVec3::new(2.0, 0.0, 0.0),
-                    )],
-                };
-                let route = Route {
-                    legs: vec![Leg::under(0.0, DVec3::ZERO, DVec3::X, 0, 0)],
-                };
-                (terrain, route, -0.3)
+                straight()
             }
             "branch-turn" | "height-change" => {
                 if gap_m.is_some() {
                     return Err(unused("gap"));
                 }
                 let angle = check(name, "angle", angle_deg.unwrap_or(135.0), 0.0, 270.0)?;
-                let bend = (180.0 - angle).to_radians();
-                let second = if name == "branch-turn" {
-                    // Turning left by the bend.
-                    DVec3::new(bend.cos(), bend.sin(), 0.0)
-                } else {
-                    // Rising by the bend (below 180 deg) or descending (above).
-                    DVec3::new(bend.cos(), 0.0, bend.sin())
-                };
-                let terrain = Terrain {
-                    cylinders: vec![
-                        branch(DVec3::new(-1.2, 0.0, 0.0), DVec3::ZERO),
-                        branch(DVec3::ZERO, second * 1.5),
-                    ],
-                };
-                (terrain, bent_route(second), -0.55)
+                bend(name == "branch-turn", angle)
             }
             "parallel" => {
                 if angle_deg.is_some() {
                     return Err(unused("angle"));
                 }
-                let gap = check(name, "gap", gap_m.unwrap_or(0.25), 0.0, 1.0)?;
-                let right = DVec3::new(0.0, -gap, 0.0);
-                let terrain = Terrain {
-                    cylinders: vec![
-                        branch(DVec3::new(-1.0, 0.0, 0.0), DVec3::new(0.6, 0.0, 0.0)),
-                        branch(
-                            DVec3::new(-0.4, 0.0, 0.0) + right,
-                            DVec3::new(2.0, 0.0, 0.0) + right,
-                        ),
-                    ],
-                };
-                let leg = |start_s: f64, left: usize, right: usize| {
-                    Leg::under(
-                        start_s,
-                        DVec3::new(start_s, 0.0, 0.0),
-                        DVec3::X,
-                        left,
-                        right,
-                    )
-                };
-                let route = Route {
-                    legs: vec![leg(-1.0, 0, 0), leg(0.0, 0, 1), leg(0.25, 1, 1)],
-                };
-                (terrain, route, -0.45)
+                parallel(check(name, "gap", gap_m.unwrap_or(0.25), 0.0, 1.0)?)
             }
             "trunk" | "trunk-up" | "trunk-down" | "trunk-around" | "trunk-spiral" => {
                 if gap_m.is_some() {
                     return Err(unused("gap"));
                 }
-                // How far the route turns the sloth around the trunk, per metre of route.
-                let default_twist = match name {
-                    "trunk-around" => Some(TRUNK_AROUND_DEG_PER_M),
-                    "trunk-spiral" => Some(TRUNK_SPIRAL_DEG_PER_M),
-                    "trunk-down" => Some(0.0),
-                    _ => None,
-                };
-                let twist_deg_per_m = match (default_twist, angle_deg) {
-                    (Some(default), angle) => {
-                        check(name, "angle", angle.unwrap_or(default), -180.0, 180.0)?
-                    }
-                    (None, Some(_)) => return Err(unused("angle")),
-                    (None, None) => 0.0,
-                };
-                let down = name == "trunk-down";
-                // Travel runs along the trunk: up it, or down it for the tail-first descent.
-                let travel = if down { -DVec3::Z } else { DVec3::Z };
-                let terrain = Terrain {
-                    cylinders: vec![Cylinder {
-                        from: TRUNK_AXIS - travel,
-                        to: TRUNK_AXIS + travel * 2.5,
-                        radius: TRUNK_RADIUS_M,
-                    }],
-                };
-                // The sloth clings to the trunk's -x side, facing +x.
-                let route = Route {
-                    legs: vec![Leg {
-                        start_s: 0.0,
-                        origin: TRUNK_AXIS,
-                        direction: travel,
-                        left: 0,
-                        right: 0,
-                        up: DVec3::X,
-                        // About the travel: positive is counterclockwise seen from above
-                        // going up, and must stay so going down.
-                        twist_rad_per_m: twist_deg_per_m.to_radians() * travel.z,
-                    }],
-                };
-                (terrain, route, -0.3)
+                trunk(name == "trunk-down", trunk_twist(name, angle_deg)?)
             }
             "transfer" => {
                 if gap_m.is_some() {

@@ -121,6 +121,27 @@ struct State {
     torso_margin_m: f64,
 }
 
+/// Where a limb's claw goes in one frame, before the body is placed.
+#[derive(Debug, Clone, Copy)]
+struct LimbTarget {
+    /// The claw's point on (or between) its contacts.
+    ground: DVec3,
+    /// The surface normal there: the hand or foot lies along it.
+    normal: DVec3,
+    /// How far the claw is lifted off the supports (m).
+    lift: f64,
+    /// The side the supports are on, seen from the body.
+    up: DVec3,
+}
+
+/// Where the body goes in one frame, and the adjustments that placed it.
+#[derive(Debug, Clone, Copy)]
+struct BodyPose {
+    body: DAffine3,
+    held_back_m: f64,
+    shift: DVec3,
+}
+
 /// What one frame measured in the plan.
 #[derive(Debug, Clone, Copy)]
 struct FrameCheck {
@@ -148,6 +169,15 @@ const COLD_START_ITERATIONS: u32 = 2_000;
 /// lifted, and leaves and reaches its contact along the body's up, so it never sweeps
 /// through a branch on its way.
 const LIFT_SHARE: f64 = 0.25;
+
+/// Share of a swing at which the hand or foot starts travelling toward its new contact
+/// (and as long before the end at which it arrives): 60 % into the lift, so that it leaves
+/// and reaches the contact along the body's up, clear of the branch's surface.
+const TRAVEL_START: f64 = 0.6 * LIFT_SHARE;
+
+/// The body's yaw among the streamed axes (x, y, z, yaw, ...: `rig::BODY_AXES`): the next
+/// frame's yaw is unwrapped next to it.
+const BODY_YAW_AXIS: usize = 3;
 
 /// Lift over the swing, 0 to 1: up, hold, down, each change minimum-jerk.
 fn swing_lift(phase: f64) -> f64 {
@@ -257,86 +287,133 @@ impl<'a> Walker<'a> {
         })
     }
 
-    /// Computes frame `k` from `state` into `state.joints`, or says which rule it breaks.
+    /// Computes frame `k` from `state` into `state.joints`, or says which rule it breaks:
+    /// where each hand or foot is, where the body goes, the limbs' IK, then the frame's checks.
     fn step(&self, k: usize, state: &mut State) -> Result<FrameCheck, RuleBroken> {
-        let sloth = self.sloth;
-        let lift_m = sloth.gait.swing_lift_m;
-        let limb_count = sloth.limbs.len();
-        let mut ground = [DVec3::ZERO; 4];
-        let mut normals = [DVec3::ZERO; 4];
-        let mut lifts = [0.0; 4];
-        let mut ups = [DVec3::ZERO; 4];
-        for (index, limb) in state.limbs.iter().enumerate().take(limb_count) {
-            (ground[index], normals[index], lifts[index], ups[index]) = match limb.swing {
-                Some(swing) => {
-                    let phase = k.saturating_sub(swing.start) as f64
-                        / (swing.end - swing.start).max(1) as f64;
-                    let m = min_jerk((phase - LIFT_SHARE * 0.6) / (1.0 - 1.2 * LIFT_SHARE));
-                    let up = swing.from.up.lerp(limb.contact.up, m);
-                    let mut normal = swing.from.normal.lerp(limb.contact.normal, m);
-                    let mut lift = lift_m * self.lift_share(index, &swing) * swing_lift(phase);
-                    if turns_over(&swing.from, &limb.contact) {
-                        // The hand or foot turns over through the supports' side, its end
-                        // lowered by the claw's length more, so it passes under a branch.
-                        normal += up.normalize_or_zero() * (std::f64::consts::PI * m).sin();
-                        lift = (lift_m + sloth.limbs[index].claw_m) * turn_over_lift(phase);
-                    }
-                    (
-                        swing.from.point.lerp(limb.contact.point, m),
-                        normal.normalize_or(limb.contact.normal),
-                        lift,
-                        up,
-                    )
-                }
-                None => (
-                    limb.contact.point,
-                    limb.contact.normal,
-                    0.0,
-                    limb.contact.up,
-                ),
-            };
+        let targets = self.swing_targets(k, state);
+        let pose = self.body_pose(state, &targets);
+        let mut joints = self.body_joints(state, &pose.body)?;
+        let body = self.sloth.body_frame(&joints);
+        let residual = self.limb_ik(k, state, &targets, &body, &mut joints)?;
+        let clearance = self.frame_checks(state, &joints, &body)?;
+        state.joints = joints;
+        state.has_previous = true;
+        state.held_back_m = pose.held_back_m;
+        state.shift = pose.shift;
+        Ok(FrameCheck {
+            residual,
+            clearance,
+        })
+    }
+
+    /// Where each limb's claw is on (or between) its contacts at frame `k`.
+    fn swing_targets(&self, k: usize, state: &State) -> Vec<LimbTarget> {
+        state
+            .limbs
+            .iter()
+            .enumerate()
+            .map(|(index, limb)| match limb.swing {
+                Some(swing) => self.swing_target(index, k, limb, &swing),
+                None => LimbTarget {
+                    ground: limb.contact.point,
+                    normal: limb.contact.normal,
+                    lift: 0.0,
+                    up: limb.contact.up,
+                },
+            })
+            .collect()
+    }
+
+    /// A swinging limb's target at frame `k`: travelling from its old contact to its new
+    /// one while lifted off the supports.
+    fn swing_target(&self, index: usize, k: usize, limb: &LimbState, swing: &Swing) -> LimbTarget {
+        let lift_m = self.sloth.gait.swing_lift_m;
+        let phase = k.saturating_sub(swing.start) as f64 / (swing.end - swing.start).max(1) as f64;
+        let m = min_jerk((phase - TRAVEL_START) / (1.0 - 2.0 * TRAVEL_START));
+        let up = swing.from.up.lerp(limb.contact.up, m);
+        let mut normal = swing.from.normal.lerp(limb.contact.normal, m);
+        let mut lift = lift_m * self.lift_share(index, swing) * swing_lift(phase);
+        if turns_over(&swing.from, &limb.contact) {
+            // The hand or foot turns over through the supports' side, its end lowered by
+            // the claw's length more, so it passes under a branch.
+            normal += up.normalize_or_zero() * (std::f64::consts::PI * m).sin();
+            lift = (lift_m + self.sloth.limbs[index].claw_m) * turn_over_lift(phase);
         }
-        let mut body_wanted = body_from_feet(
+        LimbTarget {
+            ground: swing.from.point.lerp(limb.contact.point, m),
+            normal: normal.normalize_or(limb.contact.normal),
+            lift,
+            up,
+        }
+    }
+
+    /// Where the body goes for `targets`: over the feet, held back from a trailing hind
+    /// foot, and shifted off the supports its torso would meet.
+    fn body_pose(&self, state: &State, targets: &[LimbTarget]) -> BodyPose {
+        let sloth = self.sloth;
+        let ground: Vec<DVec3> = targets.iter().map(|t| t.ground).collect();
+        let mut body = body_from_feet(
             sloth,
-            &ground[..limb_count],
-            toward_supports(ups[..limb_count].iter().copied()),
+            &ground,
+            toward_supports(targets.iter().map(|t| t.up)),
         );
-        let feet: Vec<DVec3> = (0..limb_count)
-            .map(|i| ground[i] + normals[i] * sloth.limbs[i].claw_m)
+        let feet: Vec<DVec3> = targets
+            .iter()
+            .zip(&sloth.limbs)
+            .map(|(t, limb)| t.ground + t.normal * limb.claw_m)
             .collect();
-        // On a trunk the body climbs along its forward axis: holding it back there fights the
-        // climb (the trunk scenarios pass without it, and a spiral's body_z outran its speed).
-        // Between a trunk and a branch it is what keeps the trailing hind feet in reach.
+        let held_back_m = self.hold_back(state, &body, &feet);
+        body.translation -= body.matrix3.x_axis * held_back_m;
+        let shift = self.body_shift(state, &body);
+        body.translation += shift;
+        BodyPose {
+            body,
+            held_back_m,
+            shift,
+        }
+    }
+
+    /// How far the body at `body` is held back so that no hind foot (`feet`) trails out of
+    /// reach, changing at most at the hold-back rate. On a trunk the body climbs along its
+    /// forward axis: holding it back there fights the climb, so only between a trunk and a
+    /// branch, or on branches, is it held back.
+    fn hold_back(&self, state: &State, body: &DAffine3, feet: &[DVec3]) -> f64 {
+        let all_on_trunk = state.limbs.iter().all(|limb| {
+            self.on_trunk(&limb.contact) && limb.swing.is_none_or(|s| self.on_trunk(&s.from))
+        });
+        if all_on_trunk {
+            return 0.0;
+        }
+        let held_back = trailing_excess(self.sloth, body, feet, state.max_trail_m);
+        if !state.has_previous {
+            return held_back;
+        }
+        let rate = if state.max_trail_m < MAX_HIND_TRAIL_M {
+            TIGHTER_HOLD_BACK_RATE_M_S
+        } else {
+            HOLD_BACK_RATE_M_S
+        };
+        let most = rate * self.period_s;
+        held_back.clamp(state.held_back_m - most, state.held_back_m + most)
+    }
+
+    /// How far the body at `body` moves off its place while it holds a trunk (raised while
+    /// only the hind limbs do, and cleared off the supports), changing at most at the
+    /// shift rate.
+    fn body_shift(&self, state: &State, body: &DAffine3) -> DVec3 {
+        let sloth = self.sloth;
         // Per limb: does it hold a trunk (or leave one, mid-swing)?
         let trunk_held: Vec<bool> = state
             .limbs
             .iter()
-            .take(limb_count)
             .map(|limb| {
                 self.on_trunk(&limb.contact) || limb.swing.is_some_and(|s| self.on_trunk(&s.from))
             })
             .collect();
-        let all_on_trunk = state.limbs.iter().take(limb_count).all(|limb| {
-            self.on_trunk(&limb.contact) && limb.swing.is_none_or(|s| self.on_trunk(&s.from))
-        });
-        let mut held_back = 0.0;
-        if !all_on_trunk {
-            held_back = trailing_excess(sloth, &body_wanted, &feet, state.max_trail_m);
-            if state.has_previous {
-                let rate = if state.max_trail_m < MAX_HIND_TRAIL_M {
-                    TIGHTER_HOLD_BACK_RATE_M_S
-                } else {
-                    HOLD_BACK_RATE_M_S
-                };
-                let most = rate * self.period_s;
-                held_back = held_back.clamp(state.held_back_m - most, state.held_back_m + most);
-            }
-            body_wanted.translation -= body_wanted.matrix3.x_axis * held_back;
-        }
         let mut shift = DVec3::ZERO;
         if trunk_held.contains(&true) {
             let girdle_holds = |girdle: Girdle| {
-                (0..limb_count).any(|i| sloth.limbs[i].girdle == girdle && trunk_held[i])
+                (sloth.limbs.iter().zip(&trunk_held)).any(|(l, held)| l.girdle == girdle && *held)
             };
             // Only head first: going tail first from a branch the hind limbs lead onto the
             // trunk, and the fore limbs never hold it alone.
@@ -344,9 +421,9 @@ impl<'a> Walker<'a> {
                 && !girdle_holds(Girdle::Fore)
                 && girdle_holds(Girdle::Hind)
             {
-                shift = body_wanted.matrix3.z_axis * HIND_CLIMB_RAISE_M;
+                shift = body.matrix3.z_axis * HIND_CLIMB_RAISE_M;
             }
-            let mut raised = body_wanted;
+            let mut raised = *body;
             raised.translation += shift;
             shift += self.torso_clearing(&raised, state.torso_margin_m);
         }
@@ -357,14 +434,19 @@ impl<'a> Walker<'a> {
                 shift = state.shift + change * (most / change.length());
             }
         }
-        body_wanted.translation += shift;
+        shift
+    }
+
+    /// The joint vector with the body's virtual axes for `body` (the limbs' from the last
+    /// frame), refused when a body axis would leave its limits.
+    fn body_joints(&self, state: &State, body: &DAffine3) -> Result<Vec<f64>, RuleBroken> {
         let previous_yaw = if state.has_previous {
-            state.joints[3]
+            state.joints[BODY_YAW_AXIS]
         } else {
             0.0
         };
-        let axes = body_axes(&body_wanted, previous_yaw);
-        for (joint, value) in sloth.body.joints.iter().zip(axes) {
+        let axes = body_axes(body, previous_yaw);
+        for (joint, value) in self.sloth.body.joints.iter().zip(axes) {
             if !joint.limits.contains(value) {
                 return Err(RuleBroken::BodyOutsideLimits {
                     joint: joint.name.clone(),
@@ -376,27 +458,40 @@ impl<'a> Walker<'a> {
         }
         let mut joints = state.joints.clone();
         joints[..axes.len()].copy_from_slice(&axes);
-        let body = sloth.body_frame(&joints);
+        Ok(joints)
+    }
+
+    /// Solves every limb for its target from the body at `body` into `joints`, refusing a
+    /// swinging claw or hand inside a support; returns the worst residual (m).
+    fn limb_ik(
+        &self,
+        k: usize,
+        state: &State,
+        targets: &[LimbTarget],
+        body: &DAffine3,
+        joints: &mut [f64],
+    ) -> Result<f64, RuleBroken> {
+        let sloth = self.sloth;
         let up = body.matrix3.z_axis;
         let to_body = body.inverse();
         let mut residual: f64 = 0.0;
-        for (index, limb) in sloth.limbs.iter().enumerate() {
+        for (index, (limb, target)) in sloth.limbs.iter().zip(targets).enumerate() {
             // Under a branch, straight down, away from it: from a contact on the branch's
             // side this never cuts into it, and adds no sideways reach. On a trunk, straight
             // off its surface: "down" there is toward the body, and would fold a leading hind
             // limb against its girdle.
             let away = if self.on_trunk(&state.limbs[index].contact) {
-                normals[index]
+                target.normal
             } else {
                 -up
             };
-            let claw = ground[index] + away * lifts[index];
-            let target_world = claw + normals[index] * limb.claw_m;
-            if lifts[index] > 0.0 {
+            let claw = target.ground + away * target.lift;
+            let target_world = claw + target.normal * limb.claw_m;
+            if target.lift > 0.0 {
                 self.keep_out(claw, &limb.name, SwingPart::Claw)?;
                 self.keep_out(target_world, &limb.name, SwingPart::End)?;
             }
-            let target = Pose::new(to_body.transform_point3(target_world), DQuat::IDENTITY);
+            let pose = Pose::new(to_body.transform_point3(target_world), DQuat::IDENTITY);
             let seed = &state.joints[limb.axes()];
             let solver = if state.has_previous {
                 &self.solvers[index]
@@ -406,39 +501,43 @@ impl<'a> Walker<'a> {
             // CCD can stall against a limit from the previous frame's pose: once, start
             // again from the neutral pose (the speed check refuses a jump).
             let solution = solver
-                .solve(&target, seed)
-                .or_else(|_| self.cold_solvers[index].solve(&target, &self.neutral[index]))
+                .solve(&pose, seed)
+                .or_else(|_| self.cold_solvers[index].solve(&pose, &self.neutral[index]))
                 .map_err(|source| RuleBroken::Unreachable {
                     limb: limb.name.clone(),
-                    target: Point(target.position),
+                    target: Point(pose.position),
                     frame: k,
                     source: Box::new(source),
                 })?;
             joints[limb.axes()].copy_from_slice(&solution.joints);
-            residual = residual.max(sloth.limb_tip(&body, limb, &joints).distance(target_world));
+            residual = residual.max(sloth.limb_tip(body, limb, joints).distance(target_world));
         }
+        Ok(residual)
+    }
+
+    /// The frame's own checks: every axis within its speed of the last frame, and the body
+    /// clear of the branches; returns that clearance (m).
+    fn frame_checks(
+        &self,
+        state: &State,
+        joints: &[f64],
+        body: &DAffine3,
+    ) -> Result<f64, RuleBroken> {
         if state.has_previous {
-            self.check_speeds(&state.joints, &joints)?;
+            self.check_speeds(&state.joints, joints)?;
         }
-        let (hind, fore) = sloth.spine();
+        let (hind, fore) = self.sloth.spine();
         let clearance = self.scenario.terrain.capsule_clearance(
             body.transform_point3(hind),
             body.transform_point3(fore),
-            sloth.body_radius_m,
+            self.sloth.body_radius_m,
         );
         if clearance <= 0.0 {
             return Err(RuleBroken::BodyTouches {
                 clearance_m: clearance,
             });
         }
-        state.joints = joints;
-        state.has_previous = true;
-        state.held_back_m = held_back;
-        state.shift = shift;
-        Ok(FrameCheck {
-            residual,
-            clearance,
-        })
+        Ok(clearance)
     }
 
     /// Refuses a swinging `point` (`part` of `limb`) inside a support, beyond numeric slack.
@@ -677,71 +776,37 @@ impl<'a> Walker<'a> {
     }
 
     fn walk(&self, stop_before: usize) -> Result<(GaitPlan, State), WalkError> {
-        let gait = &self.sloth.gait;
         let mut state = self.start_state().map_err(|reason| WalkError::NoStart {
             scenario: self.scenario.name.clone(),
             reason,
         })?;
-        let cycle_frames = self.frames(gait.cycle_s());
-        let swing_frames = self.frames(gait.swing_s()).max(1);
-        let first_swing = self.frames(SETTLE_S);
-        let last_start = first_swing + self.scenario.cycles as usize * cycle_frames;
-        let order = gait.footfall_order.clone();
-        let slot_frames: Vec<usize> = (0..order.len())
-            .map(|slot| (slot as f64 * cycle_frames as f64 / order.len() as f64).round() as usize)
-            .collect();
-        let mut plan = GaitPlan {
-            period_s: self.period_s,
-            dof: self.sloth.dof(),
-            frames: Vec::new(),
-            stances: Vec::new(),
-            touchdowns: Vec::new(),
-            cycle_starts: Vec::new(),
-            stop_reason: None,
-            ik_residual_max_m: 0.0,
-            plan_clearance_min_m: f64::INFINITY,
-        };
-        let mut stance_start = vec![0usize; order.len()];
+        let schedule = self.schedule();
+        let mut plan = self.empty_plan();
+        let mut stance_start = vec![0usize; self.sloth.limbs.len()];
         let mut k = 0;
         loop {
             let swinging = state.limbs.iter().any(|l| l.swing.is_some());
-            let walking = plan.stop_reason.is_none() && k < last_start;
+            let walking = plan.stop_reason.is_none() && k < schedule.last_start;
             if (!walking && !swinging) || k >= stop_before {
                 break;
             }
-            if walking && k >= first_swing {
-                let into_cycle = (k - first_swing) % cycle_frames;
-                if let Some(slot) = slot_frames.iter().position(|f| *f == into_cycle) {
-                    let limb = order[slot];
-                    match self.next_step(limb, k, &state, swing_frames) {
-                        Ok(next) => {
-                            plan.stances.push(Stance {
-                                limb,
-                                start: stance_start[limb],
-                                end: k,
-                                settled: stance_start[limb],
-                                contact: state.limbs[limb].contact,
-                            });
-                            state = next;
-                        }
-                        Err(reason) => plan.stop_reason = Some(reason),
+            if let Some(limb) = schedule.lifting_at(k).filter(|_| walking) {
+                match self.next_step(limb, k, &state, schedule.swing_frames) {
+                    Ok(next) => {
+                        plan.stances.push(Stance {
+                            limb,
+                            start: stance_start[limb],
+                            end: k,
+                            settled: stance_start[limb],
+                            contact: state.limbs[limb].contact,
+                        });
+                        state = next;
                     }
+                    Err(reason) => plan.stop_reason = Some(reason),
                 }
             }
-            match self.step(k, &mut state) {
-                Ok(check) => {
-                    plan.ik_residual_max_m = plan.ik_residual_max_m.max(check.residual);
-                    plan.plan_clearance_min_m = plan.plan_clearance_min_m.min(check.clearance);
-                    plan.frames.extend_from_slice(&state.joints);
-                }
-                Err(reason) => {
-                    // Only reachable if the look-ahead and the walk disagree: stop here.
-                    plan.stop_reason = Some(RuleBroken::StoppedMidMotion {
-                        frame: k,
-                        reason: Box::new(reason),
-                    });
-                    break;
-                }
+            if !self.record_frame(k, &mut state, &mut plan) {
+                break;
             }
             for (limb, landed) in land(&mut state, k).into_iter().enumerate() {
                 if landed {
@@ -758,23 +823,107 @@ impl<'a> Walker<'a> {
                 plan.frames.extend_from_slice(&last_frame);
             }
         }
-        plan.cycle_starts = (0..)
-            .map(|cycle| first_swing + cycle * cycle_frames)
-            .take_while(|frame| cycle_frames > 0 && *frame <= plan.len())
+        finish_plan(&mut plan, &state, &stance_start, &schedule);
+        Ok((plan, state))
+    }
+
+    /// The footfall schedule in frames at this walker's period.
+    fn schedule(&self) -> Schedule {
+        let gait = &self.sloth.gait;
+        let cycle_frames = self.frames(gait.cycle_s());
+        let first_swing = self.frames(SETTLE_S);
+        let order = gait.footfall_order.clone();
+        let slot_frames = (0..order.len())
+            .map(|slot| (slot as f64 * cycle_frames as f64 / order.len() as f64).round() as usize)
             .collect();
-        let last = plan.len().saturating_sub(1);
-        for (limb, start) in stance_start.into_iter().enumerate() {
-            if state.limbs[limb].swing.is_none() {
-                plan.stances.push(Stance {
-                    limb,
-                    start,
-                    end: last,
-                    settled: start,
-                    contact: state.limbs[limb].contact,
+        Schedule {
+            cycle_frames,
+            swing_frames: self.frames(gait.swing_s()).max(1),
+            first_swing,
+            last_start: first_swing + self.scenario.cycles as usize * cycle_frames,
+            order,
+            slot_frames,
+        }
+    }
+
+    fn empty_plan(&self) -> GaitPlan {
+        GaitPlan {
+            period_s: self.period_s,
+            dof: self.sloth.dof(),
+            frames: Vec::new(),
+            stances: Vec::new(),
+            touchdowns: Vec::new(),
+            cycle_starts: Vec::new(),
+            stop_reason: None,
+            ik_residual_max_m: 0.0,
+            plan_clearance_min_m: f64::INFINITY,
+        }
+    }
+
+    /// Steps frame `k` and adds it to `plan`; false (and the reason in the plan) when the
+    /// frame breaks a rule.
+    fn record_frame(&self, k: usize, state: &mut State, plan: &mut GaitPlan) -> bool {
+        match self.step(k, state) {
+            Ok(check) => {
+                plan.ik_residual_max_m = plan.ik_residual_max_m.max(check.residual);
+                plan.plan_clearance_min_m = plan.plan_clearance_min_m.min(check.clearance);
+                plan.frames.extend_from_slice(&state.joints);
+                true
+            }
+            Err(reason) => {
+                // Only reachable if the look-ahead and the walk disagree: stop here.
+                plan.stop_reason = Some(RuleBroken::StoppedMidMotion {
+                    frame: k,
+                    reason: Box::new(reason),
                 });
+                false
             }
         }
-        Ok((plan, state))
+    }
+}
+
+/// When each limb lifts off, in frames.
+struct Schedule {
+    cycle_frames: usize,
+    swing_frames: usize,
+    first_swing: usize,
+    /// No swing starts at or after this frame (the scenario's cycles are walked).
+    last_start: usize,
+    /// The limbs in footfall order, one per slot of the cycle.
+    order: Vec<usize>,
+    /// Each slot's frame within the cycle.
+    slot_frames: Vec<usize>,
+}
+
+impl Schedule {
+    /// The limb whose swing starts at frame `k`, if any.
+    fn lifting_at(&self, k: usize) -> Option<usize> {
+        if k < self.first_swing || self.cycle_frames == 0 {
+            return None;
+        }
+        let into_cycle = (k - self.first_swing) % self.cycle_frames;
+        let slot = self.slot_frames.iter().position(|f| *f == into_cycle)?;
+        Some(self.order[slot])
+    }
+}
+
+/// Marks the whole cycles walked and closes every limb's last stance at the plan's end.
+fn finish_plan(plan: &mut GaitPlan, state: &State, stance_start: &[usize], schedule: &Schedule) {
+    plan.cycle_starts = (0..)
+        .map(|cycle| schedule.first_swing + cycle * schedule.cycle_frames)
+        .take_while(|frame| schedule.cycle_frames > 0 && *frame <= plan.len())
+        .collect();
+    let last = plan.len().saturating_sub(1);
+    for (limb, start) in stance_start.iter().copied().enumerate() {
+        if state.limbs[limb].swing.is_none() {
+            plan.stances.push(Stance {
+                limb,
+                start,
+                end: last,
+                settled: start,
+                contact: state.limbs[limb].contact,
+            });
+        }
     }
 }
 
@@ -854,13 +1003,16 @@ pub struct GaitState {
 }
 
 /// Ends the swings that finish at frame `k`; says which limbs landed.
-fn land(state: &mut State, k: usize) -> [bool; 4] {
-    let mut landed = [false; 4];
-    for (index, limb) in state.limbs.iter_mut().enumerate().take(4) {
-        if limb.swing.is_some_and(|s| s.end <= k) {
-            limb.swing = None;
-            landed[index] = true;
-        }
-    }
-    landed
+fn land(state: &mut State, k: usize) -> Vec<bool> {
+    state
+        .limbs
+        .iter_mut()
+        .map(|limb| {
+            let landed = limb.swing.is_some_and(|s| s.end <= k);
+            if landed {
+                limb.swing = None;
+            }
+            landed
+        })
+        .collect()
 }

@@ -76,6 +76,9 @@ pub struct PaintSettings {
 
 /// Axes before the arm: base x, base y, base yaw, lift.
 pub const EXTRA_AXES: usize = 4;
+/// The lift's place among the extra axes (after base x, y and yaw): the axis that carries
+/// the held arm up a stroke.
+pub const LIFT_AXIS: usize = 3;
 
 /// True when `value` is a whole multiple of `grid` (to rounding).
 fn on_grid(value: f64, grid: f64) -> bool {
@@ -100,6 +103,14 @@ pub fn load_paint_settings(file: &Path) -> Result<PaintSettings, ConfigError> {
 }
 
 fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
+    check_room(file, c)?;
+    check_brush(file, c)?;
+    check_body(file, c)?;
+    check_strokes(file, c, rig)
+}
+
+/// The room's sizes: in range and on the layout grid, the windows inside the walls.
+fn check_room(file: &Path, c: &PaintConfig) -> Result<(), ConfigError> {
     let r = &c.room;
     check_range(file, "room.layout_grid_m", r.layout_grid_m, 0.001, 0.1)?;
     for (key, value, low, high) in [
@@ -141,6 +152,12 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
             ),
         ));
     }
+    Ok(())
+}
+
+/// The brush and the coverage grid it is measured on.
+fn check_brush(file: &Path, c: &PaintConfig) -> Result<(), ConfigError> {
+    let r = &c.room;
     let b = &c.brush;
     check_range(file, "brush.width_m", b.width_m, 0.02, 0.5)?;
     check_range(file, "brush.handle_m", b.handle_m, 0.05, 0.5)?;
@@ -176,6 +193,11 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
             &format!("must divide room.layout_grid_m = {}", r.layout_grid_m),
         ));
     }
+    Ok(())
+}
+
+/// The collision body's radii and the planning clearance.
+fn check_body(file: &Path, c: &PaintConfig) -> Result<(), ConfigError> {
     let body = &c.body;
     check_range(file, "body.base_radius_m", body.base_radius_m, 0.05, 1.0)?;
     for (i, radius) in body.link_radii_m.iter().enumerate() {
@@ -194,6 +216,12 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
         0.0,
         0.2,
     )?;
+    Ok(())
+}
+
+/// The strokes against the rig: its axes, the lift's range and the arm's travel pose.
+fn check_strokes(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
+    let r = &c.room;
     let s = &c.strokes;
     check_range(file, "strokes.reach_m", s.reach_m, 0.2, 1.0)?;
     check_range(file, "strokes.retract_m", s.retract_m, 0.005, 0.2)?;
@@ -210,7 +238,7 @@ fn check(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigError> {
             ),
         ));
     }
-    let lift = rig.joints[3].limits;
+    let lift = rig.joints[LIFT_AXIS].limits;
     check_range(
         file,
         "strokes.low_lift_m",

@@ -17,7 +17,7 @@
 //! target: everything is solved, validated and collision-checked.
 
 use super::body::{Body, Scratch};
-use super::config::{EXTRA_AXES, PaintSettings};
+use super::config::{EXTRA_AXES, LIFT_AXIS, PaintSettings};
 use super::room::{Room, Wall};
 use crate::ik::{BaseHeldSolver, IkSolver, StructureError};
 use crate::rig::{JointList, Pose, Rig};
@@ -187,6 +187,15 @@ const FREE_MOVE_OFF_WALL: f64 = 3.0;
 const CENTRED_TURNS_DEG: [f64; 4] = [0.0, 8.0, 14.0, 20.0];
 /// Bands this close to a corner may turn the brush too (m).
 const NEAR_CORNER_M: f64 = 0.6;
+/// Brush tilts about the contact line a column tries, in order (deg): level first, then
+/// the handle rising from the wall, which lets the arm reach lower and higher on it.
+const TILTS_DEG: [f64; 5] = [0.0, 25.0, 45.0, 52.0, 60.0];
+/// Margin on the least turn that fits a band into a gap narrower than the brush: the
+/// turned brush then clears the gap's edges by 2 % rather than touching them.
+const FIT_TURN_MARGIN: f64 = 1.02;
+/// Base standoffs a column tries, as offsets from `strokes.reach_m` (m), in order: the
+/// usual reach, nearer, farther, then nearer still for the ceiling's top strokes.
+const STANDOFF_OFFSETS_M: [f64; 4] = [0.0, -0.08, 0.07, -0.15];
 /// The most a brush is turned about the wall normal to get into a corner (deg).
 const MAX_TURN_DEG: f64 = 55.0;
 
@@ -412,7 +421,7 @@ impl<'a> Planner<'a> {
     /// turned at least enough to fit a gap narrower than the brush.
     fn attitudes(&self, band: Band, corner: bool) -> Vec<Attitude> {
         let deg = f64::to_radians;
-        let thetas = [0.0, 25.0, 45.0, 52.0, 60.0];
+        let thetas = TILTS_DEG;
         let (at, fit, flush) = match band {
             Band::Flush { edge, room, toward } => (edge, room, toward),
             Band::Centred { centre } => (centre, f64::INFINITY, 1.0),
@@ -428,7 +437,7 @@ impl<'a> Planner<'a> {
             (false, _) => -flush,
         };
         let narrowest = if fit < self.brush_width() {
-            (fit / self.brush_width()).clamp(0.0, 1.0).acos() * 1.02
+            (fit / self.brush_width()).clamp(0.0, 1.0).acos() * FIT_TURN_MARGIN
         } else {
             0.0
         };
@@ -497,7 +506,7 @@ impl<'a> Planner<'a> {
     ) -> Result<Column, PlanRefusal> {
         let strokes = &self.settings.config.strokes;
         let reach = strokes.reach_m;
-        let standoffs = [reach, reach - 0.08, reach + 0.07, reach - 0.15];
+        let standoffs = STANDOFF_OFFSETS_M.map(|offset| reach + offset);
         let mut last_reason = PlanRefusal::NoCandidate;
         for attitude in self.attitudes(band, corner) {
             let s = self.band_centre(band, attitude);
@@ -605,7 +614,7 @@ impl<'a> Planner<'a> {
         let held = trajectory.position(trajectory.len() - 1).to_vec();
         if lift_to > lift_from {
             let mut top = held.clone();
-            top[3] = lift_to;
+            top[LIFT_AXIS] = lift_to;
             let lift = plan_joint_moves(self.rig, &held, &[top], &self.plan)?;
             trajectory.append(&lift);
         }
