@@ -7,9 +7,7 @@
 //! per-link transforms; it must not touch the JSON channels replay reads, nor the rig.
 
 use super::LogError;
-use crate::rig::{
-    Joint, Rig, path_to, generated_link_names, origin_from_xyz_rpy, rig_to_urdf,
-};
+use crate::rig::{Joint, Rig, generated_link_names, origin_from_xyz_rpy, path_to, rig_to_urdf};
 use foxglove::Encode;
 use foxglove::messages::{
     FrameTransform, FrameTransforms, JointState, JointStates, Quaternion, Timestamp, Vector3,
