@@ -8,7 +8,7 @@ fn main() -> std::process::ExitCode {
         // The reader of our output went away (`| head`): the output ends there, cleanly.
         Err(_) if cli::stdout_closed() => std::process::ExitCode::SUCCESS,
         Err(error) => {
-            eprintln!("error: {error:#}");
+            eprintln!("error: {}", rigbridge::daemon::error_chain(error.as_ref()));
             cli::exit_code_for(&error)
         }
     }

@@ -92,25 +92,29 @@ fn config_dump_writes_files_that_load_back() {
     let settings = dir.join("cfg/rigbridge.toml");
     let text = std::fs::read_to_string(&settings).unwrap();
     std::fs::write(&settings, text.replace("laps = 2", "laps = 1")).unwrap();
-    let report = dir.join("report.json");
-    let output = rigbridge(
-        &dir,
-        &[
-            "run",
-            "--config",
-            "cfg/rigbridge.toml",
-            "--clock",
-            "virtual",
-            "--log",
-            "r.mcap",
-            "--report",
-            "report.json",
-        ],
-        "",
+    let planned = |config: &str, log: &str| -> f64 {
+        let report = format!("{log}.json");
+        let mut args = vec![
+            "run", "--clock", "virtual", "--log", log, "--report", &report,
+        ];
+        if !config.is_empty() {
+            args.extend(["--config", config]);
+        }
+        let output = rigbridge(&dir, &args, "");
+        assert!(output.status.success(), "{}", stderr(&output));
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join(&report)).unwrap()).unwrap();
+        report["planned_duration_s"].as_f64().unwrap()
+    };
+    // One lap of the star instead of the built-in two: a shorter plan.
+    let (edited, built_in) = (
+        planned("cfg/rigbridge.toml", "edited.mcap"),
+        planned("", "built-in.mcap"),
     );
-    assert!(output.status.success(), "{}", stderr(&output));
-    let report = std::fs::read_to_string(report).unwrap();
-    assert!(report.contains("cfg/rigbridge.toml"), "{report}");
+    assert!(
+        edited < 0.75 * built_in,
+        "edited {edited} s, built-in {built_in} s"
+    );
     let cfg = dir.join("cfg");
     for name in ["rigbridge.toml", "gait-run.toml", "paint-run.toml"] {
         let loaded = load_run_settings(&cfg.join(name));

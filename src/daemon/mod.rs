@@ -56,8 +56,13 @@ pub fn error_chain(error: &dyn std::error::Error) -> String {
     let mut text = error.to_string();
     let mut source = error.source();
     while let Some(cause) = source {
-        text.push_str(": ");
-        text.push_str(&cause.to_string());
+        // A message that already ends with its cause's (thiserror's `{source}` in the
+        // format) says it once.
+        let cause_text = cause.to_string();
+        if !text.ends_with(&cause_text) {
+            text.push_str(": ");
+            text.push_str(&cause_text);
+        }
         source = cause.source();
     }
     text
@@ -525,4 +530,22 @@ pub fn wait_for_link(link: &dyn Link, clock: &dyn Clock, timeout_s: f64) -> bool
 
 fn job_name(job: &config::JobConfig) -> String {
     job.name()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{DaemonError, error_chain};
+    use crate::log::LogError;
+
+    #[test]
+    fn a_chain_names_a_cause_once_when_the_message_already_ends_with_it() {
+        let io = std::io::Error::new(std::io::ErrorKind::AlreadyExists, "File exists");
+        let error = DaemonError::Log(LogError::Io {
+            context: "creating log x.mcap".into(),
+            source: io,
+        });
+        let text = error_chain(&error);
+        assert_eq!(text.matches("File exists").count(), 1, "{text}");
+        assert!(text.contains("creating log x.mcap: File exists"), "{text}");
+    }
 }
