@@ -3,6 +3,8 @@
 //! refused or counted by the servos), a servo's hardware error stopping a job, and our
 //! twin's servos against PyPI's dynamixel-sdk as the master (tests/peers/dxl_master.py).
 
+mod common;
+
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::{dynamixel_settings, run_job};
 use rigbridge::link::{Link, connect_dynamixel};
@@ -244,22 +246,9 @@ fn tick_settings_are_checked_on_load_and_errors_name_the_file_key_and_value() {
     }
 }
 
-/// The Python with dynamixel-sdk: RIGBRIDGE_DXL_PYTHON (scripts/test.sh sets it), else
-/// `python3` if it imports the package.
+/// The Python with dynamixel-sdk (RIGBRIDGE_DXL_PYTHON, set by scripts/test.sh).
 fn peer_python() -> Result<String, String> {
-    let python = std::env::var("RIGBRIDGE_DXL_PYTHON").unwrap_or_else(|_| "python3".into());
-    let probe = std::process::Command::new(&python)
-        .args(["-c", "import dynamixel_sdk"])
-        .output()
-        .map_err(|e| format!("cannot run {python}: {e}"))?;
-    if probe.status.success() {
-        Ok(python)
-    } else {
-        Err(format!(
-            "{python} cannot import dynamixel_sdk (scripts/test.sh installs it): {}",
-            String::from_utf8_lossy(&probe.stderr).trim()
-        ))
-    }
+    common::peer_python("RIGBRIDGE_DXL_PYTHON", "dynamixel_sdk", "dynamixel_sdk")
 }
 
 #[test]

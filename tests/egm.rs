@@ -2,6 +2,8 @@
 //! (the default job completes, the twin refuses nothing), the twin's sessions (motors,
 //! CommTimeout), and the twin against abb-robot-client's `EGM` sensor (tests/peers/).
 
+mod common;
+
 use prost::Message;
 use rigbridge::clock::Clock;
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
@@ -235,22 +237,13 @@ fn a_reference_jump_is_refused_with_mci_error_and_no_motion() {
     }
 }
 
-/// The Python with abb-robot-client: RIGBRIDGE_EGM_PYTHON (scripts/test.sh sets it), else
-/// `python3` if it imports the package.
+/// The Python with abb-robot-client (RIGBRIDGE_EGM_PYTHON, set by scripts/test.sh).
 fn peer_python() -> Result<String, String> {
-    let python = std::env::var("RIGBRIDGE_EGM_PYTHON").unwrap_or_else(|_| "python3".into());
-    let probe = std::process::Command::new(&python)
-        .args(["-c", "import abb_robot_client.egm"])
-        .output()
-        .map_err(|e| format!("cannot run {python}: {e}"))?;
-    if probe.status.success() {
-        Ok(python)
-    } else {
-        Err(format!(
-            "{python} cannot import abb_robot_client (scripts/test.sh installs it): {}",
-            String::from_utf8_lossy(&probe.stderr).trim()
-        ))
-    }
+    common::peer_python(
+        "RIGBRIDGE_EGM_PYTHON",
+        "abb_robot_client.egm",
+        "abb_robot_client",
+    )
 }
 
 #[test]

@@ -17,22 +17,14 @@ use std::process::Command;
 const MAX_TOOL_DEVIATION_M: f64 = 1e-9;
 const MIN_TF_RATE_HZ: f64 = 50.0;
 
-/// The venv's Python (scripts/test.sh sets RIGBRIDGE_FOXGLOVE_PYTHON), else `python3` if it
-/// imports both packages.
+/// The Python with mcap and mcap-protobuf-support (RIGBRIDGE_FOXGLOVE_PYTHON, set by
+/// scripts/test.sh).
 fn peer_python() -> Result<String, String> {
-    let python = std::env::var("RIGBRIDGE_FOXGLOVE_PYTHON").unwrap_or_else(|_| "python3".into());
-    let probe = Command::new(&python)
-        .args(["-c", "import mcap.reader, mcap_protobuf.decoder"])
-        .output()
-        .map_err(|e| format!("cannot run {python}: {e}"))?;
-    if probe.status.success() {
-        Ok(python)
-    } else {
-        Err(format!(
-            "{python} cannot import mcap and mcap_protobuf (scripts/test.sh installs them): {}",
-            String::from_utf8_lossy(&probe.stderr).trim()
-        ))
-    }
+    common::peer_python(
+        "RIGBRIDGE_FOXGLOVE_PYTHON",
+        "mcap.reader, mcap_protobuf.decoder",
+        "mcap and mcap_protobuf",
+    )
 }
 
 fn scratch(name: &str) -> PathBuf {

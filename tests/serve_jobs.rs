@@ -298,21 +298,9 @@ fn find_actions(events: &[(f64, String, serde_json::Value)], sent: &[Sent]) -> V
     times
 }
 
-/// The PyPI `mcap` reader's Python: RIGBRIDGE_MCAP_PYTHON (scripts/test.sh sets it), else
-/// `python3` if it imports the package.
+/// The PyPI `mcap` reader's Python (RIGBRIDGE_MCAP_PYTHON, set by scripts/test.sh).
 fn mcap_python() -> Result<String, String> {
-    let python = std::env::var("RIGBRIDGE_MCAP_PYTHON").unwrap_or_else(|_| "python3".into());
-    let probe = Command::new(&python)
-        .args(["-c", "import mcap.reader"])
-        .output()
-        .map_err(|e| format!("cannot run {python}: {e}"))?;
-    if probe.status.success() {
-        Ok(python)
-    } else {
-        Err(format!(
-            "{python} cannot import mcap (scripts/test.sh installs it)"
-        ))
-    }
+    common::peer_python("RIGBRIDGE_MCAP_PYTHON", "mcap.reader", "mcap")
 }
 
 /// Events of `log` by PyPI's reader: (log time in s, t, kind), checked to agree.

@@ -112,3 +112,21 @@ pub fn assert_gait_figures(run: &rigbridge::daemon::gait::GaitRun) {
         v.min_heading_elevation_deg
     );
 }
+
+/// The Python of a PyPI peer: `$var` (scripts/test.sh sets it to the peer's venv), else
+/// `python3`, if it can run `import {imports}`. The error says why not, for the skip note.
+pub fn peer_python(var: &str, imports: &str, what: &str) -> Result<String, String> {
+    let python = std::env::var(var).unwrap_or_else(|_| "python3".into());
+    let probe = std::process::Command::new(&python)
+        .args(["-c", &format!("import {imports}")])
+        .output()
+        .map_err(|e| format!("cannot run {python}: {e}"))?;
+    if probe.status.success() {
+        Ok(python)
+    } else {
+        Err(format!(
+            "{python} cannot import {what} (scripts/test.sh installs it): {}",
+            String::from_utf8_lossy(&probe.stderr).trim()
+        ))
+    }
+}
