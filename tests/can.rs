@@ -372,7 +372,10 @@ fn whole_job(label: &str, interface: &str, fd: bool) {
     println!("  twin: {}", summary.trim().replace('\n', "\n  twin: "));
 
     assert_eq!(report["outcome"], "completed", "{report}");
-    assert_eq!(report["gaps"], 0, "{report}");
+    // A stall of the (emulated) host resumes from a hold, discarding the targets queued
+    // behind its Stop: the one run where the echo may jump (the report names the stall).
+    let resumed = !report["fault"].is_null();
+    assert!(resumed || report["gaps"] == 0, "{report}");
     assert_eq!(report["crc_errors"], 0, "{report}");
     assert_eq!(report["limit_violations"], 0, "{report}");
     let cycles = number(&report, "cycles");
