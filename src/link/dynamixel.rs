@@ -37,6 +37,9 @@ use thiserror::Error;
 /// streamer's own patience (0.1 s at 250 Hz) for a silent controller.
 pub const LOST_AFTER_CYCLES: u32 = 25;
 /// How long a set-up request waits for its status packet: generous, set-up is not cyclic.
+/// A servo within this many ticks of its goal has reached it: the encoder's own rounding
+/// and the position controller's dead band.
+const SETTLED_TICKS: i32 = 2;
 const SETUP_TIMEOUT: Duration = Duration::from_millis(100);
 /// Set-up requests are retried this often before the open counts as failed (a servo
 /// still booting, a packet lost to noise).
@@ -739,6 +742,8 @@ fn run_cycles(bus: &mut Bus, shared: &Shared) {
     let mut last_seq = 0u32;
     let mut holding = true;
     let mut present: Vec<i32> = Vec::new();
+    // The goals last written: a servo that stops being streamed goes on to them.
+    let mut goals_written: Option<Vec<i32>> = None;
     while let Some(job) = next_job(shared) {
         let latched = shared.lock().latched.is_some();
         match job {
@@ -758,6 +763,7 @@ fn run_cycles(bus: &mut Bus, shared: &Shared) {
                 }
                 last_seq = seq;
                 holding = false;
+                goals_written = Some(values.iter().map(|(_, v)| *v).collect());
             }
             Job::Goals(..) => {}
             Job::Read { holding: hold } => holding |= hold,
@@ -770,9 +776,17 @@ fn run_cycles(bus: &mut Bus, shared: &Shared) {
             Ok(Some(ticks)) => {
                 missing_cycles = 0;
                 let mut state = shared.lock();
+                // Holding means at rest on the goal: until the servos reach the goals last
+                // written they still move, too slowly, perhaps, for a tick to show it.
+                let settled = goals_written.as_ref().is_none_or(|goals| {
+                    goals
+                        .iter()
+                        .zip(&ticks)
+                        .all(|(g, t)| (g - t).abs() <= SETTLED_TICKS)
+                });
                 let status = match state.latched {
                     Some(fault) => ControllerStatus::Fault(fault),
-                    None if holding => ControllerStatus::Holding,
+                    None if holding && settled => ControllerStatus::Holding,
                     None => ControllerStatus::Ok,
                 };
                 let positions = radians(shared, &ticks);

@@ -32,6 +32,9 @@ pub const MODEL_NUMBER: u16 = 1030;
 pub const FIRMWARE_VERSION: u8 = 0x26;
 /// The single-turn Goal Position range of position control mode (XM430 e-manual,
 /// "Max/Min Position Limit (48, 52)": 0 to 4095).
+/// Periods of motion a held twin thread simulates at once when it wakes: 0.1 s at 250 Hz,
+/// the bridge's own patience for a silent link; a longer hold is the host's, not a servo's.
+const MAX_CATCH_UP_PERIODS: u32 = 25;
 const SINGLE_TURN_MAX: i64 = 4095;
 /// A bus without a goal for this many periods is at rest: the next goal's step and second
 /// difference are judged from the goal in force (25, the streamer's patience).
@@ -634,10 +637,15 @@ pub fn serve_dynamixel(
                     axis + 1
                 ));
             }
-            bus.step();
-            next_tick += period;
-            if next_tick < now {
-                // Held past a whole period: stretch rather than run the missed ones at once.
+            // A servo moves in real time whatever the host does to this thread: the periods
+            // it was held past are simulated now (motion only, no message), up to a bound.
+            let mut steps = 0;
+            while next_tick <= now && steps < MAX_CATCH_UP_PERIODS {
+                bus.step();
+                next_tick += period;
+                steps += 1;
+            }
+            if next_tick <= now {
                 next_tick = now + period;
             }
         }
