@@ -140,7 +140,9 @@ impl RobotDescription {
             joint_names: rig.joint_names().map(str::to_owned).collect(),
             segments,
         };
-        description.check_against(rig).map_err(bad)?;
+        description
+            .check_against(rig)
+            .map_err(|e| bad(e.to_string()))?;
         Ok(description)
     }
 
@@ -170,9 +172,9 @@ impl RobotDescription {
         })
     }
 
-    fn check_against(&self, rig: &Rig) -> Result<(), String> {
+    fn check_against(&self, rig: &Rig) -> Result<(), DescriptionMismatch> {
         if self.segments.last().map(|s| s.child.as_str()) != Some(rig.tool_frame.as_str()) {
-            return Err(format!("the chain does not end at {}", rig.tool_frame));
+            return Err(DescriptionMismatch::End(rig.tool_frame.clone()));
         }
         let used = self
             .segments
@@ -180,7 +182,10 @@ impl RobotDescription {
             .filter(|s| matches!(s.motion, Motion::Joint { .. }))
             .count();
         if used != rig.dof() {
-            return Err(format!("{used} actuated joints for {} axes", rig.dof()));
+            return Err(DescriptionMismatch::Axes {
+                used,
+                dof: rig.dof(),
+            });
         }
         // Mid-range positions: every axis away from zero, so every origin and axis counts.
         let probe: Vec<f64> = rig
@@ -191,7 +196,7 @@ impl RobotDescription {
         let composed = self
             .link_transforms(&probe)
             .map(|links| links.fold(DAffine3::IDENTITY, |frame, link| frame * link));
-        let expected = rig.forward(&probe).map_err(|e| e.to_string())?;
+        let expected = rig.forward(&probe)?;
         match composed {
             Some(tool)
                 if (tool.translation - expected.translation).length() <= FK_AGREEMENT_M
@@ -199,9 +204,22 @@ impl RobotDescription {
             {
                 Ok(())
             }
-            _ => Err("its links do not compose to the rig's forward kinematics".to_owned()),
+            _ => Err(DescriptionMismatch::Kinematics),
         }
     }
+}
+
+/// Why a robot description is not the rig's.
+#[derive(Debug, thiserror::Error)]
+enum DescriptionMismatch {
+    #[error("the chain does not end at {0}")]
+    End(String),
+    #[error("{used} actuated joints for {dof} axes")]
+    Axes { used: usize, dof: usize },
+    #[error(transparent)]
+    Dof(#[from] crate::rig::DofMismatch),
+    #[error("its links do not compose to the rig's forward kinematics")]
+    Kinematics,
 }
 
 /// The writer thread's Foxglove channels and the messages it refills for each state.

@@ -201,7 +201,7 @@ pub enum StartRefused {
 pub struct StartedJob {
     pub id: u64,
     pub name: String,
-    pub planned: oneshot::Receiver<Result<(), String>>,
+    pub planned: oneshot::Receiver<Result<(), NotPlanned>>,
 }
 
 /// A control request as the cell logged it.
@@ -684,7 +684,7 @@ impl Cell {
         } = io;
         let control = &*control;
         let Ok(mut guard) = self.link.lock() else {
-            let _ = planned.send(Err("twin lock poisoned".into()));
+            let _ = planned.send(Err(NotPlanned("twin lock poisoned".into())));
             return Err(DaemonError::Unavailable("twin lock poisoned".into()));
         };
         let link: &mut dyn Link = match &mut *guard {
@@ -692,7 +692,7 @@ impl Cell {
             CellLink::Remote(remote) => match self.remote(remote) {
                 Ok(link) => link,
                 Err(e) => {
-                    let _ = planned.send(Err(error_chain(&e)));
+                    let _ = planned.send(Err(NotPlanned(error_chain(&e))));
                     return Err(e);
                 }
             },
@@ -701,7 +701,11 @@ impl Cell {
         let pacing = link.pacing();
         let clock: &dyn Clock = pacing.as_deref().unwrap_or(clock);
         let plan = plan_for(&self.settings, job, link, clock, control);
-        let _ = planned.send(plan.as_ref().map(|_| ()).map_err(|e| error_chain(e)));
+        let _ = planned.send(
+            plan.as_ref()
+                .map(|_| ())
+                .map_err(|e| NotPlanned(error_chain(e))),
+        );
         let plan = plan?;
         let (scene, world) = scene_for_job(&self.settings, job);
         // Nothing streams yet: the twin is not observing.
@@ -798,7 +802,7 @@ impl Cell {
 struct JobIo {
     control: Arc<StreamControl>,
     actions: Arc<ActionLog>,
-    planned: oneshot::Sender<Result<(), String>>,
+    planned: oneshot::Sender<Result<(), NotPlanned>>,
 }
 
 /// A cell's journal: an MCAP log (`docs/logs.md`) holding only events, one per control
@@ -861,15 +865,27 @@ impl Journal {
 
 /// `work`'s result, or the message of the panic that ended it: one job's bug must not take
 /// the daemon (or another cell) down.
-fn contain_panic<T>(work: impl FnOnce() -> T) -> Result<T, String> {
+fn contain_panic<T>(work: impl FnOnce() -> T) -> Result<T, Panicked> {
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(work)).map_err(|payload| {
-        payload
-            .downcast_ref::<&str>()
-            .map(|s| s.to_string())
-            .or_else(|| payload.downcast_ref::<String>().cloned())
-            .unwrap_or_else(|| "a panic without a message".into())
+        Panicked(
+            payload
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "a panic without a message".into()),
+        )
     })
 }
+
+/// Why a job was not planned: its error chain, as the planner's thread told it.
+#[derive(Debug, Clone, thiserror::Error)]
+#[error("{0}")]
+pub struct NotPlanned(pub String);
+
+/// A job's panic, by its message.
+#[derive(Debug, Clone, thiserror::Error)]
+#[error("{0}")]
+pub struct Panicked(pub String);
 
 /// The file name of job `id`'s log in the runs directory.
 pub fn job_log_name(id: u64) -> String {
@@ -902,9 +918,9 @@ mod tests {
 
     #[test]
     fn a_panicking_job_is_contained() {
-        let result: Result<(), String> = contain_panic(|| panic!("boom {}", 7));
-        assert_eq!(result.unwrap_err(), "boom 7");
-        assert_eq!(contain_panic(|| 3), Ok(3));
+        let result: Result<(), Panicked> = contain_panic(|| panic!("boom {}", 7));
+        assert_eq!(result.unwrap_err().0, "boom 7");
+        assert_eq!(contain_panic(|| 3).ok(), Some(3));
     }
 
     #[test]
