@@ -8,7 +8,7 @@ mod common;
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::{dynamixel_settings, run_job};
 use rigbridge::link::{Link, connect_dynamixel};
-use rigbridge::stream::{Outcome, StreamControl};
+use rigbridge::stream::{Outcome, STALL_CYCLES, StreamControl};
 use rigbridge::twin::dynamixel::{
     DynamixelBus, DynamixelTwinControl, DynamixelTwinCounters, DynamixelTwinSettings,
     serve_dynamixel,
@@ -113,7 +113,24 @@ fn the_bridge_drives_six_twin_servos_through_the_default_job_over_a_pty() {
     // Set-up pinged every servo once; then one sync write per target, each followed by
     // a sync read, and a sync read per heartbeat.
     assert_eq!(counters.pings, 6);
-    assert!(counters.sync_writes >= report.stream.cycles, "{counters:?}");
+    // A host stall (a wake 5 cycles late) ends a part with a Stop, and the targets queued
+    // behind it are stale and never written (docs/faults.md): only a run without one
+    // must have written every target it sent.
+    let period_us = 1e6 / settings.config.stream.rate_hz;
+    if report.stream.jitter_max_us < STALL_CYCLES as f64 * period_us {
+        assert!(
+            counters.sync_writes >= report.stream.cycles,
+            "{} cycles: {counters:?}",
+            report.stream.cycles
+        );
+    } else {
+        println!(
+            "a host stall ({:.1} ms late): {} sync writes over {} cycles",
+            report.stream.jitter_max_us / 1e3,
+            counters.sync_writes,
+            report.stream.cycles
+        );
+    }
     assert!(counters.sync_reads >= counters.sync_writes, "{counters:?}");
     assert_eq!(counters.goals, 6 * counters.sync_writes + 6, "{counters:?}");
     assert!(torque.iter().all(|on| *on), "torque stays on after the job");

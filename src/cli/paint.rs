@@ -8,7 +8,7 @@ use clap::Args;
 use rigbridge::daemon::config::{JobConfig, load_run_settings};
 use rigbridge::daemon::paint::run_paint;
 use rigbridge::stream::StreamControl;
-use rigbridge::task::paint::{PaintReport, PaintWorld, load_paint_settings, write_svg};
+use rigbridge::task::paint::{PaintPlan, PaintReport, PaintWorld, load_paint_settings, write_svg};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::{Arc, PoisonError};
@@ -49,14 +49,7 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
         (None, _) => rigbridge::rig::shipped::path("paint.toml"),
     };
     let paint = load_paint_settings(&paint_config).context("cannot load paint settings")?;
-    let picture_kind = match &args.picture {
-        Some(picture) => match picture.extension().and_then(|e| e.to_str()) {
-            Some("svg") => Some(Picture::Svg),
-            Some("png") => Some(Picture::Png),
-            _ => anyhow::bail!("--picture {}: write a .svg or a .png", picture.display()),
-        },
-        None => None,
-    };
+    let picture_kind = args.picture.as_deref().map(Picture::of).transpose()?;
     let log = args.log.unwrap_or_else(|| default_log_path("paint"));
     if let Some(dir) = log.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
@@ -77,34 +70,7 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
             clock.as_ref(),
             Some(&job_log),
             &job_control,
-            &mut |plan| {
-                // On the streaming thread: a closed stdout must not stop the job here; the
-                // summary after it ends the output.
-                use std::io::Write as _;
-                let mut out = super::stdout();
-                let _ = writeln!(
-                    out,
-                    "planned {} strokes ({:.0} s of motion) in {:.2} s{}",
-                    plan.strokes.len(),
-                    plan.trajectory.duration_s(),
-                    started.elapsed().as_secs_f64(),
-                    if plan.unreachable.is_empty() {
-                        String::new()
-                    } else {
-                        format!(
-                            "; {} strokes unreachable, left out:",
-                            plan.unreachable.len()
-                        )
-                    }
-                );
-                for stroke in &plan.unreachable {
-                    let _ = writeln!(
-                        out,
-                        "  wall {} at s = {:.3} m, v {:.3}..{:.3} m: {}",
-                        stroke.wall, stroke.s_m, stroke.v_from_m, stroke.v_to_m, stroke.reason
-                    );
-                }
-            },
+            &mut |plan| print_plan(plan, started),
         )?)
     })?;
     let run = super::run::wait(&control, job)?;
@@ -124,15 +90,7 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
     super::run::write_report(args.report.as_deref(), &run.paint)?;
     if let (Some(picture), Some(kind)) = (&args.picture, picture_kind) {
         let world = run.world.lock().unwrap_or_else(PoisonError::into_inner);
-        match kind {
-            Picture::Svg => std::fs::write(picture, write_svg(&world, &run.paint))
-                .with_context(|| format!("cannot write picture {}", picture.display()))?,
-            Picture::Png => {
-                super::plot::register_font()?;
-                super::plot::write_picture(picture, |path| write_png(&world, &run.paint, path))
-                    .with_context(|| format!("cannot write picture {}", picture.display()))?
-            }
-        }
+        kind.write(picture, &world, &run.paint)?;
         say!("  picture: {}", picture.display());
     }
     Ok(exit_code(r.stream.outcome))
@@ -142,6 +100,57 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
 enum Picture {
     Svg,
     Png,
+}
+
+impl Picture {
+    /// The picture `--picture` asks for, by its extension.
+    fn of(path: &Path) -> anyhow::Result<Picture> {
+        match path.extension().and_then(|e| e.to_str()) {
+            Some("svg") => Ok(Picture::Svg),
+            Some("png") => Ok(Picture::Png),
+            _ => anyhow::bail!("--picture {}: write a .svg or a .png", path.display()),
+        }
+    }
+
+    fn write(self, path: &Path, world: &PaintWorld, report: &PaintReport) -> anyhow::Result<()> {
+        let written = match self {
+            Picture::Svg => std::fs::write(path, write_svg(world, report)).map_err(Into::into),
+            Picture::Png => {
+                super::plot::register_font()?;
+                super::plot::write_picture(path, |path| write_png(world, report, path))
+            }
+        };
+        written.with_context(|| format!("cannot write picture {}", path.display()))
+    }
+}
+
+/// What the plan holds, printed on the streaming thread as soon as it is planned: a closed
+/// stdout must not stop the job here; the summary after it ends the output.
+fn print_plan(plan: &PaintPlan, started: std::time::Instant) {
+    use std::io::Write as _;
+    let mut out = super::stdout();
+    let unreachable = if plan.unreachable.is_empty() {
+        String::new()
+    } else {
+        format!(
+            "; {} strokes unreachable, left out:",
+            plan.unreachable.len()
+        )
+    };
+    let _ = writeln!(
+        out,
+        "planned {} strokes ({:.0} s of motion) in {:.2} s{unreachable}",
+        plan.strokes.len(),
+        plan.trajectory.duration_s(),
+        started.elapsed().as_secs_f64(),
+    );
+    for stroke in &plan.unreachable {
+        let _ = writeln!(
+            out,
+            "  wall {} at s = {:.3} m, v {:.3}..{:.3} m: {}",
+            stroke.wall, stroke.s_m, stroke.v_from_m, stroke.v_to_m, stroke.reason
+        );
+    }
 }
 
 /// The unrolled walls as a PNG, one pixel per coverage cell: paint green, paint inside an

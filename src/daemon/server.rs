@@ -137,10 +137,8 @@ impl TokenCheck {
             return true;
         }
         let in_query = request.uri().query().is_some_and(|query| {
-            query
-                .split('&')
-                .filter_map(|pair| pair.strip_prefix("token="))
-                .any(|value| percent_decode(value).is_some_and(|t| constant_time_eq(&t, expected)))
+            form_urlencoded::parse(query.as_bytes())
+                .any(|(key, value)| key == "token" && constant_time_eq(value.as_bytes(), expected))
         });
         let in_protocol = request
             .headers()
@@ -152,24 +150,6 @@ impl TokenCheck {
             .any(|token| constant_time_eq(token.as_bytes(), expected));
         in_query || in_protocol
     }
-}
-
-/// `%XX` escapes and `+` decoded; `None` for a broken escape.
-fn percent_decode(text: &str) -> Option<Vec<u8>> {
-    let mut out = Vec::with_capacity(text.len());
-    let mut bytes = text.bytes();
-    while let Some(byte) = bytes.next() {
-        out.push(match byte {
-            b'%' => {
-                let high = char::from(bytes.next()?).to_digit(16)?;
-                let low = char::from(bytes.next()?).to_digit(16)?;
-                u8::try_from(high * 16 + low).ok()?
-            }
-            b'+' => b' ',
-            other => other,
-        });
-    }
-    Some(out)
 }
 
 /// Equality whose time depends only on the lengths, not on where the bytes differ.

@@ -13,7 +13,6 @@
 //! - [`summarize`]: counts, gaps, events and tracking error for `rigbridge log info`.
 
 mod foxglove;
-mod json_exact;
 mod reader;
 mod recorder;
 mod records;

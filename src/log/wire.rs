@@ -3,7 +3,6 @@
 //! reader so the two cannot drift apart. Owns bytes-in-a-message only; must not know about
 //! MCAP framing, threads or files.
 
-use super::json_exact::{refine_array, refine_number};
 use super::{LoggedEvent, LoggedSample};
 use crate::rig::JointKind;
 use serde::{Deserialize, Deserializer, Serialize};
@@ -198,15 +197,11 @@ pub(super) fn decode_sample(json: &[u8]) -> Result<LoggedSample, LogDecodeError>
     let nan_for_null = |values: Vec<Option<f64>>| -> Vec<f64> {
         values.into_iter().map(|v| v.unwrap_or(f64::NAN)).collect()
     };
-    let mut positions = nan_for_null(sample.position);
-    let mut velocities = nan_for_null(sample.velocity);
-    refine_array(json, "position", &mut positions);
-    refine_array(json, "velocity", &mut velocities);
     Ok(LoggedSample {
         seq: sample.seq,
-        t: refine_number(json, "t", sample.t),
-        positions,
-        velocities,
+        t: sample.t,
+        positions: nan_for_null(sample.position),
+        velocities: nan_for_null(sample.velocity),
         late_us: sample.late_us,
     })
 }
@@ -214,7 +209,7 @@ pub(super) fn decode_sample(json: &[u8]) -> Result<LoggedSample, LogDecodeError>
 pub(super) fn decode_event(json: &[u8]) -> Result<LoggedEvent, LogDecodeError> {
     let event: EventIn = serde_json::from_slice(json)?;
     Ok(LoggedEvent {
-        t: refine_number(json, "t", event.t),
+        t: event.t,
         kind: event.kind,
         detail: event.detail,
     })
@@ -321,6 +316,41 @@ mod tests {
         assert!(back.positions[1].is_nan());
         assert_eq!(back.velocities, velocity);
         assert_eq!(back.late_us, Some(12.5));
+    }
+
+    /// serde_json's `float_roundtrip` feature (Cargo.toml) is what makes a log give back
+    /// the very bits it was given: without it, a 17-digit number may parse one ulp away.
+    #[test]
+    fn every_float_serde_json_writes_reads_back_bit_for_bit() {
+        let mut state = 0x9e37_79b9_7f4a_7c15_u64;
+        let mut checked = 0;
+        while checked < 20_000 {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            let value = f64::from_bits(state);
+            if !value.is_finite() {
+                continue;
+            }
+            checked += 1;
+            let names = vec!["a".to_owned()];
+            let out = SampleOut {
+                seq: 1,
+                t: value,
+                name: &names,
+                position: &[value],
+                velocity: &[-value],
+                late_us: None,
+            };
+            let back = decode_sample(&serde_json::to_vec(&out).unwrap()).unwrap();
+            assert_eq!(back.t.to_bits(), value.to_bits(), "{value:e}");
+            assert_eq!(back.positions[0].to_bits(), value.to_bits(), "{value:e}");
+            assert_eq!(
+                back.velocities[0].to_bits(),
+                (-value).to_bits(),
+                "{value:e}"
+            );
+        }
     }
 
     #[test]

@@ -54,68 +54,19 @@ pub fn rig_from_urdf_to(
     let mut joints = Vec::new();
     let mut pending = DAffine3::IDENTITY;
     for urdf_joint in path {
-        let key = format!("joint[name={}]", urdf_joint.name);
         let origin = pending
             * origin_from_xyz_rpy(
                 DVec3::from_array(*urdf_joint.origin.xyz),
                 DVec3::from_array(*urdf_joint.origin.rpy),
             );
-        let kind = match urdf_joint.joint_type {
-            urdf_rs::JointType::Fixed => {
-                pending = origin;
-                continue;
+        match moving_joint(urdf_joint, origin, file)? {
+            // A fixed joint folds into the next joint's origin (or the tool transform).
+            None => pending = origin,
+            Some(joint) => {
+                joints.push(joint);
+                pending = DAffine3::IDENTITY;
             }
-            urdf_rs::JointType::Revolute => JointKind::Revolute,
-            urdf_rs::JointType::Prismatic => JointKind::Prismatic,
-            ref other => {
-                return Err(invalid(
-                    &format!("{key}.type"),
-                    joint_type_name(other),
-                    "only revolute, prismatic and fixed joints are supported (a rig needs finite limits)",
-                ));
-            }
-        };
-        let limit = &urdf_joint.limit;
-        if !(limit.lower.is_finite() && limit.upper.is_finite() && limit.lower < limit.upper) {
-            return Err(invalid(
-                &format!("{key}.limit"),
-                &format!("lower={} upper={}", limit.lower, limit.upper),
-                "needs finite lower < upper",
-            ));
         }
-        if !(limit.velocity.is_finite() && limit.velocity > 0.0) {
-            return Err(invalid(
-                &format!("{key}.limit.velocity"),
-                &limit.velocity.to_string(),
-                "must be positive",
-            ));
-        }
-        let max_acceleration = if limit.acceleration.is_finite() && limit.acceleration > 0.0 {
-            limit.acceleration
-        } else {
-            limit.velocity / DEFAULT_TIME_TO_FULL_SPEED_S
-        };
-        let axis = DVec3::from_array(*urdf_joint.axis.xyz);
-        if !axis.is_finite() || axis.length() < 1e-9 {
-            return Err(invalid(
-                &format!("{key}.axis"),
-                &format!("[{}, {}, {}]", axis.x, axis.y, axis.z),
-                "must be a non-zero finite vector",
-            ));
-        }
-        joints.push(Joint {
-            name: urdf_joint.name.clone(),
-            kind,
-            origin,
-            axis: axis.normalize(),
-            limits: JointLimits {
-                lower: limit.lower,
-                upper: limit.upper,
-                max_speed: limit.velocity,
-                max_acceleration,
-            },
-        });
-        pending = DAffine3::IDENTITY;
     }
     if joints.is_empty() {
         return Err(invalid(
@@ -131,6 +82,72 @@ pub fn rig_from_urdf_to(
         joints,
         tool: pending,
     })
+}
+
+/// One URDF joint of the chain as a rig joint, with its `origin` (fixed joints before it
+/// folded in); `None` for a fixed joint. Limits, speed and axis are checked here, so the
+/// error names the joint's key.
+fn moving_joint(
+    urdf_joint: &urdf_rs::Joint,
+    origin: DAffine3,
+    file: &Path,
+) -> Result<Option<Joint>, ConfigError> {
+    let invalid = |key: &str, value: &str, reason: &str| {
+        ConfigError::invalid(file, key, Verbatim(value), reason)
+    };
+    let key = format!("joint[name={}]", urdf_joint.name);
+    let kind = match urdf_joint.joint_type {
+        urdf_rs::JointType::Fixed => return Ok(None),
+        urdf_rs::JointType::Revolute => JointKind::Revolute,
+        urdf_rs::JointType::Prismatic => JointKind::Prismatic,
+        ref other => {
+            return Err(invalid(
+                &format!("{key}.type"),
+                joint_type_name(other),
+                "only revolute, prismatic and fixed joints are supported (a rig needs finite limits)",
+            ));
+        }
+    };
+    let limit = &urdf_joint.limit;
+    if !(limit.lower.is_finite() && limit.upper.is_finite() && limit.lower < limit.upper) {
+        return Err(invalid(
+            &format!("{key}.limit"),
+            &format!("lower={} upper={}", limit.lower, limit.upper),
+            "needs finite lower < upper",
+        ));
+    }
+    if !(limit.velocity.is_finite() && limit.velocity > 0.0) {
+        return Err(invalid(
+            &format!("{key}.limit.velocity"),
+            &limit.velocity.to_string(),
+            "must be positive",
+        ));
+    }
+    let max_acceleration = if limit.acceleration.is_finite() && limit.acceleration > 0.0 {
+        limit.acceleration
+    } else {
+        limit.velocity / DEFAULT_TIME_TO_FULL_SPEED_S
+    };
+    let axis = DVec3::from_array(*urdf_joint.axis.xyz);
+    if !axis.is_finite() || axis.length() < 1e-9 {
+        return Err(invalid(
+            &format!("{key}.axis"),
+            &format!("[{}, {}, {}]", axis.x, axis.y, axis.z),
+            "must be a non-zero finite vector",
+        ));
+    }
+    Ok(Some(Joint {
+        name: urdf_joint.name.clone(),
+        kind,
+        origin,
+        axis: axis.normalize(),
+        limits: JointLimits {
+            lower: limit.lower,
+            upper: limit.upper,
+            max_speed: limit.velocity,
+            max_acceleration,
+        },
+    }))
 }
 
 /// The joints from `root` down to the link `tip`, when `tip` lies below `root`.

@@ -4,7 +4,7 @@
 
 use super::trace::ToolTrace;
 use super::{LiveScene, PaintQuad, Point, SceneView, WallView};
-use crate::daemon::config::JobConfig;
+use crate::job::Job as JobConfig;
 use crate::rig::Rig;
 use crate::twin::SharedWorld;
 use glam::{DAffine3, DVec3};
