@@ -307,6 +307,10 @@ fn strict_controller_accepts_every_target_of_the_default_job() {
         run.summary["refused"].as_array().unwrap().is_empty(),
         "{ctx}"
     );
+    println!(
+        "conformance: the doc-only controller accepted {} of {bound} targets after the bridge's Hello",
+        run.count("accepted")
+    );
     // A resumption starts from a hold after the targets queued behind its Stop were
     // discarded: at most one gap and one watchdog hold each. None on a quiet machine.
     for key in ["gaps", "watchdog_holds"] {
