@@ -514,6 +514,11 @@ fn axis_held_twenty_degrees_off_never_completes() {
         "{ctx}"
     );
     assert!(run.said().contains("joint_2"), "{ctx}");
+    let report = run.report.as_ref().expect("a report");
+    println!(
+        "conformance: an axis held 20 deg off: {} after {} samples of the path, {} cycles with the stop ramp: {}",
+        report["outcome"], report["samples_done"], report["cycles"], report["fault"]
+    );
 }
 
 #[test]
