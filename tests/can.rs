@@ -12,7 +12,7 @@
 
 mod common;
 
-use common::{irb120, repo_path};
+use common::{irb120, repo_path, wait_for_logged_commands, wait_for_logged_event};
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::link::{interface_mtu, interface_up};
 use rigbridge::log::read_log;
@@ -39,6 +39,10 @@ const CANFD_MTU: usize = 72;
 /// is the twin's policy at work, not a CAN failure. Loss of the interface is an I/O error
 /// the twin acts on at once, whatever the watchdog.
 const TWIN_WATCHDOG_CYCLES: &str = "25";
+/// A second of the default job's motion at 250 Hz: a job this far in is mid-motion.
+const MID_JOB_COMMANDS: usize = 250;
+/// Longer than any of these waits takes, even in the CI VM's software emulation.
+const WAIT: Duration = Duration::from_secs(60);
 
 /// One job on the buses at a time: they share the machine's two CPUs (emulated, in CI).
 static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
@@ -497,14 +501,20 @@ fn an_interface_down_mid_job_holds_the_twin_and_the_job_resumes() {
     let twin = TwinProcess::start("vcan2", &config);
     let (log, json) = (scratch("bounce.mcap"), scratch("bounce.json"));
     let daemon = spawn_run("vcan2", &config, &log, &json);
-    std::thread::sleep(Duration::from_millis(2500));
+    wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     ip(&["link", "set", "dev", "vcan2", "down"]).unwrap();
-    std::thread::sleep(Duration::from_millis(300));
+    // Up again once both ends have seen it go: the twin says so, the daemon logs it.
+    let mut events = Vec::new();
+    while !events.iter().any(|e: &String| e.starts_with("link lost")) {
+        let line = twin.lines.recv_timeout(WAIT);
+        events.push(line.expect("the twin saw the interface go"));
+    }
+    wait_for_logged_event(&log, "link_lost", WAIT);
     ip(&["link", "set", "dev", "vcan2", "up"]).unwrap();
     let report = finish_run(daemon, &json);
-    let events = twin.events();
+    events.extend(twin.events());
     let summary = twin.stop();
-    print_figures("interface down for 300 ms", false, &report);
+    print_figures("interface down until both ends saw it", false, &report);
     println!("  twin events: {events:?}");
     assert_eq!(report["outcome"], "completed", "{report}");
     assert!(number(&report, "reconnects") >= 1.0, "{report}");
