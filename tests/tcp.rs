@@ -121,6 +121,7 @@ fn a_job_over_tcp_loses_no_frame_and_stays_within_limits() {
         report["duplicates"], report["missed_cycles"], report["cycles"]
     );
     assert_eq!(report["crc_errors"], 0);
+    assert_eq!(report["limit_violations"], 0, "{report}");
     println!("tcp: {} late feedbacks", report["feedback_timeouts"]);
     let run = read_log(&log).unwrap();
     let seqs: Vec<u32> = run.commands.iter().map(|c| c.seq).collect();
