@@ -12,7 +12,7 @@
 
 mod common;
 
-use common::{irb120, repo_path, wait_for_logged_commands, wait_for_logged_event};
+use common::{irb120, repo_path, wait_for_logged_commands};
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::link::{interface_mtu, interface_up};
 use rigbridge::log::read_log;
@@ -41,8 +41,10 @@ const CANFD_MTU: usize = 72;
 const TWIN_WATCHDOG_CYCLES: &str = "25";
 /// A second of the default job's motion at 250 Hz: a job this far in is mid-motion.
 const MID_JOB_COMMANDS: usize = 250;
-/// Longer than any of these waits takes, even in the CI VM's software emulation.
+/// Longer than the job takes to get there, even in the CI VM's software emulation.
 const WAIT: Duration = Duration::from_secs(60);
+/// The outage the test plays: the interface down for 75 cycles at 250 Hz.
+const OUTAGE: Duration = Duration::from_millis(300);
 
 /// One job on the buses at a time: they share the machine's two CPUs (emulated, in CI).
 static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
@@ -503,18 +505,13 @@ fn an_interface_down_mid_job_holds_the_twin_and_the_job_resumes() {
     let daemon = spawn_run("vcan2", &config, &log, &json);
     wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     ip(&["link", "set", "dev", "vcan2", "down"]).unwrap();
-    // Up again once both ends have seen it go: the twin says so, the daemon logs it.
-    let mut events = Vec::new();
-    while !events.iter().any(|e: &String| e.starts_with("link lost")) {
-        let line = twin.lines.recv_timeout(WAIT);
-        events.push(line.expect("the twin saw the interface go"));
-    }
-    wait_for_logged_event(&log, "link_lost", WAIT);
+    // The outage itself, not a wait for anything: its length is the scenario.
+    std::thread::sleep(OUTAGE);
     ip(&["link", "set", "dev", "vcan2", "up"]).unwrap();
     let report = finish_run(daemon, &json);
-    events.extend(twin.events());
+    let events = twin.events();
     let summary = twin.stop();
-    print_figures("interface down until both ends saw it", false, &report);
+    print_figures("interface down for 300 ms", false, &report);
     println!("  twin events: {events:?}");
     assert_eq!(report["outcome"], "completed", "{report}");
     assert!(number(&report, "reconnects") >= 1.0, "{report}");
