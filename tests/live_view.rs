@@ -41,6 +41,9 @@ const AT_REST_REDRAWS: u64 = 10;
 /// The page rates its frames and messages each second: two of them, with room for a
 /// loaded machine.
 const RATE_WAIT: Duration = Duration::from_secs(5);
+/// The page's second, less the jitter of its timer (a few ms either way; 50 to spare): a
+/// figure rated this long after another covers the second between them.
+const RATED_SECOND_MS: f64 = 950.0;
 
 /// A child process killed when the test ends, however it ends.
 struct Running(Child);
@@ -230,9 +233,9 @@ async fn rates_after(client: &Client, since: f64) -> Value {
 }
 
 /// The page's health once it has rated the second that began at `rated_at` (the end of
-/// the one before), with `rateAt`.
+/// the one before), with `rateAt`. A second, less its timer's jitter, has passed by then.
 async fn next_rates(client: &Client, rated_at: f64) -> Value {
-    rated_after(client, rated_at).await;
+    rated_after(client, rated_at + RATED_SECOND_MS).await;
     eval(
         client,
         "return Object.assign({ rateAt: lastRateAt }, window.rigbridgeView);",
