@@ -12,7 +12,7 @@
 
 mod common;
 
-use common::{irb120, repo_path};
+use common::{irb120, repo_path, wait_for_logged_commands};
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::link::{interface_mtu, interface_up};
 use rigbridge::log::read_log;
@@ -39,6 +39,12 @@ const CANFD_MTU: usize = 72;
 /// is the twin's policy at work, not a CAN failure. Loss of the interface is an I/O error
 /// the twin acts on at once, whatever the watchdog.
 const TWIN_WATCHDOG_CYCLES: &str = "25";
+/// A second of the default job's motion at 250 Hz: a job this far in is mid-motion.
+const MID_JOB_COMMANDS: usize = 250;
+/// Longer than the job takes to get there, even in the CI VM's software emulation.
+const WAIT: Duration = Duration::from_secs(60);
+/// The outage the test plays: the interface down for 75 cycles at 250 Hz.
+const OUTAGE: Duration = Duration::from_millis(300);
 
 /// One job on the buses at a time: they share the machine's two CPUs (emulated, in CI).
 static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
@@ -497,9 +503,10 @@ fn an_interface_down_mid_job_holds_the_twin_and_the_job_resumes() {
     let twin = TwinProcess::start("vcan2", &config);
     let (log, json) = (scratch("bounce.mcap"), scratch("bounce.json"));
     let daemon = spawn_run("vcan2", &config, &log, &json);
-    std::thread::sleep(Duration::from_millis(2500));
+    wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     ip(&["link", "set", "dev", "vcan2", "down"]).unwrap();
-    std::thread::sleep(Duration::from_millis(300));
+    // The outage itself, not a wait for anything: its length is the scenario.
+    std::thread::sleep(OUTAGE);
     ip(&["link", "set", "dev", "vcan2", "up"]).unwrap();
     let report = finish_run(daemon, &json);
     let events = twin.events();

@@ -3,11 +3,16 @@
 
 mod common;
 
-use common::{irb120, repo_path};
+use common::{irb120, repo_path, wait_for_logged_commands};
 use rigbridge::log::read_log;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::Duration;
+
+/// A second of the default job's motion at 250 Hz: a job this far in is mid-motion.
+const MID_JOB_COMMANDS: usize = 250;
+/// Longer than the job takes to get there on a loaded machine.
+const WAIT: Duration = Duration::from_secs(30);
 
 fn rigbridge() -> Command {
     let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
@@ -274,7 +279,7 @@ fn spawn_run(log: &Path, report: &Path) -> Child {
 fn ctrl_c_brings_the_rig_to_rest_then_closes_log_and_report() {
     let (log, report) = (scratch("sigint.mcap"), scratch("sigint.json"));
     let child = spawn_run(&log, &report);
-    std::thread::sleep(Duration::from_millis(2500));
+    wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     send_signal(child.id(), "INT");
     let output = child.wait_with_output().unwrap();
     assert_eq!(output.status.code(), Some(130), "{}", text(&output.stderr));
@@ -294,14 +299,14 @@ fn ctrl_c_brings_the_rig_to_rest_then_closes_log_and_report() {
 fn sigkill_leaves_a_log_readable_up_to_its_last_chunk() {
     let (log, report) = (scratch("sigkill.mcap"), scratch("sigkill.json"));
     let mut child = spawn_run(&log, &report);
-    std::thread::sleep(Duration::from_millis(3000));
+    let before_kill = wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     child.kill().unwrap();
     child.wait().unwrap();
     let run = read_log(&log).unwrap();
     assert!(run.truncated);
     assert!(
-        run.commands.len() > 250,
-        "only {} commands survived",
+        run.commands.len() > 250 && run.commands.len() >= before_kill,
+        "only {} commands survived, {before_kill} were readable before the kill",
         run.commands.len()
     );
     let info = self::run(&["log", "info", log.to_str().unwrap()]);

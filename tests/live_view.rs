@@ -35,6 +35,16 @@ const CHROMIUM_FLAGS: [&str; 7] = [
     "--disable-sync",
 ];
 
+/// Redraws of the still twin that must all give one picture (the daemon sends 50 frames
+/// a second, each one redrawn).
+const AT_REST_REDRAWS: u64 = 10;
+/// The page rates its frames and messages each second: two of them, with room for a
+/// loaded machine.
+const RATE_WAIT: Duration = Duration::from_secs(5);
+/// The page's second, less the jitter of its timer (a few ms either way; 50 to spare): a
+/// figure rated this long after another covers the second between them.
+const RATED_SECOND_MS: f64 = 950.0;
+
 /// A child process killed when the test ends, however it ends.
 struct Running(Child);
 
@@ -192,6 +202,58 @@ async fn wait_until(client: &Client, what: &str, script: &str, timeout: Duration
     }
 }
 
+/// The page's clock (`performance.now()`, ms).
+async fn page_now(client: &Client) -> f64 {
+    eval(client, "return performance.now();")
+        .await
+        .as_f64()
+        .unwrap()
+}
+
+/// Waits until the page has drawn `frames` more frames.
+async fn redrawn(client: &Client, frames: u64) {
+    let drawn = health(client).await["framesDrawn"].as_u64().unwrap();
+    wait_until(
+        client,
+        &format!("{frames} frames drawn after frame {drawn}"),
+        &format!(
+            "return window.rigbridgeView.framesDrawn >= {};",
+            drawn + frames
+        ),
+        Duration::from_secs(5),
+    )
+    .await;
+}
+
+/// The page's health once the rates it shows (each second, over the one before) are of a
+/// second wholly after `since` (page clock, ms), with `rateAt`: when that second ended.
+async fn rates_after(client: &Client, since: f64) -> Value {
+    let window_start = rated_after(client, since).await;
+    next_rates(client, window_start).await
+}
+
+/// The page's health once it has rated the second that began at `rated_at` (the end of
+/// the one before), with `rateAt`. A second, less its timer's jitter, has passed by then.
+async fn next_rates(client: &Client, rated_at: f64) -> Value {
+    rated_after(client, rated_at + RATED_SECOND_MS).await;
+    eval(
+        client,
+        "return Object.assign({ rateAt: lastRateAt }, window.rigbridgeView);",
+    )
+    .await
+}
+
+/// Waits until the page has rated a second that ended after `after`; returns when it ended.
+async fn rated_after(client: &Client, after: f64) -> f64 {
+    let script = format!("return lastRateAt > {after};");
+    wait_until(client, "the page's rates", &script, RATE_WAIT).await;
+    eval(client, "return lastRateAt;").await.as_f64().unwrap()
+}
+
+fn rated_at(figures: &Value) -> f64 {
+    figures["rateAt"].as_f64().unwrap()
+}
+
 #[test]
 fn the_live_view_draws_the_twin_and_runs_a_job_in_headless_chromium() {
     let chromium = binary("RIGBRIDGE_CHROMIUM", "/usr/bin/chromium");
@@ -281,7 +343,7 @@ async fn exercise_page(client: &Client, url: &str) -> Value {
     assert_eq!(text_of(client, "job-state").await, "idle");
     // At rest the picture holds still: whatever changes later is the twin moving.
     let at_rest = canvas_hash(client).await;
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    redrawn(client, AT_REST_REDRAWS).await;
     assert_eq!(
         canvas_hash(client).await,
         at_rest,
@@ -291,21 +353,21 @@ async fn exercise_page(client: &Client, url: &str) -> Value {
 
     click(client, "start").await;
     wait_for_state(client, "running", Duration::from_secs(10)).await;
-    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let early = rates_after(client, page_now(client).await).await;
     let moving = canvas_hash(client).await;
     let cycles_early: u64 = text_of(client, "link-cycles").await.parse().unwrap();
     let rate_early = text_of(client, "link-rate").await;
-    let early = health(client).await;
-    tokio::time::sleep(Duration::from_millis(1000)).await;
+    // The next second the page measures.
+    let streaming = next_rates(client, rated_at(&early)).await;
     let later = canvas_hash(client).await;
     let cycles_later: u64 = text_of(client, "link-cycles").await.parse().unwrap();
-    let streaming = health(client).await;
     assert_ne!(moving, at_rest, "the canvas changes as the twin moves");
     assert_ne!(later, moving, "and keeps changing");
     assert_ne!(cycles_at_rest, cycles_early.to_string());
+    let rated_s = (rated_at(&streaming) - rated_at(&early)) / 1000.0;
     assert!(
         cycles_later > cycles_early + 150,
-        "status numbers update: {cycles_early} -> {cycles_later} cycles in 1 s at 250 Hz"
+        "status numbers update: {cycles_early} -> {cycles_later} cycles in 1 s at 250 Hz (read {rated_s:.2} s apart)"
     );
     for figures in [&early, &streaming] {
         let fps = figures["fps"].as_f64().unwrap();
@@ -448,15 +510,14 @@ async fn paint_the_room(client: &Client) -> Value {
     let walls = health(client).await["sceneWalls"].as_u64().unwrap();
     assert_eq!(walls, 4, "the room's walls are in the scene before the job");
     let control = start_from_page(client, "painter").await;
-    tokio::time::sleep(Duration::from_millis(2000)).await;
-    let early = health(client).await;
+    let early = rates_after(client, page_now(client).await).await;
     let cycles_early: u64 = text_of(client, "link-cycles").await.parse().unwrap();
-    tokio::time::sleep(Duration::from_millis(1000)).await;
-    let streaming = health(client).await;
+    let streaming = next_rates(client, rated_at(&early)).await;
     let cycles_later: u64 = text_of(client, "link-cycles").await.parse().unwrap();
+    let rated_s = (rated_at(&streaming) - rated_at(&early)) / 1000.0;
     assert!(
         cycles_later > cycles_early + 150,
-        "the painter streams at 250 Hz: {cycles_early} -> {cycles_later} cycles in 1 s"
+        "the painter streams at 250 Hz: {cycles_early} -> {cycles_later} cycles in 1 s (read {rated_s:.2} s apart)"
     );
     for figures in [&early, &streaming] {
         assert!(
@@ -480,7 +541,7 @@ async fn paint_the_room(client: &Client) -> Value {
          cameraMoved = true; dirty = true; return true;",
     )
     .await;
-    tokio::time::sleep(Duration::from_millis(200)).await;
+    redrawn(client, 1).await;
     save_screenshot(client, "live-view-room.png").await;
     let painted = health(client).await["paintQuads"].as_u64().unwrap();
     click(client, "stop").await;

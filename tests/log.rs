@@ -2,6 +2,8 @@
 //! our files, truncated / damaged / random files (never a panic, never silently wrong data),
 //! a real SIGKILL mid-run, and the recorder dropping instead of blocking.
 
+mod common;
+
 use rigbridge::log::{
     LogError, LogRecord, Recorder, RecorderOptions, RunLog, command_topic, read_log, read_log_from,
     state_topic, summarize,
@@ -657,52 +659,45 @@ fn a_dropped_recorder_still_closes_its_file_and_refuses_to_overwrite() {
 }
 
 const CHILD_ENV: &str = "RIGBRIDGE_LOG_TEST_CHILD";
+const KILLED_TEST: &str = "a_run_killed_with_sigkill_leaves_a_readable_file";
 
-/// Not a test on its own: the body of the child process of `a_run_killed_with_sigkill...`,
-/// which records at 1 kHz until it is killed. Without the variable it does nothing.
-#[test]
-fn child_that_records_until_killed() {
-    let Some(path) = std::env::var_os(CHILD_ENV) else {
-        return;
-    };
-    let options = RecorderOptions {
-        chunk_interval: Duration::from_millis(50),
-        ..RecorderOptions::default()
-    };
-    let recorder = Recorder::create_with(
-        Path::new(&path),
-        "arm6",
-        &joint_names(),
-        metadata(),
-        options,
-    )
-    .unwrap();
-    recorder.event(0.0, "job_started", serde_json::Value::Null);
-    for i in 0.. {
-        let (command, state) = cycle(i);
-        recorder.record(command);
-        recorder.record(state);
-        std::thread::sleep(Duration::from_millis(1));
+/// A child process killed however the test ends: the recording child never stops alone.
+struct Killed(std::process::Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        let _ = self.0.kill(); // SIGKILL on Unix: no destructor, no finish().
+        let _ = self.0.wait();
     }
 }
 
+/// The test binary runs this test again as its child, with [`CHILD_ENV`] naming the file:
+/// the child records at 1 kHz until the test, once the file holds some commands, kills it.
 #[test]
 fn a_run_killed_with_sigkill_leaves_a_readable_file() {
+    if let Some(path) = std::env::var_os(CHILD_ENV) {
+        record_until_killed(Path::new(&path));
+    }
     let path = temp_path("sigkill");
-    let mut child = std::process::Command::new(std::env::current_exe().unwrap())
-        .args(["--exact", "child_that_records_until_killed", "--nocapture"])
-        .env(CHILD_ENV, &path)
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
-    std::thread::sleep(Duration::from_millis(800));
-    child.kill().unwrap(); // SIGKILL on Unix: no destructor, no finish().
-    child.wait().unwrap();
+    let child = Killed(
+        std::process::Command::new(std::env::current_exe().unwrap())
+            .args(["--exact", KILLED_TEST, "--nocapture"])
+            .env(CHILD_ENV, &path)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    let before_kill = common::wait_for_logged_commands(&path, 50, Duration::from_secs(30));
+    drop(child);
     let log = read_log(&path).unwrap();
     assert!(log.truncated);
     assert_eq!(log.metadata, metadata());
-    assert!(log.commands.len() > 50, "{} commands", log.commands.len());
+    assert!(
+        log.commands.len() > 50 && log.commands.len() >= before_kill,
+        "{} commands, {before_kill} readable before the kill",
+        log.commands.len()
+    );
     assert_eq!(log.events.len(), 1);
     for (i, command) in log.commands.iter().enumerate() {
         assert_eq!(command.seq, i as u32);
@@ -714,4 +709,24 @@ fn a_run_killed_with_sigkill_leaves_a_readable_file() {
         log.stopped
     );
     let _ = std::fs::remove_file(&path);
+}
+
+/// The child's part of [`a_run_killed_with_sigkill_leaves_a_readable_file`]: records to
+/// `path` at 1 kHz in 50 ms chunks until the process is killed.
+fn record_until_killed(path: &Path) -> ! {
+    let options = RecorderOptions {
+        chunk_interval: Duration::from_millis(50),
+        ..RecorderOptions::default()
+    };
+    let recorder =
+        Recorder::create_with(path, "arm6", &joint_names(), metadata(), options).unwrap();
+    recorder.event(0.0, "job_started", serde_json::Value::Null);
+    let mut i = 0;
+    loop {
+        let (command, state) = cycle(i);
+        recorder.record(command);
+        recorder.record(state);
+        std::thread::sleep(Duration::from_millis(1));
+        i += 1;
+    }
 }

@@ -7,7 +7,6 @@ use common::repo_path;
 use rigbridge::log::read_log;
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
-use std::time::Duration;
 
 struct TwinProcess(Child);
 
@@ -76,5 +75,4 @@ fn a_job_over_a_pty_at_115200_baud_completes_within_limits() {
     );
     let run = read_log(&log).unwrap();
     assert_eq!(run.commands.len() as u64, cycles);
-    std::thread::sleep(Duration::from_millis(50));
 }

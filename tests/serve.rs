@@ -9,6 +9,10 @@ use std::net::TcpStream;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+/// 1.5 s of the default job's 250 Hz cycles: long enough for a paused job that crept on
+/// to show it.
+const CYCLES_PAUSED: u64 = 375;
+
 struct Server {
     child: Child,
     /// Where to connect: always 127.0.0.1:PORT.
@@ -144,8 +148,15 @@ fn jobs_can_be_submitted_paused_resumed_and_stopped() {
 
     assert_eq!(request(&server, "POST", "/api/pause", None).0, 200);
     let paused = wait_for(&server, "pause", |s| s["state"] == "paused");
-    std::thread::sleep(Duration::from_millis(1500));
-    let (_, later) = request(&server, "GET", "/api/status", None);
+    // A paused job still streams a cycle each period (holding its place on the path).
+    let cycles = |s: &serde_json::Value| {
+        s["job"]["cycles"]
+            .as_u64()
+            .unwrap_or_else(|| panic!("a running job's status counts its cycles: {s}"))
+    };
+    let later = wait_for(&server, "cycles streamed while paused", |s| {
+        cycles(s) >= cycles(&paused) + CYCLES_PAUSED
+    });
     let progress = |s: &serde_json::Value| s["job"]["progress"].as_f64().unwrap();
     assert!(
         progress(&later) - progress(&paused) < 0.1,

@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{irb120, repo_path};
+use common::{irb120, repo_path, wait_for_logged_commands, wait_for_logged_event};
 use rigbridge::log::read_log;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
@@ -12,6 +12,10 @@ use std::sync::mpsc::Receiver;
 use std::time::Duration;
 
 const PERIOD: f64 = 0.004;
+/// A second of the default job's motion at 250 Hz: a job this far in is mid-motion.
+const MID_JOB_COMMANDS: usize = 250;
+/// Longer than any of these waits takes on a loaded machine.
+const WAIT: Duration = Duration::from_secs(30);
 
 struct TwinProcess {
     child: Child,
@@ -117,6 +121,7 @@ fn a_job_over_tcp_loses_no_frame_and_stays_within_limits() {
         report["duplicates"], report["missed_cycles"], report["cycles"]
     );
     assert_eq!(report["crc_errors"], 0);
+    assert_eq!(report["limit_violations"], 0, "{report}");
     println!("tcp: {} late feedbacks", report["feedback_timeouts"]);
     let run = read_log(&log).unwrap();
     let seqs: Vec<u32> = run.commands.iter().map(|c| c.seq).collect();
@@ -129,9 +134,10 @@ fn a_restarted_twin_is_rejoined_from_its_actual_position() {
     let address = first.address.clone();
     let (log, json) = (scratch("restart.mcap"), scratch("restart.json"));
     let daemon = spawn_run(&address, &log, &json);
-    std::thread::sleep(Duration::from_millis(2500));
+    wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     drop(first);
-    std::thread::sleep(Duration::from_millis(300));
+    // Back only once the daemon has seen it go.
+    wait_for_logged_event(&log, "link_lost", WAIT);
     let _second = start_twin(address.trim_start_matches("tcp://"));
     let output = daemon.wait_with_output().unwrap();
     assert!(
@@ -189,7 +195,7 @@ fn a_killed_daemon_leaves_the_twin_holding_within_two_cycles() {
     let twin = start_twin("tcp://127.0.0.1:0");
     let (log, json) = (scratch("killed.mcap"), scratch("killed.json"));
     let mut daemon = spawn_run(&twin.address, &log, &json);
-    std::thread::sleep(Duration::from_millis(2000));
+    wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     daemon.kill().unwrap();
     daemon.wait().unwrap();
     let mut lost = None;
@@ -248,32 +254,29 @@ fn a_megabyte_of_garbage_moves_nothing_and_crashes_nothing() {
     socket.write_all(&hello).unwrap();
     let reader = {
         let mut socket = socket.try_clone().unwrap();
-        std::thread::spawn(move || {
-            let mut received = Vec::new();
-            let mut buffer = [0u8; 65536];
-            while let Ok(n) = socket.read(&mut buffer) {
-                if n == 0 {
-                    break;
-                }
-                received.extend_from_slice(&buffer[..n]);
-            }
-            received
-        })
+        std::thread::spawn(move || read_until_answered_twice(&mut socket))
     };
     socket.write_all(&noise).unwrap();
-    std::thread::sleep(Duration::from_millis(300));
-    socket.shutdown(std::net::Shutdown::Both).unwrap();
+    // A second Hello behind the garbage: its answer shows the twin has read all of it.
+    socket.write_all(&hello).unwrap();
     let received = reader.join().unwrap();
+    socket.shutdown(std::net::Shutdown::Both).unwrap();
     let mut decoder = rigbridge::protocol::FrameDecoder::default();
     decoder.push(&received);
     let initial: Vec<f64> = [0.0, 0.0, 0.0, 0.0, 30.0, 0.0]
         .iter()
         .map(|d: &f64| d.to_radians())
         .collect();
-    let mut feedbacks = 0;
+    let (mut feedbacks, mut answers, mut feedbacks_after_garbage) = (0, 0, 0);
     while let Some(message) = decoder.next_message() {
+        if matches!(&message, rigbridge::protocol::Message::Hello(h) if h.answer) {
+            answers += 1;
+        }
         if let rigbridge::protocol::Message::Feedback(feedback) = message {
             feedbacks += 1;
+            if answers >= 2 {
+                feedbacks_after_garbage += 1;
+            }
             for (q, start) in feedback.positions.as_slice().iter().zip(&initial) {
                 // Positions travel as whole micro-radians.
                 assert!((q - start).abs() <= 0.5e-6, "garbage moved the twin");
@@ -281,6 +284,10 @@ fn a_megabyte_of_garbage_moves_nothing_and_crashes_nothing() {
         }
     }
     assert!(feedbacks > 0, "the twin kept answering");
+    assert!(
+        answers >= 2 && feedbacks_after_garbage > 0,
+        "the twin answered a Hello after the garbage and went on: {answers} answers, {feedbacks_after_garbage} feedbacks after"
+    );
     // And the twin still serves a real job afterwards.
     let (log, json) = (scratch("after-garbage.mcap"), scratch("after-garbage.json"));
     let output = spawn_run(&twin.address, &log, &json)
@@ -291,6 +298,31 @@ fn a_megabyte_of_garbage_moves_nothing_and_crashes_nothing() {
         "{}",
         String::from_utf8_lossy(&output.stderr)
     );
+}
+
+/// What the twin sends until it has answered a second Hello and sent a Feedback after it
+/// (or the stream ends or stays silent past the socket's timeout).
+fn read_until_answered_twice(socket: &mut std::net::TcpStream) -> Vec<u8> {
+    let mut received = Vec::new();
+    let mut decoder = rigbridge::protocol::FrameDecoder::default();
+    let (mut answers, mut feedbacks_after) = (0, 0);
+    let mut buffer = [0u8; 65536];
+    while answers < 2 || feedbacks_after == 0 {
+        let n = match socket.read(&mut buffer) {
+            Ok(0) | Err(_) => break,
+            Ok(n) => n,
+        };
+        received.extend_from_slice(&buffer[..n]);
+        decoder.push(&buffer[..n]);
+        while let Some(message) = decoder.next_message() {
+            match message {
+                rigbridge::protocol::Message::Hello(h) if h.answer => answers += 1,
+                rigbridge::protocol::Message::Feedback(_) if answers >= 2 => feedbacks_after += 1,
+                _ => {}
+            }
+        }
+    }
+    received
 }
 
 #[test]
@@ -379,7 +411,7 @@ fn a_twin_that_never_comes_back_aborts_the_job_with_a_message() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    std::thread::sleep(Duration::from_millis(2000));
+    wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     drop(twin);
     let output = daemon.wait_with_output().unwrap();
     std::fs::remove_file(&config).unwrap();

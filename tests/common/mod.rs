@@ -1,13 +1,62 @@
 //! Helpers shared by the integration tests: the shipped IRB 120 rig, the independent
-//! reference data in `../shared/reference`, seeded random configurations, and the issue's
-//! figures every passing gait run must meet.
+//! reference data in `../shared/reference`, seeded random configurations, the issue's
+//! figures every passing gait run must meet, and waiting on a condition (never for a fixed
+//! time: a loaded machine makes a test slower, not wrong).
 #![allow(dead_code)]
 
 use glam::{DQuat, DVec3};
 use rand::{Rng, RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rigbridge::rig::{Pose, Rig, load_rig};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// How often [`wait_until`] looks again: short beside anything a test waits for (a chunk
+/// of a log, a cycle of 4 ms), long enough not to load the machine.
+const POLL: Duration = Duration::from_millis(20);
+
+/// Looks at `condition` until it gives a value, and returns it; fails the test, naming
+/// `what`, when `within` has passed first.
+pub fn wait_until<T>(what: &str, within: Duration, mut condition: impl FnMut() -> Option<T>) -> T {
+    let deadline = Instant::now() + within;
+    loop {
+        if let Some(value) = condition() {
+            return value;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "timed out after {} s waiting for {what}",
+            within.as_secs_f64()
+        );
+        std::thread::sleep(POLL);
+    }
+}
+
+/// Waits until the run log at `path`, still being written, holds more than `commands`
+/// commands in its closed chunks (the recorder closes one at least every second): the job
+/// is then streaming. Returns how many it holds.
+pub fn wait_for_logged_commands(path: &Path, commands: usize, within: Duration) -> usize {
+    wait_until(
+        &format!("more than {commands} commands in {}", path.display()),
+        within,
+        || {
+            let logged = rigbridge::log::read_log(path).ok()?.commands.len();
+            (logged > commands).then_some(logged)
+        },
+    )
+}
+
+/// Waits until the run log at `path`, still being written, holds an event of `kind`.
+pub fn wait_for_logged_event(path: &Path, kind: &str, within: Duration) {
+    wait_until(
+        &format!("a {kind} event in {}", path.display()),
+        within,
+        || {
+            let log = rigbridge::log::read_log(path).ok()?;
+            log.events.iter().any(|e| e.kind == kind).then_some(())
+        },
+    );
+}
 
 pub fn repo_path(relative: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(relative)
