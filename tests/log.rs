@@ -620,7 +620,7 @@ fn a_full_channel_drops_and_counts_instead_of_blocking() {
 }
 
 #[test]
-fn record_never_waits_for_the_writer() {
+fn record_does_not_wait_for_the_writer_at_p99() {
     let path = temp_path("latency");
     let recorder = Recorder::create(&path, "arm6", &joint_names(), metadata()).unwrap();
     let mut latencies = Vec::with_capacity(100_000);
