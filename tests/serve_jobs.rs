@@ -97,6 +97,8 @@ fn serve(config: &Path, runs: &Path) -> (Process, SocketAddr) {
         "serve",
         "--port",
         "0",
+        "--foxglove-port",
+        "0",
         "--config",
         config.to_str().unwrap(),
         "--runs-dir",

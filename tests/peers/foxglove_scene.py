@@ -5,8 +5,8 @@ entity replaces the one of the same id).
 
 Usage: foxglove_scene.py LOG.mcap
 Prints one JSON object: the schema name, the message count, the paint area after each
-message (m2, summed over the paint triangles, in log-time order), and the entities at the
-end: per entity its frame, triangle area, triangle count, line loops (each a list of
+message (m2, summed over the paint triangles, in log-time order), every paint point at the
+end, and the entities at the end: per entity its frame, triangle area, triangle count, line loops (each a list of
 points) and cylinders (centre, size, orientation). Driven by tests/foxglove.rs.
 """
 import json
@@ -62,6 +62,13 @@ def main():
                 entities[entity.id] = entity
             areas.append([message.log_time, paint_area(entities)])
     out = {"schema": schema_name, "messages": count, "paint_area": areas, "entities": {}}
+    out["paint_points"] = [
+        [p.x, p.y, p.z]
+        for id_, e in entities.items()
+        if id_.startswith("paint-")
+        for t in e.triangles
+        for p in t.points
+    ]
     for id_, e in entities.items():
         out["entities"][id_] = {
             "frame_id": e.frame_id,
