@@ -9,6 +9,7 @@ mod common;
 
 use common::{irb120, repo_path};
 use rigbridge::daemon::config::load_run_settings;
+use rigbridge::daemon::server::FOXGLOVE_BACKLOG;
 use rigbridge::rig::rig_from_urdf;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
@@ -220,6 +221,17 @@ fn a_websockets_client_gets_live_tf_while_a_job_streams() {
          tool swept {:.3} m",
         rows.len(),
         (high - low).length()
+    );
+    let largest = &peer["largest_message_bytes"];
+    let biggest = ["tf", "joint_states", "scene"]
+        .iter()
+        .filter_map(|c| largest[*c].as_u64())
+        .max()
+        .unwrap();
+    println!(
+        "largest messages (bytes): {largest}; the shared backlog of {FOXGLOVE_BACKLOG} holds at \
+         most {} KiB of such messages",
+        FOXGLOVE_BACKLOG as u64 * biggest / 1024
     );
     assert!(rate >= MIN_LIVE_TF_RATE_HZ, "live /tf at {rate} Hz");
     assert!(

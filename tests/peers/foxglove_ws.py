@@ -9,7 +9,8 @@ server must refuse) and finally sends an oversized message (the server must clos
 Usage: foxglove_ws.py URL SECONDS BASE_FRAME TOOL_FRAME URDF_URI
 Prints one JSON object: the handshake, the /tf count and time span, one row per /tf message
 that has a /joint_states message of the same timestamp ({"stamp", "positions", "tool"}),
-the transforms' worst quaternion norm error, scene entity ids, the asset's size and the
+the transforms' worst quaternion norm error, scene entity ids, the largest message of each
+channel (bytes, with its 13-byte header), the asset's size and the
 replies to the publish and the oversized message. Driven by tests/foxglove_live.rs.
 """
 import asyncio
@@ -59,7 +60,7 @@ async def run(url, seconds, base, tool, urdf_uri):
                 subscriptions.append({"id": sub_id, "channelId": by_topic[name]["id"]})
         await ws.send(json.dumps({"op": "subscribe", "subscriptions": subscriptions}))
 
-        tf, joints, scene_ids, statuses = {}, {}, set(), []
+        tf, joints, scene_ids, statuses, sizes = {}, {}, set(), [], {}
         tf_count, first, last = 0, None, None
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline:
@@ -73,6 +74,7 @@ async def run(url, seconds, base, tool, urdf_uri):
             assert raw[0] == MESSAGE_DATA, raw[0]
             sub_id, receive_ns = struct.unpack_from("<IQ", raw, 1)
             name, cls = classes[sub_id]
+            sizes[name] = max(sizes.get(name, 0), len(raw))
             message = cls.FromString(raw[13:])
             if name == "tf":
                 tf_count += 1
@@ -107,6 +109,7 @@ async def run(url, seconds, base, tool, urdf_uri):
         out["max_quaternion_norm_error"] = quat_error
         out["scene_entities"] = sorted(scene_ids)
         out["statuses_during_stream"] = statuses
+        out["largest_message_bytes"] = sizes
 
         # The URDF through fetchAsset.
         await ws.send(json.dumps({"op": "fetchAsset", "uri": urdf_uri, "requestId": 77}))

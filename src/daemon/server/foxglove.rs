@@ -102,6 +102,17 @@ pub struct FoxgloveFeed {
     clients: Arc<Semaphore>,
 }
 
+/// Why `fetchAsset` found nothing (its text goes back to the client).
+#[derive(Debug, thiserror::Error)]
+enum AssetError {
+    #[error("no asset {0}: this server has {URDF_URI_PREFIX}<cell>.urdf")]
+    Unknown(String),
+    #[error("no cell named {name}: this server runs {cells}")]
+    NoCell { name: String, cells: String },
+    #[error("cell {0} has no URDF (its rig is not one serial chain)")]
+    NoUrdf(String),
+}
+
 /// A cell as the feed sees it: its name, rig and URDF (`None` for a rig without one serial
 /// chain, the sloth: it gets no `/tf`).
 pub struct FeedCell<'a> {
@@ -585,10 +596,10 @@ fn message_data(subscription: u32, time_ns: u64, payload: &[u8]) -> Vec<u8> {
 
 /// Spec, Fetch Asset Response: opcode 4, request id (u32), status (0 ok, 1 error), error
 /// length (u32) and text, then the asset's bytes.
-fn fetch_asset_response(request_id: u32, asset: Result<Vec<u8>, String>) -> Vec<u8> {
+fn fetch_asset_response(request_id: u32, asset: Result<Vec<u8>, AssetError>) -> Vec<u8> {
     let (status, error, data) = match asset {
         Ok(data) => (0u8, String::new(), data),
-        Err(error) => (1u8, error, Vec::new()),
+        Err(error) => (1u8, error.to_string(), Vec::new()),
     };
     let mut out = Vec::with_capacity(10 + error.len() + data.len());
     out.push(OP_FETCH_ASSET_RESPONSE);
@@ -614,9 +625,11 @@ mod tests {
         let ok = fetch_asset_response(3, Ok(b"<robot/>".to_vec()));
         assert_eq!(&ok[..10], &[4, 3, 0, 0, 0, 0, 0, 0, 0, 0]);
         assert_eq!(&ok[10..], b"<robot/>");
-        let refused = fetch_asset_response(3, Err("no".into()));
-        assert_eq!(&refused[5..10], &[1, 2, 0, 0, 0]);
-        assert_eq!(&refused[10..], b"no");
+        let refused = fetch_asset_response(3, Err(AssetError::NoUrdf("s".into())));
+        let text = b"cell s has no URDF (its rig is not one serial chain)";
+        assert_eq!(refused[5], 1);
+        assert_eq!(&refused[6..10], &(text.len() as u32).to_le_bytes());
+        assert_eq!(&refused[10..], text);
     }
 
     #[test]
