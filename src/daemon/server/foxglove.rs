@@ -283,26 +283,26 @@ impl FoxgloveFeed {
     }
 
     /// The URDF at `uri`, or why there is none.
-    fn asset(&self, uri: &str) -> Result<Vec<u8>, String> {
+    fn asset(&self, uri: &str) -> Result<Vec<u8>, AssetError> {
         let name = uri
             .strip_prefix(URDF_URI_PREFIX)
             .and_then(|file| file.strip_suffix(".urdf"))
-            .ok_or_else(|| {
-                format!("no asset {uri}: this server has {URDF_URI_PREFIX}<cell>.urdf")
-            })?;
-        let index = self.names.iter().position(|n| n == name).ok_or_else(|| {
-            format!(
-                "no cell named {name}: this server runs {}",
-                self.names.join(", ")
-            )
-        })?;
+            .ok_or_else(|| AssetError::Unknown(uri.to_owned()))?;
+        let index =
+            self.names
+                .iter()
+                .position(|n| n == name)
+                .ok_or_else(|| AssetError::NoCell {
+                    name: name.to_owned(),
+                    cells: self.names.join(", "),
+                })?;
         let feed = self.cells[index]
             .lock()
             .unwrap_or_else(PoisonError::into_inner);
         feed.urdf
             .as_ref()
             .map(|u| u.as_bytes().to_vec())
-            .ok_or_else(|| format!("cell {name} has no URDF (its rig is not one serial chain)"))
+            .ok_or_else(|| AssetError::NoUrdf(name.to_owned()))
     }
 
     /// The whole scene of `channel`'s cell now, for a client that just subscribed to it
