@@ -366,7 +366,7 @@ pub async fn run(
     let foxglove_listener = bind_foxglove(local.ip(), &options)?;
     let robots = cells
         .iter()
-        .map(|settings| super::robot_description(settings))
+        .map(super::robot_description)
         .collect::<Result<Vec<_>, _>>()?;
     std::fs::create_dir_all(&options.runs_dir).map_err(crate::link::LinkError::Io)?;
     let cells = cells

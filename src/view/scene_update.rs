@@ -99,7 +99,7 @@ fn paint_entity(
             .get(quad.wall)
             .map_or(DVec3::ZERO, |w| normal(w) * PAINT_OFFSET_M);
         let [a, b, c, d] = quad.quad.map(|p| point(DVec3::from_array(p) + lift));
-        points.extend([a.clone(), b, c.clone(), a, c, d]);
+        points.extend([a, b, c, a, c, d]);
     }
     Some(SceneEntity {
         timestamp: Some(stamp),
