@@ -106,25 +106,27 @@ if "$dxl_venv/bin/python" -c 'import dynamixel_sdk' 2>/dev/null; then
   [[ $dxl_venv = /* ]] && export RIGBRIDGE_DXL_PYTHON="$dxl_venv/bin/python"
 fi
 # ------------------------------------------------------------ end Dynamixel peer --
-# -------------------------- Foxglove log peer: mcap + mcap-protobuf-support (tests/foxglove.rs) --
+# -------------- Foxglove peers: mcap + mcap-protobuf-support + websockets (tests/foxglove*.rs) --
 # A venv with PyPI's mcap reader and its protobuf decoder, which tests/peers/foxglove_log.py
-# uses to decode the /tf channel of our logs. If it cannot be installed, the test prints why it
-# skips; on CI a missing peer is a failure.
+# and foxglove_scene.py use to decode /tf and /scene in our logs, and PyPI's websockets, the
+# client tests/peers/foxglove_ws.py speaks ws-protocol with to serve's live Foxglove server
+# (protobuf comes with mcap-protobuf-support). If they cannot be installed, the tests print why
+# they skip; on CI a missing peer is a failure.
 foxglove_venv=${CARGO_TARGET_DIR:-target}/foxglove-peer-venv
-foxglove_probe='import mcap.reader, mcap_protobuf.decoder'
+foxglove_probe='import mcap.reader, mcap_protobuf.decoder, websockets, google.protobuf.message_factory'
 if [ ! -x "$foxglove_venv/bin/python" ] || ! "$foxglove_venv/bin/python" -c "$foxglove_probe" 2>/dev/null; then
-  python3 -m venv "$foxglove_venv" && "$foxglove_venv/bin/pip" install -q mcap mcap-protobuf-support \
-    || echo "test.sh: cannot install mcap and mcap-protobuf-support; the Foxglove log peer test will skip" >&2
+  python3 -m venv "$foxglove_venv" && "$foxglove_venv/bin/pip" install -q mcap mcap-protobuf-support websockets \
+    || echo "test.sh: cannot install mcap, mcap-protobuf-support and websockets; the Foxglove peer tests will skip" >&2
 fi
 if [ "${CI:-}" = true ] && ! "$foxglove_venv/bin/python" -c "$foxglove_probe" 2>/dev/null; then
-  echo "test.sh: CI must test the logs against PyPI's mcap, and it could not be installed" >&2
+  echo "test.sh: CI must test the logs and the live server against PyPI's mcap and websockets, and they could not be installed" >&2
   exit 1
 fi
 if "$foxglove_venv/bin/python" -c "$foxglove_probe" 2>/dev/null; then
   export RIGBRIDGE_FOXGLOVE_PYTHON="$PWD/$foxglove_venv/bin/python"
   [[ $foxglove_venv = /* ]] && export RIGBRIDGE_FOXGLOVE_PYTHON="$foxglove_venv/bin/python"
 fi
-# --------------------------------------------------------------- end Foxglove log peer --
+# ------------------------------------------------------------------ end Foxglove peers --
 
 # ------------------------------------------------------------- 1. on this machine --
 [ -n "$vm_only" ] || cargo test --release

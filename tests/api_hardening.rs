@@ -49,7 +49,16 @@ fn start() -> Server {
     std::fs::write(dir.join("secret.csv"), format!("t,j1\n{SECRET}\n")).unwrap();
     let runs = dir.join("runs");
     let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["serve", "--port", "0", "--clock", "virtual", "--config"])
+        .args([
+            "serve",
+            "--port",
+            "0",
+            "--foxglove-port",
+            "0",
+            "--clock",
+            "virtual",
+            "--config",
+        ])
         .arg(dir.join("rigbridge.toml"))
         .arg("--runs-dir")
         .arg(&runs)

@@ -230,3 +230,176 @@ fn foxglove_channels_agree_with_our_fk_for_a_reader_we_did_not_write() {
     check_log("urdf-rig", &urdf_run_settings(&dir), &urdf_rig, &python);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+fn scene_peer(python: &str, log: &Path) -> serde_json::Value {
+    let output = Command::new(python)
+        .arg(repo_path("tests/peers/foxglove_scene.py"))
+        .arg(log)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "the scene peer failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    serde_json::from_slice(&output.stdout).unwrap()
+}
+
+/// Paint sits this far in front of its wall (`view::scene_update`).
+const PAINT_OFFSET_M: f64 = 0.002;
+
+/// A paint log's `/scene`, replayed by the peer: the walls are the report's room less its
+/// openings, outlined; paint grows over the run and lies on the walls.
+#[test]
+fn the_paint_room_is_a_scene_update_for_a_reader_we_did_not_write() {
+    let python = match peer_python() {
+        Ok(python) => python,
+        Err(reason) if std::env::var("CI").as_deref() == Ok("true") => {
+            panic!("CI must test the log against PyPI's mcap: {reason}")
+        }
+        Err(reason) => {
+            println!("skipping the SceneUpdate peer test: {reason}");
+            return;
+        }
+    };
+    let dir = scratch("paint-scene");
+    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args(["paint", "--walls", "3", "--seed", "2", "--clock", "virtual"])
+        .arg("--config")
+        .arg(repo_path("config/paint-run.toml"))
+        .args(["--log", "p.mcap", "--report", "p.json"])
+        .current_dir(&dir)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("p.json")).unwrap()).unwrap();
+    let room = &report["room"];
+    let peer = scene_peer(&python, &dir.join("p.mcap"));
+    assert_eq!(peer["schema"], "foxglove.SceneUpdate");
+
+    let (width, height) = (
+        room["wall_width_m"].as_f64().unwrap(),
+        room["wall_height_m"].as_f64().unwrap(),
+    );
+    let walls = room["walls"].as_array().unwrap();
+    let openings: Vec<&serde_json::Value> = walls
+        .iter()
+        .flat_map(|w| w["openings"].as_array().unwrap())
+        .collect();
+    let open_area: f64 = openings
+        .iter()
+        .map(|o| {
+            let n = |k: &str| o[k].as_f64().unwrap();
+            (n("right_m") - n("left_m")) * (n("top_m") - n("bottom_m"))
+        })
+        .sum();
+    let expected_area = walls.len() as f64 * width * height - open_area;
+    let drawn = &peer["entities"]["walls"];
+    assert!(
+        (drawn["area"].as_f64().unwrap() - expected_area).abs() < 1e-9,
+        "walls {} m2, the room {expected_area} m2",
+        drawn["area"]
+    );
+    let loops = drawn["loops"].as_array().unwrap();
+    assert_eq!(loops.len(), walls.len() + openings.len());
+    // Each wall's outline: its two bottom corners at the floor, the top ones at its height.
+    for wall in walls {
+        let c: Vec<Vec<f64>> = wall["corners_xy"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(numbers)
+            .collect();
+        let expected = [
+            [c[0][0], c[0][1], 0.0],
+            [c[1][0], c[1][1], 0.0],
+            [c[1][0], c[1][1], height],
+            [c[0][0], c[0][1], height],
+        ];
+        let found = loops.iter().any(|l| {
+            let points: Vec<Vec<f64>> = l.as_array().unwrap().iter().map(numbers).collect();
+            points.len() == 4
+                && points
+                    .iter()
+                    .zip(&expected)
+                    .all(|(p, e)| p.iter().zip(e).all(|(a, b)| (a - b).abs() < 1e-9))
+        });
+        assert!(found, "wall {} is outlined", wall["index"]);
+    }
+
+    // Paint goes on as the run goes: none at first, never less, most of the walls at the end.
+    let areas: Vec<f64> = peer["paint_area"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| a[1].as_f64().unwrap())
+        .collect();
+    assert_eq!(areas[0], 0.0);
+    assert!(
+        areas.windows(2).all(|w| w[1] >= w[0] - 1e-9),
+        "paint only grows"
+    );
+    let painted = report["totals"]["painted_m2"].as_f64().unwrap();
+    let last = *areas.last().unwrap();
+    println!(
+        "/scene: {} messages, walls {expected_area:.3} m2, paint {last:.3} m2 (report: {painted:.3} m2 painted)",
+        areas.len()
+    );
+    // Quads of 0.25 m of stroke cover what the coverage grid counts, overlaps counted twice.
+    assert!(last >= painted * 0.95, "paint {last} m2 of {painted} m2");
+    // Every paint point lies just in front of a wall's plane.
+    for p in peer["paint_points"].as_array().unwrap().iter().map(numbers) {
+        let off = walls
+            .iter()
+            .map(|w| {
+                let c = numbers(&w["corners_xy"][0]);
+                let n = numbers(&w["normal_xy"]);
+                ((p[0] - c[0]) * n[0] + (p[1] - c[1]) * n[1]).abs()
+            })
+            .map(|d| (d - PAINT_OFFSET_M).abs())
+            .fold(f64::MAX, f64::min);
+        assert!(off < 1e-9, "paint at {p:?} is off its wall by {off} m");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The sloth's log: its branch as a cylinder from the scenario's ends, its radius.
+#[test]
+fn the_sloths_branches_are_cylinders_for_a_reader_we_did_not_write() {
+    let Ok(python) = peer_python() else {
+        println!("skipping the SceneUpdate peer test: no peer (see the test above)");
+        return;
+    };
+    let settings =
+        rigbridge::daemon::config::load_run_settings(&repo_path("config/gait-run.toml")).unwrap();
+    assert_eq!(
+        serde_json::to_value(&settings.config.job).unwrap()["scenario"],
+        "straight"
+    );
+    let scenario = rigbridge::task::gait::Scenario::build("straight", None, None).unwrap();
+    let dir = scratch("gait-scene");
+    let log = dir.join("g.mcap");
+    record_run(&repo_path("config/gait-run.toml"), &log);
+    let peer = scene_peer(&python, &log);
+    let drawn = peer["entities"]["cylinders"]["cylinders"]
+        .as_array()
+        .unwrap();
+    assert_eq!(drawn.len(), scenario.terrain.cylinders.len());
+    for (cylinder, branch) in drawn.iter().zip(&scenario.terrain.cylinders) {
+        let centre = numbers(&cylinder["centre"]);
+        let size = numbers(&cylinder["size"]);
+        let q = numbers(&cylinder["orientation"]);
+        let axis = glam::DQuat::from_xyzw(q[1], q[2], q[3], q[0]) * glam::DVec3::Z;
+        let centre = glam::DVec3::new(centre[0], centre[1], centre[2]);
+        let ends = [centre - axis * size[2] / 2.0, centre + axis * size[2] / 2.0];
+        assert!((ends[0] - branch.from).length() < 1e-9, "{ends:?}");
+        assert!((ends[1] - branch.to).length() < 1e-9, "{ends:?}");
+        assert!((size[0] - 2.0 * branch.radius).abs() < 1e-12);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

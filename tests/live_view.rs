@@ -80,7 +80,15 @@ fn painting_cell(dir: &Path) -> PathBuf {
 /// sloth's; returns it and its page's address.
 fn start_server(runs: &Path, painting: &Path) -> (Running, String) {
     let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["serve", "--port", "0", "--clock", "wall"])
+        .args([
+            "serve",
+            "--port",
+            "0",
+            "--foxglove-port",
+            "0",
+            "--clock",
+            "wall",
+        ])
         .args(["--config", "config/rigbridge.toml", "--config"])
         .arg(painting)
         .args(["--config", "config/gait-run.toml"])

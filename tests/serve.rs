@@ -39,7 +39,15 @@ fn serve_command(extra: &[&str], env_token: Option<&str>) -> Command {
     let _ = std::fs::remove_dir_all(&runs);
     let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
     command
-        .args(["serve", "--port", "0", "--runs-dir", runs.to_str().unwrap()])
+        .args([
+            "serve",
+            "--port",
+            "0",
+            "--foxglove-port",
+            "0",
+            "--runs-dir",
+            runs.to_str().unwrap(),
+        ])
         .args(extra)
         .current_dir(repo_path(""))
         .env_remove("RIGBRIDGE_TOKEN");

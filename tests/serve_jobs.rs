@@ -97,6 +97,8 @@ fn serve(config: &Path, runs: &Path) -> (Process, SocketAddr) {
         "serve",
         "--port",
         "0",
+        "--foxglove-port",
+        "0",
         "--config",
         config.to_str().unwrap(),
         "--runs-dir",
@@ -468,6 +470,8 @@ fn a_panicking_job_fails_alone_while_the_daemon_and_the_other_cell_go_on() {
                 panic!("injected panic in job {id}");
             }
         })),
+        foxglove_port: 0,
+        foxglove_allow_remote: false,
     };
     let runtime = tokio::runtime::Runtime::new().unwrap();
     let listener = runtime

@@ -65,7 +65,7 @@ fn start(name: &str, nofile: Option<u64>) -> Server {
         None => std::process::Command::new(binary),
     };
     let mut child = command
-        .args(["serve", "--port", "0", "--runs-dir"])
+        .args(["serve", "--port", "0", "--foxglove-port", "0", "--runs-dir"])
         .arg(&runs)
         .current_dir(repo_path(""))
         .env_remove("RIGBRIDGE_TOKEN")

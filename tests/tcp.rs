@@ -495,7 +495,16 @@ fn serve_refuses_a_virtual_clock_for_a_cell_on_a_real_link() {
     let file = dir.join("cell.toml");
     std::fs::write(&file, settings).unwrap();
     let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["serve", "--clock", "virtual", "--port", "0", "--config"])
+        .args([
+            "serve",
+            "--clock",
+            "virtual",
+            "--port",
+            "0",
+            "--foxglove-port",
+            "0",
+            "--config",
+        ])
         .arg(&file)
         .output()
         .unwrap();

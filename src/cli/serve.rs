@@ -1,13 +1,14 @@
 //! `rigbridge serve`: loads one run settings file per cell (`--config`, repeatable), binds
 //! 127.0.0.1 (or `--bind` / the first file's `[serve] bind`) and hands the listener to the
 //! daemon's server. A non-loopback address requires a token (`RIGBRIDGE_TOKEN` or the first
-//! file's `[serve] token`).
+//! file's `[serve] token`), and `[serve] foxglove_allow_remote` for the live Foxglove server
+//! (or `foxglove_port = 0` / `--foxglove-port 0`).
 
 use super::run::ClockChoice;
 use anyhow::Context;
 use clap::Args;
 use rigbridge::daemon::config::RunSettings;
-use rigbridge::daemon::config::{load_run_settings, token_problem};
+use rigbridge::daemon::config::{foxglove_bind_problem, load_run_settings, token_problem};
 use rigbridge::daemon::server::{ServeOptions, check_cells, run};
 use rigbridge::link::LinkSpec;
 use std::net::IpAddr;
@@ -37,6 +38,11 @@ pub struct ServeArgs {
     runs_dir: PathBuf,
     #[arg(long, value_enum, default_value = "wall")]
     clock: ClockChoice,
+    /// Port of the live Foxglove WebSocket server on the bind address [default: `[serve]
+    /// foxglove_port`, else 8765]; 0 turns it off. Off loopback it needs `[serve]
+    /// foxglove_allow_remote = true`: it has no authentication.
+    #[arg(long, value_name = "PORT")]
+    foxglove_port: Option<u16>,
 }
 
 async fn shutdown_signal() {
@@ -129,6 +135,14 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
             settings.file.display()
         );
     }
+    let serve = &settings.config.serve;
+    let foxglove_port = args.foxglove_port.unwrap_or(serve.foxglove_port);
+    if let Some(problem) = foxglove_bind_problem(bind, foxglove_port, serve.foxglove_allow_remote) {
+        anyhow::bail!(
+            "refusing to serve: {problem} (in {})",
+            settings.file.display()
+        );
+    }
     if matches!(args.clock, ClockChoice::Virtual) {
         refuse_virtual_clock_with_real_links(&cells)?;
     }
@@ -138,6 +152,8 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
         token,
         allowed_hosts: settings.config.serve.hosts.clone(),
         before_job: None,
+        foxglove_port,
+        foxglove_allow_remote: serve.foxglove_allow_remote,
     };
     tokio::runtime::Runtime::new()?.block_on(async move {
         let address = std::net::SocketAddr::new(bind, args.port);

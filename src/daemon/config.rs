@@ -115,6 +115,15 @@ pub struct ServeConfig {
     /// a request with any other `Host` header is refused (DNS rebinding).
     #[serde(default)]
     pub hosts: Vec<String>,
+    /// The port of the live Foxglove WebSocket server on the bind address
+    /// (`docs/foxglove.md`); 0 turns it off. Default 8765, Foxglove's own.
+    #[serde(default = "default_foxglove_port")]
+    pub foxglove_port: u16,
+    /// Let the Foxglove server listen on an address that is not loopback. It has no
+    /// authentication (the Foxglove app sends no token): anyone who reaches the port sees
+    /// the rigs' state. Off by default; without it such a bind is refused.
+    #[serde(default)]
+    pub foxglove_allow_remote: bool,
 }
 
 impl Default for ServeConfig {
@@ -123,8 +132,34 @@ impl Default for ServeConfig {
             bind: default_bind(),
             token: None,
             hosts: Vec::new(),
+            foxglove_port: default_foxglove_port(),
+            foxglove_allow_remote: false,
         }
     }
+}
+
+/// Foxglove's default port for a WebSocket connection (the app's *Open connection* dialog
+/// offers `ws://localhost:8765`).
+pub const DEFAULT_FOXGLOVE_PORT: u16 = 8765;
+
+fn default_foxglove_port() -> u16 {
+    DEFAULT_FOXGLOVE_PORT
+}
+
+/// Why the Foxglove server may not listen on `bind` at `port`, if it may not: off loopback
+/// it is unauthenticated and needs `foxglove_allow_remote = true`.
+pub fn foxglove_bind_problem(
+    bind: std::net::IpAddr,
+    port: u16,
+    allow_remote: bool,
+) -> Option<String> {
+    (port != 0 && !bind.is_loopback() && !allow_remote).then(|| {
+        format!(
+            "the Foxglove server would listen on {bind}:{port} without authentication (the \
+             Foxglove app sends no token): set `foxglove_allow_remote = true` under [serve] \
+             to allow it, or `foxglove_port = 0` to turn it off"
+        )
+    })
 }
 
 /// Never prints the token itself.
@@ -134,6 +169,8 @@ impl std::fmt::Debug for ServeConfig {
             .field("bind", &self.bind)
             .field("token", &self.token.as_ref().map(|_| "<redacted>"))
             .field("hosts", &self.hosts)
+            .field("foxglove_port", &self.foxglove_port)
+            .field("foxglove_allow_remote", &self.foxglove_allow_remote)
             .finish()
     }
 }
@@ -527,6 +564,20 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
             "serve.bind",
             &config.serve.bind,
             "must be an IP address, such as 127.0.0.1 or 0.0.0.0",
+        ));
+    }
+    if let Ok(bind) = config.serve.bind.parse::<std::net::IpAddr>()
+        && let Some(reason) = foxglove_bind_problem(
+            bind,
+            config.serve.foxglove_port,
+            config.serve.foxglove_allow_remote,
+        )
+    {
+        return Err(ConfigError::invalid(
+            file,
+            "serve.foxglove_allow_remote",
+            crate::rig::Verbatim(config.serve.foxglove_allow_remote),
+            &reason,
         ));
     }
     if let Some(reason) = config.serve.token.as_deref().and_then(token_problem) {

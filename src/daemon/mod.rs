@@ -373,6 +373,7 @@ pub fn stream_planned_with(
         description: serde_json::to_value(&planned.job).unwrap_or_default(),
         start: &planned.start,
         trajectory: &planned.trajectory,
+        job: Some(&planned.job),
     };
     stream_job_with(settings, &job, link, clock, log, control, live, actions)
 }
@@ -385,6 +386,9 @@ pub struct JobToStream<'a> {
     pub description: serde_json::Value,
     pub start: &'a [f64],
     pub trajectory: &'a crate::trajectory::Trajectory,
+    /// The job's config, when it has one (a replayed log has not): its world (paint room,
+    /// branches) goes in the log as `/scene`.
+    pub job: Option<&'a config::JobConfig>,
 }
 
 /// Streams `job` through [`resume::stream_resuming`] (link loss and stalls resume from the
@@ -411,7 +415,7 @@ pub fn stream_job_with(
         "link": link.describe(),
     });
     let recorder = log
-        .map(|path| create_recorder(settings, path, &metadata, clock.is_virtual()))
+        .map(|path| create_recorder(settings, job.job, path, &metadata, clock.is_virtual()))
         .transpose()?;
     let report = match &recorder {
         Some(recorder) => {
@@ -475,22 +479,17 @@ pub fn stream_job_with(
 /// log holds every cycle.
 fn create_recorder(
     settings: &RunSettings,
+    job: Option<&config::JobConfig>,
     path: &std::path::Path,
     metadata: &serde_json::Value,
     virtual_clock: bool,
 ) -> Result<Recorder, DaemonError> {
-    let mut options = crate::log::RecorderOptions {
+    let options = crate::log::RecorderOptions {
         wait_when_full: virtual_clock,
+        robot: robot_description(settings)?,
+        scene: job.and_then(|job| server::log_scene_for_job(settings, job)),
         ..crate::log::RecorderOptions::for_rig(&settings.rig)
     };
-    if settings.sloth.is_some() {
-        // The sloth's streamed axes are its body and four limbs side by side, not one chain:
-        // their serial FK is no pose of the sloth, so it gets no /tf rather than a wrong one.
-        options.robot = None;
-    } else if let Some(urdf) = rig_urdf(settings)? {
-        let robot = crate::log::RobotDescription::from_urdf(&settings.rig, urdf)?;
-        options.robot = Some(std::sync::Arc::new(robot));
-    }
     let names: Vec<String> = settings.rig.joint_names().map(str::to_owned).collect();
     Ok(Recorder::create_with(
         path,
@@ -499,6 +498,23 @@ fn create_recorder(
         metadata.clone(),
         options,
     )?)
+}
+
+/// The rig's links and URDF behind `/tf` (logs and the live Foxglove server): its URDF file
+/// when it was loaded from one, else generated from the model.
+pub fn robot_description(
+    settings: &RunSettings,
+) -> Result<Option<std::sync::Arc<crate::log::RobotDescription>>, DaemonError> {
+    if settings.sloth.is_some() {
+        // The sloth's streamed axes are its body and four limbs side by side, not one chain:
+        // their serial FK is no pose of the sloth, so it gets no /tf rather than a wrong one.
+        return Ok(None);
+    }
+    let robot = match rig_urdf(settings)? {
+        Some(urdf) => crate::log::RobotDescription::from_urdf(&settings.rig, urdf)?,
+        None => crate::log::RobotDescription::generated(&settings.rig),
+    };
+    Ok(Some(std::sync::Arc::new(robot)))
 }
 
 /// The text of the rig's URDF file, when the rig was loaded from one (the log attaches it

@@ -273,6 +273,7 @@ pub fn replay(
         }),
         start: &held,
         trajectory: &trajectory,
+        job: None,
     };
     let run = stream_job_with(
         settings,

@@ -15,16 +15,23 @@
 //! The page's static files (`/`, `/live.js`, `/live.css`) hold no state and stay open.
 //!
 //! The live view (`src/view`): a task samples every cell's streamer state 50 times a second
-//! and sends each frame to every page connected to that cell's live route.
+//! and sends each frame to every page connected to that cell's live route, and the same
+//! task feeds the live Foxglove server ([`foxglove`], its own listener, read-only).
 
 mod cell;
 mod connections;
+mod foxglove;
 mod guard;
 mod scene;
 
 pub use cell::{CellError, check_cells};
 pub use connections::{HEADER_TIMEOUT, IDLE_TIMEOUT, LISTEN_BACKLOG, bind, connection_cap};
+pub use foxglove::{
+    FOXGLOVE_BACKLOG, FOXGLOVE_SUBPROTOCOL, MAX_FOXGLOVE_CLIENTS, MAX_FOXGLOVE_MESSAGE_BYTES,
+    SEND_TIMEOUT as FOXGLOVE_SEND_TIMEOUT, URDF_URI_PREFIX,
+};
 pub use guard::{BODY_TIMEOUT, HostCheck, MAX_BODY_BYTES, MAX_LIVE_MESSAGE_BYTES, MAX_LIVE_PAGES};
+pub use scene::log_scene_for_job;
 
 use super::DaemonError;
 use super::config::{JobConfig, RunSettings};
@@ -71,6 +78,11 @@ pub struct ServeOptions {
     /// number (a hook for instrumentation). Whatever it does, a panic in it is contained
     /// like any panic of the job: that job fails, the daemon and the other cells go on.
     pub before_job: Option<BeforeJob>,
+    /// The live Foxglove server's port on the listener's address (`[serve] foxglove_port`);
+    /// 0 turns it off.
+    pub foxglove_port: u16,
+    /// Whether the Foxglove server may listen off loopback (it is unauthenticated).
+    pub foxglove_allow_remote: bool,
 }
 
 /// See [`ServeOptions::before_job`].
@@ -92,6 +104,8 @@ impl std::fmt::Debug for ServeOptions {
             .field("token", &self.token.as_ref().map(|_| "<redacted>"))
             .field("allowed_hosts", &self.allowed_hosts)
             .field("before_job", &self.before_job.as_ref().map(|_| "<hook>"))
+            .field("foxglove_port", &self.foxglove_port)
+            .field("foxglove_allow_remote", &self.foxglove_allow_remote)
             .finish()
     }
 }
@@ -242,6 +256,9 @@ struct Daemon {
     stopping: watch::Receiver<bool>,
     /// Open live pages, at most [`MAX_LIVE_PAGES`].
     live_pages: Arc<tokio::sync::Semaphore>,
+    /// What the live Foxglove server publishes (fed even when it is off: cheap without
+    /// clients).
+    foxglove: foxglove::FoxgloveFeed,
 }
 
 impl Daemon {
@@ -326,6 +343,11 @@ pub async fn run(
         )));
     }
     check_cells(&cells)?;
+    let foxglove_listener = bind_foxglove(local.ip(), &options)?;
+    let robots = cells
+        .iter()
+        .map(super::robot_description)
+        .collect::<Result<Vec<_>, _>>()?;
     std::fs::create_dir_all(&options.runs_dir).map_err(crate::link::LinkError::Io)?;
     let cells = cells
         .into_iter()
@@ -342,7 +364,19 @@ pub async fn run(
     let (stop_live, stopping) = watch::channel(false);
     let first_id = cell::first_job_id(&options.runs_dir);
     let hosts = HostCheck::new(local, &options.allowed_hosts);
+    let feed_cells: Vec<_> = cells
+        .iter()
+        .zip(robots)
+        .map(|(cell, robot)| foxglove::FeedCell {
+            name: cell.name(),
+            rig: &cell.settings().rig,
+            robot,
+        })
+        .collect();
+    let foxglove = foxglove::FoxgloveFeed::new(&feed_cells);
+    drop(feed_cells);
     let daemon = Arc::new(Daemon {
+        foxglove,
         cells,
         options,
         next_id: AtomicU64::new(first_id),
@@ -357,12 +391,17 @@ pub async fn run(
         .layer(axum::extract::DefaultBodyLimit::max(MAX_BODY_BYTES))
         .with_state(daemon.clone());
     let frames = tokio::spawn(send_frames(daemon.clone()));
+    let foxglove = foxglove_listener
+        .map(|listener| tokio::spawn(foxglove::serve(listener, daemon.clone(), stopping.clone())));
     tokio::spawn(async move {
         shutdown.await;
         let _ = stop_live.send(true);
     });
     connections::serve(listener, app, connection_cap(), stopping).await;
     frames.abort();
+    if let Some(foxglove) = foxglove {
+        let _ = foxglove.await;
+    }
     let stopping = daemon.clone();
     let _ = tokio::task::spawn_blocking(move || {
         for cell in &stopping.cells {
@@ -372,6 +411,34 @@ pub async fn run(
     })
     .await;
     Ok(())
+}
+
+/// The live Foxglove server's listener on the API's address, unless `foxglove_port` is 0;
+/// refused off loopback without `foxglove_allow_remote` (it is unauthenticated).
+fn bind_foxglove(
+    ip: std::net::IpAddr,
+    options: &ServeOptions,
+) -> Result<Option<tokio::net::TcpListener>, DaemonError> {
+    let port = options.foxglove_port;
+    if port == 0 {
+        return Ok(None);
+    }
+    if let Some(problem) =
+        super::config::foxglove_bind_problem(ip, port, options.foxglove_allow_remote)
+    {
+        return Err(DaemonError::Unavailable(format!(
+            "refusing to serve: {problem}"
+        )));
+    }
+    let address = std::net::SocketAddr::new(ip, port);
+    let listener = bind(address).map_err(|e| {
+        DaemonError::Unavailable(format!(
+            "cannot listen for Foxglove on {address}: {e}; choose another [serve] \
+             foxglove_port (--foxglove-port), or 0 to turn it off"
+        ))
+    })?;
+    eprintln!("foxglove: ws://{address} ({FOXGLOVE_SUBPROTOCOL}, read-only)");
+    Ok(Some(listener))
 }
 
 /// Every route, each cell's under `/api/cells/{cell}/` and the first cell's also without
@@ -455,7 +522,7 @@ impl TwinWorld for JobWorld {
 
 /// The live view's frame task: samples every cell's streamer state at
 /// [`LIVE_FRAME_RATE_HZ`] in real time (whatever clock jobs run on: a person watches it) and
-/// sends each cell's pages its frame.
+/// sends each cell's pages its frame, and the Foxglove clients the same state.
 async fn send_frames(daemon: Arc<Daemon>) {
     let clock = WallClock::new();
     let mut ticks = tokio::time::interval(Duration::from_secs_f64(1.0 / LIVE_FRAME_RATE_HZ));
@@ -463,9 +530,12 @@ async fn send_frames(daemon: Arc<Daemon>) {
     let mut reported = vec![false; daemon.cells.len()];
     loop {
         ticks.tick().await;
-        for (cell, reported) in daemon.cells.iter().zip(&mut reported) {
+        for (index, (cell, reported)) in daemon.cells.iter().zip(&mut reported).enumerate() {
             // One cell's broken scene must not freeze every cell's view.
-            let tick = || cell.hub().tick(clock.now(), cell.job_view());
+            let tick = || {
+                cell.hub().tick(clock.now(), cell.job_view());
+                daemon.foxglove.publish(index, cell.hub());
+            };
             if std::panic::catch_unwind(std::panic::AssertUnwindSafe(tick)).is_err()
                 && !std::mem::replace(reported, true)
             {

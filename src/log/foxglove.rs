@@ -1,16 +1,20 @@
 //! The Foxglove-native part of a run log (`docs/foxglove.md`): `/tf` as protobuf
 //! `foxglove.FrameTransforms` from forward kinematics of the controller's actual positions,
-//! `/joint_states` as `foxglove.JointStates`, and the rig's URDF as the attachment
-//! `robot_description.urdf`, so Foxglove's 3D panel draws the robot moving. Message types and
+//! `/joint_states` as `foxglove.JointStates`, the rig's URDF as the attachment
+//! `robot_description.urdf`, so Foxglove's 3D panel draws the robot moving, and the world
+//! around it (paint room, branches) as `foxglove.SceneUpdate` on `/scene`. Message types and
 //! schemas come from the `foxglove` crate (Foxglove SDK). Runs on the recorder's writer
 //! thread only: the streaming cycle never encodes protobuf. Owns these channels and the
 //! per-link transforms; it must not touch the JSON channels replay reads, nor the rig.
 
 use super::LogError;
 use crate::rig::{Joint, Rig, generated_link_names, origin_from_xyz_rpy, path_to, rig_to_urdf};
+use crate::view::scene_update::{full_update, paint_update};
+use crate::view::{PaintQuad, SceneView};
 use foxglove::Encode;
 use foxglove::messages::{
-    FrameTransform, FrameTransforms, JointState, JointStates, Quaternion, Timestamp, Vector3,
+    FrameTransform, FrameTransforms, JointState, JointStates, Quaternion, SceneUpdate, Timestamp,
+    Vector3,
 };
 use glam::{DAffine3, DQuat, DVec3};
 use mcap::records::MessageHeader;
@@ -18,11 +22,18 @@ use mcap::{Attachment, Writer};
 use std::borrow::Cow;
 use std::collections::BTreeMap;
 use std::io::{Seek, Write};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError};
 
 /// Foxglove's conventional transform topic.
 pub const TF_TOPIC: &str = "/tf";
 pub const JOINT_STATES_TOPIC: &str = "/joint_states";
+/// The world around the rig (`foxglove.SceneUpdate`): walls, branches, paint.
+pub const SCENE_TOPIC: &str = "/scene";
+/// How often (job time) a log writes the whole scene again, paint included, so a player
+/// that seeks finds it within 10 s; paint in between goes in as it is added. Each repeat
+/// holds all paint so far (about 200 bytes a quad, a quad a 0.25 m of stroke): a longer
+/// period would leave the scene missing longer after a seek, a shorter one grow the log.
+pub const SCENE_REPEAT_S: f64 = 10.0;
 /// The attachment name Foxglove's URDF layer is pointed at (`docs/foxglove.md`).
 pub const URDF_ATTACHMENT: &str = "robot_description.urdf";
 const URDF_MEDIA_TYPE: &str = "application/xml";
@@ -222,36 +233,21 @@ enum DescriptionMismatch {
     Kinematics,
 }
 
-/// The writer thread's Foxglove channels and the messages it refills for each state.
-pub(super) struct FoxgloveLog {
-    robot: Arc<RobotDescription>,
-    tf_channel: u16,
-    joints_channel: u16,
-    last_t: Option<f64>,
-    sequence: u32,
+/// `/tf` and `/joint_states` for one set of positions, refilled in place (the run log's
+/// writer thread and the live Foxglove server each keep one).
+pub struct RobotMessages {
+    robot: Option<Arc<RobotDescription>>,
     tf: FrameTransforms,
     joints: JointStates,
-    buffer: Vec<u8>,
 }
 
-impl FoxgloveLog {
-    /// Adds the schemas, the two channels and the URDF attachment.
-    pub(super) fn open<W: Write + Seek>(
-        writer: &mut Writer<W>,
-        robot: Arc<RobotDescription>,
-    ) -> Result<Self, LogError> {
-        let tf_channel = add_channel::<FrameTransforms, W>(writer, TF_TOPIC)?;
-        let joints_channel = add_channel::<JointStates, W>(writer, JOINT_STATES_TOPIC)?;
-        writer.attach(&Attachment {
-            log_time: 0,
-            create_time: 0,
-            name: URDF_ATTACHMENT.to_owned(),
-            media_type: URDF_MEDIA_TYPE.to_owned(),
-            data: Cow::Borrowed(robot.urdf.as_bytes()),
-        })?;
+impl RobotMessages {
+    /// `/tf` needs the rig's links (`robot`); `/joint_states` only its joint names.
+    pub fn new(robot: Option<Arc<RobotDescription>>, joint_names: &[String]) -> Self {
         let tf = FrameTransforms {
             transforms: robot
-                .frames()
+                .iter()
+                .flat_map(|robot| robot.frames())
                 .map(|(parent, child)| FrameTransform {
                     parent_frame_id: parent.to_owned(),
                     child_frame_id: child.to_owned(),
@@ -261,8 +257,7 @@ impl FoxgloveLog {
         };
         let joints = JointStates {
             timestamp: None,
-            joints: robot
-                .joint_names
+            joints: joint_names
                 .iter()
                 .map(|name| JointState {
                     name: name.clone(),
@@ -270,21 +265,170 @@ impl FoxgloveLog {
                 })
                 .collect(),
         };
-        Ok(Self {
-            robot,
-            tf_channel,
-            joints_channel,
-            last_t: None,
-            sequence: 0,
-            tf,
-            joints,
-            buffer: Vec::with_capacity(2048),
-        })
+        Self { robot, tf, joints }
     }
 
-    /// Writes `/tf` and `/joint_states` for one measured state when one is due
-    /// ([`TF_PERIOD_S`]); returns the message bytes written (0 when none was due, or when a
-    /// position is not finite: no transform can be drawn from it).
+    /// Refills both messages for `positions` (and `velocities`, where known) stamped
+    /// `stamp_ns`; `false`, leaving them as they were, when a position is not finite or
+    /// their count is not the rig's: no transform can be drawn from them.
+    pub fn fill(&mut self, stamp_ns: u64, positions: &[f64], velocities: Option<&[f64]>) -> bool {
+        if positions.len() != self.joints.joints.len() || !positions.iter().all(|q| q.is_finite()) {
+            return false;
+        }
+        let stamp = timestamp(stamp_ns);
+        if let Some(links) = self
+            .robot
+            .as_ref()
+            .and_then(|r| r.link_transforms(positions))
+        {
+            for (message, link) in self.tf.transforms.iter_mut().zip(links) {
+                let (_, rotation, translation) = link.to_scale_rotation_translation();
+                message.timestamp = Some(stamp);
+                message.translation = Some(vector(translation));
+                message.rotation = Some(quaternion(rotation));
+            }
+        }
+        self.joints.timestamp = Some(stamp);
+        for (i, (joint, q)) in self.joints.joints.iter_mut().zip(positions).enumerate() {
+            joint.position = Some(*q);
+            joint.velocity = velocities
+                .and_then(|v| v.get(i))
+                .filter(|v| v.is_finite())
+                .copied();
+        }
+        true
+    }
+
+    /// `/tf`, for a rig with links.
+    pub fn tf(&self) -> Option<&FrameTransforms> {
+        self.robot.as_ref().map(|_| &self.tf)
+    }
+
+    pub fn joint_states(&self) -> &JointStates {
+        &self.joints
+    }
+}
+
+/// A world drawn in the log as `foxglove.SceneUpdate` on [`SCENE_TOPIC`] (the paint room,
+/// the sloth's branches): the writer thread feeds it every measured state, in job time, so
+/// the paint it reports is the paint at that state.
+pub trait LoggedScene: Send {
+    /// The actual positions of one state.
+    fn observe(&mut self, actual: &[f64]);
+    /// The static geometry.
+    fn scene(&self) -> SceneView;
+    /// Paint added since the previous call.
+    fn drain_paint(&mut self) -> Vec<PaintQuad>;
+}
+
+/// The recorder's handle on a [`LoggedScene`] (the writer thread takes it), and the frame
+/// its coordinates are in.
+#[derive(Clone)]
+pub struct SceneSource {
+    scene: Arc<Mutex<Option<Box<dyn LoggedScene>>>>,
+    frame_id: String,
+}
+
+impl SceneSource {
+    pub fn new(scene: Box<dyn LoggedScene>, frame_id: &str) -> Self {
+        Self {
+            scene: Arc::new(Mutex::new(Some(scene))),
+            frame_id: frame_id.to_owned(),
+        }
+    }
+
+    fn take(&self) -> Option<(Box<dyn LoggedScene>, String)> {
+        let scene = self
+            .scene
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take()?;
+        Some((scene, self.frame_id.clone()))
+    }
+}
+
+impl std::fmt::Debug for SceneSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("SceneSource")
+    }
+}
+
+/// The same source, not merely an equal one.
+impl PartialEq for SceneSource {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.scene, &other.scene)
+    }
+}
+
+/// The log's scene channel and what it has written of the scene.
+struct SceneLog {
+    channel: u16,
+    scene: Box<dyn LoggedScene>,
+    view: SceneView,
+    frame_id: String,
+    /// When the static scene was last written (job time), and paint batches so far.
+    last_full_t: Option<f64>,
+    batches: u64,
+}
+
+/// The writer thread's Foxglove channels and the messages it refills for each state.
+pub(super) struct FoxgloveLog {
+    robot: Option<(RobotMessages, u16, u16)>,
+    scene: Option<SceneLog>,
+    last_t: Option<f64>,
+    sequence: u32,
+    buffer: Vec<u8>,
+}
+
+impl FoxgloveLog {
+    /// Adds the schemas, the channels and the URDF attachment of what there is: `/tf` and
+    /// `/joint_states` for a rig with links, `/scene` for a world. `None` for neither.
+    pub(super) fn open<W: Write + Seek>(
+        writer: &mut Writer<W>,
+        robot: Option<Arc<RobotDescription>>,
+        scene: Option<&SceneSource>,
+    ) -> Result<Option<Self>, LogError> {
+        let robot = match robot {
+            Some(robot) => {
+                let tf_channel = add_channel::<FrameTransforms, W>(writer, TF_TOPIC)?;
+                let joints_channel = add_channel::<JointStates, W>(writer, JOINT_STATES_TOPIC)?;
+                writer.attach(&Attachment {
+                    log_time: 0,
+                    create_time: 0,
+                    name: URDF_ATTACHMENT.to_owned(),
+                    media_type: URDF_MEDIA_TYPE.to_owned(),
+                    data: Cow::Borrowed(robot.urdf.as_bytes()),
+                })?;
+                let names = robot.joint_names.clone();
+                let messages = RobotMessages::new(Some(robot), &names);
+                Some((messages, tf_channel, joints_channel))
+            }
+            None => None,
+        };
+        let scene = match scene.and_then(SceneSource::take) {
+            Some((scene, frame_id)) => Some(SceneLog {
+                channel: add_channel::<SceneUpdate, W>(writer, SCENE_TOPIC)?,
+                view: scene.scene(),
+                scene,
+                frame_id,
+                last_full_t: None,
+                batches: 0,
+            }),
+            None => None,
+        };
+        Ok((robot.is_some() || scene.is_some()).then(|| Self {
+            robot,
+            scene,
+            last_t: None,
+            sequence: 0,
+            buffer: Vec::with_capacity(2048),
+        }))
+    }
+
+    /// Feeds the scene one measured state, and writes `/tf`, `/joint_states` and new paint
+    /// when due ([`TF_PERIOD_S`]); the static scene goes in at the first state and again
+    /// every [`SCENE_REPEAT_S`], so a player that seeks finds it. Returns the message
+    /// bytes written.
     pub(super) fn state<W: Write + Seek>(
         &mut self,
         writer: &mut Writer<W>,
@@ -293,48 +437,89 @@ impl FoxgloveLog {
         positions: &[f64],
         velocities: &[f64],
     ) -> Result<usize, LogError> {
+        if !positions.iter().all(|q| q.is_finite()) {
+            return Ok(0);
+        }
+        if let Some(scene) = &mut self.scene {
+            scene.scene.observe(positions);
+        }
         let due = self
             .last_t
             // Time going back (a log restarted at 0) starts the decimation afresh.
             .is_none_or(|last| t - last >= TF_PERIOD_S - TIME_SLACK_S || t < last);
-        if !due || !positions.iter().all(|q| q.is_finite()) {
+        if !due {
             return Ok(0);
         }
-        let Some(links) = self.robot.link_transforms(positions) else {
-            return Ok(0);
-        };
         self.last_t = Some(t);
-        let stamp = timestamp(log_time);
-        for (message, link) in self.tf.transforms.iter_mut().zip(links) {
-            let (_, rotation, translation) = link.to_scale_rotation_translation();
-            message.timestamp = Some(stamp);
-            message.translation = Some(vector(translation));
-            message.rotation = Some(quaternion(rotation));
-        }
-        self.joints.timestamp = Some(stamp);
-        for ((joint, q), v) in self.joints.joints.iter_mut().zip(positions).zip(velocities) {
-            joint.position = Some(*q);
-            joint.velocity = v.is_finite().then_some(*v);
-        }
-        let header = |channel_id| MessageHeader {
-            channel_id,
-            sequence: self.sequence,
-            log_time,
-            publish_time: log_time,
-        };
         let mut bytes = 0;
-        for (channel, message) in [
-            (self.tf_channel, &self.tf as &dyn Protobuf),
-            (self.joints_channel, &self.joints),
-        ] {
-            self.buffer.clear();
-            message.encode_into(&mut self.buffer)?;
-            writer.write_to_known_channel(&header(channel), &self.buffer)?;
-            bytes += self.buffer.len();
+        if let Some((messages, tf_channel, joints_channel)) = &mut self.robot
+            && messages.fill(log_time, positions, Some(velocities))
+            && let Some(tf) = messages.tf()
+        {
+            for (channel, message) in [
+                (*tf_channel, tf as &dyn Protobuf),
+                (*joints_channel, messages.joint_states()),
+            ] {
+                bytes += write(
+                    writer,
+                    &mut self.buffer,
+                    channel,
+                    self.sequence,
+                    log_time,
+                    message,
+                )?;
+            }
+        }
+        if let Some(scene) = &mut self.scene {
+            let stamp = timestamp(log_time);
+            let fresh = scene.scene.drain_paint();
+            scene.view.paint.extend_from_slice(&fresh);
+            let repeat = scene
+                .last_full_t
+                .is_none_or(|last| t - last >= SCENE_REPEAT_S || t < last);
+            let update = if repeat {
+                scene.last_full_t = Some(t);
+                scene.batches = 0;
+                Some(full_update(&scene.view, &scene.frame_id, stamp))
+            } else {
+                scene.batches += 1;
+                paint_update(&scene.view, &fresh, scene.batches, &scene.frame_id, stamp)
+            };
+            if let Some(update) = update {
+                bytes += write(
+                    writer,
+                    &mut self.buffer,
+                    scene.channel,
+                    self.sequence,
+                    log_time,
+                    &update,
+                )?;
+            }
         }
         self.sequence = self.sequence.wrapping_add(1);
         Ok(bytes)
     }
+}
+
+/// Encodes `message` into `buffer` and writes it on `channel`; its size.
+fn write<W: Write + Seek>(
+    writer: &mut Writer<W>,
+    buffer: &mut Vec<u8>,
+    channel_id: u16,
+    sequence: u32,
+    log_time: u64,
+    message: &dyn Protobuf,
+) -> Result<usize, LogError> {
+    buffer.clear();
+    message.encode_into(buffer)?;
+    let header = MessageHeader {
+        channel_id,
+        sequence,
+        log_time,
+        publish_time: log_time,
+    };
+    writer.write_to_known_channel(&header, buffer)?;
+    Ok(buffer.len())
 }
 
 /// The two message types, encoded through one loop.
@@ -359,7 +544,8 @@ fn add_channel<T: Encode, W: Write + Seek>(
     Ok(writer.add_channel(id, topic, PROTOBUF, &BTreeMap::new())?)
 }
 
-fn timestamp(nanos: u64) -> Timestamp {
+/// A Foxglove timestamp of `nanos` since the epoch of the clock in use.
+pub fn timestamp(nanos: u64) -> Timestamp {
     const NANOS: u64 = 1_000_000_000;
     // Job times under 136 years fit u32 seconds; saturate beyond, as job_time_ns does.
     let sec = u32::try_from(nanos / NANOS).unwrap_or(u32::MAX);

@@ -9,7 +9,8 @@
 //! - [`read_log`]: every complete chunk of a file, even a truncated or damaged one;
 //! - [`RunLog::to_trajectory`]: the recorded commands as a [`Trajectory`](crate::trajectory::Trajectory) for replay;
 //! - [`RobotDescription`]: the rig's links and URDF behind the Foxglove channels (`/tf`,
-//!   `/joint_states`) and the `robot_description.urdf` attachment (`docs/foxglove.md`);
+//!   `/joint_states`) and the `robot_description.urdf` attachment (`docs/foxglove.md`), and
+//!   [`LoggedScene`]: the world drawn on `/scene`;
 //! - [`summarize`]: counts, gaps, events and tracking error for `rigbridge log info`.
 
 mod foxglove;
@@ -20,7 +21,10 @@ mod replay;
 mod summary;
 mod wire;
 
-pub use foxglove::{JOINT_STATES_TOPIC, RobotDescription, TF_PERIOD_S, TF_TOPIC, URDF_ATTACHMENT};
+pub use foxglove::{
+    JOINT_STATES_TOPIC, LoggedScene, RobotDescription, RobotMessages, SCENE_REPEAT_S, SCENE_TOPIC,
+    SceneSource, TF_PERIOD_S, TF_TOPIC, URDF_ATTACHMENT, timestamp,
+};
 pub use reader::{read_log, read_log_from};
 pub use recorder::{
     DEFAULT_CAPACITY, DEFAULT_CHUNK_BYTES, DEFAULT_CHUNK_INTERVAL, EventSender, LogRecord,

@@ -5,7 +5,7 @@
 //! link, the controller or the cycle's timing, and never blocks the caller of `record`.
 
 use super::LogError;
-use super::foxglove::{FoxgloveLog, RobotDescription};
+use super::foxglove::{FoxgloveLog, RobotDescription, SceneSource};
 use super::wire::{
     self, EVENT_SCHEMA_NAME, EVENTS_TOPIC, EventOut, MESSAGE_ENCODING, METADATA_NAME,
     SAMPLE_SCHEMA_NAME, SCHEMA_ENCODING, SampleOut, key,
@@ -90,6 +90,9 @@ pub struct RecorderOptions {
     /// The rig's links and URDF: the log gains `/tf`, `/joint_states` and the URDF
     /// attachment (`docs/foxglove.md`), encoded on the writer thread.
     pub robot: Option<Arc<RobotDescription>>,
+    /// The world around the rig: the log gains `/scene` (`foxglove.SceneUpdate`), fed the
+    /// measured states on the writer thread.
+    pub scene: Option<SceneSource>,
 }
 
 impl Default for RecorderOptions {
@@ -101,6 +104,7 @@ impl Default for RecorderOptions {
             joint_kinds: None,
             wait_when_full: false,
             robot: None,
+            scene: None,
         }
     }
 }
@@ -384,10 +388,8 @@ impl Sink {
         })?;
         let (command_channel, state_channel, event_channel) =
             add_channels(&mut writer, rig, &channel_metadata)?;
-        let foxglove = match &options.robot {
-            Some(robot) => Some(FoxgloveLog::open(&mut writer, Arc::clone(robot))?),
-            None => None,
-        };
+        let foxglove =
+            FoxgloveLog::open(&mut writer, options.robot.clone(), options.scene.as_ref())?;
         // The first chunk holds only schemas and channels, on disk before the first cycle.
         writer.flush()?;
         Ok(Self {

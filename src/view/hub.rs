@@ -4,7 +4,7 @@
 //! outside the streaming cycle and must not touch the link or the job.
 
 use super::frame::{Frame, LinkView, Message, SceneMessage};
-use super::{JointLabel, LiveScene, LiveSlot, SceneView};
+use super::{JointLabel, LiveScene, LiveSlot, PaintQuad, SceneView};
 use crate::protocol::{AxisValues, ControllerStatus};
 use crate::rig::{JointKind, Rig};
 use serde::Serialize;
@@ -34,8 +34,26 @@ pub struct JobView {
     pub controller: Option<String>,
 }
 
+/// How far a follower of the scene has got ([`LiveHub::scene_since`]).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct SceneCursor {
+    generation: Option<u64>,
+    paint: usize,
+}
+
+/// A change of the scene, for a follower.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SceneChange {
+    /// Another scene (a new job): everything, its paint so far included.
+    New(SceneView),
+    /// Paint added to the same scene.
+    Paint(Vec<PaintQuad>),
+}
+
 struct HubState {
     scene: Box<dyn LiveScene>,
+    /// Counts [`LiveHub::set_scene`] calls: a follower's cursor from an older scene is stale.
+    generation: u64,
     /// The scene with every paint quad drained since it was set.
     view: SceneView,
     frames: u64,
@@ -71,6 +89,7 @@ impl LiveHub {
             state: Mutex::new(HubState {
                 view: scene.scene(),
                 scene,
+                generation: 0,
                 frames: 0,
                 recent: VecDeque::new(),
             }),
@@ -116,9 +135,25 @@ impl LiveHub {
             let mut state = self.state();
             state.view = scene.scene();
             state.scene = scene;
+            state.generation += 1;
             self.scene_message(&state.view)
         };
         let _ = self.sender.send(message);
+    }
+
+    /// What changed in the scene since `cursor` was last here (the live Foxglove server
+    /// follows the scene this way): the whole scene when it is another one (or the cursor
+    /// is new), else the paint added since, if any.
+    pub fn scene_since(&self, cursor: &mut SceneCursor) -> Option<SceneChange> {
+        let state = self.state();
+        if cursor.generation != Some(state.generation) {
+            cursor.generation = Some(state.generation);
+            cursor.paint = state.view.paint.len();
+            return Some(SceneChange::New(state.view.clone()));
+        }
+        let fresh = state.view.paint.get(cursor.paint..).unwrap_or_default();
+        cursor.paint = state.view.paint.len();
+        (!fresh.is_empty()).then(|| SceneChange::Paint(fresh.to_vec()))
     }
 
     /// Samples the slot at time `now` and sends every page the frame; returns it.
@@ -272,5 +307,35 @@ mod tests {
         assert_eq!(scene["type"], "scene");
         assert_eq!(scene["scene"]["paint"].as_array().unwrap().len(), 1);
         assert_eq!(scene["joints"][0]["unit"], "deg");
+    }
+
+    #[test]
+    fn a_scene_follower_gets_the_scene_then_only_new_paint() {
+        let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&[0.0; 6])));
+        let quad = PaintQuad {
+            wall: 0,
+            quad: [[0.5, 0.0, 0.5]; 4],
+        };
+        let painter = |pending| Painter {
+            rig: rig(),
+            pending,
+        };
+        let hub = LiveHub::new(rig(), 250.0, 50.0, slot, Box::new(painter(vec![quad])));
+        let mut cursor = SceneCursor::default();
+        assert!(
+            matches!(hub.scene_since(&mut cursor), Some(SceneChange::New(v)) if v.paint.is_empty())
+        );
+        assert_eq!(hub.scene_since(&mut cursor), None);
+        hub.tick(Duration::from_millis(20), JobView::default());
+        assert_eq!(
+            hub.scene_since(&mut cursor),
+            Some(SceneChange::Paint(vec![quad]))
+        );
+        assert_eq!(hub.scene_since(&mut cursor), None);
+        hub.set_scene(Box::new(painter(Vec::new())));
+        assert!(matches!(
+            hub.scene_since(&mut cursor),
+            Some(SceneChange::New(_))
+        ));
     }
 }

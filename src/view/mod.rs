@@ -6,7 +6,8 @@
 //! has one from its rig model ([`ArmScene`]); the painting room and the sloth bring theirs.
 //! The streaming cycle feeds a [`LiveSlot`] through a [`LiveSink`] without allocating or
 //! blocking; the [`LiveHub`] samples the slot at the page's frame rate and builds the
-//! WebSocket messages ([`frame`]). The page itself is in `page/`, embedded in the binary.
+//! WebSocket messages ([`frame`]); [`scene_update`] gives a scene to Foxglove. The page itself
+//! is in `page/`, embedded in the binary.
 //!
 //! This module reads the rig and the cycle's records; it must not move the arm, talk to a
 //! link or touch the cycle's timing.
@@ -17,11 +18,12 @@ mod hub;
 mod live;
 pub mod page;
 mod paint;
+pub mod scene_update;
 mod sloth;
 mod trace;
 
 pub use arm::{ArmScene, joint_origins, joint_origins_from};
-pub use hub::{JobView, LiveHub};
+pub use hub::{JobView, LiveHub, SceneChange, SceneCursor};
 pub use live::{LiveSample, LiveSink, LiveSlot};
 pub use paint::PaintScene;
 pub use sloth::SlothScene;

@@ -326,6 +326,11 @@ impl Cell {
         &self.settings.rig.name
     }
 
+    /// The run settings the cell was made from.
+    pub fn settings(&self) -> &RunSettings {
+        &self.settings
+    }
+
     pub fn hub(&self) -> &LiveHub {
         &self.hub
     }

@@ -1,13 +1,15 @@
 //! Which live scene (and which twin world) a cell shows for a job: the arm before its wall,
 //! the painting room with its paint, or the sloth on its branches. Owns only that choice; the
-//! scenes themselves live in `src/view`, and planning stays with the job.
+//! scenes themselves live in `src/view`, and planning stays with the job. A job's log gets
+//! the same world, fed by the log's writer thread ([`log_scene_for_job`]).
 
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::job::Scene;
+use crate::log::{LoggedScene, SceneSource};
 use crate::task::gait::forest::scenario_named;
 use crate::task::paint::{load_paint_settings, room_for, world_for};
 use crate::twin::TwinWorld;
-use crate::view::{ArmScene, LiveScene, PaintScene, SlothScene, ToolTrace};
+use crate::view::{ArmScene, LiveScene, PaintQuad, PaintScene, SceneView, SlothScene, ToolTrace};
 use std::sync::{Arc, Mutex};
 
 /// A job's live scene and the twin world (if any) that measures what the scene shows.
@@ -45,6 +47,36 @@ pub fn scene_for_job(settings: &RunSettings, job: &JobConfig) -> JobScene {
             let scene = ArmScene::for_job(settings.rig.clone(), job, Some(trace.clone()));
             (Box::new(scene), Some(Box::new(trace)))
         }
+    }
+}
+
+/// The world of `job` for its run log's `/scene`: the paint room or the sloth's branches
+/// (an arm's job has none), over a world of its own that the log's writer thread feeds the
+/// logged states, so the paint in the log is the paint at each logged state.
+pub fn log_scene_for_job(settings: &RunSettings, job: &JobConfig) -> Option<SceneSource> {
+    if !matches!(job.scene(), Scene::PaintRoom(_) | Scene::Sloth(_)) {
+        return None;
+    }
+    let scene = SceneForLog(scene_for_job(settings, job));
+    Some(SceneSource::new(Box::new(scene), &settings.rig.base_frame))
+}
+
+/// A job's live scene and its world, as a [`LoggedScene`].
+struct SceneForLog(JobScene);
+
+impl LoggedScene for SceneForLog {
+    fn observe(&mut self, actual: &[f64]) {
+        if let Some(world) = self.0.1.as_mut() {
+            world.observe(actual);
+        }
+    }
+
+    fn scene(&self) -> SceneView {
+        self.0.0.scene()
+    }
+
+    fn drain_paint(&mut self) -> Vec<PaintQuad> {
+        self.0.0.drain_paint()
     }
 }
 

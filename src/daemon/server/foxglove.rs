@@ -1,0 +1,646 @@
+//! The live Foxglove server (`docs/foxglove.md`): Foxglove's WebSocket protocol, subprotocol
+//! `foxglove.websocket.v1` (<https://github.com/foxglove/ws-protocol/blob/main/docs/spec.md>),
+//! on its own listener and read-only. Per cell it advertises `/tf`, `/joint_states` and
+//! `/scene` (prefixed `/<cell>` when the daemon runs several), fed by the live view's frame
+//! task from each cell's hub, never by the streaming cycle, and it serves each cell's URDF
+//! through `fetchAsset` as `package://rigbridge/<cell>.urdf`. Owns the protocol, the channels
+//! and the subscriptions; it must not control a cell.
+
+use super::{Daemon, connections};
+use crate::log::{RobotDescription, RobotMessages, timestamp};
+use crate::view::scene_update::{full_update, paint_update};
+use crate::view::{LiveHub, SceneChange, SceneCursor, SceneView};
+use axum::extract::State;
+use axum::extract::ws::{CloseFrame, Message as WsMessage, WebSocket, WebSocketUpgrade};
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use base64::Engine;
+use foxglove::Encode;
+use foxglove::messages::{FrameTransforms, JointStates, SceneUpdate};
+use serde::Deserialize;
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::Duration;
+use tokio::sync::{Semaphore, broadcast, watch};
+
+/// The ws-protocol version served (the Foxglove app offers it, with newer ones).
+pub const FOXGLOVE_SUBPROTOCOL: &str = "foxglove.websocket.v1";
+/// Where `fetchAsset` finds a cell's URDF: `package://rigbridge/<cell>.urdf`.
+pub const URDF_URI_PREFIX: &str = "package://rigbridge/";
+/// Largest message a client may send: a subscribe to every channel of many cells fits in
+/// a few hundred bytes; anything larger closes the connection (1009).
+pub const MAX_FOXGLOVE_MESSAGE_BYTES: usize = 16 * 1024;
+/// Most Foxglove clients at once: each costs a socket and a place in the message backlog.
+pub const MAX_FOXGLOVE_CLIENTS: usize = 16;
+/// Messages a slow client may fall behind (all channels, all cells: at 50 Hz and three
+/// channels a cell, about a second for two cells) before it skips to the present; the
+/// backlog is shared, so memory stays bounded whatever the clients do.
+pub const FOXGLOVE_BACKLOG: usize = 256;
+/// A client whose socket takes longer than this to take one message is dropped.
+pub const SEND_TIMEOUT: Duration = Duration::from_secs(2);
+const SERVER_NAME: &str = "rigbridge";
+/// The scene is looked at every 10th tick (5 Hz at the view's 50): paint in one batch per
+/// 0.2 s, and a new job's scene within 0.2 s.
+const SCENE_EVERY_TICKS: u64 = 10;
+/// ws-protocol's status levels and binary opcodes (spec: Status, Message Data, Fetch Asset
+/// Response).
+const STATUS_WARNING: u8 = 1;
+const STATUS_ERROR: u8 = 2;
+const OP_MESSAGE_DATA: u8 = 1;
+const OP_FETCH_ASSET_RESPONSE: u8 = 4;
+/// RFC 6455 7.4.1: 1009, a message too big to process.
+const CLOSE_MESSAGE_TOO_BIG: u16 = 1009;
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Kind {
+    Tf,
+    JointStates,
+    Scene,
+}
+
+/// One advertised channel.
+struct Channel {
+    id: u32,
+    cell: usize,
+    kind: Kind,
+    topic: String,
+    schema_name: String,
+    /// The schema's `FileDescriptorSet`, base64 (the spec's encoding for protobuf).
+    schema: String,
+}
+
+/// What one cell publishes, and how far it has followed its hub's scene.
+struct CellFeed {
+    messages: RobotMessages,
+    tf: Option<u32>,
+    joints: u32,
+    scene: u32,
+    frame_id: String,
+    cursor: SceneCursor,
+    /// The scene's walls (paint sits in front of them), as of its last change.
+    walls: SceneView,
+    batches: u64,
+    /// Calls of [`FoxgloveFeed::publish`].
+    ticks: u64,
+    urdf: Option<String>,
+}
+
+/// One message for the subscribers of `channel`.
+#[derive(Debug)]
+struct Outgoing {
+    channel: u32,
+    time_ns: u64,
+    payload: Vec<u8>,
+}
+
+/// The channels, each cell's state, and the broadcast every client follows.
+pub struct FoxgloveFeed {
+    channels: Vec<Channel>,
+    cells: Vec<Mutex<CellFeed>>,
+    names: Vec<String>,
+    sender: broadcast::Sender<Arc<Outgoing>>,
+    clients: Arc<Semaphore>,
+}
+
+/// Why `fetchAsset` found nothing (its text goes back to the client).
+#[derive(Debug, thiserror::Error)]
+enum AssetError {
+    #[error("no asset {0}: this server has {URDF_URI_PREFIX}<cell>.urdf")]
+    Unknown(String),
+    #[error("no cell named {name}: this server runs {cells}")]
+    NoCell { name: String, cells: String },
+    #[error("cell {0} has no URDF (its rig is not one serial chain)")]
+    NoUrdf(String),
+}
+
+/// A cell as the feed sees it: its name, rig and URDF (`None` for a rig without one serial
+/// chain, the sloth: it gets no `/tf`).
+pub struct FeedCell<'a> {
+    pub name: &'a str,
+    pub rig: &'a crate::rig::Rig,
+    pub robot: Option<Arc<RobotDescription>>,
+}
+
+impl FoxgloveFeed {
+    pub fn new(cells: &[FeedCell<'_>]) -> Self {
+        let prefix = |name: &str| {
+            if cells.len() > 1 {
+                format!("/{name}")
+            } else {
+                String::new()
+            }
+        };
+        let mut channels = Vec::new();
+        let mut add = |cell: usize, kind: Kind, topic: String, schema: Option<foxglove::Schema>| {
+            let id = u32::try_from(channels.len() + 1).unwrap_or(u32::MAX);
+            let schema =
+                schema.unwrap_or_else(|| foxglove::Schema::new("", "protobuf", Vec::new()));
+            channels.push(Channel {
+                id,
+                cell,
+                kind,
+                topic,
+                schema_name: schema.name,
+                schema: base64::engine::general_purpose::STANDARD.encode(&schema.data),
+            });
+            id
+        };
+        let mut feeds = Vec::new();
+        for (index, cell) in cells.iter().enumerate() {
+            let p = prefix(cell.name);
+            let tf = cell.robot.as_ref().map(|_| {
+                add(
+                    index,
+                    Kind::Tf,
+                    format!("{p}/tf"),
+                    FrameTransforms::get_schema(),
+                )
+            });
+            let joints = add(
+                index,
+                Kind::JointStates,
+                format!("{p}/joint_states"),
+                JointStates::get_schema(),
+            );
+            let scene = add(
+                index,
+                Kind::Scene,
+                format!("{p}/scene"),
+                SceneUpdate::get_schema(),
+            );
+            let names: Vec<String> = cell.rig.joint_names().map(str::to_owned).collect();
+            feeds.push(Mutex::new(CellFeed {
+                messages: RobotMessages::new(cell.robot.clone(), &names),
+                tf,
+                joints,
+                scene,
+                frame_id: cell.rig.base_frame.clone(),
+                cursor: SceneCursor::default(),
+                walls: SceneView::default(),
+                batches: 0,
+                ticks: 0,
+                urdf: cell.robot.as_ref().map(|r| r.urdf().to_owned()),
+            }));
+        }
+        let (sender, _) = broadcast::channel(FOXGLOVE_BACKLOG);
+        FoxgloveFeed {
+            channels,
+            cells: feeds,
+            names: cells.iter().map(|c| c.name.to_owned()).collect(),
+            sender,
+            clients: Arc::new(Semaphore::new(MAX_FOXGLOVE_CLIENTS)),
+        }
+    }
+
+    /// Publishes cell `index`'s latest state from its hub: `/tf` and `/joint_states` of the
+    /// actual positions in the hub's slot, and what changed in its scene. Called by the
+    /// live view's frame task after the hub's tick; encodes nothing while no client is
+    /// connected (the scene cursor still follows, so a client starts from the present).
+    pub fn publish(&self, index: usize, hub: &LiveHub) {
+        let Some(feed) = self.cells.get(index) else {
+            return;
+        };
+        let mut feed = feed.lock().unwrap_or_else(PoisonError::into_inner);
+        feed.ticks += 1;
+        // Paint goes out in batches: fewer, larger scene entities for the 3D panel.
+        let change = (feed.ticks % SCENE_EVERY_TICKS == 1)
+            .then(|| hub.scene_since(&mut feed.cursor))
+            .flatten();
+        if let Some(SceneChange::New(view)) = &change {
+            feed.walls.walls.clone_from(&view.walls);
+        }
+        if self.sender.receiver_count() == 0 {
+            return;
+        }
+        let now = unix_ns();
+        let sample = hub.slot().latest();
+        let feed = &mut *feed;
+        if feed.messages.fill(now, sample.actual.as_slice(), None) {
+            if let (Some(channel), Some(tf)) = (feed.tf, feed.messages.tf()) {
+                self.send(channel, now, tf);
+            }
+            self.send(feed.joints, now, feed.messages.joint_states());
+        }
+        let update = match change {
+            Some(SceneChange::New(view)) => {
+                Some(full_update(&view, &feed.frame_id, timestamp(now)))
+            }
+            Some(SceneChange::Paint(fresh)) => {
+                feed.batches += 1;
+                paint_update(
+                    &feed.walls,
+                    &fresh,
+                    feed.batches,
+                    &feed.frame_id,
+                    timestamp(now),
+                )
+            }
+            None => None,
+        };
+        if let Some(update) = update {
+            self.send(feed.scene, now, &update);
+        }
+    }
+
+    fn send(&self, channel: u32, time_ns: u64, message: &impl Encode) {
+        let mut payload = Vec::with_capacity(message.encoded_len().unwrap_or(256));
+        if message.encode(&mut payload).is_ok() {
+            let _ = self.sender.send(Arc::new(Outgoing {
+                channel,
+                time_ns,
+                payload,
+            }));
+        }
+    }
+
+    fn server_info(&self) -> String {
+        serde_json::json!({
+            "op": "serverInfo",
+            "name": SERVER_NAME,
+            "capabilities": ["assets"],
+            "metadata": { "cells": self.names.join(",") },
+            "sessionId": unix_ns().to_string(),
+        })
+        .to_string()
+    }
+
+    fn advertise(&self) -> String {
+        let channels: Vec<_> = self
+            .channels
+            .iter()
+            .map(|c| {
+                serde_json::json!({
+                    "id": c.id,
+                    "topic": c.topic,
+                    "encoding": "protobuf",
+                    "schemaName": c.schema_name,
+                    "schema": c.schema,
+                    "schemaEncoding": "protobuf",
+                })
+            })
+            .collect();
+        serde_json::json!({ "op": "advertise", "channels": channels }).to_string()
+    }
+
+    /// The URDF at `uri`, or why there is none.
+    fn asset(&self, uri: &str) -> Result<Vec<u8>, AssetError> {
+        let name = uri
+            .strip_prefix(URDF_URI_PREFIX)
+            .and_then(|file| file.strip_suffix(".urdf"))
+            .ok_or_else(|| AssetError::Unknown(uri.to_owned()))?;
+        let index =
+            self.names
+                .iter()
+                .position(|n| n == name)
+                .ok_or_else(|| AssetError::NoCell {
+                    name: name.to_owned(),
+                    cells: self.names.join(", "),
+                })?;
+        let feed = self.cells[index]
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        feed.urdf
+            .as_ref()
+            .map(|u| u.as_bytes().to_vec())
+            .ok_or_else(|| AssetError::NoUrdf(name.to_owned()))
+    }
+
+    /// The whole scene of `channel`'s cell now, for a client that just subscribed to it
+    /// or skipped ahead.
+    fn scene_now(&self, channel: &Channel, hub: &LiveHub) -> Option<Vec<u8>> {
+        let Some(SceneChange::New(view)) = hub.scene_since(&mut SceneCursor::default()) else {
+            return None;
+        };
+        let feed = self.cells[channel.cell]
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        let update = full_update(&view, &feed.frame_id, timestamp(unix_ns()));
+        let mut payload = Vec::new();
+        update.encode(&mut payload).ok()?;
+        Some(payload)
+    }
+}
+
+/// Nanoseconds since the Unix epoch: live messages carry wall time, as Foxglove expects of a
+/// live source.
+fn unix_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
+}
+
+/// Serves ws-protocol on `listener` until `stopping` turns true.
+pub(super) async fn serve(
+    listener: tokio::net::TcpListener,
+    daemon: Arc<Daemon>,
+    stopping: watch::Receiver<bool>,
+) {
+    let app = axum::Router::new()
+        .route("/", axum::routing::get(upgrade))
+        .with_state(daemon);
+    connections::serve(listener, app, MAX_FOXGLOVE_CLIENTS * 2, stopping).await;
+}
+
+async fn upgrade(State(daemon): State<Arc<Daemon>>, upgrade: WebSocketUpgrade) -> Response {
+    let Ok(permit) = daemon.foxglove.clients.clone().try_acquire_owned() else {
+        return (
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("{MAX_FOXGLOVE_CLIENTS} Foxglove clients are connected already"),
+        )
+            .into_response();
+    };
+    upgrade
+        .max_message_size(MAX_FOXGLOVE_MESSAGE_BYTES)
+        .max_frame_size(MAX_FOXGLOVE_MESSAGE_BYTES)
+        .protocols([FOXGLOVE_SUBPROTOCOL])
+        .on_upgrade(move |socket| async move {
+            // A client that offered no subprotocol we speak gets none back: the spec says
+            // the connection must not go on.
+            if socket.protocol().is_some() {
+                Client::new(socket, daemon).run().await;
+            }
+            drop(permit);
+        })
+}
+
+/// A client's message, by its `op` (spec: Subscribe, Unsubscribe, Fetch asset); any other
+/// op is answered with a status.
+#[derive(Deserialize)]
+#[serde(tag = "op", rename_all = "camelCase")]
+enum ClientOp {
+    Subscribe {
+        subscriptions: Vec<Subscription>,
+    },
+    Unsubscribe {
+        #[serde(rename = "subscriptionIds")]
+        subscription_ids: Vec<u32>,
+    },
+    FetchAsset {
+        uri: String,
+        #[serde(rename = "requestId")]
+        request_id: u32,
+    },
+    #[serde(other)]
+    Other,
+}
+
+#[derive(Deserialize)]
+struct Subscription {
+    id: u32,
+    #[serde(rename = "channelId")]
+    channel_id: u32,
+}
+
+/// Why a connection ends.
+struct Gone;
+
+struct Client {
+    socket: WebSocket,
+    daemon: Arc<Daemon>,
+    /// channel id -> subscription id: one subscription per channel, so at most as many
+    /// entries as channels.
+    subscriptions: BTreeMap<u32, u32>,
+}
+
+impl Client {
+    fn new(socket: WebSocket, daemon: Arc<Daemon>) -> Self {
+        Client {
+            socket,
+            daemon,
+            subscriptions: BTreeMap::new(),
+        }
+    }
+
+    async fn run(mut self) {
+        let feed = &self.daemon.foxglove;
+        let mut messages = feed.sender.subscribe();
+        let mut stopping = self.daemon.stopping.clone();
+        let hello = [feed.server_info(), feed.advertise()];
+        for text in hello {
+            if self.send(WsMessage::Text(text.into())).await.is_err() {
+                return;
+            }
+        }
+        loop {
+            let step = tokio::select! {
+                message = messages.recv() => self.forward(message).await,
+                incoming = self.socket.recv() => self.receive(incoming).await,
+                _ = stopping.changed() => {
+                    let _ = self.send(WsMessage::Close(None)).await;
+                    Err(Gone)
+                }
+            };
+            if step.is_err() {
+                return;
+            }
+        }
+    }
+
+    async fn send(&mut self, message: WsMessage) -> Result<(), Gone> {
+        match tokio::time::timeout(SEND_TIMEOUT, self.socket.send(message)).await {
+            Ok(Ok(())) => Ok(()),
+            _ => Err(Gone),
+        }
+    }
+
+    async fn forward(
+        &mut self,
+        message: Result<Arc<Outgoing>, broadcast::error::RecvError>,
+    ) -> Result<(), Gone> {
+        match message {
+            Ok(out) => match self.subscriptions.get(&out.channel) {
+                Some(&subscription) => {
+                    let data = message_data(subscription, out.time_ns, &out.payload);
+                    self.send(WsMessage::Binary(data.into())).await
+                }
+                None => Ok(()),
+            },
+            // Skipped ahead: the paint in between is lost, so the scene is sent whole.
+            Err(broadcast::error::RecvError::Lagged(_)) => self.resend_scenes().await,
+            Err(broadcast::error::RecvError::Closed) => Err(Gone),
+        }
+    }
+
+    async fn resend_scenes(&mut self) -> Result<(), Gone> {
+        let scenes: Vec<(u32, u32)> = self
+            .subscriptions
+            .iter()
+            .map(|(channel, subscription)| (*channel, *subscription))
+            .collect();
+        for (channel, subscription) in scenes {
+            self.send_scene(channel, subscription).await?;
+        }
+        Ok(())
+    }
+
+    /// The whole scene to a subscriber of `channel`, if it is a scene channel.
+    async fn send_scene(&mut self, channel: u32, subscription: u32) -> Result<(), Gone> {
+        let feed = &self.daemon.foxglove;
+        let payload = feed
+            .channels
+            .iter()
+            .find(|c| c.id == channel && c.kind == Kind::Scene)
+            .and_then(|c| feed.scene_now(c, self.daemon.cells.get(c.cell)?.hub()));
+        match payload {
+            Some(payload) => {
+                let data = message_data(subscription, unix_ns(), &payload);
+                self.send(WsMessage::Binary(data.into())).await
+            }
+            None => Ok(()),
+        }
+    }
+
+    async fn receive(
+        &mut self,
+        incoming: Option<Result<WsMessage, axum::Error>>,
+    ) -> Result<(), Gone> {
+        match incoming {
+            Some(Ok(WsMessage::Text(text))) => self.handle(text.as_str()).await,
+            Some(Ok(WsMessage::Binary(_))) => {
+                self.status(
+                    STATUS_ERROR,
+                    "this server is read-only: clients cannot publish",
+                )
+                .await
+            }
+            Some(Ok(_)) => Ok(()),
+            Some(Err(e)) if super::is_too_big(&e) => {
+                let close = CloseFrame {
+                    code: CLOSE_MESSAGE_TOO_BIG,
+                    reason: format!("a message is at most {MAX_FOXGLOVE_MESSAGE_BYTES} bytes")
+                        .into(),
+                };
+                let _ = self.send(WsMessage::Close(Some(close))).await;
+                Err(Gone)
+            }
+            None | Some(Err(_)) => Err(Gone),
+        }
+    }
+
+    async fn handle(&mut self, text: &str) -> Result<(), Gone> {
+        let op = match serde_json::from_str::<ClientOp>(text) {
+            Ok(op) => op,
+            Err(e) => {
+                let message = format!(
+                    "not a ws-protocol message: {}",
+                    super::guard::shorten(&e.to_string())
+                );
+                return self.status(STATUS_ERROR, &message).await;
+            }
+        };
+        match op {
+            ClientOp::Subscribe { subscriptions } => self.subscribe(subscriptions).await,
+            ClientOp::Unsubscribe { subscription_ids } => {
+                self.subscriptions
+                    .retain(|_, subscription| !subscription_ids.contains(subscription));
+                Ok(())
+            }
+            ClientOp::FetchAsset { uri, request_id } => {
+                let answer = fetch_asset_response(request_id, self.daemon.foxglove.asset(&uri));
+                self.send(WsMessage::Binary(answer.into())).await
+            }
+            ClientOp::Other => {
+                self.status(
+                    STATUS_WARNING,
+                    "not supported: this read-only server takes subscribe, unsubscribe and fetchAsset",
+                )
+                .await
+            }
+        }
+    }
+
+    async fn subscribe(&mut self, subscriptions: Vec<Subscription>) -> Result<(), Gone> {
+        for Subscription { id, channel_id } in subscriptions {
+            let known = self
+                .daemon
+                .foxglove
+                .channels
+                .iter()
+                .any(|c| c.id == channel_id);
+            let problem = if !known {
+                Some(format!("no channel {channel_id}"))
+            } else if self.subscriptions.values().any(|s| *s == id) {
+                Some(format!("subscription id {id} is in use"))
+            } else if self.subscriptions.contains_key(&channel_id) {
+                Some(format!("channel {channel_id} is subscribed already"))
+            } else {
+                None
+            };
+            match problem {
+                Some(problem) => self.status(STATUS_ERROR, &problem).await?,
+                None => {
+                    self.subscriptions.insert(channel_id, id);
+                    self.send_scene(channel_id, id).await?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    async fn status(&mut self, level: u8, message: &str) -> Result<(), Gone> {
+        let text = serde_json::json!({ "op": "status", "level": level, "message": message });
+        self.send(WsMessage::Text(text.to_string().into())).await
+    }
+}
+
+/// Spec, Message Data: opcode 1, subscription id (u32), timestamp (u64 ns), payload; little
+/// endian.
+fn message_data(subscription: u32, time_ns: u64, payload: &[u8]) -> Vec<u8> {
+    let mut data = Vec::with_capacity(13 + payload.len());
+    data.push(OP_MESSAGE_DATA);
+    data.extend_from_slice(&subscription.to_le_bytes());
+    data.extend_from_slice(&time_ns.to_le_bytes());
+    data.extend_from_slice(payload);
+    data
+}
+
+/// Spec, Fetch Asset Response: opcode 4, request id (u32), status (0 ok, 1 error), error
+/// length (u32) and text, then the asset's bytes.
+fn fetch_asset_response(request_id: u32, asset: Result<Vec<u8>, AssetError>) -> Vec<u8> {
+    let (status, error, data) = match asset {
+        Ok(data) => (0u8, String::new(), data),
+        Err(error) => (1u8, error.to_string(), Vec::new()),
+    };
+    let mut out = Vec::with_capacity(10 + error.len() + data.len());
+    out.push(OP_FETCH_ASSET_RESPONSE);
+    out.extend_from_slice(&request_id.to_le_bytes());
+    out.push(status);
+    out.extend_from_slice(&u32::try_from(error.len()).unwrap_or(u32::MAX).to_le_bytes());
+    out.extend_from_slice(error.as_bytes());
+    out.extend_from_slice(&data);
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn binary_messages_follow_the_spec_layout() {
+        let data = message_data(7, 0x0102_0304_0506_0708, b"xyz");
+        assert_eq!(data[0], 1);
+        assert_eq!(&data[1..5], &[7, 0, 0, 0]);
+        assert_eq!(&data[5..13], &[8, 7, 6, 5, 4, 3, 2, 1]);
+        assert_eq!(&data[13..], b"xyz");
+        let ok = fetch_asset_response(3, Ok(b"<robot/>".to_vec()));
+        assert_eq!(&ok[..10], &[4, 3, 0, 0, 0, 0, 0, 0, 0, 0]);
+        assert_eq!(&ok[10..], b"<robot/>");
+        let refused = fetch_asset_response(3, Err(AssetError::NoUrdf("s".into())));
+        let text = b"cell s has no URDF (its rig is not one serial chain)";
+        assert_eq!(refused[5], 1);
+        assert_eq!(&refused[6..10], &(text.len() as u32).to_le_bytes());
+        assert_eq!(&refused[10..], text);
+    }
+
+    #[test]
+    fn ops_parse_and_others_are_told_apart() {
+        let op: ClientOp =
+            serde_json::from_str(r#"{"op":"subscribe","subscriptions":[{"id":0,"channelId":3}]}"#)
+                .unwrap();
+        assert!(
+            matches!(op, ClientOp::Subscribe { subscriptions } if subscriptions[0].channel_id == 3)
+        );
+        let op: ClientOp = serde_json::from_str(r#"{"op":"advertise","channels":[]}"#).unwrap();
+        assert!(matches!(op, ClientOp::Other));
+    }
+}
