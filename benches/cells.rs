@@ -179,10 +179,8 @@ fn child(spec: &str) {
     let mut row = figures.finish(n);
     row["design"] = design.into();
     row["rate_hz"] = rate.into();
-    row["mb_per_cell"] = ((figures.rss_streaming.saturating_sub(rss_before)) as f64
-        / n as f64
-        / 1e6)
-        .into();
+    row["mb_per_cell"] =
+        ((figures.rss_streaming.saturating_sub(rss_before)) as f64 / n as f64 / 1e6).into();
     println!("{row}");
 }
 
@@ -196,7 +194,12 @@ struct Figures {
 fn measure(address: SocketAddr, n: usize, rate: f64) -> Figures {
     let body = job_body();
     for i in 0..n {
-        let (code, answer) = call(address, "POST", &format!("/api/cells/arm{i:03}/jobs"), &body);
+        let (code, answer) = call(
+            address,
+            "POST",
+            &format!("/api/cells/arm{i:03}/jobs"),
+            &body,
+        );
         assert_eq!(code, 202, "{answer}");
     }
     // Every cell streaming: then the window.
@@ -214,7 +217,11 @@ fn measure(address: SocketAddr, n: usize, rate: f64) -> Figures {
     let cpu = cpu_time() - cpu_before;
     let last = cycles_now(address);
     let rss_streaming = rss_bytes();
-    assert_eq!(last.len(), n, "a job ended inside the window: make the job longer");
+    assert_eq!(
+        last.len(),
+        n,
+        "a job ended inside the window: make the job longer"
+    );
     let window_cycles = last.iter().zip(&first).map(|(b, a)| b - a).sum();
     let _ = rate;
     let reports = (0..n)

@@ -498,6 +498,7 @@ fn create_recorder(
 ) -> Result<Recorder, DaemonError> {
     let mut options = crate::log::RecorderOptions {
         wait_when_full: virtual_clock,
+        capacity: crate::log::capacity_for_rate(settings.config.stream.rate_hz),
         ..crate::log::RecorderOptions::for_rig(&settings.rig)
     };
     if settings.sloth.is_some() {

@@ -27,10 +27,10 @@ pub use connections::{HEADER_TIMEOUT, IDLE_TIMEOUT, LISTEN_BACKLOG, bind, connec
 pub use guard::{BODY_TIMEOUT, HostCheck, MAX_BODY_BYTES, MAX_LIVE_MESSAGE_BYTES, MAX_LIVE_PAGES};
 
 use super::DaemonError;
+use super::config::ExecutorKind;
 use super::config::{JobConfig, RunSettings};
 use crate::clock::{Clock, WallClock};
 use crate::stream::{Executor, ExecutorSettings, StreamControl};
-use super::config::ExecutorKind;
 use crate::twin::TwinWorld;
 use crate::view::page;
 use axum::extract::ws::{CloseFrame, Message as WsMessage, WebSocket, WebSocketUpgrade};
@@ -411,8 +411,6 @@ fn shared_executor(
         ..ExecutorSettings::default()
     };
     let executor = Executor::new(settings).map_err(crate::link::LinkError::Io)?;
-    // The threads raise their priority as they start: wait a moment to say how it went.
-    std::thread::sleep(EXECUTOR_START);
     let realtime = executor.realtime_threads();
     if realtime < executor.threads() {
         eprintln!(
@@ -424,9 +422,6 @@ fn shared_executor(
     }
     Ok(Some(Arc::new(executor)))
 }
-
-/// Long enough for a new thread to have asked for its priority.
-const EXECUTOR_START: Duration = Duration::from_millis(20);
 
 /// Every route, each cell's under `/api/cells/{cell}/` and the first cell's also without
 /// the prefix, with the access checks ([`require_token`], [`require_live_token`],

@@ -7,10 +7,10 @@
 //! Ordering, so that one stream's overrun never delays another's safety gate: at every wake
 //! the first halves of all due cycles run (stall check, gate, send), then the second halves
 //! (feedback, following checks, sink) one at a time, each time after any first half that
-//! fell due meanwhile. A stream whose cycle work (both halves) exceeds its budget, a tenth
-//! of its period, is counted (`overruns`, in its report and its cell's status) and handed
-//! back to the thread that submitted it, which runs the rest of it on its own clock-driven
-//! loop: its neighbours keep their deadlines.
+//! fell due meanwhile. A cycle whose work (both halves) exceeds its budget, a tenth of its
+//! period, is counted (`overruns`, in its report and its cell's status); after three such
+//! cycles in a row the stream is handed back to the thread that submitted it, which runs
+//! the rest of it on its own clock-driven loop: its neighbours keep their deadlines.
 //!
 //! The executor owns the timing of the cycles it runs, never what a cycle does: that is the
 //! stream's ([`CycleTask`]). Between submission and end it neither allocates nor blocks in a
@@ -30,6 +30,9 @@ const PRIORITY: i32 = 50;
 /// A cycle's work (both halves) beyond this share of its period is an overrun: at a tenth,
 /// the jitter its neighbours may see, it would already spend their whole margin.
 const OVERRUN_SHARE: f64 = 0.1;
+/// Overruns in a row that hand a stream back: one is a hiccup (a page fault, a lock a
+/// reader held) that a thread of its own would suffer as well; three are a slow stream.
+const OVERRUNS_TO_HAND_BACK: u32 = 3;
 /// Slots a period is split into at most, and their least spacing: streams of one slot wake
 /// together; more slots spread the work, fewer cost fewer wakes.
 const MAX_SLOTS: u32 = 16;
@@ -66,7 +69,9 @@ pub trait CycleTask: Send {
 pub enum Handback {
     Ended,
     /// It overran its budget: the caller runs it on from `next_deadline` (executor clock).
-    Evicted { next_deadline: Duration },
+    Evicted {
+        next_deadline: Duration,
+    },
 }
 
 /// How many threads and how long they spin before a deadline.
@@ -125,6 +130,8 @@ struct Entry {
     /// The first half ran this cycle; the second is due.
     sent: bool,
     work: Duration,
+    /// Overruns in a row, up to this cycle.
+    overruns: u32,
     /// The handoff is settled: the task is the submitter's again and must not be touched
     /// (kept here too, so scans need not read the shared state).
     done: bool,
@@ -162,10 +169,12 @@ pub struct Executor {
 }
 
 impl Executor {
-    /// Starts `settings.threads` worker threads (at least one).
+    /// Starts `settings.threads` worker threads (at least one); returns once each has asked
+    /// for its priority.
     pub fn new(settings: ExecutorSettings) -> std::io::Result<Executor> {
         let clock = Arc::new(WallClock::new());
         let realtime = Arc::new(AtomicUsize::new(0));
+        let (started_tx, started) = std::sync::mpsc::channel::<()>();
         let mut inboxes = Vec::new();
         let mut workers = Vec::new();
         for index in 0..settings.threads.max(1) {
@@ -183,6 +192,7 @@ impl Executor {
                 cost: FIRST_COST,
             };
             let realtime = realtime.clone();
+            let started_tx = started_tx.clone();
             let handle = std::thread::Builder::new()
                 .name(format!("rigbridge-executor-{index}"))
                 .spawn(move || {
@@ -190,12 +200,16 @@ impl Executor {
                         realtime.fetch_add(1, Ordering::SeqCst);
                     }
                     no_timer_slack();
+                    let _ = started_tx.send(());
                     worker.run();
                 })?;
             *inbox.thread.lock().unwrap_or_else(PoisonError::into_inner) =
                 Some(handle.thread().clone());
             inboxes.push(inbox);
             workers.push(handle);
+        }
+        for _ in 0..workers.len() {
+            let _ = started.recv();
         }
         Ok(Executor {
             clock,
@@ -256,6 +270,7 @@ impl Executor {
                 deadline: Duration::ZERO,
                 sent: false,
                 work: Duration::ZERO,
+                overruns: 0,
                 done: false,
             });
         inbox.wake();
@@ -304,7 +319,8 @@ impl Drop for Executor {
 fn no_timer_slack() {
     // SAFETY: PR_SET_TIMERSLACK takes one integer argument and changes only this thread.
     unsafe {
-        libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong);
+        let slack_ns: libc::c_ulong = 1;
+        libc::prctl(libc::PR_SET_TIMERSLACK, slack_ns);
     }
 }
 
@@ -426,12 +442,15 @@ impl Worker {
         }
         if ended {
             entry.settle(ENDED);
-        } else if entry.work > entry.budget {
+        } else if entry.work <= entry.budget {
+            entry.overruns = 0;
+        } else {
+            entry.overruns += 1;
             guarded(entry, |task| {
                 task.overran();
                 false
             });
-            if !entry.done {
+            if !entry.done && entry.overruns >= OVERRUNS_TO_HAND_BACK {
                 let ns = u64::try_from(entry.deadline.as_nanos()).unwrap_or(u64::MAX);
                 entry.handoff.next_deadline_ns.store(ns, Ordering::SeqCst);
                 entry.settle(EVICTED);

@@ -430,13 +430,16 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
         self.cycle.record_wake(late, self.trajectory.period_s);
         // Checked before anything is sent: what was planned for the stalled cycles is stale.
         let result = if late > self.stall_after {
-            self.link.send(&Command::Stop).map_err(StreamError::from).map(|()| {
-                self.cycle.fault = Some(format!(
-                    "the cycle woke {:.1} ms late",
-                    late.as_secs_f64() * 1e3
-                ));
-                Some(Outcome::Stalled)
-            })
+            self.link
+                .send(&Command::Stop)
+                .map_err(StreamError::from)
+                .map(|()| {
+                    self.cycle.fault = Some(format!(
+                        "the cycle woke {:.1} ms late",
+                        late.as_secs_f64() * 1e3
+                    ));
+                    Some(Outcome::Stalled)
+                })
         } else {
             self.gate_and_send()
         };
@@ -502,7 +505,8 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
         else {
             return Ok(None);
         };
-        let (cycle, link, clock, control) = (&mut self.cycle, &mut *self.link, self.clock, self.control);
+        let (cycle, link, clock, control) =
+            (&mut self.cycle, &mut *self.link, self.clock, self.control);
         let feedback = await_echo(link, target.seq, cycle.feedback_timeout)?.or(late);
         let latency_us = cycle.record_feedback(feedback.as_ref(), &target, clock.now());
         self.sink.record(&CycleRecord {

@@ -735,7 +735,15 @@ impl Cell {
             actions: Some(&actions),
             executor,
         };
-        stream_planned_with(&self.settings, &plan, link, clock, Some(log), control, sinks)
+        stream_planned_with(
+            &self.settings,
+            &plan,
+            link,
+            clock,
+            Some(log),
+            control,
+            sinks,
+        )
     }
 
     /// What a finished job tells of the controller: an e-stop or a fault it latched.
