@@ -227,3 +227,47 @@ fn an_overrunning_stream_is_reported_and_handed_back_while_its_neighbours_comple
         assert_eq!(report.limit_violations, 0, "neighbour {i}: {report:?}");
     }
 }
+
+/// `config/rigbridge.toml` with `serve` appended as its `[serve]` table, in a scratch file.
+fn settings_with_serve(name: &str, serve: &str) -> std::path::PathBuf {
+    let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    let rig = repo_path("config/irb120.toml");
+    let text = text.replacen(
+        "rig = \"irb120.toml\"",
+        &format!("rig = {:?}", rig.display().to_string()),
+        1,
+    );
+    let dir =
+        std::env::temp_dir().join(format!("rigbridge-executor-config-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join(name);
+    std::fs::write(&file, format!("{text}\n[serve]\n{serve}\n")).unwrap();
+    file
+}
+
+#[test]
+fn the_executor_settings_are_read_and_checked() {
+    let shared = load_run_settings(&repo_path("config/rigbridge.toml")).unwrap();
+    assert_eq!(
+        shared.config.serve.executor,
+        ExecutorKind::Shared,
+        "the default"
+    );
+    assert_eq!(shared.config.serve.executor_threads, 1, "the default");
+    let file = settings_with_serve(
+        "threads.toml",
+        "executor = \"thread_per_cell\"\nexecutor_threads = 2",
+    );
+    let chosen = load_run_settings(&file).unwrap();
+    assert_eq!(chosen.config.serve.executor, ExecutorKind::ThreadPerCell);
+    assert_eq!(chosen.config.serve.executor_threads, 2);
+    let file = settings_with_serve("none.toml", "executor_threads = 0");
+    let message = load_run_settings(&file).unwrap_err().to_string();
+    assert!(
+        message.contains("serve.executor_threads") && message.contains("none.toml"),
+        "{message}"
+    );
+    let file = settings_with_serve("pooled.toml", "executor = \"pooled\"");
+    let message = rigbridge::daemon::error_chain(&load_run_settings(&file).unwrap_err());
+    assert!(message.contains("pooled"), "{message}");
+}
