@@ -352,12 +352,25 @@ pub fn stream_planned(
     log: Option<&std::path::Path>,
     control: &StreamControl,
 ) -> Result<RunReport, DaemonError> {
-    stream_planned_with(settings, planned, link, clock, log, control, &mut (), None)
+    let sinks = Sinks {
+        live: &mut (),
+        actions: None,
+        executor: None,
+    };
+    stream_planned_with(settings, planned, link, clock, log, control, sinks)
 }
 
-/// [`stream_planned`], also handing every cycle to `live` (the live view's sink), and
-/// opening `actions` on the job's log while it streams.
-#[allow(clippy::too_many_arguments)]
+/// Where a stream's cycles go besides its log: the live view's sink, the slot through which
+/// other threads' actions reach the log, and the executor that runs the cycles (none: the
+/// job's own thread).
+pub struct Sinks<'a> {
+    pub live: &'a mut (dyn crate::stream::CycleSink + Send),
+    pub actions: Option<&'a recording::ActionLog>,
+    pub executor: Option<&'a crate::stream::Executor>,
+}
+
+/// [`stream_planned`], also handing every cycle to `sinks.live` (the live view's sink),
+/// opening `sinks.actions` on the job's log while it streams, on `sinks.executor`.
 pub fn stream_planned_with(
     settings: &RunSettings,
     planned: &PlannedJob,
@@ -365,8 +378,7 @@ pub fn stream_planned_with(
     clock: &dyn Clock,
     log: Option<&std::path::Path>,
     control: &StreamControl,
-    live: &mut dyn crate::stream::CycleSink,
-    actions: Option<&recording::ActionLog>,
+    sinks: Sinks<'_>,
 ) -> Result<RunReport, DaemonError> {
     let job = JobToStream {
         name: job_name(&planned.job),
@@ -375,7 +387,7 @@ pub fn stream_planned_with(
         trajectory: &planned.trajectory,
         job: Some(&planned.job),
     };
-    stream_job_with(settings, &job, link, clock, log, control, live, actions)
+    stream_job_with(settings, &job, link, clock, log, control, sinks)
 }
 
 /// What the resuming stream needs of a job, whatever made its trajectory (a planned job, a
@@ -392,9 +404,8 @@ pub struct JobToStream<'a> {
 }
 
 /// Streams `job` through [`resume::stream_resuming`] (link loss and stalls resume from the
-/// held position), recording to `log` and handing every cycle to `live`; `actions` writes
-/// to the log from other threads while the job streams.
-#[allow(clippy::too_many_arguments)]
+/// held position), recording to `log` and handing every cycle to `sinks.live`;
+/// `sinks.actions` writes to the log from other threads while the job streams.
 pub fn stream_job_with(
     settings: &RunSettings,
     job: &JobToStream<'_>,
@@ -402,9 +413,13 @@ pub fn stream_job_with(
     clock: &dyn Clock,
     log: Option<&std::path::Path>,
     control: &StreamControl,
-    live: &mut dyn crate::stream::CycleSink,
-    actions: Option<&recording::ActionLog>,
+    sinks: Sinks<'_>,
 ) -> Result<RunReport, DaemonError> {
+    let Sinks {
+        live,
+        actions,
+        executor,
+    } = sinks;
     let trajectory = job.trajectory;
     let metadata = serde_json::json!({
         "job": job.description,
@@ -432,6 +447,7 @@ pub fn stream_job_with(
                 sink: &mut sink,
                 control,
                 events: Some(recorder),
+                executor,
             };
             resume::stream_resuming(io, trajectory)
         }
@@ -443,6 +459,7 @@ pub fn stream_job_with(
                 sink: live,
                 control,
                 events: None,
+                executor,
             };
             resume::stream_resuming(io, trajectory)
         }
@@ -488,6 +505,7 @@ fn create_recorder(
         wait_when_full: virtual_clock,
         robot: robot_description(settings)?,
         scene: job.and_then(|job| server::log_scene_for_job(settings, job)),
+        capacity: crate::log::capacity_for_rate(settings.config.stream.rate_hz),
         ..crate::log::RecorderOptions::for_rig(&settings.rig)
     };
     let names: Vec<String> = settings.rig.joint_names().map(str::to_owned).collect();

@@ -65,7 +65,10 @@ impl CycleSink for RecorderSink<'_> {
 }
 
 /// Hands every cycle to two sinks, in order.
-pub struct BothSinks<'a>(pub &'a mut dyn CycleSink, pub &'a mut dyn CycleSink);
+pub struct BothSinks<'a>(
+    pub &'a mut (dyn CycleSink + Send),
+    pub &'a mut (dyn CycleSink + Send),
+);
 
 impl CycleSink for BothSinks<'_> {
     fn record(&mut self, cycle: &CycleRecord) {

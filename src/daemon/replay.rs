@@ -282,8 +282,11 @@ pub fn replay(
         clock,
         record_to,
         control,
-        &mut comparison,
-        None,
+        super::Sinks {
+            live: &mut comparison,
+            actions: None,
+            executor: None,
+        },
     )?;
     let same_sequence = !comparison.broken && comparison.matched == log.commands.len();
     Ok(ReplayReport {

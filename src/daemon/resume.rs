@@ -13,8 +13,8 @@ use crate::link::{Link, LinkEvent};
 use crate::log::Recorder;
 use crate::protocol::{Command, ControllerStatus, Feedback};
 use crate::stream::{
-    CycleSink, Outcome, StreamControl, StreamError, StreamReport, StreamSettings, check_controller,
-    fault_text, stream,
+    CycleSink, Executor, Outcome, StreamControl, StreamError, StreamReport, StreamSettings,
+    check_controller, fault_text, stream, stream_shared,
 };
 use crate::trajectory::Trajectory;
 use std::time::Duration;
@@ -196,9 +196,11 @@ pub struct Streaming<'a> {
     pub settings: &'a RunSettings,
     pub link: &'a mut dyn Link,
     pub clock: &'a dyn Clock,
-    pub sink: &'a mut dyn CycleSink,
+    pub sink: &'a mut (dyn CycleSink + Send),
     pub control: &'a StreamControl,
     pub events: Option<&'a Recorder>,
+    /// Runs the cycles beside other streams' when given; otherwise this thread does.
+    pub executor: Option<&'a Executor>,
 }
 
 impl Streaming<'_> {
@@ -210,15 +212,28 @@ impl Streaming<'_> {
     }
 
     fn run_part(&mut self, trajectory: &Trajectory, settings: &StreamSettings) -> StreamReport {
-        let result = stream(
-            trajectory,
-            &self.settings.rig,
-            self.link,
-            self.clock,
-            self.sink,
-            self.control,
-            settings,
-        );
+        let rig = &self.settings.rig;
+        let result = match self.executor {
+            Some(executor) => stream_shared(
+                executor,
+                trajectory,
+                rig,
+                self.link,
+                self.clock,
+                self.sink,
+                self.control,
+                settings,
+            ),
+            None => stream(
+                trajectory,
+                rig,
+                self.link,
+                self.clock,
+                self.sink,
+                self.control,
+                settings,
+            ),
+        };
         result.unwrap_or_else(|error| {
             // A link that fails before the first target (no session, no feedback) is lost,
             // and resumed like any loss; a trajectory or controller refused is final.

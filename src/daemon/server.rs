@@ -34,9 +34,10 @@ pub use guard::{BODY_TIMEOUT, HostCheck, MAX_BODY_BYTES, MAX_LIVE_MESSAGE_BYTES,
 pub use scene::log_scene_for_job;
 
 use super::DaemonError;
+use super::config::ExecutorKind;
 use super::config::{JobConfig, RunSettings};
 use crate::clock::{Clock, WallClock};
-use crate::stream::StreamControl;
+use crate::stream::{Executor, ExecutorSettings, StreamControl};
 use crate::twin::TwinWorld;
 use crate::view::page;
 use axum::extract::ws::{CloseFrame, Message as WsMessage, WebSocket, WebSocketUpgrade};
@@ -349,9 +350,10 @@ pub async fn run(
         .map(super::robot_description)
         .collect::<Result<Vec<_>, _>>()?;
     std::fs::create_dir_all(&options.runs_dir).map_err(crate::link::LinkError::Io)?;
+    let executor = shared_executor(&cells[0], options.virtual_clock)?;
     let cells = cells
         .into_iter()
-        .map(|settings| Cell::new(settings).map(Arc::new))
+        .map(|settings| Cell::new(settings, executor.clone()).map(Arc::new))
         .collect::<Result<Vec<_>, _>>()?;
     for cell in &cells {
         let journal = cell.open_journal(&options.runs_dir)?;
@@ -439,6 +441,33 @@ fn bind_foxglove(
     })?;
     eprintln!("foxglove: ws://{address} ({FOXGLOVE_SUBPROTOCOL}, read-only)");
     Ok(Some(listener))
+}
+
+/// The executor the first file's `[serve] executor` asks for: `None` for a thread per
+/// cell, and under a virtual clock (its cycles do not wait, so nothing needs sharing).
+fn shared_executor(
+    first: &RunSettings,
+    virtual_clock: bool,
+) -> Result<Option<Arc<Executor>>, DaemonError> {
+    let serve = &first.config.serve;
+    if virtual_clock || serve.executor != ExecutorKind::Shared {
+        return Ok(None);
+    }
+    let settings = ExecutorSettings {
+        threads: serve.executor_threads,
+        ..ExecutorSettings::default()
+    };
+    let executor = Executor::new(settings).map_err(crate::link::LinkError::Io)?;
+    let realtime = executor.realtime_threads();
+    if realtime < executor.threads() {
+        eprintln!(
+            "note: the shared executor streams at normal priority on {} of its {} threads \
+             (SCHED_FIFO needs root or CAP_SYS_NICE)",
+            executor.threads() - realtime,
+            executor.threads()
+        );
+    }
+    Ok(Some(Arc::new(executor)))
 }
 
 /// Every route, each cell's under `/api/cells/{cell}/` and the first cell's also without

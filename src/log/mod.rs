@@ -28,7 +28,7 @@ pub use foxglove::{
 pub use reader::{read_log, read_log_from};
 pub use recorder::{
     DEFAULT_CAPACITY, DEFAULT_CHUNK_BYTES, DEFAULT_CHUNK_INTERVAL, EventSender, LogRecord,
-    MAX_CHUNK_BYTES, Recorder, RecorderOptions, RecorderStats,
+    MAX_CHUNK_BYTES, Recorder, RecorderOptions, RecorderStats, capacity_for_rate,
 };
 pub use replay::TIME_TOLERANCE_S;
 pub use summary::{ChannelSummary, LogSummary, SeqGap, TrackingError, summarize};

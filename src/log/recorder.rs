@@ -27,6 +27,23 @@ use std::time::{Duration, Instant};
 /// 8192 records: command + state at 1 kHz for 4 s, twice the 2 s a stalled disk must be
 /// ridden out for. About 4.5 MB, allocated once at `create`.
 pub const DEFAULT_CAPACITY: usize = 8192;
+/// Seconds of records the channel holds: twice the 2 s a stalled disk must be ridden out for.
+const BUFFERED_S: f64 = 4.0;
+/// Records per cycle: a command and a state.
+const RECORDS_PER_CYCLE: f64 = 2.0;
+/// The least capacity at any rate (slow rigs still get room for bursts of events' records).
+const MIN_CAPACITY: usize = 256;
+
+/// The channel capacity that holds [`BUFFERED_S`] of records at `rate_hz`, up to
+/// [`DEFAULT_CAPACITY`] (1 kHz): a 250 Hz job needs a quarter of it (about 1.1 MB).
+pub fn capacity_for_rate(rate_hz: f64) -> usize {
+    let wanted = (RECORDS_PER_CYCLE * rate_hz * BUFFERED_S).ceil();
+    if wanted.is_finite() && wanted > 0.0 {
+        (wanted as usize).clamp(MIN_CAPACITY, DEFAULT_CAPACITY)
+    } else {
+        DEFAULT_CAPACITY
+    }
+}
 /// Uncompressed bytes per chunk. A SIGKILL loses at most the open chunk: at 1 kHz with six
 /// joints this closes a chunk about every 0.2 s.
 pub const DEFAULT_CHUNK_BYTES: usize = 128 * 1024;
@@ -36,10 +53,27 @@ pub const MAX_CHUNK_BYTES: usize = 16 << 20;
 pub const DEFAULT_CHUNK_INTERVAL: Duration = Duration::from_secs(1);
 
 /// The writer polls rather than sleeps on the channel, so `try_send` never has a parked
-/// receiver to wake: no futex call on the cycle thread. 2 ms is 2 cycles at 1 kHz.
-const POLL: Duration = Duration::from_millis(2);
+/// receiver to wake: no futex call on the cycle thread. Every 10 ms: 20 records at 1 kHz,
+/// half a percent of the channel; a daemon with 128 jobs wakes 12 800 times a second for
+/// them, not 64 000 (issue 18).
+const POLL: Duration = Duration::from_millis(10);
 /// Records written per pass before events and chunk closing get a turn.
 const BATCH: usize = 1024;
+
+/// Writes every slot of the records channel once, and empties it again: the cycle's
+/// `try_send` then never touches a fresh page. A first touch is a page fault, which waits
+/// for the process' memory map whenever another thread is changing it (an allocation
+/// elsewhere): milliseconds late, on a loaded machine, for a real-time cycle.
+fn prefault(records: &SyncSender<LogRecord>, taken: &Receiver<LogRecord>) {
+    let blank = LogRecord::Command {
+        seq: 0,
+        t: 0.0,
+        positions: AxisValues::zeros(0),
+        velocities: AxisValues::zeros(0),
+    };
+    while records.try_send(blank).is_ok() {}
+    while taken.try_recv().is_ok() {}
+}
 
 /// One cycle's command or measured state, handed to [`Recorder::record`] by value.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -217,6 +251,7 @@ impl Recorder {
         let wait_when_full = options.wait_when_full;
         let sink = Sink::open(path, rig_name, joint_names, &metadata, &options)?;
         let (records_tx, records_rx) = mpsc::sync_channel(options.capacity);
+        prefault(&records_tx, &records_rx);
         let (events_tx, events_rx) = mpsc::channel();
         let dropped = Arc::new(AtomicU64::new(0));
         let thread_dropped = Arc::clone(&dropped);

@@ -121,8 +121,12 @@ impl Follow {
         if finished {
             return self.goal(feedback, target, now);
         }
-        match self.worst(feedback, target, &self.tolerances.path) {
-            Some(text) => Verdict::OffPath(format!("{text} (path tolerance)")),
+        let limit = &self.tolerances.path;
+        match self.worst_axis(feedback, target, limit) {
+            Some(axis) => Verdict::OffPath(format!(
+                "{} (path tolerance)",
+                self.describe(axis, feedback, target, limit)
+            )),
             None => Verdict::Following,
         }
     }
@@ -153,11 +157,15 @@ impl Follow {
 
     fn goal(&mut self, feedback: &Feedback, target: &JointTarget, now: Duration) -> Verdict {
         let since = *self.goal_since.get_or_insert(now);
-        match self.worst(feedback, target, &self.tolerances.goal) {
+        let limit = &self.tolerances.goal;
+        // Words only once they end the stream: the cycles of settling at the goal allocate
+        // nothing.
+        match self.worst_axis(feedback, target, limit) {
             None => Verdict::GoalReached,
-            Some(text) if now.saturating_sub(since) >= self.tolerances.goal_time => {
+            Some(axis) if now.saturating_sub(since) >= self.tolerances.goal_time => {
                 Verdict::GoalMissed(format!(
-                    "{text} {:.2} s after the end (goal tolerance)",
+                    "{} {:.2} s after the end (goal tolerance)",
+                    self.describe(axis, feedback, target, limit),
                     self.tolerances.goal_time.as_secs_f64()
                 ))
             }
@@ -165,13 +173,13 @@ impl Follow {
         }
     }
 
-    /// The axis furthest beyond its tolerance, in words; None when all are within.
-    fn worst(
+    /// The axis furthest beyond its tolerance; None when all are within.
+    fn worst_axis(
         &self,
         feedback: &Feedback,
         target: &JointTarget,
         limit: &AxisValues,
-    ) -> Option<String> {
+    ) -> Option<usize> {
         let actual = feedback.positions.as_slice();
         let commanded = target.positions.as_slice();
         let mut worst: Option<(usize, f64)> = None;
@@ -183,10 +191,22 @@ impl Follow {
                 worst = Some((axis, excess));
             }
         }
-        let (axis, _) = worst?;
+        worst.map(|(axis, _)| axis)
+    }
+
+    /// How far `axis` is from its target, beyond its tolerance, in words.
+    fn describe(
+        &self,
+        axis: usize,
+        feedback: &Feedback,
+        target: &JointTarget,
+        limit: &AxisValues,
+    ) -> String {
+        let actual = feedback.positions.as_slice();
+        let commanded = target.positions.as_slice();
         let off = (actual[axis] - commanded[axis]).abs();
         let allowed = limit.as_slice().get(axis).copied().unwrap_or(0.0);
-        Some(if self.revolute.get(axis).copied().unwrap_or(true) {
+        if self.revolute.get(axis).copied().unwrap_or(true) {
             format!(
                 "{} is {:.3} deg from its target, beyond {:.3} deg",
                 self.names[axis],
@@ -198,6 +218,6 @@ impl Follow {
                 "{} is {:.4} m from its target, beyond {:.4} m",
                 self.names[axis], off, allowed
             )
-        })
+        }
     }
 }

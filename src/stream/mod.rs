@@ -14,11 +14,13 @@
 //! It owns the cycle only; it must not plan, encode bytes or write files.
 
 mod controller;
+mod executor;
 mod follow;
 mod metrics;
 mod realtime;
 
 pub use controller::{Incompatible, check_controller};
+pub use executor::{CycleTask, Executor, ExecutorSettings, Handback};
 pub use follow::Tolerances;
 pub use metrics::MicrosHistogram;
 pub use realtime::raise_priority;
@@ -61,6 +63,8 @@ pub enum StreamError {
     NoSession { link: String },
     #[error(transparent)]
     Link(#[from] LinkError),
+    #[error("the shared executor stopped before the stream ended")]
+    ExecutorStopped,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -115,6 +119,7 @@ pub struct StreamControl {
     estop: AtomicBool,
     progress_bits: AtomicU64,
     cycles: AtomicU64,
+    overruns: AtomicU64,
 }
 
 impl StreamControl {
@@ -146,6 +151,10 @@ impl StreamControl {
     }
     pub fn cycles(&self) -> u64 {
         self.cycles.load(Ordering::Relaxed)
+    }
+    /// Cycles whose work overran its budget on the shared executor, so far.
+    pub fn overruns(&self) -> u64 {
+        self.overruns.load(Ordering::Relaxed)
     }
 }
 
@@ -239,6 +248,9 @@ pub struct StreamReport {
     pub latency_p50_us: f64,
     pub latency_p99_us: f64,
     pub tracking_error_max_deg: f64,
+    /// Cycles whose work overran its budget on the shared executor (the stream then went
+    /// on on a thread of its own); always 0 on a thread of its own.
+    pub overruns: u64,
     pub duration_s: f64,
     /// Whole trajectory samples passed when streaming ended (where to resume after a loss).
     pub samples_done: usize,
@@ -278,13 +290,15 @@ impl StreamReport {
             tracking_error_max_deg: self
                 .tracking_error_max_deg
                 .max(later.tracking_error_max_deg),
+            overruns: self.overruns + later.overruns,
             duration_s: self.duration_s + later.duration_s,
             ..later
         }
     }
 }
 
-/// Streams `trajectory` to the controller behind `link`, one sample per period.
+/// Streams `trajectory` to the controller behind `link`, one sample per period, on the
+/// calling thread: it sleeps to each deadline on `clock`.
 pub fn stream(
     trajectory: &Trajectory,
     rig: &Rig,
@@ -294,105 +308,255 @@ pub fn stream(
     control: &StreamControl,
     settings: &StreamSettings,
 ) -> Result<StreamReport, StreamError> {
-    validate(trajectory, rig)?;
-    let echo = check_start(trajectory, rig, link, settings)?;
-    // Within one session the controller drops a target not newer than the last it took
-    // (docs/protocol.md 6.3): a stream after another (the next job on a daemon's link)
-    // numbers on from the controller's echo.
-    let settings = &StreamSettings {
-        first_seq: newer_seq(settings.first_seq, echo),
-        ..*settings
-    };
-    let mut cycle = Cycle::new(trajectory, rig, settings);
+    let mut run = Run::prepare(trajectory, rig, link, clock, sink, control, settings)?;
     let start = clock.now();
-    let period = Duration::from_secs_f64(trajectory.period_s);
-    let outcome = loop {
-        // Deadlines count from this stream's start: a resumed stream starts at once.
-        let deadline = start + period * (cycle.seq - cycle.first_seq);
-        clock.sleep_until(deadline);
-        let late = clock.now().saturating_sub(deadline);
-        cycle.record_wake(late, trajectory.period_s);
-        // Checked before anything is sent: what was planned for the stalled cycles is stale.
-        if late > period * settings.stall_cycles {
-            link.send(&Command::Stop)?;
-            cycle.fault = Some(format!(
-                "the cycle woke {:.1} ms late",
-                late.as_secs_f64() * 1e3
-            ));
-            break Outcome::Stalled;
-        }
-        if let Some(outcome) = cycle_once(&mut cycle, trajectory, rig, link, clock, sink, control)?
-        {
-            break outcome;
-        }
-    };
-    Ok(cycle.report(
-        outcome,
-        trajectory.period_s,
-        link.counters(),
-        link.describe(),
-    ))
+    run.on_own_thread(clock, start);
+    run.finish()
 }
 
-/// One cycle: events, the next target through the gate, its feedback, the following
-/// checks. `Some(outcome)` ends the stream.
-fn cycle_once(
-    cycle: &mut Cycle,
+/// [`stream`] with its cycles run by `executor` beside other streams' (the calling thread
+/// waits meanwhile). A stream whose cycle work overruns its budget is handed back and goes
+/// on on the calling thread, on the executor's clock, so it delays no other stream again.
+#[allow(clippy::too_many_arguments)]
+pub fn stream_shared(
+    executor: &Executor,
     trajectory: &Trajectory,
     rig: &Rig,
     link: &mut dyn Link,
     clock: &dyn Clock,
-    sink: &mut dyn CycleSink,
+    sink: &mut (dyn CycleSink + Send),
     control: &StreamControl,
-) -> Result<Option<Outcome>, StreamError> {
-    if control.estop.load(Ordering::SeqCst) {
-        link.send(&Command::EStop)?;
-        return Ok(Some(Outcome::EStopped));
+    settings: &StreamSettings,
+) -> Result<StreamReport, StreamError> {
+    let mut run = Run::prepare(trajectory, rig, link, clock, sink, control, settings)?;
+    match executor.run(&mut run)? {
+        Handback::Ended => {}
+        Handback::Evicted { next_deadline } => run.on_own_thread(executor.clock(), next_deadline),
     }
-    if let Some(outcome) = cycle.events(link) {
-        if outcome == Outcome::EncodeFailed {
-            link.send(&Command::Stop)?;
+    run.finish()
+}
+
+/// One stream between its start checks and its end: the cycle's state and what it drives.
+/// Its cycle is split in two halves, so that an executor can pass every due stream's gate
+/// before any stream's feedback: [`Run::send_half`] (the wake, events, the next target
+/// through the gate, sent) and [`Run::receive_half`] (its feedback, the following checks).
+struct Run<'a, S: CycleSink + ?Sized> {
+    cycle: Cycle,
+    trajectory: &'a Trajectory,
+    rig: &'a Rig,
+    link: &'a mut dyn Link,
+    clock: &'a dyn Clock,
+    sink: &'a mut S,
+    control: &'a StreamControl,
+    period: Duration,
+    stall_after: Duration,
+    /// The target the send half sent, awaiting its feedback in the receive half.
+    sent: Option<Sent>,
+    /// How the stream ended, once it has.
+    end: Option<Result<Outcome, StreamError>>,
+}
+
+#[derive(Clone, Copy)]
+struct Sent {
+    target: JointTarget,
+    finished: bool,
+    /// Feedback that was already waiting before the target went out.
+    late: Option<Feedback>,
+}
+
+impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
+    fn prepare(
+        trajectory: &'a Trajectory,
+        rig: &'a Rig,
+        link: &'a mut dyn Link,
+        clock: &'a dyn Clock,
+        sink: &'a mut S,
+        control: &'a StreamControl,
+        settings: &StreamSettings,
+    ) -> Result<Self, StreamError> {
+        validate(trajectory, rig)?;
+        let echo = check_start(trajectory, rig, link, settings)?;
+        // Within one session the controller drops a target not newer than the last it took
+        // (docs/protocol.md 6.3): a stream after another (the next job on a daemon's link)
+        // numbers on from the controller's echo.
+        let settings = &StreamSettings {
+            first_seq: newer_seq(settings.first_seq, echo),
+            ..*settings
+        };
+        let period = Duration::from_secs_f64(trajectory.period_s);
+        Ok(Run {
+            cycle: Cycle::new(trajectory, rig, settings),
+            trajectory,
+            rig,
+            link,
+            clock,
+            sink,
+            control,
+            period,
+            stall_after: period * settings.stall_cycles,
+            sent: None,
+            end: None,
+        })
+    }
+
+    /// Runs the cycles on the calling thread from `start` on `clock`, the first deadline;
+    /// deadlines count from there (a resumed stream starts at once).
+    fn on_own_thread(&mut self, clock: &dyn Clock, start: Duration) {
+        let first = self.cycle.seq;
+        loop {
+            let deadline = start + self.period * (self.cycle.seq - first);
+            clock.sleep_until(deadline);
+            let late = clock.now().saturating_sub(deadline);
+            if self.send_half(late) || self.receive_half() {
+                return;
+            }
         }
-        return Ok(Some(outcome));
     }
-    let finished = cycle.advance(control, trajectory);
-    let Some(target) = cycle.target(trajectory, rig) else {
-        link.send(&Command::Stop)?;
-        return Ok(Some(Outcome::GateRefused));
-    };
-    let late = latest_feedback(link)?;
-    link.send(&Command::Target(target))?;
-    cycle.sent_at[target.seq as usize % SEND_TIMES] = clock.now();
-    let feedback = await_echo(link, target.seq, cycle.feedback_timeout)?.or(late);
-    let latency_us = cycle.record_feedback(feedback.as_ref(), &target, clock.now());
-    sink.record(&CycleRecord {
-        target,
-        feedback,
-        late_us: cycle.last_late_us,
-        latency_us: latency_us.map(|us| us as f32),
-        counters: link.counters(),
-    });
-    control.cycles.store(cycle.seq as u64, Ordering::Relaxed);
-    control
-        .progress_bits
-        .store(cycle.progress(trajectory).to_bits(), Ordering::Relaxed);
-    if let Some(ControllerStatus::Fault(fault)) = feedback.map(|f| f.status) {
-        cycle.fault = Some(format!("controller fault: {fault}"));
-        return Ok(Some(Outcome::Faulted));
+
+    fn finish(self) -> Result<StreamReport, StreamError> {
+        let outcome = self.end.unwrap_or(Err(StreamError::ExecutorStopped))?;
+        Ok(self.cycle.report(
+            outcome,
+            self.trajectory.period_s,
+            self.link.counters(),
+            self.link.describe(),
+        ))
     }
-    let verdict = cycle
-        .follow
-        .check(feedback.as_ref(), &target, finished, clock.now());
-    if let Some(outcome) = cycle.conclude(verdict, finished) {
-        if outcome != Outcome::Completed {
-            link.send(&Command::Stop)?;
+
+    /// The cycle woke `late` after its deadline: recorded; a stall ends the stream before
+    /// anything is sent; otherwise events, the next target through the gate, and the send.
+    /// True once the stream has ended.
+    fn send_half(&mut self, late: Duration) -> bool {
+        self.cycle.record_wake(late, self.trajectory.period_s);
+        // Checked before anything is sent: what was planned for the stalled cycles is stale.
+        let result = if late > self.stall_after {
+            self.link
+                .send(&Command::Stop)
+                .map_err(StreamError::from)
+                .map(|()| {
+                    self.cycle.fault = Some(format!(
+                        "the cycle woke {:.1} ms late",
+                        late.as_secs_f64() * 1e3
+                    ));
+                    Some(Outcome::Stalled)
+                })
+        } else {
+            self.gate_and_send()
+        };
+        self.settle(result)
+    }
+
+    /// The second half: the sent target's feedback, the sink, the following checks.
+    fn receive_half(&mut self) -> bool {
+        let result = self.feedback();
+        self.settle(result)
+    }
+
+    fn settle(&mut self, result: Result<Option<Outcome>, StreamError>) -> bool {
+        match result {
+            Ok(None) => false,
+            Ok(Some(outcome)) => {
+                self.end = Some(Ok(outcome));
+                true
+            }
+            Err(error) => {
+                self.end = Some(Err(error));
+                true
+            }
         }
-        return Ok(Some(outcome));
     }
-    if cycle.silent_cycles > cycle.max_silent_cycles || !link.is_up() {
-        return Ok(Some(Outcome::LinkLost));
+
+    /// Events, the next target through the gate, sent. `Some(outcome)` ends the stream.
+    fn gate_and_send(&mut self) -> Result<Option<Outcome>, StreamError> {
+        let (cycle, link) = (&mut self.cycle, &mut *self.link);
+        if self.control.estop.load(Ordering::SeqCst) {
+            link.send(&Command::EStop)?;
+            return Ok(Some(Outcome::EStopped));
+        }
+        if let Some(outcome) = cycle.events(link) {
+            if outcome == Outcome::EncodeFailed {
+                link.send(&Command::Stop)?;
+            }
+            return Ok(Some(outcome));
+        }
+        let finished = cycle.advance(self.control, self.trajectory);
+        let Some(target) = cycle.target(self.trajectory, self.rig) else {
+            link.send(&Command::Stop)?;
+            return Ok(Some(Outcome::GateRefused));
+        };
+        let late = latest_feedback(link)?;
+        link.send(&Command::Target(target))?;
+        cycle.sent_at[target.seq as usize % SEND_TIMES] = self.clock.now();
+        self.sent = Some(Sent {
+            target,
+            finished,
+            late,
+        });
+        Ok(None)
     }
-    Ok(None)
+
+    /// The feedback of the target sent, the sink, the following checks.
+    fn feedback(&mut self) -> Result<Option<Outcome>, StreamError> {
+        let Some(Sent {
+            target,
+            finished,
+            late,
+        }) = self.sent.take()
+        else {
+            return Ok(None);
+        };
+        let (cycle, link, clock, control) =
+            (&mut self.cycle, &mut *self.link, self.clock, self.control);
+        let feedback = await_echo(link, target.seq, cycle.feedback_timeout)?.or(late);
+        let latency_us = cycle.record_feedback(feedback.as_ref(), &target, clock.now());
+        self.sink.record(&CycleRecord {
+            target,
+            feedback,
+            late_us: cycle.last_late_us,
+            latency_us: latency_us.map(|us| us as f32),
+            counters: link.counters(),
+        });
+        control.cycles.store(cycle.seq as u64, Ordering::Relaxed);
+        control
+            .progress_bits
+            .store(cycle.progress(self.trajectory).to_bits(), Ordering::Relaxed);
+        if let Some(ControllerStatus::Fault(fault)) = feedback.map(|f| f.status) {
+            cycle.fault = Some(format!("controller fault: {fault}"));
+            return Ok(Some(Outcome::Faulted));
+        }
+        let verdict = cycle
+            .follow
+            .check(feedback.as_ref(), &target, finished, clock.now());
+        if let Some(outcome) = cycle.conclude(verdict, finished) {
+            if outcome != Outcome::Completed {
+                link.send(&Command::Stop)?;
+            }
+            return Ok(Some(outcome));
+        }
+        if cycle.silent_cycles > cycle.max_silent_cycles || !link.is_up() {
+            return Ok(Some(Outcome::LinkLost));
+        }
+        Ok(None)
+    }
+}
+
+impl<S: CycleSink + Send + ?Sized> CycleTask for Run<'_, S> {
+    fn period(&self) -> Duration {
+        self.period
+    }
+
+    fn send_half(&mut self, late: Duration) -> bool {
+        Run::send_half(self, late)
+    }
+
+    fn receive_half(&mut self) -> bool {
+        Run::receive_half(self)
+    }
+
+    fn overran(&mut self) {
+        self.cycle.overruns += 1;
+        self.control.overruns.fetch_add(1, Ordering::Relaxed);
+    }
 }
 
 /// Whatever feedback is already waiting, newest last: read before sending, so a cycle
@@ -500,6 +664,7 @@ struct Cycle {
     timeouts: u64,
     violations: u64,
     tracking_max: f64,
+    overruns: u64,
     revolute: Vec<bool>,
     fault: Option<String>,
     sent_at: [Duration; SEND_TIMES],
@@ -534,6 +699,7 @@ impl Cycle {
             timeouts: 0,
             violations: 0,
             tracking_max: 0.0,
+            overruns: 0,
             revolute: rig
                 .joints
                 .iter()
@@ -754,6 +920,7 @@ impl Cycle {
             latency_p50_us: 0.0,
             latency_p99_us: 0.0,
             tracking_error_max_deg: 0.0,
+            overruns: 0,
             duration_s: 0.0,
             samples_done: 0,
             last_seq: 0,
@@ -782,6 +949,7 @@ impl Cycle {
             latency_p50_us: self.latency.percentile(0.5),
             latency_p99_us: self.latency.percentile(0.99),
             tracking_error_max_deg: self.tracking_max,
+            overruns: self.overruns,
             duration_s: f64::from(self.seq - self.first_seq) * period_s,
             samples_done: self.path.floor() as usize,
             last_seq: self.seq,

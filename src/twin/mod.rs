@@ -17,7 +17,7 @@ pub mod serial_port;
 pub mod server;
 mod world;
 
-pub use world::{SharedWorld, TwinWorld};
+pub use world::{SharedWorld, TwinWorld, ViewOnly};
 
 use crate::protocol::{
     AxisValues, Command, ControllerStatus, Fault, FaultReport, Feedback, Hello, JointTarget,

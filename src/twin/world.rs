@@ -24,6 +24,23 @@ impl<W: TwinWorld> TwinWorld for Arc<Mutex<W>> {
     }
 }
 
+/// A world only a view watches (the tool's trace the live view draws): an observation that
+/// would wait for its reader is skipped, so the twin's cycle, which may run on the shared
+/// real-time executor, never waits for a view's thread (a reader preempted while holding
+/// the lock would hold the cycle for milliseconds). A measuring world (paint) must not be
+/// wrapped: it must see every cycle.
+pub struct ViewOnly<W>(pub Arc<Mutex<W>>);
+
+impl<W: TwinWorld> TwinWorld for ViewOnly<W> {
+    fn observe(&mut self, actual: &[f64]) {
+        match self.0.try_lock() {
+            Ok(mut world) => world.observe(actual),
+            Err(std::sync::TryLockError::Poisoned(world)) => world.into_inner().observe(actual),
+            Err(std::sync::TryLockError::WouldBlock) => {}
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

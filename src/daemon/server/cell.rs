@@ -12,13 +12,13 @@ use crate::clock::{Clock, VirtualClock, WallClock};
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::daemon::reset::{RESET_TIMEOUT, ResetOutcome, reset_controller};
 use crate::daemon::{
-    ActionLog, DaemonError, RunReport, error_chain, plan_for, stream_planned_with,
+    ActionLog, DaemonError, RunReport, Sinks, error_chain, plan_for, stream_planned_with,
 };
 use crate::link::{Link, LinkSpec, LoopbackLink};
 use crate::log::Recorder;
 use crate::protocol::ControllerStatus;
 use crate::rig::JointKind;
-use crate::stream::{Outcome, StreamControl};
+use crate::stream::{Executor, Outcome, StreamControl};
 use crate::twin::{SharedWorld, Twin};
 use crate::view::{JobView, LiveHub, LiveSample, LiveSink, LiveSlot};
 use serde::Serialize;
@@ -112,6 +112,7 @@ impl ActiveJob {
             name: self.name.clone(),
             progress: self.control.progress(),
             cycles: self.control.cycles(),
+            overruns: self.control.overruns(),
             paused: self.control.is_paused(),
         }
     }
@@ -176,6 +177,9 @@ pub struct JobStatus {
     name: String,
     progress: f64,
     cycles: u64,
+    /// Cycles that overran their budget on the shared executor (the job then went on on
+    /// its own thread).
+    overruns: u64,
     paused: bool,
 }
 
@@ -245,6 +249,9 @@ pub struct Cell {
     /// faulted, a reset it refused); cleared by a reset it carried out. The in-process
     /// twin's own status wins whenever the link is free to read it.
     latched: Mutex<Option<String>>,
+    /// The daemon's shared executor, if it has one: the cycles of jobs on the in-process
+    /// twin run there (a remote link's cycle waits for its echo, so it keeps its thread).
+    executor: Option<Arc<Executor>>,
 }
 
 /// Why a cell did not reset its controller.
@@ -259,7 +266,10 @@ pub enum ResetRefused {
 impl Cell {
     /// The cell of `settings`: its twin at the configured initial position, showing the
     /// configured job's scene until a job starts.
-    pub fn new(settings: RunSettings) -> Result<Cell, DaemonError> {
+    pub fn new(
+        settings: RunSettings,
+        executor: Option<Arc<Executor>>,
+    ) -> Result<Cell, DaemonError> {
         let (scene, job_world) = scene_for_job(&settings, &settings.config.job);
         let world = Arc::new(Mutex::new(JobWorld(job_world)));
         let twin = Twin::new(
@@ -292,6 +302,7 @@ impl Cell {
             world,
             journal: Mutex::new(None),
             latched: Mutex::new(None),
+            executor,
         })
     }
 
@@ -692,6 +703,10 @@ impl Cell {
             let _ = planned.send(Err(NotPlanned("twin lock poisoned".into())));
             return Err(DaemonError::Unavailable("twin lock poisoned".into()));
         };
+        let executor = match &*guard {
+            CellLink::Twin(_) if !clock.is_virtual() => self.executor.as_deref(),
+            _ => None,
+        };
         let link: &mut dyn Link = match &mut *guard {
             CellLink::Twin(twin) => twin.as_mut(),
             CellLink::Remote(remote) => match self.remote(remote) {
@@ -718,6 +733,13 @@ impl Cell {
         self.hub.set_scene(scene);
         let rate = self.settings.config.stream.rate_hz.round() as u64;
         let mut live = LiveSink::new(self.hub.slot(), rate);
+        // A device-paced link keeps its own pacing, on this thread.
+        let executor = executor.filter(|_| pacing.is_none());
+        let sinks = Sinks {
+            live: &mut live,
+            actions: Some(&actions),
+            executor,
+        };
         stream_planned_with(
             &self.settings,
             &plan,
@@ -725,8 +747,7 @@ impl Cell {
             clock,
             Some(log),
             control,
-            &mut live,
-            Some(&actions),
+            sinks,
         )
     }
 

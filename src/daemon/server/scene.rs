@@ -8,7 +8,7 @@ use crate::job::Scene;
 use crate::log::{LoggedScene, SceneSource};
 use crate::task::gait::forest::scenario_named;
 use crate::task::paint::{load_paint_settings, room_for, world_for};
-use crate::twin::TwinWorld;
+use crate::twin::{TwinWorld, ViewOnly};
 use crate::view::{ArmScene, LiveScene, PaintQuad, PaintScene, SceneView, SlothScene, ToolTrace};
 use std::sync::{Arc, Mutex};
 
@@ -45,7 +45,8 @@ pub fn scene_for_job(settings: &RunSettings, job: &JobConfig) -> JobScene {
         Scene::Wall(_) | Scene::Arm => {
             let trace = Arc::new(Mutex::new(ToolTrace::new(settings.rig.clone())));
             let scene = ArmScene::for_job(settings.rig.clone(), job, Some(trace.clone()));
-            (Box::new(scene), Some(Box::new(trace)))
+            // The trace is drawn, not measured: a cycle skips it rather than wait for the view.
+            (Box::new(scene), Some(Box::new(ViewOnly(trace))))
         }
     }
 }

@@ -1,0 +1,349 @@
+//! Many cells in one daemon (issue 18): N copies of the IRB 120 arm cell on the loopback
+//! twin, served by `rigbridge::daemon::server::run` in this process and driven over its
+//! HTTP API, every cell streaming a steady joint job at once, at 250 Hz and at 1 kHz, with
+//! the cells' cycles on the shared executor and on a thread per cell (`[serve] executor`),
+//! both in one run. Each (design, rate, N) runs in a child process of its own, so its CPU
+//! time and memory are its own. Prints per cell jitter p50/p99/max (median cell and worst
+//! cell, from each job's report), missed cycles, overruns, CPU time per cell-cycle
+//! (getrusage of the process over a window in which every cell streams, divided by the
+//! cycles the cells ran in it) and memory per cell (resident set growth from before the
+//! daemon started, divided by N), then the ratios of the two designs.
+//!
+//! `cargo bench --bench cells`; sizes: `CELLS=1,8,32,128` (250 Hz), `CELLS_1KHZ=1,8,16`.
+
+#[path = "../tests/common/flood.rs"]
+mod flood;
+
+use rigbridge::daemon::config::{ExecutorKind, RunSettings, load_run_settings};
+use rigbridge::daemon::server::{ServeOptions, run};
+use serde_json::{Value, json};
+use std::net::SocketAddr;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+const CHILD: &str = "RIGBRIDGE_CELLS_BENCH_CHILD";
+/// Every axis moves between these, about 0.6 s a move: a job of cheap planning that
+/// streams long enough for the window.
+const A: [f64; 6] = [20.0, 10.0, 10.0, 0.0, 40.0, 10.0];
+const B: [f64; 6] = [-20.0, -5.0, -10.0, 10.0, 20.0, -10.0];
+const MOVES: usize = 24;
+/// CPU and cycles are counted over this window, once every cell streams.
+const WINDOW: Duration = Duration::from_secs(4);
+const ANSWERED_WITHIN: Duration = Duration::from_secs(30);
+const JSON: &str = "Content-Type: application/json\r\n";
+
+fn main() {
+    if std::env::args().any(|a| a == "--list") {
+        return;
+    }
+    if let Ok(spec) = std::env::var(CHILD) {
+        child(&spec);
+        return;
+    }
+    let sizes = |var: &str, default: &str| -> Vec<usize> {
+        std::env::var(var)
+            .unwrap_or_else(|_| default.into())
+            .split(',')
+            .filter_map(|n| n.trim().parse().ok())
+            .collect()
+    };
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
+    println!("load average (1, 5, 15 min) at start: {}", load.trim());
+    let mut rows = Vec::new();
+    for (rate, sizes) in [
+        (250.0, sizes("CELLS", "1,8,32,128")),
+        (1000.0, sizes("CELLS_1KHZ", "1,8,16")),
+    ] {
+        for n in sizes {
+            for design in ["thread_per_cell", "shared"] {
+                let row = spawn_child(design, n, rate);
+                print_row(&row);
+                rows.push(row);
+            }
+        }
+    }
+    print_ratios(&rows);
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
+    println!("load average at end: {}", load.trim());
+}
+
+fn spawn_child(design: &str, n: usize, rate: f64) -> Value {
+    let output = std::process::Command::new(std::env::current_exe().expect("own path"))
+        .env(CHILD, format!("{design} {n} {rate}"))
+        .stderr(std::process::Stdio::null())
+        .output()
+        .expect("child bench");
+    let text = String::from_utf8_lossy(&output.stdout);
+    text.lines()
+        .rev()
+        .find_map(|line| serde_json::from_str(line).ok())
+        .unwrap_or_else(|| json!({"design": design, "cells": n, "rate_hz": rate, "error": text}))
+}
+
+fn print_row(row: &Value) {
+    if let Some(error) = row.get("error") {
+        println!("{row}: FAILED {error}");
+        return;
+    }
+    println!(
+        "{:>6} Hz {:>4} cells {:>16}: jitter p50 {:>5} us, p99 {:>5} us (worst cell {:>5} us = {:>5.1} % of the cycle), max {:>6} us; missed {:>5} of {:>7}; overruns {:>3}; CPU {:>6.1} us per cell-cycle; {:>5.2} MB per cell; {} of {} completed",
+        row["rate_hz"],
+        row["cells"],
+        row["design"].as_str().unwrap_or(""),
+        row["p50_median_us"],
+        row["p99_median_us"],
+        row["p99_worst_us"],
+        row["p99_worst_share"].as_f64().unwrap_or(0.0) * 100.0,
+        row["max_worst_us"],
+        row["missed"],
+        row["cycles"],
+        row["overruns"],
+        row["cpu_us_per_cell_cycle"].as_f64().unwrap_or(f64::NAN),
+        row["mb_per_cell"].as_f64().unwrap_or(f64::NAN),
+        row["completed"],
+        row["cells"],
+    );
+}
+
+fn print_ratios(rows: &[Value]) {
+    println!("thread per cell / shared, same run:");
+    for shared in rows.iter().filter(|r| r["design"] == "shared") {
+        let Some(thread) = rows.iter().find(|r| {
+            r["design"] == "thread_per_cell"
+                && r["cells"] == shared["cells"]
+                && r["rate_hz"] == shared["rate_hz"]
+        }) else {
+            continue;
+        };
+        let ratio = |key: &str| {
+            thread[key].as_f64().unwrap_or(f64::NAN) / shared[key].as_f64().unwrap_or(f64::NAN)
+        };
+        println!(
+            "{:>6} Hz {:>4} cells: CPU per cell-cycle x{:.1}, memory per cell x{:.1}, worst p99 jitter x{:.1}",
+            shared["rate_hz"],
+            shared["cells"],
+            ratio("cpu_us_per_cell_cycle"),
+            ratio("mb_per_cell"),
+            ratio("p99_worst_us"),
+        );
+    }
+}
+
+// ------------------------------------------------------------------ child --
+
+fn child(spec: &str) {
+    let mut parts = spec.split(' ');
+    let design = parts.next().unwrap_or("shared").to_string();
+    let n: usize = parts.next().and_then(|p| p.parse().ok()).unwrap_or(1);
+    let rate: f64 = parts.next().and_then(|p| p.parse().ok()).unwrap_or(250.0);
+    let base = load_run_settings(Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/config/rigbridge.toml"
+    )))
+    .expect("run settings");
+    let cells: Vec<RunSettings> = (0..n)
+        .map(|i| {
+            let mut cell = base.clone();
+            cell.rig.name = format!("arm{i:03}");
+            cell.config.stream.rate_hz = rate;
+            cell.config.serve.executor = if design == "shared" {
+                ExecutorKind::Shared
+            } else {
+                ExecutorKind::ThreadPerCell
+            };
+            cell
+        })
+        .collect();
+    let runs = std::env::temp_dir().join(format!("rigbridge-cells-bench-{}", std::process::id()));
+    let rss_before = rss_bytes();
+    let runtime = tokio::runtime::Runtime::new().expect("runtime");
+    let listener = runtime
+        .block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))
+        .expect("listener");
+    let address = listener.local_addr().expect("address");
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let options = ServeOptions {
+        runs_dir: runs.clone(),
+        virtual_clock: false,
+        token: None,
+        allowed_hosts: Vec::new(),
+        before_job: None,
+        // Only the cycles are measured: no Foxglove server beside them.
+        foxglove_port: 0,
+        foxglove_allow_remote: false,
+    };
+    let server = runtime.spawn(run(listener, cells, options, async {
+        let _ = stopped.await;
+    }));
+    let figures = measure(address, n, rate);
+    let _ = stop.send(());
+    let _ = runtime.block_on(server);
+    let _ = std::fs::remove_dir_all(&runs);
+    let mut row = figures.finish(n);
+    row["design"] = design.into();
+    row["rate_hz"] = rate.into();
+    row["mb_per_cell"] =
+        ((figures.rss_streaming.saturating_sub(rss_before)) as f64 / n as f64 / 1e6).into();
+    println!("{row}");
+}
+
+struct Figures {
+    cpu: Duration,
+    window_cycles: u64,
+    rss_streaming: u64,
+    reports: Vec<Value>,
+}
+
+fn measure(address: SocketAddr, n: usize, rate: f64) -> Figures {
+    let body = job_body();
+    for i in 0..n {
+        let (code, answer) = call(
+            address,
+            "POST",
+            &format!("/api/cells/arm{i:03}/jobs"),
+            &body,
+        );
+        assert_eq!(code, 202, "{answer}");
+    }
+    // Every cell streaming: then the window.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let first = loop {
+        let cycles = cycles_now(address);
+        if cycles.len() == n && cycles.iter().all(|c| *c > 0) {
+            break cycles;
+        }
+        assert!(Instant::now() < deadline, "cells did not all start");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let cpu_before = cpu_time();
+    std::thread::sleep(WINDOW);
+    let cpu = cpu_time() - cpu_before;
+    let last = cycles_now(address);
+    let rss_streaming = rss_bytes();
+    assert_eq!(
+        last.len(),
+        n,
+        "a job ended inside the window: make the job longer"
+    );
+    let window_cycles = last.iter().zip(&first).map(|(b, a)| b - a).sum();
+    let _ = rate;
+    let reports = (0..n)
+        .map(|i| {
+            let path = format!("/api/cells/arm{i:03}/status");
+            let deadline = Instant::now() + Duration::from_secs(120);
+            loop {
+                let (_, status) = call(address, "GET", &path, "");
+                if status["state"] == "idle" && !status["last"].is_null() {
+                    break status["last"].clone();
+                }
+                assert!(Instant::now() < deadline, "{path} did not end: {status}");
+                std::thread::sleep(Duration::from_millis(100));
+            }
+        })
+        .collect();
+    Figures {
+        cpu,
+        window_cycles,
+        rss_streaming,
+        reports,
+    }
+}
+
+impl Figures {
+    fn finish(&self, n: usize) -> Value {
+        let field = |key: &str| -> Vec<f64> {
+            let mut values: Vec<f64> = self
+                .reports
+                .iter()
+                .map(|r| r["report"][key].as_f64().unwrap_or(f64::NAN))
+                .collect();
+            values.sort_by(f64::total_cmp);
+            values
+        };
+        let (p50, p99, max) = (
+            field("jitter_p50_us"),
+            field("jitter_p99_us"),
+            field("jitter_max_us"),
+        );
+        let rate_cycle_us = |r: &Value| 1e6 / r["report"]["rate_hz"].as_f64().unwrap_or(1.0);
+        let worst_share = self
+            .reports
+            .iter()
+            .map(|r| r["report"]["jitter_p99_us"].as_f64().unwrap_or(f64::NAN) / rate_cycle_us(r))
+            .fold(0.0, f64::max);
+        let sum = |key: &str| -> u64 {
+            self.reports
+                .iter()
+                .map(|r| r["report"][key].as_u64().unwrap_or(0))
+                .sum()
+        };
+        let completed = self
+            .reports
+            .iter()
+            .filter(|r| r["report"]["outcome"] == "completed")
+            .count();
+        json!({
+            "cells": n,
+            "p50_median_us": p50[p50.len() / 2],
+            "p99_median_us": p99[p99.len() / 2],
+            "p99_worst_us": p99[p99.len() - 1],
+            "p99_worst_share": worst_share,
+            "max_worst_us": max[max.len() - 1],
+            "missed": sum("missed_cycles"),
+            "cycles": sum("cycles"),
+            "overruns": sum("overruns"),
+            "completed": completed,
+            "cpu_us_per_cell_cycle": self.cpu.as_secs_f64() * 1e6 / self.window_cycles.max(1) as f64,
+        })
+    }
+}
+
+fn job_body() -> String {
+    let waypoints: Vec<[f64; 6]> = (0..MOVES).map(|i| if i % 2 == 0 { A } else { B }).collect();
+    json!({"job": {"kind": "joint_waypoints", "waypoints_deg": waypoints}}).to_string()
+}
+
+/// Each streaming cell's cycles so far (cells without a running job are left out).
+fn cycles_now(address: SocketAddr) -> Vec<u64> {
+    let (_, cells) = call(address, "GET", "/api/cells", "");
+    cells["cells"]
+        .as_array()
+        .map(|cells| {
+            cells
+                .iter()
+                .filter_map(|c| c["job"]["cycles"].as_u64())
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+fn call(address: SocketAddr, method: &str, path: &str, body: &str) -> (u16, Value) {
+    let headers = if method == "POST" { JSON } else { "" };
+    let (answer, _) = flood::http(address, method, path, headers, body, ANSWERED_WITHIN);
+    let (code, body) = answer.unwrap_or_else(|| panic!("{method} {path}: no answer"));
+    (code, serde_json::from_str(&body).unwrap_or(Value::Null))
+}
+
+/// User and system CPU time of this process so far.
+fn cpu_time() -> Duration {
+    // SAFETY: getrusage fills the struct it is given; a zeroed rusage is a valid value.
+    let usage = unsafe {
+        let mut usage: libc::rusage = std::mem::zeroed();
+        libc::getrusage(libc::RUSAGE_SELF, &mut usage);
+        usage
+    };
+    let time = |t: libc::timeval| {
+        Duration::from_secs(t.tv_sec as u64) + Duration::from_micros(t.tv_usec as u64)
+    };
+    time(usage.ru_utime) + time(usage.ru_stime)
+}
+
+/// This process' resident set, from /proc/self/status.
+fn rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .unwrap_or_default()
+        .lines()
+        .find_map(|line| line.strip_prefix("VmRSS:"))
+        .and_then(|kb| kb.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        .map_or(0, |kb| kb * 1024)
+}
