@@ -468,6 +468,7 @@ fn a_panicking_job_fails_alone_while_the_daemon_and_the_other_cell_go_on() {
                 panic!("injected panic in job {id}");
             }
         })),
+        zenoh_connect: None,
     };
     let runtime = tokio::runtime::Runtime::new().unwrap();
     let listener = runtime

@@ -37,6 +37,10 @@ pub struct ServeArgs {
     runs_dir: PathBuf,
     #[arg(long, value_enum, default_value = "wall")]
     clock: ClockChoice,
+    /// Join ROS 2 over Zenoh through this router or peer (`tcp/HOST:PORT`), every cell as
+    /// a node in its rig's namespace; overrides each file's `[ros2] zenoh_connect`.
+    #[arg(long, value_name = "ENDPOINT", value_parser = super::run::parse_zenoh_endpoint)]
+    zenoh_connect: Option<String>,
 }
 
 async fn shutdown_signal() {
@@ -138,6 +142,7 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
         token,
         allowed_hosts: settings.config.serve.hosts.clone(),
         before_job: None,
+        zenoh_connect: args.zenoh_connect,
     };
     tokio::runtime::Runtime::new()?.block_on(async move {
         let address = std::net::SocketAddr::new(bind, args.port);
