@@ -108,11 +108,8 @@ fn stream_once(rig: &Rig, rate_hz: f64, seconds: f64, ros2: Option<&Subscriber>)
         Ros2Node::start(&settings, &rig.name, joints, slot.clone(), true, None).expect("node")
     });
     let mut live = LiveSink::new(&slot, rate_hz as u64);
-    let sink: &mut dyn rigbridge::stream::CycleSink = if node.is_some() {
-        &mut live
-    } else {
-        &mut ()
-    };
+    let sink: &mut dyn rigbridge::stream::CycleSink =
+        if node.is_some() { &mut live } else { &mut () };
     let report = stream(
         &swing(rig, period, seconds),
         rig,

@@ -27,8 +27,11 @@ const ARRIVED_DEG: f64 = 0.1;
 /// The Python with eclipse-zenoh and rosbags (RIGBRIDGE_ROS2_PYTHON, set by
 /// scripts/test.sh), or `None` with a note; on CI a missing peer fails.
 fn peer_python() -> Option<String> {
-    match common::peer_python("RIGBRIDGE_ROS2_PYTHON", "zenoh, rosbags", "eclipse-zenoh and rosbags")
-    {
+    match common::peer_python(
+        "RIGBRIDGE_ROS2_PYTHON",
+        "zenoh, rosbags",
+        "eclipse-zenoh and rosbags",
+    ) {
         Ok(python) => Some(python),
         Err(reason) if std::env::var("CI").as_deref() == Ok("true") => {
             panic!("CI must test ROS 2 against PyPI's eclipse-zenoh and rosbags: {reason}")
@@ -99,7 +102,9 @@ struct Serve {
 impl Serve {
     fn start(configs: &[&Path], extra: &[&str], runs: &Path) -> Serve {
         let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
-        command.args(["serve", "--port", "0", "--runs-dir"]).arg(runs);
+        command
+            .args(["serve", "--port", "0", "--runs-dir"])
+            .arg(runs);
         for config in configs {
             command.arg("--config").arg(config);
         }
@@ -118,7 +123,9 @@ impl Serve {
                 if n == 0 {
                     break;
                 }
-                sink.lock().unwrap().push_str(&String::from_utf8_lossy(&buffer[..n]));
+                sink.lock()
+                    .unwrap()
+                    .push_str(&String::from_utf8_lossy(&buffer[..n]));
             }
         });
         let mut line = String::new();
@@ -172,7 +179,14 @@ fn run_publishes_joint_states_that_rosbags_decodes_with_rmw_zenohs_tokens() {
     let peer = Peer::start(&python, &["listen", "--endpoint", &endpoint, "--wait-end"]);
     let log = dir.join("run.mcap");
     let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["run", "--clock", "wall", "--zenoh-connect", &endpoint, "--log"])
+        .args([
+            "run",
+            "--clock",
+            "wall",
+            "--zenoh-connect",
+            &endpoint,
+            "--log",
+        ])
         .arg(&log)
         .output()
         .unwrap();
@@ -190,12 +204,21 @@ fn run_publishes_joint_states_that_rosbags_decodes_with_rmw_zenohs_tokens() {
         format!("0/irb120/joint_states/sensor_msgs::msg::dds_::JointState_/{hash}")
     );
     let rate = rig["rate_hz"].as_f64().unwrap();
-    println!("JointState over Zenoh: {rate:.1} Hz, {} messages", rig["count"]);
+    println!(
+        "JointState over Zenoh: {rate:.1} Hz, {} messages",
+        rig["count"]
+    );
     assert!(rate >= MIN_JOINT_STATE_HZ, "{rate} Hz");
     assert_eq!(rig["names"], serde_json::json!(irb120_joints()));
-    assert!(rig["distinct_positions"].as_u64().unwrap() > 100, "the arm moved");
+    assert!(
+        rig["distinct_positions"].as_u64().unwrap() > 100,
+        "the arm moved"
+    );
     assert_eq!(rig["sequences_consecutive"], true);
-    assert_eq!(rig["stamp_mismatch"], 0, "attachment timestamp = header stamp");
+    assert_eq!(
+        rig["stamp_mismatch"], 0,
+        "attachment timestamp = header stamp"
+    );
     // The last message is where the run ended, as its log says.
     let logged = rigbridge::log::read_log(&log).unwrap();
     let last = &logged.states.last().unwrap().positions;
@@ -245,12 +268,25 @@ fn serve_runs_a_joint_trajectory_from_ros_2_and_refuses_an_invalid_one() {
     let peer = Peer::start(
         &python,
         &[
-            "trajectory", "--endpoint", &endpoint, "--rig", "irb120", "--joints", &joints,
-            "--bad", &bad, "--good", &good,
+            "trajectory",
+            "--endpoint",
+            &endpoint,
+            "--rig",
+            "irb120",
+            "--joints",
+            &joints,
+            "--bad",
+            &bad,
+            "--good",
+            &good,
         ],
     );
     let config = repo_path("config/rigbridge.toml");
-    let serve = Serve::start(&[&config], &["--zenoh-connect", &endpoint], &dir.join("runs"));
+    let serve = Serve::start(
+        &[&config],
+        &["--zenoh-connect", &endpoint],
+        &dir.join("runs"),
+    );
     assert_eq!(peer.result()["sent"], 2);
     let deadline = Instant::now() + Duration::from_secs(60);
     let status = loop {
@@ -270,9 +306,15 @@ fn serve_runs_a_joint_trajectory_from_ros_2_and_refuses_an_invalid_one() {
         .iter()
         .map(|e| e["action"].as_str().unwrap())
         .collect();
-    assert_eq!(actions, ["ros2_trajectory_refused", "ros2_trajectory_started"]);
+    assert_eq!(
+        actions,
+        ["ros2_trajectory_refused", "ros2_trajectory_started"]
+    );
     let refusal = status["events"][0]["result"].as_str().unwrap();
-    assert!(refusal.contains("outside the limits of joint_1"), "{refusal}");
+    assert!(
+        refusal.contains("outside the limits of joint_1"),
+        "{refusal}"
+    );
     let stderr = serve.stderr.lock().unwrap().clone();
     assert!(
         stderr.contains("ros2_trajectory_refused") && stderr.contains("outside the limits"),
@@ -299,7 +341,11 @@ fn named_cell(dir: &Path, name: &str, endpoint: &str) -> PathBuf {
     std::fs::write(&rig_file, rig).unwrap();
     let settings = std::fs::read_to_string(repo_path("config/rigbridge.toml"))
         .unwrap()
-        .replacen("rig = \"irb120.toml\"", &format!("rig = \"{name}.toml\""), 1)
+        .replacen(
+            "rig = \"irb120.toml\"",
+            &format!("rig = \"{name}.toml\""),
+            1,
+        )
         + &format!("\n[ros2]\nzenoh_connect = \"{endpoint}\"\n");
     let file = dir.join(format!("{name}-run.toml"));
     std::fs::write(&file, settings).unwrap();
@@ -329,7 +375,10 @@ fn one_subscriber_sees_four_daemons_in_one_zenoh_group() {
         assert!(rate >= MIN_JOINT_STATE_HZ, "{name}: {rig}");
         assert_eq!(rig["names"], serde_json::json!(irb120_joints()));
         let node = format!("/NN/%/%{name}/rigbridge");
-        assert!(tokens.iter().any(|t| t.ends_with(&node)), "{name}: {tokens:?}");
+        assert!(
+            tokens.iter().any(|t| t.ends_with(&node)),
+            "{name}: {tokens:?}"
+        );
     }
     assert_eq!(result["rigs"].as_object().unwrap().len(), 4);
     drop(daemons);
@@ -352,22 +401,47 @@ fn load_error(dir: &Path, name: &str, ros2: &str) -> String {
 #[test]
 fn ros2_settings_are_validated_with_file_key_and_value() {
     let dir = scratch("settings");
-    let udp = load_error(&dir, "udp", "[ros2]\nzenoh_connect = \"udp/127.0.0.1:7447\"\n");
+    let udp = load_error(
+        &dir,
+        "udp",
+        "[ros2]\nzenoh_connect = \"udp/127.0.0.1:7447\"\n",
+    );
     assert!(
         udp.contains("ros2.zenoh_connect") && udp.contains("udp/127.0.0.1:7447"),
         "{udp}"
     );
-    let no_port = load_error(&dir, "no-port", "[ros2]\nzenoh_connect = \"tcp/localhost\"\n");
+    let no_port = load_error(
+        &dir,
+        "no-port",
+        "[ros2]\nzenoh_connect = \"tcp/localhost\"\n",
+    );
     assert!(no_port.contains("port"), "{no_port}");
-    let domain = load_error(&dir, "domain", "[ros2]\nzenoh_connect = \"tcp/h:1\"\ndomain_id = 233\n");
-    assert!(domain.contains("ros2.domain_id") && domain.contains("233"), "{domain}");
-    let rate = load_error(&dir, "rate", "[ros2]\nzenoh_connect = \"tcp/h:1\"\njoint_states_hz = 0\n");
+    let domain = load_error(
+        &dir,
+        "domain",
+        "[ros2]\nzenoh_connect = \"tcp/h:1\"\ndomain_id = 233\n",
+    );
+    assert!(
+        domain.contains("ros2.domain_id") && domain.contains("233"),
+        "{domain}"
+    );
+    let rate = load_error(
+        &dir,
+        "rate",
+        "[ros2]\nzenoh_connect = \"tcp/h:1\"\njoint_states_hz = 0\n",
+    );
     assert!(rate.contains("ros2.joint_states_hz"), "{rate}");
     let unknown = load_error(&dir, "unknown", "[ros2]\nzenoh = \"tcp/h:1\"\n");
     assert!(unknown.contains("zenoh"), "{unknown}");
     // The command line's override is checked the same way: a usage error.
     let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["run", "--clock", "virtual", "--zenoh-connect", "quic/127.0.0.1:7447"])
+        .args([
+            "run",
+            "--clock",
+            "virtual",
+            "--zenoh-connect",
+            "quic/127.0.0.1:7447",
+        ])
         .output()
         .unwrap();
     assert_eq!(output.status.code(), Some(2));

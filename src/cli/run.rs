@@ -8,10 +8,10 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rigbridge::clock::{Clock, VirtualClock, WallClock};
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::{RunReport, open_link, plan_for, stream_planned_with};
-use rigbridge::ros2::Ros2Node;
-use rigbridge::view::{LiveSample, LiveSink, LiveSlot};
 use rigbridge::link::LinkSpec;
+use rigbridge::ros2::Ros2Node;
 use rigbridge::stream::{Outcome, StreamControl};
+use rigbridge::view::{LiveSample, LiveSink, LiveSlot};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
@@ -138,7 +138,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         args.link.as_deref().unwrap_or(&settings.config.stream.link)
     );
     let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&settings.initial())));
-    let ros2 = ros2_node(&settings, args.zenoh_connect.as_deref(), &slot, spec == LinkSpec::Loopback)?;
+    let ros2 = ros2_node(
+        &settings,
+        args.zenoh_connect.as_deref(),
+        &slot,
+        spec == LinkSpec::Loopback,
+    )?;
     let job = spawn_streaming(move || {
         let mut link = open_link(&spec, &settings)?;
         // A device-paced link (EGM) brings the clock the cycle must follow.
@@ -160,7 +165,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     })?;
     let report = wait(&control, job);
     if let Some(node) = ros2 {
-        say!("  ros2: {} joint states published on {}", node.published(), node.joint_states_key());
+        say!(
+            "  ros2: {} joint states published on {}",
+            node.published(),
+            node.joint_states_key()
+        );
     }
     let report = match report {
         Ok(report) => report,
@@ -192,8 +201,15 @@ fn ros2_node(
         return Ok(None);
     };
     let joints = settings.rig.joint_names().map(String::from).collect();
-    let node = Ros2Node::start(&ros2, &settings.rig.name, joints, slot.clone(), known_at_rest, None)
-        .with_context(|| format!("cannot join ROS 2 through {}", ros2.zenoh_connect))?;
+    let node = Ros2Node::start(
+        &ros2,
+        &settings.rig.name,
+        joints,
+        slot.clone(),
+        known_at_rest,
+        None,
+    )
+    .with_context(|| format!("cannot join ROS 2 through {}", ros2.zenoh_connect))?;
     eprintln!(
         "ros2: node /{}/{} publishing {} through {}",
         settings.rig.name,

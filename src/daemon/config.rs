@@ -69,7 +69,12 @@ impl Ros2Config {
         if let Some(endpoint) = &self.zenoh_connect
             && let Some(reason) = crate::ros2::endpoint_problem(endpoint)
         {
-            return Err(ConfigError::invalid(file, "ros2.zenoh_connect", endpoint, reason));
+            return Err(ConfigError::invalid(
+                file,
+                "ros2.zenoh_connect",
+                endpoint,
+                reason,
+            ));
         }
         if self.domain_id > crate::ros2::MAX_DOMAIN_ID {
             return Err(ConfigError::invalid(

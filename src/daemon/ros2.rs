@@ -20,7 +20,10 @@ const NANOS_PER_SECOND: f64 = 1e9;
 /// own checked curve. What is not valid for the rig is left to the job's validation.
 pub fn trajectory_job(message: &JointTrajectory, rig: &Rig) -> Result<Job, JobInvalid> {
     let order = joint_order(&message.joint_names, rig)?;
-    let first_t = message.points.first().map_or(0.0, |p| seconds(&p.time_from_start));
+    let first_t = message
+        .points
+        .first()
+        .map_or(0.0, |p| seconds(&p.time_from_start));
     let mut rows = Vec::with_capacity(message.points.len());
     for (index, point) in message.points.iter().enumerate() {
         if point.positions.len() != rig.dof() {
@@ -55,7 +58,10 @@ fn joint_order(names: &[String], rig: &Rig) -> Result<Vec<usize>, JobInvalid> {
         JobInvalid::new(
             "joint_names",
             names,
-            format!("must name each of the rig's joints once: {}", expected.join(", ")),
+            format!(
+                "must name each of the rig's joints once: {}",
+                expected.join(", ")
+            ),
         )
     };
     if names.len() != expected.len() {

@@ -26,8 +26,8 @@ pub use cell::{CellError, check_cells};
 pub use connections::{HEADER_TIMEOUT, IDLE_TIMEOUT, LISTEN_BACKLOG, bind, connection_cap};
 pub use guard::{BODY_TIMEOUT, HostCheck, MAX_BODY_BYTES, MAX_LIVE_MESSAGE_BYTES, MAX_LIVE_PAGES};
 
-use super::{DaemonError, error_chain};
 use super::config::{JobConfig, RunSettings};
+use super::{DaemonError, error_chain};
 use crate::clock::{Clock, WallClock};
 use crate::stream::StreamControl;
 use crate::twin::TwinWorld;
@@ -421,7 +421,10 @@ fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::Ros2Node>, Daemon
             Box::new(move |message| take_trajectory(&daemon, &cell, message))
         };
         // Zenoh's own runtime must not be entered from the server's: a thread of its own.
-        let (joints, slot) = (settings.rig.joint_names().map(String::from).collect(), cell.hub().slot().clone());
+        let (joints, slot) = (
+            settings.rig.joint_names().map(String::from).collect(),
+            cell.hub().slot().clone(),
+        );
         let (rig, known) = (cell.name().to_string(), cell.streams_to_twin());
         let endpoint = ros2.zenoh_connect.clone();
         let node = std::thread::spawn(move || {
@@ -429,7 +432,9 @@ fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::Ros2Node>, Daemon
         })
         .join()
         .map_err(|_| DaemonError::Unavailable("the ROS 2 node's start panicked".into()))?
-        .map_err(|e| DaemonError::Unavailable(format!("cell {}: ROS 2: {}", cell.name(), error_chain(&e))))?;
+        .map_err(|e| {
+            DaemonError::Unavailable(format!("cell {}: ROS 2: {}", cell.name(), error_chain(&e)))
+        })?;
         eprintln!(
             "cell {}: ROS 2 node /{}/{} on {} (joint states on {})",
             cell.name(),
@@ -472,7 +477,11 @@ fn take_trajectory(
             cell.reap(id);
             cell.log_ros2(REFUSED, Some(id), message.to_string());
         }
-        Err(_) => cell.log_ros2(REFUSED, Some(id), "the job thread ended before planning".into()),
+        Err(_) => cell.log_ros2(
+            REFUSED,
+            Some(id),
+            "the job thread ended before planning".into(),
+        ),
     }
 }
 

@@ -154,18 +154,29 @@ struct Declared {
 }
 
 impl Declared {
-    fn new(session: &zenoh::Session, names: &NodeNames, subscribe: bool) -> Result<Self, Ros2Error> {
+    fn new(
+        session: &zenoh::Session,
+        names: &NodeNames,
+        subscribe: bool,
+    ) -> Result<Self, Ros2Error> {
         let states = names.topic("joint_states");
-        let publisher_token = names.topic_token(names.node_id + 1, "MP", &states, joint_state_type());
+        let publisher_token =
+            names.topic_token(names.node_id + 1, "MP", &states, joint_state_type());
         let mut tokens = vec![declare(
             "the node's liveliness token",
-            session.liveliness().declare_token(names.node_token()).wait(),
+            session
+                .liveliness()
+                .declare_token(names.node_token())
+                .wait(),
         )?];
         let key = names.topic_key(&states, joint_state_type());
         let publisher = declare(&key, session.declare_publisher(key.clone()).wait())?;
         tokens.push(declare(
             "the publisher's liveliness token",
-            session.liveliness().declare_token(publisher_token.clone()).wait(),
+            session
+                .liveliness()
+                .declare_token(publisher_token.clone())
+                .wait(),
         )?);
         let subscriber = if subscribe {
             let topic = names.topic("joint_trajectory");
@@ -223,7 +234,9 @@ fn run_node(
     let receiving = match (subscriber, trajectories) {
         (Some(subscriber), Some(handler)) => {
             let stop = publishing.stop.clone();
-            Some(std::thread::spawn(move || receive(subscriber, handler, &stop)))
+            Some(std::thread::spawn(move || {
+                receive(subscriber, handler, &stop)
+            }))
         }
         _ => None,
     };

@@ -41,7 +41,10 @@ pub static DURATION: MessageType = MessageType {
 
 pub static HEADER: MessageType = MessageType {
     name: "std_msgs/msg/Header",
-    fields: &[("stamp", NESTED_TYPE, Some(&TIME)), ("frame_id", STRING, None)],
+    fields: &[
+        ("stamp", NESTED_TYPE, Some(&TIME)),
+        ("frame_id", STRING, None),
+    ],
 };
 
 pub static JOINT_STATE: MessageType = MessageType {
@@ -230,7 +233,11 @@ mod tests {
 
     #[test]
     fn referenced_types_are_sorted_by_name_and_listed_once() {
-        let names: Vec<&str> = JOINT_TRAJECTORY.referenced().iter().map(|t| t.name).collect();
+        let names: Vec<&str> = JOINT_TRAJECTORY
+            .referenced()
+            .iter()
+            .map(|t| t.name)
+            .collect();
         assert_eq!(
             names,
             [

@@ -124,7 +124,7 @@ def trajectory_message(joints, spec):
             time_from_start=Duration(sec=int(seconds), nanosec=int(round((seconds % 1) * 1e9)))))
     message = Trajectory(header=Header(stamp=Time(sec=0, nanosec=0), frame_id=""),
                          joint_names=joints, points=points)
-    return TYPES.serialize_cdr(message, TRAJECTORY)
+    return bytes(TYPES.serialize_cdr(message, TRAJECTORY))
 
 
 def trajectory(args):

@@ -417,7 +417,10 @@ impl Cell {
     /// Whether the cell streams to its in-process twin, whose position is known before any
     /// job (a remote controller's is known only once it answers).
     pub fn streams_to_twin(&self) -> bool {
-        matches!(self.link_name.parse::<LinkSpec>(), Ok(LinkSpec::Loopback) | Err(_))
+        matches!(
+            self.link_name.parse::<LinkSpec>(),
+            Ok(LinkSpec::Loopback) | Err(_)
+        )
     }
 
     fn running(&self) -> Option<JobStatus> {
