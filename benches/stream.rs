@@ -107,6 +107,7 @@ fn stream_once(rig: &Rig, rate_hz: f64, seconds: f64, ros2: Option<&Subscriber>)
         let joints = rig.joint_names().map(String::from).collect();
         Ros2Node::start(&settings, &rig.name, joints, slot.clone(), true, None).expect("node")
     });
+    let received_before = ros2.map_or(0, |s| s.received.load(Ordering::Relaxed));
     let mut live = LiveSink::new(&slot, rate_hz as u64);
     let sink: &mut dyn rigbridge::stream::CycleSink =
         if node.is_some() { &mut live } else { &mut () };
@@ -125,7 +126,7 @@ fn stream_once(rig: &Rig, rate_hz: f64, seconds: f64, ros2: Option<&Subscriber>)
             "        ROS 2: {} JointState published ({:.0} Hz), {} received",
             node.published(),
             node.published() as f64 / report.duration_s,
-            subscriber.received.load(Ordering::Relaxed)
+            subscriber.received.load(Ordering::Relaxed) - received_before
         );
     }
     report
