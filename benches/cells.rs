@@ -171,6 +171,7 @@ fn child(spec: &str) {
         // Only the cycles are measured: no Foxglove server beside them.
         foxglove_port: 0,
         foxglove_allow_remote: false,
+        zenoh_connect: None,
     };
     let server = runtime.spawn(run(listener, cells, options, async {
         let _ = stopped.await;

@@ -128,6 +128,27 @@ if "$foxglove_venv/bin/python" -c "$foxglove_probe" 2>/dev/null; then
 fi
 # ------------------------------------------------------------------ end Foxglove peers --
 
+# ------------------- ROS 2 peer: eclipse-zenoh + rosbags (tests/ros2.rs, docs/ros2.md) --
+# A venv with PyPI's eclipse-zenoh (a Zenoh session in listen mode, as a router or a ROS 2
+# node's peer) and rosbags (CDR and the RIHS01 hashes), which tests/peers/ros2_peer.py uses
+# against our JointState publisher and JointTrajectory subscriber. If they cannot be
+# installed, the test prints why it skips; on CI a missing peer is a failure.
+ros2_venv=${CARGO_TARGET_DIR:-target}/ros2-peer-venv
+ros2_probe='import zenoh, zenoh.ext, rosbags.typesys, numpy'
+if [ ! -x "$ros2_venv/bin/python" ] || ! "$ros2_venv/bin/python" -c "$ros2_probe" 2>/dev/null; then
+  python3 -m venv "$ros2_venv" && "$ros2_venv/bin/pip" install -q eclipse-zenoh rosbags \
+    || echo "test.sh: cannot install eclipse-zenoh and rosbags; the ROS 2 peer tests will skip" >&2
+fi
+if [ "${CI:-}" = true ] && ! "$ros2_venv/bin/python" -c "$ros2_probe" 2>/dev/null; then
+  echo "test.sh: CI must test ROS 2 against eclipse-zenoh and rosbags, and they could not be installed" >&2
+  exit 1
+fi
+if "$ros2_venv/bin/python" -c "$ros2_probe" 2>/dev/null; then
+  export RIGBRIDGE_ROS2_PYTHON="$PWD/$ros2_venv/bin/python"
+  [[ $ros2_venv = /* ]] && export RIGBRIDGE_ROS2_PYTHON="$ros2_venv/bin/python"
+fi
+# ---------------------------------------------------------------------- end ROS 2 peer --
+
 # ------------------------------------------------------------- 1. on this machine --
 [ -n "$vm_only" ] || cargo test --release
 

@@ -13,6 +13,7 @@
 //! - [`twin`]: the strict simulated controller, in process or on the far side of a link;
 //! - [`log`]: MCAP recording and reading, summaries;
 //! - [`view`]: the live 3D view;
+//! - [`ros2`]: each rig as a ROS 2 node over Zenoh (joint states out, trajectories in);
 //! - [`daemon`]: the wiring of the stages for `run`, `serve` and `replay`, and resuming;
 //!
 //! and beside the chain: [`rig`] (rig models, TOML/URDF descriptions, forward kinematics),
@@ -27,6 +28,7 @@ pub mod link;
 pub mod log;
 pub mod protocol;
 pub mod rig;
+pub mod ros2;
 pub mod stream;
 pub mod task;
 pub mod trajectory;

@@ -66,6 +66,7 @@ fn many_cells_on_the_shared_executor_each_complete_their_job_and_reach_its_targe
         // No Foxglove server: tests run side by side, and its default port is one.
         foxglove_port: 0,
         foxglove_allow_remote: false,
+        zenoh_connect: None,
     };
     let runtime = tokio::runtime::Runtime::new().unwrap();
     let listener = runtime

@@ -472,6 +472,7 @@ fn a_panicking_job_fails_alone_while_the_daemon_and_the_other_cell_go_on() {
         })),
         foxglove_port: 0,
         foxglove_allow_remote: false,
+        zenoh_connect: None,
     };
     let runtime = tokio::runtime::Runtime::new().unwrap();
     let listener = runtime

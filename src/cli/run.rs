@@ -6,10 +6,12 @@ use anyhow::Context;
 use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use rigbridge::clock::{Clock, VirtualClock, WallClock};
-use rigbridge::daemon::config::load_run_settings;
-use rigbridge::daemon::{RunReport, open_link, run_job};
+use rigbridge::daemon::config::{RunSettings, load_run_settings};
+use rigbridge::daemon::{RunReport, open_link, plan_for, stream_planned_with};
 use rigbridge::link::LinkSpec;
+use rigbridge::ros2::Ros2Node;
 use rigbridge::stream::{Outcome, StreamControl};
+use rigbridge::view::{LiveSample, LiveSink, LiveSlot};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
@@ -40,6 +42,18 @@ pub struct RunArgs {
     report: Option<PathBuf>,
     #[arg(long, value_enum, default_value = "wall")]
     clock: ClockChoice,
+    /// Publish the rig's joint states to ROS 2 over Zenoh through this router or peer
+    /// (`tcp/HOST:PORT`); overrides `[ros2] zenoh_connect`.
+    #[arg(long, value_name = "ENDPOINT", value_parser = parse_zenoh_endpoint)]
+    zenoh_connect: Option<String>,
+}
+
+/// `--zenoh-connect`'s value, checked like `[ros2] zenoh_connect`.
+pub fn parse_zenoh_endpoint(text: &str) -> Result<String, String> {
+    match rigbridge::ros2::endpoint_problem(text) {
+        None => Ok(text.to_string()),
+        Some(reason) => Err(format!("`{text}` {reason}")),
+    }
 }
 
 pub fn make_clock(choice: ClockChoice) -> Arc<dyn Clock> {
@@ -123,21 +137,44 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         "--clock virtual needs the loopback twin: a controller behind --link {} runs in real time",
         args.link.as_deref().unwrap_or(&settings.config.stream.link)
     );
+    let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&settings.initial())));
+    let ros2 = ros2_node(
+        &settings,
+        args.zenoh_connect.as_deref(),
+        &slot,
+        spec == LinkSpec::Loopback,
+    )?;
     let job = spawn_streaming(move || {
         let mut link = open_link(&spec, &settings)?;
         // A device-paced link (EGM) brings the clock the cycle must follow.
         let clock = link.pacing().unwrap_or(clock);
         let job = settings.config.job.clone();
-        Ok(run_job(
+        let planned = plan_for(&settings, &job, link.as_mut(), clock.as_ref(), &job_control)?;
+        // The cycle offers each state to the slot the ROS 2 node publishes from.
+        let mut live = LiveSink::new(&slot, settings.config.stream.rate_hz.round() as u64);
+        Ok(stream_planned_with(
             &settings,
-            &job,
+            &planned,
             link.as_mut(),
             clock.as_ref(),
             Some(&job_log),
             &job_control,
+            rigbridge::daemon::Sinks {
+                live: &mut live,
+                actions: None,
+                executor: None,
+            },
         )?)
     })?;
-    let report = match wait(&control, job) {
+    let report = wait(&control, job);
+    if let Some(node) = ros2 {
+        say!(
+            "  ros2: {} joint states published on {}",
+            node.published(),
+            node.joint_states_key()
+        );
+    }
+    let report = match report {
         Ok(report) => report,
         Err(error) => {
             // Refused before motion: the report still says so.
@@ -154,6 +191,36 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     say!("  log: {}", log.display());
     write_report(args.report.as_deref(), &report)?;
     Ok(exit_code(report.stream.outcome))
+}
+
+/// The rig's ROS 2 node when `[ros2]` or `--zenoh-connect` says where to connect.
+fn ros2_node(
+    settings: &RunSettings,
+    endpoint: Option<&str>,
+    slot: &Arc<LiveSlot>,
+    known_at_rest: bool,
+) -> anyhow::Result<Option<Ros2Node>> {
+    let Some(ros2) = settings.config.ros2.settings(endpoint) else {
+        return Ok(None);
+    };
+    let joints = settings.rig.joint_names().map(String::from).collect();
+    let node = Ros2Node::start(
+        &ros2,
+        &settings.rig.name,
+        joints,
+        slot.clone(),
+        known_at_rest,
+        None,
+    )
+    .with_context(|| format!("cannot join ROS 2 through {}", ros2.zenoh_connect))?;
+    eprintln!(
+        "ros2: node /{}/{} publishing {} through {}",
+        settings.rig.name,
+        rigbridge::ros2::graph::NODE_NAME,
+        node.joint_states_key(),
+        ros2.zenoh_connect
+    );
+    Ok(Some(node))
 }
 
 pub fn exit_code(outcome: Outcome) -> ExitCode {

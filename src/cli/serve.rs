@@ -43,6 +43,10 @@ pub struct ServeArgs {
     /// foxglove_allow_remote = true`: it has no authentication.
     #[arg(long, value_name = "PORT")]
     foxglove_port: Option<u16>,
+    /// Join ROS 2 over Zenoh through this router or peer (`tcp/HOST:PORT`), every cell as
+    /// a node in its rig's namespace; overrides each file's `[ros2] zenoh_connect`.
+    #[arg(long, value_name = "ENDPOINT", value_parser = super::run::parse_zenoh_endpoint)]
+    zenoh_connect: Option<String>,
 }
 
 async fn shutdown_signal() {
@@ -154,6 +158,7 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
         before_job: None,
         foxglove_port,
         foxglove_allow_remote: serve.foxglove_allow_remote,
+        zenoh_connect: args.zenoh_connect,
     };
     tokio::runtime::Runtime::new()?.block_on(async move {
         let address = std::net::SocketAddr::new(bind, args.port);

@@ -30,6 +30,65 @@ pub struct RunConfig {
     /// twin's servos). Optional.
     #[serde(default)]
     pub dynamixel: DynamixelConfig,
+    /// `[ros2]`: the rig as a ROS 2 node over Zenoh (docs/ros2.md). Optional: off when
+    /// `zenoh_connect` is absent.
+    #[serde(default)]
+    pub ros2: Ros2Config,
+}
+
+/// `[ros2]`: publish the rig's joint states (and, under `serve`, take joint trajectories as
+/// jobs) over Zenoh the way rmw_zenoh does.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Ros2Config {
+    /// The Zenoh router or peer to connect to, `tcp/HOST:PORT` (rmw_zenohd listens on
+    /// `tcp/localhost:7447`). Absent: no ROS 2 (unless `--zenoh-connect` says where).
+    pub zenoh_connect: Option<String>,
+    /// The ROS 2 domain (`ROS_DOMAIN_ID`), 0 when absent; 0..=232.
+    #[serde(default)]
+    pub domain_id: u32,
+    /// JointState messages a second, 125 when absent; 1..=1000.
+    pub joint_states_hz: Option<f64>,
+}
+
+impl Ros2Config {
+    /// The ROS 2 settings of `file`, with `endpoint` (`--zenoh-connect`, already checked)
+    /// in place of `zenoh_connect` when given; `None` when neither says where to connect.
+    pub fn settings(&self, endpoint: Option<&str>) -> Option<crate::ros2::Ros2Settings> {
+        let zenoh_connect = endpoint.or(self.zenoh_connect.as_deref())?.to_string();
+        Some(crate::ros2::Ros2Settings {
+            zenoh_connect,
+            domain_id: self.domain_id,
+            joint_states_hz: self
+                .joint_states_hz
+                .unwrap_or(crate::ros2::DEFAULT_JOINT_STATES_HZ),
+        })
+    }
+
+    fn check(&self, file: &Path) -> Result<(), ConfigError> {
+        if let Some(endpoint) = &self.zenoh_connect
+            && let Some(reason) = crate::ros2::endpoint_problem(endpoint)
+        {
+            return Err(ConfigError::invalid(
+                file,
+                "ros2.zenoh_connect",
+                endpoint,
+                reason,
+            ));
+        }
+        if self.domain_id > crate::ros2::MAX_DOMAIN_ID {
+            return Err(ConfigError::invalid(
+                file,
+                "ros2.domain_id",
+                self.domain_id,
+                &format!("must be at most {}", crate::ros2::MAX_DOMAIN_ID),
+            ));
+        }
+        if let Some(rate) = self.joint_states_hz {
+            check_range(file, "ros2.joint_states_hz", rate, 1.0, 1000.0)?;
+        }
+        Ok(())
+    }
 }
 
 /// `[dynamixel]`: per axis, tick = zero_tick + rad * ticks_per_turn / 2 pi (docs/dynamixel.md).
@@ -587,6 +646,17 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         .job
         .validate(&context)
         .map_err(|e| job_refused(file, e))?;
+    config.ros2.check(file)?;
+    if config.ros2.zenoh_connect.is_some()
+        && let Err(e) = crate::ros2::graph::check_namespace(&rig.name)
+    {
+        return Err(ConfigError::invalid(
+            file,
+            "ros2.zenoh_connect",
+            config.ros2.zenoh_connect.as_deref().unwrap_or_default(),
+            &e.to_string(),
+        ));
+    }
     if config.serve.bind.parse::<std::net::IpAddr>().is_err() {
         return Err(ConfigError::invalid(
             file,

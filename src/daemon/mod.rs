@@ -9,6 +9,7 @@ mod recording;
 pub mod replay;
 pub mod reset;
 pub mod resume;
+pub mod ros2;
 pub mod server;
 
 pub use recording::{ActionLog, RecorderSink};

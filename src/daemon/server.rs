@@ -33,9 +33,9 @@ pub use foxglove::{
 pub use guard::{BODY_TIMEOUT, HostCheck, MAX_BODY_BYTES, MAX_LIVE_MESSAGE_BYTES, MAX_LIVE_PAGES};
 pub use scene::log_scene_for_job;
 
-use super::DaemonError;
 use super::config::ExecutorKind;
 use super::config::{JobConfig, RunSettings};
+use super::{DaemonError, error_chain};
 use crate::clock::{Clock, WallClock};
 use crate::stream::{Executor, ExecutorSettings, StreamControl};
 use crate::twin::TwinWorld;
@@ -84,6 +84,9 @@ pub struct ServeOptions {
     pub foxglove_port: u16,
     /// Whether the Foxglove server may listen off loopback (it is unauthenticated).
     pub foxglove_allow_remote: bool,
+    /// `--zenoh-connect`: the Zenoh endpoint every cell joins ROS 2 through, in place of
+    /// its `[ros2] zenoh_connect` (docs/ros2.md).
+    pub zenoh_connect: Option<String>,
 }
 
 /// See [`ServeOptions::before_job`].
@@ -107,6 +110,7 @@ impl std::fmt::Debug for ServeOptions {
             .field("before_job", &self.before_job.as_ref().map(|_| "<hook>"))
             .field("foxglove_port", &self.foxglove_port)
             .field("foxglove_allow_remote", &self.foxglove_allow_remote)
+            .field("zenoh_connect", &self.zenoh_connect)
             .finish()
     }
 }
@@ -392,6 +396,12 @@ pub async fn run(
         ))
         .layer(axum::extract::DefaultBodyLimit::max(MAX_BODY_BYTES))
         .with_state(daemon.clone());
+    let ros2 = {
+        let daemon = daemon.clone();
+        tokio::task::spawn_blocking(move || ros2_nodes(&daemon))
+            .await
+            .map_err(|e| DaemonError::Unavailable(format!("starting the ROS 2 nodes: {e}")))??
+    };
     let frames = tokio::spawn(send_frames(daemon.clone()));
     let foxglove = foxglove_listener
         .map(|listener| tokio::spawn(foxglove::serve(listener, daemon.clone(), stopping.clone())));
@@ -406,6 +416,8 @@ pub async fn run(
     }
     let stopping = daemon.clone();
     let _ = tokio::task::spawn_blocking(move || {
+        // Out of the graph first: no trajectory starts a job while the cells stop.
+        drop(ros2);
         for cell in &stopping.cells {
             cell.stop_and_wait();
             cell.close_journal();
@@ -468,6 +480,85 @@ fn shared_executor(
         );
     }
     Ok(Some(Arc::new(executor)))
+}
+
+/// The ROS 2 node of every cell whose settings (or `--zenoh-connect`) say where to
+/// connect: its joint states from the cell's live slot, its trajectories as jobs.
+fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::Ros2Node>, DaemonError> {
+    let mut nodes = Vec::new();
+    for cell in &daemon.cells {
+        let settings = cell.settings();
+        let endpoint = daemon.options.zenoh_connect.as_deref();
+        let Some(ros2) = settings.config.ros2.settings(endpoint) else {
+            continue;
+        };
+        let handler = {
+            let (daemon, cell) = (daemon.clone(), cell.clone());
+            Box::new(move |message| take_trajectory(&daemon, &cell, message))
+        };
+        // Zenoh's own runtime must not be entered from the server's: a thread of its own.
+        let (joints, slot) = (
+            settings.rig.joint_names().map(String::from).collect(),
+            cell.hub().slot().clone(),
+        );
+        let (rig, known) = (cell.name().to_string(), cell.streams_to_twin());
+        let endpoint = ros2.zenoh_connect.clone();
+        let node = std::thread::spawn(move || {
+            crate::ros2::Ros2Node::start(&ros2, &rig, joints, slot, known, Some(handler))
+        })
+        .join()
+        .map_err(|_| DaemonError::Unavailable("the ROS 2 node's start panicked".into()))?
+        .map_err(|e| {
+            DaemonError::Unavailable(format!("cell {}: ROS 2: {}", cell.name(), error_chain(&e)))
+        })?;
+        eprintln!(
+            "cell {}: ROS 2 node /{}/{} on {} (joint states on {})",
+            cell.name(),
+            cell.name(),
+            crate::ros2::graph::NODE_NAME,
+            endpoint,
+            node.joint_states_key()
+        );
+        nodes.push(node);
+    }
+    Ok(nodes)
+}
+
+/// A JointTrajectory received for `cell`: a job like any other, or a refusal logged with
+/// its reason (on stderr, in the cell's events and journal).
+fn take_trajectory(
+    daemon: &Daemon,
+    cell: &Arc<Cell>,
+    message: Result<crate::ros2::messages::JointTrajectory, crate::ros2::messages::CdrError>,
+) {
+    const REFUSED: &str = "ros2_trajectory_refused";
+    let job = message
+        .map_err(|e| error_chain(&e))
+        .and_then(|message| {
+            super::ros2::trajectory_job(&message, &cell.settings().rig).map_err(|e| e.to_string())
+        })
+        .and_then(|job| cell.validate(job).map_err(|e| e.to_string()));
+    let job = match job {
+        Ok(job) => job,
+        Err(reason) => return cell.log_ros2(REFUSED, None, reason),
+    };
+    let id = daemon.next_job_id();
+    let started = match cell.start(id, job, &daemon.options) {
+        Ok(started) => started,
+        Err(refused) => return cell.log_ros2(REFUSED, None, start_refusal(cell, refused)),
+    };
+    match started.planned.blocking_recv() {
+        Ok(Ok(())) => cell.log_ros2("ros2_trajectory_started", Some(id), "streaming".into()),
+        Ok(Err(message)) => {
+            cell.reap(id);
+            cell.log_ros2(REFUSED, Some(id), message.to_string());
+        }
+        Err(_) => cell.log_ros2(
+            REFUSED,
+            Some(id),
+            "the job thread ended before planning".into(),
+        ),
+    }
 }
 
 /// Every route, each cell's under `/api/cells/{cell}/` and the first cell's also without
@@ -734,22 +825,25 @@ async fn submit(
 
 /// The answer to a job the cell would not start.
 fn start_refused(cell: &Cell, refused: StartRefused) -> Response {
+    let status = match refused {
+        StartRefused::Poisoned => StatusCode::INTERNAL_SERVER_ERROR,
+        StartRefused::Busy | StartRefused::Faulted(_) => StatusCode::CONFLICT,
+    };
+    error(status, start_refusal(cell, refused))
+}
+
+/// Why the cell did not start a job, in words.
+fn start_refusal(cell: &Cell, refused: StartRefused) -> String {
     match refused {
-        StartRefused::Busy => error(
-            StatusCode::CONFLICT,
-            format!(
-                "a job is already running in cell `{}`: stop it or wait",
-                cell.name()
-            ),
+        StartRefused::Busy => format!(
+            "a job is already running in cell `{}`: stop it or wait",
+            cell.name()
         ),
-        StartRefused::Poisoned => error(StatusCode::INTERNAL_SERVER_ERROR, "state lock poisoned"),
-        StartRefused::Faulted(fault) => error(
-            StatusCode::CONFLICT,
-            format!(
-                "the controller of cell `{0}` has a latched fault ({fault}): reset it first \
-                 (POST /api/cells/{0}/reset) once its cause is gone",
-                cell.name()
-            ),
+        StartRefused::Poisoned => "state lock poisoned".to_string(),
+        StartRefused::Faulted(fault) => format!(
+            "the controller of cell `{0}` has a latched fault ({fault}): reset it first \
+             (POST /api/cells/{0}/reset) once its cause is gone",
+            cell.name()
         ),
     }
 }

@@ -1,10 +1,11 @@
 //! `kind = "follow_trajectory"`: a timed joint trajectory from a CSV file next to the config
-//! (`file = "t.csv"`, columns `t,j1..jN`: seconds, then degrees, metres for prismatic axes).
-//! Owns reading that file and turning its rows into a trajectory at the stream's period:
-//! a joint move from where the rig is to the first row, then the rows, joined by cubic
-//! Hermite pieces (tangents from the neighbouring rows, at rest at both ends), checked like
-//! every trajectory and for acceleration too. It stays at the last row. No error quotes the
-//! file's content: they name the row and column.
+//! (`file = "t.csv"`, columns `t,j1..jN`: seconds, then degrees, metres for prismatic axes),
+//! or the same rows inline (`rows = [[t, j1, .., jN], ...]`; a ROS 2 JointTrajectory
+//! arrives this way, docs/ros2.md). Owns reading those rows and turning them into a
+//! trajectory at the stream's period: a joint move from where the rig is to the first row,
+//! then the rows, joined by cubic Hermite pieces (tangents from the neighbouring rows, at
+//! rest at both ends), checked like every trajectory and for acceleration too. It stays at
+//! the last row. No error quotes the file's content: they name the row and column.
 
 use super::{JobContext, JobError, JobInvalid, PlanContext, resolve_file, to_si};
 use crate::rig::Rig;
@@ -27,7 +28,12 @@ const MAX_DURATION_S: f64 = 86_400.0;
 #[serde(deny_unknown_fields)]
 pub struct FollowTrajectory {
     /// The CSV file, relative to the config's directory.
-    pub file: PathBuf,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub file: Option<PathBuf>,
+    /// Or the rows themselves, as the file would hold them: `t` (s, from 0, increasing),
+    /// then one value per joint (degrees, metres for prismatic axes). One of the two.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rows: Option<Vec<Vec<f64>>>,
 }
 
 /// Why a trajectory file is refused: where, never what it holds.
@@ -50,6 +56,10 @@ pub enum TrajectoryFileError {
     },
     #[error("{file}: {reason}")]
     Shape { file: PathBuf, reason: ShapeProblem },
+    #[error("job.rows[{row}]: {reason}")]
+    InlineRow { row: usize, reason: RowProblem },
+    #[error("job.rows: {reason}")]
+    InlineShape { reason: ShapeProblem },
 }
 
 /// What is wrong with one row of a trajectory file.
@@ -89,19 +99,51 @@ pub type Row = (f64, Vec<f64>);
 
 impl FollowTrajectory {
     pub fn validate(self, context: &JobContext) -> Result<Self, JobInvalid> {
-        let file = resolve_file(context.base_dir, "job.file", &self.file)?;
-        if let Err(e) = read_trajectory_csv(&file, context.rig) {
-            return Err(JobInvalid::new(
-                "job.file",
-                self.file.display().to_string(),
-                trim_file(&e, &file),
-            ));
+        match (self.file, self.rows) {
+            (Some(file), None) => {
+                let given = file.display().to_string();
+                let file = resolve_file(context.base_dir, "job.file", &file)?;
+                if let Err(e) = read_trajectory_csv(&file, context.rig) {
+                    return Err(JobInvalid::new("job.file", given, trim_file(&e, &file)));
+                }
+                Ok(FollowTrajectory {
+                    file: Some(file),
+                    rows: None,
+                })
+            }
+            (None, Some(rows)) => match inline_rows(&rows, context.rig) {
+                Ok(_) => Ok(FollowTrajectory {
+                    file: None,
+                    rows: Some(rows),
+                }),
+                Err(TrajectoryFileError::InlineRow { row, reason }) => Err(JobInvalid::new(
+                    format!("job.rows[{row}]"),
+                    &rows[row],
+                    reason.to_string(),
+                )),
+                Err(e) => Err(JobInvalid::new("job.rows", rows.len(), e.to_string())),
+            },
+            _ => Err(JobInvalid::new(
+                "job",
+                "follow_trajectory",
+                "needs `file` (a CSV file) or `rows` (the rows inline), one of the two",
+            )),
         }
-        Ok(FollowTrajectory { file })
+    }
+
+    /// The rows in SI units, from the file or inline.
+    fn rows(&self, rig: &Rig) -> Result<Vec<Row>, TrajectoryFileError> {
+        match (&self.file, &self.rows) {
+            (Some(file), _) => read_trajectory_csv(file, rig),
+            (None, Some(rows)) => inline_rows(rows, rig),
+            (None, None) => Err(TrajectoryFileError::InlineShape {
+                reason: ShapeProblem::NoRows,
+            }),
+        }
     }
 
     pub fn plan(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
-        let rows = read_trajectory_csv(&self.file, context.rig)?;
+        let rows = self.rows(context.rig)?;
         let (rig, settings) = (context.rig, context.settings);
         let mut trajectory = plan_joint_moves(
             rig,
@@ -118,12 +160,34 @@ impl FollowTrajectory {
     }
 
     fn shape(&self, reason: ShapeProblem) -> JobError {
-        TrajectoryFileError::Shape {
-            file: self.file.clone(),
-            reason,
+        match &self.file {
+            Some(file) => TrajectoryFileError::Shape {
+                file: file.clone(),
+                reason,
+            },
+            None => TrajectoryFileError::InlineShape { reason },
         }
         .into()
     }
+}
+
+/// Inline rows (`t` then the joints, config units) checked like a file's, in SI units.
+fn inline_rows(rows: &[Vec<f64>], rig: &Rig) -> Result<Vec<Row>, TrajectoryFileError> {
+    if rows.is_empty() {
+        return Err(TrajectoryFileError::InlineShape {
+            reason: ShapeProblem::NoRows,
+        });
+    }
+    let mut checked: Vec<Row> = Vec::with_capacity(rows.len().min(MAX_ROWS));
+    for (row, values) in rows.iter().enumerate() {
+        let bad = |reason| TrajectoryFileError::InlineRow { row, reason };
+        if row == MAX_ROWS {
+            return Err(bad(RowProblem::TooMany));
+        }
+        let previous = checked.last().map(|r| r.0);
+        checked.push(check_row(values, rig, previous).map_err(bad)?);
+    }
+    Ok(checked)
 }
 
 /// The message of `e` without the file name in front (the refusal names the key already).
@@ -202,23 +266,34 @@ fn parse_row(line: &str, rig: &Rig, previous: Option<f64>) -> Result<Row, RowPro
     if cells.len() != rig.dof() + 1 {
         return Err(RowProblem::Columns(rig.dof() + 1));
     }
-    let number = |column: usize| -> Result<f64, RowProblem> {
-        match cells[column].parse::<f64>() {
+    let values = cells
+        .iter()
+        .enumerate()
+        .map(|(column, cell)| match cell.parse::<f64>() {
             Ok(v) if v.is_finite() => Ok(v),
             _ => Err(RowProblem::NotANumber(column + 1)),
-        }
-    };
-    let t = number(0)?;
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    check_row(&values, rig, previous)
+}
+
+/// One row's values (`t`, then each joint in config units) checked: the column count,
+/// every value finite, `t` from 0 and increasing, the joints inside their limits.
+fn check_row(values: &[f64], rig: &Rig, previous: Option<f64>) -> Result<Row, RowProblem> {
+    if values.len() != rig.dof() + 1 {
+        return Err(RowProblem::Columns(rig.dof() + 1));
+    }
+    if let Some(column) = values.iter().position(|v| !v.is_finite()) {
+        return Err(RowProblem::NotANumber(column + 1));
+    }
+    let t = values[0];
     match previous {
         None if t != 0.0 => return Err(RowProblem::FirstNotZero),
         Some(before) if t <= before => return Err(RowProblem::NotIncreasing),
         _ if t > MAX_DURATION_S => return Err(RowProblem::TooLong),
         _ => {}
     }
-    let values = (1..cells.len())
-        .map(number)
-        .collect::<Result<Vec<_>, _>>()?;
-    let si = to_si(&values, rig);
+    let si = to_si(&values[1..], rig);
     if let Some((axis, _)) = rig.first_limit_violation(&si) {
         return Err(RowProblem::OutsideLimits {
             column: axis + 2,

@@ -419,6 +419,21 @@ impl Cell {
         });
     }
 
+    /// Logs what came of a JointTrajectory received over ROS 2 (docs/ros2.md) the way a
+    /// control action is logged: on stderr, in the status' events and in the journal.
+    pub fn log_ros2(&self, action: &'static str, job: Option<u64>, result: String) {
+        self.log_event(action, job, Some(result), None);
+    }
+
+    /// Whether the cell streams to its in-process twin, whose position is known before any
+    /// job (a remote controller's is known only once it answers).
+    pub fn streams_to_twin(&self) -> bool {
+        matches!(
+            self.link_name.parse::<LinkSpec>(),
+            Ok(LinkSpec::Loopback) | Err(_)
+        )
+    }
+
     fn running(&self) -> Option<JobStatus> {
         let job = self.job.lock().unwrap_or_else(PoisonError::into_inner);
         job.as_ref()

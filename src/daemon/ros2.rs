@@ -1,0 +1,148 @@
+//! The daemon's side of ROS 2 (docs/ros2.md): which settings a rig joins with (its
+//! `[ros2]`, or `--zenoh-connect`), and what a JointTrajectory received by `serve` becomes:
+//! a `follow_trajectory` job with the points as inline rows, validated and started exactly
+//! like a job from a file or `POST /api/jobs`, or refused with its reason logged.
+//!
+//! Owns the translation from the message to a job; the Zenoh side is `crate::ros2`.
+
+use crate::job::{FollowTrajectory, Job, JobInvalid};
+use crate::rig::Rig;
+use crate::ros2::messages::JointTrajectory;
+
+/// Nanoseconds a second, to read a `Duration`'s two fields.
+const NANOS_PER_SECOND: f64 = 1e9;
+
+/// The job a JointTrajectory asks for on `rig`: its points as `follow_trajectory` rows in
+/// the rig's joint order and config units (degrees, metres), times taken from the first
+/// point (the job moves to the first point from wherever the rig is, at the planner's
+/// speeds, then follows the points as timed). Only names and positions are read: the
+/// points' velocities and accelerations are not, since the job joins the points with its
+/// own checked curve. What is not valid for the rig is left to the job's validation.
+pub fn trajectory_job(message: &JointTrajectory, rig: &Rig) -> Result<Job, JobInvalid> {
+    let order = joint_order(&message.joint_names, rig)?;
+    let first_t = message
+        .points
+        .first()
+        .map_or(0.0, |p| seconds(&p.time_from_start));
+    let mut rows = Vec::with_capacity(message.points.len());
+    for (index, point) in message.points.iter().enumerate() {
+        if point.positions.len() != rig.dof() {
+            return Err(JobInvalid::new(
+                format!("points[{index}].positions"),
+                point.positions.len(),
+                format!("needs one position per joint name ({})", rig.dof()),
+            ));
+        }
+        let mut row = Vec::with_capacity(rig.dof() + 1);
+        row.push(seconds(&point.time_from_start) - first_t);
+        for (axis, joint) in rig.joints.iter().enumerate() {
+            row.push(joint.kind.to_user(point.positions[order[axis]]));
+        }
+        rows.push(row);
+    }
+    Ok(Job::FollowTrajectory(FollowTrajectory {
+        file: None,
+        rows: Some(rows),
+    }))
+}
+
+fn seconds(duration: &crate::ros2::messages::Duration) -> f64 {
+    f64::from(duration.sec) + f64::from(duration.nanosec) / NANOS_PER_SECOND
+}
+
+/// For each of the rig's joints, where the message has it: every joint named exactly once,
+/// nothing else.
+fn joint_order(names: &[String], rig: &Rig) -> Result<Vec<usize>, JobInvalid> {
+    let expected: Vec<&str> = rig.joint_names().collect();
+    let refuse = || {
+        JobInvalid::new(
+            "joint_names",
+            names,
+            format!(
+                "must name each of the rig's joints once: {}",
+                expected.join(", ")
+            ),
+        )
+    };
+    if names.len() != expected.len() {
+        return Err(refuse());
+    }
+    expected
+        .iter()
+        .map(|joint| {
+            let mut found = names.iter().enumerate().filter(|(_, n)| n == joint);
+            match (found.next(), found.next()) {
+                (Some((index, _)), None) => Ok(index),
+                _ => Err(refuse()),
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ros2::messages::{Duration, JointTrajectoryPoint};
+
+    fn rig() -> Rig {
+        crate::rig::load_rig(std::path::Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/config/irb120.toml"
+        )))
+        .unwrap()
+    }
+
+    fn point(positions: Vec<f64>, sec: i32, nanosec: u32) -> JointTrajectoryPoint {
+        JointTrajectoryPoint {
+            positions,
+            time_from_start: Duration { sec, nanosec },
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn points_become_rows_in_the_rigs_order_and_units_from_the_first_points_time() {
+        let rig = rig();
+        let mut names: Vec<String> = rig.joint_names().map(String::from).collect();
+        names.reverse();
+        let message = JointTrajectory {
+            joint_names: names,
+            points: vec![
+                point(vec![0.6, 0.5, 0.4, 0.3, 0.2, 0.1], 1, 500_000_000),
+                point(vec![0.0; 6], 3, 0),
+            ],
+            ..Default::default()
+        };
+        let Job::FollowTrajectory(job) = trajectory_job(&message, &rig).unwrap() else {
+            panic!("a follow_trajectory job");
+        };
+        let rows = job.rows.unwrap();
+        assert_eq!(rows[0][0], 0.0);
+        assert_eq!(rows[1][0], 1.5);
+        assert!((rows[0][1] - 0.1_f64.to_degrees()).abs() < 1e-12);
+        assert!((rows[0][6] - 0.6_f64.to_degrees()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn names_that_are_not_the_rigs_joints_once_each_are_refused() {
+        let rig = rig();
+        let mut names: Vec<String> = rig.joint_names().map(String::from).collect();
+        names[5] = names[0].clone();
+        let message = JointTrajectory {
+            joint_names: names,
+            points: vec![point(vec![0.0; 6], 0, 0)],
+            ..Default::default()
+        };
+        let refused = trajectory_job(&message, &rig).unwrap_err();
+        assert_eq!(refused.key, "joint_names");
+        let short = JointTrajectory {
+            joint_names: rig.joint_names().map(String::from).collect(),
+            points: vec![point(vec![0.0; 5], 0, 0)],
+            ..Default::default()
+        };
+        assert_eq!(
+            trajectory_job(&short, &rig).unwrap_err().key,
+            "points[0].positions"
+        );
+    }
+}

@@ -1,0 +1,91 @@
+//! ROS 2 over Zenoh, as rmw_zenoh speaks it (docs/ros2.md): each rig is a node in its own
+//! namespace (`/<rig>`) that publishes `sensor_msgs/msg/JointState` on `/<rig>/joint_states`
+//! and, under `serve`, takes `trajectory_msgs/msg/JointTrajectory` on
+//! `/<rig>/joint_trajectory`. Any ROS 2 node on rmw_zenoh (or any Zenoh session) that
+//! reaches the same router or peer sees it, so several daemons form one fleet.
+//!
+//! `type_hash` computes the RIHS01 hashes, `messages` encodes CDR, `graph` names keys,
+//! tokens and attachments, `node` runs the Zenoh session. This module sits beside the live
+//! view after the stream: it reads the cycle's states through the view's latest-value slot
+//! and never touches the cycle; turning a received trajectory into a job is the daemon's.
+
+pub mod graph;
+pub mod messages;
+mod node;
+pub mod type_hash;
+
+pub use node::{Ros2Node, TrajectoryHandler};
+
+use thiserror::Error;
+
+/// JointState messages a second when `[ros2] joint_states_hz` is absent: above the 100 Hz a
+/// robot_state_publisher user expects, every other cycle of the 250 Hz stream.
+pub const DEFAULT_JOINT_STATES_HZ: f64 = 125.0;
+/// Highest ROS 2 domain id (the DDS port mapping's limit, which rmw_zenoh keeps).
+pub const MAX_DOMAIN_ID: u32 = 232;
+
+/// Where and how a rig joins ROS 2.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Ros2Settings {
+    /// The Zenoh endpoint to connect to: `tcp/HOST:PORT`.
+    pub zenoh_connect: String,
+    pub domain_id: u32,
+    pub joint_states_hz: f64,
+}
+
+#[derive(Debug, Error)]
+pub enum Ros2Error {
+    #[error(transparent)]
+    Namespace(#[from] graph::BadNamespace),
+    #[error("Zenoh configuration key {key}: {cause}")]
+    Config { key: &'static str, cause: String },
+    #[error("opening a Zenoh session to {endpoint}: {cause}")]
+    Open { endpoint: String, cause: String },
+    #[error("declaring {what}: {cause}")]
+    Declare { what: String, cause: String },
+    #[error("starting the ROS 2 node's thread")]
+    Thread(#[source] std::io::Error),
+}
+
+/// Why `text` is not a Zenoh endpoint rigbridge can connect to, if it is not: only
+/// `tcp/HOST:PORT` (the TCP transport is the only one built in).
+pub fn endpoint_problem(text: &str) -> Option<&'static str> {
+    let Some(address) = text.strip_prefix("tcp/") else {
+        return Some("must be tcp/HOST:PORT (TCP is the only Zenoh transport built in)");
+    };
+    let Some((host, port)) = address.rsplit_once(':') else {
+        return Some("must be tcp/HOST:PORT: the port is missing");
+    };
+    let host = host.trim_start_matches('[').trim_end_matches(']');
+    if host.is_empty() || host.contains(['/', '?', '#', '"', ' ']) {
+        return Some("must be tcp/HOST:PORT: the host is empty or holds a character a host cannot");
+    }
+    match port.parse::<u16>() {
+        Ok(port) if port > 0 => None,
+        _ => Some("must be tcp/HOST:PORT with a port from 1 to 65535"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::endpoint_problem;
+
+    #[test]
+    fn only_tcp_endpoints_with_a_host_and_port_are_taken() {
+        for good in ["tcp/127.0.0.1:7447", "tcp/localhost:1", "tcp/[::1]:7447"] {
+            assert_eq!(endpoint_problem(good), None, "{good}");
+        }
+        for bad in [
+            "127.0.0.1:7447",
+            "udp/127.0.0.1:7447",
+            "quic/host:7447",
+            "tcp/127.0.0.1",
+            "tcp/:7447",
+            "tcp/host:0",
+            "tcp/host:70000",
+            "tcp/host:74a",
+        ] {
+            assert!(endpoint_problem(bad).is_some(), "{bad}");
+        }
+    }
+}

@@ -1,0 +1,170 @@
+"""A ROS 2 peer over Zenoh that rigbridge did not write: PyPI's eclipse-zenoh for the
+session and rosbags for the CDR messages and the RIHS01 type hashes. Used by tests/ros2.rs.
+
+  listen  --endpoint E [--seconds S] [--rigs N] [--wait-end]
+      listens on E (peer mode), takes every `<domain>/*/joint_states/...` sample, decodes it
+      with rosbags and its attachment with zenoh.ext; once it has seen N rigs it counts for S
+      seconds, asks the liveliness tokens, then (--wait-end) waits for the samples to stop
+      (1 s of silence) and prints one JSON object per rig and the tokens.
+  trajectory --endpoint E --rig R --joints j1,j2,.. --bad P1 --good P2
+      listens on E, waits for R's JointTrajectory subscription token, then publishes a
+      JointTrajectory whose points are P1 (refused: the test chooses it out of limits),
+      then one with points P2 (run as a job). P: `t:q1,q2,..;t:q1,..` (s, rad).
+Prints `ready` on its own line once listening.
+"""
+
+import argparse
+import json
+import sys
+import time
+
+import zenoh
+from zenoh.ext import Int64, z_deserialize, z_serialize
+from rosbags.typesys import Stores, get_typestore
+
+TYPES = get_typestore(Stores.ROS2_JAZZY)
+STATE = "sensor_msgs/msg/JointState"
+TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
+
+
+def open_listening(endpoint):
+    config = zenoh.Config()
+    config.insert_json5("mode", '"peer"')
+    config.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(config)
+    print("ready", flush=True)
+    return session
+
+
+def tokens(session, domain):
+    replies = session.liveliness().get(f"@ros2_lv/{domain}/**", timeout=3.0)
+    return sorted(str(reply.ok.key_expr) for reply in replies if reply.ok is not None)
+
+
+def decode_attachment(attachment):
+    fields = z_deserialize(tuple[str, Int64, str, Int64, str, bytes], attachment)
+    keys = (fields[0], fields[2], fields[4])
+    assert keys == ("sequence_number", "source_timestamp", "source_gid"), keys
+    return int(fields[1]), int(fields[3]), fields[5].hex()
+
+
+def listen(args):
+    session = open_listening(args.endpoint)
+    subscriber = session.declare_subscriber(f"{args.domain}/*/joint_states/**")
+    rigs = {}
+    started = None
+    asked = None
+    last = time.monotonic()
+    deadline = time.monotonic() + args.timeout
+    while time.monotonic() < deadline:
+        sample = subscriber.try_recv()
+        now = time.monotonic()
+        if asked is not None and not args.wait_end:
+            break
+        if sample is None:
+            if started is not None and asked is not None and now - last > 1.0:
+                break
+            time.sleep(0.0005)
+            continue
+        last = now
+        key = str(sample.key_expr)
+        rig = key.split("/")[1]
+        message = TYPES.deserialize_cdr(sample.payload.to_bytes(), STATE)
+        sequence, stamp_ns, gid = decode_attachment(sample.attachment)
+        entry = rigs.setdefault(rig, {"key": key, "count": 0, "in_window": 0, "sequences": [],
+                                      "gids": set(), "stamp_mismatch": 0, "distinct": set()})
+        entry["count"] += 1
+        entry["sequences"].append(sequence)
+        entry["gids"].add(gid)
+        header_ns = message.header.stamp.sec * 10**9 + message.header.stamp.nanosec
+        entry["stamp_mismatch"] += header_ns != stamp_ns
+        entry["names"] = list(message.name)
+        entry["last_position"] = [float(p) for p in message.position]
+        entry["distinct"].add(tuple(round(float(p), 9) for p in message.position))
+        if started is None and len(rigs) >= args.rigs:
+            started = now
+        if started is not None and asked is None:
+            if now - started <= args.seconds:
+                entry["in_window"] += 1
+            else:
+                asked = tokens(session, args.domain)
+    out = {"rigs": {}, "tokens": asked or [], "window_s": args.seconds,
+           "rosbags_hash": TYPES.hash_rihs01(STATE)}
+    for rig, entry in rigs.items():
+        sequences = entry["sequences"]
+        out["rigs"][rig] = {
+            "key": entry["key"], "count": entry["count"],
+            "rate_hz": entry["in_window"] / args.seconds,
+            "names": entry["names"], "last_position": entry["last_position"],
+            "distinct_positions": len(entry["distinct"]),
+            "sequences_consecutive": sequences == list(range(sequences[0], sequences[0] + len(sequences))),
+            "gids": sorted(entry["gids"]), "stamp_mismatch": entry["stamp_mismatch"],
+        }
+    session.close()
+    print(json.dumps(out), flush=True)
+
+
+def trajectory_message(joints, spec):
+    Header = TYPES.types["std_msgs/msg/Header"]
+    Time = TYPES.types["builtin_interfaces/msg/Time"]
+    Duration = TYPES.types["builtin_interfaces/msg/Duration"]
+    Point = TYPES.types["trajectory_msgs/msg/JointTrajectoryPoint"]
+    Trajectory = TYPES.types[TRAJECTORY]
+    import numpy
+    points = []
+    for item in spec.split(";"):
+        t, values = item.split(":")
+        seconds = float(t)
+        points.append(Point(
+            positions=numpy.array([float(v) for v in values.split(",")], dtype=numpy.float64),
+            velocities=numpy.array([], dtype=numpy.float64),
+            accelerations=numpy.array([], dtype=numpy.float64),
+            effort=numpy.array([], dtype=numpy.float64),
+            time_from_start=Duration(sec=int(seconds), nanosec=int(round((seconds % 1) * 1e9)))))
+    message = Trajectory(header=Header(stamp=Time(sec=0, nanosec=0), frame_id=""),
+                         joint_names=joints, points=points)
+    return bytes(TYPES.serialize_cdr(message, TRAJECTORY))
+
+
+def trajectory(args):
+    session = open_listening(args.endpoint)
+    deadline = time.monotonic() + args.timeout
+    wanted = f"%{args.rig}%joint_trajectory/trajectory_msgs::msg::dds_::JointTrajectory_/"
+    while not any("/MS/" in t and wanted in t for t in tokens(session, args.domain)):
+        if time.monotonic() > deadline:
+            print(json.dumps({"error": "no JointTrajectory subscription token"}), flush=True)
+            return
+        time.sleep(0.2)
+    key = (f"{args.domain}/{args.rig}/joint_trajectory/"
+           f"trajectory_msgs::msg::dds_::JointTrajectory_/{TYPES.hash_rihs01(TRAJECTORY)}")
+    joints = args.joints.split(",")
+    gid = bytes(range(16))
+    for sequence, spec in enumerate((args.bad, args.good), start=1):
+        attachment = z_serialize(("sequence_number", Int64(sequence), "source_timestamp",
+                                  Int64(time.time_ns()), "source_gid", gid))
+        session.put(key, trajectory_message(joints, spec), attachment=attachment)
+        time.sleep(1.0)
+    session.close()
+    print(json.dumps({"sent": 2, "key": key}), flush=True)
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("mode", choices=["listen", "trajectory"])
+    parser.add_argument("--endpoint", required=True)
+    parser.add_argument("--domain", type=int, default=0)
+    parser.add_argument("--seconds", type=float, default=2.0)
+    parser.add_argument("--rigs", type=int, default=1)
+    parser.add_argument("--wait-end", action="store_true")
+    parser.add_argument("--timeout", type=float, default=60.0)
+    parser.add_argument("--rig")
+    parser.add_argument("--joints")
+    parser.add_argument("--bad")
+    parser.add_argument("--good")
+    args = parser.parse_args()
+    listen(args) if args.mode == "listen" else trajectory(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
