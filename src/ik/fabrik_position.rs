@@ -3,7 +3,8 @@
 //! then the tool's origin; joints sharing an origin pivot the same bone). Each iteration is
 //! FABRIK's two passes (Aristidou & Lasenby 2011): forward reaching, tip to root, on the
 //! points (the tip on the target, each point on the line toward where it was, at its bone's
-//! length: `chain::forward_reaching`, the same pass as the arm planner's); then backward reaching, root to tip, *in joint space*: each joint in turn takes
+//! length: `chain::forward_reaching`, the same pass as the arm planner's); then backward
+//! reaching, root to tip, *in joint space*: each joint in turn takes
 //! the angle that best brings the points beyond it toward where forward reaching put them,
 //! clamped to its limits. So every iteration ends on a real pose of the rig within its
 //! limits, and the answer is read straight off the joints: no conversion from points after
