@@ -13,12 +13,14 @@ use rigbridge::ik::{BaseHeldSolver, IkSolver};
 use rigbridge::link::LoopbackLink;
 use rigbridge::rig::{ConfigError, load_rig};
 use rigbridge::stream::{Outcome, StreamControl, StreamSettings, slowdown_rate, stream};
+use rigbridge::task::paint::planner::Planner;
 use rigbridge::task::paint::room::{OpeningKind, RoomError, WallType, apothem};
 use rigbridge::task::paint::{
-    EXTRA_AXES, PaintSettings, load_paint_settings, plan_room, room_for, world_for,
+    EXTRA_AXES, PaintPlan, PaintSettings, load_paint_settings, plan_room, room_for, world_for,
 };
 use rigbridge::trajectory::{PlanSettings, Trajectory};
 use rigbridge::twin::{Twin, TwinSettings};
+use std::num::NonZeroUsize;
 use std::sync::{Arc, Mutex};
 
 fn paint_settings() -> PaintSettings {
@@ -735,6 +737,82 @@ fn paint_does_not_depend_on_how_often_the_brush_is_seen() {
                 first.s_m,
                 second.s_m
             );
+        }
+    }
+}
+
+/// Every number of `a` and `b` (strokes, unreachable bands, trajectory samples) is the
+/// same bit for bit.
+fn assert_same_plan(a: &PaintPlan, b: &PaintPlan, what: &str) {
+    let bits = |values: &[f64]| values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+    assert_eq!(a.strokes.len(), b.strokes.len(), "{what}: strokes");
+    for (x, y) in a.strokes.iter().zip(&b.strokes) {
+        assert_eq!(
+            (x.wall, x.samples),
+            (y.wall, y.samples),
+            "{what}: stroke {x:?} vs {y:?}"
+        );
+        assert_eq!(
+            bits(&[x.s_m, x.v_from_m, x.v_to_m, x.turn_deg, x.tilt_deg]),
+            bits(&[y.s_m, y.v_from_m, y.v_to_m, y.turn_deg, y.tilt_deg]),
+            "{what}: stroke {x:?} vs {y:?}"
+        );
+    }
+    let unreachable = |plan: &PaintPlan| {
+        plan.unreachable
+            .iter()
+            .map(|u| {
+                (
+                    u.wall,
+                    bits(&[u.s_m, u.v_from_m, u.v_to_m]),
+                    u.reason.clone(),
+                )
+            })
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(unreachable(a), unreachable(b), "{what}: unreachable");
+    let (ta, tb) = (&a.trajectory, &b.trajectory);
+    assert_eq!(ta.len(), tb.len(), "{what}: samples");
+    assert_eq!(ta.period_s.to_bits(), tb.period_s.to_bits());
+    for i in 0..ta.len() {
+        assert_eq!(
+            bits(ta.position(i)),
+            bits(tb.position(i)),
+            "{what}: sample {i}"
+        );
+        assert_eq!(
+            bits(ta.velocity(i)),
+            bits(tb.velocity(i)),
+            "{what}: sample {i}"
+        );
+    }
+}
+
+#[test]
+fn the_plan_is_the_same_on_any_number_of_threads() {
+    // Walls are planned side by side; the result must not depend on how many threads
+    // share them, nor on which thread took which wall. A 3-walled room has the sharpest
+    // corners (the most attitude search), the 8-walled one more walls than threads.
+    let settings = paint_settings();
+    let start = start_position();
+    let plan = PlanSettings {
+        period_s: 0.01,
+        ..PlanSettings::default()
+    };
+    for (walls, seed) in [(8, 0), (3, 1)] {
+        let room = room_for(&settings, walls, seed).unwrap();
+        let planned = |threads: usize| {
+            Planner::new(&settings, &room, plan)
+                .unwrap()
+                .with_threads(NonZeroUsize::new(threads).unwrap())
+                .plan(&start)
+                .unwrap()
+        };
+        let one = planned(1);
+        assert!(one.strokes.len() > 10 * walls as usize);
+        for threads in [2, 3] {
+            let what = format!("{walls} walls, seed {seed}, {threads} threads");
+            assert_same_plan(&one, &planned(threads), &what);
         }
     }
 }

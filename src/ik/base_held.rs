@@ -7,8 +7,7 @@
 //! cannot reach from there is an [`IkError`], never a base move.
 
 use super::{
-    FabrikSolver, IkError, IkSolution, IkSolver, StructureError, StructureProblem, check_seed,
-    verified,
+    FabrikSolver, IkError, IkSolution, IkSolver, StructureError, StructureProblem, verified,
 };
 use crate::rig::{Pose, Rig};
 
@@ -48,8 +47,7 @@ impl IkSolver for BaseHeldSolver {
     }
 
     fn solve(&self, target: &Pose, seed: &[f64]) -> Result<IkSolution, IkError> {
-        let target = target.validated()?;
-        check_seed(&self.rig, seed)?;
+        let target = self.checked_input(target, seed)?;
         let (leading, arm_seed) = seed.split_at(self.held);
         let mount = self.rig.frame_after(leading);
         let local = Pose::from_affine(&(mount.inverse() * target.to_affine()));

@@ -3,7 +3,7 @@
 //! target (position and orientation together), clamped to its limits as it goes.
 //! Kept for comparison and for short limbs; it makes no promise of nearest-branch answers.
 
-use super::{IkError, IkSolution, IkSolver, Tolerance, check_seed, verified};
+use super::{IkError, IkSolution, IkSolver, Tolerance, verified};
 use crate::rig::{JointAxis, JointKind, Pose, Rig};
 use glam::DVec3;
 
@@ -108,8 +108,7 @@ impl IkSolver for CcdSolver {
     }
 
     fn solve(&self, target: &Pose, seed: &[f64]) -> Result<IkSolution, IkError> {
-        let target = target.validated()?;
-        check_seed(&self.rig, seed)?;
+        let target = self.checked_input(target, seed)?;
         let used = self.marker_count();
         let wanted = self.markers(&target);
         let tolerance = if self.position_only {

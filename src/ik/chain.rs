@@ -114,9 +114,13 @@ pub fn fabrik(
     }
 }
 
-/// Tip to root: put the tip on the target, then each point at its segment's length from
-/// the one after it.
-fn forward_reaching(
+/// FABRIK's forward reaching, tip to root: put the tip on the target, then each point on
+/// the line toward where it was, at its segment's length from the point after it, its
+/// direction clamped by `constraint`. The one forward pass of both FABRIK solvers (this
+/// file's point chain and `fabrik_position`'s joint-space one). A point that lands exactly
+/// on the one after it keeps the child segment's direction (the tip's: +z), so every
+/// segment keeps its length.
+pub(crate) fn forward_reaching(
     points: &mut [DVec3],
     lengths: &[f64],
     target: DVec3,

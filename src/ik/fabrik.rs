@@ -11,7 +11,7 @@
 
 use super::chain::{ChainSettings, JointConstraint, fabrik};
 use super::wrist::SphericalWrist;
-use super::{IkError, IkSolution, IkSolver, Tolerance, check_seed, verified};
+use super::{IkError, IkSolution, IkSolver, Tolerance, verified};
 use crate::rig::{DofMismatch, JointKind, JointList, Pose, Rig};
 use glam::{DAffine3, DMat3, DQuat, DVec3};
 use std::cell::Cell;
@@ -185,8 +185,8 @@ impl JointConstraint for ArmHinges {
 /// The arm's geometry, read once from the rig.
 #[derive(Debug, Clone, PartialEq)]
 struct ArmGeometry {
-    /// Joint 1's origin; everything below is in its frame.
-    base: DAffine3,
+    /// From the rig's base frame into joint 1's origin frame; everything below is in it.
+    to_base: DAffine3,
     up: DVec3,
     reach: DVec3,
     side: DVec3,
@@ -219,7 +219,77 @@ struct Candidate {
     joints: [f64; 6],
     cost: f64,
     iterations: u32,
+    rank: Rank,
 }
+
+/// A branch's place in the planner's enumeration order: axis 1 turn (k = -2..=2), elbow
+/// side (the seed's first), wrist branch, axis 4 turn, axis 6 turn. Among equal costs the
+/// first in this order wins, and the first refusal in it is the one reported, whatever
+/// order the branches are searched in.
+type Rank = [u8; 5];
+
+/// The search over branches: the best candidate so far and the first refusal, by rank.
+#[derive(Default)]
+struct Search {
+    best: Option<Candidate>,
+    blocked: Option<(Rank, usize)>,
+}
+
+impl Search {
+    /// False when every candidate costing at least `bound` loses to the best so far: the
+    /// cost is a sum of squares, so a branch whose first axes already cost more than the
+    /// best need not be solved further.
+    fn open(&self, bound: f64) -> bool {
+        self.best.is_none_or(|best| bound <= best.cost)
+    }
+
+    fn offer(&mut self, candidate: Candidate) {
+        if self
+            .best
+            .is_none_or(|best| (candidate.cost, candidate.rank) < (best.cost, best.rank))
+        {
+            self.best = Some(candidate);
+        }
+    }
+
+    /// Records that the branch at `rank` is refused because of `axis` (0-based).
+    fn block(&mut self, rank: Rank, axis: usize) {
+        if self.blocked.is_none_or(|(first, _)| rank < first) {
+            self.blocked = Some((rank, axis));
+        }
+    }
+}
+
+/// One in-limit value of axis 1 for the wrist centre's heading.
+#[derive(Debug, Clone, Copy)]
+struct Axis1Turn {
+    /// Its k in `heading + k pi`, shifted to 0..=4 (its rank).
+    rank: u8,
+    q1: f64,
+    /// Its own share of the cost: a lower bound on every candidate through it.
+    cost: f64,
+}
+
+/// One axis-1 branch's problem in the arm's plane.
+#[derive(Debug, Clone, Copy)]
+struct PlaneTarget {
+    /// The wrist centre, plane coordinates.
+    target: DVec3,
+    /// Unit direction and plane angle of the shoulder -> target line.
+    line: DVec3,
+    line_angle: f64,
+    /// Angle between that line and the upper arm when the wrist centre is on the target.
+    opening: f64,
+    /// Axes 2 and 3 with the elbow exactly closed on side -1 and +1 of the line.
+    closed: [Result<[f64; 2], usize>; 2],
+}
+
+/// Axes 2 and 3 from one FABRIK run, the index in `PlaneTarget::closed` of the exact elbow
+/// it closed on, and its iterations.
+type Closed = ([f64; 2], usize, u32);
+
+/// Values `heading + k pi` for k in -2..=2 (front, back, and their full turns).
+const AXIS_1_TURNS: i32 = 2;
 
 impl FabrikSolver {
     pub fn new(rig: Rig) -> Result<Self, StructureError> {
@@ -319,7 +389,8 @@ impl FabrikSolver {
         (first..=last).filter_map(move |k| self.within(axis, value + k as f64 * TAU))
     }
 
-    fn cost(&self, joints: &[f64; 6], seed: &[f64]) -> f64 {
+    /// Time-weighted distance from the seed over the first `joints.len()` axes.
+    fn cost(&self, joints: &[f64], seed: &[f64]) -> f64 {
         joints
             .iter()
             .zip(seed)
@@ -328,14 +399,61 @@ impl FabrikSolver {
             .sum()
     }
 
-    /// Axes 2 and 3 for the wrist centre at `target` (plane coordinates), starting FABRIK
-    /// from `elbow`. Err carries the index of the axis that held the chain back.
-    fn solve_plane(&self, target: DVec3, elbow: DVec3) -> Result<([f64; 2], u32), usize> {
+    /// The wrist centre `target` (plane coordinates) for one axis-1 branch, with axes 2
+    /// and 3 worked out exactly for the elbow on either side of the shoulder -> target
+    /// line: whatever FABRIK's path, it closes on one of these two.
+    fn plane_target(&self, target: DVec3) -> PlaneTarget {
+        let arm = &self.arm;
+        let to_target = target - arm.shoulder;
+        let distance = to_target.length();
+        let cosine = (arm.upper_arm * arm.upper_arm + distance * distance
+            - arm.forearm * arm.forearm)
+            / (2.0 * arm.upper_arm * distance);
+        let opening = cosine.clamp(-1.0, 1.0).acos();
+        let line_angle = plane_angle(to_target);
+        let mut plane = PlaneTarget {
+            target,
+            line: to_target.normalize_or(DVec3::Z),
+            line_angle,
+            opening,
+            closed: [Err(1); 2],
+        };
+        plane.closed = [-1.0, 1.0].map(|side| self.close_triangle(&plane, side));
+        plane
+    }
+
+    /// Axes 2 and 3 that put the wrist centre exactly on the target with the elbow on
+    /// `side` (-1 or +1) of the shoulder -> target line (law of cosines); Err names the
+    /// axis whose limit refuses them.
+    fn close_triangle(&self, plane: &PlaneTarget, side: f64) -> Result<[f64; 2], usize> {
+        let arm = &self.arm;
+        let elbow =
+            arm.shoulder + arm.upper_arm * plane_direction(plane.line_angle + side * plane.opening);
+        let upper = plane_angle(elbow - arm.shoulder);
+        let fore = plane_angle(plane.target - elbow);
+        let (lower2, upper2) = self.limit(1);
+        let (lower3, upper3) = self.limit(2);
+        let middle2 = (lower2 + upper2) / 2.0;
+        let middle3 = (lower3 + upper3) / 2.0;
+        let q2 = middle2 + wrap(upper - arm.upper_arm_angle - middle2);
+        let q3 = middle3
+            + arm.elbow_sign * wrap(fore - upper - arm.elbow_angle - arm.elbow_sign * middle3);
+        let q2 = self.within(1, q2).ok_or(1usize)?;
+        let q3 = self.within(2, q3).ok_or(2usize)?;
+        Ok([q2, q3])
+    }
+
+    /// FABRIK toward the wrist centre at `plane`, starting from `elbow`: axes 2 and 3, which
+    /// of the two exact elbows (`plane.closed`) it closes on, and its iterations.
+    /// FABRIK stops short of the target ([`FABRIK_TOLERANCE`]); the exact triangle on its
+    /// elbow's side finishes. Err carries the index of the axis that held the chain back.
+    fn solve_plane(&self, plane: &PlaneTarget, elbow: DVec3) -> Result<Closed, usize> {
         let arm = &self.arm;
         let hinges = ArmHinges {
             windows: self.windows,
             last_clamped: Cell::new(None),
         };
+        let target = plane.target;
         let wrist = elbow + arm.forearm * (target - elbow).normalize_or(DVec3::Z);
         let mut points = [arm.shoulder, elbow, wrist];
         let outcome = fabrik(
@@ -346,23 +464,12 @@ impl FabrikSolver {
             &hinges,
             DVec3::Z,
         );
-        let blocking_axis = || hinges.last_clamped.get().map_or(1, |joint| joint + 1);
         if outcome.stalled && outcome.error > CLOSING_DISTANCE {
-            return Err(blocking_axis());
+            return Err(hinges.last_clamped.get().map_or(1, |joint| joint + 1));
         }
-        let elbow = close_triangle(arm.shoulder, points[1], target, arm.upper_arm, arm.forearm);
-        let upper = plane_angle(elbow - arm.shoulder);
-        let fore = plane_angle(target - elbow);
-        let (lower2, upper2) = self.limit(1);
-        let (lower3, upper3) = self.limit(2);
-        let middle2 = (lower2 + upper2) / 2.0;
-        let middle3 = (lower3 + upper3) / 2.0;
-        let q2 = middle2 + wrap(upper - arm.upper_arm_angle - middle2);
-        let q3 = middle3
-            + arm.elbow_sign * wrap(fore - upper - arm.elbow_angle - arm.elbow_sign * middle3);
-        let q2 = self.within(1, q2).ok_or(1usize)?;
-        let q3 = self.within(2, q3).ok_or(2usize)?;
-        Ok(([q2, q3], outcome.iterations))
+        let side = wrap(plane_angle(points[1] - arm.shoulder) - plane.line_angle);
+        let closed_on = usize::from(side.is_sign_positive());
+        plane.closed[closed_on].map(|angles| (angles, closed_on, outcome.iterations))
     }
 
     fn elbow_at(&self, q2: f64) -> DVec3 {
@@ -370,8 +477,8 @@ impl FabrikSolver {
     }
 
     /// The two elbow sides of the shoulder -> target line, the seed's side first.
-    fn elbow_sides(&self, seed: &[f64], line: DVec3) -> [f64; 2] {
-        let relative = self.elbow_at(seed[1]) - self.arm.shoulder;
+    fn elbow_sides(&self, seed_elbow: DVec3, line: DVec3) -> [f64; 2] {
+        let relative = seed_elbow - self.arm.shoulder;
         let side = if line.cross(relative).y < 0.0 {
             -1.0
         } else {
@@ -385,21 +492,17 @@ impl FabrikSolver {
     /// to that side (the classic FABRIK start; it escapes the traps the seed can set).
     fn solve_side(
         &self,
-        target: DVec3,
-        line: DVec3,
+        plane: &PlaneTarget,
         side: f64,
-        seed: &[f64],
-    ) -> Result<([f64; 2], u32), usize> {
-        let toward = plane_angle(line) - self.arm.upper_arm_angle;
-        let mut blocked = 1;
-        for q2 in [seed[1], toward + 0.3 * side] {
-            let elbow = self.on_side(self.elbow_at(q2), line, side);
-            match self.solve_plane(target, elbow) {
-                Ok(solution) => return Ok(solution),
-                Err(axis) => blocked = axis,
-            }
-        }
-        Err(blocked)
+        seed_elbow: DVec3,
+    ) -> Result<Closed, usize> {
+        let line = plane.line;
+        self.solve_plane(plane, self.on_side(seed_elbow, line, side))
+            .or_else(|_| {
+                let toward = plane_angle(line) - self.arm.upper_arm_angle;
+                let turned = self.elbow_at(toward + 0.3 * side);
+                self.solve_plane(plane, self.on_side(turned, line, side))
+            })
     }
 
     /// `elbow`, reflected across the shoulder -> target line if it lies on the other side
@@ -426,41 +529,132 @@ impl FabrikSolver {
         frame.matrix3
     }
 
-    /// Adds every wrist branch and turn for one arm solution to `best`.
+    /// Offers every wrist branch and turn for one arm solution (at `rank`) to `search`.
     fn add_wrist_branches(
         &self,
         arm: [f64; 3],
         target: DMat3,
         seed: &[f64],
         iterations: u32,
-        best: &mut Option<Candidate>,
-        blocked: &mut Option<usize>,
+        [k, side, ..]: Rank,
+        search: &mut Search,
     ) {
         let arm_rotation = self.arm_rotation(arm);
-        for [q4, q5, q6] in self.wrist.solve(arm_rotation, target, seed[3]) {
+        let branches = self.wrist.solve(arm_rotation, target, seed[3]);
+        for (branch, [q4, q5, q6]) in (0u8..).zip(branches) {
+            let rank = [k, side, branch, 0, 0];
             let Some(q5) = self.within(4, q5) else {
-                blocked.get_or_insert(4);
+                search.block(rank, 4);
                 continue;
             };
             let mut any = false;
-            for q4 in self.turns(3, q4) {
-                for q6 in self.turns(5, q6) {
+            for (turn4, q4) in (0u8..).zip(self.turns(3, q4)) {
+                for (turn6, q6) in (0u8..).zip(self.turns(5, q6)) {
                     any = true;
                     let joints = [arm[0], arm[1], arm[2], q4, q5, q6];
-                    let cost = self.cost(&joints, seed);
-                    if best.is_none_or(|b| cost < b.cost) {
-                        *best = Some(Candidate {
-                            joints,
-                            cost,
-                            iterations,
-                        });
-                    }
+                    search.offer(Candidate {
+                        joints,
+                        cost: self.cost(&joints, seed),
+                        iterations,
+                        rank: [k, side, branch, turn4, turn6],
+                    });
                 }
             }
             if !any {
-                blocked.get_or_insert(3);
+                search.block(rank, 3);
             }
         }
+    }
+
+    /// The least cost of axes 1 to 3 on this branch: FABRIK closes on one of the two exact
+    /// elbows, so no candidate through it costs less (infinite when neither fits).
+    fn arm_bound(&self, q1: f64, plane: &PlaneTarget, seed: &[f64]) -> f64 {
+        plane
+            .closed
+            .iter()
+            .flatten()
+            .map(|[q2, q3]| self.cost(&[q1, *q2, *q3], seed))
+            .fold(f64::INFINITY, f64::min)
+    }
+
+    /// The cost of axes 1 to 3 with the elbow closed exactly as `plane.closed[index]`
+    /// (infinite when that elbow is out of limits).
+    fn closed_bound(&self, q1: f64, plane: &PlaneTarget, index: usize, seed: &[f64]) -> f64 {
+        plane.closed[index].map_or(f64::INFINITY, |[q2, q3]| self.cost(&[q1, q2, q3], seed))
+    }
+
+    /// Axis 1's in-limit values `heading + k pi`, nearest the seed first (so that the far
+    /// ones can be cut off by cost), ties in the order of k.
+    fn axis_1_turns(&self, heading: f64, seed: &[f64]) -> ([Axis1Turn; 5], usize) {
+        let mut turns = [Axis1Turn {
+            rank: 0,
+            q1: 0.0,
+            cost: 0.0,
+        }; 5];
+        let mut count = 0;
+        for (rank, k) in (0u8..).zip(-AXIS_1_TURNS..=AXIS_1_TURNS) {
+            if let Some(q1) = self.within(0, heading + f64::from(k) * PI) {
+                let cost = self.cost(&[q1], seed);
+                turns[count] = Axis1Turn { rank, q1, cost };
+                count += 1;
+            }
+        }
+        turns[..count].sort_by(|a, b| a.cost.total_cmp(&b.cost));
+        (turns, count)
+    }
+
+    /// Every branch for the wrist centre at `radius` from axis 1 and `height` along it,
+    /// searched nearest the seed first and cut off where its first axes already cost more
+    /// than the best candidate found.
+    fn search(
+        &self,
+        (radius, height, heading): (f64, f64, f64),
+        target_rotation: DMat3,
+        seed: &[f64],
+    ) -> Search {
+        let seed_elbow = self.elbow_at(seed[1]);
+        let mut search = Search::default();
+        let (turns, count) = self.axis_1_turns(heading, seed);
+        for turn in &turns[..count] {
+            if !search.open(turn.cost) {
+                continue;
+            }
+            let signed_radius = if turn.rank % 2 == 0 { radius } else { -radius };
+            let plane = self.plane_target(DVec3::new(signed_radius, 0.0, height));
+            if !search.open(self.arm_bound(turn.q1, &plane, seed)) {
+                continue;
+            }
+            // Once the first side's run closes on one exact elbow, the second side's can only
+            // add the other: closing on the same would repeat the first's candidates at a
+            // later rank, which never wins.
+            let mut first_closed_on = None;
+            for (side_rank, side) in (0u8..).zip(self.elbow_sides(seed_elbow, plane.line)) {
+                let rank = [turn.rank, side_rank, 0, 0, 0];
+                if let Some(first) = first_closed_on
+                    && !search.open(self.closed_bound(turn.q1, &plane, 1 - first, seed))
+                {
+                    continue;
+                }
+                match self.solve_side(&plane, side, seed_elbow) {
+                    Ok(([q2, q3], closed_on, iterations)) => {
+                        first_closed_on.get_or_insert(closed_on);
+                        let joints = [turn.q1, q2, q3];
+                        if search.open(self.cost(&joints, seed)) {
+                            self.add_wrist_branches(
+                                joints,
+                                target_rotation,
+                                seed,
+                                iterations,
+                                rank,
+                                &mut search,
+                            );
+                        }
+                    }
+                    Err(axis) => search.block(rank, axis),
+                }
+            }
+        }
+        search
     }
 }
 
@@ -511,7 +705,7 @@ impl ArmGeometry {
         let upper_arm_angle = plane_angle(elbow - shoulder);
         let tool_rotation = DQuat::from_mat3(&tool_frame.matrix3);
         Ok(Self {
-            base,
+            to_base,
             up,
             reach,
             side: up.cross(reach),
@@ -540,25 +734,6 @@ fn closest_point_between_lines(p: DVec3, u: DVec3, q: DVec3, v: DVec3) -> Option
     (on_p.distance(on_q) <= GEOMETRY_TOLERANCE).then(|| (on_p + on_q) / 2.0)
 }
 
-/// The elbow that puts the wrist centre exactly on `target`, on the same side of the
-/// shoulder-target line as FABRIK's `elbow` (law of cosines).
-fn close_triangle(
-    shoulder: DVec3,
-    elbow: DVec3,
-    target: DVec3,
-    upper_arm: f64,
-    forearm: f64,
-) -> DVec3 {
-    let to_target = target - shoulder;
-    let distance = to_target.length();
-    let cosine = (upper_arm * upper_arm + distance * distance - forearm * forearm)
-        / (2.0 * upper_arm * distance);
-    let opening = cosine.clamp(-1.0, 1.0).acos();
-    let line = plane_angle(to_target);
-    let side = wrap(plane_angle(elbow - shoulder) - line).signum();
-    shoulder + upper_arm * plane_direction(line + side * opening)
-}
-
 fn reflect_across_line(point: DVec3, origin: DVec3, direction: DVec3) -> DVec3 {
     let relative = point - origin;
     let along = direction * relative.dot(direction);
@@ -575,11 +750,10 @@ impl IkSolver for FabrikSolver {
     }
 
     fn solve(&self, target: &Pose, seed: &[f64]) -> Result<IkSolution, IkError> {
-        let target = target.validated()?;
-        check_seed(&self.rig, seed)?;
+        let target = self.checked_input(target, seed)?;
         let arm = &self.arm;
         let wrist_centre = target.position - target.orientation * arm.tool_offset;
-        let local = arm.base.inverse().transform_point3(wrist_centre);
+        let local = arm.to_base.transform_point3(wrist_centre);
         let height = local.dot(arm.up);
         let horizontal = local - arm.up * height;
         let radius = horizontal.length();
@@ -589,35 +763,10 @@ impl IkSolver for FabrikSolver {
             horizontal.dot(arm.side).atan2(horizontal.dot(arm.reach))
         };
         check_reach(arm, radius, height)?;
-
         let target_rotation = DMat3::from_quat(target.orientation);
-        let mut best: Option<Candidate> = None;
-        let mut blocked: Option<usize> = None;
-        for k in -2i32..=2 {
-            let Some(q1) = self.within(0, heading + f64::from(k) * PI) else {
-                continue;
-            };
-            let signed_radius = if k % 2 == 0 { radius } else { -radius };
-            let plane_target = DVec3::new(signed_radius, 0.0, height);
-            let line = (plane_target - arm.shoulder).normalize_or(DVec3::Z);
-            for side in self.elbow_sides(seed, line) {
-                match self.solve_side(plane_target, line, side, seed) {
-                    Ok(([q2, q3], iterations)) => self.add_wrist_branches(
-                        [q1, q2, q3],
-                        target_rotation,
-                        seed,
-                        iterations,
-                        &mut best,
-                        &mut blocked,
-                    ),
-                    Err(axis) => {
-                        blocked.get_or_insert(axis);
-                    }
-                }
-            }
-        }
-        let Some(best) = best else {
-            let axis = blocked.unwrap_or(0);
+        let search = self.search((radius, height, heading), target_rotation, seed);
+        let Some(best) = search.best else {
+            let axis = search.blocked.map_or(0, |(_, axis)| axis);
             return Err(IkError::NoSolutionWithinLimits {
                 axis: axis + 1,
                 joint: self.rig.joints[axis].name.clone(),

@@ -3,7 +3,8 @@
 //! then the tool's origin; joints sharing an origin pivot the same bone). Each iteration is
 //! FABRIK's two passes (Aristidou & Lasenby 2011): forward reaching, tip to root, on the
 //! points (the tip on the target, each point on the line toward where it was, at its bone's
-//! length); then backward reaching, root to tip, *in joint space*: each joint in turn takes
+//! length: `chain::forward_reaching`, the same pass as the arm planner's); then backward
+//! reaching, root to tip, *in joint space*: each joint in turn takes
 //! the angle that best brings the points beyond it toward where forward reaching put them,
 //! clamped to its limits. So every iteration ends on a real pose of the rig within its
 //! limits, and the answer is read straight off the joints: no conversion from points after
@@ -11,8 +12,8 @@
 //! It must not touch the rig, and never clamps a final answer: the best pose found is
 //! checked by `ik::verified` (limits, then the forward-kinematics residual).
 
-use super::chain::STALL_PATIENCE;
-use super::{IkError, IkSolution, IkSolver, Tolerance, check_seed, verified};
+use super::chain::{STALL_PATIENCE, Unconstrained, forward_reaching};
+use super::{IkError, IkSolution, IkSolver, Tolerance, verified};
 use crate::rig::{JointKind, Pose, Rig};
 use glam::{DAffine3, DQuat, DVec3};
 
@@ -150,18 +151,14 @@ impl PositionFabrikSolver {
     }
 }
 
-/// FABRIK's forward reaching on the points: the tip on the goal, then each point on the
-/// line toward where it was, at its bone's length from the point after it.
-fn reach_forward(points: &[DVec3], goal: DVec3, wanted: &mut Vec<DVec3>) {
+/// Where FABRIK's forward reaching (`chain::forward_reaching`, unconstrained) puts the
+/// points of `points`, its bones' current lengths kept, into `wanted`.
+fn reach_forward(points: &[DVec3], goal: DVec3, wanted: &mut Vec<DVec3>, lengths: &mut Vec<f64>) {
+    lengths.clear();
+    lengths.extend(points.windows(2).map(|bone| bone[0].distance(bone[1])));
     wanted.clear();
     wanted.extend_from_slice(points);
-    let last = points.len() - 1;
-    wanted[last] = goal;
-    for index in (0..last).rev() {
-        let length = points[index].distance(points[index + 1]);
-        let toward = (points[index] - wanted[index + 1]).normalize_or_zero();
-        wanted[index] = wanted[index + 1] + toward * length;
-    }
+    forward_reaching(wanted, lengths, goal, &Unconstrained);
 }
 
 fn push_point(chain: &mut PointChain, point: DVec3) {
@@ -232,8 +229,7 @@ impl IkSolver for PositionFabrikSolver {
     }
 
     fn solve(&self, target: &Pose, seed: &[f64]) -> Result<IkSolution, IkError> {
-        let target = target.validated()?;
-        check_seed(&self.rig, seed)?;
+        let target = self.checked_input(target, seed)?;
         let goal = target.position;
         let mut joints: Vec<f64> = seed
             .iter()
@@ -255,11 +251,12 @@ impl IkSolver for PositionFabrikSolver {
         let start_error = chain.points.last().map_or(0.0, |tip| tip.distance(goal));
         let mut best = (start_error, joints.clone());
         let mut wanted = Vec::with_capacity(chain.points.len());
+        let mut lengths = Vec::with_capacity(chain.points.len());
         let mut iterations = 0;
         let mut since_best = 0;
         while best.0 > self.tolerance.position_m && iterations < self.max_iterations {
             iterations += 1;
-            reach_forward(&chain.points, goal, &mut wanted);
+            reach_forward(&chain.points, goal, &mut wanted, &mut lengths);
             let error = self.reach_back(&mut joints, &chain, &wanted).distance(goal);
             if error < best.0 * (1.0 - MIN_IMPROVEMENT) {
                 since_best = 0;

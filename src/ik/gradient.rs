@@ -2,7 +2,7 @@
 //! method), position and orientation weighted together, projected onto the joint limits.
 //! The simplest baseline; it converges slowly and says so through `NotConverged`.
 
-use super::{IkError, IkSolution, IkSolver, Tolerance, check_seed, verified};
+use super::{IkError, IkSolution, IkSolver, Tolerance, verified};
 use crate::rig::{JointAxis, JointKind, Pose, Rig};
 use glam::DVec3;
 
@@ -69,8 +69,7 @@ impl IkSolver for GradientDescentSolver {
     }
 
     fn solve(&self, target: &Pose, seed: &[f64]) -> Result<IkSolution, IkError> {
-        let target = target.validated()?;
-        check_seed(&self.rig, seed)?;
+        let target = self.checked_input(target, seed)?;
         let limits: Vec<_> = self.rig.joints.iter().map(|j| j.limits).collect();
         let mut joints: Vec<f64> = seed
             .iter()

@@ -107,11 +107,19 @@ pub trait IkSolver {
     /// Joint positions placing the tool at `target`, nearest `seed` where the solver can
     /// choose (the current configuration, so a smooth path gives smooth joint motion).
     fn solve(&self, target: &Pose, seed: &[f64]) -> Result<IkSolution, IkError>;
+
+    /// The checks every solve opens with, in one place: the target finite with a unit
+    /// orientation (returned normalised), then the seed of the rig's joint count and finite.
+    fn checked_input(&self, target: &Pose, seed: &[f64]) -> Result<Pose, IkError> {
+        let target = target.validated()?;
+        check_seed(self.rig(), seed)?;
+        Ok(target)
+    }
 }
 
 /// Checks a seed has the rig's joint count and finite values. Seeds outside the limits are
 /// accepted: they only say where to search from.
-pub(crate) fn check_seed(rig: &Rig, seed: &[f64]) -> Result<(), IkError> {
+fn check_seed(rig: &Rig, seed: &[f64]) -> Result<(), IkError> {
     if seed.len() != rig.dof() {
         return Err(IkError::InvalidSeed(format!(
             "rig {} has {} joints, seed has {} values",

@@ -28,6 +28,8 @@ use crate::trajectory::{
 use glam::{DVec2, DVec3};
 use serde::Serialize;
 use std::collections::HashMap;
+use std::num::NonZeroUsize;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use thiserror::Error;
 
 #[derive(Debug, Error)]
@@ -211,6 +213,28 @@ pub struct Planner<'a> {
     scratch: Scratch,
     travel_arm: Vec<f64>,
     pieces: HashMap<PieceKey, Option<Trajectory>>,
+    threads: NonZeroUsize,
+}
+
+/// A stroke in painting order (downward columns already reversed), with what the plan
+/// reports of it; `record.samples` is filled in when the plan is put together.
+struct Leg {
+    stroke: Trajectory,
+    record: PlannedStroke,
+}
+
+/// One wall's strokes in painting order and the bands it could not place: all a wall
+/// needs of the planner once the route between walls is left aside.
+struct WallStrokes {
+    legs: Vec<Leg>,
+    unreachable: Vec<UnreachableStroke>,
+}
+
+/// A free move still to plan: from, to, and the walls it joins (for the error).
+struct RouteRequest {
+    from: Vec<f64>,
+    to: Vec<f64>,
+    walls: (usize, usize),
 }
 
 fn quantise(x: f64) -> i64 {
@@ -240,7 +264,15 @@ impl<'a> Planner<'a> {
                 .map(|d| d.to_radians())
                 .collect(),
             pieces: HashMap::new(),
+            threads: std::thread::available_parallelism().unwrap_or(NonZeroUsize::MIN),
         })
+    }
+
+    /// Plans on `threads` threads (by default, as many as the machine runs at once). The
+    /// plan is the same, bit for bit, whatever the number.
+    pub fn with_threads(mut self, threads: NonZeroUsize) -> Self {
+        self.threads = threads;
+        self
     }
 
     fn inset(&self) -> f64 {
@@ -869,7 +901,10 @@ impl<'a> Planner<'a> {
         Ok(route)
     }
 
-    /// The whole job from `start` back to `start`.
+    /// The whole job from `start` back to `start`. Walls are planned side by side on the
+    /// planner's threads (each wall's strokes depend only on the wall and the shape cache),
+    /// then the free moves between strokes (each depends only on its two ends), then the
+    /// check of every sample; the pieces are put together in order, as one thread would.
     pub fn plan(mut self, start: &[f64]) -> Result<PaintPlan, PaintPlanError> {
         if start.len() != self.rig.dof() {
             return Err(PaintPlanError::BadStart {
@@ -877,48 +912,40 @@ impl<'a> Planner<'a> {
                 dof: self.rig.dof(),
             });
         }
-        let mut unreachable = Vec::new();
-        let mut strokes = Vec::new();
         let mut trajectory = plan_joint_moves(self.rig, start, &[], &self.plan)?;
-        let mut at = start.to_vec();
-        let mut at_wall = 0;
-        for wall in &self.room.walls {
-            let columns = self.columns(wall, &mut unreachable);
-            for (k, column) in columns.iter().enumerate() {
-                let mut order: Vec<_> = column.segments.iter().zip(&column.strokes).collect();
-                if k % 2 == 1 {
-                    order.reverse();
-                }
-                for (segment, stroke) in order {
-                    let mut stroke = stroke.clone();
-                    let (mut v_from, mut v_to) = *segment;
-                    if k % 2 == 1 {
-                        stroke = reversed(&stroke)?;
-                        std::mem::swap(&mut v_from, &mut v_to);
-                    }
-                    let first = stroke.position(0).to_vec();
-                    let route = self.free_move(&at, &first, (at_wall, wall.index))?;
-                    trajectory.append(&route);
-                    let first_sample = trajectory.len() - 1;
-                    trajectory.append(&stroke);
-                    at = stroke.position(stroke.len() - 1).to_vec();
-                    at_wall = wall.index;
-                    strokes.push(PlannedStroke {
-                        wall: wall.index,
-                        s_m: column.s,
-                        v_from_m: v_from,
-                        v_to_m: v_to,
-                        turn_deg: column.attitude.phi.to_degrees(),
-                        tilt_deg: column.attitude.theta.to_degrees(),
-                        samples: [first_sample, trajectory.len() - 1],
-                    });
-                }
-            }
+        let mut helpers = (1..self.threads.get())
+            .map(|_| Planner::new(self.settings, self.room, self.plan))
+            .collect::<Result<Vec<_>, _>>()?;
+        let walls = self.all_wall_strokes(&mut helpers);
+        let mut legs = Vec::new();
+        let mut unreachable = Vec::new();
+        for wall in walls {
+            let wall = wall?;
+            legs.extend(wall.legs);
+            unreachable.extend(wall.unreachable);
         }
-        let home = self.free_move(&at, start, (at_wall, 0))?;
-        trajectory.append(&home);
+        let requests = route_requests(start, &legs);
+        let mut routes = self
+            .share(&mut helpers, requests.len(), |planner, i| {
+                let request = &requests[i];
+                planner.free_move(&request.from, &request.to, request.walls)
+            })
+            .into_iter();
+        let mut strokes = Vec::with_capacity(legs.len());
+        for (leg, route) in legs.into_iter().zip(routes.by_ref()) {
+            trajectory.append(&route?);
+            let first_sample = trajectory.len() - 1;
+            trajectory.append(&leg.stroke);
+            strokes.push(PlannedStroke {
+                samples: [first_sample, trajectory.len() - 1],
+                ..leg.record
+            });
+        }
+        for home in routes {
+            trajectory.append(&home?);
+        }
         validate(&trajectory, self.rig)?;
-        self.check_all(&trajectory)?;
+        self.check_all(&mut helpers, &trajectory)?;
         Ok(PaintPlan {
             trajectory,
             strokes,
@@ -926,21 +953,192 @@ impl<'a> Planner<'a> {
         })
     }
 
-    /// Every sample of the plan clears the walls: nothing moves otherwise.
-    fn check_all(&mut self, trajectory: &Trajectory) -> Result<(), PaintPlanError> {
-        for sample in 0..trajectory.len() {
-            let (clearance_m, _) =
-                self.body
-                    .clearance(self.room, trajectory.position(sample), &mut self.scratch);
-            if clearance_m < 0.0 {
-                return Err(PaintPlanError::Collides {
-                    sample,
-                    clearance_m,
+    /// Every wall's strokes, planned on this planner and `helpers`, each taking the next
+    /// wall in turn. Each keeps its own cache of arm moves, so the arm move for a shape
+    /// may be computed by more than one of them: when all agree bit for bit, every wall got
+    /// what one planner taking the walls in order would have given it (the move cached
+    /// for a shape is the one its first request computes). Otherwise (moves whose inputs
+    /// differ below the cache key's resolution, planned differently) the walls are planned
+    /// again in order on this planner alone.
+    fn all_wall_strokes(
+        &mut self,
+        helpers: &mut [Planner<'a>],
+    ) -> Vec<Result<WallStrokes, TrajectoryError>> {
+        let room = self.room;
+        let walls = self.share(helpers, room.walls.len(), |planner, i| {
+            planner.wall_strokes(&room.walls[i])
+        });
+        let caches: Vec<_> = std::iter::once(&self.pieces)
+            .chain(helpers.iter().map(|helper| &helper.pieces))
+            .collect();
+        if caches_agree(&caches) {
+            return walls;
+        }
+        self.pieces.clear();
+        self.share(&mut [], room.walls.len(), |planner, i| {
+            planner.wall_strokes(&room.walls[i])
+        })
+    }
+
+    /// One wall's strokes in painting order: its columns from right to left, every other
+    /// one downward (the same stroke reversed in time).
+    fn wall_strokes(&mut self, wall: &Wall) -> Result<WallStrokes, TrajectoryError> {
+        let mut unreachable = Vec::new();
+        let columns = self.columns(wall, &mut unreachable);
+        let mut legs = Vec::new();
+        for (k, column) in columns.into_iter().enumerate() {
+            let downward = k % 2 == 1;
+            let mut order: Vec<_> = column.segments.iter().zip(column.strokes).collect();
+            if downward {
+                order.reverse();
+            }
+            for (&(bottom, top), stroke) in order {
+                let (stroke, v_from_m, v_to_m) = if downward {
+                    (reversed(&stroke)?, top, bottom)
+                } else {
+                    (stroke, bottom, top)
+                };
+                legs.push(Leg {
+                    stroke,
+                    record: PlannedStroke {
+                        wall: wall.index,
+                        s_m: column.s,
+                        v_from_m,
+                        v_to_m,
+                        turn_deg: column.attitude.phi.to_degrees(),
+                        tilt_deg: column.attitude.theta.to_degrees(),
+                        samples: [0, 0],
+                    },
                 });
             }
         }
-        Ok(())
+        Ok(WallStrokes { legs, unreachable })
     }
+
+    /// Runs `job(planner, item)` for every item in `0..count` on this planner and
+    /// `helpers` (one thread each), each taking the next item in turn, so every planner
+    /// sees its items in increasing order. Results come back in item order. With no
+    /// helpers it is a plain loop on this thread.
+    fn share<T: Send>(
+        &mut self,
+        helpers: &mut [Planner<'a>],
+        count: usize,
+        job: impl Fn(&mut Planner<'a>, usize) -> T + Sync,
+    ) -> Vec<T> {
+        let next = AtomicUsize::new(0);
+        let work = &|planner: &mut Planner<'a>| {
+            let mut done = Vec::new();
+            loop {
+                let item = next.fetch_add(1, Ordering::Relaxed);
+                if item >= count {
+                    return done;
+                }
+                done.push((item, job(planner, item)));
+            }
+        };
+        let mut results = std::thread::scope(|scope| {
+            let running: Vec<_> = helpers
+                .iter_mut()
+                .map(|helper| scope.spawn(move || work(helper)))
+                .collect();
+            let mut results = work(self);
+            for thread in running {
+                match thread.join() {
+                    Ok(done) => results.extend(done),
+                    Err(panic) => std::panic::resume_unwind(panic),
+                }
+            }
+            results
+        });
+        results.sort_unstable_by_key(|(item, _)| *item);
+        results.into_iter().map(|(_, result)| result).collect()
+    }
+
+    /// Every sample of the plan clears the walls: nothing moves otherwise. The samples are
+    /// cut into one run per planner; the first collision in time is the one reported.
+    fn check_all(
+        &mut self,
+        helpers: &mut [Planner<'a>],
+        trajectory: &Trajectory,
+    ) -> Result<(), PaintPlanError> {
+        let runs = helpers.len() + 1;
+        let run_length = trajectory.len().div_ceil(runs);
+        let first_collisions = self.share(helpers, runs, |planner, run| {
+            let samples = run * run_length..((run + 1) * run_length).min(trajectory.len());
+            samples.into_iter().find_map(|sample| {
+                let (clearance_m, _) = planner.body.clearance(
+                    planner.room,
+                    trajectory.position(sample),
+                    &mut planner.scratch,
+                );
+                (clearance_m < 0.0).then_some(PaintPlanError::Collides {
+                    sample,
+                    clearance_m,
+                })
+            })
+        });
+        match first_collisions.into_iter().flatten().next() {
+            Some(collision) => Err(collision),
+            None => Ok(()),
+        }
+    }
+}
+
+/// The free moves of a plan: from `start` to the first stroke, between consecutive
+/// strokes, and from the last stroke back to `start`.
+fn route_requests(start: &[f64], legs: &[Leg]) -> Vec<RouteRequest> {
+    let mut requests = Vec::with_capacity(legs.len() + 1);
+    let mut at = start;
+    let mut at_wall = 0;
+    for leg in legs {
+        requests.push(RouteRequest {
+            from: at.to_vec(),
+            to: leg.stroke.position(0).to_vec(),
+            walls: (at_wall, leg.record.wall),
+        });
+        at = leg.stroke.position(leg.stroke.len() - 1);
+        at_wall = leg.record.wall;
+    }
+    requests.push(RouteRequest {
+        from: at.to_vec(),
+        to: start.to_vec(),
+        walls: (at_wall, 0),
+    });
+    requests
+}
+
+/// True when every shape cached by more than one planner has the same arm move (or the
+/// same refusal) in each, bit for bit.
+fn caches_agree(caches: &[&HashMap<PieceKey, Option<Trajectory>>]) -> bool {
+    caches.iter().enumerate().all(|(i, cache)| {
+        caches[i + 1..].iter().all(|other| {
+            cache.iter().all(|(key, piece)| {
+                other
+                    .get(key)
+                    .is_none_or(|theirs| same_piece(piece.as_ref(), theirs.as_ref()))
+            })
+        })
+    })
+}
+
+fn same_piece(a: Option<&Trajectory>, b: Option<&Trajectory>) -> bool {
+    match (a, b) {
+        (None, None) => true,
+        (Some(a), Some(b)) => same_bits(a, b),
+        _ => false,
+    }
+}
+
+/// Two trajectories equal bit for bit (`==` on floats would take -0.0 for 0.0).
+fn same_bits(a: &Trajectory, b: &Trajectory) -> bool {
+    let same = |x: &[f64], y: &[f64]| x.iter().zip(y).all(|(x, y)| x.to_bits() == y.to_bits());
+    a.rig == b.rig
+        && a.joint_names == b.joint_names
+        && a.period_s.to_bits() == b.period_s.to_bits()
+        && a.len() == b.len()
+        && a.dof() == b.dof()
+        && (0..a.len())
+            .all(|i| same(a.position(i), b.position(i)) && same(a.velocity(i), b.velocity(i)))
 }
 
 /// The same motion backwards in time (positions in reverse order, velocities negated).

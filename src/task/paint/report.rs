@@ -5,8 +5,8 @@
 
 use super::config::PaintSettings;
 use super::planner::{PaintPlan, PlannedStroke, UnreachableStroke};
-use super::room::{OpeningKind, Room};
-use super::world::{Measurements, PaintWorld};
+use super::room::{OpeningKind, Room, Wall};
+use super::world::{Measurements, PaintWorld, WallGrid};
 use serde::Serialize;
 use std::fmt::Write as _;
 
@@ -126,18 +126,57 @@ pub fn build_report(
     }
 }
 
+/// Pixels per metre in the picture.
+const SVG_SCALE: f64 = 60.0;
+/// Space between walls side by side (m), and above each row for the labels (m).
+const SVG_GAP_M: f64 = 0.3;
+const SVG_ROW_MARGIN_M: f64 = 0.6;
+/// Walls per row of the picture.
+const SVG_WALLS_PER_ROW: usize = 8;
+
 /// Every wall unrolled left to right (wall 0 first), seen from inside the room: openings
 /// outlined, paint in green, paint inside an opening in red, unpainted wall in grey.
 pub fn write_svg(world: &PaintWorld, report: &PaintReport) -> String {
     let room = world.room();
-    let scale = 60.0; // px per metre
-    let gap = 0.3;
-    let (w, h) = (room.wall_width_m, room.wall_height_m);
-    let per_row = 8usize;
-    let rows = room.walls.len().div_ceil(per_row);
-    let width_px = (per_row.min(room.walls.len()) as f64 * (w + gap) + gap) * scale;
-    let height_px = (rows as f64 * (h + 0.6) + 0.6) * scale;
     let mut svg = String::new();
+    svg_header(&mut svg, room, report);
+    for ((wall, grid), wall_report) in room.walls.iter().zip(world.grids()).zip(&report.walls) {
+        let (col, row) = (
+            wall.index % SVG_WALLS_PER_ROW,
+            wall.index / SVG_WALLS_PER_ROW,
+        );
+        let x0 = (SVG_GAP_M + col as f64 * (room.wall_width_m + SVG_GAP_M)) * SVG_SCALE;
+        let top =
+            (SVG_ROW_MARGIN_M + row as f64 * (room.wall_height_m + SVG_ROW_MARGIN_M)) * SVG_SCALE;
+        let floor = top + room.wall_height_m * SVG_SCALE;
+        let _ = writeln!(
+            svg,
+            r##"<rect x="{x0:.1}" y="{top:.1}" width="{:.1}" height="{:.1}" fill="#d0d0d0"/>"##,
+            room.wall_width_m * SVG_SCALE,
+            room.wall_height_m * SVG_SCALE
+        );
+        svg_paint(&mut svg, grid, x0, floor);
+        svg_openings(&mut svg, wall, x0, floor);
+        let _ = writeln!(
+            svg,
+            r##"<text x="{x0:.1}" y="{:.1}">wall {} ({}): {:.2} %</text>"##,
+            floor + 14.0,
+            wall.index,
+            wall.wall_type.name(),
+            wall_report.coverage * 100.0
+        );
+    }
+    svg.push_str("</svg>\n");
+    svg
+}
+
+/// The picture's size and the title line with the totals.
+fn svg_header(svg: &mut String, room: &Room, report: &PaintReport) {
+    let (w, h) = (room.wall_width_m, room.wall_height_m);
+    let rows = room.walls.len().div_ceil(SVG_WALLS_PER_ROW);
+    let width_px =
+        (SVG_WALLS_PER_ROW.min(room.walls.len()) as f64 * (w + SVG_GAP_M) + SVG_GAP_M) * SVG_SCALE;
+    let height_px = (rows as f64 * (h + SVG_ROW_MARGIN_M) + SVG_ROW_MARGIN_M) * SVG_SCALE;
     let _ = writeln!(
         svg,
         r##"<svg xmlns="http://www.w3.org/2000/svg" width="{width_px:.0}" height="{height_px:.0}" font-family="sans-serif" font-size="12"><rect width="100%" height="100%" fill="white"/>"##
@@ -152,68 +191,55 @@ pub fn write_svg(world: &PaintWorld, report: &PaintReport) -> String {
         report.totals.collisions,
         report.totals.limit_violations
     );
-    for ((wall, grid), wall_report) in room.walls.iter().zip(world.grids()).zip(&report.walls) {
-        let (col, row) = (wall.index % per_row, wall.index / per_row);
-        let x0 = (gap + col as f64 * (w + gap)) * scale;
-        let top = (0.6 + row as f64 * (h + 0.6)) * scale;
-        let floor = top + h * scale;
-        let _ = writeln!(
-            svg,
-            r##"<rect x="{x0:.1}" y="{top:.1}" width="{:.1}" height="{:.1}" fill="#d0d0d0"/>"##,
-            w * scale,
-            h * scale
-        );
-        let cell = grid.cell * scale;
-        for r in 0..grid.rows {
-            let mut c = 0;
-            while c < grid.cols {
-                let i = r * grid.cols + c;
-                if !grid.painted[i] {
-                    c += 1;
-                    continue;
-                }
-                let in_opening = grid.opening[i];
-                let start = c;
-                while c < grid.cols
-                    && grid.painted[r * grid.cols + c]
-                    && grid.opening[r * grid.cols + c] == in_opening
-                {
-                    c += 1;
-                }
-                let colour = if in_opening { "#d62728" } else { "#2ca02c" };
-                let _ = writeln!(
-                    svg,
-                    r##"<rect x="{:.2}" y="{:.2}" width="{:.2}" height="{:.2}" fill="{colour}"/>"##,
-                    x0 + start as f64 * cell,
-                    floor - (r + 1) as f64 * cell,
-                    (c - start) as f64 * cell,
-                    cell
-                );
+}
+
+/// One wall's painted cells, a rectangle per run of cells along a row with the same
+/// colour: green on the wall, red in an opening.
+fn svg_paint(svg: &mut String, grid: &WallGrid, x0: f64, floor: f64) {
+    let cell = grid.cell * SVG_SCALE;
+    for r in 0..grid.rows {
+        let mut c = 0;
+        while c < grid.cols {
+            let i = r * grid.cols + c;
+            if !grid.painted[i] {
+                c += 1;
+                continue;
             }
-        }
-        for o in &wall.openings {
-            let fill = match o.kind {
-                OpeningKind::Door => "#8c564b",
-                OpeningKind::Window => "#9ecae1",
-            };
+            let in_opening = grid.opening[i];
+            let start = c;
+            while c < grid.cols
+                && grid.painted[r * grid.cols + c]
+                && grid.opening[r * grid.cols + c] == in_opening
+            {
+                c += 1;
+            }
+            let colour = if in_opening { "#d62728" } else { "#2ca02c" };
             let _ = writeln!(
                 svg,
-                r##"<rect x="{:.1}" y="{:.1}" width="{:.1}" height="{:.1}" fill="{fill}" fill-opacity="0.35" stroke="black"/>"##,
-                x0 + o.left_m * scale,
-                floor - o.top_m * scale,
-                (o.right_m - o.left_m) * scale,
-                (o.top_m - o.bottom_m) * scale
+                r##"<rect x="{:.2}" y="{:.2}" width="{:.2}" height="{:.2}" fill="{colour}"/>"##,
+                x0 + start as f64 * cell,
+                floor - (r + 1) as f64 * cell,
+                (c - start) as f64 * cell,
+                cell
             );
         }
+    }
+}
+
+/// One wall's doors and windows, outlined over the paint.
+fn svg_openings(svg: &mut String, wall: &Wall, x0: f64, floor: f64) {
+    for o in &wall.openings {
+        let fill = match o.kind {
+            OpeningKind::Door => "#8c564b",
+            OpeningKind::Window => "#9ecae1",
+        };
         let _ = writeln!(
             svg,
-            r##"<text x="{x0:.1}" y="{:.1}">wall {} ({}): {:.2} %</text>"##,
-            floor + 14.0,
-            wall.index,
-            wall.wall_type.name(),
-            wall_report.coverage * 100.0
+            r##"<rect x="{:.1}" y="{:.1}" width="{:.1}" height="{:.1}" fill="{fill}" fill-opacity="0.35" stroke="black"/>"##,
+            x0 + o.left_m * SVG_SCALE,
+            floor - o.top_m * SVG_SCALE,
+            (o.right_m - o.left_m) * SVG_SCALE,
+            (o.top_m - o.bottom_m) * SVG_SCALE
         );
     }
-    svg.push_str("</svg>\n");
-    svg
 }
