@@ -13,6 +13,7 @@ macro_rules! say {
 
 mod batch;
 mod config;
+mod canopen;
 mod dynamixel;
 mod gait;
 mod paint;
