@@ -54,9 +54,9 @@ const BOOT_PATIENCE: Duration = Duration::from_secs(3);
 /// How long a power step may take to show in the statusword.
 const STEP_PATIENCE: Duration = Duration::from_millis(500);
 /// Between jobs a SYNC goes out every period; while streaming only after this many periods
-/// without a command (the streamer stops on a stall of 5: the SYNC must not repeat a
-/// target in the middle of a motion).
-const IDLE_SYNC_PERIODS_STREAMING: u32 = 6;
+/// without a command: [`LOST_AFTER_CYCLES`], when the streamer has given up on the link
+/// (a SYNC without a new target in the middle of a motion would be a stop at full speed).
+const IDLE_SYNC_PERIODS_STREAMING: u32 = LOST_AFTER_CYCLES;
 /// Share of a period the thread waits for the TPDOs after a SYNC.
 const COLLECT_SHARE: f64 = 0.8;
 /// A SYNC interval over this many periods while streaming is an overrun (a SYNC slot was

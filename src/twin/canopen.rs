@@ -40,6 +40,8 @@ const SECOND_DIFFERENCE_ROUNDING_COUNTS: f64 = 2.0;
 /// A SYNC more than this many interpolation periods after the one before, both carrying
 /// new targets, is an overrun of the master's cycle.
 const OVERRUN_PERIODS: f64 = 1.5;
+/// The 11-bit identifier in a PDO COB-ID (bits 29-31 are flags: CiA 301 7.5.2.35).
+const COB_ID_MASK: u32 = 0x7FF;
 /// Statusword bit 9: remote (the controlword is obeyed).
 const STATUS_REMOTE: u16 = 0x0200;
 /// Error register bit 0: generic error (CiA 301 7.5.2.2).
@@ -206,6 +208,8 @@ pub struct CanopenBus {
     rpdos_since_sync: u64,
     last_streamed: bool,
     faulted: bool,
+    /// Why the last fault latched, for the operator (taken by [`Self::take_fault_text`]).
+    fault_text: Option<String>,
 }
 
 impl CanopenBus {
@@ -274,6 +278,7 @@ impl CanopenBus {
             rpdos_since_sync: 0,
             last_streamed: false,
             faulted: false,
+            fault_text: None,
         })
     }
 
@@ -283,6 +288,11 @@ impl CanopenBus {
             .iter()
             .map(|d| d.counts.radians(d.actual.round() as i64))
             .collect()
+    }
+
+    /// Why the last fault latched, once.
+    pub fn take_fault_text(&mut self) -> Option<String> {
+        self.fault_text.take()
     }
 
     /// Each drive's power state.
@@ -331,7 +341,9 @@ impl CanopenBus {
             return;
         }
         let drive = &mut self.drives[axis];
-        if drive.nmt == nmt_state::OPERATIONAL && drive.rpdo.valid() && frame.id == drive.rpdo.cob_id
+        if drive.nmt == nmt_state::OPERATIONAL
+            && drive.rpdo.valid()
+            && frame.id == drive.rpdo.cob_id & COB_ID_MASK
         {
             let mut bytes = [0u8; 8];
             bytes[..data.len().min(8)].copy_from_slice(&data[..data.len().min(8)]);
@@ -646,7 +658,7 @@ impl CanopenBus {
             let drive = &self.drives[axis];
             if drive.tpdo.valid() && (1..=240).contains(&drive.tpdo.transmission) {
                 let data = self.tpdo_data(axis);
-                let id = self.drives[axis].tpdo.cob_id;
+                let id = self.drives[axis].tpdo.cob_id & COB_ID_MASK;
                 self.counters.tpdos += 1;
                 self.push(out, id, &data);
             }
@@ -712,8 +724,13 @@ impl CanopenBus {
         }
         let target = drive.target;
         self.counters.targets += 1;
-        if let Some(code) = self.judge(axis, target, dt) {
+        if let Some((code, why)) = self.judge(axis, target, dt) {
             self.fault(axis, code, out);
+            self.fault_text = Some(format!(
+                "node {} (axis {}): {why}",
+                self.drives[axis].node,
+                axis + 1
+            ));
             return;
         }
         let drive = &mut self.drives[axis];
@@ -722,7 +739,7 @@ impl CanopenBus {
     }
 
     /// The EMCY code of what is wrong with `target` as the next point, if anything is.
-    fn judge(&mut self, axis: usize, target: i32, dt: f64) -> Option<u16> {
+    fn judge(&mut self, axis: usize, target: i32, dt: f64) -> Option<(u16, String)> {
         let drive = &self.drives[axis];
         let (a, b) = (
             drive.counts.tick(drive.limits.lower),
@@ -731,7 +748,8 @@ impl CanopenBus {
         let t = f64::from(target);
         if t < a.min(b) || t > a.max(b) {
             self.counters.outside_limits += 1;
-            return Some(emcy_code::REFERENCE_LIMIT);
+            let why = format!("target {target} outside the limits, counts {a} .. {b}");
+            return Some((emcy_code::REFERENCE_LIMIT, why));
         }
         let scale = drive.counts.ticks_per_turn / std::f64::consts::TAU;
         let max_step =
@@ -739,13 +757,16 @@ impl CanopenBus {
         let max_second = drive.limits.max_acceleration * scale * dt * dt * (1.0 + LIMIT_SLACK)
             + SECOND_DIFFERENCE_ROUNDING_COUNTS;
         let [before, last] = drive.history.map(f64::from);
-        if (t - last).abs() > max_step {
+        let (step, second) = ((t - last).abs(), (t - 2.0 * last + before).abs());
+        if step > max_step {
             self.counters.over_speed += 1;
-            return Some(emcy_code::SPEED);
+            let why = format!("target {target}: a step of {step} counts over one period, above {max_step:.0} (speed)");
+            return Some((emcy_code::SPEED, why));
         }
-        if (t - 2.0 * last + before).abs() > max_second {
+        if second > max_second {
             self.counters.over_acceleration += 1;
-            return Some(emcy_code::POSITIONING);
+            let why = format!("target {target}: a second difference of {second} counts, above {max_second:.0} (acceleration)");
+            return Some((emcy_code::POSITIONING, why));
         }
         None
     }
@@ -921,7 +942,7 @@ pub fn serve_canopen(
             say(&format!("drive fault on axis {}", axis + 1));
         }
         bus.heartbeats(now, &mut out);
-        let faults_before = bus.counters.faults;
+        let (faults_before, streamed_before) = (bus.counters.faults, bus.counters.streamed_syncs);
         if send_all(port, &mut out, &mut bytes).is_err() {
             say("write failed");
         }
@@ -948,8 +969,15 @@ pub fn serve_canopen(
         if send_all(port, &mut out, &mut bytes).is_err() {
             say("write failed");
         }
+        if streamed_before == 0 && bus.counters.streamed_syncs > 0 {
+            say("targets arriving");
+        }
         if bus.counters.faults > faults_before {
-            say("drive fault latched");
+            let why = bus.take_fault_text();
+            say(&format!(
+                "drive fault latched{}",
+                why.map(|w| format!(": {w}")).unwrap_or_default()
+            ));
         }
     }
 }
