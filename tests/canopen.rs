@@ -280,6 +280,28 @@ fn print_figures(label: &str, report: &serde_json::Value, summary: &str) {
     }
 }
 
+/// How long a Python peer may take for its part, under the VM's emulation.
+const PEER_PATIENCE: Duration = Duration::from_secs(180);
+
+/// The output of `child` once it exits, killing it (and failing) after `patience`.
+fn within(mut child: Child, patience: Duration) -> std::process::Output {
+    let deadline = Instant::now() + patience;
+    while child.try_wait().unwrap().is_none() {
+        if Instant::now() >= deadline {
+            let _ = child.kill();
+            let output = child.wait_with_output().unwrap();
+            panic!(
+                "the peer took over {} s:\n{}\n{}",
+                patience.as_secs(),
+                String::from_utf8_lossy(&output.stdout),
+                String::from_utf8_lossy(&output.stderr)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    child.wait_with_output().unwrap()
+}
+
 /// Counts of `rad` on a drive at [`COUNTS_PER_TURN`].
 fn counts(rad: f64) -> f64 {
     (rad * COUNTS_PER_TURN / std::f64::consts::TAU).round()
@@ -492,13 +514,16 @@ fn a_python_canopen_master_moves_the_twins_drives() {
         Err(why) => return println!("skipping: {why}"),
     };
     let twin = TwinProcess::start(&config(RATE_HZ));
-    let output = Process::new(&python)
+    let master = Process::new(&python)
         .arg(repo_path("tests/peers/canopen_master.py"))
         .args(["--channel", INTERFACE, "--nodes", NODES, "--eds"])
         .arg(repo_path("tests/peers/cia402_csp.eds"))
         .args(["--period-ms", "10", "--move-counts", "20000", "--seconds", "2"])
-        .output()
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
         .unwrap();
+    let output = within(master, PEER_PATIENCE);
     let summary = twin.stop();
     let said = String::from_utf8_lossy(&output.stdout).to_string();
     println!("--- python canopen master: {}", said.trim());

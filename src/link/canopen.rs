@@ -401,8 +401,11 @@ impl Link for CanopenLink {
 /// The socket, and what the bus said besides the answers being waited for.
 struct Bus {
     can: CanBus,
-    /// Per axis: when its heartbeat was last heard, and the NMT state it carried.
-    heartbeats: Vec<(Instant, u8)>,
+    /// Per axis: when its heartbeat was last heard, and whether one has said operational
+    /// since NMT start (a heartbeat sent before the start may still be read after it).
+    heartbeats: Vec<(Instant, bool)>,
+    /// When the drives were started (NMT start).
+    started: Instant,
     /// Faults heard in passing (EMCY, a heartbeat out of operational), per axis.
     heard: Vec<(usize, String)>,
     /// Whether the drives should be operational (after NMT start).
@@ -416,6 +419,7 @@ impl Bus {
         Ok(Self {
             can,
             heartbeats: Vec::new(),
+            started: Instant::now(),
             heard: Vec::new(),
             operational: false,
         })
@@ -491,10 +495,16 @@ impl Bus {
             }
             cob::HEARTBEAT if data.len() == 1 => {
                 let state = data[0] & 0x7F;
-                if let Some(entry) = self.heartbeats.get_mut(axis) {
-                    *entry = (Instant::now(), state);
-                }
-                if self.operational && state != nmt_state::OPERATIONAL {
+                let confirmed = match self.heartbeats.get_mut(axis) {
+                    Some(entry) => {
+                        let was = entry.1;
+                        entry.0 = Instant::now();
+                        entry.1 |= state == nmt_state::OPERATIONAL;
+                        was
+                    }
+                    None => false,
+                };
+                if self.operational && confirmed && state != nmt_state::OPERATIONAL {
                     let what = if state == nmt_state::BOOT_UP {
                         "booted (boot-up message)".to_string()
                     } else {
@@ -812,11 +822,12 @@ fn set_up(bus: &mut Bus, shared: &Shared) -> Result<Vec<i32>, BusError> {
     for axis in 0..axes {
         configure(bus, shared, axis)?;
     }
-    bus.heartbeats = vec![(Instant::now(), nmt_state::OPERATIONAL); axes];
+    bus.heartbeats = vec![(Instant::now(), false); axes];
     for &node in &shared.settings.nodes {
         bus.send(shared, cob::NMT, &[nmt_command::START, node])?;
     }
     bus.operational = true;
+    bus.started = Instant::now();
     let mut present = Vec::with_capacity(axes);
     for axis in 0..axes {
         let actual = bus.read(shared, axis, (object::POSITION_ACTUAL, 0), true)? as i32;
@@ -1106,6 +1117,7 @@ fn reset_faults(bus: &mut Bus, shared: &Shared) -> Result<(), BusError> {
     for entry in &mut bus.heartbeats {
         entry.0 = now;
     }
+    bus.started = now;
     let mut state = shared.lock();
     state.latched = None;
     Ok(())
@@ -1199,11 +1211,24 @@ fn check_statuswords(shared: &Shared, answers: &[(u16, i32)]) {
     }
 }
 
-/// A drive whose heartbeat is overdue is noted as lost.
+/// A drive whose heartbeat is overdue, or that has not said operational within the
+/// consumer time of its start, is noted as lost.
 fn check_heartbeats(bus: &mut Bus, shared: &Shared) {
-    let consumer =
-        Duration::from_millis(u64::from(shared.settings.heartbeat_ms) * u64::from(HEARTBEAT_LOST_FACTOR));
-    for (axis, (heard, _)) in bus.heartbeats.iter().enumerate() {
+    let consumer = Duration::from_millis(
+        u64::from(shared.settings.heartbeat_ms) * u64::from(HEARTBEAT_LOST_FACTOR),
+    );
+    for (axis, &(heard, confirmed)) in bus.heartbeats.iter().enumerate() {
+        if !confirmed && bus.started.elapsed() > consumer {
+            bus.heard.push((
+                axis,
+                format!(
+                    "{}: not operational {} ms after NMT start",
+                    node_text(shared, axis),
+                    bus.started.elapsed().as_millis()
+                ),
+            ));
+            continue;
+        }
         let silent = heard.elapsed();
         if silent > consumer {
             bus.heard.push((

@@ -123,18 +123,22 @@ def main():
             node.rpdo[1]["Controlword"].raw = 0x0F
             node.rpdo[1]["Target position"].raw = start + int(round(share * args.move_counts))
             node.rpdo[1].transmit()
+        for node in nodes:
+            node.tpdo[1].is_received = False
         sent = time.time()
         network.sync.transmit()
+        # Each drive's TPDO1 answers the SYNC (transmission type 1).
+        while time.time() < sent + 0.5 and not all(n.tpdo[1].is_received for n in nodes):
+            time.sleep(0.0005)
         for i, node in enumerate(nodes):
-            try:
-                node.tpdo[1].wait_for_reception(0.5)
-                feedback += 1
-                last_positions[i] = node.tpdo[1]["Position actual value"].raw
-                word = node.tpdo[1]["Statusword"].raw
-                if word & 0x08:
-                    errors.append(f"node {node.id}: fault at point {k} ({word:#06x})")
-            except Exception as e:  # a missing TPDO is an error of the drive
-                errors.append(f"node {node.id}: no TPDO1 after SYNC {k}: {e}")
+            if not node.tpdo[1].is_received:
+                errors.append(f"node {node.id}: no TPDO1 after SYNC {k}")
+                continue
+            feedback += 1
+            last_positions[i] = node.tpdo[1]["Position actual value"].raw
+            word = node.tpdo[1]["Statusword"].raw
+            if word & 0x08:
+                errors.append(f"node {node.id}: fault at point {k} ({word:#06x})")
         rest = period - (time.time() - sent)
         if rest > 0:
             time.sleep(rest)
