@@ -146,7 +146,10 @@ impl TwinProcess {
         let first = lines
             .recv_timeout(Duration::from_secs(30))
             .expect("the twin prints where it serves");
-        assert!(first.starts_with(&format!("canopen://{INTERFACE} ")), "{first}");
+        assert!(
+            first.starts_with(&format!("canopen://{INTERFACE} ")),
+            "{first}"
+        );
         Self {
             child,
             stdin,
@@ -378,24 +381,36 @@ fn a_drive_fault_stops_the_job_within_two_cycles_and_reset_clears_it() {
 /// Where the CiA 301 remapping procedure's steps for one PDO fall in a drive's writes:
 /// COB-ID invalid, sub-index 0 = 0, the entries, sub-index 0 = n, COB-ID valid, in order.
 fn remapped_in_order(writes: &[(u64, u64, i64)], comm: u64, map: u64, entries: &[i64]) -> bool {
-    let mut steps: Vec<(u64, u64, Box<dyn Fn(i64) -> bool>)> = vec![
-        (comm, 1, Box::new(|v| v & 0x8000_0000 != 0)),
-        (map, 0, Box::new(|v| v == 0)),
-    ];
-    for (sub, &entry) in entries.iter().enumerate() {
-        steps.push((map, sub as u64 + 1, Box::new(move |v| v == entry)));
+    /// What a step's value must be: a COB-ID with bit 31 set or clear, or this number.
+    #[derive(Clone, Copy)]
+    enum Want {
+        Invalid,
+        Valid,
+        Is(i64),
     }
-    let n = entries.len() as i64;
-    steps.push((map, 0, Box::new(move |v| v == n)));
-    steps.push((comm, 1, Box::new(|v| v & 0x8000_0000 == 0)));
+    let mut steps = vec![(comm, 1, Want::Invalid), (map, 0, Want::Is(0))];
+    for (sub, &entry) in entries.iter().enumerate() {
+        steps.push((map, sub as u64 + 1, Want::Is(entry)));
+    }
+    steps.push((map, 0, Want::Is(entries.len() as i64)));
+    steps.push((comm, 1, Want::Valid));
     let mut next = 0;
-    for (index, sub, value) in writes {
-        if next < steps.len() && steps[next].0 == *index && steps[next].1 == *sub {
-            if !(steps[next].2)(*value) {
-                return false;
-            }
-            next += 1;
+    for &(index, sub, value) in writes {
+        let Some(&(want_index, want_sub, want)) = steps.get(next) else {
+            break;
+        };
+        if (want_index, want_sub) != (index, sub) {
+            continue;
         }
+        let ok = match want {
+            Want::Invalid => value & 0x8000_0000 != 0,
+            Want::Valid => value & 0x8000_0000 == 0,
+            Want::Is(v) => value == v,
+        };
+        if !ok {
+            return false;
+        }
+        next += 1;
     }
     next == steps.len()
 }
@@ -518,7 +533,14 @@ fn a_python_canopen_master_moves_the_twins_drives() {
         .arg(repo_path("tests/peers/canopen_master.py"))
         .args(["--channel", INTERFACE, "--nodes", NODES, "--eds"])
         .arg(repo_path("tests/peers/cia402_csp.eds"))
-        .args(["--period-ms", "10", "--move-counts", "20000", "--seconds", "2"])
+        .args([
+            "--period-ms",
+            "10",
+            "--move-counts",
+            "20000",
+            "--seconds",
+            "2",
+        ])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -538,7 +560,12 @@ fn a_python_canopen_master_moves_the_twins_drives() {
     assert_eq!(seen["tpdos"], 6 * seen["points"].as_u64().unwrap());
     // The master's two refused writes per drive, and nothing else refused or faulted.
     assert_eq!(twin_count(&summary, "SDO aborts"), 12.0, "{summary}");
-    for what in ["outside limits", "over speed", "over acceleration", "faults"] {
+    for what in [
+        "outside limits",
+        "over speed",
+        "over acceleration",
+        "faults",
+    ] {
         assert_eq!(twin_count(&summary, what), 0.0, "{what}: {summary}");
     }
 }

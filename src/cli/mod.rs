@@ -12,8 +12,8 @@ macro_rules! say {
 }
 
 mod batch;
-mod config;
 mod canopen;
+mod config;
 mod dynamixel;
 mod gait;
 mod paint;

@@ -231,7 +231,8 @@ pub fn open_link(
                 nodes,
                 *counts_per_turn,
             )?)?;
-            let timeout = settings.config.stream.reconnect_timeout_s;
+            let timeout = settings.config.stream.reconnect_timeout_s
+                + crate::link::SETUP_PATIENCE.as_secs_f64();
             wait_for_link(&link, &crate::clock::WallClock::new(), timeout);
             Ok(Box::new(link))
         }

@@ -49,6 +49,9 @@ pub const HEARTBEAT_LOST_FACTOR: u32 = 3;
 const SDO_TIMEOUT: Duration = Duration::from_millis(300);
 /// SDO requests are retried this often before the open counts as failed.
 const SDO_ATTEMPTS: u32 = 3;
+/// How long opening a link may wait for the set-up beyond the usual reconnect timeout:
+/// six drives take about 400 SDO exchanges (a few seconds on a host under load).
+pub const SETUP_PATIENCE: Duration = Duration::from_secs(30);
 /// How long a drive may take to answer after NMT reset communication (its boot-up).
 const BOOT_PATIENCE: Duration = Duration::from_secs(3);
 /// How long a power step may take to show in the statusword.
@@ -230,8 +233,7 @@ pub fn check_settings(settings: &CanopenSettings) -> Result<(), CanopenError> {
             return Err(CanopenError::BadNode(node));
         }
     }
-    for (axis, (counts, (lower, upper))) in settings.axes.iter().zip(&settings.limits).enumerate()
-    {
+    for (axis, (counts, (lower, upper))) in settings.axes.iter().zip(&settings.limits).enumerate() {
         let (low, high) = (counts.tick(*lower), counts.tick(*upper));
         if low.min(high) < f64::from(i32::MIN) || low.max(high) > f64::from(i32::MAX) {
             return Err(CanopenError::OutOfRange {
@@ -573,7 +575,10 @@ impl Bus {
     ) -> Result<(), BusError> {
         let request = sdo_download(at, &value).ok_or_else(|| BusError::Drive {
             axis,
-            text: format!("{:#06x}:{}: value too long for an expedited SDO", at.0, at.1),
+            text: format!(
+                "{:#06x}:{}: value too long for an expedited SDO",
+                at.0, at.1
+            ),
         })?;
         self.sdo(shared, axis, request, at).map(|_| ())
     }
@@ -647,7 +652,12 @@ fn remap(
     (comm, map, cob_id): (u16, u16, u32),
     entries: &[u32],
 ) -> Result<(), BusError> {
-    bus.write(shared, axis, (comm, 1), Value::Unsigned32(PDO_INVALID | cob_id))?;
+    bus.write(
+        shared,
+        axis,
+        (comm, 1),
+        Value::Unsigned32(PDO_INVALID | cob_id),
+    )?;
     bus.write(
         shared,
         axis,
@@ -656,9 +666,19 @@ fn remap(
     )?;
     bus.write(shared, axis, (map, 0), Value::Unsigned8(0))?;
     for (sub, entry) in entries.iter().enumerate() {
-        bus.write(shared, axis, (map, sub as u8 + 1), Value::Unsigned32(*entry))?;
+        bus.write(
+            shared,
+            axis,
+            (map, sub as u8 + 1),
+            Value::Unsigned32(*entry),
+        )?;
     }
-    bus.write(shared, axis, (map, 0), Value::Unsigned8(entries.len() as u8))?;
+    bus.write(
+        shared,
+        axis,
+        (map, 0),
+        Value::Unsigned8(entries.len() as u8),
+    )?;
     bus.write(shared, axis, (comm, 1), Value::Unsigned32(cob_id))
 }
 
@@ -795,14 +815,10 @@ fn enable(bus: &mut Bus, shared: &Shared, axis: usize, clear_fault: bool) -> Res
             }
             PowerState::SwitchOnDisabled => (controlword::SHUTDOWN, PowerState::ReadyToSwitchOn),
             PowerState::ReadyToSwitchOn => (controlword::SWITCH_ON, PowerState::SwitchedOn),
-            PowerState::SwitchedOn => (
-                controlword::ENABLE_OPERATION,
-                PowerState::OperationEnabled,
-            ),
-            PowerState::QuickStopActive => (
-                controlword::DISABLE_VOLTAGE,
-                PowerState::SwitchOnDisabled,
-            ),
+            PowerState::SwitchedOn => (controlword::ENABLE_OPERATION, PowerState::OperationEnabled),
+            PowerState::QuickStopActive => {
+                (controlword::DISABLE_VOLTAGE, PowerState::SwitchOnDisabled)
+            }
         };
         power_step(bus, shared, axis, command, next)?;
     }
@@ -1129,8 +1145,7 @@ fn sync_cycle(bus: &mut Bus, shared: &Shared, cycle: &mut Cycle) -> Result<bool,
     let now = Instant::now();
     if let Some(last) = cycle.last_sync
         && cycle.streaming
-        && now.duration_since(last).as_secs_f64()
-            > OVERRUN_PERIODS * settings.period.as_secs_f64()
+        && now.duration_since(last).as_secs_f64() > OVERRUN_PERIODS * settings.period.as_secs_f64()
     {
         shared.overruns.fetch_add(1, Ordering::Relaxed);
     }
@@ -1273,7 +1288,10 @@ mod tests {
                 nodes,
                 ..settings()
             };
-            assert!(matches!(check_settings(&bad), Err(CanopenError::BadNode(_))));
+            assert!(matches!(
+                check_settings(&bad),
+                Err(CanopenError::BadNode(_))
+            ));
         }
         let short = CanopenSettings {
             nodes: vec![1],

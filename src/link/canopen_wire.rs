@@ -295,10 +295,15 @@ pub mod emcy_code {
 /// The interpolation period 0x60C2 for `period`: (value, power of ten), the coarsest unit
 /// from ms down to us that expresses it exactly in 1..=255; `None` when none does.
 pub fn interpolation_period(period: std::time::Duration) -> Option<(u8, i8)> {
-    let micros = period.as_nanos();
-    for (exponent, unit) in [(-3i8, 1_000_000u128), (-4, 100_000), (-5, 10_000), (-6, 1_000)] {
-        if micros % unit == 0 && (1..=255).contains(&(micros / unit)) {
-            return Some(((micros / unit) as u8, exponent));
+    let nanos = period.as_nanos();
+    for (exponent, unit) in [
+        (-3i8, 1_000_000u128),
+        (-4, 100_000),
+        (-5, 10_000),
+        (-6, 1_000),
+    ] {
+        if nanos.is_multiple_of(unit) && (1..=255).contains(&(nanos / unit)) {
+            return Some(((nanos / unit) as u8, exponent));
         }
     }
     None
@@ -356,9 +361,18 @@ mod tests {
 
     #[test]
     fn interpolation_period_in_the_coarsest_exact_unit() {
-        assert_eq!(interpolation_period(Duration::from_millis(4)), Some((4, -3)));
-        assert_eq!(interpolation_period(Duration::from_micros(2500)), Some((25, -4)));
-        assert_eq!(interpolation_period(Duration::from_micros(1)), Some((1, -6)));
+        assert_eq!(
+            interpolation_period(Duration::from_millis(4)),
+            Some((4, -3))
+        );
+        assert_eq!(
+            interpolation_period(Duration::from_micros(2500)),
+            Some((25, -4))
+        );
+        assert_eq!(
+            interpolation_period(Duration::from_micros(1)),
+            Some((1, -6))
+        );
         assert_eq!(interpolation_period(Duration::from_secs(1)), None);
         assert_eq!(period_of(4, -3), Some(Duration::from_millis(4)));
         assert_eq!(period_of(25, -4), Some(Duration::from_micros(2500)));

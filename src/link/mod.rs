@@ -18,7 +18,8 @@ mod tcp;
 
 pub use can::{CanBus, SEND_PATIENCE, connect_can, interface_mtu, interface_up};
 pub use canopen::{
-    CanopenError, CanopenLink, CanopenSettings, HEARTBEAT_LOST_FACTOR, connect_canopen,
+    CanopenError, CanopenLink, CanopenSettings, HEARTBEAT_LOST_FACTOR, SETUP_PATIENCE,
+    connect_canopen,
 };
 pub use channel::{CHANNEL_DEPTH, ChannelLink, IoEnds, LinkShared};
 pub use dynamixel::{

@@ -22,8 +22,7 @@
 use super::server::ControllerPort;
 use crate::link::canopen_wire::{
     CSP_MODE, DRIVE_PROFILE, PDO_BYTES, PDO_INVALID, PowerState, SdoAbortCode, SdoRequest, Value,
-    abort, cob, emcy_code, mapping_entry, nmt_command, nmt_state, object,
-    period_of,
+    abort, cob, emcy_code, mapping_entry, nmt_command, nmt_state, object, period_of,
 };
 use crate::link::dynamixel_wire::AxisTicks;
 use crate::protocol::CanPayload;
@@ -414,10 +413,8 @@ impl CanopenBus {
                         cob::RPDO1 + id,
                         mapping_entry(object::CONTROLWORD, 0, 16),
                     );
-                    drive.tpdo = Pdo::default_for(
-                        cob::TPDO1 + id,
-                        mapping_entry(object::STATUSWORD, 0, 16),
-                    );
+                    drive.tpdo =
+                        Pdo::default_for(cob::TPDO1 + id, mapping_entry(object::STATUSWORD, 0, 16));
                     drive.heartbeat_ms = 0;
                     drive.pending = None;
                     if command == nmt_command::RESET_NODE {
@@ -447,10 +444,8 @@ impl CanopenBus {
         };
         match SdoRequest::parse(request) {
             Some(SdoRequest::Upload { at }) => match self.read(axis, at) {
-                Ok(value) => {
-                    canopen_rs::sdo::encode_upload_expedited_response(address(at), &value)
-                        .unwrap_or_else(|_| aborted(at, abort::LENGTH_MISMATCH))
-                }
+                Ok(value) => canopen_rs::sdo::encode_upload_expedited_response(address(at), &value)
+                    .unwrap_or_else(|_| aborted(at, abort::LENGTH_MISMATCH)),
                 Err(code) => aborted(at, code),
             },
             Some(SdoRequest::Download { at, data, len }) => {
@@ -460,10 +455,7 @@ impl CanopenBus {
                 }
             }
             Some(SdoRequest::Unsupported { at }) => aborted(at, abort::COMMAND_INVALID),
-            None => canopen_rs::sdo::encode_abort(
-                address((0, 0)),
-                SdoAbortCode::CommandInvalid,
-            ),
+            None => canopen_rs::sdo::encode_abort(address((0, 0)), SdoAbortCode::CommandInvalid),
         }
     }
 
@@ -760,12 +752,16 @@ impl CanopenBus {
         let (step, second) = ((t - last).abs(), (t - 2.0 * last + before).abs());
         if step > max_step {
             self.counters.over_speed += 1;
-            let why = format!("target {target}: a step of {step} counts over one period, above {max_step:.0} (speed)");
+            let why = format!(
+                "target {target}: a step of {step} counts over one period, above {max_step:.0} (speed)"
+            );
             return Some((emcy_code::SPEED, why));
         }
         if second > max_second {
             self.counters.over_acceleration += 1;
-            let why = format!("target {target}: a second difference of {second} counts, above {max_second:.0} (acceleration)");
+            let why = format!(
+                "target {target}: a second difference of {second} counts, above {max_second:.0} (acceleration)"
+            );
             return Some((emcy_code::POSITIONING, why));
         }
         None
@@ -1037,8 +1033,7 @@ impl ControllerPort for CanopenPort {
         let (frame, _) = frame_of(frame).ok_or_else(|| {
             std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a CAN frame")
         })?;
-        self.bus
-            .send_patiently(&frame, crate::link::SEND_PATIENCE)
+        self.bus.send_patiently(&frame, crate::link::SEND_PATIENCE)
     }
 
     fn detach(&mut self) {}
