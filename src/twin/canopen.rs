@@ -330,6 +330,10 @@ impl CanopenBus {
         let Some(axis) = self.drives.iter().position(|d| d.node == node) else {
             return;
         };
+        // A client's abort (command specifier 4) ends its transfer: no answer.
+        if function == cob::SDO_RX && data.first().is_some_and(|c| c & 0xE0 == 0x80) {
+            return;
+        }
         if function == cob::SDO_RX && self.drives[axis].nmt != nmt_state::STOPPED {
             self.counters.sdo_requests += 1;
             let answer = self.sdo(axis, data, out);

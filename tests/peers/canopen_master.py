@@ -25,6 +25,7 @@ import canopen
 from canopen.sdo.exceptions import SdoAbortedError
 
 ENABLED_MASK, ENABLED = 0x6F, 0x27
+SDO_TIMEOUT_S = 3.0
 
 
 def state_of(word):
@@ -96,6 +97,9 @@ def main():
     nodes = []
     for node_id in (int(n) for n in args.nodes.split(",")):
         node = canopen.RemoteNode(node_id, args.eds)
+        # The library's 0.3 s is short for an interpreter under the VM's emulation, with a
+        # backlog of TPDOs in front of the answer.
+        node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
         network.add_node(node)
         nodes.append(node)
     for node in nodes:
@@ -146,7 +150,7 @@ def main():
     for _ in range(100):
         network.sync.transmit()
         time.sleep(period)
-    time.sleep(0.1)
+    time.sleep(0.5)
     final = [node.sdo[0x6064].raw for node in nodes]
     words = [node.sdo[0x6041].raw for node in nodes]
     for node, start, end, word in zip(nodes, starts, final, words):
