@@ -918,7 +918,18 @@ fn begin_session(bus: &mut Bus, shared: &Shared, present: &[i32]) {
     state.restart = false;
     state.queue.clear();
     state.problem = None;
-    let status = ControllerStatus::Holding;
+    // A drive in fault is latched before the first feedback: none may say holding.
+    let status = match fault {
+        Some((axis, text)) => {
+            let fault = Fault::Drive { axis: axis as u8 };
+            state.latched = Some(fault);
+            state
+                .events
+                .push_back(LinkEvent::Fault(FaultReport { fault, text }));
+            ControllerStatus::Fault(fault)
+        }
+        None => ControllerStatus::Holding,
+    };
     let positions = radians(shared, present);
     publish(
         shared,
@@ -929,10 +940,6 @@ fn begin_session(bus: &mut Bus, shared: &Shared, present: &[i32]) {
             status,
         },
     );
-    drop(state);
-    if let Some((axis, text)) = fault {
-        latch(shared, Fault::Drive { axis: axis as u8 }, &text);
-    }
 }
 
 fn radians(shared: &Shared, counts: &[i32]) -> AxisValues {
@@ -1018,6 +1025,24 @@ struct Cycle {
     targets: Option<Vec<i32>>,
     last_sync: Option<Instant>,
     missing_cycles: u32,
+    /// Quick stop sent since the fault latched.
+    quick_stopped: bool,
+}
+
+/// Quick stop (controlword 0x02, CiA 402-2 transition 11) to every drive, taken at a SYNC.
+fn quick_stop(bus: &mut Bus, shared: &Shared, cycle: &Cycle) -> Result<(), BusError> {
+    for (axis, &node) in shared.settings.nodes.iter().enumerate() {
+        let hold = cycle
+            .targets
+            .as_ref()
+            .and_then(|t| t.get(axis))
+            .or(cycle.present.get(axis))
+            .copied()
+            .unwrap_or_default();
+        let data = rpdo1(controlword::QUICK_STOP, hold);
+        bus.send(shared, cob::RPDO1 + u32::from(node), &data)?;
+    }
+    bus.send(shared, cob::SYNC, &[])
 }
 
 /// SYNC cycles, one per command (and one a period between jobs), until loss or the link
@@ -1032,6 +1057,7 @@ fn run_cycles(bus: &mut Bus, shared: &Shared, present: Vec<i32>) {
         targets: None,
         last_sync: None,
         missing_cycles: 0,
+        quick_stopped: false,
     };
     loop {
         let idle_periods = if cycle.streaming {
@@ -1051,12 +1077,23 @@ fn run_cycles(bus: &mut Bus, shared: &Shared, present: Vec<i32>) {
                 Ok(())
             }
         };
+        if matches!(job, Some(Job::Reset)) {
+            cycle.quick_stopped = false;
+        }
         let result = done.and_then(|()| sync_cycle(bus, shared, &mut cycle));
         match result {
             Ok(true) => {}
             Ok(false) | Err(BusError::Lost(_)) => return,
             Err(BusError::Drive { axis, text }) => {
                 latch(shared, Fault::Drive { axis: axis as u8 }, &text)
+            }
+        }
+        // One drive's fault stops the others on their own quick-stop ramps, never by
+        // holding a target mid-motion (a stop over their acceleration).
+        if !cycle.quick_stopped && shared.lock().latched.is_some() {
+            cycle.quick_stopped = true;
+            if quick_stop(bus, shared, &cycle).is_err() {
+                return;
             }
         }
     }

@@ -351,9 +351,15 @@ impl CanopenBus {
             let mut bytes = [0u8; 8];
             bytes[..data.len().min(8)].copy_from_slice(&data[..data.len().min(8)]);
             if data.len() >= pdo_length(drive.rpdo.mapped()) {
+                // A quick stop or other power command is not a target being streamed.
+                let command = drive.rpdo.mapped().first()
+                    == Some(&mapping_entry(object::CONTROLWORD, 0, 16))
+                    && u16::from_le_bytes([bytes[0], bytes[1]]) & 0x8F != 0x0F;
                 drive.pending = Some(bytes);
                 self.counters.rpdos += 1;
-                self.rpdos_since_sync += 1;
+                if !command {
+                    self.rpdos_since_sync += 1;
+                }
             }
         }
     }

@@ -104,7 +104,16 @@ def main():
         nodes.append(node)
     for node in nodes:
         node.nmt.send_command(0x82)
-        node.nmt.wait_for_bootup(5)
+    # The boot-up may come before a wait for it starts: read each node until it answers.
+    for node in nodes:
+        deadline = time.time() + 5
+        while True:
+            try:
+                node.sdo[0x1000].raw
+                break
+            except Exception:
+                if time.time() > deadline:
+                    raise
     for node in nodes:
         set_up(node, args.period_ms, errors)
     for node in nodes:
