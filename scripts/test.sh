@@ -149,6 +149,27 @@ if "$ros2_venv/bin/python" -c "$ros2_probe" 2>/dev/null; then
 fi
 # ---------------------------------------------------------------------- end ROS 2 peer --
 
+# ------------------- CANopen peers: python-can + canopen, for the VM (tests/canopen.rs) --
+# Pure-Python packages installed into a folder (pip install --target) that the VM gets with
+# Debian's python3.11 and its standard library (../shared/tools/README.md). Without them
+# the CANopen peer tests say why they skip; on CI a missing peer is a failure.
+canopen_py=${CARGO_TARGET_DIR:-target}/canopen-pyvm
+[[ $canopen_py = /* ]] || canopen_py="$PWD/$canopen_py"
+vm_python=/usr/bin/python3.11
+canopen_probe='import can, canopen'
+if [ -x "$vm_python" ] && ! PYTHONPATH="$canopen_py" "$vm_python" -c "$canopen_probe" 2>/dev/null; then
+  python3 -m pip install -q --target "$canopen_py" python-can canopen \
+    || echo "test.sh: cannot install python-can and canopen; the CANopen peer tests will skip" >&2
+fi
+canopen_peer=
+if [ -x "$vm_python" ] && PYTHONPATH="$canopen_py" "$vm_python" -c "$canopen_probe" 2>/dev/null; then
+  canopen_peer=1
+elif [ "${CI:-}" = true ]; then
+  echo "test.sh: CI must test CANopen against python canopen, and it could not be installed" >&2
+  exit 1
+fi
+# ----------------------------------------------------------------- end CANopen peers --
+
 # ------------------------------------------------------------- 1. on this machine --
 [ -n "$vm_only" ] || cargo test --release
 
@@ -164,6 +185,10 @@ rig_bin=$(executable bin rigbridge)
 [ -x "$test_bin" ] && [ -x "$rig_bin" ] \
   || { echo "test.sh: cannot find the CAN test ($test_bin) or rigbridge ($rig_bin)" >&2; exit 1; }
 
+canopen_artifacts=$(cargo test --release --test canopen --no-run --message-format=json)
+canopen_bin=$(artifacts=$canopen_artifacts; executable test canopen)
+[ -x "$canopen_bin" ] || { echo "test.sh: cannot find the CANopen test ($canopen_bin)" >&2; exit 1; }
+
 echo "test.sh: tests/can.rs inside a VM with SocketCAN ($(basename "$test_bin"))"
 # The guest gets both binaries and config/ at their host paths and runs in this directory;
 # RIGBRIDGE_REQUIRE_CAN=1 makes a test that cannot reach a CAN interface fail, not skip.
@@ -173,5 +198,23 @@ VCANVM_IFACES="vcan0 vcan1 vcan2 vcan3" \
 VCANVM_FILES="$rig_bin $PWD/config" \
 VCANVM_TIMEOUT=${VCANVM_TIMEOUT:-300} \
   bash "$vm_script" "$test_bin" --test-threads=1 --nocapture
+
+# tests/canopen.rs in the VM, with the Python peers (python-can's socketcan broadcast
+# manager sends the drives' heartbeats: can-bcm).
+echo "test.sh: tests/canopen.rs inside a VM with SocketCAN ($(basename "$canopen_bin"))"
+canopen_files="$rig_bin $PWD/config $PWD/tests/peers"
+canopen_env=RIGBRIDGE_REQUIRE_CAN
+if [ -n "$canopen_peer" ]; then
+  canopen_files="$canopen_files $vm_python /usr/lib/python3.11 $canopen_py"
+  canopen_env="$canopen_env RIGBRIDGE_CANOPEN_PYTHON PYTHONPATH CI"
+fi
+RIGBRIDGE_REQUIRE_CAN=1 \
+RIGBRIDGE_CANOPEN_PYTHON=$vm_python \
+PYTHONPATH=$canopen_py \
+VCANVM_ENV="$canopen_env" \
+VCANVM_MODULES="can can-raw can-bcm vcan" \
+VCANVM_FILES="$canopen_files" \
+VCANVM_TIMEOUT=${VCANVM_TIMEOUT:-600} \
+  bash "$vm_script" "$canopen_bin" --test-threads=1 --nocapture
 
 echo "test.sh: all tests passed in $((SECONDS - started)) s"

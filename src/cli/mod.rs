@@ -12,6 +12,7 @@ macro_rules! say {
 }
 
 mod batch;
+mod canopen;
 mod config;
 mod dynamixel;
 mod gait;

@@ -19,7 +19,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 #[derive(Args)]
-#[command(group(clap::ArgGroup::new("transport").required(true).args(["listen", "serial", "pty", "can", "egm"])))]
+#[command(group(clap::ArgGroup::new("transport").required(true).args(["listen", "serial", "pty", "can", "egm", "canopen"])))]
 pub struct TwinArgs {
     /// Rig and twin settings (servo model, initial position, cycle).
     #[arg(long, env = "RIGBRIDGE_CONFIG", default_value = rigbridge::rig::shipped::DEFAULT_RUN_SETTINGS)]
@@ -58,6 +58,17 @@ pub struct TwinArgs {
     /// Dynamixel: the servo ids in axis order (default 1, 2, ... one per axis).
     #[arg(long, value_delimiter = ',')]
     pub ids: Vec<u8>,
+    /// Play CiA 402 drives in cyclic synchronous position mode, one per axis, on this
+    /// SocketCAN interface (docs/canopen.md), instead of rigbridge's protocol. Reads
+    /// `fault AXIS` from stdin.
+    #[arg(long)]
+    pub canopen: Option<String>,
+    /// CANopen: the node ids in axis order (default 1, 2, ... one per axis).
+    #[arg(long, value_delimiter = ',')]
+    pub nodes: Vec<u8>,
+    /// CANopen: counts a turn of every axis unless `[canopen]` says otherwise.
+    #[arg(long)]
+    pub counts_per_turn: Option<u32>,
     /// Cycles without a target before holding, and cycles of silence that count as link
     /// loss (docs/protocol.md 6.5); default: the config's `[twin] watchdog_cycles`.
     #[arg(long)]
@@ -98,6 +109,15 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
         load_run_settings(&args.config).with_context(|| super::settings_context(&args.config))?;
     if let Some(sensor) = &args.egm {
         return egm_twin(&args, sensor, &settings);
+    }
+    if let Some(interface) = &args.canopen {
+        return super::canopen::canopen_twin(
+            &settings,
+            interface,
+            &args.nodes,
+            args.counts_per_turn,
+            stop_on_signals()?,
+        );
     }
     if args.dynamixel {
         let serial = args

@@ -34,6 +34,10 @@ pub struct RunConfig {
     /// `zenoh_connect` is absent.
     #[serde(default)]
     pub ros2: Ros2Config,
+    /// `[canopen]`: how axes map to drive counts on `canopen://` links (and in the twin's
+    /// drives), and the drives' heartbeat. Optional.
+    #[serde(default)]
+    pub canopen: CanopenConfig,
 }
 
 /// `[ros2]`: publish the rig's joint states (and, under `serve`, take joint trajectories as
@@ -88,6 +92,103 @@ impl Ros2Config {
             check_range(file, "ros2.joint_states_hz", rate, 1.0, 1000.0)?;
         }
         Ok(())
+    }
+}
+
+/// `[canopen]`: per axis, counts = zero_offset + rad * counts_per_turn / 2 pi
+/// (docs/canopen.md). `counts_per_turn` and `zero_offset` are one whole number for every
+/// axis or one per axis; they override the link address's `counts_per_turn`.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CanopenConfig {
+    /// The link's `counts_per_turn`, else 1,048,576 (a 20-bit encoder), when absent.
+    pub counts_per_turn: Option<PerAxis>,
+    /// 0 when absent: counts 0 at the axis' zero.
+    pub zero_offset: Option<PerAxis>,
+    /// The heartbeat producer time asked of each drive (0x1017), ms; 100 when absent.
+    pub heartbeat_ms: Option<f64>,
+}
+
+/// Counts a turn when neither the link nor `[canopen]` says: a 20-bit single-turn encoder.
+pub const DEFAULT_COUNTS_PER_TURN: f64 = 1_048_576.0;
+/// The heartbeat producer time asked of each drive when `[canopen]` does not say: 100 ms,
+/// 25 cycles at 250 Hz (the streamer's own patience for a silent controller).
+pub const DEFAULT_HEARTBEAT_MS: f64 = 100.0;
+/// Largest counts a turn accepted: 2^30, far above any encoder, keeps a turn in 32 bits.
+const MAX_COUNTS_PER_TURN: f64 = 1_073_741_824.0;
+
+impl CanopenConfig {
+    /// Each axis' count map, `counts_per_turn` from the link address unless `[canopen]`
+    /// sets it; errors name the key and value. Revolute axes only: counts are a turn's.
+    pub fn axes(
+        &self,
+        file: &Path,
+        rig: &Rig,
+        link_counts_per_turn: Option<u32>,
+    ) -> Result<Vec<crate::link::dynamixel_wire::AxisTicks>, ConfigError> {
+        let default = crate::link::dynamixel_wire::AxisTicks {
+            ticks_per_turn: link_counts_per_turn.map_or(DEFAULT_COUNTS_PER_TURN, f64::from),
+            zero_tick: 0.0,
+        };
+        let mut axes = vec![default; rig.dof()];
+        let keys = [
+            (
+                "canopen.counts_per_turn",
+                &self.counts_per_turn,
+                1.0,
+                MAX_COUNTS_PER_TURN,
+            ),
+            (
+                "canopen.zero_offset",
+                &self.zero_offset,
+                f64::from(i32::MIN),
+                f64::from(i32::MAX),
+            ),
+        ];
+        for (index, (key, given, low, high)) in keys.into_iter().enumerate() {
+            let Some(given) = given else { continue };
+            if let PerAxis::Each(values) = given
+                && values.len() != rig.dof()
+            {
+                let reason = format!("needs one value per axis ({})", rig.dof());
+                return Err(ConfigError::invalid(file, key, values.len(), &reason));
+            }
+            for (axis, counts) in axes.iter_mut().enumerate() {
+                let value =
+                    check_range(file, key, given.value(axis).unwrap_or_default(), low, high)?;
+                if value.fract() != 0.0 {
+                    return Err(ConfigError::invalid(
+                        file,
+                        key,
+                        value,
+                        "must be a whole number",
+                    ));
+                }
+                if index == 0 {
+                    counts.ticks_per_turn = value;
+                } else {
+                    counts.zero_tick = value;
+                }
+            }
+        }
+        Ok(axes)
+    }
+
+    /// The heartbeat producer time, ms: 1 to 65535 (0x1017 is UNSIGNED16), whole.
+    pub fn heartbeat_ms(&self, file: &Path) -> Result<u16, ConfigError> {
+        let Some(ms) = self.heartbeat_ms else {
+            return Ok(DEFAULT_HEARTBEAT_MS as u16);
+        };
+        let ms = check_range(file, "canopen.heartbeat_ms", ms, 1.0, 65535.0)?;
+        if ms.fract() != 0.0 {
+            return Err(ConfigError::invalid(
+                file,
+                "canopen.heartbeat_ms",
+                ms,
+                "must be a whole number",
+            ));
+        }
+        Ok(ms as u16)
     }
 }
 
@@ -592,6 +693,8 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     )?;
     config.stream.tolerances(file, &rig)?;
     config.dynamixel.axes(file, &rig)?;
+    config.canopen.axes(file, &rig, None)?;
+    config.canopen.heartbeat_ms(file)?;
     if config.stream.can_base_id > MAX_CAN_BASE_ID {
         return Err(ConfigError::invalid(
             file,

@@ -221,6 +221,22 @@ pub fn open_link(
             );
             Ok(Box::new(link))
         }
+        LinkSpec::Canopen {
+            interface,
+            nodes,
+            counts_per_turn,
+        } => {
+            let link = crate::link::connect_canopen(canopen_settings(
+                settings,
+                interface,
+                nodes,
+                *counts_per_turn,
+            )?)?;
+            let timeout = settings.config.stream.reconnect_timeout_s
+                + crate::link::SETUP_PATIENCE.as_secs_f64();
+            wait_for_link(&link, &crate::clock::WallClock::new(), timeout);
+            Ok(Box::new(link))
+        }
         LinkSpec::Egm { address } => {
             let period = Duration::from_secs_f64(settings.period_s());
             let link = crate::link::bind_egm(address, settings.rig.dof(), period)
@@ -277,6 +293,46 @@ pub fn dynamixel_settings(
             .map(|j| (j.limits.lower, j.limits.upper))
             .collect(),
         cycle_timeout: Duration::from_secs_f64(settings.period_s()),
+    })
+}
+
+/// The CANopen link's settings for drives `nodes` on `interface`: the axes' count maps
+/// from the link's `counts_per_turn` and `[canopen]`, their limits, the stream period as
+/// the SYNC period, the heartbeat (docs/canopen.md).
+pub fn canopen_settings(
+    settings: &RunSettings,
+    interface: &str,
+    nodes: &[u8],
+    counts_per_turn: Option<u32>,
+) -> Result<crate::link::CanopenSettings, DaemonError> {
+    let rig = &settings.rig;
+    if let Some(joint) = rig
+        .joints
+        .iter()
+        .find(|j| j.kind != crate::rig::JointKind::Revolute)
+    {
+        return Err(DaemonError::Unavailable(format!(
+            "a CANopen link drives revolute axes only (counts a turn); {} is prismatic",
+            joint.name
+        )));
+    }
+    let canopen = &settings.config.canopen;
+    let unavailable = |e: crate::rig::ConfigError| DaemonError::Unavailable(e.to_string());
+    let axes = canopen
+        .axes(&settings.file, rig, counts_per_turn)
+        .map_err(unavailable)?;
+    let heartbeat_ms = canopen.heartbeat_ms(&settings.file).map_err(unavailable)?;
+    Ok(crate::link::CanopenSettings {
+        interface: interface.to_string(),
+        nodes: nodes.to_vec(),
+        axes,
+        limits: rig
+            .joints
+            .iter()
+            .map(|j| (j.limits.lower, j.limits.upper))
+            .collect(),
+        period: Duration::from_secs_f64(settings.period_s()),
+        heartbeat_ms,
     })
 }
 

@@ -65,13 +65,25 @@ impl CanBus {
     /// for a missing one, `Unsupported` for a kernel without SocketCAN, `InvalidInput` for
     /// an FD mapping on an interface that cannot carry FD frames.
     pub fn open(interface: &str, mapping: &CanMapping) -> io::Result<Self> {
+        Self::open_with(interface, mapping.fd(), &receive_filters(mapping))
+    }
+
+    /// Opens `interface` for classic CAN receiving every standard data frame: a CANopen
+    /// master or device, which reads the whole bus (NMT, SYNC, EMCY, PDOs, SDOs, heartbeats).
+    pub fn open_classic(interface: &str) -> io::Result<Self> {
+        // One filter with an empty mask takes every identifier; extended, remote and error
+        // frames are skipped on reading.
+        Self::open_with(interface, false, &[CanFilter::new(0, 0)])
+    }
+
+    fn open_with(interface: &str, fd: bool, filters: &[CanFilter]) -> io::Result<Self> {
         let fail = |kind: ErrorKind, why: String| {
             Err(io::Error::new(kind, format!("can://{interface}: {why}")))
         };
         if interface_up(interface) == Some(false) {
             return fail(ErrorKind::NetworkDown, "the interface is down".into());
         }
-        if mapping.fd()
+        if fd
             && let Some(mtu) = interface_mtu(interface)
             && mtu < CANFD_MTU
         {
@@ -83,7 +95,7 @@ impl CanBus {
                 ),
             );
         }
-        let opened = if mapping.fd() {
+        let opened = if fd {
             CanFdSocket::open(interface).map(BusSocket::Fd)
         } else {
             CanSocket::open(interface).map(BusSocket::Classic)
@@ -97,13 +109,12 @@ impl CanBus {
             }
             Err(e) => return fail(kind_of(&e), explain(&e)),
         };
-        let filters = receive_filters(mapping);
         let configured = match &socket {
             BusSocket::Classic(s) => s
-                .set_filters(&filters)
+                .set_filters(filters)
                 .and_then(|()| s.set_nonblocking(true)),
             BusSocket::Fd(s) => s
-                .set_filters(&filters)
+                .set_filters(filters)
                 .and_then(|()| s.set_nonblocking(true)),
         };
         if let Err(e) = configured {

@@ -3,6 +3,8 @@
 //! streamer's job) and never changes a command's values.
 
 mod can;
+mod canopen;
+pub mod canopen_wire;
 mod channel;
 mod dynamixel;
 pub mod dynamixel_wire;
@@ -15,6 +17,10 @@ mod spec;
 mod tcp;
 
 pub use can::{CanBus, SEND_PATIENCE, connect_can, interface_mtu, interface_up};
+pub use canopen::{
+    CanopenError, CanopenLink, CanopenSettings, HEARTBEAT_LOST_FACTOR, SETUP_PATIENCE,
+    connect_canopen,
+};
 pub use channel::{CHANNEL_DEPTH, ChannelLink, IoEnds, LinkShared};
 pub use dynamixel::{
     DynamixelError, DynamixelLink, DynamixelSettings, LOST_AFTER_CYCLES, connect_dynamixel,

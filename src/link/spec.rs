@@ -1,7 +1,9 @@
 //! Link addresses as users write them: `loopback`, `tcp://HOST:PORT`,
 //! `serial:///dev/PATH?baud=N`, `can://IFACE`, `egm://ADDR:PORT` (rigbridge as an ABB EGM
 //! sensor, bound to ADDR:PORT), `dynamixel:///dev/PATH?baud=N&ids=1,2,...` (rigbridge as
-//! the Dynamixel Protocol 2.0 master of one servo per axis, ids in axis order).
+//! the Dynamixel Protocol 2.0 master of one servo per axis, ids in axis order),
+//! `canopen://IFACE?nodes=1,2,...&counts_per_turn=N` (rigbridge as the CANopen master of one
+//! CiA 402 drive per axis, node ids in axis order).
 
 use std::str::FromStr;
 use thiserror::Error;
@@ -26,11 +28,18 @@ pub enum LinkSpec {
     Egm {
         address: String,
     },
+    /// CiA 402 drives on a SocketCAN interface: node ids in axis order, and the counts a
+    /// turn of every axis (when given; `[canopen]` in the config may set them per axis).
+    Canopen {
+        interface: String,
+        nodes: Vec<u8>,
+        counts_per_turn: Option<u32>,
+    },
 }
 
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 #[error(
-    "link `{text}`: {reason} (expected loopback, tcp://HOST:PORT, serial:///dev/PATH?baud=N, can://IFACE, egm://ADDR:PORT or dynamixel:///dev/PATH?baud=N&ids=1,2,...)"
+    "link `{text}`: {reason} (expected loopback, tcp://HOST:PORT, serial:///dev/PATH?baud=N, can://IFACE, egm://ADDR:PORT, dynamixel:///dev/PATH?baud=N&ids=1,2,... or canopen://IFACE?nodes=1,2,...)"
 )]
 pub struct LinkSpecError {
     pub text: String,
@@ -79,6 +88,9 @@ impl FromStr for LinkSpec {
         }
         if let Some(rest) = text.strip_prefix("dynamixel://") {
             return parse_dynamixel(rest).map_err(|reason| fail(&reason));
+        }
+        if let Some(rest) = text.strip_prefix("canopen://") {
+            return parse_canopen(rest).map_err(|reason| fail(&reason));
         }
         if let Some(address) = text.strip_prefix("egm://") {
             if address.parse::<std::net::SocketAddr>().is_err() {
@@ -141,6 +153,43 @@ fn parse_dynamixel(rest: &str) -> Result<LinkSpec, String> {
     })
 }
 
+/// `IFACE?nodes=1,2,...&counts_per_turn=N`: nodes required (one per axis, in axis order).
+fn parse_canopen(rest: &str) -> Result<LinkSpec, String> {
+    let (interface, query) = rest.split_once('?').unwrap_or((rest, ""));
+    if interface.is_empty() || interface.contains('/') {
+        return Err("needs an interface name such as vcan0".into());
+    }
+    let mut nodes = None;
+    let mut counts_per_turn = None;
+    for option in query.split('&').filter(|o| !o.is_empty()) {
+        match option.split_once('=') {
+            Some(("nodes", list)) => {
+                let parsed: Result<Vec<u8>, _> = list.split(',').map(str::parse::<u8>).collect();
+                match parsed {
+                    Ok(list) if list.iter().all(|id| (1..=127).contains(id)) => nodes = Some(list),
+                    _ => {
+                        return Err(
+                            "nodes must be CANopen node ids from 1 to 127, such as nodes=1,2,3"
+                                .into(),
+                        );
+                    }
+                }
+            }
+            Some(("counts_per_turn", n)) => match n.parse::<u32>() {
+                Ok(n) if n > 0 => counts_per_turn = Some(n),
+                _ => return Err("counts_per_turn must be a whole number above 0".into()),
+            },
+            _ => return Err("the options are nodes=1,2,... and counts_per_turn=N".into()),
+        }
+    }
+    let nodes = nodes.ok_or("needs nodes=1,2,... (one drive's node id per axis, in axis order)")?;
+    Ok(LinkSpec::Canopen {
+        interface: interface.to_string(),
+        nodes,
+        counts_per_turn,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -198,7 +247,29 @@ mod tests {
                 address: "0.0.0.0:6510".into()
             })
         );
+        assert_eq!(
+            "canopen://vcan0?nodes=1,2,3,4,5,6&counts_per_turn=1048576".parse(),
+            Ok(LinkSpec::Canopen {
+                interface: "vcan0".into(),
+                nodes: vec![1, 2, 3, 4, 5, 6],
+                counts_per_turn: Some(1_048_576)
+            })
+        );
+        assert_eq!(
+            "canopen://can1?nodes=9".parse(),
+            Ok(LinkSpec::Canopen {
+                interface: "can1".into(),
+                nodes: vec![9],
+                counts_per_turn: None
+            })
+        );
         for bad in [
+            "canopen://vcan0",
+            "canopen://vcan0?nodes=0,1",
+            "canopen://vcan0?nodes=1,128",
+            "canopen://?nodes=1",
+            "canopen://vcan0?nodes=1&counts_per_turn=0",
+            "canopen://vcan0?nodes=1&bitrate=500000",
             "egm://robot:6510",
             "egm://127.0.0.1",
             "tcp://nohost",

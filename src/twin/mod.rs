@@ -11,6 +11,7 @@
 //! jobs, logs or bytes (the session over a transport is `server`'s).
 
 pub mod can_port;
+pub mod canopen;
 pub mod dynamixel;
 pub mod egm;
 pub mod serial_port;

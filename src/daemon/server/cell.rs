@@ -63,6 +63,8 @@ fn occupied_resource(link: &str) -> Option<String> {
         LinkSpec::Serial { path, .. } => Some(format!("serial://{path}")),
         LinkSpec::Can { interface } => Some(format!("can://{interface}")),
         LinkSpec::Egm { address } => Some(format!("egm://{address}")),
+        // One SYNC producer and NMT master a bus: the interface is the resource.
+        LinkSpec::Canopen { interface, .. } => Some(format!("can://{interface}")),
     }
 }
 

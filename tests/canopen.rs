@@ -1,0 +1,623 @@
+//! CANopen CiA 402 (cyclic synchronous position) over SocketCAN (vcan): the bridge's
+//! `canopen://` link against our twin's drives (`rigbridge twin --canopen`) on the default
+//! job, a drive fault stopping a job and `rigbridge reset` clearing it; the bridge against
+//! drives simulated with PyPI's `canopen` LocalNode (tests/peers/canopen_drives.py); our
+//! twin's drives against a PyPI `canopen` RemoteNode master (tests/peers/canopen_master.py).
+//! Each run prints its SYNC figures and the bus load at 1 Mbit/s.
+//!
+//! Needs a kernel with SocketCAN and a vcan0: where there is none (this project's machines)
+//! each test prints why it skips; `scripts/test.sh` runs this binary inside a throw-away VM
+//! with `RIGBRIDGE_REQUIRE_CAN=1`, which turns every skip into a failure, and with
+//! `RIGBRIDGE_CANOPEN_PYTHON` and `PYTHONPATH` naming a Python with python-can and canopen
+//! (on CI a missing peer fails; elsewhere the peer tests say why they skip).
+
+mod common;
+
+use common::{irb120, peer_python, repo_path};
+use rigbridge::link::interface_up;
+use std::io::{BufRead, BufReader, Read, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdin, Command as Process, Stdio};
+use std::sync::Mutex;
+use std::sync::mpsc::Receiver;
+use std::time::{Duration, Instant};
+
+const INTERFACE: &str = "vcan0";
+const NODES: &str = "1,2,3,4,5,6";
+const COUNTS_PER_TURN: f64 = 1_048_576.0;
+/// The jobs' rate against the twin's drives. The issue asks for 250 Hz (4 ms SYNC cycles),
+/// which the CI VM, emulated in software (TCG) on a shared 2-core host, does not hold: its
+/// processes stall for tens of ms, and a stall ends a job with a Stop that holds a CSP
+/// drive mid-motion (docs/canopen.md, "Measured in the VM"). 50 Hz is what it keeps.
+const RATE_HZ: f64 = 50.0;
+/// The rate of the jobs the Python drives follow: python canopen answers every SYNC from
+/// an interpreter, six drives in one process, under the same emulation.
+const PEER_RATE_HZ: f64 = 10.0;
+/// The Python drives' heartbeat (ms): python-can's periodic sender is late by hundreds of ms
+/// under the emulation; consumed at 3 producer times.
+const PEER_HEARTBEAT_MS: u32 = 1000;
+/// config/rigbridge.toml's initial position, deg.
+const INITIAL_DEG: [f64; 6] = [0.0, 0.0, 0.0, 0.0, 30.0, 0.0];
+/// A fault is raised this long after targets start arriving: mid-job.
+const FAULT_AFTER: Duration = Duration::from_millis(800);
+
+/// One job on the bus at a time: they share the machine's two CPUs (emulated, in CI).
+static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn required() -> bool {
+    std::env::var("RIGBRIDGE_REQUIRE_CAN").is_ok_and(|v| v == "1")
+}
+
+fn skip(why: &str) {
+    assert!(
+        !required(),
+        "RIGBRIDGE_REQUIRE_CAN=1, but {why}; scripts/test.sh runs this test inside a VM with vcan0"
+    );
+    println!("skipping: {why}; scripts/test.sh runs this test inside a VM with vcan0");
+}
+
+fn socketcan_here() -> Result<(), String> {
+    // SAFETY: socket(2) with constant arguments; the descriptor is closed at once.
+    let fd = unsafe { libc::socket(libc::PF_CAN, libc::SOCK_RAW, libc::CAN_RAW) };
+    if fd < 0 {
+        return Err(format!(
+            "SocketCAN not available here ({})",
+            std::io::Error::last_os_error()
+        ));
+    }
+    // SAFETY: fd is the descriptor socket(2) just returned.
+    unsafe { libc::close(fd) };
+    match interface_up(INTERFACE) {
+        Some(true) => Ok(()),
+        Some(false) => Err(format!("{INTERFACE} is down")),
+        None => Err(format!("no CAN interface {INTERFACE} here")),
+    }
+}
+
+/// The Python with python-can and canopen, or why there is none (a failure on CI).
+fn python() -> Result<String, String> {
+    let found = peer_python(
+        "RIGBRIDGE_CANOPEN_PYTHON",
+        "can, canopen",
+        "python-can and canopen",
+    );
+    if let Err(why) = &found {
+        assert!(
+            std::env::var("CI").as_deref() != Ok("true"),
+            "CI must test CANopen against python canopen: {why}"
+        );
+    }
+    found
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("rigbridge-canopen-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(name);
+    let _ = std::fs::remove_file(&path);
+    path
+}
+
+/// The shipped run settings at `rate_hz`, in a scratch file (the rig by its absolute path).
+fn config(rate_hz: f64) -> PathBuf {
+    config_with(rate_hz, "")
+}
+
+/// [`config`] with `extra` TOML appended.
+fn config_with(rate_hz: f64, extra: &str) -> PathBuf {
+    let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    let rig = repo_path("config/irb120.toml");
+    let text = text
+        .replacen(
+            "rig = \"irb120.toml\"",
+            &format!("rig = {:?}", rig.display().to_string()),
+            1,
+        )
+        .replacen("rate_hz = 250.0", &format!("rate_hz = {rate_hz:.1}"), 1);
+    let path = scratch(&format!("rigbridge-{rate_hz}-{}.toml", extra.len()));
+    std::fs::write(&path, format!("{text}\n{extra}")).unwrap();
+    path
+}
+
+fn link() -> String {
+    format!("canopen://{INTERFACE}?nodes={NODES}&counts_per_turn={COUNTS_PER_TURN}")
+}
+
+fn lines_of(stdout: impl Read + Send + 'static) -> Receiver<String> {
+    let (tx, lines) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    lines
+}
+
+struct TwinProcess {
+    child: Child,
+    stdin: ChildStdin,
+    lines: Receiver<String>,
+}
+
+impl TwinProcess {
+    fn start(config: &Path) -> Self {
+        let mut child = Process::new(env!("CARGO_BIN_EXE_rigbridge"))
+            .args(["twin", "--canopen", INTERFACE, "--config"])
+            .arg(config)
+            .current_dir(repo_path(""))
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let stdin = child.stdin.take().unwrap();
+        let lines = lines_of(child.stdout.take().unwrap());
+        let first = lines
+            .recv_timeout(Duration::from_secs(30))
+            .expect("the twin prints where it serves");
+        assert!(
+            first.starts_with(&format!("canopen://{INTERFACE} ")),
+            "{first}"
+        );
+        Self {
+            child,
+            stdin,
+            lines,
+        }
+    }
+
+    /// Waits for a line starting with `prefix`.
+    fn wait_for(&self, prefix: &str, patience: Duration) {
+        let deadline = Instant::now() + patience;
+        while let Ok(line) = self
+            .lines
+            .recv_timeout(deadline.saturating_duration_since(Instant::now()))
+        {
+            if line.starts_with(prefix) {
+                return;
+            }
+        }
+        panic!("the twin never said `{prefix}`");
+    }
+
+    /// Stops the twin (SIGTERM) and returns its exit summary.
+    fn stop(mut self) -> String {
+        // SAFETY: kill(2) on our own child's pid.
+        unsafe { libc::kill(self.child.id() as libc::pid_t, libc::SIGTERM) };
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while self.child.try_wait().unwrap().is_none() {
+            assert!(Instant::now() < deadline, "the twin ignored SIGTERM");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let mut summary = String::new();
+        let mut stderr = self.child.stderr.take().unwrap();
+        stderr.read_to_string(&mut summary).unwrap();
+        summary
+    }
+}
+
+impl Drop for TwinProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn spawn_run(config: &Path, report: &Path) -> Child {
+    Process::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args(["run", "--link", &link(), "--config"])
+        .arg(config)
+        .arg("--report")
+        .arg(report)
+        .arg("--log")
+        .arg(scratch("run.mcap"))
+        .current_dir(repo_path(""))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+/// The run's report, and whether it exited 0.
+fn finish_run(child: Child, report: &Path) -> (serde_json::Value, bool) {
+    let output = child.wait_with_output().unwrap();
+    let text = std::fs::read_to_string(report).unwrap_or_else(|e| {
+        panic!(
+            "no report ({e}): {}\n{}",
+            String::from_utf8_lossy(&output.stdout),
+            String::from_utf8_lossy(&output.stderr)
+        )
+    });
+    (
+        serde_json::from_str(&text).unwrap(),
+        output.status.success(),
+    )
+}
+
+fn number(report: &serde_json::Value, key: &str) -> f64 {
+    report[key]
+        .as_f64()
+        .unwrap_or_else(|| panic!("no {key} in {report}"))
+}
+
+/// A number from the twin's summary, such as `overruns` in "..., 3 overruns; ...".
+fn twin_count(summary: &str, what: &str) -> f64 {
+    let line = summary
+        .lines()
+        .find(|l| l.starts_with("CANopen twin:"))
+        .unwrap_or_else(|| panic!("no summary line from the twin:\n{summary}"));
+    line.split([',', ';', ':'])
+        .find_map(|part| {
+            let part = part.trim();
+            part.strip_suffix(what)?.trim().parse().ok()
+        })
+        .unwrap_or_else(|| panic!("no {what} in {line}"))
+}
+
+fn bus_load(summary: &str) -> f64 {
+    let line = summary
+        .lines()
+        .find(|l| l.starts_with("CANopen twin:"))
+        .unwrap();
+    let at = line.find("bus load ").unwrap() + "bus load ".len();
+    line[at..].split(' ').next().unwrap().parse().unwrap()
+}
+
+fn print_figures(label: &str, report: &serde_json::Value, summary: &str) {
+    println!(
+        "--- {label}: {} {} after {} cycles ({:.2} s); missed cycles {}, feedback timeouts {}, jitter p50 {:.0} us, p99 {:.0} us; latency p99 {:.0} us; TPDO gaps {}; frames sent {}, received {}",
+        report["link"],
+        report["outcome"],
+        report["cycles"],
+        number(report, "duration_s"),
+        report["missed_cycles"],
+        report["feedback_timeouts"],
+        number(report, "jitter_p50_us"),
+        number(report, "jitter_p99_us"),
+        number(report, "latency_p99_us"),
+        report["gaps"],
+        report["frames_sent"],
+        report["frames_received"],
+    );
+    println!("  twin: {}", summary.trim().replace('\n', "\n  twin: "));
+    // Per SYNC: 6 RPDO1 (6 bytes), the SYNC (0 bytes), 6 TPDO1 (6 bytes), worst-case
+    // stuffing (docs/canopen.md); the heartbeats add 6 one-byte frames per 100 ms.
+    let bits = 12.0 * f64::from(rigbridge::protocol::can::classic_frame_bits(6, true))
+        + f64::from(rigbridge::protocol::can::classic_frame_bits(0, true));
+    for rate in [100.0, 250.0, 500.0, 1000.0] {
+        println!(
+            "  design bus load at {rate} Hz: {:.1} % of 1 Mbit/s",
+            100.0 * bits * rate / 1e6
+        );
+    }
+}
+
+/// How long a Python peer may take for its part, under the VM's emulation.
+const PEER_PATIENCE: Duration = Duration::from_secs(180);
+
+/// The output of `child` once it exits, killing it (and failing) after `patience`.
+fn within(mut child: Child, patience: Duration) -> std::process::Output {
+    let deadline = Instant::now() + patience;
+    while child.try_wait().unwrap().is_none() {
+        if Instant::now() >= deadline {
+            let _ = child.kill();
+            let output = child.wait_with_output().unwrap();
+            panic!(
+                "the peer took over {} s:\n{}\n{}",
+                patience.as_secs(),
+                String::from_utf8_lossy(&output.stdout),
+                String::from_utf8_lossy(&output.stderr)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    child.wait_with_output().unwrap()
+}
+
+/// Counts of `rad` on a drive at [`COUNTS_PER_TURN`].
+fn counts(rad: f64) -> f64 {
+    (rad * COUNTS_PER_TURN / std::f64::consts::TAU).round()
+}
+
+#[test]
+fn the_bridge_runs_the_default_job_on_the_twins_drives_within_limits() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    if let Err(why) = socketcan_here() {
+        return skip(&why);
+    }
+    let config = config(RATE_HZ);
+    let twin = TwinProcess::start(&config);
+    let json = scratch("default.json");
+    let (report, ok) = finish_run(spawn_run(&config, &json), &json);
+    let summary = twin.stop();
+    print_figures("default job, our twin's drives", &report, &summary);
+    assert!(ok, "{report}");
+    assert_eq!(report["outcome"], "completed", "{report}");
+    assert_eq!(report["limit_violations"], 0, "{report}");
+    for what in [
+        "outside limits",
+        "over speed",
+        "over acceleration",
+        "faults",
+        "SDO aborts",
+    ] {
+        assert_eq!(twin_count(&summary, what), 0.0, "{what}: {summary}");
+    }
+    // Every cycle of the job was a SYNC with targets, answered by six TPDOs.
+    let cycles = number(&report, "cycles");
+    assert!(twin_count(&summary, "streamed") >= cycles, "{summary}");
+    assert!(twin_count(&summary, "TPDOs") >= 6.0 * cycles, "{summary}");
+    assert!(bus_load(&summary) < 100.0, "{summary}");
+}
+
+#[test]
+fn a_drive_fault_stops_the_job_within_two_cycles_and_reset_clears_it() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    if let Err(why) = socketcan_here() {
+        return skip(&why);
+    }
+    let config = config(RATE_HZ);
+    let mut twin = TwinProcess::start(&config);
+    let json = scratch("fault.json");
+    let run = spawn_run(&config, &json);
+    twin.wait_for("targets arriving", Duration::from_secs(60));
+    std::thread::sleep(FAULT_AFTER);
+    writeln!(twin.stdin, "fault 2").unwrap();
+    let (report, ok) = finish_run(run, &json);
+    assert!(!ok, "a faulted job must not exit 0: {report}");
+    assert_eq!(report["outcome"], "faulted", "{report}");
+    let fault = report["fault"].as_str().unwrap_or_default();
+    assert!(fault.contains("axis 2"), "{fault}");
+    // The reset action: a fault-reset edge on controlword bit 7, the power steps again.
+    let reset = Process::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args(["reset", "--link", &link(), "--config"])
+        .arg(&config)
+        .current_dir(repo_path(""))
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&reset.stdout).to_string();
+    let summary = twin.stop();
+    print_figures("a drive fault mid-job", &report, &summary);
+    println!("  reset: {}", said.trim());
+    let after = twin_count(&summary, "streamed after a fault");
+    println!("  SYNCs with new targets after the fault: {after}");
+    assert!(after <= 2.0, "the job went on after the fault: {summary}");
+    assert_eq!(twin_count(&summary, "faults"), 1.0, "{summary}");
+    assert!(reset.status.success(), "{said}");
+    assert!(said.contains("cleared"), "{said}");
+}
+
+/// Where the CiA 301 remapping procedure's steps for one PDO fall in a drive's writes:
+/// COB-ID invalid, sub-index 0 = 0, the entries, sub-index 0 = n, COB-ID valid, in order.
+fn remapped_in_order(writes: &[(u64, u64, i64)], comm: u64, map: u64, entries: &[i64]) -> bool {
+    /// What a step's value must be: a COB-ID with bit 31 set or clear, or this number.
+    #[derive(Clone, Copy)]
+    enum Want {
+        Invalid,
+        Valid,
+        Is(i64),
+    }
+    let mut steps = vec![(comm, 1, Want::Invalid), (map, 0, Want::Is(0))];
+    for (sub, &entry) in entries.iter().enumerate() {
+        steps.push((map, sub as u64 + 1, Want::Is(entry)));
+    }
+    steps.push((map, 0, Want::Is(entries.len() as i64)));
+    steps.push((comm, 1, Want::Valid));
+    let mut next = 0;
+    for &(index, sub, value) in writes {
+        let Some(&(want_index, want_sub, want)) = steps.get(next) else {
+            break;
+        };
+        if (want_index, want_sub) != (index, sub) {
+            continue;
+        }
+        let ok = match want {
+            Want::Invalid => value & 0x8000_0000 != 0,
+            Want::Valid => value & 0x8000_0000 == 0,
+            Want::Is(v) => value == v,
+        };
+        if !ok {
+            return false;
+        }
+        next += 1;
+    }
+    next == steps.len()
+}
+
+#[test]
+fn the_bridge_drives_python_canopen_local_nodes() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    if let Err(why) = socketcan_here() {
+        return skip(&why);
+    }
+    let python = match python() {
+        Ok(python) => python,
+        Err(why) => return println!("skipping: {why}"),
+    };
+    let start: Vec<String> = INITIAL_DEG
+        .iter()
+        .map(|d| format!("{}", counts(d.to_radians())))
+        .collect();
+    let mut peer = Process::new(&python)
+        .arg(repo_path("tests/peers/canopen_drives.py"))
+        .args(["--channel", INTERFACE, "--nodes", NODES, "--eds"])
+        .arg(repo_path("tests/peers/cia402_csp.eds"))
+        .args(["--start", &start.join(",")])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let lines = lines_of(peer.stdout.take().unwrap());
+    assert_eq!(
+        lines.recv_timeout(Duration::from_secs(60)).as_deref(),
+        Ok("ready")
+    );
+    let config = config_with(
+        PEER_RATE_HZ,
+        &format!("[canopen]\nheartbeat_ms = {PEER_HEARTBEAT_MS}\n"),
+    );
+    // The Python drives' TPDOs may answer a SYNC after the bridge's collect window (in the
+    // emulated VM): their positions are then a cycle old, 0.1 s of motion at 10 Hz.
+    let text = std::fs::read_to_string(&config).unwrap();
+    std::fs::write(
+        &config,
+        text.replacen("[stream]\n", "[stream]\npath_tolerance_deg = 30.0\n", 1),
+    )
+    .unwrap();
+    let json = scratch("python-drives.json");
+    let (report, ok) = finish_run(spawn_run(&config, &json), &json);
+    // SAFETY: kill(2) on our own child's pid.
+    unsafe { libc::kill(peer.id() as libc::pid_t, libc::SIGTERM) };
+    let said = lines
+        .recv_timeout(Duration::from_secs(30))
+        .unwrap_or_else(|_| {
+            let mut err = String::new();
+            let _ = peer.stderr.take().unwrap().read_to_string(&mut err);
+            panic!("the Python drives printed no summary: {err}")
+        });
+    let _ = peer.wait();
+    let seen: serde_json::Value = serde_json::from_str(&said).unwrap();
+    println!(
+        "--- python canopen LocalNode drives: {} after {} cycles at {PEER_RATE_HZ} Hz; missed cycles {}, jitter p99 {:.0} us; peer: {} SYNCs, {} with targets, longest interval {:.1} ms",
+        report["outcome"],
+        report["cycles"],
+        report["missed_cycles"],
+        number(&report, "jitter_p99_us"),
+        seen["syncs"],
+        seen["streamed_syncs"],
+        seen["longest_interval_s"].as_f64().unwrap_or_default() * 1e3,
+    );
+    assert!(ok, "{report}");
+    assert_eq!(report["outcome"], "completed", "{report}");
+    let rig = irb120();
+    let dt = 1.0 / PEER_RATE_HZ;
+    for (axis, drive) in seen["drives"].as_array().unwrap().iter().enumerate() {
+        let writes: Vec<(u64, u64, i64)> = drive["writes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|w| {
+                (
+                    w[0].as_u64().unwrap(),
+                    w[1].as_u64().unwrap(),
+                    w[2].as_i64().unwrap(),
+                )
+            })
+            .collect();
+        let has = |index, sub, value| writes.contains(&(index, sub, value));
+        assert!(has(0x6060, 0, 8), "axis {}: {writes:?}", axis + 1);
+        let period_ms = (1e3 / PEER_RATE_HZ) as i64;
+        assert!(
+            has(0x60C2, 1, period_ms) && has(0x60C2, 2, -3),
+            "{writes:?}"
+        );
+        assert!(has(0x1017, 0, i64::from(PEER_HEARTBEAT_MS)), "{writes:?}");
+        assert!(
+            remapped_in_order(&writes, 0x1400, 0x1600, &[0x6040_0010, 0x607A_0020]),
+            "RPDO1 not remapped by the CiA 301 procedure: {writes:?}"
+        );
+        assert!(
+            remapped_in_order(&writes, 0x1800, 0x1A00, &[0x6041_0010, 0x6064_0020]),
+            "TPDO1 not remapped by the CiA 301 procedure: {writes:?}"
+        );
+        let controlwords: Vec<i64> = drive["controlwords"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_i64().unwrap())
+            .collect();
+        assert_eq!(controlwords, [0x06, 0x07, 0x0F], "axis {}", axis + 1);
+        assert!(drive["targets"].as_u64().unwrap() > 0, "{drive}");
+        // The targets' steps and second differences within the axis' speed and
+        // acceleration, beyond rounding to counts (one count a step, two a difference).
+        let limits = rig.joints[axis].limits;
+        let scale = COUNTS_PER_TURN / std::f64::consts::TAU;
+        let step = drive["max_step"].as_f64().unwrap();
+        let second = drive["max_second"].as_f64().unwrap();
+        assert!(step <= limits.max_speed * scale * dt + 1.0, "{drive}");
+        assert!(
+            second <= limits.max_acceleration * scale * dt * dt + 2.0,
+            "{drive}"
+        );
+    }
+}
+
+#[test]
+fn a_python_canopen_master_moves_the_twins_drives() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    if let Err(why) = socketcan_here() {
+        return skip(&why);
+    }
+    let python = match python() {
+        Ok(python) => python,
+        Err(why) => return println!("skipping: {why}"),
+    };
+    let twin = TwinProcess::start(&config(RATE_HZ));
+    let master = Process::new(&python)
+        .arg(repo_path("tests/peers/canopen_master.py"))
+        .args(["--channel", INTERFACE, "--nodes", NODES, "--eds"])
+        .arg(repo_path("tests/peers/cia402_csp.eds"))
+        .args([
+            "--period-ms",
+            "10",
+            "--move-counts",
+            "20000",
+            "--seconds",
+            "2",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let output = within(master, PEER_PATIENCE);
+    let summary = twin.stop();
+    let said = String::from_utf8_lossy(&output.stdout).to_string();
+    println!("--- python canopen master: {}", said.trim());
+    println!("  twin: {}", summary.trim().replace('\n', "\n  twin: "));
+    assert!(
+        output.status.success(),
+        "{said}\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let seen: serde_json::Value = serde_json::from_str(said.trim()).unwrap();
+    assert_eq!(seen["errors"], serde_json::json!([]), "{said}");
+    assert_eq!(seen["tpdos"], 6 * seen["points"].as_u64().unwrap());
+    // The master's two refused writes per drive, and nothing else refused or faulted.
+    assert_eq!(twin_count(&summary, "SDO aborts"), 12.0, "{summary}");
+    for what in [
+        "outside limits",
+        "over speed",
+        "over acceleration",
+        "faults",
+    ] {
+        assert_eq!(twin_count(&summary, what), 0.0, "{what}: {summary}");
+    }
+}
+
+#[test]
+fn canopen_links_and_settings_are_checked_with_their_source_named() {
+    let path = scratch("bad-canopen.toml");
+    let text = std::fs::read_to_string(config(RATE_HZ)).unwrap();
+    std::fs::write(
+        &path,
+        format!("{text}\n[canopen]\ncounts_per_turn = [4096, 4096]\n"),
+    )
+    .unwrap();
+    let message = rigbridge::daemon::config::load_run_settings(&path)
+        .unwrap_err()
+        .to_string();
+    assert!(message.contains("canopen.counts_per_turn"), "{message}");
+    assert!(message.contains("bad-canopen.toml"), "{message}");
+    std::fs::write(&path, format!("{text}\n[canopen]\nheartbeat_ms = 0\n")).unwrap();
+    let message = rigbridge::daemon::config::load_run_settings(&path)
+        .unwrap_err()
+        .to_string();
+    assert!(message.contains("canopen.heartbeat_ms"), "{message}");
+    let error = "canopen://vcan0?nodes=1,200"
+        .parse::<rigbridge::link::LinkSpec>()
+        .unwrap_err()
+        .to_string();
+    assert!(error.contains("nodes=1,200"), "{error}");
+}
