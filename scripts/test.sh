@@ -171,7 +171,7 @@ fi
 # ----------------------------------------------------------------- end CANopen peers --
 
 # ------------------------------------------------------------- 1. on this machine --
-[ -n "$vm_only" ] || cargo test --release
+[ -n "$vm_only" ] || cargo test --release --no-fail-fast
 
 # ------------------------------------------------------- 2. tests/can.rs in the VM --
 # The test binary and the rigbridge binary it spawns, from cargo's own account of them.
