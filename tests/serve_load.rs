@@ -126,11 +126,19 @@ fn an_estop_is_answered_under_500_idle_and_50_slow_connections_at_256_descriptor
     let flood = Flood::start(server.address, IDLE, SLOW);
     // The load is real: every client connected, and the server holds as many connections
     // as its descriptors allow, closing the oldest for newcomers.
-    wait_until("the flood to connect", Duration::from_secs(30), || {
-        flood.connects() >= (IDLE + SLOW) as u64 && flood.closed_by_server() >= 100
-    });
-    let held = open_descriptors(server.pid());
-    assert!(held >= 150, "the server holds only {held} descriptors");
+    // (The count of held descriptors swings as the server closes the oldest and the flood
+    // reconnects: the load is real once it has been seen at 150 or more.)
+    let mut held = 0;
+    wait_until(
+        "the flood to connect and the server to hold 150 descriptors",
+        Duration::from_secs(30),
+        || {
+            held = held.max(open_descriptors(server.pid()));
+            flood.connects() >= (IDLE + SLOW) as u64
+                && flood.closed_by_server() >= 100
+                && held >= 150
+        },
+    );
 
     let (answer, _) = http(
         server.address,
