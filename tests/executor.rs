@@ -99,7 +99,10 @@ fn many_cells_on_the_shared_executor_each_complete_their_job_and_reach_its_targe
         let planned = report["planned_duration_s"].as_f64().unwrap();
         let cycles = report["cycles"].as_u64().unwrap();
         // (The planned duration is a float: 0.412 s x 250 Hz is 103.00000000000001.)
-        assert!(cycles >= (planned * 250.0).round() as u64, "cell {i}: {report}");
+        assert!(
+            cycles >= (planned * 250.0).round() as u64,
+            "cell {i}: {report}"
+        );
         let log = &report["log"];
         let (commands, dropped) = (
             log["commands"].as_u64().unwrap(),
