@@ -49,10 +49,10 @@ pub struct RunArgs {
 }
 
 /// `--zenoh-connect`'s value, checked like `[ros2] zenoh_connect`.
-pub fn parse_zenoh_endpoint(text: &str) -> Result<String, String> {
+pub fn parse_zenoh_endpoint(text: &str) -> anyhow::Result<String> {
     match rigbridge::ros2::endpoint_problem(text) {
         None => Ok(text.to_string()),
-        Some(reason) => Err(format!("`{text}` {reason}")),
+        Some(reason) => Err(anyhow::anyhow!("`{text}` {reason}")),
     }
 }
 

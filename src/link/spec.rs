@@ -87,10 +87,10 @@ impl FromStr for LinkSpec {
             });
         }
         if let Some(rest) = text.strip_prefix("dynamixel://") {
-            return parse_dynamixel(rest).map_err(|reason| fail(&reason));
+            return parse_dynamixel(rest).map_err(fail);
         }
         if let Some(rest) = text.strip_prefix("canopen://") {
-            return parse_canopen(rest).map_err(|reason| fail(&reason));
+            return parse_canopen(rest).map_err(fail);
         }
         if let Some(address) = text.strip_prefix("egm://") {
             if address.parse::<std::net::SocketAddr>().is_err() {
@@ -115,10 +115,10 @@ impl FromStr for LinkSpec {
 }
 
 /// `PATH?baud=N&ids=1,2,...`: ids required (one per axis, in axis order), baud optional.
-fn parse_dynamixel(rest: &str) -> Result<LinkSpec, String> {
+fn parse_dynamixel(rest: &str) -> Result<LinkSpec, &'static str> {
     let (path, query) = rest.split_once('?').unwrap_or((rest, ""));
     if !path.starts_with('/') {
-        return Err("needs an absolute device path".into());
+        return Err("needs an absolute device path");
     }
     let mut baud = DYNAMIXEL_DEFAULT_BAUD;
     let mut ids = None;
@@ -138,11 +138,11 @@ fn parse_dynamixel(rest: &str) -> Result<LinkSpec, String> {
                         ids = Some(list)
                     }
                     _ => {
-                        return Err("ids must be servo ids from 0 to 252, such as ids=1,2,3".into());
+                        return Err("ids must be servo ids from 0 to 252, such as ids=1,2,3");
                     }
                 }
             }
-            _ => return Err("the options are baud=N and ids=1,2,...".into()),
+            _ => return Err("the options are baud=N and ids=1,2,..."),
         }
     }
     let ids = ids.ok_or("needs ids=1,2,... (one servo id per axis, in axis order)")?;
@@ -154,10 +154,10 @@ fn parse_dynamixel(rest: &str) -> Result<LinkSpec, String> {
 }
 
 /// `IFACE?nodes=1,2,...&counts_per_turn=N`: nodes required (one per axis, in axis order).
-fn parse_canopen(rest: &str) -> Result<LinkSpec, String> {
+fn parse_canopen(rest: &str) -> Result<LinkSpec, &'static str> {
     let (interface, query) = rest.split_once('?').unwrap_or((rest, ""));
     if interface.is_empty() || interface.contains('/') {
-        return Err("needs an interface name such as vcan0".into());
+        return Err("needs an interface name such as vcan0");
     }
     let mut nodes = None;
     let mut counts_per_turn = None;
@@ -169,17 +169,16 @@ fn parse_canopen(rest: &str) -> Result<LinkSpec, String> {
                     Ok(list) if list.iter().all(|id| (1..=127).contains(id)) => nodes = Some(list),
                     _ => {
                         return Err(
-                            "nodes must be CANopen node ids from 1 to 127, such as nodes=1,2,3"
-                                .into(),
+                            "nodes must be CANopen node ids from 1 to 127, such as nodes=1,2,3",
                         );
                     }
                 }
             }
             Some(("counts_per_turn", n)) => match n.parse::<u32>() {
                 Ok(n) if n > 0 => counts_per_turn = Some(n),
-                _ => return Err("counts_per_turn must be a whole number above 0".into()),
+                _ => return Err("counts_per_turn must be a whole number above 0"),
             },
-            _ => return Err("the options are nodes=1,2,... and counts_per_turn=N".into()),
+            _ => return Err("the options are nodes=1,2,... and counts_per_turn=N"),
         }
     }
     let nodes = nodes.ok_or("needs nodes=1,2,... (one drive's node id per axis, in axis order)")?;
