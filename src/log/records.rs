@@ -8,6 +8,9 @@
 use std::collections::BTreeMap;
 use thiserror::Error;
 
+/// An MCAP `map<string, string>` (metadata records, a schema's or channel's metadata).
+pub type StringMap = BTreeMap<String, String>;
+
 /// Why a record's bytes do not parse.
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 pub enum RecordError {
@@ -30,7 +33,7 @@ pub(super) struct Channel {
     pub id: u16,
     pub topic: String,
     pub message_encoding: String,
-    pub metadata: BTreeMap<String, String>,
+    pub metadata: StringMap,
 }
 
 pub(super) struct Message<'a> {
@@ -40,7 +43,7 @@ pub(super) struct Message<'a> {
 
 pub(super) struct Metadata {
     pub name: String,
-    pub map: BTreeMap<String, String>,
+    pub map: StringMap,
 }
 
 pub(super) fn channel(body: &[u8]) -> Result<Channel, RecordError> {
@@ -150,7 +153,7 @@ impl<'a> Cursor<'a> {
         String::from_utf8(bytes.to_vec()).map_err(|_| RecordError::NotUtf8 { what: self.what })
     }
 
-    fn string_map(&mut self) -> Result<BTreeMap<String, String>, RecordError> {
+    fn string_map(&mut self) -> Result<StringMap, RecordError> {
         let len = usize_of(u64::from(self.u32()?))?;
         let mut entries = Cursor::new(self.take(len)?, self.what);
         let mut map = BTreeMap::new();
