@@ -145,32 +145,7 @@ impl CanopenConfig {
                 f64::from(i32::MAX),
             ),
         ];
-        for (index, (key, given, low, high)) in keys.into_iter().enumerate() {
-            let Some(given) = given else { continue };
-            if let PerAxis::Each(values) = given
-                && values.len() != rig.dof()
-            {
-                let reason = format!("needs one value per axis ({})", rig.dof());
-                return Err(ConfigError::invalid(file, key, values.len(), &reason));
-            }
-            for (axis, counts) in axes.iter_mut().enumerate() {
-                let value =
-                    check_range(file, key, given.value(axis).unwrap_or_default(), low, high)?;
-                if value.fract() != 0.0 {
-                    return Err(ConfigError::invalid(
-                        file,
-                        key,
-                        value,
-                        "must be a whole number",
-                    ));
-                }
-                if index == 0 {
-                    counts.ticks_per_turn = value;
-                } else {
-                    counts.zero_tick = value;
-                }
-            }
-        }
+        set_axis_ticks(file, rig, keys, &mut axes)?;
         Ok(axes)
     }
 
@@ -206,6 +181,46 @@ pub struct DynamixelConfig {
 /// Largest ticks a turn accepted: the finest Dynamixel-P resolution (1,003,846) fits.
 const MAX_TICKS_PER_TURN: f64 = 4_194_304.0;
 
+/// A per-axis tick map's two keys, (key, value, lowest, highest): the turn's ticks first,
+/// then the zero tick.
+type TickKeys<'a> = [(&'static str, &'a Option<PerAxis>, f64, f64); 2];
+
+/// Sets each axis' ticks a turn and zero tick from `keys` where given (one value for every
+/// axis, or one per axis), each a whole number within its range; errors name the key.
+fn set_axis_ticks(
+    file: &Path,
+    rig: &Rig,
+    keys: TickKeys<'_>,
+    axes: &mut [crate::link::dynamixel_wire::AxisTicks],
+) -> Result<(), ConfigError> {
+    for (index, (key, given, low, high)) in keys.into_iter().enumerate() {
+        let Some(given) = given else { continue };
+        if let PerAxis::Each(values) = given
+            && values.len() != rig.dof()
+        {
+            let reason = format!("needs one value per axis ({})", rig.dof());
+            return Err(ConfigError::invalid(file, key, values.len(), &reason));
+        }
+        for (axis, ticks) in axes.iter_mut().enumerate() {
+            let value = check_range(file, key, given.value(axis).unwrap_or_default(), low, high)?;
+            if value.fract() != 0.0 {
+                return Err(ConfigError::invalid(
+                    file,
+                    key,
+                    value,
+                    "must be a whole number",
+                ));
+            }
+            if index == 0 {
+                ticks.ticks_per_turn = value;
+            } else {
+                ticks.zero_tick = value;
+            }
+        }
+    }
+    Ok(())
+}
+
 impl DynamixelConfig {
     /// Each axis' tick map; errors name the key and value. Revolute axes only: a tick
     /// is a fraction of a turn.
@@ -230,32 +245,7 @@ impl DynamixelConfig {
                 crate::link::dynamixel_wire::EXTENDED_RANGE as f64,
             ),
         ];
-        for (index, (key, given, low, high)) in keys.into_iter().enumerate() {
-            let Some(given) = given else { continue };
-            if let PerAxis::Each(values) = given
-                && values.len() != rig.dof()
-            {
-                let reason = format!("needs one value per axis ({})", rig.dof());
-                return Err(ConfigError::invalid(file, key, values.len(), &reason));
-            }
-            for (axis, ticks) in axes.iter_mut().enumerate() {
-                let value =
-                    check_range(file, key, given.value(axis).unwrap_or_default(), low, high)?;
-                if value.fract() != 0.0 {
-                    return Err(ConfigError::invalid(
-                        file,
-                        key,
-                        value,
-                        "must be a whole number",
-                    ));
-                }
-                if index == 0 {
-                    ticks.ticks_per_turn = value;
-                } else {
-                    ticks.zero_tick = value;
-                }
-            }
-        }
+        set_axis_ticks(file, rig, keys, &mut axes)?;
         Ok(axes)
     }
 }
