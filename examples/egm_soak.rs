@@ -69,11 +69,18 @@ fn main() -> anyhow::Result<()> {
         c.cycles_several_replies
     );
     println!(
-        "bridge turnaround p50 {:.0} us, p99 {:.0} us; twin round trip p99 {:.0} us; underruns {}",
+        "bridge: {} robot messages answered by {} replies; turnaround p50 {:.0} us, p99 {:.0} us, max {:.0} us; underruns {}",
+        state.messages,
+        state.replies,
         link.turnaround_quantile_us(0.5).unwrap_or(f64::NAN),
         link.turnaround_quantile_us(0.99).unwrap_or(f64::NAN),
-        twin.round_trip_quantile_us(0.99).unwrap_or(f64::NAN),
+        link.turnaround_quantile_us(1.0).unwrap_or(f64::NAN),
         state.underruns
+    );
+    println!(
+        "twin: round trip p99 {:.0} us; its own thread sent late (cycle stretched) {} times",
+        twin.round_trip_quantile_us(0.99).unwrap_or(f64::NAN),
+        c.host_stalls
     );
     println!(
         "twin refusals: {} outside limits, {} over speed, {} over acceleration, {} axis count; {} comm timeouts",

@@ -89,7 +89,8 @@ pub struct EgmTwinCounters {
     pub axis_count: u64,
     pub comm_timeouts: u64,
     pub sessions: u64,
-    /// Cycles that started over a period late (the host held the twin): each stretched.
+    /// Cycles whose message went out over half a period late (the host held the twin): each
+    /// stretched.
     pub host_stalls: u64,
     /// Largest |reference - actual| seen while running, rad.
     pub tracking_max_rad: f64,
@@ -484,10 +485,12 @@ impl EgmTwin {
             }
             deadline += period;
             let now = clock.now();
-            if now > deadline {
-                // The host held this thread past a whole cycle. A controller's cycle is its
-                // own clock: it stretches instead of sending the missed ones in a burst,
-                // which no robot does and which would starve any sensor's play-out.
+            if deadline.saturating_sub(now) < period / 2 {
+                // The host held this thread and the message went out late. A controller's
+                // cycle is its own clock: it stretches instead of sending the missed ones in
+                // a burst (which no robot does and which would starve any sensor's
+                // play-out), and the sensor keeps at least half a cycle to answer, so that
+                // the twin's own lateness is not counted as a missing reply.
                 deadline = now + period;
                 self.model.counters.host_stalls += 1;
             }
