@@ -185,7 +185,14 @@ fn main() {
     )))
     .expect("rig");
     let (long, short) = if quick { (5.0, 5.0) } else { (60.0, 10.0) };
-    let ros2 = subscriber();
+    // The subscriber stands for another process: its session (and the Zenoh runtime it
+    // starts, which the node then shares) must not inherit main's SCHED_FIFO.
+    let ros2 = std::thread::spawn(|| {
+        let _ = rigbridge::realtime::normal_priority();
+        subscriber()
+    })
+    .join()
+    .expect("subscriber thread");
     let results = [
         run(&rig, 250.0, long, &ros2),
         run(&rig, 1000.0, short, &ros2),

@@ -17,7 +17,8 @@
 //! - [`daemon`]: the wiring of the stages for `run`, `serve` and `replay`, and resuming;
 //!
 //! and beside the chain: [`rig`] (rig models, TOML/URDF descriptions, forward kinematics),
-//! [`clock`] (wall and virtual clocks) and [`batch`] (the CSV contract of `fk` and `ik`).
+//! [`clock`] (wall and virtual clocks), [`realtime`] (thread scheduling) and [`batch`] (the
+//! CSV contract of `fk` and `ik`).
 
 pub mod batch;
 pub mod clock;
@@ -27,6 +28,7 @@ pub mod job;
 pub mod link;
 pub mod log;
 pub mod protocol;
+pub mod realtime;
 pub mod rig;
 pub mod ros2;
 pub mod stream;

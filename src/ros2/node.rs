@@ -50,16 +50,6 @@ impl Ros2Node {
         trajectories: Option<TrajectoryHandler>,
     ) -> Result<Ros2Node, Ros2Error> {
         graph::check_namespace(rig)?;
-        let session = open_session(settings)?;
-        let names = NodeNames::new(settings.domain_id, session.zid().to_string(), rig);
-        let declared = Declared::new(&session, &names, trajectories.is_some());
-        let declared = match declared {
-            Ok(declared) => declared,
-            Err(e) => {
-                let _ = session.close().wait();
-                return Err(e);
-            }
-        };
         let stop = Arc::new(AtomicBool::new(false));
         let published = Arc::new(AtomicU64::new(0));
         let publishing = Publishing {
@@ -70,10 +60,32 @@ impl Ros2Node {
             slot,
             known_at_rest,
         };
+        let (settings, rig_name) = (settings.clone(), rig.to_string());
+        let (ready, declared) = std::sync::mpsc::sync_channel(1);
         let thread = std::thread::Builder::new()
             .name(format!("ros2-{rig}"))
-            .spawn(move || run_node(session, declared, publishing, trajectories))
+            .spawn(move || {
+                // Zenoh starts its runtime's threads from the thread that opens the first
+                // session, and they inherit its policy: opened from a SCHED_FIFO thread
+                // (`run`'s streaming thread, a benchmark's main), all of Zenoh would compete
+                // with the cycle. Stepping down can only fail for a thread that is gone.
+                let _ = crate::realtime::normal_priority();
+                match open_node(&settings, &rig_name, trajectories.is_some()) {
+                    Ok((session, declared, names)) => {
+                        let _ = ready.send(Ok(names));
+                        run_node(session, declared, publishing, trajectories);
+                    }
+                    Err(e) => {
+                        let _ = ready.send(Err(e));
+                    }
+                }
+            })
             .map_err(Ros2Error::Thread)?;
+        let names = declared.recv().unwrap_or_else(|_| {
+            Err(Ros2Error::Thread(std::io::Error::other(
+                "the node's thread ended before the node was declared",
+            )))
+        })?;
         Ok(Ros2Node {
             stop,
             published,
@@ -116,6 +128,23 @@ fn joint_trajectory_type() -> TopicType {
     TopicType {
         dds_type: graph::JOINT_TRAJECTORY_DDS,
         hash: HASH.get_or_init(|| type_hash::JOINT_TRAJECTORY.rihs01()),
+    }
+}
+
+/// Opens the session and declares the node; on failure the session is closed again.
+fn open_node(
+    settings: &Ros2Settings,
+    rig: &str,
+    subscribe: bool,
+) -> Result<(zenoh::Session, Declared, NodeNames), Ros2Error> {
+    let session = open_session(settings)?;
+    let names = NodeNames::new(settings.domain_id, session.zid().to_string(), rig);
+    match Declared::new(&session, &names, subscribe) {
+        Ok(declared) => Ok((session, declared, names)),
+        Err(e) => {
+            let _ = session.close().wait();
+            Err(e)
+        }
     }
 }
 

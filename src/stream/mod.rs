@@ -17,13 +17,12 @@ mod controller;
 mod executor;
 mod follow;
 mod metrics;
-mod realtime;
 
+pub use crate::realtime::raise_priority;
 pub use controller::{Incompatible, check_controller};
 pub use executor::{CycleTask, Executor, ExecutorSettings, Handback};
 pub use follow::Tolerances;
 pub use metrics::MicrosHistogram;
-pub use realtime::raise_priority;
 
 use crate::clock::Clock;
 use crate::link::{Link, LinkCounters, LinkError, LinkEvent};
