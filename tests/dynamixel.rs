@@ -64,7 +64,7 @@ fn twin_bus(settings: &RunSettings) -> TwinBus {
     let control = Arc::new(DynamixelTwinControl::default());
     let serving = control.clone();
     let thread = std::thread::spawn(move || {
-        serve_dynamixel(&mut bus, &mut port, &serving, &mut |_| {});
+        serve_dynamixel(&mut bus, &mut port, &serving);
         (bus.counters, bus.positions(), bus.torque())
     });
     TwinBus {

@@ -62,7 +62,12 @@ fn start_server() -> Server {
 }
 
 fn start_server_with(extra: &[&str], env_token: Option<&str>) -> Server {
-    let mut child = serve_command(extra, env_token)
+    started(serve_command(extra, env_token), env_token)
+}
+
+/// The server `command` starts, once it printed where it listens.
+fn started(mut command: Command, env_token: Option<&str>) -> Server {
+    let mut child = command
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -349,6 +354,45 @@ fn a_token_guards_the_control_routes_on_loopback() {
     // Status stays open on loopback.
     assert_eq!(request_with(&server, "GET", "/api/status", "").0, 200);
     assert_eq!(request_with(&server, "GET", "/", "").0, 200);
+}
+
+/// Everything a daemon said on stderr up to a stop asked with no job running, its
+/// environment's RUST_LOG set to `rust_log` (or unset).
+fn stderr_up_to_a_stop(rust_log: Option<&str>) -> String {
+    let mut command = serve_command(&[], None);
+    match rust_log {
+        Some(directives) => command.env("RUST_LOG", directives),
+        None => command.env_remove("RUST_LOG"),
+    };
+    let mut server = started(command, None);
+    assert_eq!(request(&server, "POST", "/api/stop", None).0, 409);
+    server.child.kill().unwrap();
+    server.child.wait().unwrap();
+    let mut stderr = String::new();
+    let mut pipe = server.child.stderr.take().unwrap();
+    pipe.read_to_string(&mut stderr).unwrap();
+    stderr
+}
+
+#[test]
+fn diagnostics_are_plain_lines_unless_rust_log_asks_for_more() {
+    let plain = stderr_up_to_a_stop(None);
+    let lines: Vec<&str> = plain.lines().collect();
+    assert!(
+        lines
+            .iter()
+            .any(|line| line.starts_with("cell irb120: control actions logged to ")),
+        "{plain}"
+    );
+    assert!(lines.contains(&"cell irb120: stop (no job)"), "{plain}");
+    // Level, target, message and the event's fields, after a timestamp.
+    let detailed = stderr_up_to_a_stop(Some("rigbridge=info"));
+    assert!(
+        detailed.lines().any(|line| line.ends_with(
+            " INFO rigbridge::daemon::server::cell: cell irb120: stop (no job) cell=irb120 action=stop"
+        )),
+        "{detailed}"
+    );
 }
 
 #[test]

@@ -43,7 +43,17 @@ fn forward_lines(stdout: ChildStdout) -> Receiver<String> {
 }
 
 fn start_twin(listen: &str) -> TwinProcess {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+    start_twin_under(listen, None)
+}
+
+/// A twin whose environment's RUST_LOG is `rust_log` (or unset).
+fn start_twin_under(listen: &str, rust_log: Option<&str>) -> TwinProcess {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
+    match rust_log {
+        Some(directives) => command.env("RUST_LOG", directives),
+        None => command.env_remove("RUST_LOG"),
+    };
+    let mut child = command
         .args(["twin", "--listen", listen])
         .current_dir(repo_path(""))
         .stdout(Stdio::piped())
@@ -515,4 +525,39 @@ fn serve_refuses_a_virtual_clock_for_a_cell_on_a_real_link() {
             && stderr.contains("tcp://127.0.0.1:9"),
         "{stderr}"
     );
+}
+
+/// The twin's events are its stdout's plain lines, which scripts wait on, whatever RUST_LOG
+/// asks of the diagnostics.
+#[test]
+fn the_twin_prints_its_events_plainly_even_under_rust_log() {
+    let twin = start_twin_under("tcp://127.0.0.1:0", Some("trace"));
+    let peer = std::net::TcpStream::connect(twin.address.trim_start_matches("tcp://")).unwrap();
+    let connected = twin
+        .lines
+        .recv_timeout(WAIT)
+        .expect("the twin saw the peer");
+    let cycle = connected.strip_prefix("connected at cycle ");
+    assert!(
+        cycle.is_some_and(|c| c.parse::<u64>().is_ok()),
+        "{connected}"
+    );
+    drop(peer);
+    // A loaded machine may let the watchdog see the silence first: plain lines too.
+    loop {
+        let line = twin
+            .lines
+            .recv_timeout(WAIT)
+            .expect("the twin saw the peer go");
+        if let Some(rest) = line.strip_prefix("link lost at cycle ") {
+            let cycle = rest.split_once(' ').map(|(cycle, _)| cycle);
+            assert!(cycle.is_some_and(|c| c.parse::<u64>().is_ok()), "{line}");
+            assert!(line.ends_with("): holding"), "{line}");
+            break;
+        }
+        assert!(
+            line.starts_with("silent for ") || line.starts_with("status holding at cycle "),
+            "{line}"
+        );
+    }
 }

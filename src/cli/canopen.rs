@@ -60,9 +60,7 @@ pub fn canopen_twin(
         watcher.stop.store(true, Ordering::SeqCst);
     });
     read_operator(control.clone());
-    serve_canopen(&mut bus, &mut port, &control, &mut |line| {
-        super::twin::say(line)
-    });
+    serve_canopen(&mut bus, &mut port, &control);
     eprintln!("{}", bus.counters.summary());
     Ok(ExitCode::SUCCESS)
 }

@@ -64,9 +64,7 @@ pub fn dynamixel_twin(
         watcher.stop.store(true, Ordering::SeqCst);
     });
     read_operator(control.clone());
-    serve_dynamixel(&mut bus, port.as_mut(), &control, &mut |line| {
-        super::twin::say(line)
-    });
+    serve_dynamixel(&mut bus, port.as_mut(), &control);
     let c = bus.counters;
     eprintln!(
         "Dynamixel twin stopped: {} packets, {} CRC errors, {} statuses ({} with an error), {} pings, {} sync writes, {} sync reads, {} goals; {} outside limits, {} over speed, {} over acceleration, {} stale goals at torque on",

@@ -16,6 +16,7 @@ mod canopen;
 mod config;
 mod dynamixel;
 mod gait;
+mod logging;
 mod paint;
 mod plot;
 mod replay;
@@ -144,7 +145,9 @@ enum Command {
 }
 
 pub fn run() -> anyhow::Result<ExitCode> {
-    match Cli::parse().command {
+    let cli = Cli::parse();
+    logging::init();
+    match cli.command {
         Command::Fk(args) => batch::fk(args),
         Command::Ik(args) => batch::ik(args),
         Command::Run(args) => run::run(args),

@@ -181,7 +181,6 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
         Duration::from_secs_f64(settings.period_s()),
         &WallClock::new(),
         &stop,
-        say,
     );
     eprintln!(
         "twin stopped after {} cycles: {} frames, {} CRC errors, {} malformed, {} connections, {} link losses, {} hellos, {} targets dropped before a hello",
@@ -245,7 +244,7 @@ fn egm_twin(
     if let Err(e) = rigbridge::stream::raise_priority(50) {
         eprintln!("note: twin at normal priority (real-time scheduling refused: {e})");
     }
-    twin.run(&control, &mut |line| say(line));
+    twin.run(&control);
     let c = twin.model().counters;
     eprintln!(
         "EGM twin stopped: {} messages, {} replies; cycles with one reply {}, none {}, several {}; {} outside limits, {} over speed, {} over acceleration, {} wrong axis count; {} comm timeouts, {} sessions, {} host stalls",

@@ -361,7 +361,8 @@ pub async fn run(
         .collect::<Result<Vec<_>, _>>()?;
     for cell in &cells {
         let journal = cell.open_journal(&options.runs_dir)?;
-        eprintln!(
+        tracing::info!(
+            cell = %cell.name(),
             "cell {}: control actions logged to {}",
             cell.name(),
             journal.display()
@@ -451,7 +452,7 @@ fn bind_foxglove(
              foxglove_port (--foxglove-port), or 0 to turn it off"
         ))
     })?;
-    eprintln!("foxglove: ws://{address} ({FOXGLOVE_SUBPROTOCOL}, read-only)");
+    tracing::info!("foxglove: ws://{address} ({FOXGLOVE_SUBPROTOCOL}, read-only)");
     Ok(Some(listener))
 }
 
@@ -472,7 +473,7 @@ fn shared_executor(
     let executor = Executor::new(settings).map_err(crate::link::LinkError::Io)?;
     let realtime = executor.realtime_threads();
     if realtime < executor.threads() {
-        eprintln!(
+        tracing::warn!(
             "note: the shared executor streams at normal priority on {} of its {} threads \
              (SCHED_FIFO needs root or CAP_SYS_NICE)",
             executor.threads() - realtime,
@@ -511,7 +512,8 @@ fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::Ros2Node>, Daemon
         .map_err(|e| {
             DaemonError::Unavailable(format!("cell {}: ROS 2: {}", cell.name(), error_chain(&e)))
         })?;
-        eprintln!(
+        tracing::info!(
+            cell = %cell.name(),
             "cell {}: ROS 2 node /{}/{} on {} (joint states on {})",
             cell.name(),
             cell.name(),
@@ -659,7 +661,8 @@ async fn send_frames(daemon: Arc<Daemon>) {
             if std::panic::catch_unwind(std::panic::AssertUnwindSafe(tick)).is_err()
                 && !std::mem::replace(reported, true)
             {
-                eprintln!(
+                tracing::error!(
+                    cell = %cell.name(),
                     "cell {}: its live view failed; other cells go on",
                     cell.name()
                 );

@@ -325,7 +325,7 @@ fn publish_states(publisher: &zenoh::pubsub::Publisher<'_>, gid: &[u8; 16], io: 
             }
             // Said once per run of failures, not at the publishing rate.
             Err(e) if !failing => {
-                eprintln!("ros2: publishing joint states: {e}");
+                tracing::warn!("ros2: publishing joint states: {e}");
                 failing = true;
             }
             Err(_) => {}

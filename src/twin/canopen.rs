@@ -930,12 +930,11 @@ pub fn frame_of(bytes: &[u8]) -> Option<(CanPayload, usize)> {
 const IDLE_WAIT: Duration = Duration::from_millis(10);
 
 /// Serves the drives on `port` until `control.stop`: answers every frame at once, sends
-/// heartbeats when due. Tells `say` about faults and the first master's frames.
+/// heartbeats when due. Logs faults and the first master's frames.
 pub fn serve_canopen(
     bus: &mut CanopenBus,
     port: &mut dyn ControllerPort,
     control: &CanopenTwinControl,
-    say: &mut dyn FnMut(&str),
 ) {
     let mut buffer = vec![0u8; 4096];
     let mut out: Vec<CanPayload> = Vec::with_capacity(64);
@@ -945,12 +944,12 @@ pub fn serve_canopen(
         let now = Instant::now();
         for axis in control.take() {
             bus.inject_fault(axis, &mut out);
-            say(&format!("drive fault on axis {}", axis + 1));
+            tracing::warn!("drive fault on axis {}", axis + 1);
         }
         bus.heartbeats(now, &mut out);
         let (faults_before, streamed_before) = (bus.counters.faults, bus.counters.streamed_syncs);
         if send_all(port, &mut out, &mut bytes).is_err() {
-            say("write failed");
+            tracing::warn!("write failed");
         }
         let wait = bus
             .next_heartbeat()
@@ -968,22 +967,22 @@ pub fn serve_canopen(
             at += used;
             if !attached {
                 attached = true;
-                say("master attached");
+                tracing::info!("master attached");
             }
             bus.handle(&frame, Instant::now(), &mut out);
         }
         if send_all(port, &mut out, &mut bytes).is_err() {
-            say("write failed");
+            tracing::warn!("write failed");
         }
         if streamed_before == 0 && bus.counters.streamed_syncs > 0 {
-            say("targets arriving");
+            tracing::info!("targets arriving");
         }
         if bus.counters.faults > faults_before {
             let why = bus.take_fault_text();
-            say(&format!(
+            tracing::warn!(
                 "drive fault latched{}",
                 why.map(|w| format!(": {w}")).unwrap_or_default()
-            ));
+            );
         }
     }
 }

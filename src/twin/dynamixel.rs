@@ -613,12 +613,11 @@ impl DynamixelTwinControl {
 }
 
 /// Serves the bus on `port` until `control.stop`: answers every packet at once, and moves
-/// the servos one period at a time on its own clock. Tells `say` about peers and faults.
+/// the servos one period at a time on its own clock. Logs peers and faults.
 pub fn serve_dynamixel(
     bus: &mut DynamixelBus,
     port: &mut dyn ControllerPort,
     control: &DynamixelTwinControl,
-    say: &mut dyn FnMut(&str),
 ) {
     let stop = &control.stop;
     let period = bus.settings.period;
@@ -632,10 +631,7 @@ pub fn serve_dynamixel(
         if now >= next_tick {
             for (axis, bits) in control.take() {
                 bus.inject_hardware_error(axis, bits);
-                say(&format!(
-                    "hardware error status {bits:#04x} on axis {}",
-                    axis + 1
-                ));
+                tracing::warn!("hardware error status {bits:#04x} on axis {}", axis + 1);
             }
             // A servo moves in real time whatever the host does to this thread: the periods
             // it was held past are simulated now (motion only, no message), up to a bound.
@@ -655,7 +651,7 @@ pub fn serve_dynamixel(
             Ok(n) => {
                 if !attached {
                     attached = true;
-                    say("master attached");
+                    tracing::info!("master attached");
                 }
                 decoder.push(&buffer[..n]);
             }
@@ -663,7 +659,7 @@ pub fn serve_dynamixel(
                 if attached {
                     attached = false;
                     decoder.clear();
-                    say("master detached");
+                    tracing::info!("master detached");
                 }
                 continue;
             }
@@ -677,7 +673,7 @@ pub fn serve_dynamixel(
             }
         }
         if !out.is_empty() && port.write_frame(&out).is_err() {
-            say("write failed");
+            tracing::warn!("write failed");
         }
     }
 }

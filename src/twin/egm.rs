@@ -456,22 +456,22 @@ impl EgmTwin {
         None
     }
 
-    /// Runs cycles until `control.stop`, telling `say` about each event.
-    pub fn run(&mut self, control: &EgmTwinControl, say: &mut dyn FnMut(&str)) {
+    /// Runs cycles until `control.stop`, logging each event.
+    pub fn run(&mut self, control: &EgmTwinControl) {
         let clock = WallClock::new();
         let period = self.model.settings.period;
         let mut last_reply = Instant::now();
         let mut seqno: u32 = 0;
         let mut deadline = clock.now();
         while !control.stop.load(Ordering::SeqCst) {
-            self.operator(control, &mut last_reply, say);
+            self.operator(control, &mut last_reply);
             self.model.step();
             if self.model.mci == MciState::Running
                 && last_reply.elapsed() >= self.model.settings.comm_timeout
             {
                 self.model.end_session(MciState::Stopped);
                 self.model.counters.comm_timeouts += 1;
-                say("comm timeout: EGM session ended in HOLD");
+                tracing::warn!("comm timeout: EGM session ended in HOLD");
             }
             seqno = seqno.wrapping_add(1);
             let wall = std::time::SystemTime::now()
@@ -494,7 +494,7 @@ impl EgmTwin {
                 deadline = now + period;
                 self.model.counters.host_stalls += 1;
             }
-            let replies = self.collect(&clock, deadline, sent, say);
+            let replies = self.collect(&clock, deadline, sent);
             if replies > 0 {
                 last_reply = Instant::now();
             }
@@ -507,36 +507,25 @@ impl EgmTwin {
         }
     }
 
-    fn operator(
-        &mut self,
-        control: &EgmTwinControl,
-        last_reply: &mut Instant,
-        say: &mut dyn FnMut(&str),
-    ) {
+    fn operator(&mut self, control: &EgmTwinControl, last_reply: &mut Instant) {
         if control.motors_off.swap(false, Ordering::SeqCst) {
             self.model.set_motors(false);
-            say("motors off");
+            tracing::info!("motors off");
         }
         if control.motors_on.swap(false, Ordering::SeqCst) {
             self.model.set_motors(true);
             *last_reply = Instant::now();
-            say("motors on: EGM session started");
+            tracing::info!("motors on: EGM session started");
         }
         if control.start.swap(false, Ordering::SeqCst) && self.model.mci != MciState::Running {
             self.model.start_session();
             *last_reply = Instant::now();
-            say("EGM session started");
+            tracing::info!("EGM session started");
         }
     }
 
     /// Reads replies until `deadline`; returns how many this cycle brought.
-    fn collect(
-        &mut self,
-        clock: &WallClock,
-        deadline: Duration,
-        sent: Instant,
-        say: &mut dyn FnMut(&str),
-    ) -> u32 {
+    fn collect(&mut self, clock: &WallClock, deadline: Duration, sent: Instant) -> u32 {
         let mut buffer = [0u8; DATAGRAM];
         let mut replies = 0;
         loop {
@@ -562,7 +551,7 @@ impl EgmTwin {
                 self.round_trip[micros.min(ROUND_TRIP_BUCKETS - 1)] += 1;
             }
             if let Some(refusal) = self.model.take_sensor(&sensor) {
-                say(&format!("EGM error: {refusal}; session ended"));
+                tracing::warn!("EGM error: {refusal}; session ended");
             }
         }
     }
@@ -576,7 +565,7 @@ pub fn spawn_egm_twin(
     std::thread::Builder::new()
         .name("rigbridge-egm-twin".into())
         .spawn(move || {
-            twin.run(&control, &mut |_| {});
+            twin.run(&control);
             twin
         })
 }

@@ -4,7 +4,8 @@
 //! sends Feedback every cycle from then on, binds the twin only on a bridge Hello, sends
 //! one Fault notice when a fault latches, treats `watchdog` cycles of silence as link loss
 //! (and closes a connection silent for [`IDLE_CLOSE`]), and serves one bridge at a time.
-//! It prints one line per event (connected, lost, holding, fault) for people and tests.
+//! It logs one event per line (connected, lost, holding, fault) for people and tests (the
+//! binary prints them on stdout).
 //! It must not judge targets itself: that is the [`Twin`]'s.
 
 use super::Twin;
@@ -192,25 +193,24 @@ pub fn serve_twin(
     period: Duration,
     clock: &dyn Clock,
     stop: &AtomicBool,
-    mut say: impl FnMut(&str),
 ) -> TwinServeCounters {
     let mut session = Session::new(twin.status(), period);
     let mut buffer = [0u8; 4096];
     let mut next_tick = clock.now() + period;
     while !stop.load(Ordering::SeqCst) {
-        session.attach(twin, port, clock.now(), &mut say);
+        session.attach(twin, port, clock.now());
         let wait = next_tick.saturating_sub(clock.now()).min(period);
         match port.read_within(&mut buffer, wait) {
             Ok(n) => session.decoder.push(&buffer[..n]),
-            Err(e) => session.lose(twin, port, &mut say, &e.to_string()),
+            Err(e) => session.lose(twin, port, &e.to_string()),
         }
         let now = clock.now();
-        let targeted = session.attached && session.apply(twin, port, now, &mut say);
+        let targeted = session.attached && session.apply(twin, port, now);
         if targeted {
             next_tick = now + period + period / 2;
         } else if now >= next_tick {
-            session.tick(twin, port, &mut say);
-            session.check_silence(twin, port, now, &mut say);
+            session.tick(twin, port);
+            session.check_silence(twin, port, now);
             // Keep to the cycle's grid; after a long stall start afresh rather than race.
             next_tick = (next_tick + period).max(now);
         }
@@ -248,13 +248,7 @@ impl Session {
         }
     }
 
-    fn attach(
-        &mut self,
-        twin: &mut Twin,
-        port: &mut dyn ControllerPort,
-        now: Duration,
-        say: &mut impl FnMut(&str),
-    ) {
+    fn attach(&mut self, twin: &mut Twin, port: &mut dyn ControllerPort, now: Duration) {
         let attached = port.attached();
         if attached && !self.attached {
             self.counters.connections += 1;
@@ -263,7 +257,7 @@ impl Session {
             self.silent = false;
             self.last_heard = now;
             twin.link_lost();
-            say(&format!("connected at cycle {}", self.counters.cycles));
+            tracing::info!("connected at cycle {}", self.counters.cycles);
             // A sender sends one 0x00 when the link opens (docs/protocol.md 2.3).
             if port.write_frame(&[0]).is_err() {
                 port.detach();
@@ -281,13 +275,7 @@ impl Session {
     /// Hands every decoded message to the twin; each accepted target is one cycle,
     /// answered at once (two targets that arrive together are still two cycles, two
     /// answers). True when one was a target.
-    fn apply(
-        &mut self,
-        twin: &mut Twin,
-        port: &mut dyn ControllerPort,
-        now: Duration,
-        say: &mut impl FnMut(&str),
-    ) -> bool {
+    fn apply(&mut self, twin: &mut Twin, port: &mut dyn ControllerPort, now: Duration) -> bool {
         let mut targeted = false;
         while let Some(message) = self.decoder.next_message() {
             self.counters.frames_received += 1;
@@ -299,13 +287,13 @@ impl Session {
                     twin.bridge_hello();
                     self.greeted = self.send(port, &Message::Hello(twin.hello(true)));
                 }
-                Message::Command(Command::Reset) => self.reset(twin, port, say),
+                Message::Command(Command::Reset) => self.reset(twin, port),
                 Message::Command(command) => {
                     twin.handle(&command);
                     self.announce_fault(twin, port);
                     if matches!(command, Command::Target(_)) {
                         targeted = true;
-                        self.tick(twin, port, say);
+                        self.tick(twin, port);
                     }
                 }
                 // Feedback, Fault or an answer Hello from the bridge's side: ignored
@@ -321,14 +309,9 @@ impl Session {
 
     /// docs/protocol.md 6.7: a cleared fault is announced by an unprompted Hello; one that
     /// cannot be cleared is repeated in a Fault notice. Without a fault, nothing.
-    fn reset(
-        &mut self,
-        twin: &mut Twin,
-        port: &mut dyn ControllerPort,
-        say: &mut impl FnMut(&str),
-    ) {
+    fn reset(&mut self, twin: &mut Twin, port: &mut dyn ControllerPort) {
         if twin.reset() {
-            say(&format!("reset at cycle {}", self.counters.cycles));
+            tracing::info!("reset at cycle {}", self.counters.cycles);
             self.greeted = self.send(port, &Message::Hello(twin.hello(false)));
         }
     }
@@ -339,31 +322,25 @@ impl Session {
         }
     }
 
-    fn tick(&mut self, twin: &mut Twin, port: &mut dyn ControllerPort, say: &mut impl FnMut(&str)) {
+    fn tick(&mut self, twin: &mut Twin, port: &mut dyn ControllerPort) {
         self.counters.cycles += 1;
         let feedback = twin.tick();
         if self.attached && self.greeted && !self.send(port, &Message::Feedback(feedback)) {
-            self.lose(twin, port, say, "write failed");
+            self.lose(twin, port, "write failed");
         }
         if feedback.status != self.last_status {
-            say(&format!(
+            tracing::info!(
                 "status {} at cycle {}",
                 status_name(feedback.status),
                 self.counters.cycles
-            ));
+            );
             self.last_status = feedback.status;
         }
     }
 
     /// `watchdog` cycles without a valid frame are link loss (hold, unbound); a
     /// connection silent for [`IDLE_CLOSE`] is closed.
-    fn check_silence(
-        &mut self,
-        twin: &mut Twin,
-        port: &mut dyn ControllerPort,
-        now: Duration,
-        say: &mut impl FnMut(&str),
-    ) {
+    fn check_silence(&mut self, twin: &mut Twin, port: &mut dyn ControllerPort, now: Duration) {
         if !self.attached {
             return;
         }
@@ -372,11 +349,11 @@ impl Session {
         if !self.silent && quiet >= watchdog {
             self.silent = true;
             twin.link_lost();
-            say(&format!(
+            tracing::warn!(
                 "silent for {} ms at cycle {}: holding",
                 quiet.as_millis(),
                 self.counters.cycles
-            ));
+            );
             // Unbound now: say so, so that a bridge that still hears us knows its targets
             // will be dropped until its Hello (docs/protocol.md 6.5).
             if self.greeted {
@@ -384,26 +361,20 @@ impl Session {
             }
         }
         if port.has_connections() && quiet >= IDLE_CLOSE {
-            self.lose(twin, port, say, "idle connection closed");
+            self.lose(twin, port, "idle connection closed");
         }
     }
 
-    fn lose(
-        &mut self,
-        twin: &mut Twin,
-        port: &mut dyn ControllerPort,
-        say: &mut impl FnMut(&str),
-        why: &str,
-    ) {
+    fn lose(&mut self, twin: &mut Twin, port: &mut dyn ControllerPort, why: &str) {
         twin.link_lost();
         port.detach();
         self.attached = false;
         self.greeted = false;
         self.counters.link_losses += 1;
-        say(&format!(
+        tracing::warn!(
             "link lost at cycle {} ({why}): holding",
             self.counters.cycles
-        ));
+        );
     }
 }
 

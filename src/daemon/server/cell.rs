@@ -326,7 +326,8 @@ impl Cell {
         if let Some(journal) = journal
             && let Err(e) = journal.recorder.finish()
         {
-            eprintln!(
+            tracing::error!(
+                cell = %self.name(),
                 "cell {}: closing its journal: {}",
                 self.name(),
                 error_chain(&e)
@@ -365,7 +366,8 @@ impl Cell {
         };
         job.validate(&context).map_err(|mut refused| {
             if let Some(cause) = refused.cause.take() {
-                eprintln!(
+                tracing::warn!(
+                    cell = %self.name(),
                     "cell {}: job refused: {refused}: {}",
                     self.name(),
                     error_chain(cause.as_ref())
@@ -388,9 +390,17 @@ impl Cell {
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0.0, |d| d.as_secs_f64());
         let shown = job.map_or("no job".to_string(), |id| format!("job {id}"));
+        let cell = self.name();
         match &result {
-            Some(result) => eprintln!("cell {}: {action} ({shown}): {result}", self.name()),
-            None => eprintln!("cell {}: {action} ({shown})", self.name()),
+            Some(result) => tracing::info!(
+                cell = %cell,
+                action = %action,
+                job,
+                "cell {cell}: {action} ({shown}): {result}"
+            ),
+            None => {
+                tracing::info!(cell = %cell, action = %action, job, "cell {cell}: {action} ({shown})")
+            }
         }
         let mut detail = serde_json::json!({ "job": job, "unix_s": at_s });
         if let Some(result) = &result {
@@ -690,7 +700,12 @@ impl Cell {
                     error: error_chain(&e),
                 },
                 Err(panic) => {
-                    eprintln!("cell {}: job {id} panicked: {panic}", cell.name());
+                    let name = cell.name();
+                    tracing::error!(
+                        cell = %name,
+                        job = id,
+                        "cell {name}: job {id} panicked: {panic}"
+                    );
                     // The job is gone; the next one must still find the link.
                     cell.link.clear_poison();
                     JobResult::Failed {
