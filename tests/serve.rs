@@ -4,9 +4,10 @@
 mod common;
 
 use common::repo_path;
-use std::io::{BufRead, BufReader, Read, Write};
+use common::serve::{Served, start_serve};
+use std::io::{Read, Write};
 use std::net::TcpStream;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 /// 1.5 s of the default job's 250 Hz cycles: long enough for a paused job that crept on
@@ -14,20 +15,13 @@ use std::time::{Duration, Instant};
 const CYCLES_PAUSED: u64 = 375;
 
 struct Server {
-    child: Child,
+    _daemon: Served,
     /// Where to connect: always 127.0.0.1:PORT.
     address: String,
     /// What the server printed as its address.
     listening: String,
     /// Sent as `Authorization: Bearer <token>` when set.
     token: Option<String>,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 fn serve_command(extra: &[&str], env_token: Option<&str>) -> Command {
@@ -37,20 +31,8 @@ fn serve_command(extra: &[&str], env_token: Option<&str>) -> Command {
     let n = SERVERS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let runs = std::env::temp_dir().join(format!("rigbridge-serve-{}-{n}", std::process::id()));
     let _ = std::fs::remove_dir_all(&runs);
-    let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
-    command
-        .args([
-            "serve",
-            "--port",
-            "0",
-            "--foxglove-port",
-            "0",
-            "--runs-dir",
-            runs.to_str().unwrap(),
-        ])
-        .args(extra)
-        .current_dir(repo_path(""))
-        .env_remove("RIGBRIDGE_TOKEN");
+    let mut command = common::serve::serve_command(&runs);
+    command.args(extra);
     if let Some(token) = env_token {
         command.env("RIGBRIDGE_TOKEN", token);
     }
@@ -62,27 +44,13 @@ fn start_server() -> Server {
 }
 
 fn start_server_with(extra: &[&str], env_token: Option<&str>) -> Server {
-    let mut child = serve_command(extra, env_token)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let address = line
-        .trim()
-        .strip_prefix("http://")
-        .and_then(|a| a.strip_suffix('/'))
-        .unwrap_or_else(|| panic!("first line should be the address, got {line:?}"))
-        .to_string();
-    let port = address.rsplit_once(':').unwrap().1;
+    let daemon = start_serve(serve_command(extra, env_token).stderr(Stdio::piped()));
+    let port = daemon.address.rsplit_once(':').unwrap().1;
     Server {
-        child,
         address: format!("127.0.0.1:{port}"),
-        listening: address,
+        listening: daemon.address.clone(),
         token: env_token.map(String::from),
+        _daemon: daemon,
     }
 }
 

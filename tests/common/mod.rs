@@ -4,6 +4,8 @@
 //! time: a loaded machine makes a test slower, not wrong).
 #![allow(dead_code)]
 
+pub mod serve;
+
 use glam::{DQuat, DVec3};
 use rand::{Rng, RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;

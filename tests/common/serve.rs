@@ -1,0 +1,61 @@
+//! `rigbridge serve` as a test's child process: the command on a free port of 127.0.0.1,
+//! started, its address read from the first line it prints once it listens, and killed
+//! when the test lets go of it.
+
+use super::repo_path;
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+
+/// A started daemon, killed and reaped when dropped.
+pub struct Served {
+    pub child: Child,
+    /// Where it listens, HOST:PORT, as it printed it.
+    pub address: String,
+}
+
+impl Drop for Served {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// `command` (the rigbridge binary, or a wrapper that runs it) made `rigbridge serve` on a
+/// free port, its jobs' logs in `runs`, from the repository root, and without a token from
+/// the environment. The Foxglove server is as the settings and the caller's arguments say.
+pub fn serve_args<'a>(command: &'a mut Command, runs: &Path) -> &'a mut Command {
+    command
+        .args(["serve", "--port", "0", "--runs-dir"])
+        .arg(runs)
+        .current_dir(repo_path(""))
+        .env_remove("RIGBRIDGE_TOKEN")
+}
+
+/// [`serve_args`] without the Foxglove server: tests run several daemons at once, and its
+/// default port is one.
+pub fn serve_command(runs: &Path) -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
+    serve_args(&mut command, runs).args(["--foxglove-port", "0"]);
+    command
+}
+
+/// Starts `command` (a `rigbridge serve`; its stderr as the caller set it) and waits for the
+/// address it prints as its first line, `http://HOST:PORT/`.
+pub fn start_serve(command: &mut Command) -> Served {
+    let mut child = command
+        .stdout(Stdio::piped())
+        .spawn()
+        .expect("rigbridge serve starts");
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let address = line
+        .trim()
+        .strip_prefix("http://")
+        .and_then(|a| a.strip_suffix('/'))
+        .unwrap_or_else(|| panic!("first line should be the address, got {line:?}"))
+        .to_string();
+    Served { child, address }
+}
