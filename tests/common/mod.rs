@@ -4,6 +4,7 @@
 //! time: a loaded machine makes a test slower, not wrong).
 #![allow(dead_code)]
 
+pub mod cycles;
 pub mod serve;
 
 use glam::{DQuat, DVec3};
@@ -58,6 +59,33 @@ pub fn wait_for_logged_event(path: &Path, kind: &str, within: Duration) {
             log.events.iter().any(|e| e.kind == kind).then_some(())
         },
     );
+}
+
+/// The shipped run settings, `config/rigbridge.toml`.
+pub fn shipped_run_settings() -> rigbridge::daemon::config::RunSettings {
+    rigbridge::daemon::config::load_run_settings(&repo_path("config/rigbridge.toml"))
+        .expect("the default run settings load")
+}
+
+/// Runs `command` with `stdin` written to it and collects its output. The command may exit
+/// before reading all its input (a usage error): a closed pipe is fine.
+pub fn output_with_stdin(command: &mut std::process::Command, stdin: &str) -> std::process::Output {
+    use std::io::Write;
+    use std::process::Stdio;
+    let mut child = command
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut pipe = child.stdin.take().unwrap();
+    let input = stdin.to_string();
+    let writer = std::thread::spawn(move || pipe.write_all(input.as_bytes()));
+    let output = child.wait_with_output().unwrap();
+    if let Err(e) = writer.join().unwrap() {
+        assert_eq!(e.kind(), std::io::ErrorKind::BrokenPipe, "{e}");
+    }
+    output
 }
 
 pub fn repo_path(relative: &str) -> PathBuf {
