@@ -7,16 +7,14 @@
 
 mod common;
 
-use common::serve::{Served, serve_args, start_serve};
+use common::serve::{Served, request_json, serve_args, start_serve};
 use common::{irb120, repo_path};
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::daemon::server::FOXGLOVE_BACKLOG;
 use rigbridge::rig::rig_from_urdf;
-use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use std::time::Duration;
 
 /// The figure: live /tf at 30 messages a second or more while a job streams.
 const MIN_LIVE_TF_RATE_HZ: f64 = 30.0;
@@ -77,22 +75,7 @@ fn serve(dir: &Path, args: &[&str]) -> Served {
 
 /// One HTTP/1.1 request to the control API; the status and the JSON body.
 fn call(server: &Served, method: &str, path: &str, body: &str) -> (u16, serde_json::Value) {
-    let mut stream = TcpStream::connect(&server.address).unwrap();
-    stream
-        .set_read_timeout(Some(Duration::from_secs(30)))
-        .unwrap();
-    write!(
-        stream,
-        "{method} {path} HTTP/1.1\r\nHost: {}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-        server.address,
-        body.len()
-    )
-    .unwrap();
-    let mut response = String::new();
-    stream.read_to_string(&mut response).unwrap();
-    let status = response[9..12].parse().unwrap();
-    let json = response.split("\r\n\r\n").nth(1).unwrap_or("");
-    (status, serde_json::from_str(json).unwrap_or_default())
+    request_json(&server.address, method, path, "", body)
 }
 
 fn numbers(value: &serde_json::Value) -> Vec<f64> {

@@ -249,16 +249,7 @@ pub fn dynamixel_settings(
     ids: &[u8],
 ) -> Result<crate::link::DynamixelSettings, DaemonError> {
     let rig = &settings.rig;
-    if let Some(joint) = rig
-        .joints
-        .iter()
-        .find(|j| j.kind != crate::rig::JointKind::Revolute)
-    {
-        return Err(DaemonError::Unavailable(format!(
-            "a Dynamixel link drives revolute axes only; {} is prismatic",
-            joint.name
-        )));
-    }
+    revolute_only(rig, "a Dynamixel link drives revolute axes only")?;
     let axes = settings
         .config
         .dynamixel
@@ -279,11 +270,7 @@ pub fn dynamixel_settings(
         serial: settings.config.stream.serial_settings(path, baud),
         ids: ids.to_vec(),
         axes,
-        limits: rig
-            .joints
-            .iter()
-            .map(|j| (j.limits.lower, j.limits.upper))
-            .collect(),
+        limits: axis_limits(rig),
         cycle_timeout: Duration::from_secs_f64(settings.period_s()),
     })
 }
@@ -298,16 +285,10 @@ pub fn canopen_settings(
     counts_per_turn: Option<u32>,
 ) -> Result<crate::link::CanopenSettings, DaemonError> {
     let rig = &settings.rig;
-    if let Some(joint) = rig
-        .joints
-        .iter()
-        .find(|j| j.kind != crate::rig::JointKind::Revolute)
-    {
-        return Err(DaemonError::Unavailable(format!(
-            "a CANopen link drives revolute axes only (counts a turn); {} is prismatic",
-            joint.name
-        )));
-    }
+    revolute_only(
+        rig,
+        "a CANopen link drives revolute axes only (counts a turn)",
+    )?;
     let canopen = &settings.config.canopen;
     let unavailable = |e: crate::rig::ConfigError| DaemonError::Unavailable(e.to_string());
     let axes = canopen
@@ -318,14 +299,34 @@ pub fn canopen_settings(
         interface: interface.to_string(),
         nodes: nodes.to_vec(),
         axes,
-        limits: rig
-            .joints
-            .iter()
-            .map(|j| (j.limits.lower, j.limits.upper))
-            .collect(),
+        limits: axis_limits(rig),
         period: Duration::from_secs_f64(settings.period_s()),
         heartbeat_ms,
     })
+}
+
+/// Refuses `rig` for a link that, as `refusal` says, drives revolute axes only, naming its
+/// first prismatic axis.
+fn revolute_only(rig: &crate::rig::Rig, refusal: &str) -> Result<(), DaemonError> {
+    match rig
+        .joints
+        .iter()
+        .find(|j| j.kind != crate::rig::JointKind::Revolute)
+    {
+        Some(joint) => Err(DaemonError::Unavailable(format!(
+            "{refusal}; {} is prismatic",
+            joint.name
+        ))),
+        None => Ok(()),
+    }
+}
+
+/// Each axis' lower and upper limit (rad).
+fn axis_limits(rig: &crate::rig::Rig) -> Vec<(f64, f64)> {
+    rig.joints
+        .iter()
+        .map(|j| (j.limits.lower, j.limits.upper))
+        .collect()
 }
 
 /// Where the controller holds at rest, read before planning so the plan starts there

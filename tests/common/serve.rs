@@ -3,9 +3,15 @@
 //! when the test lets go of it.
 
 use super::repo_path;
-use std::io::{BufRead, BufReader};
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+/// How long a test waits for an answer: far beyond any request's, only to fail rather than
+/// hang.
+const ANSWER_WITHIN: Duration = Duration::from_secs(30);
 
 /// A started daemon, killed and reaped when dropped.
 pub struct Served {
@@ -58,4 +64,29 @@ pub fn start_serve(command: &mut Command) -> Served {
         .unwrap_or_else(|| panic!("first line should be the address, got {line:?}"))
         .to_string();
     Served { child, address }
+}
+
+/// One HTTP/1.1 request with a JSON body to the daemon at `address`, `Connection: close`;
+/// `headers` are extra header lines, each ending in `\r\n`. The status code and the body as
+/// JSON (null when it is not).
+pub fn request_json(
+    address: &str,
+    method: &str,
+    path: &str,
+    headers: &str,
+    body: &str,
+) -> (u16, serde_json::Value) {
+    let mut stream = TcpStream::connect(address).unwrap();
+    stream.set_read_timeout(Some(ANSWER_WITHIN)).unwrap();
+    write!(
+        stream,
+        "{method} {path} HTTP/1.1\r\nHost: {address}\r\n{headers}Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    )
+    .unwrap();
+    let mut response = String::new();
+    stream.read_to_string(&mut response).unwrap();
+    let status = response[9..12].parse().unwrap();
+    let json = response.split("\r\n\r\n").nth(1).unwrap_or("");
+    (status, serde_json::from_str(json).unwrap_or_default())
 }
