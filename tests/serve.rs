@@ -4,7 +4,7 @@
 mod common;
 
 use common::repo_path;
-use common::serve::{Served, request_json, start_serve};
+use common::serve::{Served, request_json, start_serve, write_pan_tilt_rig};
 use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::process::{Command, Stdio};
@@ -582,20 +582,7 @@ fn pan_tilt_cell(name: &str, link: &str) -> std::path::PathBuf {
     let dir = std::env::temp_dir().join(format!("rigbridge-cell-{}-{n}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
-    let joint = |joint: &str, z: f64, axis: &str| {
-        format!(
-            "[[joint]]\nname = \"{joint}\"\nkind = \"revolute\"\norigin_xyz_m = [0.0, 0.0, {z}]\n\
-             axis = {axis}\nlower_deg = -90.0\nupper_deg = 90.0\nmax_speed_deg_s = 60.0\n\
-             max_accel_deg_s2 = 240.0\n\n"
-        )
-    };
-    let rig = format!(
-        "name = \"{name}\"\nbase_frame = \"base\"\ntool_frame = \"tool\"\n\n{}{}{}",
-        joint("pan", 0.0, "[0.0, 0.0, 1.0]"),
-        joint("tilt", 0.3, "[0.0, 1.0, 0.0]"),
-        joint("elbow", 0.25, "[0.0, 1.0, 0.0]"),
-    );
-    std::fs::write(dir.join("pan_tilt.toml"), rig).unwrap();
+    write_pan_tilt_rig(&dir, name);
     let settings = format!(
         "rig = \"pan_tilt.toml\"\n\n[stream]\nrate_hz = 250.0\nlink = \"{link}\"\n\n\
          [twin]\nbandwidth_hz = 20.0\ndelay_ms = 12.0\nwatchdog_cycles = 25\n\

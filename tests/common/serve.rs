@@ -90,3 +90,22 @@ pub fn request_json(
     let json = response.split("\r\n\r\n").nth(1).unwrap_or("");
     (status, serde_json::from_str(json).unwrap_or_default())
 }
+
+/// `dir/pan_tilt.toml`: a three-axis rig named `name` (joints `pan`, `tilt`, `elbow`,
+/// revolute, +-90 deg), slow enough (60 deg/s) that a job of a few moves lasts seconds.
+pub fn write_pan_tilt_rig(dir: &Path, name: &str) {
+    let joint = |joint: &str, z: f64, axis: &str| {
+        format!(
+            "[[joint]]\nname = \"{joint}\"\nkind = \"revolute\"\norigin_xyz_m = [0.0, 0.0, {z}]\n\
+             axis = {axis}\nlower_deg = -90.0\nupper_deg = 90.0\nmax_speed_deg_s = 60.0\n\
+             max_accel_deg_s2 = 240.0\n\n"
+        )
+    };
+    let rig = format!(
+        "name = \"{name}\"\nbase_frame = \"base\"\ntool_frame = \"tool\"\n\n{}{}{}",
+        joint("pan", 0.0, "[0.0, 0.0, 1.0]"),
+        joint("tilt", 0.3, "[0.0, 1.0, 0.0]"),
+        joint("elbow", 0.25, "[0.0, 1.0, 0.0]"),
+    );
+    std::fs::write(dir.join("pan_tilt.toml"), rig).unwrap();
+}
