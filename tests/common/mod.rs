@@ -1,7 +1,9 @@
 //! Helpers shared by the integration tests: the shipped IRB 120 rig, the independent
 //! reference data in `../shared/reference`, seeded random configurations, the issue's
-//! figures every passing gait run must meet, and waiting on a condition (never for a fixed
-//! time: a loaded machine makes a test slower, not wrong).
+//! figures every passing gait run must meet, waiting on a condition (never for a fixed
+//! time: a loaded machine makes a test slower, not wrong), running the binary with input on
+//! stdin; `serve` starts `rigbridge serve` and talks to it, `cycles` serves tests that hold
+//! real-time cycles.
 #![allow(dead_code)]
 
 pub mod cycles;
