@@ -5,11 +5,12 @@
 mod common;
 
 use common::repo_path;
+use common::serve::{Served, serve_command, start_serve};
 use rand::{Rng, RngExt};
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
+use std::process::Stdio;
 use std::time::Duration;
 
 /// How many bodies the fuzz sends.
@@ -18,16 +19,9 @@ const BODIES: usize = 10_000;
 const SECRET: &str = "SECRET-LINE-d41d8cd98f00b204";
 
 struct Server {
-    child: Child,
+    daemon: Served,
     address: String,
     runs: PathBuf,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 /// A daemon on a config in a fresh directory that also holds a secret file.
@@ -48,36 +42,15 @@ fn start() -> Server {
     std::fs::write(dir.join("secret.toml"), format!("{SECRET} = 1\n[x\n")).unwrap();
     std::fs::write(dir.join("secret.csv"), format!("t,j1\n{SECRET}\n")).unwrap();
     let runs = dir.join("runs");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args([
-            "serve",
-            "--port",
-            "0",
-            "--foxglove-port",
-            "0",
-            "--clock",
-            "virtual",
-            "--config",
-        ])
-        .arg(dir.join("rigbridge.toml"))
-        .arg("--runs-dir")
-        .arg(&runs)
-        .env_remove("RIGBRIDGE_TOKEN")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let address = line
-        .trim()
-        .trim_start_matches("http://")
-        .trim_end_matches('/');
+    let daemon = start_serve(
+        serve_command(&runs)
+            .args(["--clock", "virtual", "--config"])
+            .arg(dir.join("rigbridge.toml"))
+            .stderr(Stdio::null()),
+    );
     Server {
-        child,
-        address: address.to_string(),
+        address: daemon.address.clone(),
+        daemon,
         runs,
     }
 }
@@ -246,7 +219,7 @@ fn ten_thousand_invalid_bodies_start_nothing_crash_nothing_and_quote_no_file() {
     }
     println!("{BODIES} invalid bodies: status codes {codes:?}");
     assert!(
-        server.child.try_wait().unwrap().is_none(),
+        server.daemon.child.try_wait().unwrap().is_none(),
         "the daemon is still running"
     );
     let headers = format!("Host: {}\r\n", server.address);

@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::repo_path;
+use common::{output_with_stdin, repo_path};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 
@@ -16,24 +16,13 @@ fn scratch(name: &str) -> PathBuf {
 }
 
 fn rigbridge_in(cwd: &Path, args: &[&str], stdin: &str) -> Output {
-    use std::io::Write;
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(args)
-        .current_dir(cwd)
-        .env_remove("RIGBRIDGE_CONFIG")
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut pipe = child.stdin.take().unwrap();
-    let input = stdin.to_string();
-    let writer = std::thread::spawn(move || pipe.write_all(input.as_bytes()));
-    let output = child.wait_with_output().unwrap();
-    if let Err(e) = writer.join().unwrap() {
-        assert_eq!(e.kind(), std::io::ErrorKind::BrokenPipe, "{e}");
-    }
-    output
+    output_with_stdin(
+        Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+            .args(args)
+            .current_dir(cwd)
+            .env_remove("RIGBRIDGE_CONFIG"),
+        stdin,
+    )
 }
 
 fn rigbridge(args: &[&str], stdin: &str) -> Output {

@@ -2,28 +2,16 @@
 
 mod common;
 
-use common::{reference_path, repo_path};
+use common::{output_with_stdin, reference_path, repo_path};
 use std::process::{Command, Output};
 
 fn rigbridge(args: &[&str], stdin: Option<&str>) -> Output {
-    use std::io::Write;
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(args)
-        .current_dir(repo_path(""))
-        .stdin(std::process::Stdio::piped())
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let input = stdin.unwrap_or("").to_string();
-    let mut pipe = child.stdin.take().unwrap();
-    let writer = std::thread::spawn(move || pipe.write_all(input.as_bytes()));
-    let output = child.wait_with_output().unwrap();
-    // The child may exit before reading its input (a usage error): a closed pipe is fine.
-    if let Err(e) = writer.join().unwrap() {
-        assert_eq!(e.kind(), std::io::ErrorKind::BrokenPipe, "{e}");
-    }
-    output
+    output_with_stdin(
+        Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+            .args(args)
+            .current_dir(repo_path("")),
+        stdin.unwrap_or(""),
+    )
 }
 
 fn column(line: &str, index: usize) -> f64 {

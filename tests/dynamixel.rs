@@ -5,6 +5,9 @@
 
 mod common;
 
+use common::cycles::{one_at_a_time, real_time, wait_for};
+use common::shipped_run_settings;
+
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::{dynamixel_settings, run_job};
 use rigbridge::link::{Link, connect_dynamixel};
@@ -15,30 +18,13 @@ use rigbridge::twin::dynamixel::{
 };
 use rigbridge::twin::serial_port::SerialControllerPort;
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 const IDS: [u8; 6] = [1, 2, 3, 4, 5, 6];
 /// Patience for conditions that take a few cycles on an idle machine.
 const PATIENCE: Duration = Duration::from_secs(10);
-
-/// One at a time: each test holds 4 ms cycles in real time on a 2-core machine.
-fn one_at_a_time() -> MutexGuard<'static, ()> {
-    static CYCLES: Mutex<()> = Mutex::new(());
-    CYCLES.lock().unwrap_or_else(|p| p.into_inner())
-}
-
-fn settings() -> RunSettings {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("config/rigbridge.toml");
-    load_run_settings(&path).expect("the default run settings load")
-}
-
-fn real_time() {
-    if let Err(e) = rigbridge::stream::raise_priority(50) {
-        println!("note: normal priority (real-time scheduling refused: {e})");
-    }
-}
 
 /// The twin's bus on a new pty, served on its own thread: the pty's path, the operator's
 /// control, and the thread that returns the bus's counters, positions and torque.
@@ -74,24 +60,16 @@ fn twin_bus(settings: &RunSettings) -> TwinBus {
     }
 }
 
-fn wait_for(what: &str, mut condition: impl FnMut() -> bool) {
-    let start = Instant::now();
-    while !condition() {
-        assert!(start.elapsed() < PATIENCE, "timed out waiting for {what}");
-        std::thread::sleep(Duration::from_millis(5));
-    }
-}
-
 #[test]
 fn the_bridge_drives_six_twin_servos_through_the_default_job_over_a_pty() {
     let _cycles = one_at_a_time();
     real_time();
-    let settings = settings();
+    let settings = shipped_run_settings();
     let twin = twin_bus(&settings);
     let link_settings =
         dynamixel_settings(&settings, &twin.path, 1_000_000, &IDS).expect("link settings");
     let mut link = connect_dynamixel(link_settings).expect("link");
-    wait_for("the bus set up", || link.is_up());
+    wait_for("the bus set up", PATIENCE, || link.is_up());
     let clock = rigbridge::clock::WallClock::new();
     let control = StreamControl::default();
     let job = settings.config.job.clone();
@@ -161,12 +139,12 @@ fn the_bridge_drives_six_twin_servos_through_the_default_job_over_a_pty() {
 fn a_servo_hardware_error_stops_the_job_with_a_drive_fault() {
     let _cycles = one_at_a_time();
     real_time();
-    let settings = settings();
+    let settings = shipped_run_settings();
     let twin = twin_bus(&settings);
     let link_settings =
         dynamixel_settings(&settings, &twin.path, 1_000_000, &IDS).expect("link settings");
     let mut link = connect_dynamixel(link_settings).expect("link");
-    wait_for("the bus set up", || link.is_up());
+    wait_for("the bus set up", PATIENCE, || link.is_up());
     let control = Arc::new(StreamControl::default());
     let injector = twin.control.clone();
     let watched = control.clone();
@@ -202,7 +180,7 @@ fn a_servo_hardware_error_stops_the_job_with_a_drive_fault() {
 
 #[test]
 fn a_rate_the_line_cannot_carry_is_refused_before_anything_opens() {
-    let settings = settings();
+    let settings = shipped_run_settings();
     // Six servos at 57600 baud: 34.7 Hz at most (docs/dynamixel.md), not 250.
     let error = dynamixel_settings(&settings, "/dev/null", 57_600, &IDS).expect_err("refused");
     let text = error.to_string();
@@ -278,7 +256,7 @@ fn the_twin_servos_answer_dynamixel_sdk_as_master() {
             return;
         }
     };
-    let settings = settings();
+    let settings = shipped_run_settings();
     let twin = twin_bus(&settings);
     let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/peers/dxl_master.py");
     let output = std::process::Command::new(python)

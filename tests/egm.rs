@@ -4,9 +4,12 @@
 
 mod common;
 
+use common::cycles::{one_at_a_time, real_time, wait_for};
+use common::shipped_run_settings;
+
 use prost::Message;
 use rigbridge::clock::Clock;
-use rigbridge::daemon::config::{RunSettings, load_run_settings};
+use rigbridge::daemon::config::RunSettings;
 use rigbridge::daemon::run_job;
 use rigbridge::link::egm_wire::{EgmRobot, EgmSensor, MciState, MotorState};
 use rigbridge::link::{Link, bind_egm};
@@ -16,59 +19,30 @@ use rigbridge::twin::egm::{
 };
 use std::net::{SocketAddr, UdpSocket};
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 /// Patience for conditions that take a few robot cycles on an idle machine.
 const PATIENCE: Duration = Duration::from_secs(10);
-
-/// The tests here run one at a time: each holds 4 ms cycles in real time, and on a 2-core
-/// machine a neighbour (the Python peer starting, another twin) would take those cycles.
-fn one_at_a_time() -> MutexGuard<'static, ()> {
-    static CYCLES: Mutex<()> = Mutex::new(());
-    CYCLES.lock().unwrap_or_else(|p| p.into_inner())
-}
-
-fn settings() -> RunSettings {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("config/rigbridge.toml");
-    load_run_settings(&path).expect("the default run settings load")
-}
 
 fn twin_towards(settings: &RunSettings, sensor: SocketAddr, egm: EgmTwinSettings) -> EgmTwin {
     let model = EgmRobotModel::new(&settings.rig, egm, &settings.initial()).expect("model");
     EgmTwin::new(model, sensor).expect("twin socket")
 }
 
-/// SCHED_FIFO for this thread and the threads it starts (the link's I/O thread, the twin),
-/// as `rigbridge run` and `rigbridge twin` do: on a loaded 2-core machine an ordinary thread
-/// is preempted for milliseconds, longer than an EGM cycle.
-fn real_time() {
-    if let Err(e) = rigbridge::stream::raise_priority(50) {
-        println!("note: normal priority (real-time scheduling refused: {e})");
-    }
-}
-
-fn wait_for(what: &str, mut condition: impl FnMut() -> bool) {
-    let start = Instant::now();
-    while !condition() {
-        assert!(start.elapsed() < PATIENCE, "timed out waiting for {what}");
-        std::thread::sleep(Duration::from_millis(5));
-    }
-}
-
 #[test]
 fn bridge_streams_the_default_job_to_the_egm_twin_within_its_limits() {
     let _cycles = one_at_a_time();
     real_time();
-    let settings = settings();
+    let settings = shipped_run_settings();
     let period = Duration::from_secs_f64(settings.period_s());
     let mut link = bind_egm("127.0.0.1:0", settings.rig.dof(), period).expect("bind");
     let sensor = link.local_address();
     let control = Arc::new(EgmTwinControl::default());
     let twin = twin_towards(&settings, sensor, EgmTwinSettings::default());
     let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
-    wait_for("the EGM session", || link.is_up());
+    wait_for("the EGM session", PATIENCE, || link.is_up());
     let clock = link.pacing().expect("an EGM link paces the streamer");
     let stream_control = StreamControl::default();
     let job = settings.config.job.clone();
@@ -115,7 +89,7 @@ fn bridge_streams_the_default_job_to_the_egm_twin_within_its_limits() {
 #[test]
 fn the_link_holds_until_motors_are_on_and_the_clock_follows_the_robot() {
     let _cycles = one_at_a_time();
-    let settings = settings();
+    let settings = shipped_run_settings();
     let period = Duration::from_secs_f64(settings.period_s());
     let mut link = bind_egm("127.0.0.1:0", settings.rig.dof(), period).expect("bind");
     let egm = EgmTwinSettings {
@@ -125,13 +99,13 @@ fn the_link_holds_until_motors_are_on_and_the_clock_follows_the_robot() {
     let control = Arc::new(EgmTwinControl::default());
     let twin = twin_towards(&settings, link.local_address(), egm);
     let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
-    wait_for("robot messages", || link.state().replies >= 25);
+    wait_for("robot messages", PATIENCE, || link.state().replies >= 25);
     let state = link.state();
     assert_eq!(state.motors, MotorState::Off);
     assert!(!link.is_up(), "no motion while the motors are off");
     let clock = link.clock();
     control.motors_on();
-    wait_for("motors on and EGM running", || link.is_up());
+    wait_for("motors on and EGM running", PATIENCE, || link.is_up());
     // Device time: one period per EgmRobot, so a wait of 10 periods spans 10 messages.
     let before = link.state().messages;
     let start = clock.now();
@@ -157,7 +131,7 @@ fn the_link_holds_until_motors_are_on_and_the_clock_follows_the_robot() {
 #[test]
 fn without_replies_the_twin_ends_the_session_in_hold_after_comm_timeout() {
     let _cycles = one_at_a_time();
-    let settings = settings();
+    let settings = shipped_run_settings();
     let sensor = UdpSocket::bind("127.0.0.1:0").expect("sensor socket");
     sensor
         .set_read_timeout(Some(Duration::from_secs(1)))
@@ -177,7 +151,9 @@ fn without_replies_the_twin_ends_the_session_in_hold_after_comm_timeout() {
     let read = || read_from(&sensor).0;
     assert_eq!(read().mci(), MciState::Running);
     let started = Instant::now();
-    wait_for("the comm timeout", || read().mci() == MciState::Stopped);
+    wait_for("the comm timeout", PATIENCE, || {
+        read().mci() == MciState::Stopped
+    });
     assert!(started.elapsed() >= Duration::from_millis(150));
     // Still streaming state, motors on, at the same position: HOLD, not a motors-off stop.
     let held = read();
@@ -194,7 +170,9 @@ fn without_replies_the_twin_ends_the_session_in_hold_after_comm_timeout() {
         .expect("send");
     assert_eq!(read().mci(), MciState::Stopped);
     control.start_session();
-    wait_for("a new session", || read().mci() == MciState::Running);
+    wait_for("a new session", PATIENCE, || {
+        read().mci() == MciState::Running
+    });
     control.stop.store(true, Ordering::SeqCst);
     let counters = twin.join().expect("twin").model().counters;
     assert_eq!(counters.comm_timeouts, 1);
@@ -204,7 +182,7 @@ fn without_replies_the_twin_ends_the_session_in_hold_after_comm_timeout() {
 #[test]
 fn a_reference_jump_is_refused_with_mci_error_and_no_motion() {
     let _cycles = one_at_a_time();
-    let settings = settings();
+    let settings = shipped_run_settings();
     let sensor = UdpSocket::bind("127.0.0.1:0").expect("sensor socket");
     sensor
         .set_read_timeout(Some(Duration::from_secs(1)))
@@ -225,7 +203,7 @@ fn a_reference_jump_is_refused_with_mci_error_and_no_motion() {
     sensor
         .send_to(&reply.encode_to_vec(), twin_address)
         .expect("send");
-    wait_for("the refusal", || {
+    wait_for("the refusal", PATIENCE, || {
         let (len, _) = sensor.recv_from(&mut buffer).expect("an EgmRobot");
         EgmRobot::decode(&buffer[..len]).expect("decodes").mci() == MciState::Error
     });
@@ -272,7 +250,7 @@ fn the_egm_twin_serves_abb_robot_clients_egm_sensor() {
         .trim()
         .parse()
         .expect("a port");
-    let settings = settings();
+    let settings = shipped_run_settings();
     let control = Arc::new(EgmTwinControl::default());
     let sensor: SocketAddr = ([127, 0, 0, 1], port).into();
     let twin = twin_towards(&settings, sensor, EgmTwinSettings::default());

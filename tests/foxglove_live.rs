@@ -7,15 +7,14 @@
 
 mod common;
 
+use common::serve::{Served, request_json, serve_args, start_serve};
 use common::{irb120, repo_path};
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::daemon::server::FOXGLOVE_BACKLOG;
 use rigbridge::rig::rig_from_urdf;
-use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::time::Duration;
+use std::process::{Command, Stdio};
 
 /// The figure: live /tf at 30 messages a second or more while a job streams.
 const MIN_LIVE_TF_RATE_HZ: f64 = 30.0;
@@ -45,18 +44,6 @@ fn peer_python() -> Option<String> {
     }
 }
 
-struct Server {
-    child: Child,
-    http: String,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
 fn scratch(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("rigbridge-fxlive-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
@@ -73,28 +60,13 @@ fn free_port() -> u16 {
         .port()
 }
 
-fn serve(dir: &Path, args: &[&str]) -> Server {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["serve", "--port", "0", "--clock", "wall", "--runs-dir"])
-        .arg(dir.join("runs"))
+fn serve(dir: &Path, args: &[&str]) -> Served {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
+    serve_args(&mut command, &dir.join("runs"))
+        .args(["--clock", "wall"])
         .args(args)
-        .current_dir(repo_path(""))
-        .env_remove("RIGBRIDGE_TOKEN")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let http = line
-        .trim()
-        .strip_prefix("http://")
-        .and_then(|a| a.strip_suffix('/'))
-        .unwrap_or_else(|| panic!("first line should be the address, got {line:?}"))
-        .to_string();
-    let server = Server { child, http };
+        .stderr(Stdio::null());
+    let server = start_serve(&mut command);
     // The API answers once the daemon runs, and it binds the Foxglove port before that.
     let (code, _) = call(&server, "GET", "/api/status", "");
     assert_eq!(code, 200);
@@ -102,23 +74,8 @@ fn serve(dir: &Path, args: &[&str]) -> Server {
 }
 
 /// One HTTP/1.1 request to the control API; the status and the JSON body.
-fn call(server: &Server, method: &str, path: &str, body: &str) -> (u16, serde_json::Value) {
-    let mut stream = TcpStream::connect(&server.http).unwrap();
-    stream
-        .set_read_timeout(Some(Duration::from_secs(30)))
-        .unwrap();
-    write!(
-        stream,
-        "{method} {path} HTTP/1.1\r\nHost: {}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-        server.http,
-        body.len()
-    )
-    .unwrap();
-    let mut response = String::new();
-    stream.read_to_string(&mut response).unwrap();
-    let status = response[9..12].parse().unwrap();
-    let json = response.split("\r\n\r\n").nth(1).unwrap_or("");
-    (status, serde_json::from_str(json).unwrap_or_default())
+fn call(server: &Served, method: &str, path: &str, body: &str) -> (u16, serde_json::Value) {
+    request_json(&server.address, method, path, "", body)
 }
 
 fn numbers(value: &serde_json::Value) -> Vec<f64> {

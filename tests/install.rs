@@ -3,11 +3,14 @@
 //! job, the batch tools find their rig, `config dump` writes files that load back, and a
 //! missing file's error says where it looked.
 
+mod common;
+
+use common::output_with_stdin;
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::rig::load_rig;
 use rigbridge::task::paint::load_paint_settings;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Output};
 
 /// A fresh empty directory under the system's temporary directory.
 fn empty_dir(name: &str) -> PathBuf {
@@ -19,27 +22,16 @@ fn empty_dir(name: &str) -> PathBuf {
 
 /// Runs the binary in `cwd` with HOME pointed at an empty directory and RIGBRIDGE_CONFIG unset.
 fn rigbridge(cwd: &Path, args: &[&str], stdin: &str) -> Output {
-    use std::io::Write;
     let home = cwd.join("home");
     std::fs::create_dir_all(&home).unwrap();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(args)
-        .current_dir(cwd)
-        .env("HOME", &home)
-        .env_remove("RIGBRIDGE_CONFIG")
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut pipe = child.stdin.take().unwrap();
-    let input = stdin.to_string();
-    let writer = std::thread::spawn(move || pipe.write_all(input.as_bytes()));
-    let output = child.wait_with_output().unwrap();
-    if let Err(e) = writer.join().unwrap() {
-        assert_eq!(e.kind(), std::io::ErrorKind::BrokenPipe, "{e}");
-    }
-    output
+    output_with_stdin(
+        Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+            .args(args)
+            .current_dir(cwd)
+            .env("HOME", &home)
+            .env_remove("RIGBRIDGE_CONFIG"),
+        stdin,
+    )
 }
 
 fn stderr(output: &Output) -> String {

@@ -16,6 +16,7 @@
 mod common;
 
 use common::repo_path;
+use common::serve::{Served, serve_command, start_serve};
 use fantoccini::{Client, ClientBuilder, Locator};
 use serde_json::{Value, json};
 use std::io::{BufRead, BufReader, Read, Write};
@@ -78,35 +79,18 @@ fn painting_cell(dir: &Path) -> PathBuf {
 
 /// `rigbridge serve` on a free port of 127.0.0.1 with the arm's cell, `painting` and the
 /// sloth's; returns it and its page's address.
-fn start_server(runs: &Path, painting: &Path) -> (Running, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args([
-            "serve",
-            "--port",
-            "0",
-            "--foxglove-port",
-            "0",
-            "--clock",
-            "wall",
-        ])
-        .args(["--config", "config/rigbridge.toml", "--config"])
-        .arg(painting)
-        .args(["--config", "config/gait-run.toml"])
-        .arg("--runs-dir")
-        .arg(runs)
-        .current_dir(repo_path(""))
-        .env_remove("RIGBRIDGE_TOKEN")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("rigbridge serve starts");
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let url = line.trim().to_string();
+fn start_server(runs: &Path, painting: &Path) -> (Served, String) {
+    let daemon = start_serve(
+        serve_command(runs)
+            .args(["--clock", "wall"])
+            .args(["--config", "config/rigbridge.toml", "--config"])
+            .arg(painting)
+            .args(["--config", "config/gait-run.toml"])
+            .stderr(Stdio::null()),
+    );
+    let url = format!("http://{}/", daemon.address);
     assert!(url.starts_with("http://127.0.0.1:"), "{url}");
-    (Running(child), url)
+    (daemon, url)
 }
 
 fn free_port() -> u16 {

@@ -9,6 +9,7 @@
 mod common;
 
 use common::repo_path;
+use common::serve::{Served, serve_command, start_serve};
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdout, Command, Stdio};
@@ -94,30 +95,19 @@ impl Drop for Peer {
 
 /// A `rigbridge serve` whose stderr is collected (the refusals are logged there).
 struct Serve {
-    child: Child,
-    address: String,
+    daemon: Served,
     stderr: Arc<Mutex<String>>,
 }
 
 impl Serve {
     fn start(configs: &[&Path], extra: &[&str], runs: &Path) -> Serve {
-        let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
-        command
-            // No Foxglove server: several daemons run at once, and its default port is one.
-            .args(["serve", "--port", "0", "--foxglove-port", "0", "--runs-dir"])
-            .arg(runs);
+        let mut command = serve_command(runs);
         for config in configs {
             command.arg("--config").arg(config);
         }
-        let mut child = command
-            .args(extra)
-            .env_remove("RIGBRIDGE_TOKEN")
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
+        let mut daemon = start_serve(command.args(extra).stderr(Stdio::piped()));
         let stderr = Arc::new(Mutex::new(String::new()));
-        let (mut pipe, sink) = (child.stderr.take().unwrap(), stderr.clone());
+        let (mut pipe, sink) = (daemon.child.stderr.take().unwrap(), stderr.clone());
         std::thread::spawn(move || {
             let mut buffer = [0u8; 4096];
             while let Ok(n) = pipe.read(&mut buffer) {
@@ -129,42 +119,21 @@ impl Serve {
                     .push_str(&String::from_utf8_lossy(&buffer[..n]));
             }
         });
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap())
-            .read_line(&mut line)
-            .unwrap();
-        let address = line
-            .trim()
-            .strip_prefix("http://")
-            .and_then(|a| a.strip_suffix('/'))
-            .unwrap_or_else(|| panic!("first line should be the address, got {line:?}"))
-            .to_string();
-        Serve {
-            child,
-            address,
-            stderr,
-        }
+        Serve { daemon, stderr }
     }
 
     fn get(&self, path: &str) -> serde_json::Value {
-        let mut stream = std::net::TcpStream::connect(&self.address).unwrap();
+        let mut stream = std::net::TcpStream::connect(&self.daemon.address).unwrap();
         write!(
             stream,
             "GET {path} HTTP/1.1\r\nHost: {}\r\nConnection: close\r\n\r\n",
-            self.address
+            self.daemon.address
         )
         .unwrap();
         let mut response = String::new();
         stream.read_to_string(&mut response).unwrap();
         let body = response.split("\r\n\r\n").nth(1).unwrap_or("");
         serde_json::from_str(body).unwrap_or(serde_json::Value::Null)
-    }
-}
-
-impl Drop for Serve {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
     }
 }
 

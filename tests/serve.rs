@@ -4,9 +4,10 @@
 mod common;
 
 use common::repo_path;
-use std::io::{BufRead, BufReader, Read, Write};
+use common::serve::{Served, request_json, start_serve, write_pan_tilt_rig};
+use std::io::{Read, Write};
 use std::net::TcpStream;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 /// 1.5 s of the default job's 250 Hz cycles: long enough for a paused job that crept on
@@ -14,20 +15,13 @@ use std::time::{Duration, Instant};
 const CYCLES_PAUSED: u64 = 375;
 
 struct Server {
-    child: Child,
+    daemon: Served,
     /// Where to connect: always 127.0.0.1:PORT.
     address: String,
     /// What the server printed as its address.
     listening: String,
     /// Sent as `Authorization: Bearer <token>` when set.
     token: Option<String>,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 fn serve_command(extra: &[&str], env_token: Option<&str>) -> Command {
@@ -37,20 +31,8 @@ fn serve_command(extra: &[&str], env_token: Option<&str>) -> Command {
     let n = SERVERS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let runs = std::env::temp_dir().join(format!("rigbridge-serve-{}-{n}", std::process::id()));
     let _ = std::fs::remove_dir_all(&runs);
-    let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
-    command
-        .args([
-            "serve",
-            "--port",
-            "0",
-            "--foxglove-port",
-            "0",
-            "--runs-dir",
-            runs.to_str().unwrap(),
-        ])
-        .args(extra)
-        .current_dir(repo_path(""))
-        .env_remove("RIGBRIDGE_TOKEN");
+    let mut command = common::serve::serve_command(&runs);
+    command.args(extra);
     if let Some(token) = env_token {
         command.env("RIGBRIDGE_TOKEN", token);
     }
@@ -67,27 +49,13 @@ fn start_server_with(extra: &[&str], env_token: Option<&str>) -> Server {
 
 /// The server `command` starts, once it printed where it listens.
 fn started(mut command: Command, env_token: Option<&str>) -> Server {
-    let mut child = command
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let address = line
-        .trim()
-        .strip_prefix("http://")
-        .and_then(|a| a.strip_suffix('/'))
-        .unwrap_or_else(|| panic!("first line should be the address, got {line:?}"))
-        .to_string();
-    let port = address.rsplit_once(':').unwrap().1;
+    let daemon = start_serve(command.stderr(Stdio::piped()));
+    let port = daemon.address.rsplit_once(':').unwrap().1;
     Server {
-        child,
         address: format!("127.0.0.1:{port}"),
-        listening: address,
+        listening: daemon.address.clone(),
         token: env_token.map(String::from),
+        daemon,
     }
 }
 
@@ -98,30 +66,17 @@ fn request(
     path: &str,
     body: Option<&str>,
 ) -> (u16, serde_json::Value) {
-    let mut stream = TcpStream::connect(&server.address).unwrap();
-    stream
-        .set_read_timeout(Some(Duration::from_secs(30)))
-        .unwrap();
-    let body = body.unwrap_or("");
     let authorization = server
         .token
         .as_ref()
         .map(|t| format!("Authorization: Bearer {t}\r\n"))
         .unwrap_or_default();
-    write!(
-        stream,
-        "{method} {path} HTTP/1.1\r\nHost: {}\r\n{authorization}Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-        server.address,
-        body.len()
-    )
-    .unwrap();
-    let mut response = String::new();
-    stream.read_to_string(&mut response).unwrap();
-    let status = response[9..12].parse().unwrap();
-    let json = response.split("\r\n\r\n").nth(1).unwrap_or("");
-    (
-        status,
-        serde_json::from_str(json).unwrap_or(serde_json::Value::Null),
+    request_json(
+        &server.address,
+        method,
+        path,
+        &authorization,
+        body.unwrap_or(""),
     )
 }
 
@@ -366,10 +321,10 @@ fn stderr_up_to_a_stop(rust_log: Option<&str>) -> String {
     };
     let mut server = started(command, None);
     assert_eq!(request(&server, "POST", "/api/stop", None).0, 409);
-    server.child.kill().unwrap();
-    server.child.wait().unwrap();
+    server.daemon.child.kill().unwrap();
+    server.daemon.child.wait().unwrap();
     let mut stderr = String::new();
-    let mut pipe = server.child.stderr.take().unwrap();
+    let mut pipe = server.daemon.child.stderr.take().unwrap();
     pipe.read_to_string(&mut stderr).unwrap();
     stderr
 }
@@ -671,20 +626,7 @@ fn pan_tilt_cell(name: &str, link: &str) -> std::path::PathBuf {
     let dir = std::env::temp_dir().join(format!("rigbridge-cell-{}-{n}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
-    let joint = |joint: &str, z: f64, axis: &str| {
-        format!(
-            "[[joint]]\nname = \"{joint}\"\nkind = \"revolute\"\norigin_xyz_m = [0.0, 0.0, {z}]\n\
-             axis = {axis}\nlower_deg = -90.0\nupper_deg = 90.0\nmax_speed_deg_s = 60.0\n\
-             max_accel_deg_s2 = 240.0\n\n"
-        )
-    };
-    let rig = format!(
-        "name = \"{name}\"\nbase_frame = \"base\"\ntool_frame = \"tool\"\n\n{}{}{}",
-        joint("pan", 0.0, "[0.0, 0.0, 1.0]"),
-        joint("tilt", 0.3, "[0.0, 1.0, 0.0]"),
-        joint("elbow", 0.25, "[0.0, 1.0, 0.0]"),
-    );
-    std::fs::write(dir.join("pan_tilt.toml"), rig).unwrap();
+    write_pan_tilt_rig(&dir, name);
     let settings = format!(
         "rig = \"pan_tilt.toml\"\n\n[stream]\nrate_hz = 250.0\nlink = \"{link}\"\n\n\
          [twin]\nbandwidth_hz = 20.0\ndelay_ms = 12.0\nwatchdog_cycles = 25\n\

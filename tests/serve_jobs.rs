@@ -11,6 +11,7 @@ mod common;
 mod flood;
 
 use common::repo_path;
+use common::serve::write_pan_tilt_rig;
 use flood::http;
 use rigbridge::log::read_log;
 use std::io::{BufRead, BufReader, Read};
@@ -423,20 +424,7 @@ fn control_actions_are_events_of_the_job_log_and_the_cell_journal_with_their_tim
 
 /// A slow three-axis rig named `pan_tilt` in `dir`, whose default job lasts seconds.
 fn pan_tilt_cell(dir: &Path) -> PathBuf {
-    let joint = |joint: &str, z: f64, axis: &str| {
-        format!(
-            "[[joint]]\nname = \"{joint}\"\nkind = \"revolute\"\norigin_xyz_m = [0.0, 0.0, {z}]\n\
-             axis = {axis}\nlower_deg = -90.0\nupper_deg = 90.0\nmax_speed_deg_s = 60.0\n\
-             max_accel_deg_s2 = 240.0\n\n"
-        )
-    };
-    let rig = format!(
-        "name = \"pan_tilt\"\nbase_frame = \"base\"\ntool_frame = \"tool\"\n\n{}{}{}",
-        joint("pan", 0.0, "[0.0, 0.0, 1.0]"),
-        joint("tilt", 0.3, "[0.0, 1.0, 0.0]"),
-        joint("elbow", 0.25, "[0.0, 1.0, 0.0]"),
-    );
-    std::fs::write(dir.join("pan_tilt.toml"), rig).unwrap();
+    write_pan_tilt_rig(dir, "pan_tilt");
     let settings = "rig = \"pan_tilt.toml\"\n\n[twin]\ninitial_deg = [0.0, 0.0, 0.0]\n\n\
          [job]\nkind = \"joint_waypoints\"\n\
          waypoints_deg = [[50.0, 20.0, -20.0], [-50.0, -20.0, 20.0], [0.0, 0.0, 0.0]]\n";

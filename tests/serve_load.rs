@@ -9,11 +9,10 @@ mod common;
 #[path = "common/flood.rs"]
 mod flood;
 
-use common::repo_path;
+use common::serve::{Served, serve_args, start_serve};
 use flood::{Flood, http, open_descriptors, serve_with_nofile};
-use std::io::{BufRead, BufReader};
 use std::net::{SocketAddr, TcpStream};
-use std::process::{Child, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 /// The load: idle and slow connections, and the descriptor limit.
@@ -34,24 +33,17 @@ const WS_FRAME_BYTES: usize = 4000;
 const WS_FLOOD_FOR: Duration = Duration::from_secs(4);
 
 struct Server {
-    child: Child,
+    daemon: Served,
     address: SocketAddr,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 impl Server {
     fn pid(&self) -> u32 {
-        self.child.id()
+        self.daemon.child.id()
     }
 
     fn alive(&mut self) -> bool {
-        matches!(self.child.try_wait(), Ok(None))
+        matches!(self.daemon.child.try_wait(), Ok(None))
     }
 }
 
@@ -64,26 +56,15 @@ fn start(name: &str, nofile: Option<u64>) -> Server {
         Some(nofile) => serve_with_nofile(binary, nofile),
         None => std::process::Command::new(binary),
     };
-    let mut child = command
-        .args(["serve", "--port", "0", "--foxglove-port", "0", "--runs-dir"])
-        .arg(&runs)
-        .current_dir(repo_path(""))
-        .env_remove("RIGBRIDGE_TOKEN")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let address = line
-        .trim()
-        .trim_start_matches("http://")
-        .trim_end_matches('/')
+    serve_args(&mut command, &runs)
+        .args(["--foxglove-port", "0"])
+        .stderr(Stdio::null());
+    let daemon = start_serve(&mut command);
+    let address = daemon
+        .address
         .parse()
-        .unwrap_or_else(|e| panic!("first line should be the address, got {line:?}: {e}"));
-    Server { child, address }
+        .unwrap_or_else(|e| panic!("not an address: {}: {e}", daemon.address));
+    Server { daemon, address }
 }
 
 fn wait_until(what: &str, timeout: Duration, mut done: impl FnMut() -> bool) {

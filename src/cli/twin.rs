@@ -8,7 +8,7 @@ use rigbridge::daemon::config::load_run_settings;
 use rigbridge::daemon::twin_settings;
 use rigbridge::protocol::CanSender;
 use rigbridge::twin::Twin;
-use rigbridge::twin::can_port::CanPort;
+use rigbridge::twin::can_port::{CanPort, CanPortStats};
 use rigbridge::twin::serial_port::SerialControllerPort;
 use rigbridge::twin::server::{ControllerPort, TcpPort, serve_twin};
 use std::io::Write;
@@ -126,7 +126,15 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
             .map(|p| (p.display().to_string(), args.baud));
         return super::dynamixel::dynamixel_twin(&settings, &args.ids, serial, stop_on_signals()?);
     }
-    let mut twin_config = twin_settings(&settings);
+    protocol_twin(&args, &settings)
+}
+
+/// The twin speaking rigbridge's protocol on the transport `args` names, until a signal.
+fn protocol_twin(
+    args: &TwinArgs,
+    settings: &rigbridge::daemon::config::RunSettings,
+) -> anyhow::Result<ExitCode> {
+    let mut twin_config = twin_settings(settings);
     if let Some(cycles) = args.watchdog_cycles {
         anyhow::ensure!(
             cycles >= 1,
@@ -135,42 +143,7 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
         twin_config.watchdog_cycles = cycles;
     }
     let mut twin = Twin::new(&settings.rig, twin_config, &settings.initial())?;
-    let mut can_stats = None;
-    let mut port: Box<dyn ControllerPort> = match (&args.listen, &args.serial, args.pty, &args.can)
-    {
-        (Some(listen), ..) => {
-            let address = listen.strip_prefix("tcp://").unwrap_or(listen);
-            let port =
-                TcpPort::bind(address).with_context(|| format!("cannot listen on {listen}"))?;
-            say(&format!("tcp://{}", port.local_address()?));
-            Box::new(port)
-        }
-        (None, Some(path), ..) => {
-            let settings = settings
-                .config
-                .stream
-                .serial_settings(&path.display().to_string(), args.baud);
-            let port = SerialControllerPort::open(&settings)
-                .with_context(|| format!("cannot open {}", path.display()))?;
-            say(&port.describe());
-            Box::new(port)
-        }
-        (None, None, true, _) => {
-            let (port, path) =
-                SerialControllerPort::pty().context("cannot open a pseudo-terminal")?;
-            say(&path);
-            Box::new(port)
-        }
-        (None, None, false, Some(interface)) => {
-            let mapping = settings.config.stream.can_mapping(CanSender::Controller)?;
-            let port = CanPort::open(interface, mapping)
-                .with_context(|| format!("cannot open CAN interface {interface}"))?;
-            say(&port.describe());
-            can_stats = Some(port.stats());
-            Box::new(port)
-        }
-        _ => anyhow::bail!("choose one transport: --listen, --serial, --pty, --can or --egm"),
-    };
+    let (mut port, can_stats) = open_port(args, settings)?;
     let stop = stop_on_signals()?;
     if let Err(e) = rigbridge::stream::raise_priority(50) {
         eprintln!("note: twin at normal priority (real-time scheduling refused: {e})");
@@ -197,6 +170,52 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
         eprintln!("{}", stats.summary());
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// A controller port, and a CAN port's statistics.
+type OpenedPort = (Box<dyn ControllerPort>, Option<Arc<CanPortStats>>);
+
+/// The controller's end of the transport `args` names, its address said on stdout; a CAN
+/// port's statistics too, for the summary.
+fn open_port(
+    args: &TwinArgs,
+    settings: &rigbridge::daemon::config::RunSettings,
+) -> anyhow::Result<OpenedPort> {
+    let opened: OpenedPort = match (&args.listen, &args.serial, args.pty, &args.can) {
+        (Some(listen), ..) => {
+            let address = listen.strip_prefix("tcp://").unwrap_or(listen);
+            let port =
+                TcpPort::bind(address).with_context(|| format!("cannot listen on {listen}"))?;
+            say(&format!("tcp://{}", port.local_address()?));
+            (Box::new(port), None)
+        }
+        (None, Some(path), ..) => {
+            let settings = settings
+                .config
+                .stream
+                .serial_settings(&path.display().to_string(), args.baud);
+            let port = SerialControllerPort::open(&settings)
+                .with_context(|| format!("cannot open {}", path.display()))?;
+            say(&port.describe());
+            (Box::new(port), None)
+        }
+        (None, None, true, _) => {
+            let (port, path) =
+                SerialControllerPort::pty().context("cannot open a pseudo-terminal")?;
+            say(&path);
+            (Box::new(port), None)
+        }
+        (None, None, false, Some(interface)) => {
+            let mapping = settings.config.stream.can_mapping(CanSender::Controller)?;
+            let port = CanPort::open(interface, mapping)
+                .with_context(|| format!("cannot open CAN interface {interface}"))?;
+            say(&port.describe());
+            let stats = port.stats();
+            (Box::new(port), Some(stats))
+        }
+        _ => anyhow::bail!("choose one transport: --listen, --serial, --pty, --can or --egm"),
+    };
+    Ok(opened)
 }
 
 /// `--egm`: the EGM twin, with operator commands on stdin.

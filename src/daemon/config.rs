@@ -638,98 +638,14 @@ impl RunSettings {
     }
 }
 
-/// Reads and validates run settings and the rig they name.
+/// Reads and validates run settings and the rig they name, section by section.
 pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
-    let text = crate::rig::shipped::read(file)?;
-    let mut config: RunConfig = toml::from_str(&text).map_err(|e| ConfigError::Parse {
-        file: file.to_path_buf(),
-        message: e.to_string().trim_end().to_string(),
-    })?;
+    let mut config = parse_run_config(file)?;
     let base_dir = config_dir(file);
-    let rig_path = base_dir.join(&config.rig);
-    let sloth = match config.job {
-        JobConfig::Gait(_) => Some(std::sync::Arc::new(crate::task::gait::SlothRig::load(
-            &rig_path,
-        )?)),
-        _ => None,
-    };
-    let rig = match &sloth {
-        Some(sloth) => sloth.streamed.clone(),
-        None => load_rig(&rig_path)?,
-    };
-    check_range(file, "stream.rate_hz", config.stream.rate_hz, 1.0, 1000.0)?;
-    if let Err(e) = config.stream.link.parse::<crate::link::LinkSpec>() {
-        return Err(ConfigError::invalid(
-            file,
-            "stream.link",
-            &config.stream.link,
-            &e.reason,
-        ));
-    }
-    if !matches!(config.stream.serial_stop_bits, 1 | 2) {
-        return Err(ConfigError::invalid(
-            file,
-            "stream.serial_stop_bits",
-            config.stream.serial_stop_bits,
-            "must be 1 or 2",
-        ));
-    }
-    check_range(
-        file,
-        "stream.reconnect_timeout_s",
-        config.stream.reconnect_timeout_s,
-        0.0,
-        3600.0,
-    )?;
-    config.stream.tolerances(file, &rig)?;
-    config.dynamixel.axes(file, &rig)?;
-    config.canopen.axes(file, &rig, None)?;
-    config.canopen.heartbeat_ms(file)?;
-    if config.stream.can_base_id > MAX_CAN_BASE_ID {
-        return Err(ConfigError::invalid(
-            file,
-            "stream.can_base_id",
-            crate::rig::Verbatim(format!("{:#x}", config.stream.can_base_id)),
-            &format!(
-                "must be at most {MAX_CAN_BASE_ID:#x}: the protocol's {CAN_ID_BLOCK:#x} \
-                 identifiers from the base must fit the 11-bit range"
-            ),
-        ));
-    }
-    check_range(
-        file,
-        "twin.bandwidth_hz",
-        config.twin.bandwidth_hz,
-        0.1,
-        1000.0,
-    )?;
-    check_range(file, "twin.delay_ms", config.twin.delay_ms, 0.0, 1000.0)?;
-    if config.twin.watchdog_cycles == 0 {
-        return Err(ConfigError::invalid(
-            file,
-            "twin.watchdog_cycles",
-            0,
-            "must be at least 1",
-        ));
-    }
-    if config.twin.initial_deg.is_empty() {
-        config.twin.initial_deg = default_initial(&rig);
-    }
-    check_joints(file, "twin.initial_deg", &config.twin.initial_deg, &rig)?;
-    check_range(
-        file,
-        "plan.speed_scale",
-        config.plan.speed_scale,
-        0.01,
-        0.99,
-    )?;
-    check_range(
-        file,
-        "plan.accel_scale",
-        config.plan.accel_scale,
-        0.01,
-        0.99,
-    )?;
+    let (rig, sloth) = load_rigs(&base_dir.join(&config.rig), &config.job)?;
+    check_links(file, &config, &rig)?;
+    config.twin.check(file, &rig)?;
+    config.plan.check(file)?;
     let context = crate::job::JobContext {
         rig: &rig,
         sloth: sloth.as_deref(),
@@ -740,60 +656,173 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         .validate(&context)
         .map_err(|e| job_refused(file, e))?;
     config.ros2.check(file)?;
-    if config.ros2.zenoh_connect.is_some()
-        && let Err(e) = crate::ros2::graph::check_namespace(&rig.name)
-    {
-        return Err(ConfigError::invalid(
-            file,
-            "ros2.zenoh_connect",
-            config.ros2.zenoh_connect.as_deref().unwrap_or_default(),
-            &e.to_string(),
-        ));
-    }
-    if config.serve.bind.parse::<std::net::IpAddr>().is_err() {
-        return Err(ConfigError::invalid(
-            file,
-            "serve.bind",
-            &config.serve.bind,
-            "must be an IP address, such as 127.0.0.1 or 0.0.0.0",
-        ));
-    }
-    if let Ok(bind) = config.serve.bind.parse::<std::net::IpAddr>()
-        && let Some(reason) = foxglove_bind_problem(
-            bind,
-            config.serve.foxglove_port,
-            config.serve.foxglove_allow_remote,
-        )
-    {
-        return Err(ConfigError::invalid(
-            file,
-            "serve.foxglove_allow_remote",
-            crate::rig::Verbatim(config.serve.foxglove_allow_remote),
-            &reason,
-        ));
-    }
-    if !(1..=MAX_EXECUTOR_THREADS).contains(&config.serve.executor_threads) {
-        return Err(ConfigError::invalid(
-            file,
-            "serve.executor_threads",
-            config.serve.executor_threads,
-            &format!("must be 1..={MAX_EXECUTOR_THREADS}"),
-        ));
-    }
-    if let Some(reason) = config.serve.token.as_deref().and_then(token_problem) {
-        return Err(ConfigError::invalid(
-            file,
-            "serve.token",
-            crate::rig::Verbatim("<redacted>"),
-            reason,
-        ));
-    }
+    config.ros2.check_namespace(file, &rig)?;
+    config.serve.check(file)?;
     Ok(RunSettings {
         file: file.to_path_buf(),
         config,
         rig,
         sloth,
     })
+}
+
+/// `file` read (a shipped config by its name too) and parsed, not yet checked.
+fn parse_run_config(file: &Path) -> Result<RunConfig, ConfigError> {
+    let text = crate::rig::shipped::read(file)?;
+    toml::from_str(&text).map_err(|e| ConfigError::Parse {
+        file: file.to_path_buf(),
+        message: e.to_string().trim_end().to_string(),
+    })
+}
+
+/// The rig a run streams to, and the sloth behind it for a gait job.
+type LoadedRig = (Rig, Option<std::sync::Arc<crate::task::gait::SlothRig>>);
+
+/// The rig at `rig_path`; for a gait job the sloth there, whose streamed axes are then the
+/// rig.
+fn load_rigs(rig_path: &Path, job: &JobConfig) -> Result<LoadedRig, ConfigError> {
+    let sloth = match job {
+        JobConfig::Gait(_) => Some(std::sync::Arc::new(crate::task::gait::SlothRig::load(
+            rig_path,
+        )?)),
+        _ => None,
+    };
+    let rig = match &sloth {
+        Some(sloth) => sloth.streamed.clone(),
+        None => load_rig(rig_path)?,
+    };
+    Ok((rig, sloth))
+}
+
+/// `[stream]` and the link sections it points at (`[dynamixel]`, `[canopen]`).
+fn check_links(file: &Path, config: &RunConfig, rig: &Rig) -> Result<(), ConfigError> {
+    let stream = &config.stream;
+    check_range(file, "stream.rate_hz", stream.rate_hz, 1.0, 1000.0)?;
+    if let Err(e) = stream.link.parse::<crate::link::LinkSpec>() {
+        return Err(ConfigError::invalid(
+            file,
+            "stream.link",
+            &stream.link,
+            &e.reason,
+        ));
+    }
+    if !matches!(stream.serial_stop_bits, 1 | 2) {
+        return Err(ConfigError::invalid(
+            file,
+            "stream.serial_stop_bits",
+            stream.serial_stop_bits,
+            "must be 1 or 2",
+        ));
+    }
+    check_range(
+        file,
+        "stream.reconnect_timeout_s",
+        stream.reconnect_timeout_s,
+        0.0,
+        3600.0,
+    )?;
+    stream.tolerances(file, rig)?;
+    config.dynamixel.axes(file, rig)?;
+    config.canopen.axes(file, rig, None)?;
+    config.canopen.heartbeat_ms(file)?;
+    if stream.can_base_id > MAX_CAN_BASE_ID {
+        return Err(ConfigError::invalid(
+            file,
+            "stream.can_base_id",
+            crate::rig::Verbatim(format!("{:#x}", stream.can_base_id)),
+            &format!(
+                "must be at most {MAX_CAN_BASE_ID:#x}: the protocol's {CAN_ID_BLOCK:#x} \
+                 identifiers from the base must fit the 11-bit range"
+            ),
+        ));
+    }
+    Ok(())
+}
+
+impl TwinConfig {
+    /// Checks `[twin]`, filling in the default initial position when it is absent.
+    fn check(&mut self, file: &Path, rig: &Rig) -> Result<(), ConfigError> {
+        check_range(file, "twin.bandwidth_hz", self.bandwidth_hz, 0.1, 1000.0)?;
+        check_range(file, "twin.delay_ms", self.delay_ms, 0.0, 1000.0)?;
+        if self.watchdog_cycles == 0 {
+            return Err(ConfigError::invalid(
+                file,
+                "twin.watchdog_cycles",
+                0,
+                "must be at least 1",
+            ));
+        }
+        if self.initial_deg.is_empty() {
+            self.initial_deg = default_initial(rig);
+        }
+        check_joints(file, "twin.initial_deg", &self.initial_deg, rig)
+    }
+}
+
+impl PlanConfig {
+    fn check(&self, file: &Path) -> Result<(), ConfigError> {
+        check_range(file, "plan.speed_scale", self.speed_scale, 0.01, 0.99)?;
+        check_range(file, "plan.accel_scale", self.accel_scale, 0.01, 0.99)?;
+        Ok(())
+    }
+}
+
+impl Ros2Config {
+    /// The rig's name becomes the ROS 2 namespace when the rig joins a graph: it must be
+    /// one.
+    fn check_namespace(&self, file: &Path, rig: &Rig) -> Result<(), ConfigError> {
+        if self.zenoh_connect.is_some()
+            && let Err(e) = crate::ros2::graph::check_namespace(&rig.name)
+        {
+            return Err(ConfigError::invalid(
+                file,
+                "ros2.zenoh_connect",
+                self.zenoh_connect.as_deref().unwrap_or_default(),
+                &e.to_string(),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl ServeConfig {
+    fn check(&self, file: &Path) -> Result<(), ConfigError> {
+        let Ok(bind) = self.bind.parse::<std::net::IpAddr>() else {
+            return Err(ConfigError::invalid(
+                file,
+                "serve.bind",
+                &self.bind,
+                "must be an IP address, such as 127.0.0.1 or 0.0.0.0",
+            ));
+        };
+        if let Some(reason) =
+            foxglove_bind_problem(bind, self.foxglove_port, self.foxglove_allow_remote)
+        {
+            return Err(ConfigError::invalid(
+                file,
+                "serve.foxglove_allow_remote",
+                crate::rig::Verbatim(self.foxglove_allow_remote),
+                &reason,
+            ));
+        }
+        if !(1..=MAX_EXECUTOR_THREADS).contains(&self.executor_threads) {
+            return Err(ConfigError::invalid(
+                file,
+                "serve.executor_threads",
+                self.executor_threads,
+                &format!("must be 1..={MAX_EXECUTOR_THREADS}"),
+            ));
+        }
+        if let Some(reason) = self.token.as_deref().and_then(token_problem) {
+            return Err(ConfigError::invalid(
+                file,
+                "serve.token",
+                crate::rig::Verbatim("<redacted>"),
+                reason,
+            ));
+        }
+        Ok(())
+    }
 }
 
 /// The directory files named in `file` are relative to.

@@ -159,52 +159,55 @@ pub fn loopback_twin(settings: &RunSettings) -> Result<LoopbackLink, DaemonError
 }
 
 /// Opens the link `spec` names: the in-process twin for `loopback`, a real transport
-/// otherwise (the controller on its far side is someone else's, or `rigbridge twin`).
+/// otherwise (the controller on its far side is someone else's, or `rigbridge twin`),
+/// given until the reconnect timeout to come up.
 pub fn open_link(
     spec: &crate::link::LinkSpec,
     settings: &RunSettings,
 ) -> Result<Box<dyn Link>, DaemonError> {
+    let link = connect_link(spec, settings)?;
+    let mut timeout_s = settings.config.stream.reconnect_timeout_s;
+    // CANopen drives are set up over SDO before the session starts.
+    if let crate::link::LinkSpec::Canopen { .. } = spec {
+        timeout_s += crate::link::SETUP_PATIENCE.as_secs_f64();
+    }
+    wait_for_link(link.as_ref(), &crate::clock::WallClock::new(), timeout_s);
+    Ok(link)
+}
+
+/// The link `spec` names, connected: the in-process twin is up at once, a transport's
+/// session may still be coming up.
+fn connect_link(
+    spec: &crate::link::LinkSpec,
+    settings: &RunSettings,
+) -> Result<Box<dyn Link>, DaemonError> {
     use crate::link::LinkSpec;
-    match spec {
-        LinkSpec::Loopback => Ok(Box::new(loopback_twin(settings)?)),
-        LinkSpec::Tcp { address } => {
-            let link = crate::link::connect_tcp(
+    Ok(match spec {
+        LinkSpec::Loopback => Box::new(loopback_twin(settings)?),
+        LinkSpec::Tcp { address } => Box::new(
+            crate::link::connect_tcp(
                 crate::link::TcpSettings::new(address.clone()),
                 bridge_hello(settings),
             )
-            .map_err(LinkError::Io)?;
-            wait_for_link(
-                &link,
-                &crate::clock::WallClock::new(),
-                settings.config.stream.reconnect_timeout_s,
-            );
-            Ok(Box::new(link))
-        }
+            .map_err(LinkError::Io)?,
+        ),
         LinkSpec::Serial {
             path,
             baud,
             dynamixel: Some(ids),
-        } => {
-            let link =
-                crate::link::connect_dynamixel(dynamixel_settings(settings, path, *baud, ids)?)?;
-            let timeout = settings.config.stream.reconnect_timeout_s;
-            wait_for_link(&link, &crate::clock::WallClock::new(), timeout);
-            Ok(Box::new(link))
-        }
+        } => Box::new(crate::link::connect_dynamixel(dynamixel_settings(
+            settings, path, *baud, ids,
+        )?)?),
         LinkSpec::Serial {
             path,
             baud,
             dynamixel: None,
         } => {
             let serial = settings.config.stream.serial_settings(path, *baud);
-            let link = crate::link::connect_serial(serial, bridge_hello(settings))
-                .map_err(LinkError::Io)?;
-            wait_for_link(
-                &link,
-                &crate::clock::WallClock::new(),
-                settings.config.stream.reconnect_timeout_s,
-            );
-            Ok(Box::new(link))
+            Box::new(
+                crate::link::connect_serial(serial, bridge_hello(settings))
+                    .map_err(LinkError::Io)?,
+            )
         }
         LinkSpec::Can { interface } => {
             let mapping = settings
@@ -212,40 +215,29 @@ pub fn open_link(
                 .stream
                 .can_mapping(crate::protocol::CanSender::Bridge)
                 .map_err(|e| DaemonError::Unavailable(e.to_string()))?;
-            let link = crate::link::connect_can(interface, mapping, bridge_hello(settings))
-                .map_err(LinkError::Io)?;
-            wait_for_link(
-                &link,
-                &crate::clock::WallClock::new(),
-                settings.config.stream.reconnect_timeout_s,
-            );
-            Ok(Box::new(link))
+            Box::new(
+                crate::link::connect_can(interface, mapping, bridge_hello(settings))
+                    .map_err(LinkError::Io)?,
+            )
         }
         LinkSpec::Canopen {
             interface,
             nodes,
             counts_per_turn,
-        } => {
-            let link = crate::link::connect_canopen(canopen_settings(
-                settings,
-                interface,
-                nodes,
-                *counts_per_turn,
-            )?)?;
-            let timeout = settings.config.stream.reconnect_timeout_s
-                + crate::link::SETUP_PATIENCE.as_secs_f64();
-            wait_for_link(&link, &crate::clock::WallClock::new(), timeout);
-            Ok(Box::new(link))
-        }
+        } => Box::new(crate::link::connect_canopen(canopen_settings(
+            settings,
+            interface,
+            nodes,
+            *counts_per_turn,
+        )?)?),
         LinkSpec::Egm { address } => {
             let period = Duration::from_secs_f64(settings.period_s());
-            let link = crate::link::bind_egm(address, settings.rig.dof(), period)
-                .map_err(LinkError::Io)?;
-            let timeout = settings.config.stream.reconnect_timeout_s;
-            wait_for_link(&link, &crate::clock::WallClock::new(), timeout);
-            Ok(Box::new(link))
+            Box::new(
+                crate::link::bind_egm(address, settings.rig.dof(), period)
+                    .map_err(LinkError::Io)?,
+            )
         }
-    }
+    })
 }
 
 /// The Dynamixel link's settings for servos `ids` on `path`: the axes' tick maps from
@@ -257,16 +249,7 @@ pub fn dynamixel_settings(
     ids: &[u8],
 ) -> Result<crate::link::DynamixelSettings, DaemonError> {
     let rig = &settings.rig;
-    if let Some(joint) = rig
-        .joints
-        .iter()
-        .find(|j| j.kind != crate::rig::JointKind::Revolute)
-    {
-        return Err(DaemonError::Unavailable(format!(
-            "a Dynamixel link drives revolute axes only; {} is prismatic",
-            joint.name
-        )));
-    }
+    revolute_only(rig, "a Dynamixel link drives revolute axes only")?;
     let axes = settings
         .config
         .dynamixel
@@ -287,11 +270,7 @@ pub fn dynamixel_settings(
         serial: settings.config.stream.serial_settings(path, baud),
         ids: ids.to_vec(),
         axes,
-        limits: rig
-            .joints
-            .iter()
-            .map(|j| (j.limits.lower, j.limits.upper))
-            .collect(),
+        limits: axis_limits(rig),
         cycle_timeout: Duration::from_secs_f64(settings.period_s()),
     })
 }
@@ -306,16 +285,10 @@ pub fn canopen_settings(
     counts_per_turn: Option<u32>,
 ) -> Result<crate::link::CanopenSettings, DaemonError> {
     let rig = &settings.rig;
-    if let Some(joint) = rig
-        .joints
-        .iter()
-        .find(|j| j.kind != crate::rig::JointKind::Revolute)
-    {
-        return Err(DaemonError::Unavailable(format!(
-            "a CANopen link drives revolute axes only (counts a turn); {} is prismatic",
-            joint.name
-        )));
-    }
+    revolute_only(
+        rig,
+        "a CANopen link drives revolute axes only (counts a turn)",
+    )?;
     let canopen = &settings.config.canopen;
     let unavailable = |e: crate::rig::ConfigError| DaemonError::Unavailable(e.to_string());
     let axes = canopen
@@ -326,14 +299,34 @@ pub fn canopen_settings(
         interface: interface.to_string(),
         nodes: nodes.to_vec(),
         axes,
-        limits: rig
-            .joints
-            .iter()
-            .map(|j| (j.limits.lower, j.limits.upper))
-            .collect(),
+        limits: axis_limits(rig),
         period: Duration::from_secs_f64(settings.period_s()),
         heartbeat_ms,
     })
+}
+
+/// Refuses `rig` for a link that, as `refusal` says, drives revolute axes only, naming its
+/// first prismatic axis.
+fn revolute_only(rig: &crate::rig::Rig, refusal: &str) -> Result<(), DaemonError> {
+    match rig
+        .joints
+        .iter()
+        .find(|j| j.kind != crate::rig::JointKind::Revolute)
+    {
+        Some(joint) => Err(DaemonError::Unavailable(format!(
+            "{refusal}; {} is prismatic",
+            joint.name
+        ))),
+        None => Ok(()),
+    }
+}
+
+/// Each axis' lower and upper limit (rad).
+fn axis_limits(rig: &crate::rig::Rig) -> Vec<(f64, f64)> {
+    rig.joints
+        .iter()
+        .map(|j| (j.limits.lower, j.limits.upper))
+        .collect()
 }
 
 /// Where the controller holds at rest, read before planning so the plan starts there
@@ -477,61 +470,26 @@ pub fn stream_job_with(
         actions,
         executor,
     } = sinks;
-    let trajectory = job.trajectory;
-    let metadata = serde_json::json!({
-        "job": job.description,
-        "config": settings.file.display().to_string(),
-        "rate_hz": settings.config.stream.rate_hz,
-        "period_s": settings.period_s(),
-        "start": job.start,
-        "link": link.describe(),
-    });
+    let metadata = job_metadata(settings, job, link.describe());
     let recorder = log
         .map(|path| create_recorder(settings, job.job, path, &metadata, clock.is_virtual()))
         .transpose()?;
-    let report = match &recorder {
-        Some(recorder) => {
-            recorder.event(0.0, "job_started", metadata);
-            if let Some(actions) = actions {
-                actions.open(recorder);
-            }
-            let mut recording = RecorderSink::new(recorder, settings.period_s());
-            let mut sink = recording::BothSinks(&mut recording, live);
-            let io = resume::Streaming {
-                settings,
-                link,
-                clock,
-                sink: &mut sink,
-                control,
-                events: Some(recorder),
-                executor,
-            };
-            resume::stream_resuming(io, trajectory)
-        }
-        None => {
-            let io = resume::Streaming {
-                settings,
-                link,
-                clock,
-                sink: live,
-                control,
-                events: None,
-                executor,
-            };
-            resume::stream_resuming(io, trajectory)
-        }
+    let io = resume::Streaming {
+        settings,
+        link,
+        clock,
+        sink: live,
+        control,
+        events: None,
+        executor,
     };
-    let log_report = match recorder {
-        Some(recorder) => {
-            if let Some(actions) = actions {
-                actions.close();
-            }
-            let ended = serde_json::to_value(&report).unwrap_or_default();
-            recorder.event(report.duration_s, "job_ended", ended);
-            let stats = recorder.finish()?;
-            log.map(|path| LogReport::new(path, stats))
-        }
-        None => None,
+    let report = match &recorder {
+        Some(recorder) => stream_recorded(io, job.trajectory, recorder, metadata, actions),
+        None => resume::stream_resuming(io, job.trajectory),
+    };
+    let log_report = match (recorder, log) {
+        (Some(recorder), Some(path)) => Some(close_log(recorder, actions, &report, path)?),
+        _ => None,
     };
     Ok(RunReport {
         rig: settings.rig.name.clone(),
@@ -542,10 +500,66 @@ pub fn stream_job_with(
         } else {
             "wall"
         },
-        planned_duration_s: trajectory.duration_s(),
+        planned_duration_s: job.trajectory.duration_s(),
         stream: report,
         log: log_report,
     })
+}
+
+/// What the log's metadata and its `job_started` event say of the job and the stream.
+fn job_metadata(settings: &RunSettings, job: &JobToStream<'_>, link: String) -> serde_json::Value {
+    serde_json::json!({
+        "job": job.description,
+        "config": settings.file.display().to_string(),
+        "rate_hz": settings.config.stream.rate_hz,
+        "period_s": settings.period_s(),
+        "start": job.start,
+        "link": link,
+    })
+}
+
+/// [`resume::stream_resuming`] with every cycle and event also going to `recorder`, and
+/// `actions` open on it while the job streams.
+fn stream_recorded(
+    io: resume::Streaming<'_>,
+    trajectory: &crate::trajectory::Trajectory,
+    recorder: &Recorder,
+    metadata: serde_json::Value,
+    actions: Option<&ActionLog>,
+) -> StreamReport {
+    recorder.event(0.0, "job_started", metadata);
+    if let Some(actions) = actions {
+        actions.open(recorder);
+    }
+    let mut recording = RecorderSink::new(recorder, io.settings.period_s());
+    let mut sink = recording::BothSinks(&mut recording, io.sink);
+    let io = resume::Streaming {
+        settings: io.settings,
+        link: io.link,
+        clock: io.clock,
+        sink: &mut sink,
+        control: io.control,
+        events: Some(recorder),
+        executor: io.executor,
+    };
+    resume::stream_resuming(io, trajectory)
+}
+
+/// Closes `actions`, ends the log with `job_ended` and the report, and says what the
+/// recorder wrote to `path`.
+fn close_log(
+    recorder: Recorder,
+    actions: Option<&ActionLog>,
+    report: &StreamReport,
+    path: &std::path::Path,
+) -> Result<LogReport, DaemonError> {
+    if let Some(actions) = actions {
+        actions.close();
+    }
+    let ended = serde_json::to_value(report).unwrap_or_default();
+    recorder.event(report.duration_s, "job_ended", ended);
+    let stats = recorder.finish()?;
+    Ok(LogReport::new(path, stats))
 }
 
 /// The job's recorder at `path`, its metadata written first. Under a virtual clock nothing

@@ -340,6 +340,54 @@ pub async fn run(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), DaemonError> {
     let local = listener.local_addr().map_err(crate::link::LinkError::Io)?;
+    let exposed = refuse_unguarded(local, &options)?;
+    check_cells(&cells)?;
+    let foxglove_listener = bind_foxglove(local.ip(), &options)?;
+    let robots = cells
+        .iter()
+        .map(super::robot_description)
+        .collect::<Result<Vec<_>, _>>()?;
+    let cells = start_cells(cells, &options)?;
+    let (stop_live, stopping) = watch::channel(false);
+    let first_id = cell::first_job_id(&options.runs_dir);
+    let hosts = HostCheck::new(local, &options.allowed_hosts);
+    let daemon = Arc::new(Daemon {
+        foxglove: foxglove_feed(&cells, robots),
+        cells,
+        options,
+        next_id: AtomicU64::new(first_id),
+        stopping: stopping.clone(),
+        live_pages: Arc::new(tokio::sync::Semaphore::new(MAX_LIVE_PAGES)),
+    });
+    let app = routes(&daemon, exposed)
+        .layer(axum::middleware::from_fn_with_state(
+            hosts,
+            guard::require_known_host,
+        ))
+        .layer(axum::extract::DefaultBodyLimit::max(MAX_BODY_BYTES))
+        .with_state(daemon.clone());
+    let ros2 = start_ros2(&daemon).await?;
+    let frames = tokio::spawn(send_frames(daemon.clone()));
+    let foxglove = foxglove_listener
+        .map(|listener| tokio::spawn(foxglove::serve(listener, daemon.clone(), stopping.clone())));
+    tokio::spawn(async move {
+        shutdown.await;
+        let _ = stop_live.send(true);
+    });
+    connections::serve(listener, app, connection_cap(), stopping).await;
+    frames.abort();
+    if let Some(foxglove) = foxglove {
+        let _ = foxglove.await;
+    }
+    stop_cells(daemon, ros2).await;
+    Ok(())
+}
+
+/// Whether `local` is off loopback (exposed); refused there without a token.
+fn refuse_unguarded(
+    local: std::net::SocketAddr,
+    options: &ServeOptions,
+) -> Result<bool, DaemonError> {
     let exposed = !local.ip().is_loopback();
     if exposed && options.token.is_none() {
         return Err(DaemonError::Unavailable(format!(
@@ -347,12 +395,15 @@ pub async fn run(
              RIGBRIDGE_TOKEN or [serve] token"
         )));
     }
-    check_cells(&cells)?;
-    let foxglove_listener = bind_foxglove(local.ip(), &options)?;
-    let robots = cells
-        .iter()
-        .map(super::robot_description)
-        .collect::<Result<Vec<_>, _>>()?;
+    Ok(exposed)
+}
+
+/// A cell for each settings file, on the shared executor when one is asked for, each with
+/// its control journal open in the runs directory.
+fn start_cells(
+    cells: Vec<RunSettings>,
+    options: &ServeOptions,
+) -> Result<Vec<Arc<Cell>>, DaemonError> {
     std::fs::create_dir_all(&options.runs_dir).map_err(crate::link::LinkError::Io)?;
     let executor = shared_executor(&cells[0], options.virtual_clock)?;
     let cells = cells
@@ -368,9 +419,14 @@ pub async fn run(
             journal.display()
         );
     }
-    let (stop_live, stopping) = watch::channel(false);
-    let first_id = cell::first_job_id(&options.runs_dir);
-    let hosts = HostCheck::new(local, &options.allowed_hosts);
+    Ok(cells)
+}
+
+/// What the live Foxglove server publishes of `cells`, with their robot descriptions.
+fn foxglove_feed(
+    cells: &[Arc<Cell>],
+    robots: Vec<Option<Arc<crate::log::RobotDescription>>>,
+) -> foxglove::FoxgloveFeed {
     let feed_cells: Vec<_> = cells
         .iter()
         .zip(robots)
@@ -380,52 +436,28 @@ pub async fn run(
             robot,
         })
         .collect();
-    let foxglove = foxglove::FoxgloveFeed::new(&feed_cells);
-    drop(feed_cells);
-    let daemon = Arc::new(Daemon {
-        foxglove,
-        cells,
-        options,
-        next_id: AtomicU64::new(first_id),
-        stopping: stopping.clone(),
-        live_pages: Arc::new(tokio::sync::Semaphore::new(MAX_LIVE_PAGES)),
-    });
-    let app = routes(&daemon, exposed)
-        .layer(axum::middleware::from_fn_with_state(
-            hosts,
-            guard::require_known_host,
-        ))
-        .layer(axum::extract::DefaultBodyLimit::max(MAX_BODY_BYTES))
-        .with_state(daemon.clone());
-    let ros2 = {
-        let daemon = daemon.clone();
-        tokio::task::spawn_blocking(move || ros2_nodes(&daemon))
-            .await
-            .map_err(|e| DaemonError::Unavailable(format!("starting the ROS 2 nodes: {e}")))??
-    };
-    let frames = tokio::spawn(send_frames(daemon.clone()));
-    let foxglove = foxglove_listener
-        .map(|listener| tokio::spawn(foxglove::serve(listener, daemon.clone(), stopping.clone())));
-    tokio::spawn(async move {
-        shutdown.await;
-        let _ = stop_live.send(true);
-    });
-    connections::serve(listener, app, connection_cap(), stopping).await;
-    frames.abort();
-    if let Some(foxglove) = foxglove {
-        let _ = foxglove.await;
-    }
-    let stopping = daemon.clone();
+    foxglove::FoxgloveFeed::new(&feed_cells)
+}
+
+/// The cells' ROS 2 nodes, started off the async threads (they connect to Zenoh).
+async fn start_ros2(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::Ros2Node>, DaemonError> {
+    let daemon = daemon.clone();
+    tokio::task::spawn_blocking(move || ros2_nodes(&daemon))
+        .await
+        .map_err(|e| DaemonError::Unavailable(format!("starting the ROS 2 nodes: {e}")))?
+}
+
+/// Takes the cells out of the ROS 2 graph, stops every job and closes the journals.
+async fn stop_cells(daemon: Arc<Daemon>, ros2: Vec<crate::ros2::Ros2Node>) {
     let _ = tokio::task::spawn_blocking(move || {
         // Out of the graph first: no trajectory starts a job while the cells stop.
         drop(ros2);
-        for cell in &stopping.cells {
+        for cell in &daemon.cells {
             cell.stop_and_wait();
             cell.close_journal();
         }
     })
     .await;
-    Ok(())
 }
 
 /// The live Foxglove server's listener on the API's address, unless `foxglove_port` is 0;

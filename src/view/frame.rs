@@ -3,6 +3,7 @@
 //! 50 times a second. Field by field in `docs/live-view.md`. Owns the message shapes only.
 
 use super::{JointLabel, PaintQuad, Point, SceneView};
+use crate::link::LinkCounters;
 use serde::Serialize;
 
 #[derive(Debug, Serialize)]
@@ -57,11 +58,8 @@ pub struct LinkView {
     pub latency_max_us: f64,
     /// Largest |commanded - actual| over the revolute axes (deg).
     pub tracking_error_deg: f64,
-    pub frames_sent: u64,
-    pub frames_received: u64,
-    pub crc_errors: u64,
-    pub duplicates: u64,
-    pub gaps: u64,
-    pub reconnects: u64,
+    /// The link's own counters, as in the run report: frames_sent ... reconnects.
+    #[serde(flatten)]
+    pub counters: LinkCounters,
     pub feedback_timeouts: u64,
 }

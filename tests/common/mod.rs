@@ -1,8 +1,13 @@
 //! Helpers shared by the integration tests: the shipped IRB 120 rig, the independent
 //! reference data in `../shared/reference`, seeded random configurations, the issue's
-//! figures every passing gait run must meet, and waiting on a condition (never for a fixed
-//! time: a loaded machine makes a test slower, not wrong).
+//! figures every passing gait run must meet, waiting on a condition (never for a fixed
+//! time: a loaded machine makes a test slower, not wrong), running the binary with input on
+//! stdin; `serve` starts `rigbridge serve` and talks to it, `cycles` serves tests that hold
+//! real-time cycles.
 #![allow(dead_code)]
+
+pub mod cycles;
+pub mod serve;
 
 use glam::{DQuat, DVec3};
 use rand::{Rng, RngExt, SeedableRng};
@@ -56,6 +61,33 @@ pub fn wait_for_logged_event(path: &Path, kind: &str, within: Duration) {
             log.events.iter().any(|e| e.kind == kind).then_some(())
         },
     );
+}
+
+/// The shipped run settings, `config/rigbridge.toml`.
+pub fn shipped_run_settings() -> rigbridge::daemon::config::RunSettings {
+    rigbridge::daemon::config::load_run_settings(&repo_path("config/rigbridge.toml"))
+        .expect("the default run settings load")
+}
+
+/// Runs `command` with `stdin` written to it and collects its output. The command may exit
+/// before reading all its input (a usage error): a closed pipe is fine.
+pub fn output_with_stdin(command: &mut std::process::Command, stdin: &str) -> std::process::Output {
+    use std::io::Write;
+    use std::process::Stdio;
+    let mut child = command
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut pipe = child.stdin.take().unwrap();
+    let input = stdin.to_string();
+    let writer = std::thread::spawn(move || pipe.write_all(input.as_bytes()));
+    let output = child.wait_with_output().unwrap();
+    if let Err(e) = writer.join().unwrap() {
+        assert_eq!(e.kind(), std::io::ErrorKind::BrokenPipe, "{e}");
+    }
+    output
 }
 
 pub fn repo_path(relative: &str) -> PathBuf {
