@@ -214,6 +214,9 @@ pub struct Planner<'a> {
     travel: Travel,
     travel_arm: Vec<f64>,
     pieces: HashMap<PieceKey, Option<Trajectory>>,
+    /// [`Planner::base_range`] by wall and standoff (bits): every band of a wall asks
+    /// again for the same few standoffs.
+    base_ranges: HashMap<(usize, u64), Option<(f64, f64)>>,
     threads: NonZeroUsize,
 }
 
@@ -267,6 +270,7 @@ impl<'a> Planner<'a> {
                 .map(|d| d.to_radians())
                 .collect(),
             pieces: HashMap::new(),
+            base_ranges: HashMap::new(),
             threads: std::thread::available_parallelism().unwrap_or(NonZeroUsize::MIN),
         })
     }
@@ -440,7 +444,17 @@ impl<'a> Planner<'a> {
     }
 
     /// The feasible base positions along `wall` at `standoff`: (lowest s, highest s).
-    fn base_range(&self, wall: &Wall, standoff: f64) -> Option<(f64, f64)> {
+    fn base_range(&mut self, wall: &Wall, standoff: f64) -> Option<(f64, f64)> {
+        let key = (wall.index, standoff.to_bits());
+        if let Some(range) = self.base_ranges.get(&key) {
+            return *range;
+        }
+        let range = self.search_base_range(wall, standoff);
+        self.base_ranges.insert(key, range);
+        range
+    }
+
+    fn search_base_range(&self, wall: &Wall, standoff: f64) -> Option<(f64, f64)> {
         let need = self.body.base_radius + self.margin();
         let width = self.room.wall_width_m;
         let ok = |s: f64| self.room.clearance(wall.point(s, 0.0, standoff).truncate()) >= need;
