@@ -198,7 +198,11 @@ impl Travel {
             .map(|j| {
                 let joint = &rig.joints[j];
                 if joint.kind == JointKind::Prismatic {
-                    return if vertical[j] { 0.0 } else { joint.axis.length() };
+                    return if vertical[j] {
+                        0.0
+                    } else {
+                        joint.axis.length()
+                    };
                 }
                 let after: f64 = (j + 1..rig.dof())
                     .map(|k| {
@@ -281,9 +285,8 @@ impl Travel {
 
     /// True when `sample` surely measures above `floor`, measured `anchor` being known.
     fn rules_out(&self, anchor: Option<(f64, &[f64])>, sample: &[f64], floor: f64) -> bool {
-        anchor.is_some_and(|(value, at)| {
-            value - self.between(at, sample) > floor + BOUND_ROUNDING_M
-        })
+        anchor
+            .is_some_and(|(value, at)| value - self.between(at, sample) > floor + BOUND_ROUNDING_M)
     }
 }
 
