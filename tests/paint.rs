@@ -11,8 +11,9 @@ use rigbridge::daemon::config::load_run_settings;
 use rigbridge::daemon::paint::{PaintRun, run_paint};
 use rigbridge::ik::{BaseHeldSolver, IkSolver};
 use rigbridge::link::LoopbackLink;
-use rigbridge::rig::{ConfigError, load_rig};
+use rigbridge::rig::{ConfigError, Rig, load_rig};
 use rigbridge::stream::{Outcome, StreamControl, StreamSettings, slowdown_rate, stream};
+use rigbridge::task::paint::body::{Body, Scratch, Travel};
 use rigbridge::task::paint::planner::Planner;
 use rigbridge::task::paint::room::{OpeningKind, RoomError, WallType, apothem};
 use rigbridge::task::paint::{
@@ -813,6 +814,126 @@ fn the_plan_is_the_same_on_any_number_of_threads() {
         for threads in [2, 3] {
             let what = format!("{walls} walls, seed {seed}, {threads} threads");
             assert_same_plan(&one, &planned(threads), &what);
+        }
+    }
+}
+
+/// The rounding allowance the planner's sweeps add to the travel bound (m).
+const BOUND_ROUNDING_M: f64 = 1e-9;
+
+/// Uniform numbers in [0, 1) from a fixed seed (xorshift64), so the trials repeat.
+fn uniform(seed: u64) -> impl FnMut() -> f64 {
+    let mut state = seed;
+    move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// Every point whose distance from a wall the planner measures, in the floor plan: the
+/// base's axis, the capsules' ends and the brush's contact ends.
+fn floor_points(body: &Body, rig: &Rig, positions: &[f64]) -> Vec<DVec2> {
+    let (mut axes, mut capsules) = (Vec::new(), Vec::new());
+    let tool0 = body.capsules(rig, positions, &mut axes, &mut capsules);
+    let mut points = vec![DVec2::new(positions[0], positions[1])];
+    points.extend(
+        capsules
+            .iter()
+            .flat_map(|c| [c.a.truncate(), c.b.truncate()]),
+    );
+    points.extend(body.brush.contact(&tool0).map(|p| p.truncate()));
+    points
+}
+
+#[test]
+fn the_travel_bound_covers_every_point_the_planner_measures() {
+    // The planner skips measuring samples this bound places clear, so it must hold for
+    // any two in-limit positions: far apart, a plan's step apart, or one joint moved.
+    let settings = paint_settings();
+    let rig = &settings.rig;
+    let body = Body::from_config(&settings.config);
+    let travel = Travel::new(rig, &body.brush);
+    let mut next = uniform(0x2545_f491_4f6c_dd1d);
+    let mut tightest = 0.0f64;
+    for trial in 0..20_000 {
+        let a: Vec<f64> = rig
+            .joints
+            .iter()
+            .map(|j| j.limits.lower + (j.limits.upper - j.limits.lower) * next())
+            .collect();
+        let (share, only) = match trial % 4 {
+            0 => (1.0, None),
+            1 => (0.01, None),
+            _ => (0.05, Some(trial / 4 % rig.dof())),
+        };
+        let b: Vec<f64> = (a.iter().zip(&rig.joints).enumerate())
+            .map(|(axis, (q, j))| {
+                let span = j.limits.upper - j.limits.lower;
+                let moved = q + (next() - 0.5) * share * span;
+                match only {
+                    Some(one) if one != axis => *q,
+                    _ => moved.clamp(j.limits.lower, j.limits.upper),
+                }
+            })
+            .collect();
+        let bound = travel.between(&a, &b);
+        let moved = floor_points(&body, rig, &a)
+            .iter()
+            .zip(floor_points(&body, rig, &b))
+            .map(|(p, q)| p.distance(q))
+            .fold(0.0, f64::max);
+        assert!(
+            moved <= bound + BOUND_ROUNDING_M,
+            "from {a:?} to {b:?}: a point moves {moved} m, bound {bound} m"
+        );
+        if bound > 0.0 {
+            tightest = tightest.max(moved / bound);
+        }
+    }
+    // Not vacuous: moving the base alone moves every point by exactly the bound.
+    assert!(tightest > 0.99, "{tightest}");
+}
+
+#[test]
+fn sweeps_skipping_samples_give_the_same_answers_as_measuring_all() {
+    // A random walk of the painter through a 3-walled room, in and out of its walls.
+    let settings = paint_settings();
+    let rig = &settings.rig;
+    let room = room_for(&settings, 3, 0).unwrap();
+    let body = Body::from_config(&settings.config);
+    let travel = Travel::new(rig, &body.brush);
+    let mut scratch = Scratch::new(rig);
+    let mut next = uniform(0x9e37_79b9_7f4a_7c15);
+    let mut walk = vec![start_position()];
+    for _ in 0..4000 {
+        let last = &walk[walk.len() - 1];
+        let step: Vec<f64> = (last.iter().zip(&rig.joints))
+            .map(|(q, j)| (q + (next() - 0.5) * 0.05).clamp(j.limits.lower, j.limits.upper))
+            .collect();
+        walk.push(step);
+    }
+    let measured: Vec<f64> = walk
+        .iter()
+        .map(|q| body.clearance(&room, q, &mut scratch).0)
+        .collect();
+    let least = measured.iter().copied().fold(f64::INFINITY, f64::min);
+    assert!(least < 0.0, "the walk must leave the room: {least}");
+    let mut measure = |q: &[f64]| body.clearance(&room, q, &mut scratch).0;
+    for needed in [least - 0.1, least, 0.0, 0.01, 0.5, 10.0] {
+        let lowest = travel.lowest(walk.iter().map(Vec::as_slice), needed, &mut measure);
+        if least <= needed {
+            assert_eq!(lowest.to_bits(), least.to_bits(), "needed {needed}");
+        } else {
+            assert!(lowest > needed, "needed {needed}: {lowest}");
+        }
+        let first = measured.iter().position(|c| *c < needed);
+        let samples = walk.iter().map(Vec::as_slice).enumerate();
+        let found = travel.first_below(samples, needed, &mut measure);
+        assert_eq!(found.map(|(i, _)| i), first, "needed {needed}");
+        if let (Some((i, value)), Some(_)) = (found, first) {
+            assert_eq!(value.to_bits(), measured[i].to_bits());
         }
     }
 }

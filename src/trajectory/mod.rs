@@ -239,6 +239,7 @@ fn check_axes(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError>
 fn check_sample(trajectory: &Trajectory, rig: &Rig, sample: usize) -> Result<(), TrajectoryError> {
     let positions = trajectory.position(sample);
     let velocities = trajectory.velocity(sample);
+    let previous = (sample > 0).then(|| trajectory.position(sample - 1));
     for (axis, joint) in rig.joints.iter().enumerate() {
         let (value, velocity) = (positions[axis], velocities[axis]);
         let limits = joint.limits;
@@ -267,8 +268,8 @@ fn check_sample(trajectory: &Trajectory, rig: &Rig, sample: usize) -> Result<(),
                 max_speed: limits.max_speed,
             });
         }
-        if sample > 0 {
-            let step = value - trajectory.position(sample - 1)[axis];
+        if let Some(previous) = previous {
+            let step = value - previous[axis];
             if !limits.step_ok(step, trajectory.period_s) {
                 return Err(TrajectoryError::OverSpeed {
                     sample,
@@ -286,12 +287,39 @@ fn check_sample(trajectory: &Trajectory, rig: &Rig, sample: usize) -> Result<(),
 /// difference around it (none at either end) and the velocity change since the sample
 /// before (none at the first).
 fn differences_at(trajectory: &Trajectory, sample: usize, axis: usize) -> [Option<f64>; 2] {
-    let p = |k: usize| trajectory.position(k)[axis];
-    let v = |k: usize| trajectory.velocity(k)[axis];
-    let second = (sample > 0 && sample + 1 < trajectory.len())
-        .then(|| p(sample + 1) - 2.0 * p(sample) + p(sample - 1));
-    let change = (sample > 0).then(|| v(sample) - v(sample - 1));
-    [second, change]
+    Neighbours::at(trajectory, sample).differences(axis)
+}
+
+/// The rows around one sample, looked up once for all its axes (validation walks every
+/// sample of long plans).
+struct Neighbours<'t> {
+    /// Positions and velocities of the sample before, if any.
+    before: Option<(&'t [f64], &'t [f64])>,
+    here: (&'t [f64], &'t [f64]),
+    /// Positions of the sample after, if any.
+    after: Option<&'t [f64]>,
+}
+
+impl<'t> Neighbours<'t> {
+    fn at(trajectory: &'t Trajectory, sample: usize) -> Self {
+        let row = |k: usize| (trajectory.position(k), trajectory.velocity(k));
+        Self {
+            before: (sample > 0).then(|| row(sample - 1)),
+            here: row(sample),
+            after: (sample + 1 < trajectory.len()).then(|| trajectory.position(sample + 1)),
+        }
+    }
+
+    /// [`differences_at`] for `axis`.
+    fn differences(&self, axis: usize) -> [Option<f64>; 2] {
+        let (p, v) = (self.here.0[axis], self.here.1[axis]);
+        let second = self
+            .before
+            .zip(self.after)
+            .map(|((before, _), after)| after[axis] - 2.0 * p + before[axis]);
+        let change = self.before.map(|(_, velocities)| v - velocities[axis]);
+        [second, change]
+    }
 }
 
 /// Both accelerations of `axis` at `sample` (axis unit per second squared), from
@@ -305,9 +333,10 @@ fn accelerations_at(trajectory: &Trajectory, sample: usize, axis: usize) -> [Opt
 fn check_accelerations(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {
     let dt = trajectory.period_s;
     for sample in 1..trajectory.len() {
+        let neighbours = Neighbours::at(trajectory, sample);
         for (axis, joint) in rig.joints.iter().enumerate() {
             let limits = joint.limits;
-            let [second, change] = differences_at(trajectory, sample, axis);
+            let [second, change] = neighbours.differences(axis);
             let max_acceleration = limits.max_acceleration;
             if let Some(d) = second.filter(|d| !limits.second_difference_ok(*d, dt)) {
                 return Err(TrajectoryError::OverAcceleration {

@@ -8,8 +8,13 @@
 
 use super::config::{EXTRA_AXES, PaintConfig};
 use super::room::Room;
-use crate::rig::{JointAxis, Rig};
+use crate::rig::{JointAxis, JointKind, Rig};
 use glam::{DAffine3, DVec2, DVec3};
+
+/// Rounding allowance (m) when a bound rules a sample out: clearances are sums of a few
+/// products of numbers of metres, off by about 1e-15 m each, so 1e-9 m covers them many
+/// times over while ruling out almost nothing a real margin would not.
+const BOUND_ROUNDING_M: f64 = 1e-9;
 
 /// The brush on tool0: contact line of `width` at `handle` along tool0's z axis, along
 /// tool0's x axis.
@@ -166,4 +171,138 @@ impl Body {
             })
             .0
     }
+}
+
+/// How far the body, the brush's contact line and the base's axis can move over the floor
+/// plan between two joint positions of the rig (both within its limits): every clearance
+/// the planner measures is the distance of such points from wall planes in the floor plan,
+/// so it changes by no more than that. Lets a sweep over a trajectory measure only the
+/// samples a bound from the last measured one cannot place clear.
+#[derive(Debug, Clone)]
+pub struct Travel {
+    /// Per joint: how far (m) the farthest point after it moves in the floor plan per unit
+    /// of its motion.
+    levers: Vec<f64>,
+}
+
+impl Travel {
+    /// A revolute joint moves a point by at most the angle times its distance from the
+    /// joint's origin, which the links, prismatic strokes (at their limits), tool and brush
+    /// after it bound whatever the other joints do; a prismatic joint by its stroke, or not
+    /// at all in the floor plan when its axis is vertical whatever the joints before it do.
+    pub fn new(rig: &Rig, brush: &Brush) -> Self {
+        let vertical = vertical_axes(rig);
+        let brush_reach = brush.handle.hypot(brush.width / 2.0);
+        let tool_reach = rig.tool.translation.length() + brush_reach;
+        let levers = (0..rig.dof())
+            .map(|j| {
+                let joint = &rig.joints[j];
+                if joint.kind == JointKind::Prismatic {
+                    return if vertical[j] {
+                        0.0
+                    } else {
+                        joint.axis.length()
+                    };
+                }
+                let after: f64 = (j + 1..rig.dof())
+                    .map(|k| {
+                        let link = &rig.joints[k];
+                        let stroke = match link.kind {
+                            // Along a vertical axis it never leaves a vertical one.
+                            JointKind::Prismatic if !(vertical[j] && vertical[k]) => {
+                                link.limits.lower.abs().max(link.limits.upper.abs())
+                                    * link.axis.length()
+                            }
+                            _ => 0.0,
+                        };
+                        link.origin.translation.length() + stroke
+                    })
+                    .sum();
+                after + tool_reach
+            })
+            .collect();
+        Self { levers }
+    }
+
+    /// At least how far (m) any point of the body or brush moves in the floor plan from
+    /// joint positions `a` to `b`.
+    pub fn between(&self, a: &[f64], b: &[f64]) -> f64 {
+        let joints: f64 = self
+            .levers
+            .iter()
+            .zip(a.iter().zip(b))
+            .map(|(lever, (x, y))| lever * (y - x).abs())
+            .sum();
+        // The base's axis is (x, y) = the first two positions, outside the chain.
+        let base = (b[0] - a[0]).abs() + (b[1] - a[1]).abs();
+        joints.max(base)
+    }
+
+    /// The least `measure` (a clearance: moving a point by d changes it by at most d) of
+    /// `samples`, exactly, when that is at most `needed`; otherwise some value above
+    /// `needed`. Samples the bound from the last measured one places above both `needed`
+    /// and the least so far are not measured: they can change neither answer.
+    pub fn lowest<'s>(
+        &self,
+        samples: impl IntoIterator<Item = &'s [f64]>,
+        needed: f64,
+        mut measure: impl FnMut(&[f64]) -> f64,
+    ) -> f64 {
+        let mut worst = f64::INFINITY;
+        let mut anchor: Option<(f64, &[f64])> = None;
+        for sample in samples {
+            if self.rules_out(anchor, sample, needed.min(worst)) {
+                continue;
+            }
+            let value = measure(sample);
+            worst = worst.min(value);
+            anchor = Some((value, sample));
+        }
+        worst
+    }
+
+    /// The first of `samples` (index, positions) whose `measure` is below `needed`, with
+    /// that value; samples the bound places above it are not measured.
+    pub fn first_below<'s>(
+        &self,
+        samples: impl IntoIterator<Item = (usize, &'s [f64])>,
+        needed: f64,
+        mut measure: impl FnMut(&[f64]) -> f64,
+    ) -> Option<(usize, f64)> {
+        let mut anchor: Option<(f64, &[f64])> = None;
+        for (index, sample) in samples {
+            if self.rules_out(anchor, sample, needed) {
+                continue;
+            }
+            let value = measure(sample);
+            if value < needed {
+                return Some((index, value));
+            }
+            anchor = Some((value, sample));
+        }
+        None
+    }
+
+    /// True when `sample` surely measures above `floor`, measured `anchor` being known.
+    fn rules_out(&self, anchor: Option<(f64, &[f64])>, sample: &[f64], floor: f64) -> bool {
+        anchor
+            .is_some_and(|(value, at)| value - self.between(at, sample) > floor + BOUND_ROUNDING_M)
+    }
+}
+
+/// Per joint: whether its axis is vertical in the room whatever the joints before it do
+/// (every frame up to it keeps the vertical, every revolute joint before it turns about it).
+fn vertical_axes(rig: &Rig) -> Vec<bool> {
+    let mut upright = true;
+    rig.joints
+        .iter()
+        .map(|joint| {
+            upright &= joint.origin.matrix3 * DVec3::Z == DVec3::Z;
+            let vertical = upright && joint.axis.normalize_or_zero() == DVec3::Z;
+            if joint.kind == JointKind::Revolute {
+                upright &= vertical;
+            }
+            vertical
+        })
+        .collect()
 }

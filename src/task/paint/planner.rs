@@ -16,7 +16,7 @@
 //! Owns choosing strokes, attitudes and stations. Must not stream, and never clamps a
 //! target: everything is solved, validated and collision-checked.
 
-use super::body::{Body, Scratch};
+use super::body::{Body, Scratch, Travel};
 use super::config::{EXTRA_AXES, LIFT_AXIS, PaintSettings};
 use super::room::{Room, Wall};
 use crate::ik::{BaseHeldSolver, IkSolver, StructureError};
@@ -211,8 +211,12 @@ pub struct Planner<'a> {
     solver: BaseHeldSolver,
     body: Body,
     scratch: Scratch,
+    travel: Travel,
     travel_arm: Vec<f64>,
     pieces: HashMap<PieceKey, Option<Trajectory>>,
+    /// [`Planner::base_range`] by wall and standoff (bits): every band of a wall asks
+    /// again for the same few standoffs.
+    base_ranges: HashMap<(usize, u64), Option<(f64, f64)>>,
     threads: NonZeroUsize,
 }
 
@@ -248,13 +252,15 @@ impl<'a> Planner<'a> {
         plan: PlanSettings,
     ) -> Result<Self, PaintPlanError> {
         let rig = &settings.rig;
+        let body = Body::from_config(&settings.config);
         Ok(Self {
             settings,
             room,
             plan,
             rig,
             solver: BaseHeldSolver::new(rig.clone(), EXTRA_AXES)?,
-            body: Body::from_config(&settings.config),
+            travel: Travel::new(rig, &body.brush),
+            body,
             scratch: Scratch::new(rig),
             travel_arm: settings
                 .config
@@ -264,6 +270,7 @@ impl<'a> Planner<'a> {
                 .map(|d| d.to_radians())
                 .collect(),
             pieces: HashMap::new(),
+            base_ranges: HashMap::new(),
             threads: std::thread::available_parallelism().unwrap_or(NonZeroUsize::MIN),
         })
     }
@@ -405,39 +412,49 @@ impl<'a> Planner<'a> {
         )
     }
 
-    /// Worst body clearance over `trajectory`'s samples (every `stride`-th and the last).
-    fn worst_clearance(&mut self, trajectory: &Trajectory, stride: usize) -> f64 {
-        let mut worst = f64::INFINITY;
+    /// Worst body clearance over `trajectory`'s samples (every `stride`-th and the last)
+    /// when it is at most `needed`, otherwise some clearance above `needed`.
+    fn worst_clearance(&mut self, trajectory: &Trajectory, stride: usize, needed: f64) -> f64 {
         let last = trajectory.len().saturating_sub(1);
-        for i in (0..trajectory.len()).step_by(stride.max(1)).chain([last]) {
-            let (c, _) = self
-                .body
-                .clearance(self.room, trajectory.position(i), &mut self.scratch);
-            worst = worst.min(c);
-        }
-        worst
+        let samples = (0..trajectory.len())
+            .step_by(stride.max(1))
+            .chain([last])
+            .map(|i| trajectory.position(i));
+        let (body, room, scratch) = (&self.body, self.room, &mut self.scratch);
+        self.travel.lowest(samples, needed, |positions| {
+            body.clearance(room, positions, scratch).0
+        })
     }
 
     /// How far the brush stays from painting over `trajectory`: for each sample, the
     /// smallest over walls of the farther contact end's distance from that wall's plane
-    /// (the brush paints a wall only with both ends near it).
-    fn brush_off_wall(&mut self, trajectory: &Trajectory) -> f64 {
-        let mut worst = f64::INFINITY;
-        for i in 0..trajectory.len() {
-            let (_, tool0) =
-                self.body
-                    .clearance(self.room, trajectory.position(i), &mut self.scratch);
-            let ends = self.body.brush.contact(&tool0);
-            for wall in &self.room.walls {
-                let farther = wall.local(ends[0]).2.abs().max(wall.local(ends[1]).2.abs());
-                worst = worst.min(farther);
-            }
-        }
-        worst
+    /// (the brush paints a wall only with both ends near it). Exact when at most `needed`,
+    /// otherwise some distance above `needed`.
+    fn brush_off_wall(&mut self, trajectory: &Trajectory, needed: f64) -> f64 {
+        let samples = (0..trajectory.len()).map(|i| trajectory.position(i));
+        let (body, room, scratch) = (&self.body, self.room, &mut self.scratch);
+        self.travel.lowest(samples, needed, |positions| {
+            let (_, tool0) = body.clearance(room, positions, scratch);
+            let ends = body.brush.contact(&tool0);
+            room.walls
+                .iter()
+                .map(|wall| wall.local(ends[0]).2.abs().max(wall.local(ends[1]).2.abs()))
+                .fold(f64::INFINITY, f64::min)
+        })
     }
 
     /// The feasible base positions along `wall` at `standoff`: (lowest s, highest s).
-    fn base_range(&self, wall: &Wall, standoff: f64) -> Option<(f64, f64)> {
+    fn base_range(&mut self, wall: &Wall, standoff: f64) -> Option<(f64, f64)> {
+        let key = (wall.index, standoff.to_bits());
+        if let Some(range) = self.base_ranges.get(&key) {
+            return *range;
+        }
+        let range = self.search_base_range(wall, standoff);
+        self.base_ranges.insert(key, range);
+        range
+    }
+
+    fn search_base_range(&self, wall: &Wall, standoff: f64) -> Option<(f64, f64)> {
         let need = self.body.base_radius + self.margin();
         let width = self.room.wall_width_m;
         let ok = |s: f64| self.room.clearance(wall.point(s, 0.0, standoff).truncate()) >= need;
@@ -593,7 +610,7 @@ impl<'a> Planner<'a> {
         let mut strokes = Vec::with_capacity(column.segments.len());
         for segment in &column.segments {
             let stroke = self.stroke(wall, column, *segment)?;
-            let clearance = self.worst_clearance(&stroke, 4);
+            let clearance = self.worst_clearance(&stroke, 4, self.margin());
             if clearance < self.margin() {
                 return Err(PlanRefusal::BodyTooClose {
                     clearance_m: clearance,
@@ -884,14 +901,14 @@ impl<'a> Planner<'a> {
         waypoints.push(to.to_vec());
         waypoints.dedup_by(|a, b| a == b);
         let route = plan_joint_moves(self.rig, from, &waypoints, &self.plan)?;
-        let clearance = self.worst_clearance(&route, 2);
+        let clearance = self.worst_clearance(&route, 2, 0.0);
         if clearance < 0.0 {
             return Err(PlanRefusal::RouteCollides {
                 clearance_m: clearance,
             });
         }
-        let off_wall = self.brush_off_wall(&route);
         let needed = FREE_MOVE_OFF_WALL * self.settings.config.brush.contact_tolerance_m;
+        let off_wall = self.brush_off_wall(&route, needed);
         if off_wall <= needed {
             return Err(PlanRefusal::BrushNearWall {
                 off_m: off_wall,
@@ -1064,18 +1081,18 @@ impl<'a> Planner<'a> {
         let runs = helpers.len() + 1;
         let run_length = trajectory.len().div_ceil(runs);
         let first_collisions = self.share(helpers, runs, |planner, run| {
-            let samples = run * run_length..((run + 1) * run_length).min(trajectory.len());
-            samples.into_iter().find_map(|sample| {
-                let (clearance_m, _) = planner.body.clearance(
-                    planner.room,
-                    trajectory.position(sample),
-                    &mut planner.scratch,
-                );
-                (clearance_m < 0.0).then_some(PaintPlanError::Collides {
+            let samples = (run * run_length..((run + 1) * run_length).min(trajectory.len()))
+                .map(|sample| (sample, trajectory.position(sample)));
+            let (body, room, scratch) = (&planner.body, planner.room, &mut planner.scratch);
+            planner
+                .travel
+                .first_below(samples, 0.0, |positions| {
+                    body.clearance(room, positions, scratch).0
+                })
+                .map(|(sample, clearance_m)| PaintPlanError::Collides {
                     sample,
                     clearance_m,
                 })
-            })
         });
         match first_collisions.into_iter().flatten().next() {
             Some(collision) => Err(collision),
