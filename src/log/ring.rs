@@ -28,10 +28,8 @@ pub(super) fn words_per_record(axes: usize) -> usize {
 pub(super) fn ring(records: usize, axes: usize) -> (RecordSender, RecordReceiver) {
     let words = records.saturating_mul(words_per_record(axes));
     let (mut producer, mut consumer) = RingBuffer::<u64>::new(words);
-    if let Ok(mut chunk) = producer.write_chunk(words) {
-        let (first, second) = chunk.as_mut_slices();
-        first.fill(0);
-        second.fill(0);
+    // write_chunk writes every slot (with 0) before handing them out.
+    if let Ok(chunk) = producer.write_chunk(words) {
         chunk.commit_all();
     }
     if let Ok(chunk) = consumer.read_chunk(words) {
