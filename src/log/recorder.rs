@@ -7,7 +7,7 @@
 
 use super::LogError;
 use super::foxglove::{FoxgloveLog, RobotDescription, SceneSource};
-use super::ring::{self, Received, RecordReceiver, RecordSender};
+use super::ring::{self, NoRecord, RecordReceiver, RecordSender};
 use super::wire::{
     self, EVENT_SCHEMA_NAME, EVENTS_TOPIC, EventOut, MESSAGE_ENCODING, METADATA_NAME,
     SAMPLE_SCHEMA_NAME, SCHEMA_ENCODING, SampleOut, key,
@@ -491,7 +491,7 @@ impl Sink {
         let mut closed = false;
         while taken < BATCH {
             match records.try_recv() {
-                Received::Record(record) => {
+                Ok(record) => {
                     taken += 1;
                     if failure.is_some() {
                         dropped.fetch_add(1, Ordering::Relaxed);
@@ -500,8 +500,8 @@ impl Sink {
                         *failure = Some(error);
                     }
                 }
-                Received::Empty => break,
-                Received::Closed => {
+                Err(NoRecord::Empty) => break,
+                Err(NoRecord::Closed) => {
                     closed = true;
                     break;
                 }

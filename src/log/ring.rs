@@ -55,9 +55,9 @@ impl RecordSender {
     }
 }
 
-/// What the writer thread finds in the ring.
-pub(super) enum Received {
-    Record(LogRecord),
+/// Why the writer thread found no record in the ring.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum NoRecord {
     Empty,
     /// The sender is gone and everything it sent has been taken.
     Closed,
@@ -67,16 +67,16 @@ pub(super) enum Received {
 pub(super) struct RecordReceiver(Consumer<u64>);
 
 impl RecordReceiver {
-    pub(super) fn try_recv(&mut self) -> Received {
+    pub(super) fn try_recv(&mut self) -> Result<LogRecord, NoRecord> {
         // Asked before looking: a sender that was gone before the look had sent all it did.
         let abandoned = self.0.is_abandoned();
         let mut words = [0u64; MAX_WORDS];
         if self.0.pop_entire_slice(&mut words[..HEADER_WORDS]).is_err() {
-            return if abandoned {
-                Received::Closed
+            return Err(if abandoned {
+                NoRecord::Closed
             } else {
-                Received::Empty
-            };
+                NoRecord::Empty
+            });
         }
         let values = value_counts(&words);
         let end = HEADER_WORDS + values.0 + values.1;
@@ -86,9 +86,9 @@ impl RecordReceiver {
             .pop_entire_slice(&mut words[HEADER_WORDS..end])
             .is_err()
         {
-            return Received::Empty;
+            return Err(NoRecord::Empty);
         }
-        Received::Record(unpack(&words[..end]))
+        Ok(unpack(&words[..end]))
     }
 }
 
@@ -192,17 +192,15 @@ mod tests {
         };
         assert!(tx.try_send(&command) && tx.try_send(&state));
         for sent in [command, state] {
-            let Received::Record(got) = rx.try_recv() else {
-                panic!("a record was sent");
-            };
+            let got = rx.try_recv().expect("a record was sent");
             // NaN != NaN: compare the packed words instead.
             let (mut a, mut b) = ([0; MAX_WORDS], [0; MAX_WORDS]);
             assert_eq!(pack(&sent, &mut a), pack(&got, &mut b));
             assert_eq!(a, b);
         }
-        assert!(matches!(rx.try_recv(), Received::Empty));
+        assert_eq!(rx.try_recv().err(), Some(NoRecord::Empty));
         drop(tx);
-        assert!(matches!(rx.try_recv(), Received::Closed));
+        assert_eq!(rx.try_recv().err(), Some(NoRecord::Closed));
     }
 
     #[test]
@@ -216,7 +214,7 @@ mod tests {
         };
         assert!(tx.try_send(&record) && tx.try_send(&record));
         assert!(!tx.try_send(&record));
-        assert!(matches!(rx.try_recv(), Received::Record(_)));
+        assert!(rx.try_recv().is_ok());
         assert!(tx.try_send(&record));
     }
 }
