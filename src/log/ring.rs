@@ -42,8 +42,12 @@ pub(super) fn ring(records: usize, axes: usize) -> (RecordSender, RecordReceiver
 pub(super) struct RecordSender(Producer<u64>);
 
 impl RecordSender {
-    /// Queues `record` whole, or not at all when the ring has no room for it.
+    /// Queues `record` whole, or not at all when the ring has no room for it or the writer
+    /// thread is gone (then nothing would ever take it: the caller counts it as dropped).
     pub(super) fn try_send(&mut self, record: &LogRecord) -> bool {
+        if self.is_closed() {
+            return false;
+        }
         let mut words = [0u64; MAX_WORDS];
         let used = pack(record, &mut words);
         self.0.push_entire_slice(&words[..used]).is_ok()
