@@ -86,7 +86,7 @@ fn print_row(row: &Value) {
         return;
     }
     println!(
-        "{:>6} Hz {:>4} cells {:>16}: jitter p50 {:>5} us, p99 {:>5} us (worst cell {:>5} us = {:>5.1} % of the cycle), max {:>6} us; missed {:>5} of {:>7}; overruns {:>3}; CPU {:>6.1} us per cell-cycle; {:>5.2} MB per cell; {} of {} completed",
+        "{:>6} Hz {:>4} cells {:>16}: jitter p50 {:>5} us, p99 {:>5} us (worst cell {:>5} us = {:>5.1} % of the cycle), max {:>6} us; missed {:>5} of {:>7}; overruns {:>3}; log records dropped {}; CPU {:>6.1} us per cell-cycle; {:>5.2} MB per cell; {} of {} completed",
         row["rate_hz"],
         row["cells"],
         row["design"].as_str().unwrap_or(""),
@@ -98,6 +98,7 @@ fn print_row(row: &Value) {
         row["missed"],
         row["cycles"],
         row["overruns"],
+        row["log_dropped"],
         row["cpu_us_per_cell_cycle"].as_f64().unwrap_or(f64::NAN),
         row["mb_per_cell"].as_f64().unwrap_or(f64::NAN),
         row["completed"],
@@ -293,6 +294,12 @@ impl Figures {
             "missed": sum("missed_cycles"),
             "cycles": sum("cycles"),
             "overruns": sum("overruns"),
+            // Records the job logs could not keep (a full ring): 0 means every log is whole.
+            "log_dropped": self
+                .reports
+                .iter()
+                .map(|r| r["report"]["log"]["dropped"].as_u64().unwrap_or(0))
+                .sum::<u64>(),
             "completed": completed,
             "cpu_us_per_cell_cycle": self.cpu.as_secs_f64() * 1e6 / self.window_cycles.max(1) as f64,
         })

@@ -4,8 +4,8 @@
 //! controllers or the streaming loop itself: the loop hands it [`LogRecord`]s and events, and
 //! gets nothing back that could make it wait.
 //!
-//! - [`Recorder`]: non-blocking recording (bounded channel, writer thread, small chunks so a
-//!   killed run leaves a readable file);
+//! - [`Recorder`]: non-blocking recording (a preallocated ring of packed records, writer
+//!   thread, small chunks so a killed run leaves a readable file);
 //! - [`read_log`]: every complete chunk of a file, even a truncated or damaged one;
 //! - [`RunLog::to_trajectory`]: the recorded commands as a [`Trajectory`](crate::trajectory::Trajectory) for replay;
 //! - [`RobotDescription`]: the rig's links and URDF behind the Foxglove channels (`/tf`,
@@ -18,6 +18,7 @@ mod reader;
 mod recorder;
 mod records;
 mod replay;
+mod ring;
 mod summary;
 mod wire;
 

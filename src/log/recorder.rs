@@ -1,11 +1,13 @@
 //! Recording a run without ever making the streaming cycle wait. The cycle hands over `Copy`
-//! records through a preallocated bounded channel (`try_send`: no allocation, no lock held
-//! across I/O, a full channel drops and counts); one writer thread serialises them to JSON
-//! (and, for a rig, to Foxglove protobuf: `foxglove.rs`) and writes MCAP chunks. Owns the writer thread and the file it writes; must not touch the
-//! link, the controller or the cycle's timing, and never blocks the caller of `record`.
+//! records through a preallocated ring (`ring.rs`: no allocation, no lock held across I/O, a
+//! full ring drops and counts); one writer thread serialises them to JSON (and, for a rig,
+//! to Foxglove protobuf: `foxglove.rs`) and writes MCAP chunks. Owns the writer thread and
+//! the file it writes; must not touch the link, the controller or the cycle's timing, and
+//! never blocks the caller of `record`.
 
 use super::LogError;
 use super::foxglove::{FoxgloveLog, RobotDescription, SceneSource};
+use super::ring::{self, NoRecord, RecordReceiver, RecordSender};
 use super::wire::{
     self, EVENT_SCHEMA_NAME, EVENTS_TOPIC, EventOut, MESSAGE_ENCODING, METADATA_NAME,
     SAMPLE_SCHEMA_NAME, SCHEMA_ENCODING, SampleOut, key,
@@ -18,14 +20,15 @@ use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::mpsc::{self, Receiver, Sender, SyncSender, TryRecvError, TrySendError};
+use std::sync::mpsc::{self, Receiver, Sender};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 /// 8192 records: command + state at 1 kHz for 4 s, twice the 2 s a stalled disk must be
-/// ridden out for. About 4.5 MB, allocated once at `create`.
+/// ridden out for. About 1 MB for six axes (`ring.rs` packs a record into the words its
+/// axes need), allocated once at `create`.
 pub const DEFAULT_CAPACITY: usize = 8192;
 /// Seconds of records the channel holds: twice the 2 s a stalled disk must be ridden out for.
 const BUFFERED_S: f64 = 4.0;
@@ -35,7 +38,7 @@ const RECORDS_PER_CYCLE: f64 = 2.0;
 const MIN_CAPACITY: usize = 256;
 
 /// The channel capacity that holds [`BUFFERED_S`] of records at `rate_hz`, up to
-/// [`DEFAULT_CAPACITY`] (1 kHz): a 250 Hz job needs a quarter of it (about 1.1 MB).
+/// [`DEFAULT_CAPACITY`] (1 kHz): a 250 Hz job needs a quarter of it (256 KB for six axes).
 pub fn capacity_for_rate(rate_hz: f64) -> usize {
     let wanted = (RECORDS_PER_CYCLE * rate_hz * BUFFERED_S).ceil();
     if wanted.is_finite() && wanted > 0.0 {
@@ -49,6 +52,11 @@ pub fn capacity_for_rate(rate_hz: f64) -> usize {
 pub const DEFAULT_CHUNK_BYTES: usize = 128 * 1024;
 /// Largest chunk size accepted; `read_log` takes records up to 64 MiB, with room to spare.
 pub const MAX_CHUNK_BYTES: usize = 16 << 20;
+/// zstd's fastest level: its context keeps about half the memory resident that the default
+/// level 3 does (0.64 MB against 1.3 MB, streaming 128 KiB chunks; a 512 KiB window and an
+/// 8 K-entry hash table, not 2 MiB and 128 K + 64 K entries: zstd's `clevels.h`), and on
+/// 128 KiB chunks of joint samples its output is no larger (`docs/logs.md`).
+const ZSTD_LEVEL: u32 = 1;
 /// Slow runs (few joints, 250 Hz, long pauses) still close a chunk at least this often.
 pub const DEFAULT_CHUNK_INTERVAL: Duration = Duration::from_secs(1);
 
@@ -57,23 +65,11 @@ pub const DEFAULT_CHUNK_INTERVAL: Duration = Duration::from_secs(1);
 /// half a percent of the channel; a daemon with 128 jobs wakes 12 800 times a second for
 /// them, not 64 000 (issue 18).
 const POLL: Duration = Duration::from_millis(10);
+/// How long `record` sleeps between looks for room, when told to wait (virtual clock
+/// only): short beside the writer's pass, so the writer rarely finds the ring empty.
+const WAIT_FOR_ROOM: Duration = Duration::from_micros(100);
 /// Records written per pass before events and chunk closing get a turn.
 const BATCH: usize = 1024;
-
-/// Writes every slot of the records channel once, and empties it again: the cycle's
-/// `try_send` then never touches a fresh page. A first touch is a page fault, which waits
-/// for the process' memory map whenever another thread is changing it (an allocation
-/// elsewhere): milliseconds late, on a loaded machine, for a real-time cycle.
-fn prefault(records: &SyncSender<LogRecord>, taken: &Receiver<LogRecord>) {
-    let blank = LogRecord::Command {
-        seq: 0,
-        t: 0.0,
-        positions: AxisValues::zeros(0),
-        velocities: AxisValues::zeros(0),
-    };
-    while records.try_send(blank).is_ok() {}
-    while taken.try_recv().is_ok() {}
-}
 
 /// One cycle's command or measured state, handed to [`Recorder::record`] by value.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -127,6 +123,10 @@ pub struct RecorderOptions {
     /// The world around the rig: the log gains `/scene` (`foxglove.SceneUpdate`), fed the
     /// measured states on the writer thread.
     pub scene: Option<SceneSource>,
+    /// Compress chunks with zstd (the default). A log of a few events (a cell's journal)
+    /// gains nothing by it and would keep a compression context (over 0.6 MB) alive for
+    /// as long as it is open.
+    pub compressed: bool,
 }
 
 impl Default for RecorderOptions {
@@ -139,6 +139,7 @@ impl Default for RecorderOptions {
             wait_when_full: false,
             robot: None,
             scene: None,
+            compressed: true,
         }
     }
 }
@@ -202,7 +203,9 @@ impl EventSender {
 /// Records one run to one MCAP file (layout: `docs/logs.md`).
 pub struct Recorder {
     path: PathBuf,
-    records: Option<SyncSender<LogRecord>>,
+    // Only the cycle's thread takes it (one at a time), so the lock is never contended and
+    // never waits; it is there because `record` takes `&self`.
+    records: Option<Mutex<RecordSender>>,
     // Unbounded: events are rare, may allocate, and must not be lost to a full channel.
     events: Option<Sender<EventMessage>>,
     dropped: Arc<AtomicU64>,
@@ -250,18 +253,17 @@ impl Recorder {
         check_setup(rig_name, joint_names, &options)?;
         let wait_when_full = options.wait_when_full;
         let sink = Sink::open(path, rig_name, joint_names, &metadata, &options)?;
-        let (records_tx, records_rx) = mpsc::sync_channel(options.capacity);
-        prefault(&records_tx, &records_rx);
+        let (records_tx, mut records_rx) = ring::ring(options.capacity, joint_names.len());
         let (events_tx, events_rx) = mpsc::channel();
         let dropped = Arc::new(AtomicU64::new(0));
         let thread_dropped = Arc::clone(&dropped);
         let writer = std::thread::Builder::new()
             .name("rigbridge-log".to_owned())
-            .spawn(move || sink.run(&records_rx, &events_rx, &thread_dropped))
+            .spawn(move || sink.run(&mut records_rx, &events_rx, &thread_dropped))
             .map_err(|e| LogError::io("starting the log writer thread", e))?;
         Ok(Self {
             path: path.to_owned(),
-            records: Some(records_tx),
+            records: Some(Mutex::new(records_tx)),
             events: Some(events_tx),
             dropped,
             writer: Some(writer),
@@ -274,11 +276,18 @@ impl Recorder {
     /// record is dropped and counted.
     pub fn record(&self, record: LogRecord) {
         let queued = match &self.records {
-            Some(records) if self.wait_when_full => records.send(record).is_ok(),
-            Some(records) => match records.try_send(record) {
-                Ok(()) => true,
-                Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) => false,
-            },
+            Some(records) => {
+                let mut records = records.lock().unwrap_or_else(PoisonError::into_inner);
+                loop {
+                    if records.try_send(&record) {
+                        break true;
+                    }
+                    if !self.wait_when_full || records.is_closed() {
+                        break false;
+                    }
+                    std::thread::sleep(WAIT_FOR_ROOM);
+                }
+            }
             None => false,
         };
         if !queued {
@@ -399,7 +408,8 @@ impl Sink {
         let context = || format!("creating log {}", path.display());
         let file = File::create_new(path).map_err(|e| LogError::io(context(), e))?;
         let write_options = WriteOptions::new()
-            .compression(Some(Compression::Zstd))
+            .compression(options.compressed.then_some(Compression::Zstd))
+            .compression_level(ZSTD_LEVEL)
             .library(format!(
                 "rigbridge/{} {}",
                 env!("CARGO_PKG_VERSION"),
@@ -446,7 +456,7 @@ impl Sink {
 
     fn run(
         mut self,
-        records: &Receiver<LogRecord>,
+        records: &mut RecordReceiver,
         events: &Receiver<EventMessage>,
         dropped: &AtomicU64,
     ) -> Result<Written, LogError> {
@@ -472,7 +482,7 @@ impl Sink {
     /// taken and whether the records channel is closed and empty.
     fn pass(
         &mut self,
-        records: &Receiver<LogRecord>,
+        records: &mut RecordReceiver,
         events: &Receiver<EventMessage>,
         dropped: &AtomicU64,
         failure: &mut Option<LogError>,
@@ -490,8 +500,8 @@ impl Sink {
                         *failure = Some(error);
                     }
                 }
-                Err(TryRecvError::Empty) => break,
-                Err(TryRecvError::Disconnected) => {
+                Err(NoRecord::Empty) => break,
+                Err(NoRecord::Closed) => {
                     closed = true;
                     break;
                 }

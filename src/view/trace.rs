@@ -3,6 +3,8 @@
 //! twin's actual positions. Runs inside the twin's cycle, so it never allocates there: its
 //! queue is reserved up front and strokes beyond it are counted, not kept. It must not change
 //! the twin's state.
+//! Its queue is reserved only once a wall is set: a job without one (most cells of a
+//! many-cell daemon) pays nothing for it.
 
 use super::{PaintQuad, Point, WallView};
 use crate::rig::Rig;
@@ -41,7 +43,7 @@ impl ToolTrace {
             rig,
             plane: None,
             last_contact: None,
-            pending: Vec::with_capacity(QUEUE_CAPACITY),
+            pending: Vec::new(),
             dropped: 0,
         }
     }
@@ -58,6 +60,11 @@ impl ToolTrace {
             })
         });
         self.last_contact = None;
+        if self.plane.is_some() {
+            // Here, before the job streams: strokes come only with a wall, in the cycle.
+            let room = QUEUE_CAPACITY.saturating_sub(self.pending.len());
+            self.pending.reserve_exact(room);
+        }
     }
 
     /// Strokes since the previous call.
@@ -83,7 +90,8 @@ impl ToolTrace {
         let (start, end) = (from - direction * half, to + direction * half);
         let quad: [Point; 4] =
             [start - side, start + side, end + side, end - side].map(|p| p.to_array());
-        if self.pending.len() < QUEUE_CAPACITY {
+        // Never beyond what set_wall reserved: a push in the cycle must not allocate.
+        if self.pending.len() < self.pending.capacity().min(QUEUE_CAPACITY) {
             self.pending.push(PaintQuad {
                 wall: plane.wall,
                 quad,

@@ -898,6 +898,9 @@ impl Journal {
         let path = runs_dir.join(format!("cell-{name}-{unix_s}-{}.mcap", std::process::id()));
         let options = crate::log::RecorderOptions {
             capacity: JOURNAL_RECORD_CAPACITY,
+            // A handful of events: compressing them saves nothing and would keep a zstd
+            // context per cell for the daemon's lifetime.
+            compressed: false,
             ..crate::log::RecorderOptions::for_rig(&settings.rig)
         };
         let names: Vec<String> = settings.rig.joint_names().map(str::to_owned).collect();
