@@ -22,15 +22,16 @@
 //! whose counts do not fit a drive's range is refused before anything is written, never
 //! clamped. It owns the bus and the cycle; it must not plan or check speeds.
 
-use super::canopen_wire::{
+use super::{Link, LinkCounters, LinkError, LinkEvent};
+use crate::protocol::canopen::{
     DRIVE_PROFILE, PDO_INVALID, PowerState, RPDO1_ENTRIES, STATUS_FAULT, SYNCHRONOUS_EVERY_SYNC,
     SdoAnswer, TPDO1_ENTRIES, Value, cob, controlword, interpolation_period, nmt_command,
     nmt_state, object, rpdo1, sdo_download, sdo_upload, tpdo1,
 };
-use super::dynamixel_wire::AxisTicks;
-use super::{CanBus, Link, LinkCounters, LinkError, LinkEvent};
 use crate::protocol::codec::{EncodeError, FaultReport};
+use crate::protocol::dynamixel::AxisTicks;
 use crate::protocol::{AxisValues, CanPayload, Command, ControllerStatus, Fault, Feedback};
+use crate::transport::{CanBus, SEND_PATIENCE};
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
@@ -436,7 +437,7 @@ impl Bus {
         };
         frame.data[..data.len()].copy_from_slice(data);
         self.can
-            .send_patiently(&frame, super::SEND_PATIENCE)
+            .send_patiently(&frame, SEND_PATIENCE)
             .map_err(|e| BusError::Lost(format!("cannot send {id:#05x}: {e}")))?;
         shared.lock().counters.frames_sent += 1;
         Ok(())
@@ -690,7 +691,7 @@ fn configure(bus: &mut Bus, shared: &Shared, axis: usize) -> Result<(), BusError
         shared,
         axis,
         (object::MODES_OF_OPERATION, 0),
-        Value::Integer8(super::canopen_wire::CSP_MODE),
+        Value::Integer8(crate::protocol::canopen::CSP_MODE),
     )?;
     // Checked in check_settings: every accepted period has one.
     let (value, exponent) = interpolation_period(settings.period).unwrap_or((0, 0));
@@ -727,7 +728,7 @@ fn configure(bus: &mut Bus, shared: &Shared, axis: usize) -> Result<(), BusError
         Value::Unsigned16(settings.heartbeat_ms),
     )?;
     let mode = bus.read(shared, axis, (object::MODES_OF_OPERATION_DISPLAY, 0), true)?;
-    if mode != i64::from(super::canopen_wire::CSP_MODE) {
+    if mode != i64::from(crate::protocol::canopen::CSP_MODE) {
         return Err(BusError::Drive {
             axis,
             text: format!(

@@ -18,14 +18,15 @@
 //! servo's range is refused before anything is written, never clamped. It owns the port
 //! and the bus cycle; it must not plan or check speeds (the streamer's gate does).
 
-use super::dynamixel_wire::{
+use super::{Link, LinkCounters, LinkError, LinkEvent};
+use crate::protocol::codec::{EncodeError, FaultReport};
+use crate::protocol::dynamixel::{
     AxisTicks, EXTENDED_POSITION_MODE, EXTENDED_RANGE, POSITION_MODE, Packet, PacketDecoder,
     address, describe_error, encode_packet, encode_sync_read, encode_sync_write_i32, error,
     instruction, read_params, write_params,
 };
-use super::{Link, LinkCounters, LinkError, LinkEvent, SerialSettings};
-use crate::protocol::codec::{EncodeError, FaultReport};
 use crate::protocol::{AxisValues, Command, ControllerStatus, Fault, Feedback};
+use crate::transport::SerialSettings;
 use serialport::SerialPort;
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
