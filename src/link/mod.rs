@@ -5,6 +5,7 @@
 mod can;
 mod canopen;
 mod channel;
+mod device;
 mod dynamixel;
 mod egm;
 mod loopback;
