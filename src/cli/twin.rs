@@ -4,11 +4,11 @@
 use anyhow::Context;
 use clap::Args;
 use rigbridge::clock::WallClock;
-use rigbridge::daemon::config::load_run_settings;
+use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::twin_settings;
 use rigbridge::protocol::CanSender;
 use rigbridge::twin::Twin;
-use rigbridge::twin::can_port::CanPort;
+use rigbridge::twin::can_port::{CanPort, CanPortStats};
 use rigbridge::twin::serial_port::SerialControllerPort;
 use rigbridge::twin::server::{ControllerPort, TcpPort, serve_twin};
 use std::io::Write;
@@ -17,6 +17,10 @@ use std::process::ExitCode;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
+
+/// How often a signal's stop flag is looked at on the twin's behalf: well under what a
+/// person notices after Ctrl-C.
+const STOP_POLL: Duration = Duration::from_millis(20);
 
 #[derive(Args)]
 #[command(group(clap::ArgGroup::new("transport").required(true).args(["listen", "serial", "pty", "can", "egm", "canopen"])))]
@@ -98,6 +102,34 @@ pub fn stop_on_signals() -> anyhow::Result<Arc<AtomicBool>> {
     Ok(stop)
 }
 
+/// The ids a bus twin serves: `given`, or 1, 2, ... one per axis of the rig (`what` names
+/// them in the error: a rig with more axes than ids).
+pub fn bus_ids(settings: &RunSettings, given: &[u8], what: &str) -> anyhow::Result<Vec<u8>> {
+    if !given.is_empty() {
+        return Ok(given.to_vec());
+    }
+    (1..=settings.rig.dof())
+        .map(|i| u8::try_from(i).with_context(|| format!("too many axes for {what}")))
+        .collect()
+}
+
+/// Real-time scheduling for the twin's loop, or a note that it runs without.
+pub fn raise_twin_priority() {
+    if let Err(e) = rigbridge::stream::raise_priority(50) {
+        eprintln!("note: twin at normal priority (real-time scheduling refused: {e})");
+    }
+}
+
+/// Sets the twin's own stop flag (`twin_stop`, which its loop reads) once `stop` is set.
+pub fn relay_stop(stop: Arc<AtomicBool>, twin_stop: impl FnOnce() + Send + 'static) {
+    std::thread::spawn(move || {
+        while !stop.load(Ordering::SeqCst) {
+            std::thread::sleep(STOP_POLL);
+        }
+        twin_stop();
+    });
+}
+
 pub fn say(line: &str) {
     let mut out = std::io::stdout().lock();
     let _ = writeln!(out, "{line}");
@@ -135,9 +167,46 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
         twin_config.watchdog_cycles = cycles;
     }
     let mut twin = Twin::new(&settings.rig, twin_config, &settings.initial())?;
+    let (mut port, can_stats) = open_port(&args, &settings)?;
+    let stop = stop_on_signals()?;
+    raise_twin_priority();
+    let counters = serve_twin(
+        &mut twin,
+        port.as_mut(),
+        Duration::from_secs_f64(settings.period_s()),
+        &WallClock::new(),
+        &stop,
+        say,
+    );
+    eprintln!(
+        "twin stopped after {} cycles: {} frames, {} CRC errors, {} malformed, {} connections, {} link losses, {} hellos, {} targets dropped before a hello",
+        counters.cycles,
+        counters.frames_received,
+        counters.crc_errors,
+        counters.malformed,
+        counters.connections,
+        counters.link_losses,
+        counters.hellos,
+        counters.unbound_targets
+    );
+    if let Some(stats) = can_stats {
+        eprintln!("{}", stats.summary());
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// A CAN port's counters, which outlive lending the port to serve_twin (`None` for the
+/// other ports).
+type CanStats = Option<Arc<CanPortStats>>;
+
+/// The port `args` name for the byte-stream twin (TCP, serial, pty or CAN), announced on
+/// stdout, and the CAN port's counters when it is one.
+fn open_port(
+    args: &TwinArgs,
+    settings: &RunSettings,
+) -> anyhow::Result<(Box<dyn ControllerPort>, CanStats)> {
     let mut can_stats = None;
-    let mut port: Box<dyn ControllerPort> = match (&args.listen, &args.serial, args.pty, &args.can)
-    {
+    let port: Box<dyn ControllerPort> = match (&args.listen, &args.serial, args.pty, &args.can) {
         (Some(listen), ..) => {
             let address = listen.strip_prefix("tcp://").unwrap_or(listen);
             let port =
@@ -171,33 +240,7 @@ pub fn twin(args: TwinArgs) -> anyhow::Result<ExitCode> {
         }
         _ => anyhow::bail!("choose one transport: --listen, --serial, --pty, --can or --egm"),
     };
-    let stop = stop_on_signals()?;
-    if let Err(e) = rigbridge::stream::raise_priority(50) {
-        eprintln!("note: twin at normal priority (real-time scheduling refused: {e})");
-    }
-    let counters = serve_twin(
-        &mut twin,
-        port.as_mut(),
-        Duration::from_secs_f64(settings.period_s()),
-        &WallClock::new(),
-        &stop,
-        say,
-    );
-    eprintln!(
-        "twin stopped after {} cycles: {} frames, {} CRC errors, {} malformed, {} connections, {} link losses, {} hellos, {} targets dropped before a hello",
-        counters.cycles,
-        counters.frames_received,
-        counters.crc_errors,
-        counters.malformed,
-        counters.connections,
-        counters.link_losses,
-        counters.hellos,
-        counters.unbound_targets
-    );
-    if let Some(stats) = can_stats {
-        eprintln!("{}", stats.summary());
-    }
-    Ok(ExitCode::SUCCESS)
+    Ok((port, can_stats))
 }
 
 /// `--egm`: the EGM twin, with operator commands on stdin.
@@ -225,12 +268,7 @@ fn egm_twin(
     let control = Arc::new(EgmTwinControl::default());
     let stop = stop_on_signals()?;
     let watcher = control.clone();
-    std::thread::spawn(move || {
-        while !stop.load(Ordering::SeqCst) {
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        watcher.stop.store(true, Ordering::SeqCst);
-    });
+    relay_stop(stop, move || watcher.stop.store(true, Ordering::SeqCst));
     let operator = control.clone();
     std::thread::spawn(move || {
         for line in std::io::stdin().lines().map_while(Result::ok) {
@@ -242,9 +280,7 @@ fn egm_twin(
             }
         }
     });
-    if let Err(e) = rigbridge::stream::raise_priority(50) {
-        eprintln!("note: twin at normal priority (real-time scheduling refused: {e})");
-    }
+    raise_twin_priority();
     twin.run(&control, &mut |line| say(line));
     let c = twin.model().counters;
     eprintln!(
