@@ -23,10 +23,11 @@ use crate::protocol::{
 };
 use crate::transport::{Backoff, CanBus, SEND_PATIENCE, interface_up};
 use std::io::{self, ErrorKind};
+use std::ops::ControlFlow;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 use tokio::io::Interest;
-use tokio::io::unix::AsyncFd;
+use tokio::io::unix::{AsyncFd, AsyncFdReadyGuard};
 
 /// A session shorter than this does not reset the backoff (an interface that flaps).
 const STABLE_SESSION: Duration = Duration::from_secs(1);
@@ -141,6 +142,36 @@ fn outgoing(what: Outgoing, bridge: &BridgeSession) -> Message {
     }
 }
 
+/// [`send_message`], and the session told when it went; false when the bus failed.
+fn send_noted(
+    bus: &CanBus,
+    message: &Message,
+    mapping: &CanMapping,
+    ends: &IoEnds,
+    bridge: &mut BridgeSession,
+) -> bool {
+    if !send_message(bus, message, mapping, ends) {
+        return false;
+    }
+    bridge.sent(Instant::now());
+    true
+}
+
+/// A timer that skips the ticks it missed rather than bunching them.
+fn skipping_interval(period: Duration) -> tokio::time::Interval {
+    let mut interval = tokio::time::interval(period);
+    interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    interval
+}
+
+/// Registers the socket with the runtime, for its frames and its errors: the kernel
+/// reports an interface going down as a socket error alone.
+fn register(bus: CanBus) -> Option<AsyncFd<CanBus>> {
+    // SAFETY: the CanBus owns its socket and never replaces it, so its fd stays open and
+    // the same for as long as the AsyncFd holds it.
+    unsafe { AsyncFd::register_with_interest(bus, Interest::READABLE | Interest::ERROR) }.ok()
+}
+
 /// One socket's life. True when the bridge closed the link (stop for good).
 async fn session(
     bus: CanBus,
@@ -150,84 +181,123 @@ async fn session(
     bridge: &mut BridgeSession,
 ) -> bool {
     let interface = bus.interface().to_string();
-    // ERROR too: the kernel reports an interface going down as a socket error alone.
-    // SAFETY: the CanBus owns its socket and never replaces it, so its fd stays open and
-    // the same for as long as the AsyncFd holds it.
-    let registered =
-        unsafe { AsyncFd::register_with_interest(bus, Interest::READABLE | Interest::ERROR) };
-    let Ok(bus) = registered else {
+    let Some(bus) = register(bus) else {
         return false;
     };
-    let hello = bridge.opened(Instant::now(), &ends.shared);
-    if !send_message(bus.get_ref(), &outgoing(hello, bridge), mapping, ends) {
+    let hello = outgoing(bridge.opened(Instant::now(), &ends.shared), bridge);
+    if !send_noted(bus.get_ref(), &hello, mapping, ends, bridge) {
         return false;
     }
-    bridge.sent(Instant::now());
-    let mut watch = tokio::time::interval(WATCH_PERIOD);
-    watch.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    let mut tick = tokio::time::interval(bridge.period());
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut watch = skipping_interval(WATCH_PERIOD);
+    let mut tick = skipping_interval(bridge.period());
     loop {
-        tokio::select! {
+        let next = tokio::select! {
             command = ends.commands.recv() => {
-                let Some(command) = command else { return true };
-                if !bridge.may_send(&command, &ends.shared) {
-                    LinkShared::count(&ends.shared.dropped_commands);
-                    continue;
-                }
-                if !send_message(bus.get_ref(), &Message::Command(command), mapping, ends) {
-                    return false;
-                }
-                bridge.sent(Instant::now());
+                on_command(bus.get_ref(), command, mapping, ends, bridge)
             }
-            ready = bus.ready(Interest::READABLE | Interest::ERROR) => {
-                let Ok(mut guard) = ready else { return false };
-                loop {
-                    match guard.get_inner().try_receive() {
-                        Ok(Some(frame)) => {
-                            LinkShared::count(&ends.shared.frames_received);
-                            let Some(message) = assembler.push(&frame) else { continue };
-                            let Some(answer) = bridge.received(message, Instant::now(), ends) else {
-                                continue;
-                            };
-                            if !send_message(guard.get_inner(), &outgoing(answer, bridge), mapping, ends) {
-                                return false;
-                            }
-                            bridge.sent(Instant::now());
-                        }
-                        Ok(None) => {
-                            guard.clear_ready();
-                            break;
-                        }
-                        Err(_) => return false,
-                    }
-                }
-                ends.shared
-                    .crc_errors
-                    .store(assembler.counters().crc_errors, Ordering::Relaxed);
-            }
-            _ = tick.tick() => {
-                let what = match bridge.due(Instant::now()) {
-                    Due::Nothing => continue,
-                    Due::Lost => return false,
-                    Due::Send(what) => what,
-                };
-                if !send_message(bus.get_ref(), &outgoing(what, bridge), mapping, ends) {
-                    return false;
-                }
-                bridge.sent(Instant::now());
-            }
-            _ = watch.tick() => {
-                if ends.shared.closed.load(Ordering::SeqCst) {
-                    return true;
-                }
-                if interface_up(&interface) == Some(false) {
-                    return false;
-                }
-            }
-            _ = ends.shared.restart.notified() => return false,
+            ready = bus.ready(Interest::READABLE | Interest::ERROR) => match ready {
+                Ok(guard) => on_readable(guard, mapping, assembler, ends, bridge),
+                Err(_) => ControlFlow::Break(false),
+            },
+            _ = tick.tick() => on_tick(bus.get_ref(), mapping, ends, bridge),
+            _ = watch.tick() => on_watch(&interface, ends),
+            _ = ends.shared.restart.notified() => ControlFlow::Break(false),
+        };
+        if let ControlFlow::Break(ended_by_bridge) = next {
+            return ended_by_bridge;
         }
     }
+}
+
+/// A command from the streamer (`None`: the bridge closed the link): sent when the
+/// session admits it, else counted as dropped. Breaks with true when the bridge closed
+/// the link, false when the bus failed.
+fn on_command(
+    bus: &CanBus,
+    command: Option<Command>,
+    mapping: &CanMapping,
+    ends: &IoEnds,
+    bridge: &mut BridgeSession,
+) -> ControlFlow<bool> {
+    let Some(command) = command else {
+        return ControlFlow::Break(true);
+    };
+    if !bridge.may_send(&command, &ends.shared) {
+        LinkShared::count(&ends.shared.dropped_commands);
+        return ControlFlow::Continue(());
+    }
+    if !send_noted(bus, &Message::Command(command), mapping, ends, bridge) {
+        return ControlFlow::Break(false);
+    }
+    ControlFlow::Continue(())
+}
+
+/// Every frame waiting: complete messages go to the session, and its answers out.
+/// Breaks with false when the bus failed.
+fn on_readable(
+    mut guard: AsyncFdReadyGuard<'_, CanBus>,
+    mapping: &CanMapping,
+    assembler: &mut CanAssembler,
+    ends: &IoEnds,
+    bridge: &mut BridgeSession,
+) -> ControlFlow<bool> {
+    loop {
+        match guard.get_inner().try_receive() {
+            Ok(Some(frame)) => {
+                LinkShared::count(&ends.shared.frames_received);
+                let Some(message) = assembler.push(&frame) else {
+                    continue;
+                };
+                let Some(answer) = bridge.received(message, Instant::now(), ends) else {
+                    continue;
+                };
+                let answer = outgoing(answer, bridge);
+                if !send_noted(guard.get_inner(), &answer, mapping, ends, bridge) {
+                    return ControlFlow::Break(false);
+                }
+            }
+            Ok(None) => {
+                guard.clear_ready();
+                break;
+            }
+            Err(_) => return ControlFlow::Break(false),
+        }
+    }
+    ends.shared
+        .crc_errors
+        .store(assembler.counters().crc_errors, Ordering::Relaxed);
+    ControlFlow::Continue(())
+}
+
+/// A cycle's tick: a Hello or Heartbeat when one is due; breaks with false when the
+/// controller fell silent (link loss) or the bus failed.
+fn on_tick(
+    bus: &CanBus,
+    mapping: &CanMapping,
+    ends: &IoEnds,
+    bridge: &mut BridgeSession,
+) -> ControlFlow<bool> {
+    let what = match bridge.due(Instant::now()) {
+        Due::Nothing => return ControlFlow::Continue(()),
+        Due::Lost => return ControlFlow::Break(false),
+        Due::Send(what) => what,
+    };
+    if !send_noted(bus, &outgoing(what, bridge), mapping, ends, bridge) {
+        return ControlFlow::Break(false);
+    }
+    ControlFlow::Continue(())
+}
+
+/// The periodic look at the link and the interface: breaks with true when the bridge
+/// closed the link, false when the interface went down.
+fn on_watch(interface: &str, ends: &IoEnds) -> ControlFlow<bool> {
+    if ends.shared.closed.load(Ordering::SeqCst) {
+        return ControlFlow::Break(true);
+    }
+    if interface_up(interface) == Some(false) {
+        return ControlFlow::Break(false);
+    }
+    ControlFlow::Continue(())
 }
 
 #[cfg(test)]
