@@ -9,7 +9,6 @@
 //! - [`trajectory`]: fixed-period joint trajectories, their planning and `validate`;
 //! - [`stream`]: the fixed-rate cycle, its safety gate and the following checks;
 //! - [`link`]: one transport per backend and the bridge's side of the protocol's session;
-//! - [`protocol`]: the messages and their byte and CAN encodings (`docs/protocol.md`);
 //! - [`twin`]: the strict simulated controller, in process or on the far side of a link;
 //! - [`log`]: MCAP recording and reading, summaries;
 //! - [`view`]: the live 3D view;
@@ -17,8 +16,13 @@
 //! - [`daemon`]: the wiring of the stages for `run`, `serve` and `replay`, and resuming;
 //!
 //! and beside the chain: [`rig`] (rig models, TOML/URDF descriptions, forward kinematics),
-//! [`clock`] (wall and virtual clocks), [`realtime`] (thread scheduling) and [`batch`] (the
-//! CSV contract of `fk` and `ik`).
+//! [`clock`] (wall and virtual clocks), [`realtime`] (thread scheduling) and
+//! [`batch`] (the CSV contract of `fk` and `ik`);
+//! and the two leaves both ends of a link share, which `link` and `twin` import and which
+//! import neither (so `twin` never imports `link`):
+//! - [`protocol`]: the messages, their byte and CAN encodings (`docs/protocol.md`), and the
+//!   wire codecs of the device protocols (EGM, Dynamixel Protocol 2.0, CANopen);
+//! - [`transport`]: the SocketCAN socket and the serial line's settings.
 
 pub mod batch;
 pub mod clock;
@@ -34,6 +38,7 @@ pub mod ros2;
 pub mod stream;
 pub mod task;
 pub mod trajectory;
+pub mod transport;
 pub mod twin;
 pub mod view;
 

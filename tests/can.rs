@@ -14,13 +14,13 @@ mod common;
 
 use common::{irb120, repo_path, wait_for_logged_commands};
 use rigbridge::daemon::config::load_run_settings;
-use rigbridge::link::{interface_mtu, interface_up};
 use rigbridge::log::read_log;
 use rigbridge::protocol::can::classic_frame_bits;
 use rigbridge::protocol::{
     AxisValues, CanMapping, CanPayload, CanSender, Command, ControllerStatus, Feedback,
     JointTarget, Message, can_frames,
 };
+use rigbridge::transport::{interface_mtu, interface_up};
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command as Process, Stdio};

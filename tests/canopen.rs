@@ -14,7 +14,7 @@
 mod common;
 
 use common::{irb120, peer_python, repo_path};
-use rigbridge::link::interface_up;
+use rigbridge::transport::interface_up;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdin, Command as Process, Stdio};

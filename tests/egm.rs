@@ -11,8 +11,8 @@ use prost::Message;
 use rigbridge::clock::Clock;
 use rigbridge::daemon::config::RunSettings;
 use rigbridge::daemon::run_job;
-use rigbridge::link::egm_wire::{EgmRobot, EgmSensor, MciState, MotorState};
 use rigbridge::link::{Link, bind_egm};
+use rigbridge::protocol::egm::{EgmRobot, EgmSensor, MciState, MotorState};
 use rigbridge::stream::{Outcome, StreamControl};
 use rigbridge::twin::egm::{
     EgmRobotModel, EgmTwin, EgmTwinControl, EgmTwinSettings, spawn_egm_twin,

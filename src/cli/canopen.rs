@@ -21,13 +21,7 @@ pub fn canopen_twin(
     counts_per_turn: Option<u32>,
     stop: Arc<AtomicBool>,
 ) -> anyhow::Result<ExitCode> {
-    let nodes: Vec<u8> = if nodes.is_empty() {
-        (1..=settings.rig.dof())
-            .map(|i| u8::try_from(i).context("too many axes for CANopen node ids"))
-            .collect::<anyhow::Result<_>>()?
-    } else {
-        nodes.to_vec()
-    };
+    let nodes = super::twin::bus_ids(settings, nodes, "CANopen node ids")?;
     let counts = settings
         .config
         .canopen
@@ -48,17 +42,10 @@ pub fn canopen_twin(
             .collect::<Vec<_>>()
             .join(",")
     ));
-    if let Err(e) = rigbridge::stream::raise_priority(50) {
-        eprintln!("note: twin at normal priority (real-time scheduling refused: {e})");
-    }
+    super::twin::raise_twin_priority();
     let control = Arc::new(CanopenTwinControl::default());
     let watcher = control.clone();
-    std::thread::spawn(move || {
-        while !stop.load(Ordering::SeqCst) {
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        watcher.stop.store(true, Ordering::SeqCst);
-    });
+    super::twin::relay_stop(stop, move || watcher.stop.store(true, Ordering::SeqCst));
     read_operator(control.clone());
     serve_canopen(&mut bus, &mut port, &control);
     eprintln!("{}", bus.counters.summary());

@@ -21,13 +21,7 @@ pub fn dynamixel_twin(
     serial: Option<(String, u32)>,
     stop: Arc<AtomicBool>,
 ) -> anyhow::Result<ExitCode> {
-    let ids: Vec<u8> = if ids.is_empty() {
-        (1..=settings.rig.dof())
-            .map(|i| u8::try_from(i).context("too many axes for Dynamixel ids"))
-            .collect::<anyhow::Result<_>>()?
-    } else {
-        ids.to_vec()
-    };
+    let ids = super::twin::bus_ids(settings, ids, "Dynamixel ids")?;
     let ticks = settings
         .config
         .dynamixel
@@ -52,17 +46,10 @@ pub fn dynamixel_twin(
             Box::new(port)
         }
     };
-    if let Err(e) = rigbridge::stream::raise_priority(50) {
-        eprintln!("note: twin at normal priority (real-time scheduling refused: {e})");
-    }
+    super::twin::raise_twin_priority();
     let control = Arc::new(DynamixelTwinControl::default());
     let watcher = control.clone();
-    std::thread::spawn(move || {
-        while !stop.load(Ordering::SeqCst) {
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        watcher.stop.store(true, Ordering::SeqCst);
-    });
+    super::twin::relay_stop(stop, move || watcher.stop.store(true, Ordering::SeqCst));
     read_operator(control.clone());
     serve_dynamixel(&mut bus, port.as_mut(), &control);
     let c = bus.counters;

@@ -4,7 +4,7 @@
 use anyhow::Context;
 use clap::Args;
 use rigbridge::clock::WallClock;
-use rigbridge::daemon::config::load_run_settings;
+use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::twin_settings;
 use rigbridge::protocol::CanSender;
 use rigbridge::twin::Twin;
@@ -17,6 +17,10 @@ use std::process::ExitCode;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
+
+/// How often a signal's stop flag is looked at on the twin's behalf: well under what a
+/// person notices after Ctrl-C.
+const STOP_POLL: Duration = Duration::from_millis(20);
 
 #[derive(Args)]
 #[command(group(clap::ArgGroup::new("transport").required(true).args(["listen", "serial", "pty", "can", "egm", "canopen"])))]
@@ -98,6 +102,34 @@ pub fn stop_on_signals() -> anyhow::Result<Arc<AtomicBool>> {
     Ok(stop)
 }
 
+/// The ids a bus twin serves: `given`, or 1, 2, ... one per axis of the rig (`what` names
+/// them in the error: a rig with more axes than ids).
+pub fn bus_ids(settings: &RunSettings, given: &[u8], what: &str) -> anyhow::Result<Vec<u8>> {
+    if !given.is_empty() {
+        return Ok(given.to_vec());
+    }
+    (1..=settings.rig.dof())
+        .map(|i| u8::try_from(i).with_context(|| format!("too many axes for {what}")))
+        .collect()
+}
+
+/// Real-time scheduling for the twin's loop, or a note that it runs without.
+pub fn raise_twin_priority() {
+    if let Err(e) = rigbridge::stream::raise_priority(50) {
+        eprintln!("note: twin at normal priority (real-time scheduling refused: {e})");
+    }
+}
+
+/// Sets the twin's own stop flag (`twin_stop`, which its loop reads) once `stop` is set.
+pub fn relay_stop(stop: Arc<AtomicBool>, twin_stop: impl FnOnce() + Send + 'static) {
+    std::thread::spawn(move || {
+        while !stop.load(Ordering::SeqCst) {
+            std::thread::sleep(STOP_POLL);
+        }
+        twin_stop();
+    });
+}
+
 pub fn say(line: &str) {
     let mut out = std::io::stdout().lock();
     let _ = writeln!(out, "{line}");
@@ -145,9 +177,7 @@ fn protocol_twin(
     let mut twin = Twin::new(&settings.rig, twin_config, &settings.initial())?;
     let (mut port, can_stats) = open_port(args, settings)?;
     let stop = stop_on_signals()?;
-    if let Err(e) = rigbridge::stream::raise_priority(50) {
-        eprintln!("note: twin at normal priority (real-time scheduling refused: {e})");
-    }
+    raise_twin_priority();
     let counters = serve_twin(
         &mut twin,
         port.as_mut(),
@@ -243,12 +273,7 @@ fn egm_twin(
     let control = Arc::new(EgmTwinControl::default());
     let stop = stop_on_signals()?;
     let watcher = control.clone();
-    std::thread::spawn(move || {
-        while !stop.load(Ordering::SeqCst) {
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        watcher.stop.store(true, Ordering::SeqCst);
-    });
+    relay_stop(stop, move || watcher.stop.store(true, Ordering::SeqCst));
     let operator = control.clone();
     std::thread::spawn(move || {
         for line in std::io::stdin().lines().map_while(Result::ok) {
@@ -260,9 +285,7 @@ fn egm_twin(
             }
         }
     });
-    if let Err(e) = rigbridge::stream::raise_priority(50) {
-        eprintln!("note: twin at normal priority (real-time scheduling refused: {e})");
-    }
+    raise_twin_priority();
     twin.run(&control);
     let c = twin.model().counters;
     eprintln!(

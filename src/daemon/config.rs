@@ -125,8 +125,8 @@ impl CanopenConfig {
         file: &Path,
         rig: &Rig,
         link_counts_per_turn: Option<u32>,
-    ) -> Result<Vec<crate::link::dynamixel_wire::AxisTicks>, ConfigError> {
-        let default = crate::link::dynamixel_wire::AxisTicks {
+    ) -> Result<Vec<crate::protocol::dynamixel::AxisTicks>, ConfigError> {
+        let default = crate::protocol::dynamixel::AxisTicks {
             ticks_per_turn: link_counts_per_turn.map_or(DEFAULT_COUNTS_PER_TURN, f64::from),
             zero_tick: 0.0,
         };
@@ -191,7 +191,7 @@ fn set_axis_ticks(
     file: &Path,
     rig: &Rig,
     keys: TickKeys<'_>,
-    axes: &mut [crate::link::dynamixel_wire::AxisTicks],
+    axes: &mut [crate::protocol::dynamixel::AxisTicks],
 ) -> Result<(), ConfigError> {
     for (index, (key, given, low, high)) in keys.into_iter().enumerate() {
         let Some(given) = given else { continue };
@@ -228,8 +228,8 @@ impl DynamixelConfig {
         &self,
         file: &Path,
         rig: &Rig,
-    ) -> Result<Vec<crate::link::dynamixel_wire::AxisTicks>, ConfigError> {
-        let defaults = crate::link::dynamixel_wire::AxisTicks::default();
+    ) -> Result<Vec<crate::protocol::dynamixel::AxisTicks>, ConfigError> {
+        let defaults = crate::protocol::dynamixel::AxisTicks::default();
         let mut axes = vec![defaults; rig.dof()];
         let keys = [
             (
@@ -241,8 +241,8 @@ impl DynamixelConfig {
             (
                 "dynamixel.zero_tick",
                 &self.zero_tick,
-                -(crate::link::dynamixel_wire::EXTENDED_RANGE as f64),
-                crate::link::dynamixel_wire::EXTENDED_RANGE as f64,
+                -(crate::protocol::dynamixel::EXTENDED_RANGE as f64),
+                crate::protocol::dynamixel::EXTENDED_RANGE as f64,
             ),
         ];
         set_axis_ticks(file, rig, keys, &mut axes)?;
@@ -509,8 +509,8 @@ impl StreamConfig {
     }
 
     /// The serial settings of these settings for a `serial://PATH?baud=N` link.
-    pub fn serial_settings(&self, path: &str, baud: u32) -> crate::link::SerialSettings {
-        let mut settings = crate::link::SerialSettings::new(path, baud);
+    pub fn serial_settings(&self, path: &str, baud: u32) -> crate::transport::SerialSettings {
+        let mut settings = crate::transport::SerialSettings::new(path, baud);
         settings.parity = match self.serial_parity {
             SerialParity::None => serialport::Parity::None,
             SerialParity::Odd => serialport::Parity::Odd,

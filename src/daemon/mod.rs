@@ -256,7 +256,7 @@ pub fn dynamixel_settings(
         .axes(&settings.file, rig)
         .map_err(|e| DaemonError::Unavailable(e.to_string()))?;
     // The best case, servos answering at once: a rate above it cannot be kept.
-    let budget = crate::link::dynamixel_wire::line_budget(ids.len(), baud, 0.0);
+    let budget = crate::protocol::dynamixel::line_budget(ids.len(), baud, 0.0);
     if settings.config.stream.rate_hz > budget.max_rate_hz {
         return Err(DaemonError::Unavailable(format!(
             "{} Hz does not fit a Dynamixel bus of {} servos at {baud} baud: one cycle takes up to {:.2} ms, {:.0} Hz at most (docs/dynamixel.md)",

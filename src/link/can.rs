@@ -6,321 +6,33 @@
 //! The session of `docs/protocol.md` 6 is the shared [`BridgeSession`]: a Hello on every
 //! open, nothing streamed before the controller's answer, Heartbeats, and silence as link
 //! loss. CAN has no connection: the link is open while its socket is open on an interface
-//! that is up, and up once the controller has answered. When the interface goes down (or away), the I/O thread closes the socket and reopens
-//! it with exponential backoff, like the TCP link reconnects; commands queued meanwhile are
-//! discarded, never sent late. The thread runs a current-thread tokio runtime that waits on
-//! the command channel and the socket at once, so neither direction adds latency.
+//! that is up, and up once the controller has answered. When the interface goes down (or
+//! away), the I/O thread closes the socket and reopens it with exponential backoff, like
+//! the TCP link reconnects; commands queued meanwhile are discarded, never sent late. The
+//! thread runs a current-thread tokio runtime that waits on the command channel and the
+//! socket at once, so neither direction adds latency.
 //!
-//! [`CanBus`] is the socket part on its own, shared with the twin's CAN port. Counters are
-//! in CAN frames (`frames_sent`, `frames_received`: 8 and 5 a cycle for 6 axes on classic
+//! The socket is [`CanBus`] (`transport::can`), shared with the twin's CAN port. Counters
+//! are in CAN frames (`frames_sent`, `frames_received`: 8 and 5 a cycle for 6 axes on classic
 //! CAN); gaps and duplicates are counted on the sequence numbers the feedback echoes.
 
 use super::session::{BridgeSession, Due, Outgoing};
 use super::{ChannelLink, IoEnds, LinkShared};
-use crate::protocol::can::CAN_ID_BLOCK;
 use crate::protocol::{
     CanAssembler, CanMapping, CanPayload, CanSender, Command, Hello, Message, can_frames,
 };
-use socketcan::{
-    CanDataFrame, CanFdFrame, CanFdSocket, CanFilter, CanRawFrame, CanSocket, EmbeddedFrame,
-    Socket, SocketOptions, StandardId,
-};
+use crate::transport::{Backoff, CanBus, SEND_PATIENCE, interface_up};
 use std::io::{self, ErrorKind};
-use std::os::fd::{AsRawFd, RawFd};
+use std::ops::ControlFlow;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 use tokio::io::Interest;
-use tokio::io::unix::AsyncFd;
+use tokio::io::unix::{AsyncFd, AsyncFdReadyGuard};
 
-const BACKOFF_INITIAL: Duration = Duration::from_millis(10);
-const BACKOFF_MAX: Duration = Duration::from_secs(1);
 /// A session shorter than this does not reset the backoff (an interface that flaps).
 const STABLE_SESSION: Duration = Duration::from_secs(1);
 /// How often the I/O thread looks at the interface's state and the link's closed flag.
 const WATCH_PERIOD: Duration = Duration::from_millis(50);
-/// How long a frame may wait for room in a full transmit queue before its message is given
-/// up (half a cycle at 1 kHz; the receiver then drops the incomplete message).
-pub const SEND_PATIENCE: Duration = Duration::from_micros(500);
-
-/// The MTU of an interface that carries CAN FD frames (`struct canfd_frame`).
-const CANFD_MTU: usize = 72;
-const IFF_UP: u32 = 0x1;
-
-/// A non-blocking SocketCAN raw socket bound to one interface for one side of a mapping:
-/// classic (`CanSocket`) or FD (`CanFdSocket`) as the mapping says, receiving only standard
-/// data frames in the peer's half of the mapping's identifier block (kernel filters).
-pub struct CanBus {
-    socket: BusSocket,
-    interface: String,
-}
-
-enum BusSocket {
-    Classic(CanSocket),
-    Fd(CanFdSocket),
-}
-
-impl CanBus {
-    /// Opens `interface` for `mapping`'s sender. Errors name the interface and say what to do:
-    /// `NetworkDown` for an interface that exists but is down (worth retrying), `NotFound`
-    /// for a missing one, `Unsupported` for a kernel without SocketCAN, `InvalidInput` for
-    /// an FD mapping on an interface that cannot carry FD frames.
-    pub fn open(interface: &str, mapping: &CanMapping) -> io::Result<Self> {
-        Self::open_with(interface, mapping.fd(), &receive_filters(mapping))
-    }
-
-    /// Opens `interface` for classic CAN receiving every standard data frame: a CANopen
-    /// master or device, which reads the whole bus (NMT, SYNC, EMCY, PDOs, SDOs, heartbeats).
-    pub fn open_classic(interface: &str) -> io::Result<Self> {
-        // One filter with an empty mask takes every identifier; extended, remote and error
-        // frames are skipped on reading.
-        Self::open_with(interface, false, &[CanFilter::new(0, 0)])
-    }
-
-    fn open_with(interface: &str, fd: bool, filters: &[CanFilter]) -> io::Result<Self> {
-        let fail = |kind: ErrorKind, why: String| {
-            Err(io::Error::new(kind, format!("can://{interface}: {why}")))
-        };
-        if interface_up(interface) == Some(false) {
-            return fail(ErrorKind::NetworkDown, "the interface is down".into());
-        }
-        if fd
-            && let Some(mtu) = interface_mtu(interface)
-            && mtu < CANFD_MTU
-        {
-            return fail(
-                ErrorKind::InvalidInput,
-                format!(
-                    "MTU {mtu}: not a CAN FD interface, but the mapping is CAN FD \
-                     (ip link set {interface} mtu 72, or can_fd = false)"
-                ),
-            );
-        }
-        let opened = if fd {
-            CanFdSocket::open(interface).map(BusSocket::Fd)
-        } else {
-            CanSocket::open(interface).map(BusSocket::Classic)
-        };
-        let socket = match opened {
-            Ok(socket) => socket,
-            // The interface is looked up first: a kernel without CAN says "no such device".
-            Err(e) if e.raw_os_error() == Some(libc::ENODEV) => {
-                let e = socketcan_supported().err().unwrap_or(e);
-                return fail(kind_of(&e), explain(&e));
-            }
-            Err(e) => return fail(kind_of(&e), explain(&e)),
-        };
-        let configured = match &socket {
-            BusSocket::Classic(s) => s
-                .set_filters(filters)
-                .and_then(|()| s.set_nonblocking(true)),
-            BusSocket::Fd(s) => s
-                .set_filters(filters)
-                .and_then(|()| s.set_nonblocking(true)),
-        };
-        if let Err(e) = configured {
-            return fail(e.kind(), format!("cannot configure the socket: {e}"));
-        }
-        Ok(Self {
-            socket,
-            interface: interface.to_string(),
-        })
-    }
-
-    pub fn interface(&self) -> &str {
-        &self.interface
-    }
-
-    /// Writes one frame. `WouldBlock` when the transmit queue is full (the kernel's
-    /// ENOBUFS, or a full socket buffer).
-    pub fn send(&self, frame: &CanPayload) -> io::Result<()> {
-        let invalid = || io::Error::new(ErrorKind::InvalidInput, "frame does not fit CAN");
-        let id = u16::try_from(frame.id)
-            .ok()
-            .and_then(StandardId::new)
-            .ok_or_else(invalid)?;
-        let written = match (&self.socket, frame.fd) {
-            (BusSocket::Classic(s), false) => {
-                s.write_frame(&CanDataFrame::new(id, frame.data()).ok_or_else(invalid)?)
-            }
-            (BusSocket::Classic(_), true) => return Err(invalid()),
-            (BusSocket::Fd(s), false) => {
-                s.write_frame(&CanDataFrame::new(id, frame.data()).ok_or_else(invalid)?)
-            }
-            (BusSocket::Fd(s), true) => {
-                s.write_frame(&CanFdFrame::new(id, frame.data()).ok_or_else(invalid)?)
-            }
-        };
-        written.map_err(|e| {
-            if e.raw_os_error() == Some(libc::ENOBUFS) {
-                io::Error::new(ErrorKind::WouldBlock, e)
-            } else {
-                e
-            }
-        })
-    }
-
-    /// [`send`](Self::send), retrying a full transmit queue for up to `patience`.
-    pub fn send_patiently(&self, frame: &CanPayload, patience: Duration) -> io::Result<()> {
-        let deadline = Instant::now() + patience;
-        loop {
-            match self.send(frame) {
-                Err(e) if e.kind() == ErrorKind::WouldBlock && Instant::now() < deadline => {
-                    std::thread::sleep(Duration::from_micros(50));
-                }
-                other => return other,
-            }
-        }
-    }
-
-    /// The next frame waiting, without blocking; `None` when there is none. Frames a
-    /// payload cannot describe (extended IDs, remote and error frames) are skipped.
-    pub fn try_receive(&self) -> io::Result<Option<CanPayload>> {
-        loop {
-            let raw = match &self.socket {
-                BusSocket::Classic(s) => s.read_raw_frame().map(CanRawFrame::Classic),
-                BusSocket::Fd(s) => s.read_raw_frame(),
-            };
-            match raw {
-                Ok(raw) => {
-                    if let Some(payload) = payload_of(&raw) {
-                        return Ok(Some(payload));
-                    }
-                }
-                Err(e) if e.kind() == ErrorKind::WouldBlock => return Ok(None),
-                Err(e) if e.kind() == ErrorKind::Interrupted => {}
-                Err(e) => return Err(e),
-            }
-        }
-    }
-
-    /// Waits up to `timeout` until a frame (or an error, such as the interface going down)
-    /// is waiting; true when one is.
-    pub fn wait_readable(&self, timeout: Duration) -> io::Result<bool> {
-        let mut poll = libc::pollfd {
-            fd: self.as_raw_fd(),
-            events: libc::POLLIN,
-            revents: 0,
-        };
-        let timeout = libc::timespec {
-            tv_sec: timeout.as_secs().min(i32::MAX as u64) as libc::time_t,
-            tv_nsec: timeout.subsec_nanos() as libc::c_long,
-        };
-        // SAFETY: one valid pollfd and a valid timespec, both outliving the call.
-        let ready = unsafe { libc::ppoll(&mut poll, 1, &timeout, std::ptr::null()) };
-        match ready {
-            n if n > 0 => Ok(true),
-            0 => Ok(false),
-            _ => {
-                let e = io::Error::last_os_error();
-                if e.kind() == ErrorKind::Interrupted {
-                    Ok(false)
-                } else {
-                    Err(e)
-                }
-            }
-        }
-    }
-}
-
-impl AsRawFd for CanBus {
-    fn as_raw_fd(&self) -> RawFd {
-        match &self.socket {
-            BusSocket::Classic(s) => s.as_raw_fd(),
-            BusSocket::Fd(s) => s.as_raw_fd(),
-        }
-    }
-}
-
-fn payload_of(raw: &CanRawFrame) -> Option<CanPayload> {
-    let (can_id, len, data, fd) = match raw {
-        CanRawFrame::Classic(f) => (f.can_id, usize::from(f.can_dlc).min(8), &f.data[..], false),
-        CanRawFrame::Fd(f) => (f.can_id, usize::from(f.len).min(64), &f.data[..], true),
-    };
-    if can_id & (libc::CAN_EFF_FLAG | libc::CAN_RTR_FLAG | libc::CAN_ERR_FLAG) != 0 {
-        return None;
-    }
-    let mut payload = CanPayload {
-        id: can_id & libc::CAN_SFF_MASK,
-        data: [0; 64],
-        len: len as u8,
-        fd,
-    };
-    payload.data[..len].copy_from_slice(&data[..len]);
-    Some(payload)
-}
-
-/// Kernel filters for the frames `mapping`'s sender receives: the other half of the ID
-/// block (the controller's offsets 0x40..0x80 for the bridge, the bridge's 0x00..0x40 for
-/// the controller), standard data frames only, as few aligned mask filters as cover it
-/// (one when the base is a multiple of 0x40).
-fn receive_filters(mapping: &CanMapping) -> Vec<CanFilter> {
-    let half = u32::from(CAN_ID_BLOCK / 2);
-    let first = u32::from(mapping.base_id())
-        + match mapping.sender() {
-            CanSender::Bridge => half,
-            CanSender::Controller => 0,
-        };
-    let end = first + half;
-    let mut filters = Vec::new();
-    let mut start = first;
-    while start < end {
-        let mut size = 1;
-        while start.is_multiple_of(size * 2) && start + size * 2 <= end {
-            size *= 2;
-        }
-        let mask = (libc::CAN_SFF_MASK & !(size - 1)) | libc::CAN_EFF_FLAG | libc::CAN_RTR_FLAG;
-        filters.push(CanFilter::new(start, mask));
-        start += size;
-    }
-    filters
-}
-
-fn sysfs(interface: &str, file: &str) -> Option<String> {
-    std::fs::read_to_string(format!("/sys/class/net/{interface}/{file}")).ok()
-}
-
-/// Whether the interface is administratively up; `None` when that cannot be read.
-pub fn interface_up(interface: &str) -> Option<bool> {
-    let flags = sysfs(interface, "flags")?;
-    let flags = u32::from_str_radix(flags.trim().trim_start_matches("0x"), 16).ok()?;
-    Some(flags & IFF_UP != 0)
-}
-
-/// The interface's MTU: 16 for classic CAN only, 72 for CAN FD; `None` when unknown.
-pub fn interface_mtu(interface: &str) -> Option<usize> {
-    sysfs(interface, "mtu")?.trim().parse().ok()
-}
-
-/// Whether this kernel offers SocketCAN raw sockets at all.
-fn socketcan_supported() -> io::Result<()> {
-    // SAFETY: socket(2) with constant arguments; the descriptor is closed at once.
-    let fd = unsafe { libc::socket(libc::PF_CAN, libc::SOCK_RAW, libc::CAN_RAW) };
-    if fd < 0 {
-        return Err(io::Error::last_os_error());
-    }
-    // SAFETY: fd is the descriptor socket(2) just returned, closed once.
-    unsafe { libc::close(fd) };
-    Ok(())
-}
-
-fn kind_of(e: &io::Error) -> ErrorKind {
-    match e.raw_os_error() {
-        Some(libc::ENODEV) => ErrorKind::NotFound,
-        Some(libc::EAFNOSUPPORT) => ErrorKind::Unsupported,
-        Some(libc::ENETDOWN) => ErrorKind::NetworkDown,
-        _ => e.kind(),
-    }
-}
-
-fn explain(e: &io::Error) -> String {
-    match e.raw_os_error() {
-        Some(libc::ENODEV) => format!("no such network interface ({e})"),
-        Some(libc::EAFNOSUPPORT) => {
-            format!("this kernel has no SocketCAN (modules can, can-raw) ({e})")
-        }
-        _ => e.to_string(),
-    }
-}
 
 /// Starts the I/O thread and returns the link. An interface that is missing, not CAN FD
 /// for an FD mapping, or on a kernel without SocketCAN is an error now; one that is down
@@ -368,7 +80,7 @@ async fn keep_open(
     mut bridge: BridgeSession,
     mut first: Option<CanBus>,
 ) {
-    let mut backoff = BACKOFF_INITIAL;
+    let mut backoff = Backoff::default();
     let mut sessions = 0u64;
     let mut assembler = CanAssembler::new(mapping);
     while !ends.shared.closed.load(Ordering::SeqCst) {
@@ -393,11 +105,10 @@ async fn keep_open(
                 return;
             }
             if started.elapsed() >= STABLE_SESSION {
-                backoff = BACKOFF_INITIAL;
+                backoff.reset();
             }
         }
-        tokio::time::sleep(backoff).await;
-        backoff = (backoff * 2).min(BACKOFF_MAX);
+        tokio::time::sleep(backoff.next_wait()).await;
     }
 }
 
@@ -431,6 +142,36 @@ fn outgoing(what: Outgoing, bridge: &BridgeSession) -> Message {
     }
 }
 
+/// [`send_message`], and the session told when it went; false when the bus failed.
+fn send_noted(
+    bus: &CanBus,
+    message: &Message,
+    mapping: &CanMapping,
+    ends: &IoEnds,
+    bridge: &mut BridgeSession,
+) -> bool {
+    if !send_message(bus, message, mapping, ends) {
+        return false;
+    }
+    bridge.sent(Instant::now());
+    true
+}
+
+/// A timer that skips the ticks it missed rather than bunching them.
+fn skipping_interval(period: Duration) -> tokio::time::Interval {
+    let mut interval = tokio::time::interval(period);
+    interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    interval
+}
+
+/// Registers the socket with the runtime, for its frames and its errors: the kernel
+/// reports an interface going down as a socket error alone.
+fn register(bus: CanBus) -> Option<AsyncFd<CanBus>> {
+    // SAFETY: the CanBus owns its socket and never replaces it, so its fd stays open and
+    // the same for as long as the AsyncFd holds it.
+    unsafe { AsyncFd::register_with_interest(bus, Interest::READABLE | Interest::ERROR) }.ok()
+}
+
 /// One socket's life. True when the bridge closed the link (stop for good).
 async fn session(
     bus: CanBus,
@@ -440,144 +181,128 @@ async fn session(
     bridge: &mut BridgeSession,
 ) -> bool {
     let interface = bus.interface().to_string();
-    // ERROR too: the kernel reports an interface going down as a socket error alone.
-    // SAFETY: the CanBus owns its socket and never replaces it, so its fd stays open and
-    // the same for as long as the AsyncFd holds it.
-    let registered =
-        unsafe { AsyncFd::register_with_interest(bus, Interest::READABLE | Interest::ERROR) };
-    let Ok(bus) = registered else {
+    let Some(bus) = register(bus) else {
         return false;
     };
-    let hello = bridge.opened(Instant::now(), &ends.shared);
-    if !send_message(bus.get_ref(), &outgoing(hello, bridge), mapping, ends) {
+    let hello = outgoing(bridge.opened(Instant::now(), &ends.shared), bridge);
+    if !send_noted(bus.get_ref(), &hello, mapping, ends, bridge) {
         return false;
     }
-    bridge.sent(Instant::now());
-    let mut watch = tokio::time::interval(WATCH_PERIOD);
-    watch.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    let mut tick = tokio::time::interval(bridge.period());
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut watch = skipping_interval(WATCH_PERIOD);
+    let mut tick = skipping_interval(bridge.period());
     loop {
-        tokio::select! {
+        let next = tokio::select! {
             command = ends.commands.recv() => {
-                let Some(command) = command else { return true };
-                if !bridge.may_send(&command, &ends.shared) {
-                    LinkShared::count(&ends.shared.dropped_commands);
-                    continue;
-                }
-                if !send_message(bus.get_ref(), &Message::Command(command), mapping, ends) {
-                    return false;
-                }
-                bridge.sent(Instant::now());
+                on_command(bus.get_ref(), command, mapping, ends, bridge)
             }
-            ready = bus.ready(Interest::READABLE | Interest::ERROR) => {
-                let Ok(mut guard) = ready else { return false };
-                loop {
-                    match guard.get_inner().try_receive() {
-                        Ok(Some(frame)) => {
-                            LinkShared::count(&ends.shared.frames_received);
-                            let Some(message) = assembler.push(&frame) else { continue };
-                            let Some(answer) = bridge.received(message, Instant::now(), ends) else {
-                                continue;
-                            };
-                            if !send_message(guard.get_inner(), &outgoing(answer, bridge), mapping, ends) {
-                                return false;
-                            }
-                            bridge.sent(Instant::now());
-                        }
-                        Ok(None) => {
-                            guard.clear_ready();
-                            break;
-                        }
-                        Err(_) => return false,
-                    }
-                }
-                ends.shared
-                    .crc_errors
-                    .store(assembler.counters().crc_errors, Ordering::Relaxed);
-            }
-            _ = tick.tick() => {
-                let what = match bridge.due(Instant::now()) {
-                    Due::Nothing => continue,
-                    Due::Lost => return false,
-                    Due::Send(what) => what,
-                };
-                if !send_message(bus.get_ref(), &outgoing(what, bridge), mapping, ends) {
-                    return false;
-                }
-                bridge.sent(Instant::now());
-            }
-            _ = watch.tick() => {
-                if ends.shared.closed.load(Ordering::SeqCst) {
-                    return true;
-                }
-                if interface_up(&interface) == Some(false) {
-                    return false;
-                }
-            }
-            _ = ends.shared.restart.notified() => return false,
+            ready = bus.ready(Interest::READABLE | Interest::ERROR) => match ready {
+                Ok(guard) => on_readable(guard, mapping, assembler, ends, bridge),
+                Err(_) => ControlFlow::Break(false),
+            },
+            _ = tick.tick() => on_tick(bus.get_ref(), mapping, ends, bridge),
+            _ = watch.tick() => on_watch(&interface, ends),
+            _ = ends.shared.restart.notified() => ControlFlow::Break(false),
+        };
+        if let ControlFlow::Break(ended_by_bridge) = next {
+            return ended_by_bridge;
         }
     }
+}
+
+/// A command from the streamer (`None`: the bridge closed the link): sent when the
+/// session admits it, else counted as dropped. Breaks with true when the bridge closed
+/// the link, false when the bus failed.
+fn on_command(
+    bus: &CanBus,
+    command: Option<Command>,
+    mapping: &CanMapping,
+    ends: &IoEnds,
+    bridge: &mut BridgeSession,
+) -> ControlFlow<bool> {
+    let Some(command) = command else {
+        return ControlFlow::Break(true);
+    };
+    if !bridge.may_send(&command, &ends.shared) {
+        LinkShared::count(&ends.shared.dropped_commands);
+        return ControlFlow::Continue(());
+    }
+    if !send_noted(bus, &Message::Command(command), mapping, ends, bridge) {
+        return ControlFlow::Break(false);
+    }
+    ControlFlow::Continue(())
+}
+
+/// Every frame waiting: complete messages go to the session, and its answers out.
+/// Breaks with false when the bus failed.
+fn on_readable(
+    mut guard: AsyncFdReadyGuard<'_, CanBus>,
+    mapping: &CanMapping,
+    assembler: &mut CanAssembler,
+    ends: &IoEnds,
+    bridge: &mut BridgeSession,
+) -> ControlFlow<bool> {
+    loop {
+        match guard.get_inner().try_receive() {
+            Ok(Some(frame)) => {
+                LinkShared::count(&ends.shared.frames_received);
+                let Some(message) = assembler.push(&frame) else {
+                    continue;
+                };
+                let Some(answer) = bridge.received(message, Instant::now(), ends) else {
+                    continue;
+                };
+                let answer = outgoing(answer, bridge);
+                if !send_noted(guard.get_inner(), &answer, mapping, ends, bridge) {
+                    return ControlFlow::Break(false);
+                }
+            }
+            Ok(None) => {
+                guard.clear_ready();
+                break;
+            }
+            Err(_) => return ControlFlow::Break(false),
+        }
+    }
+    ends.shared
+        .crc_errors
+        .store(assembler.counters().crc_errors, Ordering::Relaxed);
+    ControlFlow::Continue(())
+}
+
+/// A cycle's tick: a Hello or Heartbeat when one is due; breaks with false when the
+/// controller fell silent (link loss) or the bus failed.
+fn on_tick(
+    bus: &CanBus,
+    mapping: &CanMapping,
+    ends: &IoEnds,
+    bridge: &mut BridgeSession,
+) -> ControlFlow<bool> {
+    let what = match bridge.due(Instant::now()) {
+        Due::Nothing => return ControlFlow::Continue(()),
+        Due::Lost => return ControlFlow::Break(false),
+        Due::Send(what) => what,
+    };
+    if !send_noted(bus, &outgoing(what, bridge), mapping, ends, bridge) {
+        return ControlFlow::Break(false);
+    }
+    ControlFlow::Continue(())
+}
+
+/// The periodic look at the link and the interface: breaks with true when the bridge
+/// closed the link, false when the interface went down.
+fn on_watch(interface: &str, ends: &IoEnds) -> ControlFlow<bool> {
+    if ends.shared.closed.load(Ordering::SeqCst) {
+        return ControlFlow::Break(true);
+    }
+    if interface_up(interface) == Some(false) {
+        return ControlFlow::Break(false);
+    }
+    ControlFlow::Continue(())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn covered(filters: &[CanFilter]) -> Vec<u32> {
-        let raw: Vec<libc::can_filter> = filters
-            .iter()
-            .map(|f| *AsRef::<libc::can_filter>::as_ref(f))
-            .collect();
-        (0..0x800u32)
-            .filter(|id| raw.iter().any(|f| id & f.can_mask == f.can_id & f.can_mask))
-            .collect()
-    }
-
-    #[test]
-    fn filters_cover_exactly_the_peers_half_of_the_block() {
-        for base in [0x000u16, 0x100, 0x140, 0x123, 0x780] {
-            for (sender, offset) in [(CanSender::Bridge, 0x40), (CanSender::Controller, 0)] {
-                let mapping = CanMapping::new(base, false, sender).unwrap();
-                let filters = receive_filters(&mapping);
-                let first = u32::from(base) + offset;
-                assert_eq!(
-                    covered(&filters),
-                    (first..first + 0x40).collect::<Vec<_>>(),
-                    "base {base:#x}, {sender:?}"
-                );
-                if base % 0x40 == 0 {
-                    assert_eq!(filters.len(), 1);
-                }
-                // Extended and remote frames never pass.
-                let raw = *AsRef::<libc::can_filter>::as_ref(&filters[0]);
-                assert_ne!(raw.can_mask & libc::CAN_EFF_FLAG, 0);
-                assert_ne!(raw.can_mask & libc::CAN_RTR_FLAG, 0);
-            }
-        }
-    }
-
-    #[test]
-    fn received_frames_become_payloads_and_others_are_skipped() {
-        let mut classic: libc::can_frame = unsafe { std::mem::zeroed() };
-        classic.can_id = 0x142;
-        classic.can_dlc = 8;
-        classic.data = [1, 2, 3, 4, 5, 6, 7, 8];
-        let payload = payload_of(&CanRawFrame::Classic(classic)).unwrap();
-        assert_eq!((payload.id, payload.len, payload.fd), (0x142, 8, false));
-        assert_eq!(payload.data(), &[1, 2, 3, 4, 5, 6, 7, 8]);
-        classic.can_id = 0x142 | libc::CAN_EFF_FLAG;
-        assert!(payload_of(&CanRawFrame::Classic(classic)).is_none());
-        classic.can_id = 0x142 | libc::CAN_RTR_FLAG;
-        assert!(payload_of(&CanRawFrame::Classic(classic)).is_none());
-        let mut fd: libc::canfd_frame = unsafe { std::mem::zeroed() };
-        fd.can_id = 0x141;
-        fd.len = 48;
-        fd.data[0] = 42;
-        let payload = payload_of(&CanRawFrame::Fd(fd)).unwrap();
-        assert_eq!((payload.id, payload.len, payload.fd), (0x141, 48, true));
-        assert_eq!(payload.data()[0], 42);
-    }
 
     #[test]
     fn a_controller_mapping_is_refused_for_the_bridge() {

@@ -22,18 +22,18 @@
 //! whose counts do not fit a drive's range is refused before anything is written, never
 //! clamped. It owns the bus and the cycle; it must not plan or check speeds.
 
-use super::canopen_wire::{
-    DRIVE_PROFILE, PDO_INVALID, PowerState, RPDO1_ENTRIES, STATUS_FAULT, SYNCHRONOUS_EVERY_SYNC,
-    SdoAnswer, TPDO1_ENTRIES, Value, cob, controlword, interpolation_period, nmt_command,
-    nmt_state, object, rpdo1, sdo_download, sdo_upload, tpdo1,
+use super::device::{BusError, Device, DeviceLink, Hub, Job, id_list};
+use super::{LinkError, LinkEvent};
+use crate::protocol::canopen::{
+    CSP_MODE, DRIVE_PROFILE, PDO_INVALID, PowerState, RPDO1_ENTRIES, STATUS_FAULT,
+    SYNCHRONOUS_EVERY_SYNC, SdoAnswer, TPDO1_ENTRIES, Value, cob, controlword,
+    interpolation_period, nmt_command, nmt_state, object, rpdo1, sdo_download, sdo_upload, tpdo1,
 };
-use super::dynamixel_wire::AxisTicks;
-use super::{CanBus, Link, LinkCounters, LinkError, LinkEvent};
-use crate::protocol::codec::{EncodeError, FaultReport};
-use crate::protocol::{AxisValues, CanPayload, Command, ControllerStatus, Fault, Feedback};
-use std::collections::VecDeque;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use crate::protocol::codec::FaultReport;
+use crate::protocol::dynamixel::AxisTicks;
+use crate::protocol::{CanPayload, ControllerStatus, Fault};
+use crate::transport::{CanBus, SEND_PATIENCE};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 use thiserror::Error;
 
@@ -68,12 +68,6 @@ const OVERRUN_PERIODS: f64 = 1.5;
 /// A drive within this of its target has settled (rad): a few counts of a 20-bit encoder,
 /// well under the streamer's goal tolerance.
 const SETTLED_RAD: f64 = 5e-5;
-/// How often the I/O thread wakes without commands to notice the link was dropped.
-const POLL: Duration = Duration::from_millis(50);
-const BACKOFF_INITIAL: Duration = Duration::from_millis(10);
-const BACKOFF_MAX: Duration = Duration::from_secs(1);
-/// Commands waiting for the bus: the streamer sends one a cycle and waits for its answer.
-const QUEUE_CAPACITY: usize = 16;
 /// Power steps at most from any state to operation enabled (quick stop, disabled, ready,
 /// switched on, enabled).
 const MAX_POWER_STEPS: usize = 5;
@@ -112,46 +106,8 @@ pub enum CanopenError {
     Heartbeat,
 }
 
-/// Why a set-up or a cycle could not go on.
-#[derive(Debug)]
-enum BusError {
-    /// The socket failed or a drive did not answer: reopen and set up again.
-    Lost(String),
-    /// A drive refused or reported an error: latch a fault on this axis.
-    Drive { axis: usize, text: String },
-}
-
-#[derive(Debug, Clone, Copy)]
-enum Job {
-    /// RPDO1 of these targets (counts) then SYNC; the target's seq.
-    Targets(u32, [i32; crate::protocol::MAX_AXES]),
-    /// SYNC only; true for Stop (the drives hold their target).
-    Sync { holding: bool },
-    /// Quick stop on every drive, and latch the e-stop.
-    EStop,
-    /// Fault reset (controlword bit 7 edge) and the power steps again.
-    Reset,
-}
-
-struct State {
-    queue: VecDeque<Job>,
-    up: bool,
-    sessions: u64,
-    adopted: u64,
-    feedback: Option<Feedback>,
-    generation: u64,
-    events: VecDeque<LinkEvent>,
-    counters: LinkCounters,
-    latched: Option<Fault>,
-    restart: bool,
-    problem: Option<String>,
-}
-
-struct Shared {
-    state: Mutex<State>,
-    feedback: Condvar,
-    command: Condvar,
-    closed: AtomicBool,
+/// The drives as the link's [`Device`]: one SYNC a cycle, and the SYNCs counted.
+pub struct Canopen {
     settings: CanopenSettings,
     /// SYNCs sent, and those more than [`OVERRUN_PERIODS`] after the one before while
     /// streaming.
@@ -159,18 +115,51 @@ struct Shared {
     overruns: AtomicU64,
 }
 
-impl Shared {
-    fn lock(&self) -> MutexGuard<'_, State> {
-        // A panicking holder leaves plain data behind: keep using it.
-        self.state.lock().unwrap_or_else(|p| p.into_inner())
-    }
-}
+/// The link to a bus of CiA 402 drives.
+pub type CanopenLink = DeviceLink<Canopen>;
+type Shared = Hub<Canopen>;
 
-pub struct CanopenLink {
-    shared: Arc<Shared>,
-    seen: u64,
-    description: String,
-    thread: Option<std::thread::JoinHandle<()>>,
+impl Device for Canopen {
+    type Bus = Bus;
+    type Start = Vec<i32>;
+    const NAME: &'static str = "CANopen";
+    const TARGET_FIELD: &'static str = "target position (0x607A) counts";
+    const TARGET_RANGE: &'static str = "a drive's 32-bit position range";
+
+    fn axes(&self) -> &[AxisTicks] {
+        &self.settings.axes
+    }
+
+    fn open(&self) -> Result<Bus, BusError> {
+        Bus::open(&self.settings.interface)
+    }
+
+    fn set_up(&self, bus: &mut Bus, hub: &Shared) -> Result<Vec<i32>, BusError> {
+        set_up(bus, hub)
+    }
+
+    /// Enables every drive (a fault stays latched, for a Reset), publishes the session
+    /// and runs the cycles.
+    fn run(&self, bus: &mut Bus, hub: &Shared, present: Vec<i32>) {
+        let fault = enable_all(bus, hub);
+        // Any 32-bit count fits a drive's target (checked against the limits at connect).
+        let ranges = vec![(i64::from(i32::MIN), i64::from(i32::MAX)); present.len()];
+        hub.begin_session(ranges, &present, fault);
+        run_cycles(bus, hub, present);
+    }
+
+    /// Latches the first fault only (later ones are its consequences), and marks the
+    /// feedback last published with it.
+    fn latch(hub: &Shared, fault: Fault, text: &str) {
+        if hub.lock().latched.is_some() {
+            return;
+        }
+        hub.latch(fault, text);
+        let mut state = hub.lock();
+        if let Some(feedback) = state.feedback.as_mut() {
+            feedback.status = ControllerStatus::Fault(fault);
+        }
+    }
 }
 
 /// Checks `settings` and starts the I/O thread, which opens the interface and sets the
@@ -180,44 +169,14 @@ pub fn connect_canopen(settings: CanopenSettings) -> Result<CanopenLink, LinkErr
     let description = format!(
         "canopen://{}?nodes={}",
         settings.interface,
-        settings
-            .nodes
-            .iter()
-            .map(u8::to_string)
-            .collect::<Vec<_>>()
-            .join(",")
+        id_list(&settings.nodes)
     );
-    let shared = Arc::new(Shared {
-        state: Mutex::new(State {
-            queue: VecDeque::with_capacity(QUEUE_CAPACITY),
-            up: false,
-            sessions: 0,
-            adopted: 0,
-            feedback: None,
-            generation: 0,
-            events: VecDeque::new(),
-            counters: LinkCounters::default(),
-            latched: None,
-            restart: false,
-            problem: None,
-        }),
-        feedback: Condvar::new(),
-        command: Condvar::new(),
-        closed: AtomicBool::new(false),
+    let device = Canopen {
         settings,
         syncs: AtomicU64::new(0),
         overruns: AtomicU64::new(0),
-    });
-    let io = shared.clone();
-    let thread = std::thread::Builder::new()
-        .name("rigbridge-canopen".into())
-        .spawn(move || keep_open(&io))?;
-    Ok(CanopenLink {
-        shared,
-        seen: 0,
-        description,
-        thread: Some(thread),
-    })
+    };
+    super::device::start(device, description, "rigbridge-canopen")
 }
 
 pub fn check_settings(settings: &CanopenSettings) -> Result<(), CanopenError> {
@@ -254,154 +213,20 @@ pub fn check_settings(settings: &CanopenSettings) -> Result<(), CanopenError> {
     Ok(())
 }
 
-impl Drop for CanopenLink {
-    fn drop(&mut self) {
-        self.shared.closed.store(true, Ordering::SeqCst);
-        self.shared.command.notify_all();
-        if let Some(thread) = self.thread.take() {
-            let _ = thread.join();
-        }
-    }
-}
-
 impl CanopenLink {
-    /// Why the last open or set-up failed, if one did.
-    pub fn problem(&self) -> Option<String> {
-        self.shared.lock().problem.clone()
-    }
-
     /// SYNCs sent so far, and the overruns among them (a SYNC more than 1.5 periods after
     /// the one before while streaming).
     pub fn syncs(&self) -> (u64, u64) {
+        let device = self.device();
         (
-            self.shared.syncs.load(Ordering::Relaxed),
-            self.shared.overruns.load(Ordering::Relaxed),
+            device.syncs.load(Ordering::Relaxed),
+            device.overruns.load(Ordering::Relaxed),
         )
-    }
-
-    fn push(&mut self, job: Job) -> Result<(), LinkError> {
-        let mut state = self.shared.lock();
-        if state.queue.len() >= QUEUE_CAPACITY {
-            return Err(LinkError::Io(std::io::Error::other(
-                "CANopen command queue full: the bus is behind the streamer",
-            )));
-        }
-        if matches!(job, Job::EStop | Job::Sync { holding: true }) {
-            // Targets planned before a Stop or EStop are stale: never sent.
-            state.queue.retain(|j| !matches!(j, Job::Targets(..)));
-        }
-        state.queue.push_back(job);
-        drop(state);
-        self.shared.command.notify_all();
-        Ok(())
-    }
-
-    /// The targets of `positions` in counts, or the first that does not fit (never clamped).
-    fn targets(&self, positions: &[f64]) -> Result<[i32; crate::protocol::MAX_AXES], EncodeError> {
-        let mut counts = [0i32; crate::protocol::MAX_AXES];
-        for (axis, (map, &rad)) in self.shared.settings.axes.iter().zip(positions).enumerate() {
-            let count = map.tick(rad);
-            if !count.is_finite() || count < f64::from(i32::MIN) || count > f64::from(i32::MAX) {
-                return Err(EncodeError::OutOfRange {
-                    field: "target position (0x607A) counts",
-                    value: count,
-                    range: "a drive's 32-bit position range",
-                });
-            }
-            counts[axis] = count as i32;
-        }
-        Ok(counts)
-    }
-}
-
-impl Link for CanopenLink {
-    fn send(&mut self, command: &Command) -> Result<(), LinkError> {
-        match command {
-            Command::Target(target) => {
-                let state = self.shared.lock();
-                // A target for another session (planned before the drives were set up
-                // anew), or while a fault is latched, is never written.
-                if !state.up || state.sessions != state.adopted || state.latched.is_some() {
-                    return Ok(());
-                }
-                drop(state);
-                match self.targets(target.positions.as_slice()) {
-                    Ok(counts) => self.push(Job::Targets(target.seq, counts)),
-                    Err(e) => {
-                        let mut state = self.shared.lock();
-                        state.events.push_back(LinkEvent::EncodeFailed(e));
-                        Ok(())
-                    }
-                }
-            }
-            Command::Stop => self.push(Job::Sync { holding: true }),
-            Command::EStop => self.push(Job::EStop),
-            Command::Reset => self.push(Job::Reset),
-            Command::Heartbeat => {
-                self.adopt_session();
-                self.push(Job::Sync { holding: false })
-            }
-        }
-    }
-
-    fn receive(&mut self, timeout: Duration) -> Result<Option<Feedback>, LinkError> {
-        let deadline = Instant::now() + timeout;
-        let mut state = self.shared.lock();
-        loop {
-            if state.generation > self.seen {
-                self.seen = state.generation;
-                return Ok(state.feedback);
-            }
-            let now = Instant::now();
-            if now >= deadline {
-                return Ok(None);
-            }
-            state = self
-                .shared
-                .feedback
-                .wait_timeout(state, deadline - now)
-                .unwrap_or_else(|p| p.into_inner())
-                .0;
-        }
-    }
-
-    fn counters(&self) -> LinkCounters {
-        self.shared.lock().counters
-    }
-
-    fn describe(&self) -> String {
-        self.description.clone()
-    }
-
-    fn is_up(&self) -> bool {
-        self.shared.lock().up
-    }
-
-    fn drain(&mut self) {
-        self.seen = self.shared.lock().generation;
-    }
-
-    fn next_event(&mut self) -> Option<LinkEvent> {
-        self.shared.lock().events.pop_front()
-    }
-
-    fn sessions(&self) -> u64 {
-        self.shared.lock().sessions
-    }
-
-    fn restart(&mut self) {
-        self.shared.lock().restart = true;
-        self.shared.command.notify_all();
-    }
-
-    fn adopt_session(&mut self) {
-        let mut state = self.shared.lock();
-        state.adopted = state.sessions;
     }
 }
 
 /// The socket, and what the bus said besides the answers being waited for.
-struct Bus {
+pub struct Bus {
     can: CanBus,
     /// Per axis: when its heartbeat was last heard, and whether one has said operational
     /// since NMT start (a heartbeat sent before the start may still be read after it).
@@ -436,7 +261,7 @@ impl Bus {
         };
         frame.data[..data.len()].copy_from_slice(data);
         self.can
-            .send_patiently(&frame, super::SEND_PATIENCE)
+            .send_patiently(&frame, SEND_PATIENCE)
             .map_err(|e| BusError::Lost(format!("cannot send {id:#05x}: {e}")))?;
         shared.lock().counters.frames_sent += 1;
         Ok(())
@@ -474,7 +299,7 @@ impl Bus {
     /// Notes an EMCY or heartbeat of one of our drives; true when the frame was one.
     fn observe(&mut self, shared: &Shared, frame: &CanPayload) -> bool {
         let (function, node) = cob::split(frame.id);
-        let Some(axis) = shared.settings.nodes.iter().position(|&n| n == node) else {
+        let Some(axis) = shared.device.settings.nodes.iter().position(|&n| n == node) else {
             return false;
         };
         let data = &frame.data[..usize::from(frame.len)];
@@ -529,7 +354,7 @@ impl Bus {
         request: [u8; 8],
         at: (u16, u8),
     ) -> Result<SdoAnswer, BusError> {
-        let node = shared.settings.nodes[axis];
+        let node = shared.device.settings.nodes[axis];
         for _ in 0..SDO_ATTEMPTS {
             self.send(shared, cob::SDO_RX + u32::from(node), &request)?;
             let deadline = Instant::now() + SDO_TIMEOUT;
@@ -612,17 +437,21 @@ impl Bus {
 }
 
 fn node_text(shared: &Shared, axis: usize) -> String {
-    format!("node {} (axis {})", shared.settings.nodes[axis], axis + 1)
+    format!(
+        "node {} (axis {})",
+        shared.device.settings.nodes[axis],
+        axis + 1
+    )
 }
 
 /// NMT reset communication, then each drive read until it answers, its device type checked.
 fn reset_communication(bus: &mut Bus, shared: &Shared) -> Result<(), BusError> {
     bus.operational = false;
-    for &node in &shared.settings.nodes {
+    for &node in &shared.device.settings.nodes {
         bus.send(shared, cob::NMT, &[nmt_command::RESET_COMMUNICATION, node])?;
     }
     let started = Instant::now();
-    for axis in 0..shared.settings.nodes.len() {
+    for axis in 0..shared.device.settings.nodes.len() {
         let device_type = loop {
             match bus.read(shared, axis, (object::DEVICE_TYPE, 0), false) {
                 Ok(value) => break value,
@@ -684,13 +513,13 @@ fn remap(
 
 /// The pre-operational set-up of one drive: CSP, the period, the PDOs, the heartbeat.
 fn configure(bus: &mut Bus, shared: &Shared, axis: usize) -> Result<(), BusError> {
-    let settings = &shared.settings;
+    let settings = &shared.device.settings;
     let node = u32::from(settings.nodes[axis]);
     bus.write(
         shared,
         axis,
         (object::MODES_OF_OPERATION, 0),
-        Value::Integer8(super::canopen_wire::CSP_MODE),
+        Value::Integer8(CSP_MODE),
     )?;
     // Checked in check_settings: every accepted period has one.
     let (value, exponent) = interpolation_period(settings.period).unwrap_or((0, 0));
@@ -727,7 +556,7 @@ fn configure(bus: &mut Bus, shared: &Shared, axis: usize) -> Result<(), BusError
         Value::Unsigned16(settings.heartbeat_ms),
     )?;
     let mode = bus.read(shared, axis, (object::MODES_OF_OPERATION_DISPLAY, 0), true)?;
-    if mode != i64::from(super::canopen_wire::CSP_MODE) {
+    if mode != i64::from(CSP_MODE) {
         return Err(BusError::Drive {
             axis,
             text: format!(
@@ -833,17 +662,24 @@ fn enable(bus: &mut Bus, shared: &Shared, axis: usize, clear_fault: bool) -> Res
 
 /// The whole set-up of docs/canopen.md; returns each drive's position actual (counts).
 fn set_up(bus: &mut Bus, shared: &Shared) -> Result<Vec<i32>, BusError> {
-    let axes = shared.settings.nodes.len();
+    let axes = shared.device.settings.nodes.len();
     reset_communication(bus, shared)?;
     for axis in 0..axes {
         configure(bus, shared, axis)?;
     }
     bus.heartbeats = vec![(Instant::now(), false); axes];
-    for &node in &shared.settings.nodes {
+    for &node in &shared.device.settings.nodes {
         bus.send(shared, cob::NMT, &[nmt_command::START, node])?;
     }
     bus.operational = true;
     bus.started = Instant::now();
+    hold_where_standing(bus, shared)
+}
+
+/// Each drive's target seeded from its position actual, so that it holds where it stands;
+/// the positions (counts).
+fn hold_where_standing(bus: &mut Bus, shared: &Shared) -> Result<Vec<i32>, BusError> {
+    let axes = shared.device.settings.nodes.len();
     let mut present = Vec::with_capacity(axes);
     for axis in 0..axes {
         let actual = bus.read(shared, axis, (object::POSITION_ACTUAL, 0), true)? as i32;
@@ -858,161 +694,17 @@ fn set_up(bus: &mut Bus, shared: &Shared) -> Result<Vec<i32>, BusError> {
     Ok(present)
 }
 
-/// Opens, sets up and runs the bus until the link is dropped, again after every loss.
-fn keep_open(shared: &Shared) {
-    let mut backoff = BACKOFF_INITIAL;
-    while !shared.closed.load(Ordering::SeqCst) {
-        let mut bus = match Bus::open(&shared.settings.interface) {
-            Ok(bus) => bus,
-            Err(BusError::Lost(problem) | BusError::Drive { text: problem, .. }) => {
-                shared.lock().problem = Some(problem);
-                std::thread::sleep(backoff);
-                backoff = (backoff * 2).min(BACKOFF_MAX);
-                continue;
-            }
-        };
-        match set_up(&mut bus, shared) {
-            Ok(present) => {
-                backoff = BACKOFF_INITIAL;
-                begin_session(&mut bus, shared, &present);
-                run_cycles(&mut bus, shared, present);
-            }
-            Err(BusError::Drive { axis, text }) => {
-                latch(shared, Fault::Drive { axis: axis as u8 }, &text);
-                shared.lock().problem = Some(text);
-                wait_for_reset(shared);
-            }
-            Err(BusError::Lost(problem)) => {
-                shared.lock().problem = Some(problem);
-                std::thread::sleep(backoff);
-                backoff = (backoff * 2).min(BACKOFF_MAX);
-            }
-        }
-        let mut state = shared.lock();
-        state.up = false;
-        state.queue.clear();
-    }
-}
-
-/// Enables every drive (a fault stays latched, for a Reset) and publishes the session.
-fn begin_session(bus: &mut Bus, shared: &Shared, present: &[i32]) {
-    let mut fault = None;
-    for axis in 0..shared.settings.nodes.len() {
+/// Enables every drive; the first that cannot be enabled, and why (its fault stays
+/// latched for a Reset).
+fn enable_all(bus: &mut Bus, shared: &Shared) -> Option<(usize, String)> {
+    for axis in 0..shared.device.settings.nodes.len() {
         match enable(bus, shared, axis, false) {
             Ok(()) => {}
-            Err(BusError::Drive { axis, text }) => {
-                fault = Some((axis, text));
-                break;
-            }
-            Err(BusError::Lost(text)) => {
-                fault = Some((axis, text));
-                break;
-            }
+            Err(BusError::Drive { axis, text }) => return Some((axis, text)),
+            Err(BusError::Lost(text)) => return Some((axis, text)),
         }
     }
-    let mut state = shared.lock();
-    state.up = true;
-    state.sessions += 1;
-    state.counters.reconnects = state.sessions - 1;
-    state.latched = None;
-    state.restart = false;
-    state.queue.clear();
-    state.problem = None;
-    // A drive in fault is latched before the first feedback: none may say holding.
-    let status = match fault {
-        Some((axis, text)) => {
-            let fault = Fault::Drive { axis: axis as u8 };
-            state.latched = Some(fault);
-            state
-                .events
-                .push_back(LinkEvent::Fault(FaultReport { fault, text }));
-            ControllerStatus::Fault(fault)
-        }
-        None => ControllerStatus::Holding,
-    };
-    let positions = radians(shared, present);
-    publish(
-        shared,
-        &mut state,
-        Feedback {
-            seq: 0,
-            positions,
-            status,
-        },
-    );
-}
-
-fn radians(shared: &Shared, counts: &[i32]) -> AxisValues {
-    let values: Vec<f64> = shared
-        .settings
-        .axes
-        .iter()
-        .zip(counts)
-        .map(|(axis, &c)| axis.radians(i64::from(c)))
-        .collect();
-    AxisValues::from_slice(&values).unwrap_or(AxisValues::zeros(0))
-}
-
-fn publish(shared: &Shared, state: &mut State, feedback: Feedback) {
-    state.feedback = Some(feedback);
-    state.generation += 1;
-    shared.feedback.notify_all();
-}
-
-/// Latches `fault` with `text` (the first one only: later ones are its consequences).
-fn latch(shared: &Shared, fault: Fault, text: &str) {
-    let mut state = shared.lock();
-    if state.latched.is_some() {
-        return;
-    }
-    state.latched = Some(fault);
-    state.events.push_back(LinkEvent::Fault(FaultReport {
-        fault,
-        text: text.to_string(),
-    }));
-    if let Some(feedback) = state.feedback.as_mut() {
-        feedback.status = ControllerStatus::Fault(fault);
-    }
-}
-
-/// After a fault at set-up: nothing moves until a Reset (or the link is dropped).
-fn wait_for_reset(shared: &Shared) {
-    let mut state = shared.lock();
-    while !shared.closed.load(Ordering::SeqCst) {
-        if let Some(index) = state.queue.iter().position(|j| matches!(j, Job::Reset)) {
-            state.queue.drain(..=index);
-            return;
-        }
-        state.queue.clear();
-        state = shared
-            .command
-            .wait_timeout(state, POLL)
-            .unwrap_or_else(|p| p.into_inner())
-            .0;
-    }
-}
-
-/// The next command, `Ok(None)` when a SYNC is due without one (`idle` has passed), or
-/// `Err(())` when the link was dropped or asked to restart.
-fn next_job(shared: &Shared, idle: Instant) -> Result<Option<Job>, ()> {
-    let mut state = shared.lock();
-    loop {
-        if shared.closed.load(Ordering::SeqCst) || state.restart {
-            return Err(());
-        }
-        if let Some(job) = state.queue.pop_front() {
-            return Ok(Some(job));
-        }
-        let now = Instant::now();
-        if now >= idle {
-            return Ok(None);
-        }
-        state = shared
-            .command
-            .wait_timeout(state, (idle - now).min(POLL))
-            .unwrap_or_else(|p| p.into_inner())
-            .0;
-    }
+    None
 }
 
 /// What the cycle loop keeps between SYNCs.
@@ -1031,7 +723,7 @@ struct Cycle {
 
 /// Quick stop (controlword 0x02, CiA 402-2 transition 11) to every drive, taken at a SYNC.
 fn quick_stop(bus: &mut Bus, shared: &Shared, cycle: &Cycle) -> Result<(), BusError> {
-    for (axis, &node) in shared.settings.nodes.iter().enumerate() {
+    for (axis, &node) in shared.device.settings.nodes.iter().enumerate() {
         let hold = cycle
             .targets
             .as_ref()
@@ -1048,7 +740,7 @@ fn quick_stop(bus: &mut Bus, shared: &Shared, cycle: &Cycle) -> Result<(), BusEr
 /// SYNC cycles, one per command (and one a period between jobs), until loss or the link
 /// is dropped.
 fn run_cycles(bus: &mut Bus, shared: &Shared, present: Vec<i32>) {
-    let period = shared.settings.period;
+    let period = shared.device.settings.period;
     let mut cycle = Cycle {
         last_seq: 0,
         holding: true,
@@ -1066,7 +758,7 @@ fn run_cycles(bus: &mut Bus, shared: &Shared, present: Vec<i32>) {
             1
         };
         let idle = cycle.last_sync.unwrap_or_else(Instant::now) + period * idle_periods;
-        let Ok(job) = next_job(shared, idle) else {
+        let Ok(job) = shared.next_job(Some(idle)) else {
             return;
         };
         let done = match job {
@@ -1085,7 +777,7 @@ fn run_cycles(bus: &mut Bus, shared: &Shared, present: Vec<i32>) {
             Ok(true) => {}
             Ok(false) | Err(BusError::Lost(_)) => return,
             Err(BusError::Drive { axis, text }) => {
-                latch(shared, Fault::Drive { axis: axis as u8 }, &text)
+                Canopen::latch(shared, Fault::Drive { axis: axis as u8 }, &text)
             }
         }
         // One drive's fault stops the others on their own quick-stop ramps, never by
@@ -1102,7 +794,7 @@ fn run_cycles(bus: &mut Bus, shared: &Shared, present: Vec<i32>) {
 /// The RPDOs of a command (none for a plain SYNC).
 fn write_job(bus: &mut Bus, shared: &Shared, cycle: &mut Cycle, job: Job) -> Result<(), BusError> {
     let latched = shared.lock().latched.is_some();
-    let nodes = &shared.settings.nodes;
+    let nodes = &shared.device.settings.nodes;
     match job {
         Job::Targets(seq, counts) if !latched => {
             for (axis, &node) in nodes.iter().enumerate() {
@@ -1115,7 +807,7 @@ fn write_job(bus: &mut Bus, shared: &Shared, cycle: &mut Cycle, job: Job) -> Res
             cycle.targets = Some(counts[..nodes.len()].to_vec());
         }
         Job::Targets(..) | Job::Reset => {}
-        Job::Sync { holding } => {
+        Job::Cycle { holding } => {
             cycle.holding |= holding;
             cycle.streaming &= !holding;
         }
@@ -1128,7 +820,7 @@ fn write_job(bus: &mut Bus, shared: &Shared, cycle: &mut Cycle, job: Job) -> Res
             }
             cycle.holding = true;
             cycle.streaming = false;
-            latch(
+            Canopen::latch(
                 shared,
                 Fault::EStop,
                 "e-stop: quick stop (controlword 0x0002) sent to every drive",
@@ -1145,7 +837,7 @@ fn reset_faults(bus: &mut Bus, shared: &Shared) -> Result<(), BusError> {
         return Ok(());
     }
     bus.heard.clear();
-    for axis in 0..shared.settings.nodes.len() {
+    for axis in 0..shared.device.settings.nodes.len() {
         if let Err(BusError::Drive { axis, text }) = enable(bus, shared, axis, true) {
             let mut state = shared.lock();
             state.events.push_back(LinkEvent::Fault(FaultReport {
@@ -1155,16 +847,7 @@ fn reset_faults(bus: &mut Bus, shared: &Shared) -> Result<(), BusError> {
             return Ok(());
         }
     }
-    // Each drive holds where it stands: its target seeded from its position.
-    for axis in 0..shared.settings.nodes.len() {
-        let actual = bus.read(shared, axis, (object::POSITION_ACTUAL, 0), true)? as i32;
-        bus.write(
-            shared,
-            axis,
-            (object::TARGET_POSITION, 0),
-            Value::Integer32(actual),
-        )?;
-    }
+    hold_where_standing(bus, shared)?;
     bus.heard.clear();
     let now = Instant::now();
     for entry in &mut bus.heartbeats {
@@ -1178,16 +861,16 @@ fn reset_faults(bus: &mut Bus, shared: &Shared) -> Result<(), BusError> {
 
 /// One SYNC and the TPDOs it asks for; publishes the feedback. `Ok(false)` on link loss.
 fn sync_cycle(bus: &mut Bus, shared: &Shared, cycle: &mut Cycle) -> Result<bool, BusError> {
-    let settings = &shared.settings;
+    let settings = &shared.device.settings;
     let now = Instant::now();
     if let Some(last) = cycle.last_sync
         && cycle.streaming
         && now.duration_since(last).as_secs_f64() > OVERRUN_PERIODS * settings.period.as_secs_f64()
     {
-        shared.overruns.fetch_add(1, Ordering::Relaxed);
+        shared.device.overruns.fetch_add(1, Ordering::Relaxed);
     }
     bus.send(shared, cob::SYNC, &[])?;
-    shared.syncs.fetch_add(1, Ordering::Relaxed);
+    shared.device.syncs.fetch_add(1, Ordering::Relaxed);
     cycle.last_sync = Some(now);
     let deadline = now + settings.period.mul_f64(COLLECT_SHARE);
     let axes = settings.nodes.len();
@@ -1206,7 +889,7 @@ fn sync_cycle(bus: &mut Bus, shared: &Shared, cycle: &mut Cycle) -> Result<bool,
     }
     check_heartbeats(bus, shared);
     if let Some((axis, text)) = bus.heard.drain(..).next() {
-        latch(shared, Fault::Drive { axis: axis as u8 }, &text);
+        Canopen::latch(shared, Fault::Drive { axis: axis as u8 }, &text);
     }
     let missing = answers.iter().filter(|a| a.is_none()).count();
     if missing > 0 {
@@ -1225,22 +908,7 @@ fn sync_cycle(bus: &mut Bus, shared: &Shared, cycle: &mut Cycle) -> Result<bool,
             .zip(&settings.axes)
             .all(|((t, p), map)| f64::from(t.abs_diff(*p)) * map.resolution() <= SETTLED_RAD)
     });
-    let mut state = shared.lock();
-    let status = match state.latched {
-        Some(fault) => ControllerStatus::Fault(fault),
-        None if cycle.holding && settled => ControllerStatus::Holding,
-        None => ControllerStatus::Ok,
-    };
-    let positions = radians(shared, &cycle.present);
-    publish(
-        shared,
-        &mut state,
-        Feedback {
-            seq: cycle.last_seq,
-            positions,
-            status,
-        },
-    );
+    shared.publish_cycle(cycle.last_seq, &cycle.present, cycle.holding && settled);
     Ok(true)
 }
 
@@ -1250,7 +918,7 @@ fn check_statuswords(shared: &Shared, answers: &[(u16, i32)]) {
         let state = PowerState::of(word);
         if word & STATUS_FAULT != 0 || state != Some(PowerState::OperationEnabled) {
             let name = state.map_or("no CiA 402 state", PowerState::name);
-            latch(
+            Canopen::latch(
                 shared,
                 Fault::Drive { axis: axis as u8 },
                 &format!(
@@ -1267,7 +935,7 @@ fn check_statuswords(shared: &Shared, answers: &[(u16, i32)]) {
 /// consumer time of its start, is noted as lost.
 fn check_heartbeats(bus: &mut Bus, shared: &Shared) {
     let consumer = Duration::from_millis(
-        u64::from(shared.settings.heartbeat_ms) * u64::from(HEARTBEAT_LOST_FACTOR),
+        u64::from(shared.device.settings.heartbeat_ms) * u64::from(HEARTBEAT_LOST_FACTOR),
     );
     for (axis, &(heard, confirmed)) in bus.heartbeats.iter().enumerate() {
         if !confirmed && bus.started.elapsed() > consumer {
@@ -1289,7 +957,7 @@ fn check_heartbeats(bus: &mut Bus, shared: &Shared) {
                     "{}: no heartbeat for {} ms (producer time {} ms)",
                     node_text(shared, axis),
                     silent.as_millis(),
-                    shared.settings.heartbeat_ms
+                    shared.device.settings.heartbeat_ms
                 ),
             ));
         }

@@ -18,38 +18,30 @@
 //! servo's range is refused before anything is written, never clamped. It owns the port
 //! and the bus cycle; it must not plan or check speeds (the streamer's gate does).
 
-use super::dynamixel_wire::{
+use super::LinkError;
+use super::device::{BusError, Device, DeviceLink, Hub, Job, id_list};
+use crate::protocol::Fault;
+use crate::protocol::dynamixel::{
     AxisTicks, EXTENDED_POSITION_MODE, EXTENDED_RANGE, POSITION_MODE, Packet, PacketDecoder,
     address, describe_error, encode_packet, encode_sync_read, encode_sync_write_i32, error,
     instruction, read_params, write_params,
 };
-use super::{Link, LinkCounters, LinkError, LinkEvent, SerialSettings};
-use crate::protocol::codec::{EncodeError, FaultReport};
-use crate::protocol::{AxisValues, Command, ControllerStatus, Fault, Feedback};
+use crate::transport::SerialSettings;
 use serialport::SerialPort;
-use std::collections::VecDeque;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 use thiserror::Error;
 
 /// Cycles in a row with a status packet missing that mean the bus is lost: 25, the
 /// streamer's own patience (0.1 s at 250 Hz) for a silent controller.
 pub const LOST_AFTER_CYCLES: u32 = 25;
-/// How long a set-up request waits for its status packet: generous, set-up is not cyclic.
 /// A servo within this many ticks of its goal has reached it: the encoder's own rounding
 /// and the position controller's dead band.
 const SETTLED_TICKS: i32 = 2;
+/// How long a set-up request waits for its status packet: generous, set-up is not cyclic.
 const SETUP_TIMEOUT: Duration = Duration::from_millis(100);
 /// Set-up requests are retried this often before the open counts as failed (a servo
 /// still booting, a packet lost to noise).
 const SETUP_ATTEMPTS: u32 = 3;
-/// How often the I/O thread wakes without commands to notice the link was dropped.
-const POLL: Duration = Duration::from_millis(50);
-const BACKOFF_INITIAL: Duration = Duration::from_millis(10);
-const BACKOFF_MAX: Duration = Duration::from_secs(1);
-/// Commands waiting for the bus: the streamer sends one a cycle and waits for its answer.
-const QUEUE_CAPACITY: usize = 16;
 /// Degrees beyond which an axis needs extended position mode (issue 16): one turn is
 /// +-180 deg about the centre tick.
 const HALF_TURN: f64 = std::f64::consts::PI;
@@ -79,67 +71,39 @@ pub enum DynamixelError {
     OutOfRange { axis: usize, low: f64, high: f64 },
 }
 
-/// Why a set-up or a cycle could not go on.
-#[derive(Debug)]
-enum BusError {
-    /// The port failed or a servo did not answer: reopen and set up again.
-    Lost(String),
-    /// A servo reported an error: latch a fault on this axis.
-    Drive { axis: usize, text: String },
-}
-
-/// What a queued command does on the bus.
-#[derive(Debug, Clone, Copy)]
-enum Job {
-    /// Sync Write these goals (ticks), then Sync Read; the target's seq.
-    Goals(u32, [i32; crate::protocol::MAX_AXES]),
-    /// Sync Read only; true for Stop (the servos hold their goal: the status says so).
-    Read { holding: bool },
-    /// Goal = Present Position at once, and latch the e-stop.
-    EStop,
-    /// Set the bus up again, clearing a latched fault if the servos report none.
-    Reset,
-}
-
-struct State {
-    queue: VecDeque<Job>,
-    up: bool,
-    sessions: u64,
-    adopted: u64,
-    feedback: Option<Feedback>,
-    generation: u64,
-    events: VecDeque<LinkEvent>,
-    counters: LinkCounters,
-    latched: Option<Fault>,
-    /// Each servo's Goal Position range in ticks, known once it is set up.
-    ranges: Vec<(i64, i64)>,
-    restart: bool,
-    /// Why the last open or set-up failed, for people reading a timeout.
-    problem: Option<String>,
-}
-
-struct Shared {
-    state: Mutex<State>,
-    /// Feedback arrived (for the streamer).
-    feedback: Condvar,
-    /// A command arrived (for the I/O thread).
-    command: Condvar,
-    closed: AtomicBool,
+/// The servos as the link's [`Device`]: a Sync Write and a Sync Read a cycle.
+pub struct Dynamixel {
     settings: DynamixelSettings,
 }
 
-impl Shared {
-    fn lock(&self) -> MutexGuard<'_, State> {
-        // A panicking holder leaves plain data behind: keep using it.
-        self.state.lock().unwrap_or_else(|p| p.into_inner())
-    }
-}
+/// The link to a bus of Dynamixel servos.
+pub type DynamixelLink = DeviceLink<Dynamixel>;
+type Shared = Hub<Dynamixel>;
 
-pub struct DynamixelLink {
-    shared: Arc<Shared>,
-    seen: u64,
-    description: String,
-    thread: Option<std::thread::JoinHandle<()>>,
+impl Device for Dynamixel {
+    type Bus = Bus;
+    type Start = SetUp;
+    const NAME: &'static str = "Dynamixel";
+    const TARGET_FIELD: &'static str = "goal position tick";
+    const TARGET_RANGE: &'static str = "the servo's position range";
+
+    fn axes(&self) -> &[AxisTicks] {
+        &self.settings.axes
+    }
+
+    fn open(&self) -> Result<Bus, BusError> {
+        Bus::open(&self.settings.serial)
+    }
+
+    fn set_up(&self, bus: &mut Bus, hub: &Shared) -> Result<SetUp, BusError> {
+        set_up(bus, hub)
+    }
+
+    /// Publishes the session and its first feedback (holding), then runs the cycles.
+    fn run(&self, bus: &mut Bus, hub: &Shared, (ranges, present): SetUp) {
+        hub.begin_session(ranges, &present, None);
+        run_cycles(bus, hub);
+    }
 }
 
 /// Checks `settings` and starts the I/O thread, which opens the port and sets the bus up
@@ -150,43 +114,9 @@ pub fn connect_dynamixel(settings: DynamixelSettings) -> Result<DynamixelLink, L
         "dynamixel://{}?baud={}&ids={}",
         settings.serial.path,
         settings.serial.baud,
-        settings
-            .ids
-            .iter()
-            .map(u8::to_string)
-            .collect::<Vec<_>>()
-            .join(",")
+        id_list(&settings.ids)
     );
-    let shared = Arc::new(Shared {
-        state: Mutex::new(State {
-            queue: VecDeque::with_capacity(QUEUE_CAPACITY),
-            up: false,
-            sessions: 0,
-            adopted: 0,
-            feedback: None,
-            generation: 0,
-            events: VecDeque::new(),
-            counters: LinkCounters::default(),
-            latched: None,
-            ranges: Vec::new(),
-            restart: false,
-            problem: None,
-        }),
-        feedback: Condvar::new(),
-        command: Condvar::new(),
-        closed: AtomicBool::new(false),
-        settings,
-    });
-    let io = shared.clone();
-    let thread = std::thread::Builder::new()
-        .name("rigbridge-dynamixel".into())
-        .spawn(move || keep_open(&io))?;
-    Ok(DynamixelLink {
-        shared,
-        seen: 0,
-        description,
-        thread: Some(thread),
-    })
+    super::device::start(Dynamixel { settings }, description, "rigbridge-dynamixel")
 }
 
 fn check_settings(settings: &DynamixelSettings) -> Result<(), DynamixelError> {
@@ -223,156 +153,8 @@ pub fn operating_mode(lower: f64, upper: f64) -> u8 {
     }
 }
 
-impl Drop for DynamixelLink {
-    fn drop(&mut self) {
-        self.shared.closed.store(true, Ordering::SeqCst);
-        self.shared.command.notify_all();
-        if let Some(thread) = self.thread.take() {
-            let _ = thread.join();
-        }
-    }
-}
-
-impl DynamixelLink {
-    fn push(&mut self, job: Job) -> Result<(), LinkError> {
-        let mut state = self.shared.lock();
-        if state.queue.len() >= QUEUE_CAPACITY {
-            return Err(LinkError::Io(std::io::Error::other(
-                "Dynamixel command queue full: the bus is behind the streamer",
-            )));
-        }
-        if matches!(job, Job::EStop | Job::Read { holding: true }) {
-            // Targets planned before a Stop or EStop are stale: never sent.
-            state.queue.retain(|j| !matches!(j, Job::Goals(..)));
-        }
-        state.queue.push_back(job);
-        drop(state);
-        self.shared.command.notify_all();
-        Ok(())
-    }
-
-    /// The goal ticks of `positions`, or the first axis whose tick is outside its servo's
-    /// range (never clamped).
-    fn goals(
-        &self,
-        state: &State,
-        positions: &[f64],
-    ) -> Result<[i32; crate::protocol::MAX_AXES], EncodeError> {
-        let mut goals = [0i32; crate::protocol::MAX_AXES];
-        for (axis, (ticks, &rad)) in self.shared.settings.axes.iter().zip(positions).enumerate() {
-            let tick = ticks.tick(rad);
-            let (low, high) = state.ranges.get(axis).copied().unwrap_or((0, -1));
-            if !tick.is_finite() || tick < low as f64 || tick > high as f64 {
-                return Err(EncodeError::OutOfRange {
-                    field: "goal position tick",
-                    value: tick,
-                    range: "the servo's position range",
-                });
-            }
-            goals[axis] = tick as i32;
-        }
-        Ok(goals)
-    }
-}
-
-impl DynamixelLink {
-    /// Why the last open or set-up of the bus failed, if one did.
-    pub fn problem(&self) -> Option<String> {
-        self.shared.lock().problem.clone()
-    }
-}
-
-impl Link for DynamixelLink {
-    fn send(&mut self, command: &Command) -> Result<(), LinkError> {
-        match command {
-            Command::Target(target) => {
-                let state = self.shared.lock();
-                // A target for another session (planned before the bus was set up anew),
-                // or while a fault is latched, is never written.
-                if !state.up || state.sessions != state.adopted || state.latched.is_some() {
-                    return Ok(());
-                }
-                let goals = self.goals(&state, target.positions.as_slice());
-                drop(state);
-                match goals {
-                    Ok(goals) => self.push(Job::Goals(target.seq, goals)),
-                    Err(e) => {
-                        self.shared
-                            .lock()
-                            .events
-                            .push_back(LinkEvent::EncodeFailed(e));
-                        Ok(())
-                    }
-                }
-            }
-            Command::Stop => self.push(Job::Read { holding: true }),
-            Command::EStop => self.push(Job::EStop),
-            Command::Reset => self.push(Job::Reset),
-            Command::Heartbeat => {
-                self.adopt_session();
-                self.push(Job::Read { holding: false })
-            }
-        }
-    }
-
-    fn receive(&mut self, timeout: Duration) -> Result<Option<Feedback>, LinkError> {
-        let deadline = Instant::now() + timeout;
-        let mut state = self.shared.lock();
-        loop {
-            if state.generation > self.seen {
-                self.seen = state.generation;
-                return Ok(state.feedback);
-            }
-            let now = Instant::now();
-            if now >= deadline {
-                return Ok(None);
-            }
-            state = self
-                .shared
-                .feedback
-                .wait_timeout(state, deadline - now)
-                .unwrap_or_else(|p| p.into_inner())
-                .0;
-        }
-    }
-
-    fn counters(&self) -> LinkCounters {
-        self.shared.lock().counters
-    }
-
-    fn describe(&self) -> String {
-        self.description.clone()
-    }
-
-    fn is_up(&self) -> bool {
-        self.shared.lock().up
-    }
-
-    fn drain(&mut self) {
-        self.seen = self.shared.lock().generation;
-    }
-
-    fn next_event(&mut self) -> Option<LinkEvent> {
-        self.shared.lock().events.pop_front()
-    }
-
-    fn sessions(&self) -> u64 {
-        self.shared.lock().sessions
-    }
-
-    fn restart(&mut self) {
-        self.shared.lock().restart = true;
-        self.shared.command.notify_all();
-    }
-
-    fn adopt_session(&mut self) {
-        let mut state = self.shared.lock();
-        state.adopted = state.sessions;
-    }
-}
-
 /// The port and the bytes in flight on it.
-struct Bus {
+pub struct Bus {
     port: Box<dyn SerialPort>,
     decoder: PacketDecoder,
     out: Vec<u8>,
@@ -454,7 +236,7 @@ impl Bus {
         instruction: u8,
         params: &[u8],
     ) -> Result<Vec<u8>, BusError> {
-        let id = shared.settings.ids[axis];
+        let id = shared.device.settings.ids[axis];
         for _ in 0..SETUP_ATTEMPTS {
             encode_packet(id, instruction, params, &mut self.out);
             self.write_out(shared)?;
@@ -482,7 +264,7 @@ impl Bus {
         if data.len() != usize::from(size) {
             return Err(BusError::Lost(format!(
                 "servo id {} answered {} bytes for {size} at address {at}",
-                shared.settings.ids[axis],
+                shared.device.settings.ids[axis],
                 data.len()
             )));
         }
@@ -503,7 +285,7 @@ impl Bus {
     /// The drive fault for status error `code` of `axis`: with the alert bit, its
     /// Hardware Error Status says why.
     fn drive_error(&mut self, shared: &Shared, axis: usize, code: u8) -> BusError {
-        let id = shared.settings.ids[axis];
+        let id = shared.device.settings.ids[axis];
         let mut text = format!(
             "servo id {id} (axis {}): {}",
             axis + 1,
@@ -533,12 +315,12 @@ fn i32_of(data: &[u8]) -> Option<i32> {
 }
 
 /// Each servo's Goal Position range and present position, ticks.
-type SetUp = (Vec<(i64, i64)>, Vec<i32>);
+pub type SetUp = (Vec<(i64, i64)>, Vec<i32>);
 
 /// The set-up of docs/dynamixel.md; returns each servo's Goal Position range and the
 /// present positions (ticks).
 fn set_up(bus: &mut Bus, shared: &Shared) -> Result<SetUp, BusError> {
-    let settings = &shared.settings;
+    let settings = &shared.device.settings;
     let axes = settings.ids.len();
     for axis in 0..axes {
         bus.request(shared, axis, instruction::PING, &[])?;
@@ -598,142 +380,20 @@ fn servo_range(
     };
     let max = read(bus, address::MAX_POSITION_LIMIT)?;
     let min = read(bus, address::MIN_POSITION_LIMIT)?;
-    let ticks = shared.settings.axes[axis];
-    let (lower, upper) = shared.settings.limits[axis];
+    let ticks = shared.device.settings.axes[axis];
+    let (lower, upper) = shared.device.settings.limits[axis];
     let (low, high) = (ticks.tick(lower), ticks.tick(upper));
     if low.min(high) < min as f64 || low.max(high) > max as f64 {
         return Err(BusError::Drive {
             axis,
             text: format!(
                 "servo id {} (axis {}): its position limits {min} .. {max} do not cover the axis' limits, ticks {low} .. {high}",
-                shared.settings.ids[axis],
+                shared.device.settings.ids[axis],
                 axis + 1
             ),
         });
     }
     Ok((min, max))
-}
-
-/// Opens, sets up and runs the bus until the link is dropped, again after every loss.
-fn keep_open(shared: &Shared) {
-    let mut backoff = BACKOFF_INITIAL;
-    while !shared.closed.load(Ordering::SeqCst) {
-        let mut bus = match Bus::open(&shared.settings.serial) {
-            Ok(bus) => bus,
-            Err(BusError::Lost(problem) | BusError::Drive { text: problem, .. }) => {
-                shared.lock().problem = Some(problem);
-                std::thread::sleep(backoff);
-                backoff = (backoff * 2).min(BACKOFF_MAX);
-                continue;
-            }
-        };
-        match begin_session(&mut bus, shared) {
-            Ok(()) => {
-                backoff = BACKOFF_INITIAL;
-                run_cycles(&mut bus, shared);
-            }
-            Err(BusError::Drive { axis, text }) => {
-                latch(shared, axis, &text);
-                wait_for_reset(shared);
-            }
-            Err(BusError::Lost(problem)) => {
-                shared.lock().problem = Some(problem);
-                std::thread::sleep(backoff);
-                backoff = (backoff * 2).min(BACKOFF_MAX);
-            }
-        }
-        let mut state = shared.lock();
-        state.up = false;
-        state.queue.clear();
-    }
-}
-
-/// Sets the bus up and publishes the session and its first feedback (holding).
-fn begin_session(bus: &mut Bus, shared: &Shared) -> Result<(), BusError> {
-    let (ranges, present) = set_up(bus, shared)?;
-    let positions = radians(shared, &present);
-    let mut state = shared.lock();
-    state.ranges = ranges;
-    state.up = true;
-    state.sessions += 1;
-    state.counters.reconnects = state.sessions - 1;
-    state.latched = None;
-    state.restart = false;
-    state.queue.clear();
-    publish(
-        shared,
-        &mut state,
-        Feedback {
-            seq: 0,
-            positions,
-            status: ControllerStatus::Holding,
-        },
-    );
-    Ok(())
-}
-
-fn radians(shared: &Shared, ticks: &[i32]) -> AxisValues {
-    let values: Vec<f64> = shared
-        .settings
-        .axes
-        .iter()
-        .zip(ticks)
-        .map(|(axis, &t)| axis.radians(i64::from(t)))
-        .collect();
-    AxisValues::from_slice(&values).unwrap_or(AxisValues::zeros(0))
-}
-
-fn publish(shared: &Shared, state: &mut State, feedback: Feedback) {
-    state.feedback = Some(feedback);
-    state.generation += 1;
-    shared.feedback.notify_all();
-}
-
-fn latch(shared: &Shared, axis: usize, text: &str) {
-    let fault = Fault::Drive { axis: axis as u8 };
-    let mut state = shared.lock();
-    state.latched = Some(fault);
-    state.events.push_back(LinkEvent::Fault(FaultReport {
-        fault,
-        text: text.to_string(),
-    }));
-    // No feedback now: the streamer reads the event first, with its words, next cycle;
-    // every feedback after it carries the fault.
-}
-
-/// After a fault at set-up: nothing moves until a Reset (or the link is dropped).
-fn wait_for_reset(shared: &Shared) {
-    let mut state = shared.lock();
-    while !shared.closed.load(Ordering::SeqCst) {
-        if let Some(index) = state.queue.iter().position(|j| matches!(j, Job::Reset)) {
-            state.queue.drain(..=index);
-            return;
-        }
-        state.queue.clear();
-        state = shared
-            .command
-            .wait_timeout(state, POLL)
-            .unwrap_or_else(|p| p.into_inner())
-            .0;
-    }
-}
-
-/// The next command, or `None` when the link was dropped or asked to restart.
-fn next_job(shared: &Shared) -> Option<Job> {
-    let mut state = shared.lock();
-    loop {
-        if shared.closed.load(Ordering::SeqCst) || state.restart {
-            return None;
-        }
-        if let Some(job) = state.queue.pop_front() {
-            return Some(job);
-        }
-        state = shared
-            .command
-            .wait_timeout(state, POLL)
-            .unwrap_or_else(|p| p.into_inner())
-            .0;
-    }
 }
 
 /// Bus cycles, one per command, until loss, a fault reset or the link is dropped.
@@ -744,29 +404,21 @@ fn run_cycles(bus: &mut Bus, shared: &Shared) {
     let mut present: Vec<i32> = Vec::new();
     // The goals last written: a servo that stops being streamed goes on to them.
     let mut goals_written: Option<Vec<i32>> = None;
-    while let Some(job) = next_job(shared) {
+    while let Ok(Some(job)) = shared.next_job(None) {
         let latched = shared.lock().latched.is_some();
         match job {
             Job::Reset => return,
-            Job::Goals(seq, goals) if !latched => {
-                let axes = shared.settings.ids.len();
-                let values: Vec<(u8, i32)> = shared
-                    .settings
-                    .ids
-                    .iter()
-                    .copied()
-                    .zip(goals[..axes].iter().copied())
-                    .collect();
-                encode_sync_write_i32(address::GOAL_POSITION, &values, &mut bus.out);
-                if bus.write_out(shared).is_err() {
+            Job::Targets(seq, goals) if !latched => {
+                let goals = &goals[..shared.device.settings.ids.len()];
+                if write_goals(bus, shared, goals).is_err() {
                     return;
                 }
                 last_seq = seq;
                 holding = false;
-                goals_written = Some(values.iter().map(|(_, v)| *v).collect());
+                goals_written = Some(goals.to_vec());
             }
-            Job::Goals(..) => {}
-            Job::Read { holding: hold } => holding |= hold,
+            Job::Targets(..) => {}
+            Job::Cycle { holding: hold } => holding |= hold,
             Job::EStop => {
                 estop(bus, shared, &present);
                 holding = true;
@@ -775,7 +427,6 @@ fn run_cycles(bus: &mut Bus, shared: &Shared) {
         match sync_read(bus, shared) {
             Ok(Some(ticks)) => {
                 missing_cycles = 0;
-                let mut state = shared.lock();
                 // Holding means at rest on the goal: until the servos reach the goals last
                 // written they still move, too slowly, perhaps, for a tick to show it.
                 let settled = goals_written.as_ref().is_none_or(|goals| {
@@ -784,22 +435,8 @@ fn run_cycles(bus: &mut Bus, shared: &Shared) {
                         .zip(&ticks)
                         .all(|(g, t)| (g - t).abs() <= SETTLED_TICKS)
                 });
-                let status = match state.latched {
-                    Some(fault) => ControllerStatus::Fault(fault),
-                    None if holding && settled => ControllerStatus::Holding,
-                    None => ControllerStatus::Ok,
-                };
-                let positions = radians(shared, &ticks);
+                shared.publish_cycle(last_seq, &ticks, holding && settled);
                 present = ticks;
-                publish(
-                    shared,
-                    &mut state,
-                    Feedback {
-                        seq: last_seq,
-                        positions,
-                        status,
-                    },
-                );
             }
             Ok(None) => {
                 missing_cycles += 1;
@@ -807,40 +444,40 @@ fn run_cycles(bus: &mut Bus, shared: &Shared) {
                     return;
                 }
             }
-            Err(BusError::Drive { axis, text }) => latch(shared, axis, &text),
+            Err(BusError::Drive { axis, text }) => {
+                shared.latch(Fault::Drive { axis: axis as u8 }, &text)
+            }
             Err(BusError::Lost(_)) => return,
         }
     }
 }
 
+/// One Sync Write of Goal Position: `goals` (ticks) in axis order.
+fn write_goals(bus: &mut Bus, shared: &Shared, goals: &[i32]) -> Result<(), BusError> {
+    let ids = shared.device.settings.ids.iter().copied();
+    let values: Vec<(u8, i32)> = ids.zip(goals.iter().copied()).collect();
+    encode_sync_write_i32(address::GOAL_POSITION, &values, &mut bus.out);
+    bus.write_out(shared)
+}
+
 /// E-stop: every goal set to where its servo is, and the fault latched until a Reset.
 fn estop(bus: &mut Bus, shared: &Shared, present: &[i32]) {
-    if present.len() == shared.settings.ids.len() {
-        let values: Vec<(u8, i32)> = shared
-            .settings
-            .ids
-            .iter()
-            .copied()
-            .zip(present.iter().copied())
-            .collect();
-        encode_sync_write_i32(address::GOAL_POSITION, &values, &mut bus.out);
-        let _ = bus.write_out(shared);
+    if present.len() == shared.device.settings.ids.len() {
+        let _ = write_goals(bus, shared, present);
     }
-    let mut state = shared.lock();
-    state.latched = Some(Fault::EStop);
-    state.events.push_back(LinkEvent::Fault(FaultReport {
-        fault: Fault::EStop,
-        text: "e-stop: every servo's goal set to its present position".into(),
-    }));
+    shared.latch(
+        Fault::EStop,
+        "e-stop: every servo's goal set to its present position",
+    );
 }
 
 /// Sync Read of Present Position: every servo's ticks, `None` when a status is missing
 /// (each counted as a gap), a drive error for a status with an error byte.
 fn sync_read(bus: &mut Bus, shared: &Shared) -> Result<Option<Vec<i32>>, BusError> {
-    let ids = &shared.settings.ids;
+    let ids = &shared.device.settings.ids;
     encode_sync_read(address::PRESENT_POSITION, 4, ids, &mut bus.out);
     bus.write_out(shared)?;
-    let deadline = Instant::now() + shared.settings.cycle_timeout;
+    let deadline = Instant::now() + shared.device.settings.cycle_timeout;
     let mut ticks = Vec::with_capacity(ids.len());
     for (axis, &id) in ids.iter().enumerate() {
         let Some(packet) = bus.status_from(shared, id, deadline)? else {

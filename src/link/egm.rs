@@ -17,9 +17,9 @@
 //! where the arm is. It owns the socket and the EGM session state; it must not plan, check
 //! limits (the streamer's gate does) or change a target's values.
 
-use super::egm_wire::{EgmRobot, EgmSensor, MciState, MotorState, RapidState};
 use super::{Link, LinkCounters, LinkError};
 use crate::clock::Clock;
+use crate::protocol::egm::{EgmRobot, EgmSensor, MciState, MotorState, RapidState};
 use crate::protocol::{AxisValues, Command, ControllerStatus, Feedback, JointTarget};
 use prost::Message;
 use std::collections::VecDeque;

@@ -4,19 +4,17 @@
 
 mod can;
 mod canopen;
-pub mod canopen_wire;
 mod channel;
+mod device;
 mod dynamixel;
-pub mod dynamixel_wire;
 mod egm;
-pub mod egm_wire;
 mod loopback;
 mod serial;
 mod session;
 mod spec;
 mod tcp;
 
-pub use can::{CanBus, SEND_PATIENCE, connect_can, interface_mtu, interface_up};
+pub use can::connect_can;
 pub use canopen::{
     CanopenError, CanopenLink, CanopenSettings, HEARTBEAT_LOST_FACTOR, SETUP_PATIENCE,
     connect_canopen,
@@ -28,7 +26,7 @@ pub use dynamixel::{
 };
 pub use egm::{EgmClock, EgmLink, EgmState, LINK_SILENCE, PLAYOUT_DEPTH, bind_egm};
 pub use loopback::LoopbackLink;
-pub use serial::{SerialSettings, connect_serial};
+pub use serial::connect_serial;
 pub use session::{BridgeSession, Due, Outgoing};
 pub use spec::{DEFAULT_BAUD, DYNAMIXEL_DEFAULT_BAUD, LinkSpec, LinkSpecError};
 pub use tcp::{TcpSettings, connect_tcp};

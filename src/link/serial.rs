@@ -10,48 +10,12 @@ use super::session::{BridgeSession, Due, Outgoing};
 use super::{ChannelLink, IoEnds, LinkShared};
 use crate::protocol::codec::{FrameDecoder, Message, encode_frame};
 use crate::protocol::{Command, Hello};
-use serialport::{DataBits, FlowControl, Parity, SerialPort, StopBits};
+use crate::transport::{Backoff, SerialSettings};
+use serialport::SerialPort;
 use std::io::ErrorKind;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
-
-#[derive(Debug, Clone, PartialEq)]
-pub struct SerialSettings {
-    pub path: String,
-    pub baud: u32,
-    pub parity: Parity,
-    pub stop_bits: StopBits,
-    pub flow_control: FlowControl,
-}
-
-impl SerialSettings {
-    /// 8N1, no flow control.
-    pub fn new(path: impl Into<String>, baud: u32) -> Self {
-        Self {
-            path: path.into(),
-            baud,
-            parity: Parity::None,
-            stop_bits: StopBits::One,
-            flow_control: FlowControl::None,
-        }
-    }
-
-    pub fn open(&self) -> serialport::Result<Box<dyn SerialPort>> {
-        serialport::new(&self.path, self.baud)
-            .data_bits(DataBits::Eight)
-            .parity(self.parity)
-            .stop_bits(self.stop_bits)
-            .flow_control(self.flow_control)
-            .timeout(READ_TIMEOUT)
-            .open()
-    }
-}
-
-/// How long a read waits before the reader checks whether the link was closed.
-const READ_TIMEOUT: Duration = Duration::from_millis(20);
-const BACKOFF_INITIAL: Duration = Duration::from_millis(10);
-const BACKOFF_MAX: Duration = Duration::from_secs(1);
+use std::time::Instant;
 
 /// Starts the I/O threads and returns the link; it opens the port in the background.
 /// `hello` is the bridge's, sent on every open.
@@ -74,7 +38,7 @@ struct Shared {
 }
 
 async fn keep_open(settings: SerialSettings, mut ends: IoEnds, session: BridgeSession) {
-    let mut backoff = BACKOFF_INITIAL;
+    let mut backoff = Backoff::default();
     let mut sessions = 0u64;
     let (answer_tx, mut answers) = tokio::sync::mpsc::channel(4);
     let shared = Arc::new(Shared {
@@ -85,8 +49,7 @@ async fn keep_open(settings: SerialSettings, mut ends: IoEnds, session: BridgeSe
         let port = match settings.open() {
             Ok(port) => port,
             Err(_) => {
-                tokio::time::sleep(backoff).await;
-                backoff = (backoff * 2).min(BACKOFF_MAX);
+                tokio::time::sleep(backoff.next_wait()).await;
                 continue;
             }
         };
@@ -94,7 +57,7 @@ async fn keep_open(settings: SerialSettings, mut ends: IoEnds, session: BridgeSe
             LinkShared::count(&ends.shared.reconnects);
         }
         sessions += 1;
-        backoff = BACKOFF_INITIAL;
+        backoff.reset();
         while ends.commands.try_recv().is_ok() {}
         while answers.try_recv().is_ok() {}
         let Ok(reader) = port.try_clone() else {

@@ -133,7 +133,7 @@ fn parse_dynamixel(rest: &str) -> Result<LinkSpec, &'static str> {
                     Ok(list)
                         if list
                             .iter()
-                            .all(|id| *id <= super::dynamixel_wire::MAX_SERVO_ID) =>
+                            .all(|id| *id <= crate::protocol::dynamixel::MAX_SERVO_ID) =>
                     {
                         ids = Some(list)
                     }

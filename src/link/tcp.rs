@@ -10,6 +10,7 @@ use super::session::{BridgeSession, Due, Outgoing};
 use super::{ChannelLink, IoEnds, LinkShared};
 use crate::protocol::Hello;
 use crate::protocol::codec::{FrameDecoder, Message, encode_frame};
+use crate::transport::{BACKOFF_INITIAL, BACKOFF_MAX, Backoff};
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -27,8 +28,8 @@ impl TcpSettings {
     pub fn new(address: impl Into<String>) -> Self {
         Self {
             address: address.into(),
-            backoff_initial: Duration::from_millis(10),
-            backoff_max: Duration::from_secs(1),
+            backoff_initial: BACKOFF_INITIAL,
+            backoff_max: BACKOFF_MAX,
         }
     }
 }
@@ -47,7 +48,7 @@ pub fn connect_tcp(settings: TcpSettings, hello: Hello) -> std::io::Result<Chann
 }
 
 async fn keep_connected(settings: TcpSettings, mut ends: IoEnds, mut bridge: BridgeSession) {
-    let mut backoff = settings.backoff_initial;
+    let mut backoff = Backoff::between(settings.backoff_initial, settings.backoff_max);
     let mut sessions = 0u64;
     while !ends.shared.closed.load(Ordering::SeqCst) {
         match TcpStream::connect(&settings.address).await {
@@ -56,7 +57,7 @@ async fn keep_connected(settings: TcpSettings, mut ends: IoEnds, mut bridge: Bri
                     LinkShared::count(&ends.shared.reconnects);
                 }
                 sessions += 1;
-                backoff = settings.backoff_initial;
+                backoff.reset();
                 let _ = stream.set_nodelay(true);
                 while ends.commands.try_recv().is_ok() {}
                 ends.shared.connected.store(true, Ordering::SeqCst);
@@ -68,8 +69,7 @@ async fn keep_connected(settings: TcpSettings, mut ends: IoEnds, mut bridge: Bri
                 }
             }
             Err(_) => {
-                tokio::time::sleep(backoff).await;
-                backoff = (backoff * 2).min(settings.backoff_max);
+                tokio::time::sleep(backoff.next_wait()).await;
             }
         }
     }

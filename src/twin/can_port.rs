@@ -14,19 +14,17 @@
 //! [`serve_twin`]: super::server::serve_twin
 
 use super::server::ControllerPort;
-use crate::link::{CanBus, SEND_PATIENCE};
 use crate::protocol::{
     CanAssembler, CanCounters, CanMapping, CanPayload, CanSender, FrameDecoder, can_frames,
     encode_frame,
 };
+use crate::transport::{Backoff, CanBus, SEND_PATIENCE};
 use std::collections::VecDeque;
 use std::io::{self, ErrorKind};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-const BACKOFF_INITIAL: Duration = Duration::from_millis(10);
-const BACKOFF_MAX: Duration = Duration::from_secs(1);
 /// How long a read without a socket waits before the loop looks again.
 const DETACHED_WAIT: Duration = Duration::from_millis(1);
 
@@ -73,7 +71,7 @@ pub struct CanPort {
     outgoing: FrameDecoder,
     frames: Vec<CanPayload>,
     retry_at: Instant,
-    backoff: Duration,
+    backoff: Backoff,
     stats: Arc<CanPortStats>,
 }
 
@@ -103,7 +101,7 @@ impl CanPort {
             outgoing: FrameDecoder::default(),
             frames: Vec::with_capacity(256),
             retry_at: Instant::now(),
-            backoff: BACKOFF_INITIAL,
+            backoff: Backoff::default(),
             stats: Arc::default(),
         })
     }
@@ -135,11 +133,10 @@ impl ControllerPort for CanPort {
             match CanBus::open(&self.interface, &self.mapping) {
                 Ok(bus) => {
                     self.bus = Some(bus);
-                    self.backoff = BACKOFF_INITIAL;
+                    self.backoff.reset();
                 }
                 Err(_) => {
-                    self.retry_at = Instant::now() + self.backoff;
-                    self.backoff = (self.backoff * 2).min(BACKOFF_MAX);
+                    self.retry_at = Instant::now() + self.backoff.next_wait();
                 }
             }
         }
@@ -201,7 +198,7 @@ impl ControllerPort for CanPort {
         self.pending.clear();
         self.lengths.clear();
         self.outgoing.reset();
-        self.retry_at = Instant::now() + self.backoff;
+        self.retry_at = Instant::now() + self.backoff.wait();
     }
 
     fn describe(&self) -> String {

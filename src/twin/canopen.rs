@@ -20,13 +20,13 @@
 //! it must not know about trajectories or jobs.
 
 use super::server::ControllerPort;
-use crate::link::canopen_wire::{
+use crate::protocol::CanPayload;
+use crate::protocol::can::classic_frame_bits;
+use crate::protocol::canopen::{
     CSP_MODE, DRIVE_PROFILE, PDO_BYTES, PDO_INVALID, PowerState, SdoAbortCode, SdoRequest, Value,
     abort, cob, emcy_code, mapping_entry, nmt_command, nmt_state, object, period_of,
 };
-use crate::link::dynamixel_wire::AxisTicks;
-use crate::protocol::CanPayload;
-use crate::protocol::can::classic_frame_bits;
+use crate::protocol::dynamixel::AxisTicks;
 use crate::rig::{JointLimits, LIMIT_SLACK, Rig};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -443,7 +443,7 @@ impl CanopenBus {
 
     /// The SDO server (expedited transfers): the answer to one request.
     fn sdo(&mut self, axis: usize, request: &[u8], out: &mut Vec<CanPayload>) -> [u8; 8] {
-        let address = |at: (u16, u8)| crate::link::canopen_wire::Address::new(at.0, at.1);
+        let address = |at: (u16, u8)| crate::protocol::canopen::Address::new(at.0, at.1);
         let aborted = |at: (u16, u8), code: u32| {
             let mut p = [0u8; 8];
             p[0] = 0x80;
@@ -1003,13 +1003,13 @@ fn send_all(
 /// The drives' end of a SocketCAN interface as a [`ControllerPort`]: each read hands over
 /// the frames waiting, each write sends one frame (both in [`frame_bytes`] framing).
 pub struct CanopenPort {
-    bus: crate::link::CanBus,
+    bus: crate::transport::CanBus,
 }
 
 impl CanopenPort {
     pub fn open(interface: &str) -> std::io::Result<Self> {
         Ok(Self {
-            bus: crate::link::CanBus::open_classic(interface)?,
+            bus: crate::transport::CanBus::open_classic(interface)?,
         })
     }
 }
@@ -1042,7 +1042,8 @@ impl ControllerPort for CanopenPort {
         let (frame, _) = frame_of(frame).ok_or_else(|| {
             std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a CAN frame")
         })?;
-        self.bus.send_patiently(&frame, crate::link::SEND_PATIENCE)
+        self.bus
+            .send_patiently(&frame, crate::transport::SEND_PATIENCE)
     }
 
     fn detach(&mut self) {}

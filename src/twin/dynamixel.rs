@@ -17,7 +17,7 @@
 //! the simulated servos only; it must not know about trajectories or jobs.
 
 use super::server::ControllerPort;
-use crate::link::dynamixel_wire::{
+use crate::protocol::dynamixel::{
     AxisTicks, BROADCAST_ID, EXTENDED_POSITION_MODE, EXTENDED_RANGE, POSITION_MODE, Packet,
     PacketDecoder, address, encode_status, error, instruction,
 };
@@ -201,7 +201,7 @@ impl DynamixelBus {
             });
         }
         for (i, id) in ids.iter().enumerate() {
-            if *id > crate::link::dynamixel_wire::MAX_SERVO_ID || ids[..i].contains(id) {
+            if *id > crate::protocol::dynamixel::MAX_SERVO_ID || ids[..i].contains(id) {
                 return Err(DynamixelTwinError::BadId(*id));
             }
         }
@@ -488,7 +488,7 @@ impl DynamixelBus {
         let servo = &mut self.servos[index];
         match at {
             address::ID
-                if (0..=i64::from(crate::link::dynamixel_wire::MAX_SERVO_ID)).contains(&value) =>
+                if (0..=i64::from(crate::protocol::dynamixel::MAX_SERVO_ID)).contains(&value) =>
             {
                 servo.id = value as u8
             }
@@ -681,7 +681,7 @@ pub fn serve_dynamixel(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::link::dynamixel_wire::{encode_packet, read_params, write_params};
+    use crate::protocol::dynamixel::{encode_packet, read_params, write_params};
 
     fn bus() -> DynamixelBus {
         let path = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("config/irb120.toml");

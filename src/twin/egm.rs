@@ -11,7 +11,7 @@
 //! It owns the simulated robot only; it must not know about trajectories or jobs.
 
 use crate::clock::{Clock, WallClock};
-use crate::link::egm_wire::{
+use crate::protocol::egm::{
     EgmClock, EgmFeedBack, EgmHeader, EgmMciState, EgmMotorState, EgmPlanned,
     EgmRapidCtrlExecState, EgmRobot, EgmSensor, MciState, MessageType, MotorState, RapidState,
     degrees,

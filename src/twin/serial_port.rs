@@ -4,7 +4,7 @@
 //! and leaving is seen.
 
 use super::server::{ControllerPort, DETACHED_POLL};
-use crate::link::SerialSettings;
+use crate::transport::SerialSettings;
 use serialport::{SerialPort, TTYPort};
 use std::io::ErrorKind;
 use std::time::Duration;

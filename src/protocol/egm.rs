@@ -50,9 +50,11 @@ pub struct EgmClock {
     pub usec: u64,
 }
 
-/// Planned (robot) or commanded (sensor) position; field 2 (cartesian) is not used here.
+/// egm.proto's EgmPlanned (the robot's planned or the sensor's commanded position) and
+/// EgmFeedBack (the measured position): the same fields, joints 1, cartesian 2 (not used
+/// here), external joints 3 and time 4, so one struct serves both.
 #[derive(Clone, PartialEq, Message)]
-pub struct EgmPlanned {
+pub struct EgmJointPosition {
     #[prost(message, optional, tag = "1")]
     pub joints: Option<EgmJoints>,
     #[prost(message, optional, tag = "3")]
@@ -60,6 +62,9 @@ pub struct EgmPlanned {
     #[prost(message, optional, tag = "4")]
     pub time: Option<EgmClock>,
 }
+
+pub type EgmPlanned = EgmJointPosition;
+pub type EgmFeedBack = EgmJointPosition;
 
 /// Speed references, deg/s in joint mode; field 2 (cartesians) is not used here.
 #[derive(Clone, PartialEq, Message)]
@@ -70,60 +75,48 @@ pub struct EgmSpeedRef {
     pub external_joints: Option<EgmJoints>,
 }
 
-/// Measured position; field 2 (cartesian) is not used here.
-#[derive(Clone, PartialEq, Message)]
-pub struct EgmFeedBack {
-    #[prost(message, optional, tag = "1")]
-    pub joints: Option<EgmJoints>,
-    #[prost(message, optional, tag = "3")]
-    pub external_joints: Option<EgmJoints>,
-    #[prost(message, optional, tag = "4")]
-    pub time: Option<EgmClock>,
+/// One EGM state: its enumeration (0 is `Undefined` in every one, which an absent or
+/// unknown value reads as), and the message that carries it as its field 1, required
+/// (egm.proto wraps every state so). `$name` is the enumeration's name as prost wants it.
+macro_rules! egm_state {
+    ($(#[$doc:meta])* $state:ident, $name:tt, $message:ident { $($variant:ident = $value:tt),+ }) => {
+        $(#[$doc])*
+        #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]
+        #[repr(i32)]
+        pub enum $state {
+            Undefined = 0,
+            $($variant = $value),+
+        }
+
+        #[derive(Clone, PartialEq, Message)]
+        pub struct $message {
+            #[prost(enumeration = $name, required, tag = "1")]
+            pub state: i32,
+        }
+
+        impl $message {
+            /// The state `message` carries: `Undefined` when it is absent or unknown.
+            pub fn of(message: Option<&Self>) -> $state {
+                message
+                    .and_then(|m| $state::try_from(m.state).ok())
+                    .unwrap_or($state::Undefined)
+            }
+        }
+    };
 }
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]
-#[repr(i32)]
-pub enum MotorState {
-    Undefined = 0,
-    On = 1,
-    Off = 2,
-}
-
-#[derive(Clone, PartialEq, Message)]
-pub struct EgmMotorState {
-    #[prost(enumeration = "MotorState", required, tag = "1")]
-    pub state: i32,
-}
-
-/// The EGM (motion control interface) state.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]
-#[repr(i32)]
-pub enum MciState {
-    Undefined = 0,
-    Error = 1,
-    Stopped = 2,
-    Running = 3,
-}
-
-#[derive(Clone, PartialEq, Message)]
-pub struct EgmMciState {
-    #[prost(enumeration = "MciState", required, tag = "1")]
-    pub state: i32,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, prost::Enumeration)]
-#[repr(i32)]
-pub enum RapidState {
-    Undefined = 0,
-    Stopped = 1,
-    Running = 2,
-}
-
-#[derive(Clone, PartialEq, Message)]
-pub struct EgmRapidCtrlExecState {
-    #[prost(enumeration = "RapidState", required, tag = "1")]
-    pub state: i32,
-}
+egm_state!(MotorState, "MotorState", EgmMotorState { On = 1, Off = 2 });
+egm_state!(
+    /// The EGM (motion control interface) state.
+    MciState,
+    "MciState",
+    EgmMciState { Error = 1, Stopped = 2, Running = 3 }
+);
+egm_state!(
+    RapidState,
+    "RapidState",
+    EgmRapidCtrlExecState { Stopped = 1, Running = 2 }
+);
 
 /// From the robot controller, every EGM cycle.
 #[derive(Clone, PartialEq, Message)]
@@ -160,24 +153,15 @@ pub struct EgmSensor {
 
 impl EgmRobot {
     pub fn motors(&self) -> MotorState {
-        self.motor_state
-            .as_ref()
-            .and_then(|m| MotorState::try_from(m.state).ok())
-            .unwrap_or(MotorState::Undefined)
+        EgmMotorState::of(self.motor_state.as_ref())
     }
 
     pub fn mci(&self) -> MciState {
-        self.mci_state
-            .as_ref()
-            .and_then(|m| MciState::try_from(m.state).ok())
-            .unwrap_or(MciState::Undefined)
+        EgmMciState::of(self.mci_state.as_ref())
     }
 
     pub fn rapid(&self) -> RapidState {
-        self.rapid_exec_state
-            .as_ref()
-            .and_then(|m| RapidState::try_from(m.state).ok())
-            .unwrap_or(RapidState::Undefined)
+        EgmRapidCtrlExecState::of(self.rapid_exec_state.as_ref())
     }
 
     /// The measured joint positions, degrees, when the message has them.

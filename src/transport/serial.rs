@@ -1,0 +1,45 @@
+//! The serial line's settings ([`SerialSettings`]) both sides of a serial link use: the
+//! bridge's serial and Dynamixel links and the twin's serial port. Device, baud, parity,
+//! stop bits and flow control, and how a port is opened with them (8 data bits, a short
+//! read timeout).
+//!
+//! It owns the settings and the open only: it must not frame, read or write (its callers
+//! do).
+
+use serialport::{DataBits, FlowControl, Parity, SerialPort, StopBits};
+use std::time::Duration;
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct SerialSettings {
+    pub path: String,
+    pub baud: u32,
+    pub parity: Parity,
+    pub stop_bits: StopBits,
+    pub flow_control: FlowControl,
+}
+
+impl SerialSettings {
+    /// 8N1, no flow control.
+    pub fn new(path: impl Into<String>, baud: u32) -> Self {
+        Self {
+            path: path.into(),
+            baud,
+            parity: Parity::None,
+            stop_bits: StopBits::One,
+            flow_control: FlowControl::None,
+        }
+    }
+
+    pub fn open(&self) -> serialport::Result<Box<dyn SerialPort>> {
+        serialport::new(&self.path, self.baud)
+            .data_bits(DataBits::Eight)
+            .parity(self.parity)
+            .stop_bits(self.stop_bits)
+            .flow_control(self.flow_control)
+            .timeout(READ_TIMEOUT)
+            .open()
+    }
+}
+
+/// How long a read waits before the reader checks whether the link was closed.
+const READ_TIMEOUT: Duration = Duration::from_millis(20);
