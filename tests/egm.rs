@@ -8,7 +8,7 @@ use prost::Message;
 use rigbridge::clock::Clock;
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::run_job;
-use rigbridge::link::egm_wire::{EgmRobot, EgmSensor, MciState, MotorState};
+use rigbridge::link::egm_wire::{EgmAxes, EgmRobot, EgmSensor, MciState, MotorState};
 use rigbridge::link::{Link, bind_egm};
 use rigbridge::stream::{Outcome, StreamControl};
 use rigbridge::twin::egm::{
@@ -35,8 +35,18 @@ fn settings() -> RunSettings {
     load_run_settings(&path).expect("the default run settings load")
 }
 
+/// Where the settings' axes travel in EGM: `[egm]`, or the rig's last six as the robot's.
+fn axes(settings: &RunSettings) -> EgmAxes {
+    settings
+        .config
+        .egm
+        .axes(&settings.file, &settings.rig)
+        .expect("the EGM axes")
+}
+
 fn twin_towards(settings: &RunSettings, sensor: SocketAddr, egm: EgmTwinSettings) -> EgmTwin {
-    let model = EgmRobotModel::new(&settings.rig, egm, &settings.initial()).expect("model");
+    let model =
+        EgmRobotModel::new(&settings.rig, axes(settings), egm, &settings.initial()).expect("model");
     EgmTwin::new(model, sensor).expect("twin socket")
 }
 
@@ -63,7 +73,7 @@ fn bridge_streams_the_default_job_to_the_egm_twin_within_its_limits() {
     real_time();
     let settings = settings();
     let period = Duration::from_secs_f64(settings.period_s());
-    let mut link = bind_egm("127.0.0.1:0", settings.rig.dof(), period).expect("bind");
+    let mut link = bind_egm("127.0.0.1:0", axes(&settings), period).expect("bind");
     let sensor = link.local_address();
     let control = Arc::new(EgmTwinControl::default());
     let twin = twin_towards(&settings, sensor, EgmTwinSettings::default());
@@ -117,7 +127,7 @@ fn the_link_holds_until_motors_are_on_and_the_clock_follows_the_robot() {
     let _cycles = one_at_a_time();
     let settings = settings();
     let period = Duration::from_secs_f64(settings.period_s());
-    let mut link = bind_egm("127.0.0.1:0", settings.rig.dof(), period).expect("bind");
+    let mut link = bind_egm("127.0.0.1:0", axes(&settings), period).expect("bind");
     let egm = EgmTwinSettings {
         motors_on: false,
         ..EgmTwinSettings::default()
@@ -187,7 +197,7 @@ fn without_replies_the_twin_ends_the_session_in_hold_after_comm_timeout() {
         assert!((actual.to_radians() - initial).abs() < 1e-9);
     }
     // A sensor answering again does not restart it: RAPID must run EGMRunJoint again.
-    let reply = EgmSensor::joint_correction(1, 0, &settings.initial(), &[0.0; 6]);
+    let reply = EgmSensor::joint_correction(1, 0, &axes(&settings), &settings.initial(), &[0.0; 6]);
     let twin_address = read_from(&sensor).1;
     sensor
         .send_to(&reply.encode_to_vec(), twin_address)
@@ -221,7 +231,7 @@ fn a_reference_jump_is_refused_with_mci_error_and_no_motion() {
     // 5 degrees in one 4 ms cycle is 1250 deg/s: far over joint 1's 250 deg/s.
     let mut jump = settings.initial();
     jump[0] += 5f64.to_radians();
-    let reply = EgmSensor::joint_correction(1, 0, &jump, &[0.0; 6]);
+    let reply = EgmSensor::joint_correction(1, 0, &axes(&settings), &jump, &[0.0; 6]);
     sensor
         .send_to(&reply.encode_to_vec(), twin_address)
         .expect("send");

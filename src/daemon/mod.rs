@@ -239,8 +239,12 @@ pub fn open_link(
         }
         LinkSpec::Egm { address } => {
             let period = Duration::from_secs_f64(settings.period_s());
-            let link = crate::link::bind_egm(address, settings.rig.dof(), period)
-                .map_err(LinkError::Io)?;
+            let axes = settings
+                .config
+                .egm
+                .axes(&settings.file, &settings.rig)
+                .map_err(|e| DaemonError::Unavailable(e.to_string()))?;
+            let link = crate::link::bind_egm(address, axes, period).map_err(LinkError::Io)?;
             let timeout = settings.config.stream.reconnect_timeout_s;
             wait_for_link(&link, &crate::clock::WallClock::new(), timeout);
             Ok(Box::new(link))
@@ -257,16 +261,6 @@ pub fn dynamixel_settings(
     ids: &[u8],
 ) -> Result<crate::link::DynamixelSettings, DaemonError> {
     let rig = &settings.rig;
-    if let Some(joint) = rig
-        .joints
-        .iter()
-        .find(|j| j.kind != crate::rig::JointKind::Revolute)
-    {
-        return Err(DaemonError::Unavailable(format!(
-            "a Dynamixel link drives revolute axes only; {} is prismatic",
-            joint.name
-        )));
-    }
     let axes = settings
         .config
         .dynamixel
@@ -306,16 +300,6 @@ pub fn canopen_settings(
     counts_per_turn: Option<u32>,
 ) -> Result<crate::link::CanopenSettings, DaemonError> {
     let rig = &settings.rig;
-    if let Some(joint) = rig
-        .joints
-        .iter()
-        .find(|j| j.kind != crate::rig::JointKind::Revolute)
-    {
-        return Err(DaemonError::Unavailable(format!(
-            "a CANopen link drives revolute axes only (counts a turn); {} is prismatic",
-            joint.name
-        )));
-    }
     let canopen = &settings.config.canopen;
     let unavailable = |e: crate::rig::ConfigError| DaemonError::Unavailable(e.to_string());
     let axes = canopen
