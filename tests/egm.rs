@@ -323,3 +323,100 @@ fn the_egm_twin_serves_abb_robot_clients_egm_sensor() {
     assert_eq!(counters.violations(), 0, "{counters:?}");
     assert_eq!(counters.comm_timeouts, 0);
 }
+
+/// Run settings for the painter rig (base_x, base_y, base_yaw, lift, then the IRB 120)
+/// with `job` and `section`, written to a file of their own.
+fn painter_settings(name: &str, section: &str, job: &str) -> RunSettings {
+    let rig = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("config/painter.toml");
+    let dir = std::env::temp_dir().join(format!("rigbridge-egm-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let file = dir.join(name);
+    let text = format!(
+        "rig = {rig:?}\n[twin]\ninitial_deg = [0, 0, 0, 0, 0, 0, 0, 0, 30, 0]\n{section}\n[job]\n{job}\n"
+    );
+    std::fs::write(&file, text).expect("write");
+    load_run_settings(&file).expect("the painter settings load")
+}
+
+#[test]
+fn the_painter_s_base_and_lift_travel_as_external_axes_and_its_job_completes() {
+    let _cycles = one_at_a_time();
+    real_time();
+    // Metres on base_x, base_y and lift, degrees elsewhere.
+    let job = "kind = \"move_joints\"\ntargets_deg = [[0.3, -0.2, 20.0, 0.4, 20.0, 10.0, 10.0, 0.0, 40.0, 5.0]]";
+    let settings = painter_settings("painter-egm.toml", "", job);
+    let period = Duration::from_secs_f64(settings.period_s());
+    let mut link = bind_egm("127.0.0.1:0", axes(&settings), period).expect("bind");
+    let control = Arc::new(EgmTwinControl::default());
+    let twin = twin_towards(&settings, link.local_address(), EgmTwinSettings::default());
+    let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
+    wait_for("the EGM session", || link.is_up());
+    let clock = link.pacing().expect("an EGM link paces the streamer");
+    let job = settings.config.job.clone();
+    let report = run_job(
+        &settings,
+        &job,
+        &mut link,
+        clock.as_ref(),
+        None,
+        &StreamControl::default(),
+    )
+    .expect("the job runs");
+    control.stop.store(true, Ordering::SeqCst);
+    let twin = twin.join().expect("twin thread");
+    let counters = twin.model().counters;
+    assert_eq!(
+        report.stream.outcome,
+        Outcome::Completed,
+        "{report:?} {counters:?}"
+    );
+    assert_eq!(counters.violations(), 0, "{counters:?}");
+    assert_eq!(counters.sessions, 1, "{counters:?}");
+    assert_eq!(link.state().malformed, 0);
+    // The twin got there: within 1 mm on the linear axes, 0.1 deg on the others.
+    let target = [
+        0.3,
+        -0.2,
+        20f64.to_radians(),
+        0.4,
+        20f64.to_radians(),
+        10f64.to_radians(),
+        10f64.to_radians(),
+        0.0,
+        40f64.to_radians(),
+        5f64.to_radians(),
+    ];
+    let linear = [0, 1, 3];
+    for (axis, (actual, wanted)) in twin.model().position().iter().zip(target).enumerate() {
+        let within = if linear.contains(&axis) {
+            1e-3
+        } else {
+            0.1f64.to_radians()
+        };
+        assert!(
+            (actual - wanted).abs() < within,
+            "axis {axis}: {actual} vs {wanted}"
+        );
+    }
+}
+
+#[test]
+fn external_axes_that_leave_more_than_six_robot_joints_are_refused_on_load() {
+    let rig = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("config/painter.toml");
+    let dir = std::env::temp_dir().join(format!("rigbridge-egm-bad-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let file = dir.join("short-list.toml");
+    let text = format!(
+        "rig = {rig:?}\n[stream]\nlink = \"egm://127.0.0.1:6510\"\n[egm]\nexternal_axes = [\"base_x\", \"lift\"]\n[twin]\ninitial_deg = [0, 0, 0, 0, 0, 0, 0, 0, 30, 0]\n[job]\nkind = \"move_joints\"\ntargets_deg = [[0, 0, 0, 0, 0, 0, 0, 0, 30, 0]]\n"
+    );
+    std::fs::write(&file, text).expect("write");
+    let error = load_run_settings(&file).expect_err("refused").to_string();
+    for part in [
+        "short-list.toml",
+        "egm.external_axes",
+        "[base_x, lift]",
+        "8 robot joints",
+    ] {
+        assert!(error.contains(part), "{part} in {error}");
+    }
+}
