@@ -63,7 +63,7 @@ pub struct EgmState {
     pub replies: u64,
     /// Robot seqno jumps (lost EgmRobot messages).
     pub robot_gaps: u64,
-    /// Datagrams that were not an EgmRobot with this rig's joint count.
+    /// Datagrams that were not an EgmRobot with this rig's joints and external axes.
     pub malformed: u64,
     /// Robot cycles in a job with no target ready (the position was held).
     pub underruns: u64,

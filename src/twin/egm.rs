@@ -66,6 +66,8 @@ impl Default for EgmTwinSettings {
 pub enum EgmTwinError {
     #[error("initial position has {got} values, the rig has {expected} axes")]
     InitialLength { expected: usize, got: usize },
+    #[error("the EGM axis layout has {got} axes, the rig has {expected}")]
+    AxisLayout { expected: usize, got: usize },
     #[error("initial position of {joint} is outside its limits")]
     InitialOutsideLimits { joint: String },
     #[error("EGM twin setting {0} must be finite and positive")]
@@ -94,7 +96,7 @@ pub struct EgmTwinCounters {
     /// Cycles whose message went out over half a period late (the host held the twin): each
     /// stretched.
     pub host_stalls: u64,
-    /// Largest |reference - actual| seen while running, rad.
+    /// Largest |reference - actual| seen while running, rad (m on a linear axis).
     pub tracking_max_rad: f64,
 }
 
@@ -164,7 +166,13 @@ impl EgmRobotModel {
         settings: EgmTwinSettings,
         initial: &[f64],
     ) -> Result<Self, EgmTwinError> {
-        if initial.len() != rig.dof() || axes.dof() != rig.dof() {
+        if axes.dof() != rig.dof() {
+            return Err(EgmTwinError::AxisLayout {
+                expected: rig.dof(),
+                got: axes.dof(),
+            });
+        }
+        if initial.len() != rig.dof() {
             return Err(EgmTwinError::InitialLength {
                 expected: rig.dof(),
                 got: initial.len(),
