@@ -206,8 +206,13 @@ impl Drop for TwinProcess {
 }
 
 fn spawn_run(config: &Path, report: &Path) -> Child {
+    spawn_run_on(&link(), config, report)
+}
+
+/// `rigbridge run` of `config` on `link`, writing its report to `report`.
+fn spawn_run_on(link: &str, config: &Path, report: &Path) -> Child {
     Process::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["run", "--link", &link(), "--config"])
+        .args(["run", "--link", link, "--config"])
         .arg(config)
         .arg("--report")
         .arg(report)
@@ -620,4 +625,66 @@ fn canopen_links_and_settings_are_checked_with_their_source_named() {
         .unwrap_err()
         .to_string();
     assert!(error.contains("nodes=1,200"), "{error}");
+}
+
+#[test]
+fn the_bridge_drives_the_painter_s_linear_drives_and_arm_within_limits() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    if let Err(why) = socketcan_here() {
+        return skip(&why);
+    }
+    // The painter: base_x, base_y and lift on linear drives of 1 um increments, base_yaw and
+    // the arm on rotary ones. Metres on the linear axes in targets_deg.
+    let rig = repo_path("config/painter.toml");
+    let config = scratch("painter.toml");
+    let text = format!(
+        "rig = {:?}\n[stream]\nrate_hz = {RATE_HZ:.1}\n[twin]\ninitial_deg = [0, 0, 0, 0, 0, 0, 0, 0, 30, 0]\n[canopen]\ncounts_per_metre = 1000000\n[job]\nkind = \"move_joints\"\ntargets_deg = [[0.3, -0.2, 20.0, 0.4, 20.0, 10.0, 10.0, 0.0, 40.0, 5.0]]\n",
+        rig.display().to_string()
+    );
+    std::fs::write(&config, text).unwrap();
+    let twin = TwinProcess::start(&config);
+    let json = scratch("painter.json");
+    let link = format!(
+        "canopen://{INTERFACE}?nodes=1,2,3,4,5,6,7,8,9,10&counts_per_turn={COUNTS_PER_TURN}"
+    );
+    let (report, ok) = finish_run(spawn_run_on(&link, &config, &json), &json);
+    let summary = twin.stop();
+    print_figures("painter move_joints, our twin's drives", &report, &summary);
+    assert!(ok, "{report}");
+    assert_eq!(report["outcome"], "completed", "{report}");
+    assert_eq!(report["limit_violations"], 0, "{report}");
+    for what in [
+        "outside limits",
+        "over speed",
+        "over acceleration",
+        "faults",
+        "SDO aborts",
+    ] {
+        assert_eq!(twin_count(&summary, what), 0.0, "{what}: {summary}");
+    }
+    let cycles = number(&report, "cycles");
+    assert!(twin_count(&summary, "TPDOs") >= 10.0 * cycles, "{summary}");
+}
+
+#[test]
+fn a_linear_drive_needs_counts_per_metre_named_with_its_file() {
+    let rig = repo_path("config/painter.toml");
+    let path = scratch("painter-no-metre.toml");
+    let text = format!(
+        "rig = {:?}\n[twin]\ninitial_deg = [0, 0, 0, 0, 0, 0, 0, 0, 30, 0]\n[job]\nkind = \"move_joints\"\ntargets_deg = [[0, 0, 0, 0, 0, 0, 0, 0, 30, 0]]\n",
+        rig.display().to_string()
+    );
+    std::fs::write(&path, text).unwrap();
+    let settings = rigbridge::daemon::config::load_run_settings(&path).unwrap();
+    let nodes: Vec<u8> = (1..=10).collect();
+    let error = rigbridge::daemon::canopen_settings(&settings, INTERFACE, &nodes, None)
+        .unwrap_err()
+        .to_string();
+    for part in [
+        "painter-no-metre.toml",
+        "canopen.counts_per_metre",
+        "required for prismatic axes (base_x, base_y, lift)",
+    ] {
+        assert!(error.contains(part), "{part} in {error}");
+    }
 }

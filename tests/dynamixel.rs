@@ -35,6 +35,11 @@ struct TwinBus {
 }
 
 fn twin_bus(settings: &RunSettings) -> TwinBus {
+    twin_bus_of(settings, &IDS)
+}
+
+/// The twin's bus of servos `ids` (one per axis, in axis order).
+fn twin_bus_of(settings: &RunSettings, ids: &[u8]) -> TwinBus {
     let ticks = settings
         .config
         .dynamixel
@@ -45,7 +50,7 @@ fn twin_bus(settings: &RunSettings) -> TwinBus {
         bandwidth_hz: settings.config.twin.bandwidth_hz,
     };
     let mut bus =
-        DynamixelBus::new(&settings.rig, &IDS, &ticks, &settings.initial(), twin).expect("bus");
+        DynamixelBus::new(&settings.rig, ids, &ticks, &settings.initial(), twin).expect("bus");
     let (mut port, path) = SerialControllerPort::pty().expect("a pty pair");
     let control = Arc::new(DynamixelTwinControl::default());
     let serving = control.clone();
@@ -316,4 +321,113 @@ fn the_twin_servos_answer_dynamixel_sdk_as_master() {
         torque.iter().all(|on| !on),
         "the peer turned torque off at the end"
     );
+}
+
+/// Run settings for the painter rig (base_x, base_y, base_yaw, lift, then the IRB 120) with
+/// `section` and `job`, written to a file of their own.
+fn painter_file(name: &str, section: &str, job: &str) -> PathBuf {
+    let rig = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("config/painter.toml");
+    let dir = std::env::temp_dir().join(format!("rigbridge-dxl-painter-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let file = dir.join(name);
+    let text = format!(
+        "rig = {rig:?}\n[twin]\ninitial_deg = [0, 0, 0, 0, 0, 0, 0, 0, 30, 0]\n{section}\n[job]\n{job}\n"
+    );
+    std::fs::write(&file, text).expect("write");
+    file
+}
+
+/// base_x and base_y on racks with a pinion of 0.1 m a turn (40960 ticks a metre at 4096 a
+/// turn), the lift on a lead screw of 20 mm (204800).
+const PAINTER_TICKS: &str =
+    "[dynamixel]\nticks_per_metre = [40960, 40960, 0, 204800, 0, 0, 0, 0, 0, 0]";
+
+#[test]
+fn the_bridge_drives_the_painter_s_linear_axes_and_arm_over_a_pty() {
+    let _cycles = one_at_a_time();
+    real_time();
+    let job = "kind = \"move_joints\"\ntargets_deg = [[0.3, -0.2, 20.0, 0.4, 20.0, 10.0, 10.0, 0.0, 40.0, 5.0]]";
+    let file = painter_file("painter-dxl.toml", PAINTER_TICKS, job);
+    let settings = load_run_settings(&file).expect("the painter settings load");
+    let ids: Vec<u8> = (1..=10).collect();
+    let twin = twin_bus_of(&settings, &ids);
+    let link_settings =
+        dynamixel_settings(&settings, &twin.path, 1_000_000, &ids).expect("link settings");
+    let mut link = connect_dynamixel(link_settings).expect("link");
+    wait_for("the bus set up", PATIENCE, || link.is_up());
+    let clock = rigbridge::clock::WallClock::new();
+    let job = settings.config.job.clone();
+    let report = run_job(
+        &settings,
+        &job,
+        &mut link,
+        &clock,
+        None,
+        &StreamControl::default(),
+    )
+    .expect("the job runs");
+    twin.control.stop.store(true, Ordering::SeqCst);
+    let (counters, positions, _) = twin.thread.join().expect("twin thread");
+    assert_eq!(
+        report.stream.outcome,
+        Outcome::Completed,
+        "{report:?} {counters:?}"
+    );
+    assert_eq!(counters.violations(), 0, "{counters:?}");
+    assert_eq!(counters.errors_answered, 0, "{counters:?}");
+    assert_eq!(counters.pings, 10);
+    // The servos got there: within 1 mm on the linear axes, 0.1 deg on the others.
+    let target = [0.3, -0.2, 20.0, 0.4, 20.0, 10.0, 10.0, 0.0, 40.0, 5.0];
+    for (axis, (actual, wanted)) in positions.iter().zip(target).enumerate() {
+        let (wanted, within) = if [0, 1, 3].contains(&axis) {
+            (wanted, 1e-3)
+        } else {
+            (f64::to_radians(wanted), 0.1f64.to_radians())
+        };
+        assert!(
+            (actual - wanted).abs() < within,
+            "axis {axis}: {actual} vs {wanted}"
+        );
+    }
+}
+
+#[test]
+fn a_prismatic_axis_needs_ticks_per_metre_and_errors_name_the_file_key_and_value() {
+    let job = "kind = \"move_joints\"\ntargets_deg = [[0, 0, 0, 0, 0, 0, 0, 0, 30, 0]]";
+    let file = painter_file("no-metre.toml", "", job);
+    let settings = load_run_settings(&file).expect("loads: the link is not Dynamixel");
+    let error = dynamixel_settings(
+        &settings,
+        "/dev/null",
+        1_000_000,
+        &[1, 2, 3, 4, 5, 6, 7, 8, 9, 10],
+    )
+    .expect_err("refused")
+    .to_string();
+    for part in [
+        "no-metre.toml",
+        "dynamixel.ticks_per_metre",
+        "required for prismatic axes (base_x, base_y, lift)",
+    ] {
+        assert!(error.contains(part), "{part} in {error}");
+    }
+    for (name, section, value) in [
+        (
+            "revolute-entry.toml",
+            "[dynamixel]\nticks_per_metre = [40960, 40960, 5, 204800, 0, 0, 0, 0, 0, 0]",
+            "base_yaw is revolute",
+        ),
+        ("zero-metre.toml", "[dynamixel]\nticks_per_metre = 0", "= 0"),
+        (
+            "dxl-link.toml",
+            "[stream]\nlink = \"dynamixel:///dev/null?baud=1000000&ids=1,2,3,4,5,6,7,8,9,10\"",
+            "required for prismatic axes",
+        ),
+    ] {
+        let file = painter_file(name, section, job);
+        let error = load_run_settings(&file).expect_err("refused").to_string();
+        assert!(error.contains(name), "{error}");
+        assert!(error.contains("dynamixel.ticks_per_metre"), "{error}");
+        assert!(error.contains(value), "{value} in {error}");
+    }
 }

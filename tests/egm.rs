@@ -9,10 +9,10 @@ use common::shipped_run_settings;
 
 use prost::Message;
 use rigbridge::clock::Clock;
-use rigbridge::daemon::config::RunSettings;
+use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::run_job;
 use rigbridge::link::{Link, bind_egm};
-use rigbridge::protocol::egm::{EgmRobot, EgmSensor, MciState, MotorState};
+use rigbridge::protocol::egm::{EgmAxes, EgmRobot, EgmSensor, MciState, MotorState};
 use rigbridge::stream::{Outcome, StreamControl};
 use rigbridge::twin::egm::{
     EgmRobotModel, EgmTwin, EgmTwinControl, EgmTwinSettings, spawn_egm_twin,
@@ -26,8 +26,18 @@ use std::time::{Duration, Instant};
 /// Patience for conditions that take a few robot cycles on an idle machine.
 const PATIENCE: Duration = Duration::from_secs(10);
 
+/// Where the settings' axes travel in EGM: `[egm]`, or the rig's last six as the robot's.
+fn axes(settings: &RunSettings) -> EgmAxes {
+    settings
+        .config
+        .egm
+        .axes(&settings.file, &settings.rig)
+        .expect("the EGM axes")
+}
+
 fn twin_towards(settings: &RunSettings, sensor: SocketAddr, egm: EgmTwinSettings) -> EgmTwin {
-    let model = EgmRobotModel::new(&settings.rig, egm, &settings.initial()).expect("model");
+    let model =
+        EgmRobotModel::new(&settings.rig, axes(settings), egm, &settings.initial()).expect("model");
     EgmTwin::new(model, sensor).expect("twin socket")
 }
 
@@ -37,7 +47,7 @@ fn bridge_streams_the_default_job_to_the_egm_twin_within_its_limits() {
     real_time();
     let settings = shipped_run_settings();
     let period = Duration::from_secs_f64(settings.period_s());
-    let mut link = bind_egm("127.0.0.1:0", settings.rig.dof(), period).expect("bind");
+    let mut link = bind_egm("127.0.0.1:0", axes(&settings), period).expect("bind");
     let sensor = link.local_address();
     let control = Arc::new(EgmTwinControl::default());
     let twin = twin_towards(&settings, sensor, EgmTwinSettings::default());
@@ -91,7 +101,7 @@ fn the_link_holds_until_motors_are_on_and_the_clock_follows_the_robot() {
     let _cycles = one_at_a_time();
     let settings = shipped_run_settings();
     let period = Duration::from_secs_f64(settings.period_s());
-    let mut link = bind_egm("127.0.0.1:0", settings.rig.dof(), period).expect("bind");
+    let mut link = bind_egm("127.0.0.1:0", axes(&settings), period).expect("bind");
     let egm = EgmTwinSettings {
         motors_on: false,
         ..EgmTwinSettings::default()
@@ -163,7 +173,7 @@ fn without_replies_the_twin_ends_the_session_in_hold_after_comm_timeout() {
         assert!((actual.to_radians() - initial).abs() < 1e-9);
     }
     // A sensor answering again does not restart it: RAPID must run EGMRunJoint again.
-    let reply = EgmSensor::joint_correction(1, 0, &settings.initial(), &[0.0; 6]);
+    let reply = EgmSensor::joint_correction(1, 0, &axes(&settings), &settings.initial(), &[0.0; 6]);
     let twin_address = read_from(&sensor).1;
     sensor
         .send_to(&reply.encode_to_vec(), twin_address)
@@ -199,7 +209,7 @@ fn a_reference_jump_is_refused_with_mci_error_and_no_motion() {
     // 5 degrees in one 4 ms cycle is 1250 deg/s: far over joint 1's 250 deg/s.
     let mut jump = settings.initial();
     jump[0] += 5f64.to_radians();
-    let reply = EgmSensor::joint_correction(1, 0, &jump, &[0.0; 6]);
+    let reply = EgmSensor::joint_correction(1, 0, &axes(&settings), &jump, &[0.0; 6]);
     sensor
         .send_to(&reply.encode_to_vec(), twin_address)
         .expect("send");
@@ -290,4 +300,101 @@ fn the_egm_twin_serves_abb_robot_clients_egm_sensor() {
     let counters = twin.model().counters;
     assert_eq!(counters.violations(), 0, "{counters:?}");
     assert_eq!(counters.comm_timeouts, 0);
+}
+
+/// Run settings for the painter rig (base_x, base_y, base_yaw, lift, then the IRB 120)
+/// with `job` and `section`, written to a file of their own.
+fn painter_settings(name: &str, section: &str, job: &str) -> RunSettings {
+    let rig = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("config/painter.toml");
+    let dir = std::env::temp_dir().join(format!("rigbridge-egm-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let file = dir.join(name);
+    let text = format!(
+        "rig = {rig:?}\n[twin]\ninitial_deg = [0, 0, 0, 0, 0, 0, 0, 0, 30, 0]\n{section}\n[job]\n{job}\n"
+    );
+    std::fs::write(&file, text).expect("write");
+    load_run_settings(&file).expect("the painter settings load")
+}
+
+#[test]
+fn the_painter_s_base_and_lift_travel_as_external_axes_and_its_job_completes() {
+    let _cycles = one_at_a_time();
+    real_time();
+    // Metres on base_x, base_y and lift, degrees elsewhere.
+    let job = "kind = \"move_joints\"\ntargets_deg = [[0.3, -0.2, 20.0, 0.4, 20.0, 10.0, 10.0, 0.0, 40.0, 5.0]]";
+    let settings = painter_settings("painter-egm.toml", "", job);
+    let period = Duration::from_secs_f64(settings.period_s());
+    let mut link = bind_egm("127.0.0.1:0", axes(&settings), period).expect("bind");
+    let control = Arc::new(EgmTwinControl::default());
+    let twin = twin_towards(&settings, link.local_address(), EgmTwinSettings::default());
+    let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
+    wait_for("the EGM session", PATIENCE, || link.is_up());
+    let clock = link.pacing().expect("an EGM link paces the streamer");
+    let job = settings.config.job.clone();
+    let report = run_job(
+        &settings,
+        &job,
+        &mut link,
+        clock.as_ref(),
+        None,
+        &StreamControl::default(),
+    )
+    .expect("the job runs");
+    control.stop.store(true, Ordering::SeqCst);
+    let twin = twin.join().expect("twin thread");
+    let counters = twin.model().counters;
+    assert_eq!(
+        report.stream.outcome,
+        Outcome::Completed,
+        "{report:?} {counters:?}"
+    );
+    assert_eq!(counters.violations(), 0, "{counters:?}");
+    assert_eq!(counters.sessions, 1, "{counters:?}");
+    assert_eq!(link.state().malformed, 0);
+    // The twin got there: within 1 mm on the linear axes, 0.1 deg on the others.
+    let target = [
+        0.3,
+        -0.2,
+        20f64.to_radians(),
+        0.4,
+        20f64.to_radians(),
+        10f64.to_radians(),
+        10f64.to_radians(),
+        0.0,
+        40f64.to_radians(),
+        5f64.to_radians(),
+    ];
+    let linear = [0, 1, 3];
+    for (axis, (actual, wanted)) in twin.model().position().iter().zip(target).enumerate() {
+        let within = if linear.contains(&axis) {
+            1e-3
+        } else {
+            0.1f64.to_radians()
+        };
+        assert!(
+            (actual - wanted).abs() < within,
+            "axis {axis}: {actual} vs {wanted}"
+        );
+    }
+}
+
+#[test]
+fn external_axes_that_leave_more_than_six_robot_joints_are_refused_on_load() {
+    let rig = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("config/painter.toml");
+    let dir = std::env::temp_dir().join(format!("rigbridge-egm-bad-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let file = dir.join("short-list.toml");
+    let text = format!(
+        "rig = {rig:?}\n[stream]\nlink = \"egm://127.0.0.1:6510\"\n[egm]\nexternal_axes = [\"base_x\", \"lift\"]\n[twin]\ninitial_deg = [0, 0, 0, 0, 0, 0, 0, 0, 30, 0]\n[job]\nkind = \"move_joints\"\ntargets_deg = [[0, 0, 0, 0, 0, 0, 0, 0, 30, 0]]\n"
+    );
+    std::fs::write(&file, text).expect("write");
+    let error = load_run_settings(&file).expect_err("refused").to_string();
+    for part in [
+        "short-list.toml",
+        "egm.external_axes",
+        "[base_x, lift]",
+        "8 robot joints",
+    ] {
+        assert!(error.contains(part), "{part} in {error}");
+    }
 }

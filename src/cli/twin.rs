@@ -266,7 +266,8 @@ fn egm_twin(
         max_speed_deviation: args.max_speed_deviation_deg_s.to_radians(),
         motors_on: !args.motors_off,
     };
-    let model = EgmRobotModel::new(&settings.rig, egm, &settings.initial())?;
+    let axes = settings.config.egm.axes(&settings.file, &settings.rig)?;
+    let model = EgmRobotModel::new(&settings.rig, axes, egm, &settings.initial())?;
     let mut twin = EgmTwin::new(model, sensor)?;
     let local = twin.local_address().context("no local address")?;
     say(&format!("udp://{local} -> udp://{sensor}"));

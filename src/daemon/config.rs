@@ -38,6 +38,42 @@ pub struct RunConfig {
     /// drives), and the drives' heartbeat. Optional.
     #[serde(default)]
     pub canopen: CanopenConfig,
+    /// `[egm]`: which axes travel as EGM external axes on `egm://` links (and in the EGM
+    /// twin). Optional.
+    #[serde(default)]
+    pub egm: EgmConfig,
+}
+
+/// `[egm]`: a rig with more axes than the robot's six (a track, a lift) sends the others as
+/// EGM external axes (`externalJoints`: degrees, or mm on linear axes; docs/egm.md).
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EgmConfig {
+    /// The rig's joints that are external axes, in `externalJoints` order (the controller's
+    /// additional axes in order). Absent: every joint before the rig's last six.
+    pub external_axes: Option<Vec<String>>,
+}
+
+impl EgmConfig {
+    /// Where each axis travels in EGM; errors name the key and value.
+    pub fn axes(
+        &self,
+        file: &Path,
+        rig: &Rig,
+    ) -> Result<crate::protocol::egm::EgmAxes, ConfigError> {
+        crate::protocol::egm::EgmAxes::new(rig, self.external_axes.as_deref()).map_err(|e| {
+            let value = match &self.external_axes {
+                Some(names) => format!("[{}]", names.join(", ")),
+                None => "absent (every joint before the last six)".to_string(),
+            };
+            ConfigError::invalid(
+                file,
+                "egm.external_axes",
+                crate::rig::Verbatim(value),
+                &e.to_string(),
+            )
+        })
+    }
 }
 
 /// `[ros2]`: publish the rig's joint states (and, under `serve`, take joint trajectories as
@@ -95,9 +131,10 @@ impl Ros2Config {
     }
 }
 
-/// `[canopen]`: per axis, counts = zero_offset + rad * counts_per_turn / 2 pi
-/// (docs/canopen.md). `counts_per_turn` and `zero_offset` are one whole number for every
-/// axis or one per axis; they override the link address's `counts_per_turn`.
+/// `[canopen]`: per axis, counts = zero_offset + rad * counts_per_turn / 2 pi, or on a
+/// prismatic axis zero_offset + m * counts_per_metre (docs/canopen.md). `counts_per_turn`
+/// and `zero_offset` are one whole number for every axis or one per axis; they override the
+/// link address's `counts_per_turn`.
 #[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CanopenConfig {
@@ -105,6 +142,9 @@ pub struct CanopenConfig {
     pub counts_per_turn: Option<PerAxis>,
     /// 0 when absent: counts 0 at the axis' zero.
     pub zero_offset: Option<PerAxis>,
+    /// A linear drive's increments a metre of travel: one number for every prismatic axis,
+    /// or one per axis (0 on revolute ones). No default: required for prismatic axes.
+    pub counts_per_metre: Option<PerAxis>,
     /// The heartbeat producer time asked of each drive (0x1017), ms; 100 when absent.
     pub heartbeat_ms: Option<f64>,
 }
@@ -119,16 +159,34 @@ const MAX_COUNTS_PER_TURN: f64 = 1_073_741_824.0;
 
 impl CanopenConfig {
     /// Each axis' count map, `counts_per_turn` from the link address unless `[canopen]`
-    /// sets it; errors name the key and value. Revolute axes only: counts are a turn's.
+    /// sets it, `counts_per_metre` on prismatic axes (required there); errors name the key
+    /// and value.
     pub fn axes(
         &self,
         file: &Path,
         rig: &Rig,
         link_counts_per_turn: Option<u32>,
     ) -> Result<Vec<crate::protocol::dynamixel::AxisTicks>, ConfigError> {
+        self.count_maps(file, rig, link_counts_per_turn, true)
+    }
+
+    /// Checks the keys given, on load: `counts_per_metre` is required only when `linear`
+    /// (the config's own link is `canopen://`).
+    pub fn check(&self, file: &Path, rig: &Rig, linear: bool) -> Result<(), ConfigError> {
+        self.count_maps(file, rig, None, linear).map(drop)
+    }
+
+    fn count_maps(
+        &self,
+        file: &Path,
+        rig: &Rig,
+        link_counts_per_turn: Option<u32>,
+        required: bool,
+    ) -> Result<Vec<crate::protocol::dynamixel::AxisTicks>, ConfigError> {
         let default = crate::protocol::dynamixel::AxisTicks {
             ticks_per_turn: link_counts_per_turn.map_or(DEFAULT_COUNTS_PER_TURN, f64::from),
             zero_tick: 0.0,
+            ticks_per_metre: None,
         };
         let mut axes = vec![default; rig.dof()];
         let keys = [
@@ -146,6 +204,8 @@ impl CanopenConfig {
             ),
         ];
         set_axis_ticks(file, rig, keys, &mut axes)?;
+        let linear = ("canopen.counts_per_metre", &self.counts_per_metre);
+        set_linear_ticks(file, rig, linear, required, &mut axes)?;
         Ok(axes)
     }
 
@@ -167,8 +227,9 @@ impl CanopenConfig {
     }
 }
 
-/// `[dynamixel]`: per axis, tick = zero_tick + rad * ticks_per_turn / 2 pi (docs/dynamixel.md).
-/// Each key is one number for every axis or one per axis; whole numbers.
+/// `[dynamixel]`: per axis, tick = zero_tick + rad * ticks_per_turn / 2 pi, or on a prismatic
+/// axis (a servo on a lead screw or a rack) zero_tick + m * ticks_per_metre
+/// (docs/dynamixel.md). Each key is one number for every axis or one per axis.
 #[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DynamixelConfig {
@@ -176,6 +237,62 @@ pub struct DynamixelConfig {
     pub ticks_per_turn: Option<PerAxis>,
     /// 2048 when absent: the centre of an X-series servo's single-turn range.
     pub zero_tick: Option<PerAxis>,
+    /// Ticks a metre of a linear axis' travel (ticks_per_turn / the screw's lead or the
+    /// pinion's travel a turn, m): one number for every prismatic axis, or one per axis (0
+    /// on revolute ones). No default: required for prismatic axes.
+    pub ticks_per_metre: Option<PerAxis>,
+}
+
+/// Largest ticks (counts) a metre accepted: 2^30, a 1 um increment is 1e6; keeps a metre in
+/// 32 bits.
+const MAX_TICKS_PER_METRE: f64 = 1_073_741_824.0;
+
+/// Sets each prismatic axis' ticks a metre from `key` (one value for every prismatic axis,
+/// or one per axis with 0 on revolute ones); when `required`, a prismatic axis without one
+/// is refused, naming the key and the axes.
+fn set_linear_ticks(
+    file: &Path,
+    rig: &Rig,
+    (key, given): (&'static str, &Option<PerAxis>),
+    required: bool,
+    axes: &mut [crate::protocol::dynamixel::AxisTicks],
+) -> Result<(), ConfigError> {
+    let prismatic: Vec<&str> = rig
+        .joints
+        .iter()
+        .filter(|j| j.kind == crate::rig::JointKind::Prismatic)
+        .map(|j| j.name.as_str())
+        .collect();
+    let Some(given) = given else {
+        if prismatic.is_empty() || !required {
+            return Ok(());
+        }
+        let reason = format!("required for prismatic axes ({})", prismatic.join(", "));
+        return Err(ConfigError::invalid(
+            file,
+            key,
+            crate::rig::Verbatim("missing"),
+            &reason,
+        ));
+    };
+    if let PerAxis::Each(values) = given
+        && values.len() != rig.dof()
+    {
+        let reason = format!("needs one value per axis ({})", rig.dof());
+        return Err(ConfigError::invalid(file, key, values.len(), &reason));
+    }
+    for (axis, (ticks, joint)) in axes.iter_mut().zip(&rig.joints).enumerate() {
+        let value = given.value(axis).unwrap_or_default();
+        if joint.kind == crate::rig::JointKind::Revolute {
+            if matches!(given, PerAxis::Each(_)) && value != 0.0 {
+                let reason = format!("{} is revolute: its entry must be 0", joint.name);
+                return Err(ConfigError::invalid(file, key, value, &reason));
+            }
+            continue;
+        }
+        ticks.ticks_per_metre = Some(check_range(file, key, value, 1.0, MAX_TICKS_PER_METRE)?);
+    }
+    Ok(())
 }
 
 /// Largest ticks a turn accepted: the finest Dynamixel-P resolution (1,003,846) fits.
@@ -222,12 +339,27 @@ fn set_axis_ticks(
 }
 
 impl DynamixelConfig {
-    /// Each axis' tick map; errors name the key and value. Revolute axes only: a tick
-    /// is a fraction of a turn.
+    /// Each axis' tick map, `ticks_per_metre` on prismatic axes (required there); errors
+    /// name the key and value.
     pub fn axes(
         &self,
         file: &Path,
         rig: &Rig,
+    ) -> Result<Vec<crate::protocol::dynamixel::AxisTicks>, ConfigError> {
+        self.tick_maps(file, rig, true)
+    }
+
+    /// Checks the keys given, on load: `ticks_per_metre` is required only when `linear`
+    /// (the config's own link is `dynamixel://`).
+    pub fn check(&self, file: &Path, rig: &Rig, linear: bool) -> Result<(), ConfigError> {
+        self.tick_maps(file, rig, linear).map(drop)
+    }
+
+    fn tick_maps(
+        &self,
+        file: &Path,
+        rig: &Rig,
+        required: bool,
     ) -> Result<Vec<crate::protocol::dynamixel::AxisTicks>, ConfigError> {
         let defaults = crate::protocol::dynamixel::AxisTicks::default();
         let mut axes = vec![defaults; rig.dof()];
@@ -246,6 +378,8 @@ impl DynamixelConfig {
             ),
         ];
         set_axis_ticks(file, rig, keys, &mut axes)?;
+        let linear = ("dynamixel.ticks_per_metre", &self.ticks_per_metre);
+        set_linear_ticks(file, rig, linear, required, &mut axes)?;
         Ok(axes)
     }
 }
@@ -638,6 +772,27 @@ impl RunSettings {
     }
 }
 
+/// The axis maps of `[dynamixel]`, `[canopen]` and `[egm]`: the keys given are checked, and
+/// what the config's own link needs is required.
+fn check_link_axes(file: &Path, config: &RunConfig, rig: &Rig) -> Result<(), ConfigError> {
+    use crate::link::LinkSpec;
+    let link = config.stream.link.parse::<LinkSpec>().ok();
+    let dynamixel = matches!(
+        link,
+        Some(LinkSpec::Serial {
+            dynamixel: Some(_),
+            ..
+        })
+    );
+    config.dynamixel.check(file, rig, dynamixel)?;
+    let canopen = matches!(link, Some(LinkSpec::Canopen { .. }));
+    config.canopen.check(file, rig, canopen)?;
+    if matches!(link, Some(LinkSpec::Egm { .. })) || config.egm.external_axes.is_some() {
+        config.egm.axes(file, rig)?;
+    }
+    Ok(())
+}
+
 /// Reads and validates run settings and the rig they name, section by section.
 pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     let mut config = parse_run_config(file)?;
@@ -722,8 +877,7 @@ fn check_links(file: &Path, config: &RunConfig, rig: &Rig) -> Result<(), ConfigE
         3600.0,
     )?;
     stream.tolerances(file, rig)?;
-    config.dynamixel.axes(file, rig)?;
-    config.canopen.axes(file, rig, None)?;
+    check_link_axes(file, config, rig)?;
     config.canopen.heartbeat_ms(file)?;
     if stream.can_base_id > MAX_CAN_BASE_ID {
         return Err(ConfigError::invalid(

@@ -232,10 +232,12 @@ fn connect_link(
         )?)?),
         LinkSpec::Egm { address } => {
             let period = Duration::from_secs_f64(settings.period_s());
-            Box::new(
-                crate::link::bind_egm(address, settings.rig.dof(), period)
-                    .map_err(LinkError::Io)?,
-            )
+            let axes = settings
+                .config
+                .egm
+                .axes(&settings.file, &settings.rig)
+                .map_err(|e| DaemonError::Unavailable(e.to_string()))?;
+            Box::new(crate::link::bind_egm(address, axes, period).map_err(LinkError::Io)?)
         }
     })
 }
@@ -249,7 +251,6 @@ pub fn dynamixel_settings(
     ids: &[u8],
 ) -> Result<crate::link::DynamixelSettings, DaemonError> {
     let rig = &settings.rig;
-    revolute_only(rig, "a Dynamixel link drives revolute axes only")?;
     let axes = settings
         .config
         .dynamixel
@@ -285,10 +286,6 @@ pub fn canopen_settings(
     counts_per_turn: Option<u32>,
 ) -> Result<crate::link::CanopenSettings, DaemonError> {
     let rig = &settings.rig;
-    revolute_only(
-        rig,
-        "a CANopen link drives revolute axes only (counts a turn)",
-    )?;
     let canopen = &settings.config.canopen;
     let unavailable = |e: crate::rig::ConfigError| DaemonError::Unavailable(e.to_string());
     let axes = canopen
@@ -303,22 +300,6 @@ pub fn canopen_settings(
         period: Duration::from_secs_f64(settings.period_s()),
         heartbeat_ms,
     })
-}
-
-/// Refuses `rig` for a link that, as `refusal` says, drives revolute axes only, naming its
-/// first prismatic axis.
-fn revolute_only(rig: &crate::rig::Rig, refusal: &str) -> Result<(), DaemonError> {
-    match rig
-        .joints
-        .iter()
-        .find(|j| j.kind != crate::rig::JointKind::Revolute)
-    {
-        Some(joint) => Err(DaemonError::Unavailable(format!(
-            "{refusal}; {} is prismatic",
-            joint.name
-        ))),
-        None => Ok(()),
-    }
 }
 
 /// Each axis' lower and upper limit (rad).

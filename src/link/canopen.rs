@@ -975,7 +975,8 @@ mod tests {
             axes: vec![
                 AxisTicks {
                     ticks_per_turn: 1_048_576.0,
-                    zero_tick: 0.0
+                    zero_tick: 0.0,
+                    ticks_per_metre: None,
                 };
                 2
             ],

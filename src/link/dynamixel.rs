@@ -144,9 +144,11 @@ fn check_settings(settings: &DynamixelSettings) -> Result<(), DynamixelError> {
     Ok(())
 }
 
-/// Operating Mode for an axis: extended position when its range exceeds +-180 deg.
-pub fn operating_mode(lower: f64, upper: f64) -> u8 {
-    if lower < -HALF_TURN || upper > HALF_TURN {
+/// Operating Mode for an axis: extended position when its range turns the servo's shaft
+/// beyond +-180 deg from the zero tick (on a linear axis, the screw's or pinion's turns).
+pub fn operating_mode(ticks: &AxisTicks, lower: f64, upper: f64) -> u8 {
+    let (low, high) = (ticks.shaft_angle(lower), ticks.shaft_angle(upper));
+    if low.min(high) < -HALF_TURN || low.max(high) > HALF_TURN {
         EXTENDED_POSITION_MODE
     } else {
         POSITION_MODE
@@ -344,7 +346,7 @@ fn set_up(bus: &mut Bus, shared: &Shared) -> Result<SetUp, BusError> {
     let mut ranges = Vec::with_capacity(axes);
     for axis in 0..axes {
         let (lower, upper) = settings.limits[axis];
-        let mode = operating_mode(lower, upper);
+        let mode = operating_mode(&settings.axes[axis], lower, upper);
         bus.write_register(shared, axis, address::OPERATING_MODE, &[mode])?;
         ranges.push(servo_range(bus, shared, axis, mode)?);
     }
@@ -502,12 +504,20 @@ mod tests {
 
     #[test]
     fn extended_mode_only_beyond_half_a_turn() {
-        assert_eq!(operating_mode(-2.88, 2.88), POSITION_MODE);
-        assert_eq!(operating_mode(-HALF_TURN, HALF_TURN), POSITION_MODE);
+        let turn = AxisTicks::default();
+        assert_eq!(operating_mode(&turn, -2.88, 2.88), POSITION_MODE);
+        assert_eq!(operating_mode(&turn, -HALF_TURN, HALF_TURN), POSITION_MODE);
         assert_eq!(
-            operating_mode(-400f64.to_radians(), 400f64.to_radians()),
+            operating_mode(&turn, -400f64.to_radians(), 400f64.to_radians()),
             EXTENDED_POSITION_MODE
         );
+        // A pinion of 0.1 m a turn: +-0.05 m is half a turn, a metre is ten.
+        let rack = AxisTicks {
+            ticks_per_metre: Some(40960.0),
+            ..turn
+        };
+        assert_eq!(operating_mode(&rack, -0.05, 0.05), POSITION_MODE);
+        assert_eq!(operating_mode(&rack, 0.0, 1.0), EXTENDED_POSITION_MODE);
     }
 
     #[test]

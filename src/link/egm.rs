@@ -3,7 +3,9 @@
 //! The robot controller sends an EgmRobot every EGM cycle (4 ms) to the address this link
 //! binds; an I/O thread answers each one at once with exactly one EgmSensor, sent to the
 //! EgmRobot's source address: header seqno +1 per message, `tm` in ms, MSGTYPE_CORRECTION,
-//! `planned.joints` in degrees and `speedRef.joints` in deg/s (docs/egm.md).
+//! `planned.joints` in degrees and `speedRef.joints` in deg/s (docs/egm.md). A rig with
+//! more axes than the robot's six sends the others as external axes (`externalJoints`,
+//! degrees or mm) as [`EgmAxes`] lays them out.
 //!
 //! The robot's messages are the clock: [`EgmLink::pacing`] hands out an [`EgmClock`] whose
 //! time advances one stream period per EgmRobot, so the streamer's cycle follows the
@@ -19,7 +21,7 @@
 
 use super::{Link, LinkCounters, LinkError};
 use crate::clock::Clock;
-use crate::protocol::egm::{EgmRobot, EgmSensor, MciState, MotorState, RapidState};
+use crate::protocol::egm::{EgmAxes, EgmRobot, EgmSensor, MciState, MotorState, RapidState};
 use crate::protocol::{AxisValues, Command, ControllerStatus, Feedback, JointTarget};
 use prost::Message;
 use std::collections::VecDeque;
@@ -61,7 +63,7 @@ pub struct EgmState {
     pub replies: u64,
     /// Robot seqno jumps (lost EgmRobot messages).
     pub robot_gaps: u64,
-    /// Datagrams that were not an EgmRobot with this rig's joint count.
+    /// Datagrams that were not an EgmRobot with this rig's joints and external axes.
     pub malformed: u64,
     /// Robot cycles in a job with no target ready (the position was held).
     pub underruns: u64,
@@ -135,7 +137,7 @@ struct Shared {
     changed: Condvar,
     closed: AtomicBool,
     period: Duration,
-    axes: usize,
+    axes: EgmAxes,
 }
 
 impl Shared {
@@ -153,9 +155,9 @@ pub struct EgmLink {
     thread: Option<std::thread::JoinHandle<()>>,
 }
 
-/// Binds `address` (such as `0.0.0.0:6510`) for a rig of `axes` joints streamed every
-/// `period`, and starts answering the robot.
-pub fn bind_egm(address: &str, axes: usize, period: Duration) -> std::io::Result<EgmLink> {
+/// Binds `address` (such as `0.0.0.0:6510`) for a rig whose axes travel as `axes` lays
+/// them out, streamed every `period`, and starts answering the robot.
+pub fn bind_egm(address: &str, axes: EgmAxes, period: Duration) -> std::io::Result<EgmLink> {
     let socket = UdpSocket::bind(address)?;
     socket.set_read_timeout(Some(POLL))?;
     let local = socket.local_addr()?;
@@ -412,7 +414,7 @@ fn serve(socket: &UdpSocket, shared: &Shared) {
         seqno = seqno.wrapping_add(1);
         let tm = u32::try_from(started.elapsed().as_millis() % (1 << 32)).unwrap_or(0);
         out.clear();
-        let message = EgmSensor::joint_correction(seqno, tm, &reply.0, &reply.1);
+        let message = EgmSensor::joint_correction(seqno, tm, &shared.axes, &reply.0, &reply.1);
         if message.encode(&mut out).is_ok() && socket.send_to(&out, from).is_ok() {
             let micros = arrived.elapsed().as_micros() as usize;
             let mut session = shared.lock();
@@ -434,19 +436,20 @@ fn answer(
     let mut session = shared.lock();
     let feedback = robot
         .as_ref()
-        .and_then(|r| r.feedback_joints())
-        .filter(|j| j.len() >= shared.axes && j.iter().all(|v| v.is_finite()))
-        .and_then(|j| {
-            let radians: Vec<f64> = j[..shared.axes].iter().map(|d| d.to_radians()).collect();
-            AxisValues::from_slice(&radians)
-        });
+        .and_then(|r| {
+            shared
+                .axes
+                .join(r.feedback_joints()?, r.feedback_external())
+        })
+        .filter(|values| values.iter().all(|v| v.is_finite()))
+        .and_then(|values| AxisValues::from_slice(&values));
     let (Some(robot), Some(actual)) = (robot, feedback) else {
         session.state.malformed += 1;
         return None;
     };
     note_robot(&mut session, &robot, from, arrived);
     let ready = session.state.ready();
-    let (positions, speeds) = next_reference(&mut session, ready, actual, shared.axes);
+    let (positions, speeds) = next_reference(&mut session, ready, actual, shared.axes.dof());
     session.time.tick(ready, shared.period, arrived);
     session.feedback = Some(Feedback {
         seq: session.last_played,

@@ -284,11 +284,15 @@ fn unstuffed(bytes: &[u8]) -> Packet {
     }
 }
 
-/// How an axis maps to a servo's position ticks: tick = zero_tick + rad * ticks_per_turn / 2 pi.
+/// How an axis maps to a servo's (or drive's) position ticks: on a revolute axis
+/// tick = zero_tick + rad * ticks_per_turn / 2 pi; on a linear one (a servo on a lead screw
+/// or a rack, a linear drive) tick = zero_tick + m * ticks_per_metre.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AxisTicks {
     pub ticks_per_turn: f64,
     pub zero_tick: f64,
+    /// Set on a linear (prismatic) axis: its positions are metres, not radians.
+    pub ticks_per_metre: Option<f64>,
 }
 
 /// X-series defaults: 4096 ticks a turn (0.088 deg), 2048 at the centre of the range.
@@ -297,24 +301,38 @@ impl Default for AxisTicks {
         Self {
             ticks_per_turn: 4096.0,
             zero_tick: 2048.0,
+            ticks_per_metre: None,
         }
     }
 }
 
 impl AxisTicks {
-    /// The nearest tick to `rad`. Rounding is monotone, so a value inside limits whose
-    /// ticks are rounded the same way stays inside them.
-    pub fn tick(&self, rad: f64) -> f64 {
-        (self.zero_tick + rad * self.ticks_per_turn / std::f64::consts::TAU).round()
+    /// Ticks per unit of the axis' position: per radian, or per metre on a linear axis.
+    pub fn per_unit(&self) -> f64 {
+        self.ticks_per_metre
+            .unwrap_or(self.ticks_per_turn / std::f64::consts::TAU)
     }
 
+    /// The nearest tick to `position` (rad, or m on a linear axis). Rounding is monotone,
+    /// so a value inside limits whose ticks are rounded the same way stays inside them.
+    pub fn tick(&self, position: f64) -> f64 {
+        (self.zero_tick + position * self.per_unit()).round()
+    }
+
+    /// The axis position (rad, or m on a linear axis) of `tick`.
     pub fn radians(&self, tick: i64) -> f64 {
-        (tick as f64 - self.zero_tick) * std::f64::consts::TAU / self.ticks_per_turn
+        (tick as f64 - self.zero_tick) / self.per_unit()
     }
 
-    /// One tick in radians: the resolution of what crosses the wire.
+    /// One tick in the axis' unit: the resolution of what crosses the wire.
     pub fn resolution(&self) -> f64 {
-        std::f64::consts::TAU / self.ticks_per_turn
+        1.0 / self.per_unit()
+    }
+
+    /// The servo shaft's angle from the zero tick at `position`, rad: the position itself on
+    /// a revolute axis, the turns of the screw or pinion on a linear one.
+    pub fn shaft_angle(&self, position: f64) -> f64 {
+        position * self.per_unit() * std::f64::consts::TAU / self.ticks_per_turn
     }
 }
 
@@ -451,6 +469,21 @@ mod tests {
         assert_eq!(axis.tick(std::f64::consts::PI / 2.0), 3072.0);
         assert_eq!(axis.tick(-std::f64::consts::PI), 0.0);
         assert!((axis.radians(1024) + std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_linear_axis_counts_ticks_per_metre_and_turns_its_shaft() {
+        // A pinion of 0.1 m a turn: 40960 ticks a metre at 4096 ticks a turn.
+        let axis = AxisTicks {
+            ticks_per_metre: Some(40960.0),
+            ..AxisTicks::default()
+        };
+        assert_eq!(axis.tick(0.0), 2048.0);
+        assert_eq!(axis.tick(0.25), 2048.0 + 10240.0);
+        assert!((axis.radians(2048 - 4096) + 0.1).abs() < 1e-12);
+        assert!((axis.resolution() - 1.0 / 40960.0).abs() < 1e-15);
+        // 0.25 m is 2.5 turns of the pinion.
+        assert!((axis.shaft_angle(0.25) - 2.5 * std::f64::consts::TAU).abs() < 1e-12);
     }
 
     /// By hand for 6 servos: sync write 10 + 4 + 6 x 5 = 44 bytes, sync read 10 + 4 + 6 =

@@ -6,12 +6,24 @@
 //! egm_pb2) and every other field are skipped by the decoder, never an error.
 //!
 //! Shared by the bridge's EGM link (the sensor) and the EGM twin (the robot). Owns the
-//! message layout and the degree conversions; it must not know about streaming or sessions.
+//! message layout, which rig axes travel as the robot's `joints` and which as
+//! `externalJoints` ([`EgmAxes`]), and the unit conversions (degrees; mm on linear axes);
+//! it must not know about streaming or sessions.
 //!
 //! Written by hand rather than generated: a `prost-build` step would need `protoc` on every
 //! machine before `cargo clippy`, and a copy of ABB's file in this repository.
 
+use crate::rig::{JointKind, Rig};
 use prost::Message;
+use thiserror::Error;
+
+/// The robot's own joints in `joints`: egm.proto's EgmJoints is "Array of 6 joint values for
+/// TCP robot".
+pub const MAX_ROBOT_JOINTS: usize = 6;
+/// egm.proto's EgmExternalJoints: "Array of 6 joint values for additional axis".
+pub const MAX_EXTERNAL_AXES: usize = 6;
+/// Millimetres a metre: EGM gives linear axes in mm (and mm/s).
+const MM_PER_M: f64 = 1000.0;
 
 /// proto2 repeated scalars are not packed unless declared so, and egm.proto does not.
 #[derive(Clone, PartialEq, Message)]
@@ -172,14 +184,31 @@ impl EgmRobot {
             .map(|j| j.joints.as_slice())
     }
 
+    /// The measured external axis positions (degrees, mm), when the message has them.
+    pub fn feedback_external(&self) -> Option<&[f64]> {
+        self.feed_back
+            .as_ref()
+            .and_then(|f| f.external_joints.as_ref())
+            .map(|j| j.joints.as_slice())
+    }
+
     pub fn seqno(&self) -> Option<u32> {
         self.header.as_ref().and_then(|h| h.seqno)
     }
 }
 
 impl EgmSensor {
-    /// A joint-mode correction: positions (rad) and speeds (rad/s), sent in degrees.
-    pub fn joint_correction(seqno: u32, tm_ms: u32, positions: &[f64], speeds: &[f64]) -> Self {
+    /// A joint-mode correction: positions and speeds of every rig axis (rad, m; per s),
+    /// sent as `axes` lays them out, in degrees (mm on linear axes).
+    pub fn joint_correction(
+        seqno: u32,
+        tm_ms: u32,
+        axes: &EgmAxes,
+        positions: &[f64],
+        speeds: &[f64],
+    ) -> Self {
+        let (joints, external) = axes.split(positions);
+        let (joint_speeds, external_speeds) = axes.split(speeds);
         Self {
             header: Some(EgmHeader {
                 seqno: Some(seqno),
@@ -187,13 +216,13 @@ impl EgmSensor {
                 mtype: Some(MessageType::Correction as i32),
             }),
             planned: Some(EgmPlanned {
-                joints: Some(degrees(positions)),
-                external_joints: None,
+                joints: Some(joints),
+                external_joints: external,
                 time: None,
             }),
             speed_ref: Some(EgmSpeedRef {
-                joints: Some(degrees(speeds)),
-                external_joints: None,
+                joints: Some(joint_speeds),
+                external_joints: external_speeds,
             }),
         }
     }
@@ -206,11 +235,27 @@ impl EgmSensor {
             .map(|j| j.joints.as_slice())
     }
 
+    /// The commanded external axis positions (degrees, mm), when the message has them.
+    pub fn planned_external(&self) -> Option<&[f64]> {
+        self.planned
+            .as_ref()
+            .and_then(|p| p.external_joints.as_ref())
+            .map(|j| j.joints.as_slice())
+    }
+
     /// The speed references, deg/s, when the message has them.
     pub fn speed_joints(&self) -> Option<&[f64]> {
         self.speed_ref
             .as_ref()
             .and_then(|p| p.joints.as_ref())
+            .map(|j| j.joints.as_slice())
+    }
+
+    /// The external axes' speed references (deg/s, mm/s), when the message has them.
+    pub fn speed_external(&self) -> Option<&[f64]> {
+        self.speed_ref
+            .as_ref()
+            .and_then(|p| p.external_joints.as_ref())
             .map(|j| j.joints.as_slice())
     }
 
@@ -223,10 +268,109 @@ impl EgmSensor {
     }
 }
 
-/// Radians (or rad/s) to the degrees EGM joint mode speaks.
-pub fn degrees(values: &[f64]) -> EgmJoints {
-    EgmJoints {
-        joints: values.iter().map(|v| v.to_degrees()).collect(),
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+pub enum EgmAxesError {
+    #[error("{0} is not a joint of the rig")]
+    UnknownJoint(String),
+    #[error("{0} is named twice")]
+    Twice(String),
+    #[error("{0} external axes: EGM carries at most {MAX_EXTERNAL_AXES}")]
+    TooManyExternal(usize),
+    #[error(
+        "{0} robot joints left: EGM's joints are the robot's own, 1 to {MAX_ROBOT_JOINTS}; name the others as external axes"
+    )]
+    RobotJoints(usize),
+}
+
+/// Where each rig axis travels in EGM: the robot's joints (rig order) in `joints`, the
+/// external axes (in the order named) in `externalJoints`, and each axis' unit.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EgmAxes {
+    robot: Vec<usize>,
+    external: Vec<usize>,
+    /// Per rig axis: wire units per SI unit (degrees a radian, mm a metre).
+    scale: Vec<f64>,
+}
+
+impl EgmAxes {
+    /// The layout for `rig` with `external` (joint names) as external axes; without a
+    /// list, every joint before the rig's last six (the arm rides on the axes before it:
+    /// a track, a lift, a positioner).
+    pub fn new(rig: &Rig, external: Option<&[String]>) -> Result<Self, EgmAxesError> {
+        let names: Vec<&str> = rig.joint_names().collect();
+        let external: Vec<usize> = match external {
+            Some(list) => {
+                let mut indices = Vec::with_capacity(list.len());
+                for name in list {
+                    let index = names
+                        .iter()
+                        .position(|n| n == name)
+                        .ok_or_else(|| EgmAxesError::UnknownJoint(name.clone()))?;
+                    if indices.contains(&index) {
+                        return Err(EgmAxesError::Twice(name.clone()));
+                    }
+                    indices.push(index);
+                }
+                indices
+            }
+            None => (0..names.len().saturating_sub(MAX_ROBOT_JOINTS)).collect(),
+        };
+        if external.len() > MAX_EXTERNAL_AXES {
+            return Err(EgmAxesError::TooManyExternal(external.len()));
+        }
+        let robot: Vec<usize> = (0..names.len()).filter(|i| !external.contains(i)).collect();
+        if robot.is_empty() || robot.len() > MAX_ROBOT_JOINTS {
+            return Err(EgmAxesError::RobotJoints(robot.len()));
+        }
+        let scale = rig
+            .joints
+            .iter()
+            .map(|j| match j.kind {
+                JointKind::Revolute => 1f64.to_degrees(),
+                JointKind::Prismatic => MM_PER_M,
+            })
+            .collect();
+        Ok(Self {
+            robot,
+            external,
+            scale,
+        })
+    }
+
+    /// The rig's axes, robot joints and external axes together.
+    pub fn dof(&self) -> usize {
+        self.scale.len()
+    }
+
+    /// The rig axes that are external axes, in `externalJoints` order.
+    pub fn external_indices(&self) -> &[usize] {
+        &self.external
+    }
+
+    /// Rig-order values (rad, m) as EGM's joints and external joints (degrees, mm); no
+    /// external joints when the rig has no external axes.
+    pub fn split(&self, values: &[f64]) -> (EgmJoints, Option<EgmJoints>) {
+        let wire = |indices: &[usize]| EgmJoints {
+            joints: indices.iter().map(|&i| values[i] * self.scale[i]).collect(),
+        };
+        let external = (!self.external.is_empty()).then(|| wire(&self.external));
+        (wire(&self.robot), external)
+    }
+
+    /// EGM's joints and external joints (degrees, mm) as rig-order values (rad, m);
+    /// `None` unless there are as many of each as the layout has (extra values, such as a
+    /// robot's unused seventh joint, are ignored).
+    pub fn join(&self, joints: &[f64], external: Option<&[f64]>) -> Option<Vec<f64>> {
+        let external = external.unwrap_or(&[]);
+        if joints.len() < self.robot.len() || external.len() < self.external.len() {
+            return None;
+        }
+        let mut values = vec![0.0; self.dof()];
+        let sources = self.robot.iter().zip(joints);
+        for (&axis, &wire) in sources.chain(self.external.iter().zip(external)) {
+            values[axis] = wire / self.scale[axis];
+        }
+        Some(values)
     }
 }
 
@@ -279,17 +423,80 @@ mod tests {
         assert_eq!(robot.feedback_joints(), None);
     }
 
+    fn rig(name: &str) -> Rig {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("config")
+            .join(name);
+        crate::rig::load_rig(&path).expect("a shipped rig")
+    }
+
     #[test]
     fn a_correction_carries_degrees_and_its_type() {
-        let sensor = EgmSensor::joint_correction(
-            9,
-            40,
-            &[std::f64::consts::FRAC_PI_2],
-            &[std::f64::consts::PI],
-        );
+        let irb120 = rig("irb120.toml");
+        let axes = EgmAxes::new(&irb120, None).expect("six robot joints");
+        let mut positions = [0.0; 6];
+        positions[0] = std::f64::consts::FRAC_PI_2;
+        let mut speeds = [0.0; 6];
+        speeds[0] = std::f64::consts::PI;
+        let sensor = EgmSensor::joint_correction(9, 40, &axes, &positions, &speeds);
         let decoded = EgmSensor::decode(&sensor.encode_to_vec()[..]).expect("round trip");
         assert_eq!(decoded.message_type(), MessageType::Correction);
         assert!((decoded.planned_joints().expect("planned")[0] - 90.0).abs() < 1e-12);
         assert!((decoded.speed_joints().expect("speed")[0] - 180.0).abs() < 1e-12);
+        assert_eq!(decoded.planned_external(), None, "no external axes");
+    }
+
+    #[test]
+    fn the_painter_sends_its_base_and_lift_as_external_axes_in_mm_and_degrees() {
+        let painter = rig("painter.toml");
+        let axes = EgmAxes::new(&painter, None).expect("the last six are the robot's");
+        assert_eq!(axes.external_indices(), &[0, 1, 2, 3]);
+        // base_x 1.5 m, base_y -0.25 m, base_yaw 90 deg, lift 2 m; joint_1 45 deg.
+        let mut values = vec![0.0; 10];
+        values[..5].copy_from_slice(&[1.5, -0.25, std::f64::consts::FRAC_PI_2, 2.0, 0.5]);
+        let (joints, external) = axes.split(&values);
+        let external = external.expect("external joints");
+        assert_eq!(external.joints.len(), 4);
+        assert!((external.joints[0] - 1500.0).abs() < 1e-9);
+        assert!((external.joints[1] + 250.0).abs() < 1e-9);
+        assert!((external.joints[2] - 90.0).abs() < 1e-9);
+        assert!((external.joints[3] - 2000.0).abs() < 1e-9);
+        assert_eq!(joints.joints.len(), 6);
+        assert!((joints.joints[0] - 0.5f64.to_degrees()).abs() < 1e-9);
+        let back = axes
+            .join(&joints.joints, Some(&external.joints))
+            .expect("joins");
+        for (b, v) in back.iter().zip(&values) {
+            assert!((b - v).abs() < 1e-12);
+        }
+        assert_eq!(
+            axes.join(&joints.joints, None),
+            None,
+            "external axes missing"
+        );
+        // Named in another order: externalJoints follows the list.
+        let named: Vec<String> = ["lift", "base_x", "base_y", "base_yaw"]
+            .map(String::from)
+            .into();
+        let axes = EgmAxes::new(&painter, Some(&named)).expect("valid list");
+        assert_eq!(axes.external_indices(), &[3, 0, 1, 2]);
+    }
+
+    #[test]
+    fn external_axes_are_refused_when_unknown_named_twice_or_leaving_too_many_joints() {
+        let painter = rig("painter.toml");
+        let names = |list: &[&str]| -> Vec<String> { list.iter().map(|s| s.to_string()).collect() };
+        assert_eq!(
+            EgmAxes::new(&painter, Some(&names(&["base_x", "track"]))),
+            Err(EgmAxesError::UnknownJoint("track".into()))
+        );
+        assert_eq!(
+            EgmAxes::new(&painter, Some(&names(&["base_x", "base_x"]))),
+            Err(EgmAxesError::Twice("base_x".into()))
+        );
+        assert_eq!(
+            EgmAxes::new(&painter, Some(&names(&["base_x"]))),
+            Err(EgmAxesError::RobotJoints(9))
+        );
     }
 }

@@ -753,7 +753,7 @@ impl CanopenBus {
             let why = format!("target {target} outside the limits, counts {a} .. {b}");
             return Some((emcy_code::REFERENCE_LIMIT, why));
         }
-        let scale = drive.counts.ticks_per_turn / std::f64::consts::TAU;
+        let scale = drive.counts.per_unit();
         let max_step =
             drive.limits.max_speed * scale * dt * (1.0 + LIMIT_SLACK) + STEP_ROUNDING_COUNTS;
         let max_second = drive.limits.max_acceleration * scale * dt * dt * (1.0 + LIMIT_SLACK)

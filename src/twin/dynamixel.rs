@@ -295,7 +295,7 @@ impl DynamixelBus {
                 servo.speed = 0.0;
                 continue;
             }
-            let scale = servo.ticks.ticks_per_turn / std::f64::consts::TAU;
+            let scale = servo.ticks.per_unit();
             let max_speed = servo.limits.max_speed * scale;
             let braking = servo.limits.max_acceleration * scale * dt;
             let wanted = gain * (servo.goal as f64 - servo.present);
@@ -532,7 +532,7 @@ impl DynamixelBus {
             // At rest: the goal in force was held every period since.
             servo.history = [servo.goal, servo.goal];
         }
-        let scale = servo.ticks.ticks_per_turn / std::f64::consts::TAU;
+        let scale = servo.ticks.per_unit();
         let max_step =
             servo.limits.max_speed * scale * dt * (1.0 + LIMIT_SLACK) + STEP_ROUNDING_TICKS;
         let max_second = servo.limits.max_acceleration * scale * dt * dt * (1.0 + LIMIT_SLACK)

@@ -6,17 +6,19 @@
 //! by MaxSpeedDeviation and the motion by each axis' max speed and acceleration. It checks
 //! every reference itself (inside the limits, step within max speed, second difference
 //! within max acceleration, one reference per cycle) and ends the session with MCI_ERROR at
-//! the first bad one, as a controller's supervision would. Without a reply for CommTimeout
+//! the first bad one, as a controller's supervision would. A rig with more axes than the
+//! robot's six carries the others as external axes (`externalJoints`, [`EgmAxes`]), checked
+//! the same way; MaxSpeedDeviation bounds the robot's joints' correction, an external
+//! axis' correction is bounded by its own max speed. Without a reply for CommTimeout
 //! the session ends in the HOLD stop mode (decelerate, stay); motors can go off and on.
 //! It owns the simulated robot only; it must not know about trajectories or jobs.
 
 use crate::clock::{Clock, WallClock};
 use crate::protocol::egm::{
-    EgmClock, EgmFeedBack, EgmHeader, EgmMciState, EgmMotorState, EgmPlanned,
+    EgmAxes, EgmClock, EgmFeedBack, EgmHeader, EgmMciState, EgmMotorState, EgmPlanned,
     EgmRapidCtrlExecState, EgmRobot, EgmSensor, MciState, MessageType, MotorState, RapidState,
-    degrees,
 };
-use crate::rig::{JointLimits, Rig};
+use crate::rig::{JointKind, JointLimits, Rig};
 use prost::Message;
 use std::net::{SocketAddr, UdpSocket};
 use std::sync::Arc;
@@ -64,6 +66,8 @@ impl Default for EgmTwinSettings {
 pub enum EgmTwinError {
     #[error("initial position has {got} values, the rig has {expected} axes")]
     InitialLength { expected: usize, got: usize },
+    #[error("the EGM axis layout has {got} axes, the rig has {expected}")]
+    AxisLayout { expected: usize, got: usize },
     #[error("initial position of {joint} is outside its limits")]
     InitialOutsideLimits { joint: String },
     #[error("EGM twin setting {0} must be finite and positive")]
@@ -92,7 +96,7 @@ pub struct EgmTwinCounters {
     /// Cycles whose message went out over half a period late (the host held the twin): each
     /// stretched.
     pub host_stalls: u64,
-    /// Largest |reference - actual| seen while running, rad.
+    /// Largest |reference - actual| seen while running, rad (m on a linear axis).
     pub tracking_max_rad: f64,
 }
 
@@ -135,7 +139,11 @@ enum Refusal {
 
 /// The simulated robot: positions, speeds, states and the references it follows.
 pub struct EgmRobotModel {
+    axes: EgmAxes,
     limits: Vec<JointLimits>,
+    /// Per axis: its correction is bounded by MaxSpeedDeviation (the robot's revolute
+    /// joints) rather than by its own max speed.
+    deviation_bounded: Vec<bool>,
     settings: EgmTwinSettings,
     position: Vec<f64>,
     speed: Vec<f64>,
@@ -151,11 +159,19 @@ pub struct EgmRobotModel {
 }
 
 impl EgmRobotModel {
+    /// The robot of `rig` at `initial` (rad, m), its axes laid out on the wire as `axes`.
     pub fn new(
         rig: &Rig,
+        axes: EgmAxes,
         settings: EgmTwinSettings,
         initial: &[f64],
     ) -> Result<Self, EgmTwinError> {
+        if axes.dof() != rig.dof() {
+            return Err(EgmTwinError::AxisLayout {
+                expected: rig.dof(),
+                got: axes.dof(),
+            });
+        }
         if initial.len() != rig.dof() {
             return Err(EgmTwinError::InitialLength {
                 expected: rig.dof(),
@@ -177,7 +193,16 @@ impl EgmRobotModel {
                 return Err(EgmTwinError::BadSetting(name));
             }
         }
+        let external = axes.external_indices();
+        let deviation_bounded = rig
+            .joints
+            .iter()
+            .enumerate()
+            .map(|(i, j)| j.kind == JointKind::Revolute && !external.contains(&i))
+            .collect();
         let mut model = Self {
+            axes,
+            deviation_bounded,
             limits: rig.joints.iter().map(|j| j.limits).collect(),
             settings,
             position: initial.to_vec(),
@@ -254,6 +279,8 @@ impl EgmRobotModel {
             .iter()
             .zip(&self.position)
             .all(|(r, p)| (r - p).abs() <= CONVERGED_RAD);
+        let (feedback, feedback_external) = self.axes.split(&self.position);
+        let (planned, planned_external) = self.axes.split(planned);
         EgmRobot {
             header: Some(EgmHeader {
                 seqno: Some(seqno),
@@ -261,13 +288,13 @@ impl EgmRobotModel {
                 mtype: Some(MessageType::Data as i32),
             }),
             feed_back: Some(EgmFeedBack {
-                joints: Some(degrees(&self.position)),
-                external_joints: None,
+                joints: Some(feedback),
+                external_joints: feedback_external,
                 time: Some(time.clone()),
             }),
             planned: Some(EgmPlanned {
-                joints: Some(degrees(planned)),
-                external_joints: None,
+                joints: Some(planned),
+                external_joints: planned_external,
                 time: Some(time),
             }),
             motor_state: Some(EgmMotorState {
@@ -296,11 +323,16 @@ impl EgmRobotModel {
         if self.mci != MciState::Running {
             return None;
         }
-        let positions: Vec<f64> = planned.iter().map(|d| d.to_radians()).collect();
-        let speeds: Vec<f64> = match sensor.speed_joints() {
-            Some(s) if s.len() == positions.len() => s.iter().map(|d| d.to_radians()).collect(),
-            _ => vec![0.0; positions.len()],
+        let Some(positions) = self.wire_positions(planned, sensor.planned_external()) else {
+            self.count(Refusal::AxisCount);
+            self.end_session(MciState::Error);
+            return Some(describe(Refusal::AxisCount));
         };
+        let speeds = sensor
+            .speed_joints()
+            .filter(|s| s.len() == planned.len())
+            .and_then(|s| self.axes.join(s, sensor.speed_external()))
+            .unwrap_or_else(|| vec![0.0; positions.len()]);
         match self.check(&positions, &speeds) {
             Some(refusal) => {
                 self.count(refusal);
@@ -313,6 +345,18 @@ impl EgmRobotModel {
                 None
             }
         }
+    }
+
+    /// A reference's positions (rad, m) from its joints and external joints: `None` unless
+    /// it has exactly the robot's joints and external axes.
+    fn wire_positions(&self, joints: &[f64], external: Option<&[f64]>) -> Option<Vec<f64>> {
+        let external_count = external.map_or(0, <[f64]>::len);
+        if joints.len() + external_count != self.limits.len()
+            || external_count != self.axes.external_indices().len()
+        {
+            return None;
+        }
+        self.axes.join(joints, external)
     }
 
     fn count(&mut self, refusal: Refusal) {
@@ -371,7 +415,11 @@ impl EgmRobotModel {
                     let error = reference[axis] - self.position[axis];
                     self.counters.tracking_max_rad =
                         self.counters.tracking_max_rad.max(error.abs());
-                    let deviation = self.settings.max_speed_deviation;
+                    let deviation = if self.deviation_bounded[axis] {
+                        self.settings.max_speed_deviation
+                    } else {
+                        limits.max_speed
+                    };
                     let correction =
                         (self.settings.gain_per_s * error).clamp(-deviation, deviation);
                     utilization = utilization.max(correction.abs() / deviation);
