@@ -178,6 +178,13 @@ fn main() {
         Ok(()) => println!("streaming at SCHED_FIFO priority 50"),
         Err(e) => println!("streaming at normal priority (SCHED_FIFO refused: {e})"),
     }
+    // As `rigbridge run` does with a ROS 2 node: the cycle keeps to one CPU (in both runs,
+    // so that they compare), the node's threads and the subscriber's keep off it.
+    let cpu = rigbridge::realtime::streaming_cpu();
+    if let Some(cpu) = cpu {
+        rigbridge::realtime::pin_to(cpu).expect("pin the streaming thread");
+        println!("streaming on CPU {cpu}; the Zenoh threads on the others");
+    }
     let quick = std::env::args().any(|a| a == "--quick");
     let rig = load_rig(Path::new(concat!(
         env!("CARGO_MANIFEST_DIR"),
@@ -187,8 +194,11 @@ fn main() {
     let (long, short) = if quick { (5.0, 5.0) } else { (60.0, 10.0) };
     // The subscriber stands for another process: its session (and the Zenoh runtime it
     // starts, which the node then shares) must not inherit main's SCHED_FIFO.
-    let ros2 = std::thread::spawn(|| {
+    let ros2 = std::thread::spawn(move || {
         let _ = rigbridge::realtime::normal_priority();
+        if let Some(cpu) = cpu {
+            rigbridge::realtime::keep_off(cpu).expect("keep the subscriber off the cycle's CPU");
+        }
         subscriber()
     })
     .join()

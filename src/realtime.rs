@@ -4,8 +4,12 @@
 //! is not. Raising needs root or CAP_SYS_NICE; without it streaming goes on at normal
 //! priority and the caller says so. A Linux thread inherits its creator's policy, so a
 //! thread spawned from a SCHED_FIFO one (or a library's runtime started from it) competes
-//! with the cycle unless it steps down. This module owns only the scheduler calls; which
-//! thread runs at which priority is its callers' decision.
+//! with the cycle unless it steps down. The same goes for the CPUs a thread may run on:
+//! with a ROS 2 node beside the stream, the streaming thread keeps to one CPU and the
+//! node's threads (Zenoh's runtime among them) keep off it, so that their system calls and
+//! the loopback network's soft interrupts run on another CPU than the cycle. This module
+//! owns only the scheduler calls; which thread runs where and at which priority is its
+//! callers' decision.
 
 /// Moves the calling thread to SCHED_FIFO at `priority` (1-99).
 pub fn raise_priority(priority: i32) -> std::io::Result<()> {
@@ -30,5 +34,115 @@ pub fn normal_priority() -> std::io::Result<()> {
         Ok(())
     } else {
         Err(std::io::Error::last_os_error())
+    }
+}
+
+/// The CPU a streaming thread keeps to while side threads (a ROS 2 node's) keep off it:
+/// the last of the process's CPUs. `None` when there is one only, where there is nothing
+/// to keep apart.
+pub fn streaming_cpu() -> Option<usize> {
+    let cpus = process_cpus();
+    if cpus.len() < 2 {
+        return None;
+    }
+    cpus.last().copied()
+}
+
+/// Keeps the calling thread (and the threads it creates later) on `cpu` only.
+pub fn pin_to(cpu: usize) -> std::io::Result<()> {
+    set_affinity(&[cpu])
+}
+
+/// Keeps the calling thread (and the threads it creates later) on the process's CPUs but
+/// `cpu`, even when it was created by a thread pinned to `cpu`. With no other CPU it is
+/// left as it is.
+pub fn keep_off(cpu: usize) -> std::io::Result<()> {
+    let others: Vec<usize> = process_cpus()
+        .iter()
+        .copied()
+        .filter(|&c| c != cpu)
+        .collect();
+    if others.is_empty() {
+        return Ok(());
+    }
+    set_affinity(&others)
+}
+
+/// The process's CPUs: those the first thread to ask could run on, remembered, since
+/// threads pinned later (and the threads they create) see fewer. Callers ask before they
+/// pin.
+fn process_cpus() -> &'static [usize] {
+    static CPUS: std::sync::OnceLock<Vec<usize>> = std::sync::OnceLock::new();
+    CPUS.get_or_init(|| allowed_cpus().unwrap_or_default())
+}
+
+/// The CPUs the calling thread may run on, in ascending order.
+fn allowed_cpus() -> std::io::Result<Vec<usize>> {
+    // SAFETY: an all-zero cpu_set_t is a valid empty set; sched_getaffinity writes at most
+    // size_of::<cpu_set_t>() bytes into it, and CPU_ISSET reads within it.
+    unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        if libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set) != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+        Ok((0..libc::CPU_SETSIZE as usize)
+            .filter(|&cpu| libc::CPU_ISSET(cpu, &set))
+            .collect())
+    }
+}
+
+fn set_affinity(cpus: &[usize]) -> std::io::Result<()> {
+    // SAFETY: as above; CPU_SET is only given CPUs below CPU_SETSIZE, which allowed_cpus
+    // and streaming_cpu return.
+    unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        for &cpu in cpus.iter().filter(|&&c| c < libc::CPU_SETSIZE as usize) {
+            libc::CPU_SET(cpu, &mut set);
+        }
+        if libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set) != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_thread_kept_off_the_streaming_cpu_runs_elsewhere_and_a_pinned_one_there() {
+        let Some(cpu) = streaming_cpu() else {
+            eprintln!("skipped: this machine lets the test run on one CPU only");
+            return;
+        };
+        let off = std::thread::spawn(move || {
+            keep_off(cpu).unwrap();
+            allowed_cpus().unwrap()
+        })
+        .join()
+        .unwrap();
+        assert!(
+            !off.is_empty() && !off.contains(&cpu),
+            "{off:?} still has {cpu}"
+        );
+        let (on, off_from_pinned) = std::thread::spawn(move || {
+            pin_to(cpu).unwrap();
+            // A thread created by a pinned one starts pinned too (what Zenoh's runtime
+            // threads rely on), and can still keep off (a node started from the cycle's
+            // thread).
+            let on = std::thread::spawn(allowed_cpus).join().unwrap().unwrap();
+            let off = std::thread::spawn(move || {
+                keep_off(cpu).unwrap();
+                allowed_cpus().unwrap()
+            })
+            .join()
+            .unwrap();
+            (on, off)
+        })
+        .join()
+        .unwrap();
+        assert_eq!(on, vec![cpu]);
+        assert_eq!(off_from_pinned, off);
     }
 }

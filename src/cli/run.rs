@@ -138,13 +138,22 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         args.link.as_deref().unwrap_or(&settings.config.stream.link)
     );
     let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&settings.initial())));
+    // Asked before any thread is pinned: the process's CPUs are remembered then.
+    let streaming_cpu = rigbridge::realtime::streaming_cpu();
     let ros2 = ros2_node(
         &settings,
         args.zenoh_connect.as_deref(),
         &slot,
         spec == LinkSpec::Loopback,
     )?;
+    // With a ROS 2 node, the cycle keeps to the CPU the node's threads keep off.
+    let cpu = ros2.as_ref().and(streaming_cpu);
     let job = spawn_streaming(move || {
+        if let Some(cpu) = cpu
+            && let Err(e) = rigbridge::realtime::pin_to(cpu)
+        {
+            eprintln!("note: streaming on any CPU (cannot keep to CPU {cpu}: {e})");
+        }
         let mut link = open_link(&spec, &settings)?;
         // A device-paced link (EGM) brings the clock the cycle must follow.
         let clock = link.pacing().unwrap_or(clock);

@@ -70,6 +70,11 @@ impl Ros2Node {
                 // (`run`'s streaming thread, a benchmark's main), all of Zenoh would compete
                 // with the cycle. Stepping down can only fail for a thread that is gone.
                 let _ = crate::realtime::normal_priority();
+                // Off the CPU a streaming thread keeps to (`realtime::streaming_cpu`): the
+                // node's sends and the loopback's soft interrupts then run elsewhere.
+                if let Some(cpu) = crate::realtime::streaming_cpu() {
+                    let _ = crate::realtime::keep_off(cpu);
+                }
                 match open_node(&settings, &rig_name, trajectories.is_some()) {
                     Ok((session, declared, names)) => {
                         let _ = ready.send(Ok(names));
