@@ -270,6 +270,23 @@ fn bus_load(summary: &str) -> f64 {
     line[at..].split(' ').next().unwrap().parse().unwrap()
 }
 
+/// The run ended `completed` with no limit violation, and the twin's drives refused,
+/// faulted and aborted nothing.
+fn assert_completed_cleanly(ok: bool, report: &serde_json::Value, summary: &str) {
+    assert!(ok, "{report}");
+    assert_eq!(report["outcome"], "completed", "{report}");
+    assert_eq!(report["limit_violations"], 0, "{report}");
+    for what in [
+        "outside limits",
+        "over speed",
+        "over acceleration",
+        "faults",
+        "SDO aborts",
+    ] {
+        assert_eq!(twin_count(summary, what), 0.0, "{what}: {summary}");
+    }
+}
+
 fn print_figures(label: &str, report: &serde_json::Value, summary: &str) {
     println!(
         "--- {label}: {} {} after {} cycles ({:.2} s); missed cycles {}, feedback timeouts {}, jitter p50 {:.0} us, p99 {:.0} us; latency p99 {:.0} us; TPDO gaps {}; frames sent {}, received {}",
@@ -338,18 +355,7 @@ fn the_bridge_runs_the_default_job_on_the_twins_drives_within_limits() {
     let (report, ok) = finish_run(spawn_run(&config, &json), &json);
     let summary = twin.stop();
     print_figures("default job, our twin's drives", &report, &summary);
-    assert!(ok, "{report}");
-    assert_eq!(report["outcome"], "completed", "{report}");
-    assert_eq!(report["limit_violations"], 0, "{report}");
-    for what in [
-        "outside limits",
-        "over speed",
-        "over acceleration",
-        "faults",
-        "SDO aborts",
-    ] {
-        assert_eq!(twin_count(&summary, what), 0.0, "{what}: {summary}");
-    }
+    assert_completed_cleanly(ok, &report, &summary);
     // Every cycle of the job was a SYNC with targets, answered by six TPDOs.
     let cycles = number(&report, "cycles");
     assert!(twin_count(&summary, "streamed") >= cycles, "{summary}");
@@ -650,18 +656,7 @@ fn the_bridge_drives_the_painter_s_linear_drives_and_arm_within_limits() {
     let (report, ok) = finish_run(spawn_run_on(&link, &config, &json), &json);
     let summary = twin.stop();
     print_figures("painter move_joints, our twin's drives", &report, &summary);
-    assert!(ok, "{report}");
-    assert_eq!(report["outcome"], "completed", "{report}");
-    assert_eq!(report["limit_violations"], 0, "{report}");
-    for what in [
-        "outside limits",
-        "over speed",
-        "over acceleration",
-        "faults",
-        "SDO aborts",
-    ] {
-        assert_eq!(twin_count(&summary, what), 0.0, "{what}: {summary}");
-    }
+    assert_completed_cleanly(ok, &report, &summary);
     let cycles = number(&report, "cycles");
     assert!(twin_count(&summary, "TPDOs") >= 10.0 * cycles, "{summary}");
 }

@@ -10,8 +10,8 @@ use common::shipped_run_settings;
 use prost::Message;
 use rigbridge::clock::Clock;
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
-use rigbridge::daemon::run_job;
-use rigbridge::link::{Link, bind_egm};
+use rigbridge::daemon::{RunReport, run_job};
+use rigbridge::link::{EgmLink, Link, bind_egm};
 use rigbridge::protocol::egm::{EgmAxes, EgmRobot, EgmSensor, MciState, MotorState};
 use rigbridge::stream::{Outcome, StreamControl};
 use rigbridge::twin::egm::{
@@ -41,38 +41,44 @@ fn twin_towards(settings: &RunSettings, sensor: SocketAddr, egm: EgmTwinSettings
     EgmTwin::new(model, sensor).expect("twin socket")
 }
 
+/// The settings' job over an EGM link bound on loopback, against a twin started towards
+/// it, to its end; asserts it `completed`. The report, the stopped twin and the link.
+fn job_against_the_twin(settings: &RunSettings) -> (RunReport, EgmTwin, EgmLink) {
+    let period = Duration::from_secs_f64(settings.period_s());
+    let mut link = bind_egm("127.0.0.1:0", axes(settings), period).expect("bind");
+    let control = Arc::new(EgmTwinControl::default());
+    let twin = twin_towards(settings, link.local_address(), EgmTwinSettings::default());
+    let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
+    wait_for("the EGM session", PATIENCE, || link.is_up());
+    let clock = link.pacing().expect("an EGM link paces the streamer");
+    let job = settings.config.job.clone();
+    let report = run_job(
+        settings,
+        &job,
+        &mut link,
+        clock.as_ref(),
+        None,
+        &StreamControl::default(),
+    )
+    .expect("the job runs");
+    control.stop.store(true, Ordering::SeqCst);
+    let twin = twin.join().expect("twin thread");
+    assert_eq!(
+        report.stream.outcome,
+        Outcome::Completed,
+        "{report:?} {:?}",
+        twin.model().counters
+    );
+    (report, twin, link)
+}
+
 #[test]
 fn bridge_streams_the_default_job_to_the_egm_twin_within_its_limits() {
     let _cycles = one_at_a_time();
     real_time();
     let settings = shipped_run_settings();
-    let period = Duration::from_secs_f64(settings.period_s());
-    let mut link = bind_egm("127.0.0.1:0", axes(&settings), period).expect("bind");
-    let sensor = link.local_address();
-    let control = Arc::new(EgmTwinControl::default());
-    let twin = twin_towards(&settings, sensor, EgmTwinSettings::default());
-    let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
-    wait_for("the EGM session", PATIENCE, || link.is_up());
-    let clock = link.pacing().expect("an EGM link paces the streamer");
-    let stream_control = StreamControl::default();
-    let job = settings.config.job.clone();
-    let report = run_job(
-        &settings,
-        &job,
-        &mut link,
-        clock.as_ref(),
-        None,
-        &stream_control,
-    )
-    .expect("the job runs");
-    control.stop.store(true, Ordering::SeqCst);
-    let twin = twin.join().expect("twin thread");
+    let (report, twin, link) = job_against_the_twin(&settings);
     let counters = twin.model().counters;
-    assert_eq!(
-        report.stream.outcome,
-        Outcome::Completed,
-        "{report:?} {counters:?}"
-    );
     assert_eq!(report.stream.limit_violations, 0);
     assert_eq!(counters.outside_limits, 0, "{counters:?}");
     assert_eq!(counters.over_speed, 0, "{counters:?}");
@@ -323,31 +329,8 @@ fn the_painter_s_base_and_lift_travel_as_external_axes_and_its_job_completes() {
     // Metres on base_x, base_y and lift, degrees elsewhere.
     let job = "kind = \"move_joints\"\ntargets_deg = [[0.3, -0.2, 20.0, 0.4, 20.0, 10.0, 10.0, 0.0, 40.0, 5.0]]";
     let settings = painter_settings("painter-egm.toml", "", job);
-    let period = Duration::from_secs_f64(settings.period_s());
-    let mut link = bind_egm("127.0.0.1:0", axes(&settings), period).expect("bind");
-    let control = Arc::new(EgmTwinControl::default());
-    let twin = twin_towards(&settings, link.local_address(), EgmTwinSettings::default());
-    let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
-    wait_for("the EGM session", PATIENCE, || link.is_up());
-    let clock = link.pacing().expect("an EGM link paces the streamer");
-    let job = settings.config.job.clone();
-    let report = run_job(
-        &settings,
-        &job,
-        &mut link,
-        clock.as_ref(),
-        None,
-        &StreamControl::default(),
-    )
-    .expect("the job runs");
-    control.stop.store(true, Ordering::SeqCst);
-    let twin = twin.join().expect("twin thread");
+    let (_, twin, link) = job_against_the_twin(&settings);
     let counters = twin.model().counters;
-    assert_eq!(
-        report.stream.outcome,
-        Outcome::Completed,
-        "{report:?} {counters:?}"
-    );
     assert_eq!(counters.violations(), 0, "{counters:?}");
     assert_eq!(counters.sessions, 1, "{counters:?}");
     assert_eq!(link.state().malformed, 0);
