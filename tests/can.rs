@@ -452,6 +452,23 @@ fn an_fd_link_refuses_a_classic_interface_and_a_missing_one_says_why() {
 }
 
 #[test]
+fn a_can_socket_holds_a_second_of_a_classic_link_for_a_stalled_reader() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    if let Err(why) = socketcan_here() {
+        return skip(&why);
+    }
+    let bus = match rigbridge::transport::CanBus::open_classic("vcan0") {
+        Ok(bus) => bus,
+        Err(e) => return skip(&e.to_string()),
+    };
+    // At 250 Hz a classic link's targets are 2,000 frames a second, each costing the
+    // socket about 900 bytes: 1.8 MB. The kernel's default (about 208 KiB) held 115 ms,
+    // less than the test VM's stalls.
+    let bytes = bus.receive_buffer_bytes().expect("SO_RCVBUF");
+    assert!(bytes >= 2_000 * 900, "receive buffer {bytes} bytes");
+}
+
+#[test]
 fn can_settings_default_to_classic_at_0x100_and_a_base_past_0x780_is_refused() {
     let settings = load_run_settings(&repo_path("config/rigbridge.toml")).unwrap();
     let mapping = settings

@@ -20,6 +20,15 @@ use std::time::{Duration, Instant};
 /// up (half a cycle at 1 kHz; the receiver then drops the incomplete message).
 pub const SEND_PATIENCE: Duration = Duration::from_micros(500);
 
+/// The receive buffer each socket asks for. The kernel's default (rmem_default, about
+/// 208 KiB) holds some 230 frames at the memory each frame costs a socket (about 900 bytes
+/// with its bookkeeping): 115 ms of a classic link's targets at 250 Hz (8 frames each). A
+/// host that holds the reading thread longer than that, as the software-emulated test VM
+/// does, would drop frames, and a message short of a frame is lost whole. 2 MiB rides out
+/// about a second. Root may go past rmem_max (SO_RCVBUFFORCE); others get what rmem_max
+/// allows.
+const RECEIVE_BUFFER_BYTES: libc::c_int = 2 << 20;
+
 /// The MTU of an interface that carries CAN FD frames (`struct canfd_frame`).
 const CANFD_MTU: usize = 72;
 const IFF_UP: u32 = 0x1;
@@ -98,10 +107,37 @@ impl CanBus {
         if let Err(e) = configured {
             return fail(e.kind(), format!("cannot configure the socket: {e}"));
         }
+        let fd = match &socket {
+            BusSocket::Classic(s) => s.as_raw_fd(),
+            BusSocket::Fd(s) => s.as_raw_fd(),
+        };
+        enlarge_receive_buffer(fd);
         Ok(Self {
             socket,
             interface: interface.to_string(),
         })
+    }
+
+    /// The bytes the socket's receive buffer holds (as the kernel reports it: double what
+    /// was asked, for its bookkeeping).
+    pub fn receive_buffer_bytes(&self) -> io::Result<usize> {
+        let mut size: libc::c_int = 0;
+        let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
+        // SAFETY: getsockopt writes at most `len` bytes into `size`, an int, and `len` says so.
+        let result = unsafe {
+            libc::getsockopt(
+                self.as_raw_fd(),
+                libc::SOL_SOCKET,
+                libc::SO_RCVBUF,
+                (&mut size as *mut libc::c_int).cast(),
+                &mut len,
+            )
+        };
+        if result == 0 {
+            Ok(usize::try_from(size).unwrap_or(0))
+        } else {
+            Err(io::Error::last_os_error())
+        }
     }
 
     pub fn interface(&self) -> &str {
@@ -297,6 +333,27 @@ fn explain(e: &io::Error) -> String {
             format!("this kernel has no SocketCAN (modules can, can-raw) ({e})")
         }
         _ => e.to_string(),
+    }
+}
+
+/// Asks for [`RECEIVE_BUFFER_BYTES`]: past rmem_max when allowed (SO_RCVBUFFORCE), else up
+/// to it. A refusal keeps the default, which works on an unloaded host.
+fn enlarge_receive_buffer(fd: RawFd) {
+    let size = RECEIVE_BUFFER_BYTES;
+    let set = |option: libc::c_int| {
+        // SAFETY: setsockopt reads one int from `size`, whose length is passed.
+        unsafe {
+            libc::setsockopt(
+                fd,
+                libc::SOL_SOCKET,
+                option,
+                (&size as *const libc::c_int).cast(),
+                std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+            )
+        }
+    };
+    if set(libc::SO_RCVBUFFORCE) != 0 {
+        let _ = set(libc::SO_RCVBUF);
     }
 }
 
