@@ -12,6 +12,8 @@
 
 mod common;
 
+use common::can::{skip, socketcan_here};
+
 use common::{irb120, repo_path, wait_for_logged_commands};
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::log::read_log;
@@ -48,38 +50,6 @@ const OUTAGE: Duration = Duration::from_millis(300);
 
 /// One job on the buses at a time: they share the machine's two CPUs (emulated, in CI).
 static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
-
-fn required() -> bool {
-    std::env::var("RIGBRIDGE_REQUIRE_CAN").is_ok_and(|v| v == "1")
-}
-
-/// Prints why a test does not run here, or fails it where CAN is required.
-fn skip(why: &str) {
-    assert!(
-        !required(),
-        "RIGBRIDGE_REQUIRE_CAN=1, but {why}; .ci/run runs this test inside a VM with vcan0"
-    );
-    println!("skipping: {why}; .ci/run runs this test inside a VM with vcan0");
-}
-
-/// Whether this kernel has SocketCAN and vcan0 exists; why not otherwise.
-fn socketcan_here() -> Result<(), String> {
-    // SAFETY: socket(2) with constant arguments; the descriptor is closed at once.
-    let fd = unsafe { libc::socket(libc::PF_CAN, libc::SOCK_RAW, libc::CAN_RAW) };
-    if fd < 0 {
-        return Err(format!(
-            "SocketCAN not available here ({})",
-            std::io::Error::last_os_error()
-        ));
-    }
-    // SAFETY: fd is the descriptor socket(2) just returned.
-    unsafe { libc::close(fd) };
-    match interface_up("vcan0") {
-        Some(true) => Ok(()),
-        Some(false) => Err("vcan0 is down".into()),
-        None => Err("no CAN interface vcan0 here".into()),
-    }
-}
 
 fn ip(args: &[&str]) -> Result<(), String> {
     let status = Process::new("ip")
@@ -411,7 +381,7 @@ fn whole_job(label: &str, interface: &str, fd: bool) {
 #[test]
 fn a_job_over_classic_can_loses_no_frame_and_stays_within_limits() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here() {
+    if let Err(why) = socketcan_here("vcan0") {
         return skip(&why);
     }
     whole_job("classic CAN", "vcan0", false);
@@ -420,7 +390,7 @@ fn a_job_over_classic_can_loses_no_frame_and_stays_within_limits() {
 #[test]
 fn a_job_over_can_fd_sends_one_frame_per_message() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here().and_then(|()| prepare_vcan("vcan1", true)) {
+    if let Err(why) = socketcan_here("vcan0").and_then(|()| prepare_vcan("vcan1", true)) {
         return skip(&why);
     }
     whole_job("CAN FD", "vcan1", true);
@@ -429,7 +399,7 @@ fn a_job_over_can_fd_sends_one_frame_per_message() {
 #[test]
 fn an_fd_link_refuses_a_classic_interface_and_a_missing_one_says_why() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here() {
+    if let Err(why) = socketcan_here("vcan0") {
         return skip(&why);
     }
     // An interface with MTU 16 carries classic frames only: an FD mapping cannot work there.
@@ -454,7 +424,7 @@ fn an_fd_link_refuses_a_classic_interface_and_a_missing_one_says_why() {
 #[test]
 fn a_can_socket_holds_a_second_of_a_classic_link_for_a_stalled_reader() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here() {
+    if let Err(why) = socketcan_here("vcan0") {
         return skip(&why);
     }
     let bus = match rigbridge::transport::CanBus::open_classic("vcan0") {
@@ -491,7 +461,7 @@ fn can_settings_default_to_classic_at_0x100_and_a_base_past_0x780_is_refused() {
 
 #[test]
 fn without_socketcan_the_twin_and_the_link_say_so() {
-    if socketcan_here().is_ok() {
+    if socketcan_here("vcan0").is_ok() {
         return;
     }
     let mapping = CanMapping::new(0x100, false, CanSender::Bridge).unwrap();
@@ -513,7 +483,7 @@ fn without_socketcan_the_twin_and_the_link_say_so() {
 #[test]
 fn an_interface_down_mid_job_holds_the_twin_and_the_job_resumes() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here().and_then(|()| prepare_vcan("vcan2", false)) {
+    if let Err(why) = socketcan_here("vcan0").and_then(|()| prepare_vcan("vcan2", false)) {
         return skip(&why);
     }
     let config = config(false);

@@ -13,8 +13,9 @@
 
 mod common;
 
+use common::can::{skip, socketcan_here};
+
 use common::{irb120, peer_python, repo_path};
-use rigbridge::transport::interface_up;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdin, Command as Process, Stdio};
@@ -43,36 +44,6 @@ const FAULT_AFTER: Duration = Duration::from_millis(800);
 
 /// One job on the bus at a time: they share the machine's two CPUs (emulated, in CI).
 static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
-
-fn required() -> bool {
-    std::env::var("RIGBRIDGE_REQUIRE_CAN").is_ok_and(|v| v == "1")
-}
-
-fn skip(why: &str) {
-    assert!(
-        !required(),
-        "RIGBRIDGE_REQUIRE_CAN=1, but {why}; scripts/test.sh runs this test inside a VM with vcan0"
-    );
-    println!("skipping: {why}; scripts/test.sh runs this test inside a VM with vcan0");
-}
-
-fn socketcan_here() -> Result<(), String> {
-    // SAFETY: socket(2) with constant arguments; the descriptor is closed at once.
-    let fd = unsafe { libc::socket(libc::PF_CAN, libc::SOCK_RAW, libc::CAN_RAW) };
-    if fd < 0 {
-        return Err(format!(
-            "SocketCAN not available here ({})",
-            std::io::Error::last_os_error()
-        ));
-    }
-    // SAFETY: fd is the descriptor socket(2) just returned.
-    unsafe { libc::close(fd) };
-    match interface_up(INTERFACE) {
-        Some(true) => Ok(()),
-        Some(false) => Err(format!("{INTERFACE} is down")),
-        None => Err(format!("no CAN interface {INTERFACE} here")),
-    }
-}
 
 /// The Python with python-can and canopen, or why there is none (a failure on CI).
 fn python() -> Result<String, String> {
@@ -346,7 +317,7 @@ fn counts(rad: f64) -> f64 {
 #[test]
 fn the_bridge_runs_the_default_job_on_the_twins_drives_within_limits() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here() {
+    if let Err(why) = socketcan_here(INTERFACE) {
         return skip(&why);
     }
     let config = config(RATE_HZ);
@@ -366,7 +337,7 @@ fn the_bridge_runs_the_default_job_on_the_twins_drives_within_limits() {
 #[test]
 fn a_drive_fault_stops_the_job_within_two_cycles_and_reset_clears_it() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here() {
+    if let Err(why) = socketcan_here(INTERFACE) {
         return skip(&why);
     }
     let config = config(RATE_HZ);
@@ -440,7 +411,7 @@ fn remapped_in_order(writes: &[(u64, u64, i64)], comm: u64, map: u64, entries: &
 #[test]
 fn the_bridge_drives_python_canopen_local_nodes() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here() {
+    if let Err(why) = socketcan_here(INTERFACE) {
         return skip(&why);
     }
     let python = match python() {
@@ -558,7 +529,7 @@ fn the_bridge_drives_python_canopen_local_nodes() {
 #[test]
 fn a_python_canopen_master_moves_the_twins_drives() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here() {
+    if let Err(why) = socketcan_here(INTERFACE) {
         return skip(&why);
     }
     let python = match python() {
@@ -636,7 +607,7 @@ fn canopen_links_and_settings_are_checked_with_their_source_named() {
 #[test]
 fn the_bridge_drives_the_painter_s_linear_drives_and_arm_within_limits() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here() {
+    if let Err(why) = socketcan_here(INTERFACE) {
         return skip(&why);
     }
     // The painter: base_x, base_y and lift on linear drives of 1 um increments, base_yaw and
