@@ -9,7 +9,15 @@
 //! cycles the cells ran in it) and memory per cell (resident set growth from before the
 //! daemon started, divided by N), then the ratios of the two designs.
 //!
-//! `cargo bench --bench cells`; sizes: `CELLS=1,8,32,128` (250 Hz), `CELLS_1KHZ=1,8,16`.
+//! Beside the cells, one idle witness thread per CPU (pinned, SCHED_FIFO above the
+//! streams) wakes every millisecond and does nothing else: the wakes it gets later than a
+//! 1 kHz period are stalls of the machine itself (a shared VM's host taking its CPU), which
+//! no design can avoid. A cell's missed cycles beside as many witness stalls are the
+//! machine's; beyond them, the design's.
+//!
+//! `cargo bench --bench cells`; sizes: `CELLS=1,8,32,128` (250 Hz), `CELLS_1KHZ=1,8,16`;
+//! the shared executor's thread counts to compare: `CELLS_THREADS=1,2` (default 1, the
+//! `[serve] executor_threads` default; a design `shared_x2` is the executor with two).
 
 #[path = "../tests/common/flood.rs"]
 mod flood;
@@ -47,6 +55,9 @@ fn main() {
             .filter_map(|n| n.trim().parse().ok())
             .collect()
     };
+    let designs: Vec<String> = std::iter::once("thread_per_cell".to_string())
+        .chain(sizes("CELLS_THREADS", "1").into_iter().map(shared_design))
+        .collect();
     let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     println!("load average (1, 5, 15 min) at start: {}", load.trim());
     let mut rows = Vec::new();
@@ -55,7 +66,7 @@ fn main() {
         (1000.0, sizes("CELLS_1KHZ", "1,8,16")),
     ] {
         for n in sizes {
-            for design in ["thread_per_cell", "shared"] {
+            for design in &designs {
                 let row = spawn_child(design, n, rate);
                 print_row(&row);
                 rows.push(row);
@@ -65,6 +76,26 @@ fn main() {
     print_ratios(&rows);
     let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     println!("load average at end: {}", load.trim());
+}
+
+/// The shared executor's design name with `threads` workers: `shared` for the default one.
+fn shared_design(threads: usize) -> String {
+    match threads {
+        1 => "shared".into(),
+        n => format!("shared_x{n}"),
+    }
+}
+
+/// The executor kind and thread count a design name stands for.
+fn executor_of(design: &str) -> (ExecutorKind, usize) {
+    match design.strip_prefix("shared") {
+        Some("") => (ExecutorKind::Shared, 1),
+        Some(threads) => (
+            ExecutorKind::Shared,
+            threads.trim_start_matches("_x").parse().unwrap_or(1),
+        ),
+        None => (ExecutorKind::ThreadPerCell, 1),
+    }
 }
 
 fn spawn_child(design: &str, n: usize, rate: f64) -> Value {
@@ -86,7 +117,7 @@ fn print_row(row: &Value) {
         return;
     }
     println!(
-        "{:>6} Hz {:>4} cells {:>16}: jitter p50 {:>5} us, p99 {:>5} us (worst cell {:>5} us = {:>5.1} % of the cycle), max {:>6} us; missed {:>5} of {:>7}; overruns {:>3}; log records dropped {}; CPU {:>6.1} us per cell-cycle; {:>5.2} MB per cell; {} of {} completed",
+        "{:>6} Hz {:>4} cells {:>16}: jitter p50 {:>5} us, p99 {:>5} us (worst cell {:>5} us = {:>5.1} % of the cycle), max {:>6} us; missed {:>5} of {:>7} (per cell {}..{}); overruns {:>3}; log records dropped {}; CPU {:>6.1} us per cell-cycle; {:>5.2} MB per cell; {} of {} completed; machine stalls over 1 ms seen by the idle witnesses {} (longest {} us)",
         row["rate_hz"],
         row["cells"],
         row["design"].as_str().unwrap_or(""),
@@ -97,18 +128,27 @@ fn print_row(row: &Value) {
         row["max_worst_us"],
         row["missed"],
         row["cycles"],
+        row["missed_cell_min"],
+        row["missed_cell_max"],
         row["overruns"],
         row["log_dropped"],
         row["cpu_us_per_cell_cycle"].as_f64().unwrap_or(f64::NAN),
         row["mb_per_cell"].as_f64().unwrap_or(f64::NAN),
         row["completed"],
         row["cells"],
+        row["witness_stalls"],
+        row["witness_max_us"],
     );
 }
 
 fn print_ratios(rows: &[Value]) {
     println!("thread per cell / shared, same run:");
-    for shared in rows.iter().filter(|r| r["design"] == "shared") {
+    let shared_rows = rows.iter().filter(|r| {
+        r["design"]
+            .as_str()
+            .is_some_and(|d| d.starts_with("shared"))
+    });
+    for shared in shared_rows {
         let Some(thread) = rows.iter().find(|r| {
             r["design"] == "thread_per_cell"
                 && r["cells"] == shared["cells"]
@@ -120,9 +160,10 @@ fn print_ratios(rows: &[Value]) {
             thread[key].as_f64().unwrap_or(f64::NAN) / shared[key].as_f64().unwrap_or(f64::NAN)
         };
         println!(
-            "{:>6} Hz {:>4} cells: CPU per cell-cycle x{:.1}, memory per cell x{:.1}, worst p99 jitter x{:.1}",
+            "{:>6} Hz {:>4} cells {:>10}: CPU per cell-cycle x{:.1}, memory per cell x{:.1}, worst p99 jitter x{:.1}",
             shared["rate_hz"],
             shared["cells"],
+            shared["design"].as_str().unwrap_or(""),
             ratio("cpu_us_per_cell_cycle"),
             ratio("mb_per_cell"),
             ratio("p99_worst_us"),
@@ -142,16 +183,14 @@ fn child(spec: &str) {
         "/config/rigbridge.toml"
     )))
     .expect("run settings");
+    let (executor, threads) = executor_of(&design);
     let cells: Vec<RunSettings> = (0..n)
         .map(|i| {
             let mut cell = base.clone();
             cell.rig.name = format!("arm{i:03}");
             cell.config.stream.rate_hz = rate;
-            cell.config.serve.executor = if design == "shared" {
-                ExecutorKind::Shared
-            } else {
-                ExecutorKind::ThreadPerCell
-            };
+            cell.config.serve.executor = executor;
+            cell.config.serve.executor_threads = threads;
             cell
         })
         .collect();
@@ -177,13 +216,17 @@ fn child(spec: &str) {
     let server = runtime.spawn(run(listener, cells, options, async {
         let _ = stopped.await;
     }));
+    let witnesses = Witnesses::start();
     let figures = measure(address, n, rate);
+    let stalls = witnesses.stop();
     let _ = stop.send(());
     let _ = runtime.block_on(server);
     let _ = std::fs::remove_dir_all(&runs);
     let mut row = figures.finish(n);
     row["design"] = design.into();
     row["rate_hz"] = rate.into();
+    row["witness_stalls"] = stalls.count.into();
+    row["witness_max_us"] = (stalls.max.as_secs_f64() * 1e6).round().into();
     row["mb_per_cell"] =
         ((figures.rss_streaming.saturating_sub(rss_before)) as f64 / n as f64 / 1e6).into();
     println!("{row}");
@@ -292,6 +335,8 @@ impl Figures {
             "p99_worst_share": worst_share,
             "max_worst_us": max[max.len() - 1],
             "missed": sum("missed_cycles"),
+            "missed_cell_min": field("missed_cycles")[0],
+            "missed_cell_max": field("missed_cycles")[n - 1],
             "cycles": sum("cycles"),
             "overruns": sum("overruns"),
             // Records the job logs could not keep (a full ring): 0 means every log is whole.
@@ -304,6 +349,71 @@ impl Figures {
             "cpu_us_per_cell_cycle": self.cpu.as_secs_f64() * 1e6 / self.window_cycles.max(1) as f64,
         })
     }
+}
+
+/// The witness' period, and the lateness that counts as a stall: a 1 kHz cycle's.
+const WITNESS_PERIOD: Duration = Duration::from_millis(1);
+/// Above the streams' SCHED_FIFO priority (50), so that no cell's work delays a witness.
+const WITNESS_PRIORITY: i32 = 51;
+
+/// One idle thread per CPU that only wakes on time (see the module doc).
+struct Witnesses {
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    threads: Vec<std::thread::JoinHandle<(u64, Duration)>>,
+}
+
+struct Stalls {
+    count: u64,
+    max: Duration,
+}
+
+impl Witnesses {
+    fn start() -> Witnesses {
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let threads = (0..cpus)
+            .map(|cpu| {
+                let stop = stop.clone();
+                std::thread::spawn(move || {
+                    let _ = rigbridge::realtime::pin_to(cpu);
+                    let _ = rigbridge::realtime::raise_priority(WITNESS_PRIORITY);
+                    witness(&stop)
+                })
+            })
+            .collect();
+        Witnesses { stop, threads }
+    }
+
+    fn stop(self) -> Stalls {
+        self.stop.store(true, std::sync::atomic::Ordering::SeqCst);
+        let mut stalls = Stalls {
+            count: 0,
+            max: Duration::ZERO,
+        };
+        for thread in self.threads {
+            let (count, max) = thread.join().unwrap_or_default();
+            stalls.count += count;
+            stalls.max = stalls.max.max(max);
+        }
+        stalls
+    }
+}
+
+/// Wakes every period until told to stop; counts the wakes a period or more late.
+fn witness(stop: &std::sync::atomic::AtomicBool) -> (u64, Duration) {
+    let (mut count, mut max) = (0, Duration::ZERO);
+    let mut deadline = Instant::now() + WITNESS_PERIOD;
+    while !stop.load(std::sync::atomic::Ordering::SeqCst) {
+        std::thread::sleep(deadline.saturating_duration_since(Instant::now()));
+        let now = Instant::now();
+        let late = now - deadline;
+        if late > WITNESS_PERIOD {
+            count += 1;
+        }
+        max = max.max(late);
+        deadline = now.max(deadline) + WITNESS_PERIOD;
+    }
+    (count, max)
 }
 
 fn job_body() -> String {

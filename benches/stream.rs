@@ -51,16 +51,73 @@ fn swing(rig: &Rig, period: f64, seconds: f64) -> Trajectory {
     Trajectory::new(rig.name.clone(), names, period, positions, velocities).expect("well-formed")
 }
 
+/// Set in the subscriber's own process (this bench, run again).
+const SUBSCRIBER_CHILD: &str = "RIGBRIDGE_STREAM_BENCH_SUBSCRIBER";
+/// How often the subscriber's process reports its count.
+const COUNT_EVERY: std::time::Duration = std::time::Duration::from_millis(50);
+
 /// The subscriber the node publishes to: a Zenoh session listening on a free loopback
-/// port, counting samples.
+/// port, counting samples, in a process of its own, as `ros2 topic echo` or another
+/// machine's node would be: its threads, allocations and frees are not the cycle's
+/// process's. Killed when dropped.
 struct Subscriber {
     endpoint: String,
     received: Arc<AtomicU64>,
-    _subscriber: zenoh::pubsub::Subscriber<()>,
-    _session: zenoh::Session,
+    child: std::process::Child,
 }
 
-fn subscriber() -> Subscriber {
+impl Drop for Subscriber {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Starts the subscriber's process: it prints its endpoint, then its count every
+/// [`COUNT_EVERY`], until its stdin closes.
+fn subscriber(keep_off: Option<usize>) -> Subscriber {
+    use std::io::BufRead;
+    let mut command = std::process::Command::new(std::env::current_exe().expect("own path"));
+    command
+        .env(
+            SUBSCRIBER_CHILD,
+            keep_off.map_or(String::new(), |c| c.to_string()),
+        )
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped());
+    let mut child = command.spawn().expect("subscriber process");
+    let mut lines = std::io::BufReader::new(child.stdout.take().expect("stdout")).lines();
+    let endpoint = lines
+        .next()
+        .and_then(Result::ok)
+        .expect("the subscriber's endpoint");
+    let received = Arc::new(AtomicU64::new(0));
+    let counter = received.clone();
+    // This reader is the bench's own thread: off the cycle's CPU and priority.
+    std::thread::spawn(move || {
+        let _ = rigbridge::realtime::normal_priority();
+        if let Some(cpu) = keep_off {
+            let _ = rigbridge::realtime::keep_off(cpu);
+        }
+        for count in lines.map_while(Result::ok) {
+            if let Ok(count) = count.trim().parse() {
+                counter.store(count, Ordering::Relaxed);
+            }
+        }
+    });
+    Subscriber {
+        endpoint,
+        received,
+        child,
+    }
+}
+
+/// The subscriber's process (see [`subscriber`]).
+fn subscriber_process(keep_off: &str) {
+    let _ = rigbridge::realtime::normal_priority();
+    if let Ok(cpu) = keep_off.parse() {
+        rigbridge::realtime::keep_off(cpu).expect("keep the subscriber off the cycle's CPU");
+    }
     let port = std::net::TcpListener::bind("127.0.0.1:0")
         .and_then(|l| l.local_addr())
         .expect("a free port")
@@ -77,29 +134,34 @@ fn subscriber() -> Subscriber {
     let session = zenoh::open(config).wait().expect("subscriber session");
     let received = Arc::new(AtomicU64::new(0));
     let counter = received.clone();
-    let subscriber = session
+    let _subscriber = session
         .declare_subscriber("0/*/joint_states/**")
         .callback(move |_| {
             counter.fetch_add(1, Ordering::Relaxed);
         })
         .wait()
         .expect("subscriber");
-    Subscriber {
-        endpoint,
-        received,
-        _subscriber: subscriber,
-        _session: session,
+    println!("{endpoint}");
+    let closed = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let watch = closed.clone();
+    std::thread::spawn(move || {
+        let _ = std::io::copy(&mut std::io::stdin(), &mut std::io::sink());
+        watch.store(true, Ordering::SeqCst);
+    });
+    while !closed.load(Ordering::SeqCst) {
+        println!("{}", received.load(Ordering::Relaxed));
+        std::thread::sleep(COUNT_EVERY);
     }
 }
 
 /// One stream of `seconds`; with `ros2`, beside a node publishing to it. The report, and the
-/// JointStates published and received.
+/// JointStates published.
 fn stream_once(
     rig: &Rig,
     rate_hz: f64,
     seconds: f64,
     ros2: Option<&Subscriber>,
-) -> (StreamReport, u64, u64) {
+) -> (StreamReport, u64) {
     let period = 1.0 / rate_hz;
     let twin = Twin::new(
         rig,
@@ -121,7 +183,6 @@ fn stream_once(
         let joints = rig.joint_names().map(String::from).collect();
         Ros2Node::start(&settings, &rig.name, joints, slot.clone(), true, None).expect("node")
     });
-    let received_before = ros2.map_or(0, |s| s.received.load(Ordering::Relaxed));
     let mut live = LiveSink::new(&slot, rate_hz as u64);
     let sink: &mut dyn rigbridge::stream::CycleSink =
         if node.is_some() { &mut live } else { &mut () };
@@ -136,8 +197,7 @@ fn stream_once(
     )
     .expect("stream");
     let published = node.as_ref().map_or(0, Ros2Node::published);
-    let received = ros2.map_or(0, |s| s.received.load(Ordering::Relaxed) - received_before);
-    (report, published, received)
+    (report, published)
 }
 
 /// One way's slices, summed.
@@ -149,18 +209,18 @@ struct Way {
     max_us: f64,
     seconds: f64,
     published: u64,
-    received: u64,
+    /// The streaming CPU's [`INTERRUPTS`] while this way streamed.
+    interrupts: [u64; 3],
 }
 
 impl Way {
-    fn add(&mut self, (report, published, received): (StreamReport, u64, u64)) {
+    fn add(&mut self, (report, published): (StreamReport, u64)) {
         self.cycles += report.cycles;
         self.missed += report.missed_cycles;
         self.p99s.push(report.jitter_p99_us);
         self.max_us = self.max_us.max(report.jitter_max_us);
         self.seconds += report.duration_s;
         self.published += published;
-        self.received += received;
     }
 
     fn median_p99(&self) -> f64 {
@@ -200,22 +260,69 @@ impl Way {
     }
 }
 
-fn run(rig: &Rig, rate_hz: f64, seconds: f64, ros2: &Subscriber) -> bool {
+/// Interrupts that stop a running thread for a few microseconds (each a VM exit on a
+/// virtual machine): the kinds /proc/interrupts counts, on one CPU.
+const INTERRUPTS: [&str; 3] = ["TLB", "CAL", "RES"];
+
+/// The [`INTERRUPTS`] `cpu` has taken so far (zeros without /proc/interrupts).
+fn interrupts(cpu: Option<usize>) -> [u64; 3] {
+    let text = std::fs::read_to_string("/proc/interrupts").unwrap_or_default();
+    let mut counts = [0; 3];
+    let Some(cpu) = cpu else { return counts };
+    for line in text.lines() {
+        let mut fields = line.split_whitespace();
+        let Some(name) = fields.next().map(|n| n.trim_end_matches(':')) else {
+            continue;
+        };
+        if let Some(k) = INTERRUPTS.iter().position(|i| *i == name) {
+            counts[k] = fields.nth(cpu).and_then(|c| c.parse().ok()).unwrap_or(0);
+        }
+    }
+    counts
+}
+
+fn run(rig: &Rig, rate_hz: f64, seconds: f64, ros2: &Subscriber, cpu: Option<usize>) -> bool {
     let slice = seconds / SLICES as f64;
     let mut ways = [Way::default(), Way::default()];
+    let received_before = ros2.received.load(Ordering::Relaxed);
     for round in 0..SLICES {
         let order = if round % 2 == 0 { [0, 1] } else { [1, 0] };
         for way in order {
+            let before = interrupts(cpu);
             ways[way].add(stream_once(rig, rate_hz, slice, (way == 1).then_some(ros2)));
+            let after = interrupts(cpu);
+            for k in 0..INTERRUPTS.len() {
+                ways[way].interrupts[k] += after[k].saturating_sub(before[k]);
+            }
         }
     }
+    // The subscriber's process reports its count every COUNT_EVERY: wait for the last.
+    std::thread::sleep(COUNT_EVERY * 4);
+    let received = ros2.received.load(Ordering::Relaxed) - received_before;
     let ok = ways[0].report(rate_hz, "as is") & ways[1].report(rate_hz, "+ ROS 2");
     println!(
         "        ROS 2: {} JointState published ({:.0} Hz), {} received",
         ways[1].published,
         ways[1].published as f64 / ways[1].seconds,
-        ways[1].received
+        received
     );
+    if cpu.is_some() {
+        let per_s = |way: &Way, k: usize| way.interrupts[k] as f64 / way.seconds.max(1e-9);
+        let kinds: Vec<String> = (0..INTERRUPTS.len())
+            .map(|k| {
+                format!(
+                    "{} {:.0} -> {:.0}",
+                    INTERRUPTS[k],
+                    per_s(&ways[0], k),
+                    per_s(&ways[1], k)
+                )
+            })
+            .collect();
+        println!(
+            "        interrupts on the streaming CPU per second, as is -> + ROS 2: {}",
+            kinds.join(", ")
+        );
+    }
     let added_missed = ways[1].missed as i64 - ways[0].missed as i64;
     let added_p99 = ways[1].median_p99() - ways[0].median_p99();
     let within = added_missed <= 0 && added_p99 <= MAX_ADDED_P99_US;
@@ -231,6 +338,10 @@ fn run(rig: &Rig, rate_hz: f64, seconds: f64, ros2: &Subscriber) -> bool {
 }
 
 fn main() {
+    if let Ok(keep_off) = std::env::var(SUBSCRIBER_CHILD) {
+        subscriber_process(&keep_off);
+        return;
+    }
     match rigbridge::stream::raise_priority(50) {
         Ok(()) => println!("streaming at SCHED_FIFO priority 50"),
         Err(e) => println!("streaming at normal priority (SCHED_FIFO refused: {e})"),
@@ -249,20 +360,11 @@ fn main() {
     )))
     .expect("rig");
     let (long, short) = if quick { (5.0, 5.0) } else { (60.0, 10.0) };
-    // The subscriber stands for another process: its session (and the Zenoh runtime it
-    // starts, which the node then shares) must not inherit main's SCHED_FIFO.
-    let ros2 = std::thread::spawn(move || {
-        let _ = rigbridge::realtime::normal_priority();
-        if let Some(cpu) = cpu {
-            rigbridge::realtime::keep_off(cpu).expect("keep the subscriber off the cycle's CPU");
-        }
-        subscriber()
-    })
-    .join()
-    .expect("subscriber thread");
+    // The subscriber is another process, which steps down from the SCHED_FIFO it inherits.
+    let ros2 = subscriber(cpu);
     let results = [
-        run(&rig, 250.0, long, &ros2),
-        run(&rig, 1000.0, short, &ros2),
+        run(&rig, 250.0, long, &ros2, cpu),
+        run(&rig, 1000.0, short, &ros2, cpu),
     ];
     if results.contains(&false) {
         std::process::exit(1);
