@@ -1,9 +1,9 @@
 //! Run logs: recording a streamed job to an MCAP file and reading it back (`docs/logs.md`
 //! describes the file). Owns the file layout, the recorder's writer thread, the tolerant
-//! reader and the `log info` summary (the recorded commands become a trajectory to replay
-//! in the stage above, `trajectory/recorded.rs`). It must not touch links,
-//! controllers or the streaming loop itself: the loop hands it [`LogRecord`]s and events, and
-//! gets nothing back that could make it wait.
+//! reader and the `log info` summary (the stage above, `trajectory/recorded.rs`, turns the
+//! recorded commands into a trajectory to replay). It must not touch links, controllers or
+//! the streaming loop itself: the loop hands it [`LogRecord`]s and events, and gets nothing
+//! back that could make it wait.
 //!
 //! - [`Recorder`]: non-blocking recording (a preallocated ring of packed records, writer
 //!   thread, small chunks so a killed run leaves a readable file);
