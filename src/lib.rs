@@ -2,11 +2,15 @@
 //! simulated twin.
 //!
 //! The crate is laid out by pipeline stage, in the order data flows (imports point down
-//! this list, never up; `docs/architecture.md`):
+//! the chain from `job` to `log`, never up; the view, the ROS 2 node and the daemon, which
+//! show or wire all of it, sit above it: `docs/architecture.md`, "Layers", gives the whole
+//! order and `tests/layers.rs` keeps it):
 //! - [`job`]: job kinds, one file each: validation, file resolution, planning, scene;
 //! - [`task`]: tasks that produce targets from generated worlds (painting, the sloth gait);
-//! - [`ik`]: inverse-kinematics solvers behind one trait (FABRIK planner, CCD, gradient descent);
-//! - [`trajectory`]: fixed-period joint trajectories, their planning and `validate`;
+//! - [`ik`]: inverse-kinematics solvers behind one trait (FABRIK planner, CCD, gradient descent)
+//!   and Cartesian lines solved into joint paths;
+//! - [`trajectory`]: planning fixed-period joint trajectories (joint moves, the timing of a
+//!   joint path, resampling, retiming) and a run log read back for replay;
 //! - [`stream`]: the fixed-rate cycle, its safety gate and the following checks;
 //! - [`link`]: one transport per backend and the bridge's side of the protocol's session;
 //! - [`twin`]: the strict simulated controller, in process or on the far side of a link;
@@ -15,7 +19,9 @@
 //! - [`ros2`]: each rig as a ROS 2 node over Zenoh (joint states out, trajectories in);
 //! - [`daemon`]: the wiring of the stages for `run`, `serve` and `replay`, and resuming;
 //!
-//! and beside the chain: [`rig`] (rig models, TOML/URDF descriptions, forward kinematics),
+//! and beside the chain: [`motion`] (the `Trajectory` type and `validate`, which the
+//! planners build and the streamer runs), [`scene`] (a world's geometry, drawn by the view
+//! and written by the log), [`rig`] (rig models, TOML/URDF descriptions, forward kinematics),
 //! [`clock`] (wall and virtual clocks), [`realtime`] (thread scheduling) and
 //! [`batch`] (the CSV contract of `fk` and `ik`);
 //! and the two leaves both ends of a link share, which `link` and `twin` import and which
@@ -31,10 +37,12 @@ pub mod ik;
 pub mod job;
 pub mod link;
 pub mod log;
+pub mod motion;
 pub mod protocol;
 pub mod realtime;
 pub mod rig;
 pub mod ros2;
+pub mod scene;
 pub mod stream;
 pub mod task;
 pub mod trajectory;

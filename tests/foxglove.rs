@@ -245,7 +245,7 @@ fn scene_peer(python: &str, log: &Path) -> serde_json::Value {
     serde_json::from_slice(&output.stdout).unwrap()
 }
 
-/// Paint sits this far in front of its wall (`view::scene_update`).
+/// Paint sits this far in front of its wall (`scene::foxglove`).
 const PAINT_OFFSET_M: f64 = 0.002;
 
 /// A paint log's `/scene`, replayed by the peer: the walls are the report's room less its

@@ -10,6 +10,7 @@ use rigbridge::log::{
 };
 use rigbridge::protocol::AxisValues;
 use rigbridge::rig::{JointKind, load_rig};
+use rigbridge::trajectory::RecordedError;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -248,7 +249,7 @@ fn commands_replay_as_a_trajectory_and_summarize() {
     rigbridge::trajectory::validate(&trajectory, &rig).unwrap();
     let wrong_period = log.to_trajectory(0.001);
     assert!(
-        matches!(wrong_period, Err(LogError::Uneven { index: 1, .. })),
+        matches!(wrong_period, Err(RecordedError::Uneven { index: 1, .. })),
         "{wrong_period:?}"
     );
 

@@ -6,10 +6,10 @@ use glam::{DQuat, DVec3};
 use proptest::prelude::*;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rigbridge::ik::{FabrikSolver, IkError, IkSolution, IkSolver};
+use rigbridge::ik::{CartesianError, FabrikSolver, IkError, IkSolution, IkSolver, plan_cartesian};
 use rigbridge::rig::{Pose, Rig, load_rig};
 use rigbridge::trajectory::{
-    InvalidValue, PlanError, PlanSettings, Trajectory, plan_cartesian, plan_joint_moves, validate,
+    InvalidValue, PlanError, PlanSettings, Trajectory, plan_joint_moves, validate,
 };
 use std::f64::consts::{FRAC_PI_2, TAU};
 use std::path::Path;
@@ -240,7 +240,7 @@ fn an_unreachable_waypoint_fails_the_whole_plan_naming_it() {
         &[corners[1], far, corners[2]],
         &PlanSettings::default(),
     );
-    let Err(PlanError::Unreachable {
+    let Err(CartesianError::Unreachable {
         waypoint,
         sample_pose,
         error,
@@ -324,7 +324,7 @@ fn bad_settings_and_poses_are_refused() {
             &[corners[1], bent],
             &PlanSettings::default()
         ),
-        Err(PlanError::InvalidPose { waypoint: 1, .. })
+        Err(CartesianError::InvalidPose { waypoint: 1, .. })
     ));
 }
 
@@ -363,7 +363,7 @@ fn a_branch_switch_between_samples_is_a_discontinuity() {
     let start = solver.solve(&corners[0], &[0.0; 6]).unwrap().joints;
     let result = plan_cartesian(&solver, &start, &corners[1..2], &PlanSettings::default());
     match result {
-        Err(PlanError::Discontinuity {
+        Err(CartesianError::Discontinuity {
             waypoint: 0,
             joint,
             jump,
@@ -457,7 +457,9 @@ fn random_lines_stay_on_the_line_within_the_scaled_limits() {
             (turn * from.orientation).normalize(),
         );
         match plan_cartesian(&solver, &start, &[to], &settings) {
-            Err(e @ (PlanError::Unreachable { .. } | PlanError::Discontinuity { .. })) => {
+            Err(
+                e @ (CartesianError::Unreachable { .. } | CartesianError::Discontinuity { .. }),
+            ) => {
                 let kind = format!("{e:?}").split(' ').next().unwrap().to_string();
                 *refused.entry(kind).or_insert(0) += 1;
             }

@@ -44,6 +44,8 @@ pub enum DaemonError {
     NotHeld(String),
     #[error("log")]
     Log(#[from] LogError),
+    #[error("log")]
+    Recorded(#[from] crate::trajectory::RecordedError),
     #[error("replay")]
     Replay(#[from] replay::ReplayError),
     #[error("{0}")]

@@ -13,7 +13,8 @@ use crate::link::Link;
 use crate::log::RunLog;
 use crate::stream::{CycleRecord, CycleSink, StreamControl};
 use crate::trajectory::{
-    PlanError, Trajectory, TrajectoryError, plan_joint_moves, ramp_to_rest, resample, validate,
+    PlanError, RecordedError, Trajectory, TrajectoryError, plan_joint_moves, ramp_to_rest,
+    resample, validate,
 };
 use serde::Serialize;
 use std::collections::HashMap;
@@ -132,7 +133,7 @@ pub fn replay_trajectory(
         positions,
         velocities,
     )
-    .map_err(crate::log::LogError::from)?;
+    .map_err(RecordedError::from)?;
     let period = settings.period_s();
     let refused = |source| ReplayError::Refused {
         recorded_ms: recorded_period * 1e3,

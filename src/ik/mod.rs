@@ -1,10 +1,13 @@
 //! Inverse kinematics: one [`IkSolver`] trait and its solvers, one file each.
 //!
-//! Owns the question "which joint positions put the tool at this pose?". Solvers read a
-//! [`Rig`](crate::rig::Rig) and never return a position outside its limits: a target they
-//! cannot reach within limits is a typed [`IkError`], never a clamped, different motion.
+//! Owns the question "which joint positions put the tool at this pose?", for one pose and
+//! along a Cartesian line (`cartesian.rs`, whose joint path the `trajectory` stage below
+//! times). Solvers read a [`Rig`](crate::rig::Rig) and never return a position outside its
+//! limits: a target they cannot reach within limits is a typed [`IkError`], never a
+//! clamped, different motion.
 
 mod base_held;
+mod cartesian;
 mod ccd;
 pub mod chain;
 mod fabrik;
@@ -13,6 +16,7 @@ mod gradient;
 mod wrist;
 
 pub use base_held::BaseHeldSolver;
+pub use cartesian::{CartesianError, plan_cartesian};
 pub use ccd::CcdSolver;
 pub use fabrik::{FabrikSolver, StructureError, StructureProblem};
 pub use fabrik_position::PositionFabrikSolver;

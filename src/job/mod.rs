@@ -31,7 +31,7 @@ pub use paint::Paint;
 pub use poses::PoseSpec;
 pub use wall_figure::{WallFigure, star_poses};
 
-use crate::ik::{IkError, StructureError};
+use crate::ik::{CartesianError, IkError, StructureError};
 use crate::rig::Rig;
 use crate::task::gait::SlothRig;
 use crate::trajectory::{PlanError, PlanSettings, Trajectory};
@@ -144,6 +144,8 @@ pub enum JobError {
     },
     #[error(transparent)]
     Plan(#[from] PlanError),
+    #[error(transparent)]
+    Cartesian(#[from] CartesianError),
     #[error(transparent)]
     Structure(#[from] StructureError),
     #[error("a gait job needs the sloth rig: run it with a sloth file as the rig")]

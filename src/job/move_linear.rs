@@ -6,9 +6,9 @@
 
 use super::poses::{PoseSpec, check_poses, show_xyz};
 use super::{JobContext, JobError, JobInvalid, PlanContext, in_range};
-use crate::ik::{FabrikSolver, IkSolver};
+use crate::ik::{FabrikSolver, IkSolver, plan_cartesian};
 use crate::rig::Rig;
-use crate::trajectory::{PlanSettings, Trajectory, plan_cartesian, plan_joint_moves};
+use crate::trajectory::{PlanSettings, Trajectory, plan_joint_moves};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 

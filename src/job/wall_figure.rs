@@ -3,9 +3,9 @@
 //! star's geometry and its keys; the straight strokes are the Cartesian planner's.
 
 use super::{JobContext, JobError, JobInvalid, PlanContext, in_range};
-use crate::ik::{FabrikSolver, IkSolver};
+use crate::ik::{FabrikSolver, IkSolver, plan_cartesian};
 use crate::rig::Pose;
-use crate::trajectory::{plan_cartesian, plan_joint_moves};
+use crate::trajectory::plan_joint_moves;
 use glam::{DQuat, DVec3};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};

@@ -9,8 +9,8 @@
 
 use super::LogError;
 use crate::rig::{Joint, Rig, generated_link_names, origin_from_xyz_rpy, path_to, rig_to_urdf};
-use crate::view::scene_update::{full_update, paint_update};
-use crate::view::{PaintQuad, SceneView};
+use crate::scene::foxglove::{full_update, paint_update};
+use crate::scene::{PaintQuad, SceneView};
 use foxglove::Encode;
 use foxglove::messages::{
     FrameTransform, FrameTransforms, JointState, JointStates, Quaternion, SceneUpdate, Timestamp,

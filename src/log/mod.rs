@@ -1,13 +1,13 @@
 //! Run logs: recording a streamed job to an MCAP file and reading it back (`docs/logs.md`
 //! describes the file). Owns the file layout, the recorder's writer thread, the tolerant
-//! reader, the replay conversion and the `log info` summary. It must not touch links,
-//! controllers or the streaming loop itself: the loop hands it [`LogRecord`]s and events, and
-//! gets nothing back that could make it wait.
+//! reader and the `log info` summary (the stage above, `trajectory/recorded.rs`, turns the
+//! recorded commands into a trajectory to replay). It must not touch links, controllers or
+//! the streaming loop itself: the loop hands it [`LogRecord`]s and events, and gets nothing
+//! back that could make it wait.
 //!
 //! - [`Recorder`]: non-blocking recording (a preallocated ring of packed records, writer
 //!   thread, small chunks so a killed run leaves a readable file);
 //! - [`read_log`]: every complete chunk of a file, even a truncated or damaged one;
-//! - [`RunLog::to_trajectory`]: the recorded commands as a [`Trajectory`](crate::trajectory::Trajectory) for replay;
 //! - [`RobotDescription`]: the rig's links and URDF behind the Foxglove channels (`/tf`,
 //!   `/joint_states`) and the `robot_description.urdf` attachment (`docs/foxglove.md`), and
 //!   [`LoggedScene`]: the world drawn on `/scene`;
@@ -17,7 +17,6 @@ mod foxglove;
 mod reader;
 mod recorder;
 mod records;
-mod replay;
 mod ring;
 mod summary;
 mod wire;
@@ -31,12 +30,10 @@ pub use recorder::{
     DEFAULT_CAPACITY, DEFAULT_CHUNK_BYTES, DEFAULT_CHUNK_INTERVAL, EventSender, LogRecord,
     MAX_CHUNK_BYTES, Recorder, RecorderOptions, RecorderStats, capacity_for_rate,
 };
-pub use replay::TIME_TOLERANCE_S;
 pub use summary::{ChannelSummary, LogSummary, SeqGap, TrackingError, summarize};
 pub use wire::{EVENTS_TOPIC, LogDecodeError, METADATA_NAME, command_topic, state_topic};
 
 use crate::rig::JointKind;
-use crate::trajectory::TrajectoryError;
 use serde::Serialize;
 use std::path::PathBuf;
 use thiserror::Error;
@@ -74,38 +71,6 @@ pub enum LogError {
         offset: u64,
         reason: LogDecodeError,
     },
-    #[error("the log holds no commands to replay")]
-    NoCommands,
-    #[error(
-        "command {index}: seq {seq} follows seq {previous}; replay needs consecutive seq numbers"
-    )]
-    SeqGap {
-        index: usize,
-        previous: u32,
-        seq: u32,
-    },
-    #[error(
-        "command {index} (seq {seq}): t = {t:.9} s, expected {expected:.9} s for period {period_s} s (tolerance 1 us)"
-    )]
-    Uneven {
-        index: usize,
-        seq: u32,
-        t: f64,
-        expected: f64,
-        period_s: f64,
-    },
-    #[error(
-        "command {index} (seq {seq}): {positions} positions and {velocities} velocities for {dof} joints"
-    )]
-    AxisCount {
-        index: usize,
-        seq: u32,
-        positions: usize,
-        velocities: usize,
-        dof: usize,
-    },
-    #[error(transparent)]
-    Trajectory(#[from] TrajectoryError),
 }
 
 impl LogError {

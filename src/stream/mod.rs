@@ -26,9 +26,9 @@ pub use metrics::MicrosHistogram;
 
 use crate::clock::Clock;
 use crate::link::{Link, LinkCounters, LinkError, LinkEvent};
+use crate::motion::{Trajectory, TrajectoryError, validate};
 use crate::protocol::{AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget};
 use crate::rig::{JointKind, Rig};
-use crate::trajectory::{Trajectory, TrajectoryError, validate};
 use follow::Follow;
 use serde::Serialize;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};

@@ -3,11 +3,11 @@
 //!
 //! Owns turning joint waypoints into a validated [`Trajectory`]. Must not touch links,
 //! controllers or the rig model, and never clamps a waypoint: input outside the limits is a
-//! typed [`PlanError`], never a different motion. Cartesian moves live in `cartesian.rs`.
+//! typed [`PlanError`], never a different motion. Cartesian lines are solved in
+//! `ik/cartesian.rs` and timed in `path.rs`.
 
 use super::{Trajectory, TrajectoryError, validate};
-use crate::ik::IkError;
-use crate::rig::{Pose, PoseError, Rig};
+use crate::rig::Rig;
 use rsruckig::prelude::{
     DataArrayOrVec, DurationDiscretization, InputParameter, Ruckig, RuckigResult, Synchronization,
     ThrowErrorHandler,
@@ -172,24 +172,6 @@ pub enum PlanError {
         joint: String,
         value: f64,
         reason: InvalidValue,
-    },
-    #[error("waypoint {waypoint}: {error}")]
-    InvalidPose { waypoint: usize, error: PoseError },
-    #[error("move to waypoint {waypoint}: target {sample_pose} is unreachable: {error}")]
-    Unreachable {
-        waypoint: usize,
-        /// Boxed to keep every `Result<_, PlanError>` small.
-        sample_pose: Box<Pose>,
-        error: IkError,
-    },
-    #[error(
-        "move to waypoint {waypoint}: {joint} jumps {jump:.6} between two samples (at most {max_jump:.6}): branch switch or singularity"
-    )]
-    Discontinuity {
-        waypoint: usize,
-        joint: String,
-        jump: f64,
-        max_jump: f64,
     },
     #[error(
         "move to waypoint {waypoint}: {joint} still needs {ratio:.3} x its allowed speed or acceleration after slowing down; the path bends too sharply (singularity?)"

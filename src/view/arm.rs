@@ -2,10 +2,11 @@
 //! model, the wall of the star job, and the tool's trace on that wall. Generic over the
 //! rig's joints; it must not know about the streamer or the page.
 
+use super::LiveScene;
 use super::trace::ToolTrace;
-use super::{LiveScene, PaintQuad, Point, SceneView, WallView};
 use crate::job::Job as JobConfig;
 use crate::rig::Rig;
+use crate::scene::{PaintQuad, Point, SceneView, WallView};
 use crate::twin::SharedWorld;
 use glam::{DAffine3, DVec3};
 use std::sync::PoisonError;

@@ -2,8 +2,9 @@
 //! connects and whenever the job (and so the scene) changes, then a `frame` message about
 //! 50 times a second. Field by field in `docs/live-view.md`. Owns the message shapes only.
 
-use super::{JointLabel, PaintQuad, Point, SceneView};
+use super::JointLabel;
 use crate::link::LinkCounters;
+use crate::scene::{PaintQuad, Point, SceneView};
 use serde::Serialize;
 
 #[derive(Debug, Serialize)]

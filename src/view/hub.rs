@@ -4,9 +4,10 @@
 //! outside the streaming cycle and must not touch the link or the job.
 
 use super::frame::{Frame, LinkView, Message, SceneMessage};
-use super::{JointLabel, LiveScene, LiveSlot, PaintQuad, SceneView};
+use super::{JointLabel, LiveScene, LiveSlot};
 use crate::protocol::{AxisValues, ControllerStatus};
 use crate::rig::{JointKind, Rig};
+use crate::scene::{PaintQuad, SceneView};
 use serde::Serialize;
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex, PoisonError};
@@ -243,7 +244,8 @@ fn status_text(status: Option<ControllerStatus>) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::view::{LiveSample, PaintQuad, Point};
+    use crate::scene::{PaintQuad, Point};
+    use crate::view::LiveSample;
 
     struct Painter {
         rig: Rig,

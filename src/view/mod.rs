@@ -6,8 +6,8 @@
 //! has one from its rig model ([`ArmScene`]); the painting room and the sloth bring theirs.
 //! The streaming cycle feeds a [`LiveSlot`] through a [`LiveSink`] without allocating or
 //! blocking; the [`LiveHub`] samples the slot at the page's frame rate and builds the
-//! WebSocket messages ([`frame`]); [`scene_update`] gives a scene to Foxglove. The page itself
-//! is in `page/`, embedded in the binary.
+//! WebSocket messages ([`frame`]). The scene's types and their Foxglove form are the leaf
+//! [`crate::scene`]'s. The page itself is in `page/`, embedded in the binary.
 //!
 //! This module reads the rig and the cycle's records; it must not move the arm, talk to a
 //! link or touch the cycle's timing.
@@ -18,7 +18,6 @@ mod hub;
 mod live;
 pub mod page;
 mod paint;
-pub mod scene_update;
 mod sloth;
 mod trace;
 
@@ -29,45 +28,8 @@ pub use paint::PaintScene;
 pub use sloth::SlothScene;
 pub use trace::ToolTrace;
 
+use crate::scene::{PaintQuad, Point, SceneView};
 use serde::Serialize;
-
-/// A point in world coordinates (metres, z up).
-pub type Point = [f64; 3];
-
-/// The static part of a scene, sent to the page once and again when the job changes.
-#[derive(Debug, Clone, Default, PartialEq, Serialize)]
-pub struct SceneView {
-    pub walls: Vec<WallView>,
-    pub cylinders: Vec<CylinderView>,
-    /// Paint already on the walls when the scene is (re)sent.
-    pub paint: Vec<PaintQuad>,
-}
-
-/// A flat wall: four corners around its outline, counter-clockwise seen from its front (the
-/// side the rig works on, the painted side: `(c1 - c0) x (c2 - c0)` points out of it), and
-/// holes in it (doors, windows), each four corners in the wall's plane. Seen from behind,
-/// the page draws a wall as an outline only, so a room shows what is inside.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct WallView {
-    pub corners: [Point; 4],
-    pub openings: Vec<[Point; 4]>,
-}
-
-/// A solid cylinder from `from` to `to` (a branch, a trunk, a lift's column).
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct CylinderView {
-    pub from: Point,
-    pub to: Point,
-    pub radius: f64,
-}
-
-/// A patch of paint on wall `wall` (an index into [`SceneView::walls`]), as four corners in
-/// the wall's plane.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct PaintQuad {
-    pub wall: usize,
-    pub quad: [Point; 4],
-}
 
 /// What a rig's world shows the page. Called from the view's sampling task (about 50 times
 /// a second), never from the streaming cycle: implementations may allocate and lock.

@@ -5,8 +5,9 @@
 //! not the 1 cm coverage grid (the report and the picture have that). It must not plan,
 //! move the rig or change the world's measurements.
 
-use super::{LiveScene, PaintQuad, Point, SceneView, WallView, joint_origins_from};
+use super::{LiveScene, joint_origins_from};
 use crate::rig::Rig;
+use crate::scene::{PaintQuad, Point, SceneView, WallView};
 use crate::task::paint::{PaintWorld, Room};
 use crate::twin::SharedWorld;
 #[cfg(test)]

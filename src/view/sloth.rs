@@ -2,7 +2,8 @@
 //! values, and the branches and trunks of its scenario as cylinders. It must not plan or
 //! judge the gait; it only draws what the twin reports.
 
-use super::{CylinderView, LiveScene, Point, SceneView};
+use super::LiveScene;
+use crate::scene::{CylinderView, Point, SceneView};
 use crate::task::gait::{Scenario, SlothRig};
 use std::sync::Arc;
 

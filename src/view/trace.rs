@@ -6,8 +6,8 @@
 //! Its queue is reserved only once a wall is set: a job without one (most cells of a
 //! many-cell daemon) pays nothing for it.
 
-use super::{PaintQuad, Point, WallView};
 use crate::rig::Rig;
+use crate::scene::{PaintQuad, Point, WallView};
 use crate::twin::TwinWorld;
 use glam::DVec3;
 

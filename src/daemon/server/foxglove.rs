@@ -8,8 +8,9 @@
 
 use super::{Daemon, connections};
 use crate::log::{RobotDescription, RobotMessages, timestamp};
-use crate::view::scene_update::{full_update, paint_update};
-use crate::view::{LiveHub, SceneChange, SceneCursor, SceneView};
+use crate::scene::SceneView;
+use crate::scene::foxglove::{full_update, paint_update};
+use crate::view::{LiveHub, SceneChange, SceneCursor};
 use axum::extract::State;
 use axum::extract::ws::{CloseFrame, Message as WsMessage, WebSocket, WebSocketUpgrade};
 use axum::http::StatusCode;

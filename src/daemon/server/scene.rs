@@ -6,10 +6,11 @@
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::job::Scene;
 use crate::log::{LoggedScene, SceneSource};
+use crate::scene::{PaintQuad, SceneView};
 use crate::task::gait::forest::scenario_named;
 use crate::task::paint::{load_paint_settings, room_for, world_for};
 use crate::twin::{TwinWorld, ViewOnly};
-use crate::view::{ArmScene, LiveScene, PaintQuad, PaintScene, SceneView, SlothScene, ToolTrace};
+use crate::view::{ArmScene, LiveScene, PaintScene, SlothScene, ToolTrace};
 use std::sync::{Arc, Mutex};
 
 /// A job's live scene and the twin world (if any) that measures what the scene shows.

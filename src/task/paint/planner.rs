@@ -19,11 +19,10 @@
 use super::body::{Body, Scratch, Travel};
 use super::config::{EXTRA_AXES, LIFT_AXIS, PaintSettings};
 use super::room::{Room, Wall};
-use crate::ik::{BaseHeldSolver, IkSolver, StructureError};
+use crate::ik::{BaseHeldSolver, IkSolver, StructureError, plan_cartesian};
 use crate::rig::{JointList, Pose, Rig};
 use crate::trajectory::{
-    PlanError, PlanSettings, Trajectory, TrajectoryError, plan_cartesian, plan_joint_moves,
-    validate,
+    PlanError, PlanSettings, Trajectory, TrajectoryError, plan_joint_moves, validate,
 };
 use glam::{DVec2, DVec3};
 use serde::Serialize;

@@ -1,155 +1,63 @@
-//! Linear Cartesian moves: the tool goes in a straight line (orientation by slerp) from pose
-//! to pose, and the joint path that does it is timed within the rig's speed and
-//! acceleration limits.
+//! Timing a joint path: the fastest speed profile along a path of joint positions (given
+//! as a polyline over a path parameter `u` in [0, 1]) within the rig's scaled speeds and
+//! accelerations, sampled every period. The `ik` stage's Cartesian lines are such paths
+//! (`ik/cartesian.rs` solves them); the samples of the timed path are solved again on the
+//! true path by the caller's `solve_at`, so they follow it rather than the polyline.
 //!
-//! Owns sampling the line, solving every sample (seeded by the previous one, so the arm
-//! stays on one branch), refusing lines the arm cannot follow, and the speed profile along
-//! the resulting joint path. Must not change the rig or the solver, and never bends a line
-//! to make it fit: an unreachable sample or a branch switch fails the whole plan.
+//! Owns the speed profile, the sampling, the check of the samples' own speeds and
+//! accelerations and the slowing down until they pass. Must not solve IK (the caller does,
+//! through `solve_at`) nor change the path: a path that cannot be timed within the limits
+//! fails with [`PlanError::OverLimits`].
 
-use super::Trajectory;
-use super::plan::{AxisLimits, PlanError, PlanSettings, Samples, check_start, snap_to_limits};
-use crate::ik::IkSolver;
-use crate::rig::{Pose, Rig, rotation_angle_between};
+use super::plan::{AxisLimits, PlanError, PlanSettings, Samples, snap_to_limits};
+use crate::rig::Rig;
 
 /// Share of each axis' (scaled) acceleration spent speeding up and slowing down along the
 /// path; the rest is kept for the acceleration the path's own bending costs at speed
 /// (joint paths of straight tool lines are curved).
 const TANGENTIAL_SHARE: f64 = 0.75;
 
-/// Joint deviation (rad, or m) from a piece's chord above which the piece is halved, at
-/// most [`MAX_HALVINGS`] times. Small enough that the profile's picture of the path's
-/// bends is close to the truth; the sampled check in `resample` covers what is left.
-const CHORD_TOLERANCE: f64 = 1e-5;
-const MAX_HALVINGS: u32 = 6;
-
 /// How often a move is slowed down before it is refused, and the extra factor each time so
 /// that rounding cannot keep it a hair over the limit.
 const MAX_SLOWDOWNS: u32 = 8;
 const SLOWDOWN_MARGIN: f64 = 1.001;
 
-/// Linear moves from the tool pose at `start` through each waypoint in turn, stopping at
-/// each (a stop costs time but keeps every corner exact and the profile simple).
-///
-/// Each line is split into samples no farther apart than `settings.cartesian_step_m` and
-/// `settings.cartesian_step_rad` (whichever needs more), each solved by `solver` seeded with
-/// the previous sample's joints. The joint path through them is timed with the fastest
-/// speed profile that keeps every axis within its max speed x `speed_scale` and max
-/// acceleration x `accel_scale` (forward and backward passes over the path, at rest at both
-/// ends; acceleration-limited, not jerk-limited), then sampled every `settings.period_s`.
-/// Every output sample is solved again on the line itself, so the tool never leaves the
-/// line by more than the solver's tolerance. Velocities are the profile's.
-///
-/// Nothing is returned unless the whole plan works: the first unreachable sample is
-/// [`PlanError::Unreachable`], a joint jumping more than `settings.max_joint_jump` between
-/// samples is [`PlanError::Discontinuity`].
-pub fn plan_cartesian(
-    solver: &dyn IkSolver,
-    start: &[f64],
-    waypoints: &[Pose],
-    settings: &PlanSettings,
-) -> Result<Trajectory, PlanError> {
-    settings.check()?;
-    let rig = solver.rig();
-    let limits = AxisLimits::new(rig, settings)?;
-    check_start(rig, start)?;
-    let targets = waypoints
-        .iter()
-        .enumerate()
-        .map(|(waypoint, pose)| {
-            pose.validated()
-                .map_err(|error| PlanError::InvalidPose { waypoint, error })
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    let mut from = start_pose(rig, start)?;
-    let mut joints = start.to_vec();
-    let mut samples = Samples::at_rest(start);
-    for (waypoint, to) in targets.into_iter().enumerate() {
-        let line = Line { from, to };
-        let mov = LinearMove {
-            solver,
-            settings,
-            limits: &limits,
-            waypoint,
-            line,
-        };
-        let path = mov.dense_path(&joints)?;
-        if path.nodes.len() > 1 {
-            let profile = SpeedProfile::new(&path, &limits);
-            mov.resample(&path, &profile, &mut samples)?;
-            joints = path.end().to_vec();
-        }
-        from = to;
-    }
-    samples.finish(rig, settings.period_s)
-}
-
-/// The tool pose at `start` (whose axis count `check_start` has already confirmed).
-fn start_pose(rig: &Rig, start: &[f64]) -> Result<Pose, PlanError> {
-    rig.tool_pose(start).map_err(|e| PlanError::StartAxisCount {
-        rig: rig.name.clone(),
-        expected: e.expected,
-        got: e.given,
-    })
-}
-
-/// The straight line between two poses, parameterised by `u` in [0, 1].
-#[derive(Debug, Clone, Copy)]
-struct Line {
-    from: Pose,
-    to: Pose,
-}
-
-impl Line {
-    /// Exact at both ends, so consecutive moves meet on the waypoint itself.
-    fn at(&self, u: f64) -> Pose {
-        if u <= 0.0 {
-            self.from
-        } else if u >= 1.0 {
-            self.to
-        } else {
-            Pose::new(
-                self.from.position.lerp(self.to.position, u),
-                self.from.orientation.slerp(self.to.orientation, u),
-            )
-        }
-    }
-
-    fn steps(&self, settings: &PlanSettings) -> usize {
-        let distance = self.from.position_error(&self.to) / settings.cartesian_step_m;
-        let angle = rotation_angle_between(self.from.orientation, self.to.orientation)
-            / settings.cartesian_step_rad;
-        distance.max(angle).ceil() as usize
-    }
-}
-
-/// A joint configuration on the line at parameter `u`.
+/// A joint configuration on the path at parameter `u`.
 #[derive(Debug, Clone)]
-struct Node {
-    u: f64,
-    joints: Vec<f64>,
+pub(crate) struct PathNode {
+    pub u: f64,
+    pub joints: Vec<f64>,
 }
 
-/// The joint path of one line as a polyline through solved samples. Consecutive nodes
-/// always differ (a sample that leaves every joint where it was extends the previous node's
-/// stretch of the line instead), so every piece has a direction.
+/// A joint path as a polyline through solved samples. Consecutive nodes always differ (a
+/// sample that leaves every joint where it was extends the previous node's stretch of the
+/// path instead), so every piece has a direction.
 #[derive(Debug, Clone)]
-struct DensePath {
-    nodes: Vec<Node>,
+pub(crate) struct JointPath {
+    nodes: Vec<PathNode>,
 }
 
-impl DensePath {
-    fn push(&mut self, u: f64, joints: Vec<f64>) {
+impl JointPath {
+    /// The path of its first node alone.
+    pub fn starting_at(first: PathNode) -> Self {
+        Self { nodes: vec![first] }
+    }
+
+    pub fn push(&mut self, u: f64, joints: Vec<f64>) {
         let count = self.nodes.len();
         let last = &mut self.nodes[count - 1];
         if last.joints != joints {
-            self.nodes.push(Node { u, joints });
+            self.nodes.push(PathNode { u, joints });
         } else if count > 1 {
             last.u = u;
         }
     }
 
-    fn end(&self) -> &[f64] {
+    pub fn nodes(&self) -> &[PathNode] {
+        &self.nodes
+    }
+
+    pub fn end(&self) -> &[f64] {
         &self.nodes[self.nodes.len() - 1].joints
     }
 
@@ -165,138 +73,35 @@ impl DensePath {
     }
 }
 
-/// One line of the plan, ending at waypoint `waypoint`.
-struct LinearMove<'a> {
-    solver: &'a dyn IkSolver,
-    settings: &'a PlanSettings,
-    limits: &'a AxisLimits,
-    waypoint: usize,
-    line: Line,
+/// The timing of one move of a plan along a path, ending at waypoint `waypoint`.
+pub(crate) struct PathTiming<'a> {
+    pub rig: &'a Rig,
+    pub settings: &'a PlanSettings,
+    pub limits: &'a AxisLimits,
+    pub waypoint: usize,
 }
 
 /// Samples of one move after its first (which is the previous move's last).
 type Rows = Vec<(Vec<f64>, Vec<f64>)>;
 
-impl LinearMove<'_> {
-    fn solve(&self, u: f64, seed: &[f64]) -> Result<Vec<f64>, PlanError> {
-        let pose = self.line.at(u);
-        self.solver
-            .solve(&pose, seed)
-            .map(|solution| solution.joints)
-            .map_err(|error| PlanError::Unreachable {
-                waypoint: self.waypoint,
-                sample_pose: Box::new(pose),
-                error,
-            })
-    }
-
-    fn check_jump(&self, from: &[f64], to: &[f64]) -> Result<(), PlanError> {
-        let max_jump = self.settings.max_joint_jump;
-        let rig = self.solver.rig();
-        match from
-            .iter()
-            .zip(to)
-            .position(|(a, b)| (b - a).abs() > max_jump)
-        {
-            Some(axis) => Err(PlanError::Discontinuity {
-                waypoint: self.waypoint,
-                joint: rig.joints[axis].name.clone(),
-                jump: to[axis] - from[axis],
-                max_jump,
-            }),
-            None => Ok(()),
-        }
-    }
-
-    /// The joint path of the line from `start` (the joints at `u` = 0): the line's samples,
-    /// then pieces split where the joint path bends away from their chord.
-    fn dense_path(&self, start: &[f64]) -> Result<DensePath, PlanError> {
-        let samples = self.line_samples(start)?;
-        let mut path = DensePath {
-            nodes: vec![samples[0].clone()],
-        };
-        for pair in samples.windows(2) {
-            self.refine(&pair[0], &pair[1], 0, &mut path)?;
-        }
-        Ok(path)
-    }
-
-    /// Solves the line sample by sample from `start`. A jump is reported only once the rest
-    /// of the line proves reachable: joint rates grow without bound as the arm stretches
-    /// toward the edge of its workspace, so a line that leaves the workspace jumps just
-    /// before it, and the useful answer is where reach ends.
-    fn line_samples(&self, start: &[f64]) -> Result<Vec<Node>, PlanError> {
-        let steps = self.line.steps(self.settings);
-        let mut nodes = Vec::with_capacity(steps + 1);
-        nodes.push(Node {
-            u: 0.0,
-            joints: start.to_vec(),
-        });
-        let mut first_jump = None;
-        for step in 1..=steps {
-            let u = step as f64 / steps as f64;
-            let previous = &nodes[nodes.len() - 1].joints;
-            let joints = self.solve(u, previous)?;
-            if let Err(jump) = self.check_jump(previous, &joints) {
-                first_jump.get_or_insert(jump);
-            }
-            nodes.push(Node { u, joints });
-        }
-        match first_jump {
-            Some(jump) => Err(jump),
-            None => Ok(nodes),
-        }
-    }
-
-    /// Appends the nodes after `a` up to `b`, halving the piece while the joints solved at
-    /// its middle stray from the chord: the speed profile reads the path's bends from the
-    /// polyline, and near a singularity one line step hides most of a bend.
-    fn refine(
+impl PathTiming<'_> {
+    /// Appends samples every period along the fastest profile of `path` (at rest at both
+    /// ends), the last one at the path's end. Each sample is `solve_at(u, seed)`: the joints
+    /// on the true path at `u`, near `seed` (the polyline's point there), so the samples
+    /// follow the true path rather than the polyline the profile was planned on; where that
+    /// costs more speed or acceleration than the scaled limits allow, the whole move is
+    /// slowed down until it does not. `path` must have two nodes or more.
+    pub fn append<E: From<PlanError>>(
         &self,
-        a: &Node,
-        b: &Node,
-        depth: u32,
-        path: &mut DensePath,
-    ) -> Result<(), PlanError> {
-        if depth < MAX_HALVINGS {
-            let u = (a.u + b.u) / 2.0;
-            let chord: Vec<f64> = a
-                .joints
-                .iter()
-                .zip(&b.joints)
-                .map(|(p, q)| (p + q) / 2.0)
-                .collect();
-            let joints = self.solve(u, &chord)?;
-            self.check_jump(&chord, &joints)?;
-            let stray = joints
-                .iter()
-                .zip(&chord)
-                .map(|(p, q)| (p - q).abs())
-                .fold(0.0, f64::max);
-            if stray > CHORD_TOLERANCE {
-                let middle = Node { u, joints };
-                self.refine(a, &middle, depth + 1, path)?;
-                return self.refine(&middle, b, depth + 1, path);
-            }
-        }
-        path.push(b.u, b.joints.clone());
-        Ok(())
-    }
-
-    /// Appends samples every period along `profile`, the last one at the path's end. The
-    /// samples are solved on the line itself, so they follow the true joint path rather than
-    /// the polyline the profile was planned on; where that costs more speed or acceleration
-    /// than the scaled limits allow, the whole move is slowed down until it does not.
-    fn resample(
-        &self,
-        path: &DensePath,
-        profile: &SpeedProfile,
+        path: &JointPath,
+        solve_at: impl Fn(f64, &[f64]) -> Result<Vec<f64>, E>,
         samples: &mut Samples,
-    ) -> Result<(), PlanError> {
+    ) -> Result<(), E> {
+        let profile = SpeedProfile::new(path, self.limits);
         let mut slowdown = 1.0;
         let mut attempts = 0;
         let rows = loop {
-            let rows = self.sample(path, profile, slowdown)?;
+            let rows = self.sample(path, &profile, slowdown, &solve_at)?;
             let excess = self.excess(&path.nodes[0].joints, &rows);
             attempts += 1;
             if excess.ratio <= 1.0 {
@@ -305,9 +110,10 @@ impl LinearMove<'_> {
             if attempts == MAX_SLOWDOWNS {
                 return Err(PlanError::OverLimits {
                     waypoint: self.waypoint,
-                    joint: self.solver.rig().joints[excess.axis].name.clone(),
+                    joint: self.rig.joints[excess.axis].name.clone(),
                     ratio: excess.ratio,
-                });
+                }
+                .into());
             }
             // Slowing a path down by s divides speeds by s and accelerations by s^2.
             slowdown *= excess.ratio * SLOWDOWN_MARGIN;
@@ -319,12 +125,13 @@ impl LinearMove<'_> {
     }
 
     /// One sampling of the profile, `slowdown` times slower.
-    fn sample(
+    fn sample<E>(
         &self,
-        path: &DensePath,
+        path: &JointPath,
         profile: &SpeedProfile,
         slowdown: f64,
-    ) -> Result<Rows, PlanError> {
+        solve_at: &impl Fn(f64, &[f64]) -> Result<Vec<f64>, E>,
+    ) -> Result<Rows, E> {
         let period_s = self.settings.period_s;
         // Whole periods: stretch the profile (slower, so still within limits) to end on one;
         // the 1e-9 keeps a duration a rounding hair over a whole number from adding a period.
@@ -348,9 +155,8 @@ impl LinearMove<'_> {
                 .zip(&direction)
                 .map(|(q, d)| q + d * along)
                 .collect();
-            let mut joints = self.solve(node.u + along, &seed)?;
-            self.check_jump(&seed, &joints)?;
-            snap_to_limits(self.solver.rig(), &mut joints);
+            let mut joints = solve_at(node.u + along, &seed)?;
+            snap_to_limits(self.rig, &mut joints);
             let velocity = direction.iter().map(|d| d * speed / stretch).collect();
             rows.push((joints, velocity));
         }
@@ -479,7 +285,7 @@ struct SpeedProfile {
 }
 
 impl SpeedProfile {
-    fn new(path: &DensePath, limits: &AxisLimits) -> Self {
+    fn new(path: &JointPath, limits: &AxisLimits) -> Self {
         let directions: Vec<Vec<f64>> = (0..path.nodes.len() - 1)
             .map(|p| path.direction(p))
             .collect();

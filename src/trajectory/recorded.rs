@@ -1,24 +1,65 @@
-//! A run log's commands as a [`Trajectory`] to replay. Checks only what makes the samples a
-//! trajectory at all (every cycle present, one period apart, one value per joint); limits
-//! and speeds are the caller's check against the rig (`trajectory::validate`), which this
-//! must not duplicate or skip.
+//! A run log's commands as a [`Trajectory`] to replay (read by `log`, the stage below).
+//! Checks only what makes the samples a trajectory at all (every cycle present, one period
+//! apart, one value per joint); limits and speeds are the caller's check against the rig
+//! (`trajectory::validate`), which this must not duplicate or skip. Must not read files
+//! (the log's reader does).
 
-use super::{LogError, LoggedSample, RunLog};
-use crate::trajectory::{Trajectory, TrajectoryError};
+use super::{Trajectory, TrajectoryError};
+use crate::log::{LoggedSample, RunLog};
+use thiserror::Error;
 
 /// How far a command's `t` may sit from `t0 + index * period`.
 pub const TIME_TOLERANCE_S: f64 = 1e-6;
 
+/// Why a run log's commands are not a trajectory.
+#[derive(Debug, Error)]
+pub enum RecordedError {
+    #[error("the log holds no commands to replay")]
+    NoCommands,
+    #[error(
+        "command {index}: seq {seq} follows seq {previous}; replay needs consecutive seq numbers"
+    )]
+    SeqGap {
+        index: usize,
+        previous: u32,
+        seq: u32,
+    },
+    #[error(
+        "command {index} (seq {seq}): t = {t:.9} s, expected {expected:.9} s for period {period_s} s (tolerance 1 us)"
+    )]
+    Uneven {
+        index: usize,
+        seq: u32,
+        t: f64,
+        expected: f64,
+        period_s: f64,
+    },
+    #[error(
+        "command {index} (seq {seq}): {positions} positions and {velocities} velocities for {dof} joints"
+    )]
+    AxisCount {
+        index: usize,
+        seq: u32,
+        positions: usize,
+        velocities: usize,
+        dof: usize,
+    },
+    #[error(transparent)]
+    Trajectory(#[from] TrajectoryError),
+}
+
+// An inherent method of the log's type, defined in the stage above it: `log` must not know
+// trajectories, and `log.to_trajectory(period)` reads as what it does.
 impl RunLog {
     /// The recorded commands, sample `i` at `i * period_s` (the log's first `t` becomes 0).
     /// Errors name the first command whose seq is not the previous one plus 1, whose `t` is
     /// off the period grid by more than 1 us (measured from the first command, so a drift
     /// cannot hide in per-step slack), or whose value count is not the joint count.
-    pub fn to_trajectory(&self, period_s: f64) -> Result<Trajectory, LogError> {
+    pub fn to_trajectory(&self, period_s: f64) -> Result<Trajectory, RecordedError> {
         if !(period_s.is_finite() && period_s > 0.0) {
             return Err(TrajectoryError::BadPeriod { period_s }.into());
         }
-        let first = self.commands.first().ok_or(LogError::NoCommands)?;
+        let first = self.commands.first().ok_or(RecordedError::NoCommands)?;
         let dof = self.joint_names.len();
         let mut positions = Vec::with_capacity(self.commands.len() * dof);
         let mut velocities = Vec::with_capacity(self.commands.len() * dof);
@@ -43,11 +84,11 @@ impl RunLog {
     }
 }
 
-fn check_axes(index: usize, sample: &LoggedSample, dof: usize) -> Result<(), LogError> {
+fn check_axes(index: usize, sample: &LoggedSample, dof: usize) -> Result<(), RecordedError> {
     if sample.positions.len() == dof && sample.velocities.len() == dof {
         return Ok(());
     }
-    Err(LogError::AxisCount {
+    Err(RecordedError::AxisCount {
         index,
         seq: sample.seq,
         positions: sample.positions.len(),
@@ -56,25 +97,30 @@ fn check_axes(index: usize, sample: &LoggedSample, dof: usize) -> Result<(), Log
     })
 }
 
-fn check_seq(index: usize, previous: u32, seq: u32) -> Result<(), LogError> {
+fn check_seq(index: usize, previous: u32, seq: u32) -> Result<(), RecordedError> {
     // Wrapping: a u32 seq at 1 kHz wraps after 49 days, and the wrap itself is no gap.
     if seq == previous.wrapping_add(1) {
         return Ok(());
     }
-    Err(LogError::SeqGap {
+    Err(RecordedError::SeqGap {
         index,
         previous,
         seq,
     })
 }
 
-fn check_time(index: usize, t0: f64, sample: &LoggedSample, period_s: f64) -> Result<(), LogError> {
+fn check_time(
+    index: usize,
+    t0: f64,
+    sample: &LoggedSample,
+    period_s: f64,
+) -> Result<(), RecordedError> {
     let expected = t0 + index as f64 * period_s;
     // Written so that a NaN time fails too.
     if (sample.t - expected).abs() <= TIME_TOLERANCE_S {
         return Ok(());
     }
-    Err(LogError::Uneven {
+    Err(RecordedError::Uneven {
         index,
         seq: sample.seq,
         t: sample.t,
@@ -125,20 +171,20 @@ mod tests {
         let gap = log(&[(5, 0.0), (7, 0.004)]).to_trajectory(0.004);
         assert!(matches!(
             gap,
-            Err(LogError::SeqGap {
+            Err(RecordedError::SeqGap {
                 index: 1,
                 previous: 5,
                 seq: 7
             })
         ));
         let late = log(&[(0, 0.0), (1, 0.004), (2, 0.0080011)]).to_trajectory(0.004);
-        assert!(matches!(late, Err(LogError::Uneven { index: 2, .. })));
+        assert!(matches!(late, Err(RecordedError::Uneven { index: 2, .. })));
         let nan = log(&[(0, 0.0), (1, f64::NAN)]).to_trajectory(0.004);
-        assert!(matches!(nan, Err(LogError::Uneven { index: 1, .. })));
+        assert!(matches!(nan, Err(RecordedError::Uneven { index: 1, .. })));
         assert!(log(&[(0, 0.0)]).to_trajectory(0.0).is_err());
         assert!(matches!(
             log(&[]).to_trajectory(0.004),
-            Err(LogError::NoCommands)
+            Err(RecordedError::NoCommands)
         ));
         let wrap = log(&[(u32::MAX, 0.0), (0, 0.004)]).to_trajectory(0.004);
         assert!(wrap.is_ok());

@@ -1,0 +1,394 @@
+//! The `Trajectory` every stage hands down (joint samples at a fixed period, positions and
+//! velocities per axis, generic over the rig) and `validate`, the check every trajectory
+//! passes after it is planned, before it is streamed and before it is replayed.
+//!
+//! A leaf beside the chain, as `protocol` is beside the link: the planners above
+//! (`trajectory`, `ik`, `job`, `task`) build it and the streamer below runs it, so it
+//! lives under both (`docs/architecture.md`, "Layers"). Owns the type, its errors and the
+//! validator; must not plan, stream or import anything but `rig`.
+
+use crate::rig::{JointKind, Rig};
+use thiserror::Error;
+
+/// Relative slack on speed checks, for rounding only: the rig's [`crate::rig::LIMIT_SLACK`].
+pub const SPEED_SLACK: f64 = crate::rig::LIMIT_SLACK;
+
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum TrajectoryError {
+    #[error("trajectory has {got} axes ({}), rig {rig} has {expected}", names.join(", "))]
+    AxisMismatch {
+        rig: String,
+        expected: usize,
+        got: usize,
+        names: Vec<String>,
+    },
+    #[error("trajectory axis {index} is `{got}`, rig joint is `{expected}`")]
+    NameMismatch {
+        index: usize,
+        expected: String,
+        got: String,
+    },
+    #[error("trajectory data has {values} values, not a whole number of {dof}-axis samples")]
+    Ragged { values: usize, dof: usize },
+    #[error("period {period_s} s must be positive and finite")]
+    BadPeriod { period_s: f64 },
+    #[error("time scale {speed} must be positive and finite")]
+    BadTimeScale { speed: f64 },
+    #[error(
+        "bringing the axes to rest from the last sample within their accelerations takes {samples:.0} samples, more than {max}"
+    )]
+    RampTooLong { samples: f64, max: usize },
+    #[error("sample {sample}: {joint} = {value} is not finite")]
+    NotFinite {
+        sample: usize,
+        joint: String,
+        value: f64,
+    },
+    #[error(
+        "sample {sample}: {joint} = {:.4} {unit} is outside its limits [{:.4}, {:.4}] {unit}",
+        kind.to_user(*value), kind.to_user(*lower), kind.to_user(*upper), unit = kind.unit()
+    )]
+    OutsideLimits {
+        sample: usize,
+        joint: String,
+        /// SI units (radians or metres); the message shows them in the user's unit.
+        value: f64,
+        lower: f64,
+        upper: f64,
+        kind: crate::rig::JointKind,
+    },
+    #[error(
+        "sample {sample}: {joint} steps {step:.6} in one period, more than its max {max_step:.6}"
+    )]
+    OverSpeed {
+        sample: usize,
+        joint: String,
+        step: f64,
+        max_step: f64,
+    },
+    #[error(
+        "sample {sample}: {joint} velocity {velocity:.6} is above its max speed {max_speed:.6}"
+    )]
+    VelocityOverSpeed {
+        sample: usize,
+        joint: String,
+        velocity: f64,
+        max_speed: f64,
+    },
+    #[error(
+        "sample {sample}: {joint} accelerates at {acceleration:.6} {unit} (its positions' second difference over the period squared), above its max acceleration {max_acceleration:.6} {unit}"
+    )]
+    OverAcceleration {
+        sample: usize,
+        joint: String,
+        acceleration: f64,
+        max_acceleration: f64,
+        unit: &'static str,
+    },
+    #[error(
+        "sample {sample}: {joint} velocity changes at {acceleration:.6} {unit} from the sample before, above its max acceleration {max_acceleration:.6} {unit}"
+    )]
+    VelocityOverAcceleration {
+        sample: usize,
+        joint: String,
+        acceleration: f64,
+        max_acceleration: f64,
+        unit: &'static str,
+    },
+}
+
+/// The SI unit of an acceleration of `joint`.
+fn acceleration_unit(joint: &crate::rig::Joint) -> &'static str {
+    match joint.kind {
+        JointKind::Revolute => "rad/s^2",
+        JointKind::Prismatic => "m/s^2",
+    }
+}
+
+/// Samples `0..len` at times `i * period`, row-major: sample `i` holds `dof` values.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Trajectory {
+    pub rig: String,
+    pub joint_names: Vec<String>,
+    pub period_s: f64,
+    positions: Vec<f64>,
+    velocities: Vec<f64>,
+}
+
+impl Trajectory {
+    pub fn new(
+        rig: String,
+        joint_names: Vec<String>,
+        period_s: f64,
+        positions: Vec<f64>,
+        velocities: Vec<f64>,
+    ) -> Result<Self, TrajectoryError> {
+        let dof = joint_names.len();
+        if !(period_s.is_finite() && period_s > 0.0) {
+            return Err(TrajectoryError::BadPeriod { period_s });
+        }
+        for values in [&positions, &velocities] {
+            if dof == 0 || values.len() % dof != 0 || values.len() != positions.len() {
+                return Err(TrajectoryError::Ragged {
+                    values: values.len(),
+                    dof,
+                });
+            }
+        }
+        Ok(Self {
+            rig,
+            joint_names,
+            period_s,
+            positions,
+            velocities,
+        })
+    }
+
+    pub fn dof(&self) -> usize {
+        self.joint_names.len()
+    }
+
+    pub fn len(&self) -> usize {
+        self.positions.len() / self.dof()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    pub fn position(&self, sample: usize) -> &[f64] {
+        let dof = self.dof();
+        &self.positions[sample * dof..(sample + 1) * dof]
+    }
+
+    pub fn velocity(&self, sample: usize) -> &[f64] {
+        let dof = self.dof();
+        &self.velocities[sample * dof..(sample + 1) * dof]
+    }
+
+    pub fn duration_s(&self) -> f64 {
+        self.len().saturating_sub(1) as f64 * self.period_s
+    }
+
+    /// Samples `from..` as a trajectory of their own (where a resumed job picks up).
+    pub fn tail(&self, from: usize) -> Trajectory {
+        let dof = self.dof();
+        let from = from.min(self.len().saturating_sub(1));
+        Trajectory {
+            rig: self.rig.clone(),
+            joint_names: self.joint_names.clone(),
+            period_s: self.period_s,
+            positions: self.positions[from * dof..].to_vec(),
+            velocities: self.velocities[from * dof..].to_vec(),
+        }
+    }
+
+    /// Joins `next` on the end; it must start where this one ends (same rig and period).
+    pub fn append(&mut self, next: &Trajectory) {
+        debug_assert_eq!(self.joint_names, next.joint_names);
+        let dof = self.dof();
+        let skip = if self.is_empty() { 0 } else { dof };
+        self.positions
+            .extend_from_slice(&next.positions[skip.min(next.positions.len())..]);
+        self.velocities
+            .extend_from_slice(&next.velocities[skip.min(next.velocities.len())..]);
+    }
+}
+
+/// Checks every sample against the rig: same axes, finite, inside the position limits, no
+/// step between samples beyond max speed x period, no velocity above max speed, and, on
+/// every axis, no acceleration above its max: neither the positions' second difference
+/// `p[k+1] - 2 p[k] + p[k-1]` beyond max acceleration x period^2, nor the sampled
+/// velocities' change `v[k+1] - v[k]` beyond max acceleration x period.
+pub fn validate(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {
+    check_axes(trajectory, rig)?;
+    for sample in 0..trajectory.len() {
+        check_sample(trajectory, rig, sample)?;
+    }
+    check_accelerations(trajectory, rig)
+}
+
+fn check_axes(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {
+    if trajectory.dof() != rig.dof() {
+        return Err(TrajectoryError::AxisMismatch {
+            rig: rig.name.clone(),
+            expected: rig.dof(),
+            got: trajectory.dof(),
+            names: trajectory.joint_names.clone(),
+        });
+    }
+    for (index, (joint, name)) in rig.joints.iter().zip(&trajectory.joint_names).enumerate() {
+        if &joint.name != name {
+            return Err(TrajectoryError::NameMismatch {
+                index,
+                expected: joint.name.clone(),
+                got: name.clone(),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Sample `sample` alone (and its step from the one before): finite, in limits, in speed.
+fn check_sample(trajectory: &Trajectory, rig: &Rig, sample: usize) -> Result<(), TrajectoryError> {
+    let positions = trajectory.position(sample);
+    let velocities = trajectory.velocity(sample);
+    let previous = (sample > 0).then(|| trajectory.position(sample - 1));
+    for (axis, joint) in rig.joints.iter().enumerate() {
+        let (value, velocity) = (positions[axis], velocities[axis]);
+        let limits = joint.limits;
+        if !value.is_finite() || !velocity.is_finite() {
+            return Err(TrajectoryError::NotFinite {
+                sample,
+                joint: joint.name.clone(),
+                value: if value.is_finite() { velocity } else { value },
+            });
+        }
+        if !limits.contains(value) {
+            return Err(TrajectoryError::OutsideLimits {
+                sample,
+                joint: joint.name.clone(),
+                value,
+                lower: limits.lower,
+                upper: limits.upper,
+                kind: joint.kind,
+            });
+        }
+        if !limits.speed_ok(velocity) {
+            return Err(TrajectoryError::VelocityOverSpeed {
+                sample,
+                joint: joint.name.clone(),
+                velocity,
+                max_speed: limits.max_speed,
+            });
+        }
+        if let Some(previous) = previous {
+            let step = value - previous[axis];
+            if !limits.step_ok(step, trajectory.period_s) {
+                return Err(TrajectoryError::OverSpeed {
+                    sample,
+                    joint: joint.name.clone(),
+                    step: step.abs(),
+                    max_step: limits.max_speed * trajectory.period_s,
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The raw differences behind `axis`' two accelerations at `sample`: the positions' second
+/// difference around it (none at either end) and the velocity change since the sample
+/// before (none at the first).
+fn differences_at(trajectory: &Trajectory, sample: usize, axis: usize) -> [Option<f64>; 2] {
+    Neighbours::at(trajectory, sample).differences(axis)
+}
+
+/// The rows around one sample, looked up once for all its axes (validation walks every
+/// sample of long plans).
+struct Neighbours<'t> {
+    /// Positions and velocities of the sample before, if any.
+    before: Option<(&'t [f64], &'t [f64])>,
+    here: (&'t [f64], &'t [f64]),
+    /// Positions of the sample after, if any.
+    after: Option<&'t [f64]>,
+}
+
+impl<'t> Neighbours<'t> {
+    fn at(trajectory: &'t Trajectory, sample: usize) -> Self {
+        let row = |k: usize| (trajectory.position(k), trajectory.velocity(k));
+        Self {
+            before: (sample > 0).then(|| row(sample - 1)),
+            here: row(sample),
+            after: (sample + 1 < trajectory.len()).then(|| trajectory.position(sample + 1)),
+        }
+    }
+
+    /// [`differences_at`] for `axis`.
+    fn differences(&self, axis: usize) -> [Option<f64>; 2] {
+        let (p, v) = (self.here.0[axis], self.here.1[axis]);
+        let second = self
+            .before
+            .zip(self.after)
+            .map(|((before, _), after)| after[axis] - 2.0 * p + before[axis]);
+        let change = self.before.map(|(_, velocities)| v - velocities[axis]);
+        [second, change]
+    }
+}
+
+/// Both accelerations of `axis` at `sample` (axis unit per second squared), from
+/// [`differences_at`].
+fn accelerations_at(trajectory: &Trajectory, sample: usize, axis: usize) -> [Option<f64>; 2] {
+    let dt = trajectory.period_s;
+    let [second, change] = differences_at(trajectory, sample, axis);
+    [second.map(|d| d / (dt * dt)), change.map(|d| d / dt)]
+}
+
+fn check_accelerations(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {
+    let dt = trajectory.period_s;
+    for sample in 1..trajectory.len() {
+        let neighbours = Neighbours::at(trajectory, sample);
+        for (axis, joint) in rig.joints.iter().enumerate() {
+            let limits = joint.limits;
+            let [second, change] = neighbours.differences(axis);
+            let max_acceleration = limits.max_acceleration;
+            if let Some(d) = second.filter(|d| !limits.second_difference_ok(*d, dt)) {
+                return Err(TrajectoryError::OverAcceleration {
+                    sample,
+                    joint: joint.name.clone(),
+                    acceleration: d / (dt * dt),
+                    max_acceleration,
+                    unit: acceleration_unit(joint),
+                });
+            }
+            if let Some(d) = change.filter(|d| !limits.velocity_change_ok(*d, dt)) {
+                return Err(TrajectoryError::VelocityOverAcceleration {
+                    sample,
+                    joint: joint.name.clone(),
+                    acceleration: d / dt,
+                    max_acceleration,
+                    unit: acceleration_unit(joint),
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Where a trajectory comes nearest its axes' max accelerations.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PeakAcceleration {
+    pub sample: usize,
+    pub axis: usize,
+    /// Signed, in the axis' unit per second squared.
+    pub acceleration: f64,
+    /// |acceleration| / the axis' max acceleration: at most 1 for a valid trajectory.
+    pub ratio: f64,
+}
+
+/// Per axis, the sample where its acceleration (either of `validate`'s two measures) is
+/// largest against its max, or `None` for an axis that never accelerates (fewer than two
+/// samples, or a standstill). The axes must match `rig`'s (as `validate` checks).
+pub fn peak_accelerations(trajectory: &Trajectory, rig: &Rig) -> Vec<Option<PeakAcceleration>> {
+    let mut peaks = vec![None; rig.dof().min(trajectory.dof())];
+    for sample in 1..trajectory.len() {
+        for (axis, peak) in peaks.iter_mut().enumerate() {
+            let max = rig.joints[axis].limits.max_acceleration;
+            for acceleration in accelerations_at(trajectory, sample, axis)
+                .into_iter()
+                .flatten()
+            {
+                let ratio = acceleration.abs() / max;
+                if ratio > 0.0 && peak.is_none_or(|p: PeakAcceleration| ratio > p.ratio) {
+                    *peak = Some(PeakAcceleration {
+                        sample,
+                        axis,
+                        acceleration,
+                        ratio,
+                    });
+                }
+            }
+        }
+    }
+    peaks
+}
