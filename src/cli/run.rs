@@ -118,7 +118,7 @@ fn stop(control: &StreamControl, bar: &ProgressBar) {
 pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     let settings =
         load_run_settings(&args.config).with_context(|| super::settings_context(&args.config))?;
-    let log = args.log.unwrap_or_else(|| default_log_path("run"));
+    let log = args.log.clone().unwrap_or_else(|| default_log_path("run"));
     if let Some(dir) = log.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     }
@@ -126,17 +126,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     let clock = make_clock(args.clock);
     let job_control = control.clone();
     let job_log = log.clone();
-    let spec: LinkSpec = args
-        .link
-        .as_deref()
-        .unwrap_or(&settings.config.stream.link)
-        .parse()?;
-    // A real controller keeps real time: a virtual clock would stream faster than it runs.
-    anyhow::ensure!(
-        matches!(args.clock, ClockChoice::Wall) || spec == LinkSpec::Loopback,
-        "--clock virtual needs the loopback twin: a controller behind --link {} runs in real time",
-        args.link.as_deref().unwrap_or(&settings.config.stream.link)
-    );
+    let spec = link_spec(&args, &settings)?;
     let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&settings.initial())));
     // Asked before any thread is pinned: the process's CPUs are remembered then.
     let streaming_cpu = rigbridge::realtime::streaming_cpu();
@@ -183,6 +173,29 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
             node.joint_states_key()
         );
     }
+    finish(report, &args, &log)
+}
+
+/// The link `--link` names, else the settings' `[stream] link`; a virtual clock only with
+/// the loopback twin.
+fn link_spec(args: &RunArgs, settings: &RunSettings) -> anyhow::Result<LinkSpec> {
+    let text = args.link.as_deref().unwrap_or(&settings.config.stream.link);
+    let spec: LinkSpec = text.parse()?;
+    // A real controller keeps real time: a virtual clock would stream faster than it runs.
+    anyhow::ensure!(
+        matches!(args.clock, ClockChoice::Wall) || spec == LinkSpec::Loopback,
+        "--clock virtual needs the loopback twin: a controller behind --link {text} runs in real time"
+    );
+    Ok(spec)
+}
+
+/// Prints the summary and writes the report (a refusal before motion gets one too); the
+/// exit code follows the outcome.
+fn finish(
+    report: anyhow::Result<rigbridge::daemon::RunReport>,
+    args: &RunArgs,
+    log: &std::path::Path,
+) -> anyhow::Result<ExitCode> {
     let report = match report {
         Ok(report) => report,
         Err(error) => {
