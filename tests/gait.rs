@@ -4,6 +4,7 @@
 
 mod common;
 
+use common::cli::{assert_succeeded, read_json, rigbridge};
 use common::repo_path;
 use rigbridge::clock::VirtualClock;
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
@@ -513,21 +514,33 @@ fn the_streamed_rig_fits_the_wire_protocol() {
     assert!(sloth.bone_polylines(&[0.0; 3]).is_err());
 }
 
-fn sloth_variant(name: &str, edit: impl Fn(String) -> String) -> Result<SlothRig, ConfigError> {
+/// `config/sloth.toml` with the first `from` made `to`, loaded from a copy named `name`.
+fn sloth_variant(name: &str, from: &str, to: &str) -> Result<SlothRig, ConfigError> {
     let original = std::fs::read_to_string(repo_path("config/sloth.toml")).unwrap();
     let dir = std::env::temp_dir().join(format!("rigbridge-sloth-test-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join(name);
-    std::fs::write(&path, edit(original)).unwrap();
+    std::fs::write(&path, original.replacen(from, to, 1)).unwrap();
     SlothRig::load(&path)
+}
+
+/// Why [`sloth_variant`] refuses the edited file, as a user reads it.
+fn variant_refusal(name: &str, from: &str, to: &str) -> String {
+    sloth_variant(name, from, to).unwrap_err().to_string()
+}
+
+/// Fails the test, showing `message`, unless it holds every one of `parts`.
+#[track_caller]
+fn assert_mentions(message: &str, parts: &[&str]) {
+    for part in parts {
+        assert!(message.contains(part), "{message}");
+    }
 }
 
 #[test]
 fn a_bad_bone_limit_names_file_key_and_value() {
-    let error = sloth_variant("inverted.toml", |t| {
-        t.replacen("lower_deg = -20.8", "lower_deg = 200.0", 1)
-    })
-    .unwrap_err();
+    let error =
+        sloth_variant("inverted.toml", "lower_deg = -20.8", "lower_deg = 200.0").unwrap_err();
     match error {
         ConfigError::Invalid {
             file, key, value, ..
@@ -545,46 +558,27 @@ fn a_bad_bone_limit_names_file_key_and_value() {
 
 #[test]
 fn a_bad_gait_setting_names_file_key_and_value() {
-    let message = sloth_variant("speed.toml", |t| {
-        t.replacen("speed_m_s = 0.11", "speed_m_s = -1.0", 1)
-    })
-    .unwrap_err()
-    .to_string();
-    assert!(message.contains("speed.toml"), "{message}");
-    assert!(message.contains("gait.speed_m_s"), "{message}");
-    assert!(message.contains("-1.0"), "{message}");
+    let message = variant_refusal("speed.toml", "speed_m_s = 0.11", "speed_m_s = -1.0");
+    assert_mentions(&message, &["speed.toml", "gait.speed_m_s", "-1.0"]);
 }
 
 #[test]
 fn an_unknown_limb_solver_names_file_key_and_value() {
-    let message = sloth_variant("solver.toml", |t| {
-        t.replacen("solver = \"ccd\"", "solver = \"jacobian\"", 1)
-    })
-    .unwrap_err()
-    .to_string();
-    assert!(message.contains("solver.toml"), "{message}");
-    assert!(message.contains("gait.solver"), "{message}");
-    assert!(message.contains("jacobian"), "{message}");
+    let message = variant_refusal("solver.toml", "solver = \"ccd\"", "solver = \"jacobian\"");
+    assert_mentions(&message, &["solver.toml", "gait.solver", "jacobian"]);
 }
 
 #[test]
 fn fabrik_limbs_load_from_the_file() {
-    let sloth = sloth_variant("fabrik.toml", |t| {
-        t.replacen("solver = \"ccd\"", "solver = \"fabrik\"", 1)
-    })
-    .expect("solver = \"fabrik\" loads");
+    let sloth = sloth_variant("fabrik.toml", "solver = \"ccd\"", "solver = \"fabrik\"")
+        .expect("solver = \"fabrik\" loads");
     assert_eq!(sloth.gait.solver, LimbSolver::Fabrik);
 }
 
 #[test]
 fn an_unknown_footfall_limb_is_refused() {
-    let message = sloth_variant("order.toml", |t| {
-        t.replacen("\"lf\", \"lh\"", "\"lf\", \"xx\"", 1)
-    })
-    .unwrap_err()
-    .to_string();
-    assert!(message.contains("gait.footfall_order[2]"), "{message}");
-    assert!(message.contains("xx"), "{message}");
+    let message = variant_refusal("order.toml", "\"lf\", \"lh\"", "\"lf\", \"xx\"");
+    assert_mentions(&message, &["gait.footfall_order[2]", "xx"]);
 }
 
 /// A `run` or `serve` job starts from the twin's configured position (the straight scene's
@@ -675,8 +669,7 @@ fn scratch(name: &str) -> std::path::PathBuf {
 #[test]
 fn the_gait_command_reports_and_draws() {
     let (report, picture, log) = (scratch("r.json"), scratch("p.svg"), scratch("g.mcap"));
-    let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .current_dir(repo_path("."))
+    let output = rigbridge()
         .args([
             "gait",
             "--scenario",
@@ -694,13 +687,8 @@ fn the_gait_command_reports_and_draws() {
         .arg(&log)
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_succeeded(&output);
+    let json = read_json(&report);
     assert_eq!(json["passed"], true);
     assert_eq!(json["limbs"].as_array().unwrap().len(), 4);
     assert_eq!(json["run"]["outcome"], "completed");
@@ -710,66 +698,50 @@ fn the_gait_command_reports_and_draws() {
     assert_eq!(json["solver"], "ccd");
 }
 
-fn gait_with_solver(solver: &str, report: &std::path::Path) -> std::process::Output {
-    std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .current_dir(repo_path("."))
+/// `rigbridge gait` on the straight branch with `--{option} {value}`: its output and the
+/// report it was asked to write.
+fn gait_straight_with(option: &str, value: &str) -> (std::process::Output, std::path::PathBuf) {
+    let report = scratch(&format!("{option}-{value}.json"));
+    let output = rigbridge()
         .args(["gait", "--scenario", "straight", "--clock", "virtual"])
-        .args(["--solver", solver])
+        .args([format!("--{option}").as_str(), value])
         .arg("--report")
-        .arg(report)
+        .arg(&report)
         .arg("--log")
-        .arg(scratch(&format!("{solver}.mcap")))
+        .arg(scratch(&format!("{option}-{value}.mcap")))
         .output()
-        .unwrap()
+        .unwrap();
+    (output, report)
 }
 
-#[test]
-fn the_gait_command_takes_the_limb_solver() {
-    let report = scratch("fabrik.json");
-    let output = gait_with_solver("fabrik", &report);
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
-    assert_eq!(json["solver"], "fabrik");
-    assert_eq!(json["passed"], true);
-
-    let refused = gait_with_solver("newton", &scratch("newton.json"));
+/// `rigbridge gait` refused `--{option} {value}`, naming both.
+#[track_caller]
+fn assert_refuses(option: &str, value: &str) {
+    let (refused, _) = gait_straight_with(option, value);
     assert!(!refused.status.success());
     let stderr = String::from_utf8_lossy(&refused.stderr);
     assert!(
-        stderr.contains("--solver") && stderr.contains("newton"),
+        stderr.contains(&format!("--{option}")) && stderr.contains(value),
         "{stderr}"
     );
 }
 
 #[test]
+fn the_gait_command_takes_the_limb_solver() {
+    let (output, report) = gait_straight_with("solver", "fabrik");
+    assert_succeeded(&output);
+    let json = read_json(&report);
+    assert_eq!(json["solver"], "fabrik");
+    assert_eq!(json["passed"], true);
+
+    assert_refuses("solver", "newton");
+}
+
+#[test]
 fn the_gait_command_takes_the_footfall_sequence() {
-    let gait = |sequence: &str| {
-        let report = scratch(&format!("sequence-{sequence}.json"));
-        let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-            .current_dir(repo_path("."))
-            .args(["gait", "--scenario", "straight", "--clock", "virtual"])
-            .args(["--sequence", sequence])
-            .arg("--report")
-            .arg(&report)
-            .arg("--log")
-            .arg(scratch(&format!("sequence-{sequence}.mcap")))
-            .output()
-            .unwrap();
-        (output, report)
-    };
-    let (output, report) = gait("lateral");
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let (output, report) = gait_straight_with("sequence", "lateral");
+    assert_succeeded(&output);
+    let json = read_json(&report);
     assert_eq!(json["passed"], true);
     let order: Vec<&str> = json["footfall_order"]
         .as_array()
@@ -779,20 +751,13 @@ fn the_gait_command_takes_the_footfall_sequence() {
         .collect();
     assert_eq!(&order[..4], ["rh", "rf", "lh", "lf"]);
 
-    let (refused, _) = gait("pace");
-    assert!(!refused.status.success());
-    let stderr = String::from_utf8_lossy(&refused.stderr);
-    assert!(
-        stderr.contains("--sequence") && stderr.contains("pace"),
-        "{stderr}"
-    );
+    assert_refuses("sequence", "pace");
 }
 
 #[test]
 fn run_takes_a_gait_job() {
     let log = scratch("run.mcap");
-    let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .current_dir(repo_path("."))
+    let output = rigbridge()
         .args([
             "run",
             "--config",

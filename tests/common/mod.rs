@@ -2,11 +2,13 @@
 //! reference data in `../shared/reference`, seeded random configurations, the issue's
 //! figures every passing gait run must meet, waiting on a condition (never for a fixed
 //! time: a loaded machine makes a test slower, not wrong), running the binary with input on
-//! stdin; `serve` starts `rigbridge serve` and talks to it, `cycles` serves tests that hold
-//! real-time cycles, `can` skips the SocketCAN tests where there is no bus.
+//! stdin; `serve` starts `rigbridge serve` and talks to it, `cli` runs the binary to the end
+//! and reads its reports, `cycles` serves tests that hold real-time cycles, `can` skips the
+//! SocketCAN tests where there is no bus.
 #![allow(dead_code)]
 
 pub mod can;
+pub mod cli;
 pub mod cycles;
 pub mod serve;
 
