@@ -2,14 +2,16 @@
 //! reference data in `../shared/reference`, seeded random configurations, the issue's
 //! figures every passing gait run must meet, waiting on a condition (never for a fixed
 //! time: a loaded machine makes a test slower, not wrong), running the binary with input on
-//! stdin; `serve` starts `rigbridge serve` and talks to it, `cli` runs the binary to the end
-//! and reads its reports, `cycles` serves tests that hold real-time cycles, `can` skips the
+//! stdin, scratch paths in the temporary directory; `serve` starts `rigbridge serve` and
+//! talks to it, `cli` runs the binary to the end and reads its reports, `runlog` checks a
+//! run log read back, `cycles` serves tests that hold real-time cycles, `can` skips the
 //! SocketCAN tests where there is no bus.
 #![allow(dead_code)]
 
 pub mod can;
 pub mod cli;
 pub mod cycles;
+pub mod runlog;
 pub mod serve;
 
 use glam::{DQuat, DVec3};
@@ -91,6 +93,16 @@ pub fn output_with_stdin(command: &mut std::process::Command, stdin: &str) -> st
         assert_eq!(e.kind(), std::io::ErrorKind::BrokenPipe, "{e}");
     }
     output
+}
+
+/// `name` in the temporary directory of the test file `suite` in this process
+/// (`rigbridge-{suite}-{pid}`), with what an earlier test left there removed.
+pub fn scratch_file(suite: &str, name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("rigbridge-{suite}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(name);
+    let _ = std::fs::remove_file(&path);
+    path
 }
 
 pub fn repo_path(relative: &str) -> PathBuf {
