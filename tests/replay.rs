@@ -6,12 +6,11 @@ mod common;
 
 use common::cli::{read_json, rigbridge};
 use common::runlog::resumptions;
+use common::twin::{TwinProcess, listen_command, start_listening};
 use common::{irb120, repo_path};
 use rigbridge::log::{RunLog, read_log};
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Output, Stdio};
-use std::time::Duration;
+use std::process::Output;
 
 /// Rounding slack on the limit checks below, the same as the rig's.
 const SLACK: f64 = 1e-9;
@@ -219,38 +218,13 @@ fn a_speed_that_breaks_an_acceleration_limit_is_refused_naming_the_axis() {
     );
 }
 
-struct TwinProcess(Child);
-
-impl Drop for TwinProcess {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// `rigbridge twin --listen` on a free port with `config`; returns it and its address.
-fn start_twin(config: &Path) -> (TwinProcess, String) {
-    let mut child = rigbridge()
-        .args(["twin", "--listen", "tcp://127.0.0.1:0", "--config"])
-        .arg(config)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stdout = child.stdout.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    let address = rx
-        .recv_timeout(Duration::from_secs(10))
-        .expect("the twin prints its address");
-    assert!(address.starts_with("tcp://127.0.0.1:"), "{address}");
-    (TwinProcess(child), address)
+/// `rigbridge twin --listen` on a free port with `config`.
+fn start_twin(config: &Path) -> TwinProcess {
+    start_listening(
+        listen_command("tcp://127.0.0.1:0")
+            .arg("--config")
+            .arg(config),
+    )
 }
 
 #[test]
@@ -266,7 +240,8 @@ fn a_replay_over_tcp_starts_where_the_twin_holds_and_completes() {
             "initial_deg = [20.0, -10.0, 5.0, 0.0, 45.0, 0.0]",
         )
     });
-    let (_twin, address) = start_twin(&elsewhere.0);
+    let twin = start_twin(&elsewhere.0);
+    let address = twin.address.clone();
     let (report, replayed) = replay_completes(&cut, &["--link", &address], "tcp");
     assert!(report["approach_samples"].as_u64().unwrap() > 0, "{report}");
     assert!(report["link"].as_str().unwrap().starts_with("tcp://"));

@@ -5,12 +5,12 @@ mod common;
 
 use common::cli::{assert_succeeded, read_json, rigbridge};
 use common::runlog::assert_resumes_in_step_after_link_loss;
+use common::twin::{TwinProcess, listen_command, start_listening};
 use common::{irb120, repo_path, wait_for_logged_commands, wait_for_logged_event};
 use rigbridge::log::read_log;
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdout, Command, Stdio};
-use std::sync::mpsc::Receiver;
+use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 const PERIOD: f64 = 0.004;
@@ -19,58 +19,18 @@ const MID_JOB_COMMANDS: usize = 250;
 /// Longer than any of these waits takes on a loaded machine.
 const WAIT: Duration = Duration::from_secs(30);
 
-struct TwinProcess {
-    child: Child,
-    address: String,
-    lines: Receiver<String>,
-}
-
-impl Drop for TwinProcess {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn forward_lines(stdout: ChildStdout) -> Receiver<String> {
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    rx
-}
-
 fn start_twin(listen: &str) -> TwinProcess {
     start_twin_under(listen, None)
 }
 
 /// A twin whose environment's RUST_LOG is `rust_log` (or unset).
 fn start_twin_under(listen: &str, rust_log: Option<&str>) -> TwinProcess {
-    let mut command = rigbridge();
+    let mut command = listen_command(listen);
     match rust_log {
         Some(directives) => command.env("RUST_LOG", directives),
         None => command.env_remove("RUST_LOG"),
     };
-    let mut child = command
-        .args(["twin", "--listen", listen])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let lines = forward_lines(child.stdout.take().unwrap());
-    let address = lines
-        .recv_timeout(Duration::from_secs(10))
-        .expect("the twin prints its address");
-    assert!(address.starts_with("tcp://127.0.0.1:"), "{address}");
-    TwinProcess {
-        child,
-        address,
-        lines,
-    }
+    start_listening(&mut command)
 }
 
 fn scratch(name: &str) -> PathBuf {

@@ -3,9 +3,9 @@
 //! figures every passing gait run must meet, waiting on a condition (never for a fixed
 //! time: a loaded machine makes a test slower, not wrong), running the binary with input on
 //! stdin, scratch paths in the temporary directory; `serve` starts `rigbridge serve` and
-//! talks to it, `cli` runs the binary to the end and reads its reports, `runlog` checks a
-//! run log read back, `cycles` serves tests that hold real-time cycles, `can` skips the
-//! SocketCAN tests where there is no bus.
+//! talks to it, `twin` starts and stops `rigbridge twin`, `cli` runs the binary to the end
+//! and reads its reports, `runlog` checks a run log read back, `cycles` serves tests that
+//! hold real-time cycles, `can` skips the SocketCAN tests where there is no bus.
 #![allow(dead_code)]
 
 pub mod can;
@@ -13,6 +13,7 @@ pub mod cli;
 pub mod cycles;
 pub mod runlog;
 pub mod serve;
+pub mod twin;
 
 use glam::{DQuat, DVec3};
 use rand::{Rng, RngExt, SeedableRng};
