@@ -7,6 +7,7 @@
 
 mod common;
 
+use common::cli::numbers;
 use common::{reference_path, repo_path};
 use rigbridge::log::{TF_TOPIC, URDF_ATTACHMENT, read_log};
 use rigbridge::rig::{Rig, load_rig, rig_from_urdf};
@@ -28,11 +29,7 @@ fn peer_python() -> Result<String, String> {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir =
-        std::env::temp_dir().join(format!("rigbridge-foxglove-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+    common::scratch_dir("foxglove", name)
 }
 
 fn record_run(config: &Path, log: &Path) {
@@ -97,15 +94,6 @@ fn run_peer(python: &str, log: &Path, rig: &Rig) -> Peer {
         .collect();
     let summary = rows.pop().unwrap()["summary"].clone();
     Peer { rows, summary }
-}
-
-fn numbers(value: &serde_json::Value) -> Vec<f64> {
-    value
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|v| v.as_f64().unwrap())
-        .collect()
 }
 
 /// Largest distance at the tool between the peer's composed /tf and our FK of the positions.
@@ -263,21 +251,7 @@ fn the_paint_room_is_a_scene_update_for_a_reader_we_did_not_write() {
         }
     };
     let dir = scratch("paint-scene");
-    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["paint", "--walls", "3", "--seed", "2", "--clock", "virtual"])
-        .arg("--config")
-        .arg(repo_path("config/paint-run.toml"))
-        .args(["--log", "p.mcap", "--report", "p.json"])
-        .current_dir(&dir)
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dir.join("p.json")).unwrap()).unwrap();
+    let report = common::cli::paint_three_walls_in(&dir);
     let room = &report["room"];
     let peer = scene_peer(&python, &dir.join("p.mcap"));
     assert_eq!(peer["schema"], "foxglove.SceneUpdate");

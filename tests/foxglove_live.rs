@@ -7,6 +7,7 @@
 
 mod common;
 
+use common::cli::numbers;
 use common::serve::{Served, request_json, serve_args, start_serve};
 use common::{irb120, repo_path};
 use rigbridge::daemon::config::load_run_settings;
@@ -45,10 +46,7 @@ fn peer_python() -> Option<String> {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("rigbridge-fxlive-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+    common::scratch_dir("fxlive", name)
 }
 
 /// A port nothing listens on right now.
@@ -76,15 +74,6 @@ fn serve(dir: &Path, args: &[&str]) -> Served {
 /// One HTTP/1.1 request to the control API; the status and the JSON body.
 fn call(server: &Served, method: &str, path: &str, body: &str) -> (u16, serde_json::Value) {
     request_json(&server.address, method, path, "", body)
-}
-
-fn numbers(value: &serde_json::Value) -> Vec<f64> {
-    value
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|v| v.as_f64().unwrap())
-        .collect()
 }
 
 /// The handshake a tungstenite client gets: serverInfo and advertise, or the refusal.

@@ -106,6 +106,16 @@ pub fn scratch_file(suite: &str, name: &str) -> PathBuf {
     path
 }
 
+/// An empty directory `name` of the test file `suite` in this process
+/// (`rigbridge-{suite}-{pid}-{name}` in the temporary directory), emptied if an earlier test
+/// left it.
+pub fn scratch_dir(suite: &str, name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("rigbridge-{suite}-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
 pub fn repo_path(relative: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(relative)
 }
