@@ -94,15 +94,8 @@ fn config(fd: bool) -> PathBuf {
     if !fd {
         return repo_path("config/rigbridge.toml");
     }
-    let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
-    let rig = repo_path("config/irb120.toml");
-    let text = text
-        .replacen(
-            "rig = \"irb120.toml\"",
-            &format!("rig = {:?}", rig.display().to_string()),
-            1,
-        )
-        .replacen("[stream]\n", "[stream]\ncan_fd = true\n", 1);
+    let text =
+        common::shipped_settings_text().replacen("[stream]\n", "[stream]\ncan_fd = true\n", 1);
     let path = scratch("rigbridge-fd.toml");
     std::fs::write(&path, text).unwrap();
     path
@@ -150,18 +143,12 @@ impl Drop for TwinProcess {
 }
 
 fn spawn_run(interface: &str, config: &Path, log: &Path, report: &Path) -> Child {
-    Process::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["run", "--link", &format!("can://{interface}"), "--config"])
-        .arg(config)
-        .arg("--log")
-        .arg(log)
-        .arg("--report")
-        .arg(report)
-        .current_dir(repo_path(""))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap()
+    let link = format!("can://{interface}");
+    common::cli::spawn_run(
+        &["--link", &link, "--config", config.to_str().unwrap()],
+        log,
+        report,
+    )
 }
 
 fn finish_run(child: Child, report: &Path) -> serde_json::Value {

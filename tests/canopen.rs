@@ -112,15 +112,11 @@ fn config(rate_hz: f64) -> PathBuf {
 
 /// [`config`] with `extra` TOML appended.
 fn config_with(rate_hz: f64, extra: &str) -> PathBuf {
-    let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
-    let rig = repo_path("config/irb120.toml");
-    let text = text
-        .replacen(
-            "rig = \"irb120.toml\"",
-            &format!("rig = {:?}", rig.display().to_string()),
-            1,
-        )
-        .replacen("rate_hz = 250.0", &format!("rate_hz = {rate_hz:.1}"), 1);
+    let text = common::shipped_settings_text().replacen(
+        "rate_hz = 250.0",
+        &format!("rate_hz = {rate_hz:.1}"),
+        1,
+    );
     let path = scratch(&format!("rigbridge-{rate_hz}-{}.toml", extra.len()));
     std::fs::write(&path, format!("{text}\n{extra}")).unwrap();
     path
@@ -196,18 +192,11 @@ fn spawn_run(config: &Path, report: &Path) -> Child {
 
 /// `rigbridge run` of `config` on `link`, writing its report to `report`.
 fn spawn_run_on(link: &str, config: &Path, report: &Path) -> Child {
-    Process::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["run", "--link", link, "--config"])
-        .arg(config)
-        .arg("--report")
-        .arg(report)
-        .arg("--log")
-        .arg(scratch("run.mcap"))
-        .current_dir(repo_path(""))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap()
+    common::cli::spawn_run(
+        &["--link", link, "--config", config.to_str().unwrap()],
+        &scratch("run.mcap"),
+        report,
+    )
 }
 
 /// The run's report, and whether it exited 0.

@@ -3,12 +3,12 @@
 
 mod common;
 
-use common::cli::{read_json, rigbridge};
+use common::cli::{read_json, rigbridge, spawn_run};
 use common::runlog::resumptions;
 use common::{irb120, repo_path, wait_for_logged_commands};
 use rigbridge::log::read_log;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::time::Duration;
 
 /// A second of the default job's motion at 250 Hz: a job this far in is mid-motion.
@@ -240,25 +240,10 @@ fn corrupt_or_truncated_logs_are_errors_not_panics() {
     }
 }
 
-fn spawn_run(log: &Path, report: &Path) -> Child {
-    rigbridge()
-        .args([
-            "run",
-            "--log",
-            log.to_str().unwrap(),
-            "--report",
-            report.to_str().unwrap(),
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap()
-}
-
 #[test]
 fn ctrl_c_brings_the_rig_to_rest_then_closes_log_and_report() {
     let (log, report) = (scratch("sigint.mcap"), scratch("sigint.json"));
-    let child = spawn_run(&log, &report);
+    let child = spawn_run(&[], &log, &report);
     wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     send_signal(child.id(), "INT");
     let output = child.wait_with_output().unwrap();
@@ -277,7 +262,7 @@ fn ctrl_c_brings_the_rig_to_rest_then_closes_log_and_report() {
 #[test]
 fn sigkill_leaves_a_log_readable_up_to_its_last_chunk() {
     let (log, report) = (scratch("sigkill.mcap"), scratch("sigkill.json"));
-    let mut child = spawn_run(&log, &report);
+    let mut child = spawn_run(&[], &log, &report);
     let before_kill = wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     child.kill().unwrap();
     child.wait().unwrap();

@@ -222,18 +222,8 @@ fn an_overrunning_stream_is_reported_and_handed_back_while_its_neighbours_comple
 
 /// `config/rigbridge.toml` with `serve` appended as its `[serve]` table, in a scratch file.
 fn settings_with_serve(name: &str, serve: &str) -> std::path::PathBuf {
-    let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
-    let rig = repo_path("config/irb120.toml");
-    let text = text.replacen(
-        "rig = \"irb120.toml\"",
-        &format!("rig = {:?}", rig.display().to_string()),
-        1,
-    );
-    let dir =
-        std::env::temp_dir().join(format!("rigbridge-executor-config-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let file = dir.join(name);
-    std::fs::write(&file, format!("{text}\n[serve]\n{serve}\n")).unwrap();
+    let file = common::scratch_file("executor-config", name);
+    common::write_settings_with_serve(&file, serve);
     file
 }
 

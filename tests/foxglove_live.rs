@@ -282,15 +282,8 @@ fn several_cells_get_their_topics_prefixed() {
 
 /// The default run settings with absolute paths and `serve` appended as a `[serve]` table.
 fn settings_with_serve(dir: &Path, serve: &str) -> PathBuf {
-    let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
-    let rig = repo_path("config/irb120.toml");
-    let text = text.replacen(
-        "rig = \"irb120.toml\"",
-        &format!("rig = {:?}", rig.display().to_string()),
-        1,
-    );
     let path = dir.join("settings.toml");
-    std::fs::write(&path, format!("{text}\n[serve]\n{serve}\n")).unwrap();
+    common::write_settings_with_serve(&path, serve);
     path
 }
 

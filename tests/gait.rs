@@ -11,7 +11,7 @@ use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::gait::{GaitRun, run_gait};
 use rigbridge::rig::ConfigError;
 use rigbridge::stream::{Outcome, StreamControl};
-use rigbridge::task::gait::{LimbSolver, Scenario, Side, SlothRig};
+use rigbridge::task::gait::{LimbSolver, Scenario, Side, SlothRig, Stance};
 
 fn settings() -> RunSettings {
     load_run_settings(&repo_path("config/gait-run.toml")).expect("config/gait-run.toml loads")
@@ -348,6 +348,18 @@ fn assert_every_limb_moves_once(run: &GaitRun, from: usize, to: usize) {
     }
 }
 
+/// The planned stances on support `support` of the limbs `whose` holds for (by index).
+fn stances_on(
+    run: &GaitRun,
+    support: usize,
+    whose: impl Fn(usize) -> bool,
+) -> impl Iterator<Item = &Stance> {
+    run.plan
+        .stances
+        .iter()
+        .filter(move |s| whose(s.limb) && s.contact.support == support)
+}
+
 /// A trunk-to-branch transfer: passes; every limb ends on the branch; every limb leaves the
 /// trunk for the branch (never back), fore limbs first, and a hind limb lifts off the trunk
 /// only once no fore limb is still on it (seed 004); the head stays above the tail.
@@ -359,17 +371,13 @@ fn assert_transfers_head_first(run: &GaitRun) {
     assert_every_limb_moves_once(run, trunk, branch);
     // The frame each limb lifts off the trunk for the branch: the end of its last trunk stance.
     let leaves_trunk = |limb: usize| {
-        stances
-            .iter()
-            .filter(|s| s.limb == limb && s.contact.support == trunk)
+        stances_on(run, trunk, |l| l == limb)
             .map(|s| s.end)
             .max()
             .unwrap()
     };
     let last_fore_leaves = (0..4).filter(|l| fore(*l)).map(leaves_trunk).max().unwrap();
-    let first_fore_lands = stances
-        .iter()
-        .filter(|s| fore(s.limb) && s.contact.support == branch)
+    let first_fore_lands = stances_on(run, branch, fore)
         .map(|s| s.start)
         .min()
         .unwrap();
@@ -410,12 +418,9 @@ fn assert_transfers_to_the_trunk_tail_first(run: &GaitRun) {
     assert_passes(run);
     let (trunk, branch) = (0, 1);
     let hind = |limb: usize| run.sloth.limbs[limb].name.ends_with('h');
-    let stances = &run.plan.stances;
     assert_every_limb_moves_once(run, branch, trunk);
     let first_on_trunk = |limb: usize| {
-        stances
-            .iter()
-            .filter(|s| s.limb == limb && s.contact.support == trunk)
+        stances_on(run, trunk, |l| l == limb)
             .map(|s| s.start)
             .min()
             .unwrap()

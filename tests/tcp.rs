@@ -10,7 +10,7 @@ use common::{irb120, repo_path, wait_for_logged_commands, wait_for_logged_event}
 use rigbridge::log::read_log;
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command};
 use std::time::Duration;
 
 const PERIOD: f64 = 0.004;
@@ -38,20 +38,7 @@ fn scratch(name: &str) -> PathBuf {
 }
 
 fn spawn_run(link: &str, log: &Path, report: &Path) -> Child {
-    rigbridge()
-        .args([
-            "run",
-            "--link",
-            link,
-            "--log",
-            log.to_str().unwrap(),
-            "--report",
-            report.to_str().unwrap(),
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap()
+    common::cli::spawn_run(&["--link", link], log, report)
 }
 
 /// [`spawn_run`] waited for; it must succeed.
@@ -313,24 +300,16 @@ fn a_twin_that_never_comes_back_aborts_the_job_with_a_message() {
     .unwrap();
     let twin = start_twin("tcp://127.0.0.1:0");
     let (log, json) = (scratch("abort.mcap"), scratch("abort.json"));
-    let daemon = rigbridge()
-        .args([
-            "run",
+    let daemon = common::cli::spawn_run(
+        &[
             "--config",
             config.to_str().unwrap(),
             "--link",
             &twin.address,
-        ])
-        .args([
-            "--log",
-            log.to_str().unwrap(),
-            "--report",
-            json.to_str().unwrap(),
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+        ],
+        &log,
+        &json,
+    );
     wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     drop(twin);
     let output = daemon.wait_with_output().unwrap();
@@ -400,12 +379,7 @@ fn a_virtual_clock_over_a_real_link_is_refused() {
 fn serve_refuses_a_virtual_clock_for_a_cell_on_a_real_link() {
     let dir = std::env::temp_dir().join(format!("rigbridge-serve-virtual-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let settings = std::fs::read_to_string(repo_path("config/rigbridge.toml"))
-        .unwrap()
-        .replace(
-            "rig = \"irb120.toml\"",
-            &format!("rig = {:?}", repo_path("config/irb120.toml")),
-        )
+    let settings = common::shipped_settings_text()
         .replace("link = \"loopback\"", "link = \"tcp://127.0.0.1:9\"");
     let file = dir.join("cell.toml");
     std::fs::write(&file, settings).unwrap();

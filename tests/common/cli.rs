@@ -5,13 +5,29 @@
 
 use super::repo_path;
 use std::path::Path;
-use std::process::{Command, Output};
+use std::process::{Child, Command, Output, Stdio};
 
 /// The rigbridge binary, started in the repository root so that `config/...` resolves.
 pub fn rigbridge() -> Command {
     let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
     command.current_dir(repo_path(""));
     command
+}
+
+/// `rigbridge run ARGS --log LOG --report REPORT` from the repository root, started with its
+/// stdout and stderr piped (for `wait_with_output`).
+pub fn spawn_run(args: &[&str], log: &Path, report: &Path) -> Child {
+    rigbridge()
+        .arg("run")
+        .args(args)
+        .arg("--log")
+        .arg(log)
+        .arg("--report")
+        .arg(report)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
 }
 
 /// Fails the test, showing the command's stderr, unless it exited 0.

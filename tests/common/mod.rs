@@ -2,7 +2,7 @@
 //! reference data in `../shared/reference`, seeded random configurations, the issue's
 //! figures every passing gait run must meet, waiting on a condition (never for a fixed
 //! time: a loaded machine makes a test slower, not wrong), running the binary with input on
-//! stdin, scratch paths in the temporary directory; `serve` starts `rigbridge serve` and
+//! stdin, scratch paths in the temporary directory, the shipped settings to copy; `serve` starts `rigbridge serve` and
 //! talks to it, `twin` starts and stops `rigbridge twin`, `cli` runs the binary to the end
 //! and reads its reports, `runlog` checks a run log read back, `cycles` serves tests that
 //! hold real-time cycles, `can` skips the SocketCAN tests where there is no bus.
@@ -67,6 +67,24 @@ pub fn wait_for_logged_event(path: &Path, kind: &str, within: Duration) {
             log.events.iter().any(|e| e.kind == kind).then_some(())
         },
     );
+}
+
+/// The text of the shipped run settings, `config/rigbridge.toml`, with its rig named by
+/// absolute path: a copy anywhere loads the shipped IRB 120.
+pub fn shipped_settings_text() -> String {
+    let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    let rig = repo_path("config/irb120.toml");
+    text.replacen(
+        "rig = \"irb120.toml\"",
+        &format!("rig = {:?}", rig.display().to_string()),
+        1,
+    )
+}
+
+/// [`shipped_settings_text`] with `serve` appended as its `[serve]` table, written to `path`.
+pub fn write_settings_with_serve(path: &Path, serve: &str) {
+    let text = shipped_settings_text();
+    std::fs::write(path, format!("{text}\n[serve]\n{serve}\n")).unwrap();
 }
 
 /// The shipped run settings, `config/rigbridge.toml`.
