@@ -7,7 +7,7 @@
 
 mod common;
 
-use common::cli::numbers;
+use common::cli::{assert_succeeded_as, numbers};
 use common::{reference_path, repo_path};
 use rigbridge::log::{TF_TOPIC, URDF_ATTACHMENT, read_log};
 use rigbridge::rig::{Rig, load_rig, rig_from_urdf};
@@ -41,11 +41,7 @@ fn record_run(config: &Path, log: &Path) {
         .arg(log)
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "rigbridge run failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert_succeeded_as(&output, "rigbridge run");
 }
 
 /// The default run settings with `rig` pointing at the reference URDF.
@@ -82,11 +78,7 @@ fn run_peer(python: &str, log: &Path, rig: &Rig) -> Peer {
         .args([&rig.base_frame, &rig.tool_frame])
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "the peer failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert_succeeded_as(&output, "the peer");
     let mut rows: Vec<serde_json::Value> = String::from_utf8(output.stdout)
         .unwrap()
         .lines()
@@ -225,11 +217,7 @@ fn scene_peer(python: &str, log: &Path) -> serde_json::Value {
         .arg(log)
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "the scene peer failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert_succeeded_as(&output, "the scene peer");
     serde_json::from_slice(&output.stdout).unwrap()
 }
 

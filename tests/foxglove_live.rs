@@ -7,7 +7,7 @@
 
 mod common;
 
-use common::cli::numbers;
+use common::cli::{assert_succeeded_as, numbers};
 use common::serve::{Served, request_json, serve_args, start_serve};
 use common::{irb120, repo_path};
 use rigbridge::daemon::config::load_run_settings;
@@ -123,11 +123,7 @@ fn a_websockets_client_gets_live_tf_while_a_job_streams() {
         .args(["base_link", "tool0", "package://rigbridge/irb120.urdf"])
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "the peer failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert_succeeded_as(&output, "the peer");
     // The job streamed through the whole window.
     let (_, status) = call(&server, "GET", "/api/status", "");
     assert_eq!(status["state"], "running", "{status}");

@@ -40,6 +40,17 @@ pub fn assert_succeeded(output: &Output) {
     );
 }
 
+/// Fails the test, saying "`who` failed: " and showing the command's stderr, unless it
+/// exited 0.
+#[track_caller]
+pub fn assert_succeeded_as(output: &Output, who: &str) {
+    assert!(
+        output.status.success(),
+        "{who} failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
+
 /// The JSON file at `path`: a `--report` the command wrote.
 pub fn read_json(path: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
