@@ -17,9 +17,7 @@ const MID_JOB_COMMANDS: usize = 250;
 const WAIT: Duration = Duration::from_secs(30);
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("rigbridge-daemon-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
+    common::scratch_file("daemon", name)
 }
 
 fn run(args: &[&str]) -> Output {

@@ -666,11 +666,7 @@ fn an_unknown_scenario_is_refused_by_name() {
 }
 
 fn scratch(name: &str) -> std::path::PathBuf {
-    let dir = std::env::temp_dir().join(format!("rigbridge-gait-cli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join(name);
-    let _ = std::fs::remove_file(&path);
-    path
+    common::scratch_file("gait-cli", name)
 }
 
 #[test]
