@@ -21,9 +21,10 @@
 
 #[path = "../tests/common/flood.rs"]
 mod flood;
+#[path = "../tests/common/in_process.rs"]
+mod in_process;
 
 use rigbridge::daemon::config::{ExecutorKind, RunSettings, load_run_settings};
-use rigbridge::daemon::server::{ServeOptions, run};
 use serde_json::{Value, json};
 use std::net::SocketAddr;
 use std::path::Path;
@@ -196,31 +197,12 @@ fn child(spec: &str) {
         .collect();
     let runs = std::env::temp_dir().join(format!("rigbridge-cells-bench-{}", std::process::id()));
     let rss_before = rss_bytes();
-    let runtime = tokio::runtime::Runtime::new().expect("runtime");
-    let listener = runtime
-        .block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))
-        .expect("listener");
-    let address = listener.local_addr().expect("address");
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let options = ServeOptions {
-        runs_dir: runs.clone(),
-        virtual_clock: false,
-        token: None,
-        allowed_hosts: Vec::new(),
-        before_job: None,
-        // Only the cycles are measured: no Foxglove server beside them.
-        foxglove_port: 0,
-        foxglove_allow_remote: false,
-        zenoh_connect: None,
-    };
-    let server = runtime.spawn(run(listener, cells, options, async {
-        let _ = stopped.await;
-    }));
+    // Only the cycles are measured: no Foxglove server beside them.
+    let served = in_process::start(cells, in_process::options(runs.clone()));
     let witnesses = Witnesses::start();
-    let figures = measure(address, n, rate);
+    let figures = measure(served.address, n, rate);
     let stalls = witnesses.stop();
-    let _ = stop.send(());
-    let _ = runtime.block_on(server);
+    let _ = served.stop();
     let _ = std::fs::remove_dir_all(&runs);
     let mut row = figures.finish(n);
     row["design"] = design.into();

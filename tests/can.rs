@@ -13,7 +13,9 @@
 mod common;
 
 use common::can::{skip, socketcan_here};
-
+use common::cli::number;
+use common::runlog::assert_resumes_in_step_after_link_loss;
+use common::twin::{lines_of, stop_for_summary};
 use common::{irb120, repo_path, wait_for_logged_commands};
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::log::read_log;
@@ -23,12 +25,11 @@ use rigbridge::protocol::{
     JointTarget, Message, can_frames,
 };
 use rigbridge::transport::{interface_mtu, interface_up};
-use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command as Process, Stdio};
 use std::sync::Mutex;
 use std::sync::mpsc::Receiver;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 const RATE_HZ: f64 = 250.0;
 const BUS_BITRATE: f64 = 1e6;
@@ -84,11 +85,7 @@ fn prepare_vcan(name: &str, fd: bool) -> Result<(), String> {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("rigbridge-can-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join(name);
-    let _ = std::fs::remove_file(&path);
-    path
+    common::scratch_file("can", name)
 }
 
 /// The shipped run settings, as CAN FD when `fd`, in a scratch file (the rig by its
@@ -97,15 +94,8 @@ fn config(fd: bool) -> PathBuf {
     if !fd {
         return repo_path("config/rigbridge.toml");
     }
-    let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
-    let rig = repo_path("config/irb120.toml");
-    let text = text
-        .replacen(
-            "rig = \"irb120.toml\"",
-            &format!("rig = {:?}", rig.display().to_string()),
-            1,
-        )
-        .replacen("[stream]\n", "[stream]\ncan_fd = true\n", 1);
+    let text =
+        common::shipped_settings_text().replacen("[stream]\n", "[stream]\ncan_fd = true\n", 1);
     let path = scratch("rigbridge-fd.toml");
     std::fs::write(&path, text).unwrap();
     path
@@ -127,15 +117,7 @@ impl TwinProcess {
             .stderr(Stdio::piped())
             .spawn()
             .unwrap();
-        let (tx, lines) = std::sync::mpsc::channel();
-        let stdout = child.stdout.take().unwrap();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-                if tx.send(line).is_err() {
-                    break;
-                }
-            }
-        });
+        let lines = lines_of(child.stdout.take().unwrap());
         let first = lines
             .recv_timeout(Duration::from_secs(30))
             .expect("the twin prints where it serves");
@@ -145,21 +127,7 @@ impl TwinProcess {
 
     /// Stops the twin (SIGTERM, as a user would) and returns its exit summary.
     fn stop(mut self) -> String {
-        // SAFETY: kill(2) on our own child's pid.
-        unsafe { libc::kill(self.child.id() as libc::pid_t, libc::SIGTERM) };
-        let deadline = Instant::now() + Duration::from_secs(10);
-        while self.child.try_wait().unwrap().is_none() {
-            assert!(Instant::now() < deadline, "the twin ignored SIGTERM");
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        let mut summary = String::new();
-        self.child
-            .stderr
-            .take()
-            .unwrap()
-            .read_to_string(&mut summary)
-            .unwrap();
-        summary
+        stop_for_summary(&mut self.child)
     }
 
     fn events(&self) -> Vec<String> {
@@ -175,18 +143,12 @@ impl Drop for TwinProcess {
 }
 
 fn spawn_run(interface: &str, config: &Path, log: &Path, report: &Path) -> Child {
-    Process::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["run", "--link", &format!("can://{interface}"), "--config"])
-        .arg(config)
-        .arg("--log")
-        .arg(log)
-        .arg("--report")
-        .arg(report)
-        .current_dir(repo_path(""))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap()
+    let link = format!("can://{interface}");
+    common::cli::spawn_run(
+        &["--link", &link, "--config", config.to_str().unwrap()],
+        log,
+        report,
+    )
 }
 
 fn finish_run(child: Child, report: &Path) -> serde_json::Value {
@@ -199,12 +161,6 @@ fn finish_run(child: Child, report: &Path) -> serde_json::Value {
         String::from_utf8_lossy(&output.stderr)
     );
     serde_json::from_str(&std::fs::read_to_string(report).unwrap()).unwrap()
-}
-
-fn number(report: &serde_json::Value, key: &str) -> f64 {
-    report[key]
-        .as_f64()
-        .unwrap_or_else(|| panic!("no {key} in {report}"))
 }
 
 /// A count from the twin's exit summary, such as `CRC errors` in "..., 0 CRC errors, ...".
@@ -514,40 +470,10 @@ fn an_interface_down_mid_job_holds_the_twin_and_the_job_resumes() {
     assert_eq!(twin_count(&summary, "CRC errors"), 0, "{summary}");
 
     // After the loss the bridge moved on from where the arm was, one cycle's step at most.
-    let rig = irb120();
-    let run = read_log(&log).unwrap();
     // Every resumption (this one, and any stall on a slow emulated machine) starts from
     // where the controller held: from there every command is one cycle's step at most.
-    let resumes: Vec<(f64, Vec<f64>)> = run
-        .events
-        .iter()
-        .filter(|e| e.kind == "resumed")
-        .map(|e| {
-            (
-                e.t,
-                serde_json::from_value(e.detail["actual"].clone()).unwrap(),
-            )
-        })
-        .collect();
-    assert!(!resumes.is_empty(), "a resumed event");
-    let lost_at = run.events.iter().find(|e| e.kind == "link_lost").unwrap().t;
-    let mut previous: Option<Vec<f64>> = None;
-    let mut next_resume = 0;
-    for command in run.commands.iter().filter(|c| c.t > lost_at + 1e-9) {
-        while next_resume < resumes.len() && resumes[next_resume].0 < command.t {
-            previous = Some(resumes[next_resume].1.clone());
-            next_resume += 1;
-        }
-        let Some(before) = &previous else { continue };
-        for ((q, p), joint) in command.positions.iter().zip(before).zip(&rig.joints) {
-            assert!(
-                (q - p).abs() <= joint.limits.max_speed / RATE_HZ * (1.0 + 1e-9),
-                "step at seq {}",
-                command.seq
-            );
-        }
-        previous = Some(command.positions.clone());
-    }
+    let run = read_log(&log).unwrap();
+    assert_resumes_in_step_after_link_loss(&run, &irb120(), 1.0 / RATE_HZ);
 }
 
 /// The bridge's Hello for the IRB 120 at 250 Hz.

@@ -14,13 +14,15 @@
 mod common;
 
 use common::can::{skip, socketcan_here};
+use common::cli::number;
+use common::twin::{lines_of, stop_for_summary};
 
 use common::{irb120, peer_python, repo_path};
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdin, Command as Process, Stdio};
-use std::sync::Mutex;
 use std::sync::mpsc::Receiver;
+use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 const INTERFACE: &str = "vcan0";
@@ -61,12 +63,46 @@ fn python() -> Result<String, String> {
     found
 }
 
+/// A test on the bus: one at a time, or `None` (the test skips, saying why, or fails where
+/// CAN is required) where this machine has no SocketCAN with [`INTERFACE`] up.
+fn on_the_bus() -> Option<MutexGuard<'static, ()>> {
+    let one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    if let Err(why) = socketcan_here(INTERFACE) {
+        skip(&why);
+        return None;
+    }
+    Some(one)
+}
+
+/// [`on_the_bus`] for a test against a Python peer, with the peer's Python; `None` (the
+/// test skips, saying why) where there is none.
+fn on_the_bus_with_python() -> Option<(MutexGuard<'static, ()>, String)> {
+    let one = on_the_bus()?;
+    match python() {
+        Ok(python) => Some((one, python)),
+        Err(why) => {
+            println!("skipping: {why}");
+            None
+        }
+    }
+}
+
+/// The peer `tests/peers/SCRIPT` on [`INTERFACE`] for drives [`NODES`] described by
+/// `tests/peers/cia402_csp.eds`, with `args`; its stdout and stderr piped.
+fn python_peer(python: &str, script: &str, args: &[&str]) -> Child {
+    Process::new(python)
+        .arg(repo_path(&format!("tests/peers/{script}")))
+        .args(["--channel", INTERFACE, "--nodes", NODES, "--eds"])
+        .arg(repo_path("tests/peers/cia402_csp.eds"))
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("rigbridge-canopen-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join(name);
-    let _ = std::fs::remove_file(&path);
-    path
+    common::scratch_file("canopen", name)
 }
 
 /// The shipped run settings at `rate_hz`, in a scratch file (the rig by its absolute path).
@@ -76,15 +112,11 @@ fn config(rate_hz: f64) -> PathBuf {
 
 /// [`config`] with `extra` TOML appended.
 fn config_with(rate_hz: f64, extra: &str) -> PathBuf {
-    let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
-    let rig = repo_path("config/irb120.toml");
-    let text = text
-        .replacen(
-            "rig = \"irb120.toml\"",
-            &format!("rig = {:?}", rig.display().to_string()),
-            1,
-        )
-        .replacen("rate_hz = 250.0", &format!("rate_hz = {rate_hz:.1}"), 1);
+    let text = common::shipped_settings_text().replacen(
+        "rate_hz = 250.0",
+        &format!("rate_hz = {rate_hz:.1}"),
+        1,
+    );
     let path = scratch(&format!("rigbridge-{rate_hz}-{}.toml", extra.len()));
     std::fs::write(&path, format!("{text}\n{extra}")).unwrap();
     path
@@ -92,18 +124,6 @@ fn config_with(rate_hz: f64, extra: &str) -> PathBuf {
 
 fn link() -> String {
     format!("canopen://{INTERFACE}?nodes={NODES}&counts_per_turn={COUNTS_PER_TURN}")
-}
-
-fn lines_of(stdout: impl Read + Send + 'static) -> Receiver<String> {
-    let (tx, lines) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    lines
 }
 
 struct TwinProcess {
@@ -155,17 +175,7 @@ impl TwinProcess {
 
     /// Stops the twin (SIGTERM) and returns its exit summary.
     fn stop(mut self) -> String {
-        // SAFETY: kill(2) on our own child's pid.
-        unsafe { libc::kill(self.child.id() as libc::pid_t, libc::SIGTERM) };
-        let deadline = Instant::now() + Duration::from_secs(10);
-        while self.child.try_wait().unwrap().is_none() {
-            assert!(Instant::now() < deadline, "the twin ignored SIGTERM");
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        let mut summary = String::new();
-        let mut stderr = self.child.stderr.take().unwrap();
-        stderr.read_to_string(&mut summary).unwrap();
-        summary
+        stop_for_summary(&mut self.child)
     }
 }
 
@@ -182,18 +192,11 @@ fn spawn_run(config: &Path, report: &Path) -> Child {
 
 /// `rigbridge run` of `config` on `link`, writing its report to `report`.
 fn spawn_run_on(link: &str, config: &Path, report: &Path) -> Child {
-    Process::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["run", "--link", link, "--config"])
-        .arg(config)
-        .arg("--report")
-        .arg(report)
-        .arg("--log")
-        .arg(scratch("run.mcap"))
-        .current_dir(repo_path(""))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap()
+    common::cli::spawn_run(
+        &["--link", link, "--config", config.to_str().unwrap()],
+        &scratch("run.mcap"),
+        report,
+    )
 }
 
 /// The run's report, and whether it exited 0.
@@ -210,12 +213,6 @@ fn finish_run(child: Child, report: &Path) -> (serde_json::Value, bool) {
         serde_json::from_str(&text).unwrap(),
         output.status.success(),
     )
-}
-
-fn number(report: &serde_json::Value, key: &str) -> f64 {
-    report[key]
-        .as_f64()
-        .unwrap_or_else(|| panic!("no {key} in {report}"))
 }
 
 /// A number from the twin's summary, such as `overruns` in "..., 3 overruns; ...".
@@ -316,10 +313,7 @@ fn counts(rad: f64) -> f64 {
 
 #[test]
 fn the_bridge_runs_the_default_job_on_the_twins_drives_within_limits() {
-    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here(INTERFACE) {
-        return skip(&why);
-    }
+    let Some(_one) = on_the_bus() else { return };
     let config = config(RATE_HZ);
     let twin = TwinProcess::start(&config);
     let json = scratch("default.json");
@@ -336,10 +330,7 @@ fn the_bridge_runs_the_default_job_on_the_twins_drives_within_limits() {
 
 #[test]
 fn a_drive_fault_stops_the_job_within_two_cycles_and_reset_clears_it() {
-    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here(INTERFACE) {
-        return skip(&why);
-    }
+    let Some(_one) = on_the_bus() else { return };
     let config = config(RATE_HZ);
     let mut twin = TwinProcess::start(&config);
     let json = scratch("fault.json");
@@ -410,27 +401,14 @@ fn remapped_in_order(writes: &[(u64, u64, i64)], comm: u64, map: u64, entries: &
 
 #[test]
 fn the_bridge_drives_python_canopen_local_nodes() {
-    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here(INTERFACE) {
-        return skip(&why);
-    }
-    let python = match python() {
-        Ok(python) => python,
-        Err(why) => return println!("skipping: {why}"),
+    let Some((_one, python)) = on_the_bus_with_python() else {
+        return;
     };
     let start: Vec<String> = INITIAL_DEG
         .iter()
         .map(|d| format!("{}", counts(d.to_radians())))
         .collect();
-    let mut peer = Process::new(&python)
-        .arg(repo_path("tests/peers/canopen_drives.py"))
-        .args(["--channel", INTERFACE, "--nodes", NODES, "--eds"])
-        .arg(repo_path("tests/peers/cia402_csp.eds"))
-        .args(["--start", &start.join(",")])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut peer = python_peer(&python, "canopen_drives.py", &["--start", &start.join(",")]);
     let lines = lines_of(peer.stdout.take().unwrap());
     assert_eq!(
         lines.recv_timeout(Duration::from_secs(60)).as_deref(),
@@ -528,31 +506,22 @@ fn the_bridge_drives_python_canopen_local_nodes() {
 
 #[test]
 fn a_python_canopen_master_moves_the_twins_drives() {
-    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here(INTERFACE) {
-        return skip(&why);
-    }
-    let python = match python() {
-        Ok(python) => python,
-        Err(why) => return println!("skipping: {why}"),
+    let Some((_one, python)) = on_the_bus_with_python() else {
+        return;
     };
     let twin = TwinProcess::start(&config(RATE_HZ));
-    let master = Process::new(&python)
-        .arg(repo_path("tests/peers/canopen_master.py"))
-        .args(["--channel", INTERFACE, "--nodes", NODES, "--eds"])
-        .arg(repo_path("tests/peers/cia402_csp.eds"))
-        .args([
+    let master = python_peer(
+        &python,
+        "canopen_master.py",
+        &[
             "--period-ms",
             "10",
             "--move-counts",
             "20000",
             "--seconds",
             "2",
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+        ],
+    );
     let output = within(master, PEER_PATIENCE);
     let summary = twin.stop();
     let said = String::from_utf8_lossy(&output.stdout).to_string();
@@ -606,10 +575,7 @@ fn canopen_links_and_settings_are_checked_with_their_source_named() {
 
 #[test]
 fn the_bridge_drives_the_painter_s_linear_drives_and_arm_within_limits() {
-    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    if let Err(why) = socketcan_here(INTERFACE) {
-        return skip(&why);
-    }
+    let Some(_one) = on_the_bus() else { return };
     // The painter: base_x, base_y and lift on linear drives of 1 um increments, base_yaw and
     // the arm on rotary ones. Metres on the linear axes in targets_deg.
     let rig = repo_path("config/painter.toml");

@@ -2,6 +2,7 @@
 
 mod common;
 
+use common::cli::assert_succeeded;
 use common::{output_with_stdin, reference_path, repo_path};
 use std::process::{Command, Output};
 
@@ -22,11 +23,7 @@ fn column(line: &str, index: usize) -> f64 {
 fn fk_reproduces_the_reference_poses() {
     let reference = reference_path("irb120_fk.csv");
     let output = rigbridge(&["fk", "--input", reference.to_str().unwrap()], None);
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert_succeeded(&output);
     let produced = String::from_utf8(output.stdout).unwrap();
     let expected = std::fs::read_to_string(&reference).unwrap();
     let mut rows = 0;

@@ -3,10 +3,12 @@
 
 mod common;
 
+use common::cli::{read_json, rigbridge, spawn_run};
+use common::runlog::resumptions;
 use common::{irb120, repo_path, wait_for_logged_commands};
 use rigbridge::log::read_log;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::time::Duration;
 
 /// A second of the default job's motion at 250 Hz: a job this far in is mid-motion.
@@ -14,16 +16,8 @@ const MID_JOB_COMMANDS: usize = 250;
 /// Longer than the job takes to get there on a loaded machine.
 const WAIT: Duration = Duration::from_secs(30);
 
-fn rigbridge() -> Command {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
-    command.current_dir(repo_path(""));
-    command
-}
-
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("rigbridge-daemon-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
+    common::scratch_file("daemon", name)
 }
 
 fn run(args: &[&str]) -> Output {
@@ -32,6 +26,25 @@ fn run(args: &[&str]) -> Output {
 
 fn text(bytes: &[u8]) -> String {
     String::from_utf8_lossy(bytes).into_owned()
+}
+
+/// The default job run under the virtual clock, logged to the scratch file `name`; it must
+/// succeed. Returns the log's path.
+fn recorded_run(name: &str) -> PathBuf {
+    let log = scratch(name);
+    assert!(
+        run(&["run", "--clock", "virtual", "--log", log.to_str().unwrap()])
+            .status
+            .success()
+    );
+    log
+}
+
+/// `rigbridge replay LOG --clock virtual` with `more` arguments.
+fn replay(log: &Path, more: &[&str]) -> Output {
+    let mut args = vec!["replay", log.to_str().unwrap(), "--clock", "virtual"];
+    args.extend_from_slice(more);
+    run(&args)
 }
 
 /// Every command in the log inside the limits and within max speed x period of the one
@@ -43,17 +56,7 @@ fn assert_log_within_limits(path: &Path) -> usize {
     assert!(!log.truncated);
     let period = log.metadata["period_s"].as_f64().unwrap();
     let mut previous: Vec<f64> = serde_json::from_value(log.metadata["start"].clone()).unwrap();
-    let resumes: Vec<(f64, Vec<f64>)> = log
-        .events
-        .iter()
-        .filter(|e| e.kind == "resumed")
-        .map(|e| {
-            (
-                e.t,
-                serde_json::from_value(e.detail["actual"].clone()).unwrap(),
-            )
-        })
-        .collect();
+    let resumes = resumptions(&log);
     let mut next_resume = 0;
     for command in &log.commands {
         while next_resume < resumes.len() && resumes[next_resume].0 < command.t {
@@ -104,8 +107,7 @@ fn the_main_command_runs_the_demo_and_logs_it_within_limits() {
         "{stdout}"
     );
     let commands = assert_log_within_limits(&log);
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let report = read_json(&report);
     for key in [
         "cycles",
         "missed_cycles",
@@ -124,27 +126,20 @@ fn the_main_command_runs_the_demo_and_logs_it_within_limits() {
 
 #[test]
 fn replay_streams_exactly_the_recorded_targets() {
-    let log = scratch("replay-source.mcap");
+    let log = recorded_run("replay-source.mcap");
     let again = scratch("replay-again.mcap");
     let report = scratch("replay.json");
-    assert!(
-        run(&["run", "--clock", "virtual", "--log", log.to_str().unwrap()])
-            .status
-            .success()
+    let output = replay(
+        &log,
+        &[
+            "--record",
+            again.to_str().unwrap(),
+            "--report",
+            report.to_str().unwrap(),
+        ],
     );
-    let output = run(&[
-        "replay",
-        log.to_str().unwrap(),
-        "--clock",
-        "virtual",
-        "--record",
-        again.to_str().unwrap(),
-        "--report",
-        report.to_str().unwrap(),
-    ]);
     assert!(output.status.success(), "{}", text(&output.stderr));
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let report = read_json(&report);
     assert_eq!(report["same_sequence"], true);
     assert!(
         report["max_deviation_from_recording_deg"].as_f64().unwrap() < 1e-9,
@@ -159,20 +154,8 @@ fn replay_streams_exactly_the_recorded_targets() {
 
 #[test]
 fn replay_refuses_a_speed_that_breaks_a_limit() {
-    let log = scratch("fast.mcap");
-    assert!(
-        run(&["run", "--clock", "virtual", "--log", log.to_str().unwrap()])
-            .status
-            .success()
-    );
-    let output = run(&[
-        "replay",
-        log.to_str().unwrap(),
-        "--clock",
-        "virtual",
-        "--speed",
-        "4",
-    ]);
+    let log = recorded_run("fast.mcap");
+    let output = replay(&log, &["--speed", "4"]);
     assert_eq!(output.status.code(), Some(1));
     assert!(
         text(&output.stderr).contains("above its max speed"),
@@ -230,12 +213,7 @@ fn a_bad_config_names_file_key_and_value() {
 
 #[test]
 fn corrupt_or_truncated_logs_are_errors_not_panics() {
-    let log = scratch("cut.mcap");
-    assert!(
-        run(&["run", "--clock", "virtual", "--log", log.to_str().unwrap()])
-            .status
-            .success()
-    );
+    let log = recorded_run("cut.mcap");
     let bytes = std::fs::read(&log).unwrap();
     let cut = scratch("cut-half.mcap");
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
@@ -260,31 +238,15 @@ fn corrupt_or_truncated_logs_are_errors_not_panics() {
     }
 }
 
-fn spawn_run(log: &Path, report: &Path) -> Child {
-    rigbridge()
-        .args([
-            "run",
-            "--log",
-            log.to_str().unwrap(),
-            "--report",
-            report.to_str().unwrap(),
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap()
-}
-
 #[test]
 fn ctrl_c_brings_the_rig_to_rest_then_closes_log_and_report() {
     let (log, report) = (scratch("sigint.mcap"), scratch("sigint.json"));
-    let child = spawn_run(&log, &report);
+    let child = spawn_run(&[], &log, &report);
     wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     send_signal(child.id(), "INT");
     let output = child.wait_with_output().unwrap();
     assert_eq!(output.status.code(), Some(130), "{}", text(&output.stderr));
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let report = read_json(&report);
     assert_eq!(report["outcome"], "stopped");
     assert_log_within_limits(&log);
     let last = read_log(&log).unwrap().commands.pop().unwrap();
@@ -298,7 +260,7 @@ fn ctrl_c_brings_the_rig_to_rest_then_closes_log_and_report() {
 #[test]
 fn sigkill_leaves_a_log_readable_up_to_its_last_chunk() {
     let (log, report) = (scratch("sigkill.mcap"), scratch("sigkill.json"));
-    let mut child = spawn_run(&log, &report);
+    let mut child = spawn_run(&[], &log, &report);
     let before_kill = wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     child.kill().unwrap();
     child.wait().unwrap();

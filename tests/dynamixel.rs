@@ -10,7 +10,7 @@ use common::shipped_run_settings;
 
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::{dynamixel_settings, run_job};
-use rigbridge::link::{Link, connect_dynamixel};
+use rigbridge::link::{DynamixelLink, Link, connect_dynamixel};
 use rigbridge::stream::{Outcome, STALL_CYCLES, StreamControl};
 use rigbridge::twin::dynamixel::{
     DynamixelBus, DynamixelTwinControl, DynamixelTwinCounters, DynamixelTwinSettings,
@@ -65,16 +65,22 @@ fn twin_bus_of(settings: &RunSettings, ids: &[u8]) -> TwinBus {
     }
 }
 
+/// The bridge's Dynamixel link to `twin`'s six servos at 1 Mbaud, once it has set the bus up.
+fn link_to(settings: &RunSettings, twin: &TwinBus) -> DynamixelLink {
+    let link_settings =
+        dynamixel_settings(settings, &twin.path, 1_000_000, &IDS).expect("link settings");
+    let link = connect_dynamixel(link_settings).expect("link");
+    wait_for("the bus set up", PATIENCE, || link.is_up());
+    link
+}
+
 #[test]
 fn the_bridge_drives_six_twin_servos_through_the_default_job_over_a_pty() {
     let _cycles = one_at_a_time();
     real_time();
     let settings = shipped_run_settings();
     let twin = twin_bus(&settings);
-    let link_settings =
-        dynamixel_settings(&settings, &twin.path, 1_000_000, &IDS).expect("link settings");
-    let mut link = connect_dynamixel(link_settings).expect("link");
-    wait_for("the bus set up", PATIENCE, || link.is_up());
+    let mut link = link_to(&settings, &twin);
     let clock = rigbridge::clock::WallClock::new();
     let control = StreamControl::default();
     let job = settings.config.job.clone();
@@ -146,10 +152,7 @@ fn a_servo_hardware_error_stops_the_job_with_a_drive_fault() {
     real_time();
     let settings = shipped_run_settings();
     let twin = twin_bus(&settings);
-    let link_settings =
-        dynamixel_settings(&settings, &twin.path, 1_000_000, &IDS).expect("link settings");
-    let mut link = connect_dynamixel(link_settings).expect("link");
-    wait_for("the bus set up", PATIENCE, || link.is_up());
+    let mut link = link_to(&settings, &twin);
     let control = Arc::new(StreamControl::default());
     let injector = twin.control.clone();
     let watched = control.clone();

@@ -41,6 +41,27 @@ fn twin_towards(settings: &RunSettings, sensor: SocketAddr, egm: EgmTwinSettings
     EgmTwin::new(model, sensor).expect("twin socket")
 }
 
+/// A UDP socket on loopback in the sensor's place (reads time out after a second), and a
+/// twin with `egm` sending to it on its own thread: the socket, the twin's control and its
+/// thread.
+fn twin_towards_a_socket(
+    settings: &RunSettings,
+    egm: EgmTwinSettings,
+) -> (
+    UdpSocket,
+    Arc<EgmTwinControl>,
+    std::thread::JoinHandle<EgmTwin>,
+) {
+    let sensor = UdpSocket::bind("127.0.0.1:0").expect("sensor socket");
+    sensor
+        .set_read_timeout(Some(Duration::from_secs(1)))
+        .expect("timeout");
+    let control = Arc::new(EgmTwinControl::default());
+    let twin = twin_towards(settings, sensor.local_addr().expect("addr"), egm);
+    let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
+    (sensor, control, twin)
+}
+
 /// The settings' job over an EGM link bound on loopback, against a twin started towards
 /// it, to its end; asserts it `completed`. The report, the stopped twin and the link.
 fn job_against_the_twin(settings: &RunSettings) -> (RunReport, EgmTwin, EgmLink) {
@@ -148,17 +169,11 @@ fn the_link_holds_until_motors_are_on_and_the_clock_follows_the_robot() {
 fn without_replies_the_twin_ends_the_session_in_hold_after_comm_timeout() {
     let _cycles = one_at_a_time();
     let settings = shipped_run_settings();
-    let sensor = UdpSocket::bind("127.0.0.1:0").expect("sensor socket");
-    sensor
-        .set_read_timeout(Some(Duration::from_secs(1)))
-        .expect("timeout");
     let egm = EgmTwinSettings {
         comm_timeout: Duration::from_millis(200),
         ..EgmTwinSettings::default()
     };
-    let control = Arc::new(EgmTwinControl::default());
-    let twin = twin_towards(&settings, sensor.local_addr().expect("addr"), egm);
-    let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
+    let (sensor, control, twin) = twin_towards_a_socket(&settings, egm);
     let read_from = |sensor: &UdpSocket| {
         let mut buffer = [0u8; 2048];
         let (len, from) = sensor.recv_from(&mut buffer).expect("an EgmRobot");
@@ -199,17 +214,7 @@ fn without_replies_the_twin_ends_the_session_in_hold_after_comm_timeout() {
 fn a_reference_jump_is_refused_with_mci_error_and_no_motion() {
     let _cycles = one_at_a_time();
     let settings = shipped_run_settings();
-    let sensor = UdpSocket::bind("127.0.0.1:0").expect("sensor socket");
-    sensor
-        .set_read_timeout(Some(Duration::from_secs(1)))
-        .expect("timeout");
-    let control = Arc::new(EgmTwinControl::default());
-    let twin = twin_towards(
-        &settings,
-        sensor.local_addr().expect("addr"),
-        EgmTwinSettings::default(),
-    );
-    let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
+    let (sensor, control, twin) = twin_towards_a_socket(&settings, EgmTwinSettings::default());
     let mut buffer = [0u8; 2048];
     let (_, twin_address) = sensor.recv_from(&mut buffer).expect("an EgmRobot");
     // 5 degrees in one 4 ms cycle is 1250 deg/s: far over joint 1's 250 deg/s.

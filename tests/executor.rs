@@ -7,11 +7,12 @@
 mod common;
 #[path = "common/flood.rs"]
 mod flood;
+#[path = "common/in_process.rs"]
+mod in_process;
 
 use common::repo_path;
 use rigbridge::clock::WallClock;
 use rigbridge::daemon::config::{ExecutorKind, RunSettings, load_run_settings};
-use rigbridge::daemon::server::{ServeOptions, run};
 use rigbridge::link::LoopbackLink;
 use rigbridge::rig::Rig;
 use rigbridge::stream::{
@@ -57,27 +58,11 @@ fn arm_cells(executor: ExecutorKind) -> Vec<RunSettings> {
 fn many_cells_on_the_shared_executor_each_complete_their_job_and_reach_its_target() {
     let runs = std::env::temp_dir().join(format!("rigbridge-executor-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&runs);
-    let options = ServeOptions {
-        runs_dir: runs.clone(),
-        virtual_clock: false,
-        token: None,
-        allowed_hosts: Vec::new(),
-        before_job: None,
-        // No Foxglove server: tests run side by side, and its default port is one.
-        foxglove_port: 0,
-        foxglove_allow_remote: false,
-        zenoh_connect: None,
-    };
-    let runtime = tokio::runtime::Runtime::new().unwrap();
-    let listener = runtime
-        .block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))
-        .unwrap();
-    let address = listener.local_addr().unwrap();
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let cells = arm_cells(ExecutorKind::Shared);
-    let server = runtime.spawn(run(listener, cells, options, async {
-        let _ = stopped.await;
-    }));
+    let served = in_process::start(
+        arm_cells(ExecutorKind::Shared),
+        in_process::options(runs.clone()),
+    );
+    let address = served.address;
     for i in 0..CELLS {
         let job =
             serde_json::json!({"job": {"kind": "move_joints", "targets_deg": [target_deg(i)]}});
@@ -123,8 +108,7 @@ fn many_cells_on_the_shared_executor_each_complete_their_job_and_reach_its_targe
             assert!((got - want).abs() <= 0.1, "cell {i}: {axis} against {want}");
         }
     }
-    let _ = stop.send(());
-    assert!(runtime.block_on(server).unwrap().is_ok());
+    assert!(served.stop().unwrap().is_ok());
     let _ = std::fs::remove_dir_all(&runs);
 }
 
@@ -238,18 +222,8 @@ fn an_overrunning_stream_is_reported_and_handed_back_while_its_neighbours_comple
 
 /// `config/rigbridge.toml` with `serve` appended as its `[serve]` table, in a scratch file.
 fn settings_with_serve(name: &str, serve: &str) -> std::path::PathBuf {
-    let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
-    let rig = repo_path("config/irb120.toml");
-    let text = text.replacen(
-        "rig = \"irb120.toml\"",
-        &format!("rig = {:?}", rig.display().to_string()),
-        1,
-    );
-    let dir =
-        std::env::temp_dir().join(format!("rigbridge-executor-config-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let file = dir.join(name);
-    std::fs::write(&file, format!("{text}\n[serve]\n{serve}\n")).unwrap();
+    let file = common::scratch_file("executor-config", name);
+    common::write_settings_with_serve(&file, serve);
     file
 }
 

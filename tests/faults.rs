@@ -141,11 +141,7 @@ fn start_twin(config: &str) -> TwinProcess {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("rigbridge-faults-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join(name);
-    let _ = std::fs::remove_file(&path);
-    path
+    common::scratch_file("faults", name)
 }
 
 /// What one run produced, for the checks.

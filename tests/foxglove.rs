@@ -7,6 +7,7 @@
 
 mod common;
 
+use common::cli::{assert_succeeded_as, numbers};
 use common::{reference_path, repo_path};
 use rigbridge::log::{TF_TOPIC, URDF_ATTACHMENT, read_log};
 use rigbridge::rig::{Rig, load_rig, rig_from_urdf};
@@ -28,11 +29,7 @@ fn peer_python() -> Result<String, String> {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir =
-        std::env::temp_dir().join(format!("rigbridge-foxglove-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+    common::scratch_dir("foxglove", name)
 }
 
 fn record_run(config: &Path, log: &Path) {
@@ -44,11 +41,7 @@ fn record_run(config: &Path, log: &Path) {
         .arg(log)
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "rigbridge run failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert_succeeded_as(&output, "rigbridge run");
 }
 
 /// The default run settings with `rig` pointing at the reference URDF.
@@ -85,11 +78,7 @@ fn run_peer(python: &str, log: &Path, rig: &Rig) -> Peer {
         .args([&rig.base_frame, &rig.tool_frame])
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "the peer failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert_succeeded_as(&output, "the peer");
     let mut rows: Vec<serde_json::Value> = String::from_utf8(output.stdout)
         .unwrap()
         .lines()
@@ -97,15 +86,6 @@ fn run_peer(python: &str, log: &Path, rig: &Rig) -> Peer {
         .collect();
     let summary = rows.pop().unwrap()["summary"].clone();
     Peer { rows, summary }
-}
-
-fn numbers(value: &serde_json::Value) -> Vec<f64> {
-    value
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|v| v.as_f64().unwrap())
-        .collect()
 }
 
 /// Largest distance at the tool between the peer's composed /tf and our FK of the positions.
@@ -237,11 +217,7 @@ fn scene_peer(python: &str, log: &Path) -> serde_json::Value {
         .arg(log)
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "the scene peer failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert_succeeded_as(&output, "the scene peer");
     serde_json::from_slice(&output.stdout).unwrap()
 }
 
@@ -263,21 +239,7 @@ fn the_paint_room_is_a_scene_update_for_a_reader_we_did_not_write() {
         }
     };
     let dir = scratch("paint-scene");
-    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["paint", "--walls", "3", "--seed", "2", "--clock", "virtual"])
-        .arg("--config")
-        .arg(repo_path("config/paint-run.toml"))
-        .args(["--log", "p.mcap", "--report", "p.json"])
-        .current_dir(&dir)
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dir.join("p.json")).unwrap()).unwrap();
+    let report = common::cli::paint_three_walls_in(&dir);
     let room = &report["room"];
     let peer = scene_peer(&python, &dir.join("p.mcap"));
     assert_eq!(peer["schema"], "foxglove.SceneUpdate");

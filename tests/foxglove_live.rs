@@ -7,6 +7,7 @@
 
 mod common;
 
+use common::cli::{assert_succeeded_as, numbers};
 use common::serve::{Served, request_json, serve_args, start_serve};
 use common::{irb120, repo_path};
 use rigbridge::daemon::config::load_run_settings;
@@ -45,10 +46,7 @@ fn peer_python() -> Option<String> {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("rigbridge-fxlive-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+    common::scratch_dir("fxlive", name)
 }
 
 /// A port nothing listens on right now.
@@ -76,15 +74,6 @@ fn serve(dir: &Path, args: &[&str]) -> Served {
 /// One HTTP/1.1 request to the control API; the status and the JSON body.
 fn call(server: &Served, method: &str, path: &str, body: &str) -> (u16, serde_json::Value) {
     request_json(&server.address, method, path, "", body)
-}
-
-fn numbers(value: &serde_json::Value) -> Vec<f64> {
-    value
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|v| v.as_f64().unwrap())
-        .collect()
 }
 
 /// The handshake a tungstenite client gets: serverInfo and advertise, or the refusal.
@@ -134,11 +123,7 @@ fn a_websockets_client_gets_live_tf_while_a_job_streams() {
         .args(["base_link", "tool0", "package://rigbridge/irb120.urdf"])
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "the peer failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert_succeeded_as(&output, "the peer");
     // The job streamed through the whole window.
     let (_, status) = call(&server, "GET", "/api/status", "");
     assert_eq!(status["state"], "running", "{status}");
@@ -293,15 +278,8 @@ fn several_cells_get_their_topics_prefixed() {
 
 /// The default run settings with absolute paths and `serve` appended as a `[serve]` table.
 fn settings_with_serve(dir: &Path, serve: &str) -> PathBuf {
-    let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
-    let rig = repo_path("config/irb120.toml");
-    let text = text.replacen(
-        "rig = \"irb120.toml\"",
-        &format!("rig = {:?}", rig.display().to_string()),
-        1,
-    );
     let path = dir.join("settings.toml");
-    std::fs::write(&path, format!("{text}\n[serve]\n{serve}\n")).unwrap();
+    common::write_settings_with_serve(&path, serve);
     path
 }
 

@@ -4,13 +4,14 @@
 
 mod common;
 
+use common::cli::{assert_succeeded, read_json, rigbridge};
 use common::repo_path;
 use rigbridge::clock::VirtualClock;
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::gait::{GaitRun, run_gait};
 use rigbridge::rig::ConfigError;
 use rigbridge::stream::{Outcome, StreamControl};
-use rigbridge::task::gait::{LimbSolver, Scenario, Side, SlothRig};
+use rigbridge::task::gait::{LimbSolver, Scenario, Side, SlothRig, Stance};
 
 fn settings() -> RunSettings {
     load_run_settings(&repo_path("config/gait-run.toml")).expect("config/gait-run.toml loads")
@@ -87,10 +88,9 @@ fn assert_stops_cleanly(run: &GaitRun, reason_contains: &str) {
     assert!(!moving, "the gait ends at rest");
 }
 
-#[test]
-fn straight_branch_at_the_sloths_speed() {
-    let run = walk("straight", None, None);
-    assert_passes(&run);
+/// The run went at the sloth's speed, 0.11 m/s, within 0.02 m/s.
+#[track_caller]
+fn assert_sloths_speed(run: &GaitRun) {
     assert!(
         (run.verdict.speed_mps - 0.11).abs() <= 0.02,
         "{}",
@@ -99,15 +99,18 @@ fn straight_branch_at_the_sloths_speed() {
 }
 
 #[test]
+fn straight_branch_at_the_sloths_speed() {
+    let run = walk("straight", None, None);
+    assert_passes(&run);
+    assert_sloths_speed(&run);
+}
+
+#[test]
 fn straight_branch_with_fabrik_limbs() {
     let run = walk_with(settings_with(LimbSolver::Fabrik), "straight", None, None);
     assert_eq!(run.verdict.solver, LimbSolver::Fabrik);
     assert_passes(&run);
-    assert!(
-        (run.verdict.speed_mps - 0.11).abs() <= 0.02,
-        "{}",
-        run.verdict.speed_mps
-    );
+    assert_sloths_speed(&run);
 }
 
 #[test]
@@ -347,6 +350,18 @@ fn assert_every_limb_moves_once(run: &GaitRun, from: usize, to: usize) {
     }
 }
 
+/// The planned stances on support `support` of the limbs `whose` holds for (by index).
+fn stances_on(
+    run: &GaitRun,
+    support: usize,
+    whose: impl Fn(usize) -> bool,
+) -> impl Iterator<Item = &Stance> {
+    run.plan
+        .stances
+        .iter()
+        .filter(move |s| whose(s.limb) && s.contact.support == support)
+}
+
 /// A trunk-to-branch transfer: passes; every limb ends on the branch; every limb leaves the
 /// trunk for the branch (never back), fore limbs first, and a hind limb lifts off the trunk
 /// only once no fore limb is still on it (seed 004); the head stays above the tail.
@@ -358,17 +373,13 @@ fn assert_transfers_head_first(run: &GaitRun) {
     assert_every_limb_moves_once(run, trunk, branch);
     // The frame each limb lifts off the trunk for the branch: the end of its last trunk stance.
     let leaves_trunk = |limb: usize| {
-        stances
-            .iter()
-            .filter(|s| s.limb == limb && s.contact.support == trunk)
+        stances_on(run, trunk, |l| l == limb)
             .map(|s| s.end)
             .max()
             .unwrap()
     };
     let last_fore_leaves = (0..4).filter(|l| fore(*l)).map(leaves_trunk).max().unwrap();
-    let first_fore_lands = stances
-        .iter()
-        .filter(|s| fore(s.limb) && s.contact.support == branch)
+    let first_fore_lands = stances_on(run, branch, fore)
         .map(|s| s.start)
         .min()
         .unwrap();
@@ -409,12 +420,9 @@ fn assert_transfers_to_the_trunk_tail_first(run: &GaitRun) {
     assert_passes(run);
     let (trunk, branch) = (0, 1);
     let hind = |limb: usize| run.sloth.limbs[limb].name.ends_with('h');
-    let stances = &run.plan.stances;
     assert_every_limb_moves_once(run, branch, trunk);
     let first_on_trunk = |limb: usize| {
-        stances
-            .iter()
-            .filter(|s| s.limb == limb && s.contact.support == trunk)
+        stances_on(run, trunk, |l| l == limb)
             .map(|s| s.start)
             .min()
             .unwrap()
@@ -513,21 +521,33 @@ fn the_streamed_rig_fits_the_wire_protocol() {
     assert!(sloth.bone_polylines(&[0.0; 3]).is_err());
 }
 
-fn sloth_variant(name: &str, edit: impl Fn(String) -> String) -> Result<SlothRig, ConfigError> {
+/// `config/sloth.toml` with the first `from` made `to`, loaded from a copy named `name`.
+fn sloth_variant(name: &str, from: &str, to: &str) -> Result<SlothRig, ConfigError> {
     let original = std::fs::read_to_string(repo_path("config/sloth.toml")).unwrap();
     let dir = std::env::temp_dir().join(format!("rigbridge-sloth-test-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join(name);
-    std::fs::write(&path, edit(original)).unwrap();
+    std::fs::write(&path, original.replacen(from, to, 1)).unwrap();
     SlothRig::load(&path)
+}
+
+/// Why [`sloth_variant`] refuses the edited file, as a user reads it.
+fn variant_refusal(name: &str, from: &str, to: &str) -> String {
+    sloth_variant(name, from, to).unwrap_err().to_string()
+}
+
+/// Fails the test, showing `message`, unless it holds every one of `parts`.
+#[track_caller]
+fn assert_mentions(message: &str, parts: &[&str]) {
+    for part in parts {
+        assert!(message.contains(part), "{message}");
+    }
 }
 
 #[test]
 fn a_bad_bone_limit_names_file_key_and_value() {
-    let error = sloth_variant("inverted.toml", |t| {
-        t.replacen("lower_deg = -20.8", "lower_deg = 200.0", 1)
-    })
-    .unwrap_err();
+    let error =
+        sloth_variant("inverted.toml", "lower_deg = -20.8", "lower_deg = 200.0").unwrap_err();
     match error {
         ConfigError::Invalid {
             file, key, value, ..
@@ -545,46 +565,27 @@ fn a_bad_bone_limit_names_file_key_and_value() {
 
 #[test]
 fn a_bad_gait_setting_names_file_key_and_value() {
-    let message = sloth_variant("speed.toml", |t| {
-        t.replacen("speed_m_s = 0.11", "speed_m_s = -1.0", 1)
-    })
-    .unwrap_err()
-    .to_string();
-    assert!(message.contains("speed.toml"), "{message}");
-    assert!(message.contains("gait.speed_m_s"), "{message}");
-    assert!(message.contains("-1.0"), "{message}");
+    let message = variant_refusal("speed.toml", "speed_m_s = 0.11", "speed_m_s = -1.0");
+    assert_mentions(&message, &["speed.toml", "gait.speed_m_s", "-1.0"]);
 }
 
 #[test]
 fn an_unknown_limb_solver_names_file_key_and_value() {
-    let message = sloth_variant("solver.toml", |t| {
-        t.replacen("solver = \"ccd\"", "solver = \"jacobian\"", 1)
-    })
-    .unwrap_err()
-    .to_string();
-    assert!(message.contains("solver.toml"), "{message}");
-    assert!(message.contains("gait.solver"), "{message}");
-    assert!(message.contains("jacobian"), "{message}");
+    let message = variant_refusal("solver.toml", "solver = \"ccd\"", "solver = \"jacobian\"");
+    assert_mentions(&message, &["solver.toml", "gait.solver", "jacobian"]);
 }
 
 #[test]
 fn fabrik_limbs_load_from_the_file() {
-    let sloth = sloth_variant("fabrik.toml", |t| {
-        t.replacen("solver = \"ccd\"", "solver = \"fabrik\"", 1)
-    })
-    .expect("solver = \"fabrik\" loads");
+    let sloth = sloth_variant("fabrik.toml", "solver = \"ccd\"", "solver = \"fabrik\"")
+        .expect("solver = \"fabrik\" loads");
     assert_eq!(sloth.gait.solver, LimbSolver::Fabrik);
 }
 
 #[test]
 fn an_unknown_footfall_limb_is_refused() {
-    let message = sloth_variant("order.toml", |t| {
-        t.replacen("\"lf\", \"lh\"", "\"lf\", \"xx\"", 1)
-    })
-    .unwrap_err()
-    .to_string();
-    assert!(message.contains("gait.footfall_order[2]"), "{message}");
-    assert!(message.contains("xx"), "{message}");
+    let message = variant_refusal("order.toml", "\"lf\", \"lh\"", "\"lf\", \"xx\"");
+    assert_mentions(&message, &["gait.footfall_order[2]", "xx"]);
 }
 
 /// A `run` or `serve` job starts from the twin's configured position (the straight scene's
@@ -665,18 +666,13 @@ fn an_unknown_scenario_is_refused_by_name() {
 }
 
 fn scratch(name: &str) -> std::path::PathBuf {
-    let dir = std::env::temp_dir().join(format!("rigbridge-gait-cli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join(name);
-    let _ = std::fs::remove_file(&path);
-    path
+    common::scratch_file("gait-cli", name)
 }
 
 #[test]
 fn the_gait_command_reports_and_draws() {
     let (report, picture, log) = (scratch("r.json"), scratch("p.svg"), scratch("g.mcap"));
-    let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .current_dir(repo_path("."))
+    let output = rigbridge()
         .args([
             "gait",
             "--scenario",
@@ -694,13 +690,8 @@ fn the_gait_command_reports_and_draws() {
         .arg(&log)
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_succeeded(&output);
+    let json = read_json(&report);
     assert_eq!(json["passed"], true);
     assert_eq!(json["limbs"].as_array().unwrap().len(), 4);
     assert_eq!(json["run"]["outcome"], "completed");
@@ -710,66 +701,50 @@ fn the_gait_command_reports_and_draws() {
     assert_eq!(json["solver"], "ccd");
 }
 
-fn gait_with_solver(solver: &str, report: &std::path::Path) -> std::process::Output {
-    std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .current_dir(repo_path("."))
+/// `rigbridge gait` on the straight branch with `--{option} {value}`: its output and the
+/// report it was asked to write.
+fn gait_straight_with(option: &str, value: &str) -> (std::process::Output, std::path::PathBuf) {
+    let report = scratch(&format!("{option}-{value}.json"));
+    let output = rigbridge()
         .args(["gait", "--scenario", "straight", "--clock", "virtual"])
-        .args(["--solver", solver])
+        .args([format!("--{option}").as_str(), value])
         .arg("--report")
-        .arg(report)
+        .arg(&report)
         .arg("--log")
-        .arg(scratch(&format!("{solver}.mcap")))
+        .arg(scratch(&format!("{option}-{value}.mcap")))
         .output()
-        .unwrap()
+        .unwrap();
+    (output, report)
 }
 
-#[test]
-fn the_gait_command_takes_the_limb_solver() {
-    let report = scratch("fabrik.json");
-    let output = gait_with_solver("fabrik", &report);
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
-    assert_eq!(json["solver"], "fabrik");
-    assert_eq!(json["passed"], true);
-
-    let refused = gait_with_solver("newton", &scratch("newton.json"));
+/// `rigbridge gait` refused `--{option} {value}`, naming both.
+#[track_caller]
+fn assert_refuses(option: &str, value: &str) {
+    let (refused, _) = gait_straight_with(option, value);
     assert!(!refused.status.success());
     let stderr = String::from_utf8_lossy(&refused.stderr);
     assert!(
-        stderr.contains("--solver") && stderr.contains("newton"),
+        stderr.contains(&format!("--{option}")) && stderr.contains(value),
         "{stderr}"
     );
 }
 
 #[test]
+fn the_gait_command_takes_the_limb_solver() {
+    let (output, report) = gait_straight_with("solver", "fabrik");
+    assert_succeeded(&output);
+    let json = read_json(&report);
+    assert_eq!(json["solver"], "fabrik");
+    assert_eq!(json["passed"], true);
+
+    assert_refuses("solver", "newton");
+}
+
+#[test]
 fn the_gait_command_takes_the_footfall_sequence() {
-    let gait = |sequence: &str| {
-        let report = scratch(&format!("sequence-{sequence}.json"));
-        let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-            .current_dir(repo_path("."))
-            .args(["gait", "--scenario", "straight", "--clock", "virtual"])
-            .args(["--sequence", sequence])
-            .arg("--report")
-            .arg(&report)
-            .arg("--log")
-            .arg(scratch(&format!("sequence-{sequence}.mcap")))
-            .output()
-            .unwrap();
-        (output, report)
-    };
-    let (output, report) = gait("lateral");
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let (output, report) = gait_straight_with("sequence", "lateral");
+    assert_succeeded(&output);
+    let json = read_json(&report);
     assert_eq!(json["passed"], true);
     let order: Vec<&str> = json["footfall_order"]
         .as_array()
@@ -779,20 +754,13 @@ fn the_gait_command_takes_the_footfall_sequence() {
         .collect();
     assert_eq!(&order[..4], ["rh", "rf", "lh", "lf"]);
 
-    let (refused, _) = gait("pace");
-    assert!(!refused.status.success());
-    let stderr = String::from_utf8_lossy(&refused.stderr);
-    assert!(
-        stderr.contains("--sequence") && stderr.contains("pace"),
-        "{stderr}"
-    );
+    assert_refuses("sequence", "pace");
 }
 
 #[test]
 fn run_takes_a_gait_job() {
     let log = scratch("run.mcap");
-    let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .current_dir(repo_path("."))
+    let output = rigbridge()
         .args([
             "run",
             "--config",

@@ -658,21 +658,7 @@ fn the_paint_command_takes_the_paint_settings_from_its_run_settings() {
     let dir = std::env::temp_dir().join(format!("rigbridge-paint-cli-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
-    let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(["paint", "--walls", "3", "--seed", "2", "--clock", "virtual"])
-        .arg("--config")
-        .arg(repo_path("config/paint-run.toml"))
-        .args(["--log", "p.mcap", "--report", "p.json"])
-        .current_dir(&dir)
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dir.join("p.json")).unwrap()).unwrap();
+    let report = common::cli::paint_three_walls_in(&dir);
     assert_eq!(report["room"]["walls"].as_array().map(Vec::len), Some(3));
     assert!(
         report["totals"]["coverage"].as_f64().unwrap() >= 0.995,

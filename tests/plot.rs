@@ -1,24 +1,17 @@
 //! `rigbridge log plot`: record a run against the twin, draw it, and check the PNG decodes,
 //! has the requested size and is not blank; and that the log holds per-cycle jitter.
 
+mod common;
+
 use rigbridge::log::read_log;
 use std::path::PathBuf;
-use std::process::Command;
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("rigbridge-plot-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join(name);
-    let _ = std::fs::remove_file(&path);
-    path
+    common::scratch_file("plot", name)
 }
 
 fn rigbridge(args: &[&str]) -> std::process::Output {
-    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .unwrap();
+    let output = common::cli::rigbridge().args(args).output().unwrap();
     assert!(
         output.status.success(),
         "rigbridge {args:?} failed: {}\n{}",
@@ -80,7 +73,7 @@ fn plots_a_recorded_run_to_a_png_of_the_requested_size() {
 
 #[test]
 fn refuses_a_missing_log() {
-    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+    let output = common::cli::rigbridge()
         .args(["log", "plot", "/nonexistent/run.mcap", "-o"])
         .arg(scratch("missing.png"))
         .output()

@@ -4,28 +4,19 @@
 
 mod common;
 
+use common::cli::{read_json, rigbridge};
+use common::runlog::resumptions;
+use common::twin::{TwinProcess, listen_command, start_listening};
 use common::{irb120, repo_path};
 use rigbridge::log::{RunLog, read_log};
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
-use std::time::Duration;
+use std::process::Output;
 
 /// Rounding slack on the limit checks below, the same as the rig's.
 const SLACK: f64 = 1e-9;
 
-fn rigbridge() -> Command {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
-    command.current_dir(repo_path(""));
-    command
-}
-
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("rigbridge-replay-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join(name);
-    let _ = std::fs::remove_file(&path);
-    path
+    common::scratch_file("replay", name)
 }
 
 fn run(args: &[&str]) -> Output {
@@ -72,21 +63,19 @@ fn record_run(name: &str, config: Option<&Path>) -> PathBuf {
     log
 }
 
-fn report(path: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
-}
-
-/// Where the stream resumed from a hold (after a stall or a link loss on a loaded machine):
-/// the job time of each `resumed` event and the actual position it resumed from.
-fn resumptions(log: &RunLog) -> Vec<(f64, Vec<f64>)> {
-    log.events
-        .iter()
-        .filter(|e| e.kind == "resumed")
-        .map(|e| {
-            let actual = serde_json::from_value(e.detail["actual"].clone()).unwrap();
-            (e.t, actual)
-        })
-        .collect()
+/// `rigbridge replay SOURCE` with `args`, recording to and reporting in scratch files named
+/// after `name`; it must succeed and complete. Returns the report and the recorded log.
+fn replay_completes(source: &Path, args: &[&str], name: &str) -> (serde_json::Value, RunLog) {
+    let again = scratch(&format!("{name}-again.mcap"));
+    let json = scratch(&format!("{name}.json"));
+    let mut all = vec!["replay", source.to_str().unwrap()];
+    all.extend_from_slice(args);
+    all.extend(["--record", again.to_str().unwrap()]);
+    all.extend(["--report", json.to_str().unwrap()]);
+    succeeded(&run(&all));
+    let report = read_json(&json);
+    assert_eq!(report["outcome"], "completed", "{report}");
+    (report, read_log(&again).unwrap())
 }
 
 /// Checks every command the log holds against the IRB 120's limits from the log alone,
@@ -138,23 +127,8 @@ fn a_100_hz_log_replays_into_a_250_hz_stream_one_cycle_step_at_a_time() {
     let recorded = record_run("100hz.mcap", Some(&config.0));
     let source = read_log(&recorded).unwrap();
     assert_eq!(source.metadata["period_s"], 0.01);
-    let again = scratch("100hz-again.mcap");
-    let json = scratch("100hz.json");
-    let output = run(&[
-        "replay",
-        recorded.to_str().unwrap(),
-        "--clock",
-        "virtual",
-        "--record",
-        again.to_str().unwrap(),
-        "--report",
-        json.to_str().unwrap(),
-    ]);
-    succeeded(&output);
-    let report = report(&json);
-    assert_eq!(report["outcome"], "completed", "{report}");
+    let (report, replayed) = replay_completes(&recorded, &["--clock", "virtual"], "100hz");
     assert_eq!(report["resampled"], true);
-    let replayed = read_log(&again).unwrap();
     assert_eq!(replayed.metadata["period_s"], 0.004);
     let largest = assert_within_limits(&replayed);
     assert!(largest > 0.1, "the replay moved: {largest}");
@@ -182,25 +156,11 @@ fn a_truncated_log_ends_with_a_stop_ramp_to_rest_within_acceleration() {
     let last = source.commands.last().unwrap();
     let moving = last.velocities.iter().map(|v| v.abs()).fold(0.0, f64::max);
     assert!(moving > 0.05, "the cut falls mid-motion: {moving} rad/s");
-    let again = scratch("cut-again.mcap");
-    let json = scratch("cut.json");
-    succeeded(&run(&[
-        "replay",
-        cut.to_str().unwrap(),
-        "--clock",
-        "virtual",
-        "--record",
-        again.to_str().unwrap(),
-        "--report",
-        json.to_str().unwrap(),
-    ]));
-    let report = report(&json);
-    assert_eq!(report["outcome"], "completed", "{report}");
+    let (report, replayed) = replay_completes(&cut, &["--clock", "virtual"], "cut");
     assert!(
         report["stop_ramp_samples"].as_u64().unwrap() > 1,
         "{report}"
     );
-    let replayed = read_log(&again).unwrap();
     assert_within_limits(&replayed);
     let n = replayed.commands.len();
     assert!(n > source.commands.len());
@@ -221,24 +181,12 @@ fn half_speed_takes_twice_as_long_at_the_same_rate() {
     let recorded = record_run("speed.mcap", None);
     let mut cycles = Vec::new();
     for speed in ["1", "0.5"] {
-        let again = scratch(&format!("speed-{speed}.mcap"));
-        let json = scratch(&format!("speed-{speed}.json"));
-        succeeded(&run(&[
-            "replay",
-            recorded.to_str().unwrap(),
-            "--clock",
-            "virtual",
-            "--speed",
-            speed,
-            "--record",
-            again.to_str().unwrap(),
-            "--report",
-            json.to_str().unwrap(),
-        ]));
-        let report = report(&json);
-        assert_eq!(report["outcome"], "completed", "{report}");
+        let (report, replayed) = replay_completes(
+            &recorded,
+            &["--clock", "virtual", "--speed", speed],
+            &format!("speed-{speed}"),
+        );
         assert_eq!(report["rate_hz"], 250.0);
-        let replayed = read_log(&again).unwrap();
         assert_eq!(replayed.metadata["period_s"], 0.004);
         assert_within_limits(&replayed);
         cycles.push(replayed.commands.len() as f64);
@@ -270,38 +218,13 @@ fn a_speed_that_breaks_an_acceleration_limit_is_refused_naming_the_axis() {
     );
 }
 
-struct TwinProcess(Child);
-
-impl Drop for TwinProcess {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// `rigbridge twin --listen` on a free port with `config`; returns it and its address.
-fn start_twin(config: &Path) -> (TwinProcess, String) {
-    let mut child = rigbridge()
-        .args(["twin", "--listen", "tcp://127.0.0.1:0", "--config"])
-        .arg(config)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stdout = child.stdout.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    let address = rx
-        .recv_timeout(Duration::from_secs(10))
-        .expect("the twin prints its address");
-    assert!(address.starts_with("tcp://127.0.0.1:"), "{address}");
-    (TwinProcess(child), address)
+/// `rigbridge twin --listen` on a free port with `config`.
+fn start_twin(config: &Path) -> TwinProcess {
+    start_listening(
+        listen_command("tcp://127.0.0.1:0")
+            .arg("--config")
+            .arg(config),
+    )
 }
 
 #[test]
@@ -317,25 +240,11 @@ fn a_replay_over_tcp_starts_where_the_twin_holds_and_completes() {
             "initial_deg = [20.0, -10.0, 5.0, 0.0, 45.0, 0.0]",
         )
     });
-    let (_twin, address) = start_twin(&elsewhere.0);
-    let again = scratch("tcp-again.mcap");
-    let json = scratch("tcp.json");
-    let output = run(&[
-        "replay",
-        cut.to_str().unwrap(),
-        "--link",
-        &address,
-        "--record",
-        again.to_str().unwrap(),
-        "--report",
-        json.to_str().unwrap(),
-    ]);
-    succeeded(&output);
-    let report = report(&json);
-    assert_eq!(report["outcome"], "completed", "{report}");
+    let twin = start_twin(&elsewhere.0);
+    let address = twin.address.clone();
+    let (report, replayed) = replay_completes(&cut, &["--link", &address], "tcp");
     assert!(report["approach_samples"].as_u64().unwrap() > 0, "{report}");
     assert!(report["link"].as_str().unwrap().starts_with("tcp://"));
-    let replayed = read_log(&again).unwrap();
     let start: Vec<f64> = serde_json::from_value(replayed.metadata["start"].clone()).unwrap();
     for (got, deg) in start.iter().zip([20.0_f64, -10.0, 5.0, 0.0, 45.0, 0.0]) {
         assert!((got - deg.to_radians()).abs() < 1e-3, "held at {start:?}");

@@ -4,19 +4,14 @@
 
 mod common;
 
+use common::cli::rigbridge;
 use common::repo_path;
+use common::twin::{listen_command, start_listening};
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::link::LinkSpec;
 use rigbridge::protocol::{Command as Wire, ControllerStatus, Fault};
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::Output;
 use std::time::{Duration, Instant};
-
-fn rigbridge() -> Command {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
-    command.current_dir(repo_path(""));
-    command
-}
 
 fn text(bytes: &[u8]) -> String {
     String::from_utf8_lossy(bytes).into_owned()
@@ -24,36 +19,6 @@ fn text(bytes: &[u8]) -> String {
 
 fn shown(output: &Output) -> String {
     format!("{}{}", text(&output.stdout), text(&output.stderr))
-}
-
-struct TwinProcess(Child);
-
-impl Drop for TwinProcess {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn start_twin() -> (TwinProcess, String) {
-    let mut child = rigbridge()
-        .args(["twin", "--listen", "tcp://127.0.0.1:0"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stdout = child.stdout.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    let address = rx.recv_timeout(Duration::from_secs(10)).unwrap();
-    assert!(address.starts_with("tcp://127.0.0.1:"), "{address}");
-    (TwinProcess(child), address)
 }
 
 /// E-stops the twin at `address` as a bridge would, and waits until it reports the latch.
@@ -112,7 +77,8 @@ fn run_job(address: &str, config: &std::path::Path) -> Output {
 
 #[test]
 fn reset_clears_an_e_stopped_twin_and_a_job_then_completes() {
-    let (_twin, address) = start_twin();
+    let twin = start_listening(&mut listen_command("tcp://127.0.0.1:0"));
+    let address = twin.address.clone();
     let config = short_job_config();
     estop(&address);
     let refused = run_job(&address, &config);

@@ -8,6 +8,7 @@
 
 mod common;
 
+use common::cli::{assert_succeeded, rigbridge};
 use common::repo_path;
 use common::serve::{Served, serve_command, start_serve};
 use std::io::{BufRead, BufReader, Read, Write};
@@ -45,10 +46,7 @@ fn peer_python() -> Option<String> {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("rigbridge-ros2-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+    common::scratch_dir("ros2", name)
 }
 
 fn free_endpoint() -> String {
@@ -148,7 +146,7 @@ fn run_publishes_joint_states_that_rosbags_decodes_with_rmw_zenohs_tokens() {
     let endpoint = free_endpoint();
     let peer = Peer::start(&python, &["listen", "--endpoint", &endpoint, "--wait-end"]);
     let log = dir.join("run.mcap");
-    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+    let output = rigbridge()
         .args([
             "run",
             "--clock",
@@ -160,11 +158,7 @@ fn run_publishes_joint_states_that_rosbags_decodes_with_rmw_zenohs_tokens() {
         .arg(&log)
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert_succeeded(&output);
     let result = peer.result();
     let rig = &result["rigs"]["irb120"];
     let hash = result["rosbags_hash"].as_str().unwrap();

@@ -3,10 +3,11 @@
 
 mod common;
 
-use common::repo_path;
+use common::cli::{assert_succeeded, read_json, rigbridge};
+use common::scratch_file;
 use rigbridge::log::read_log;
 use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Stdio};
 
 struct TwinProcess(Child);
 
@@ -19,9 +20,8 @@ impl Drop for TwinProcess {
 
 #[test]
 fn a_job_over_a_pty_at_115200_baud_completes_within_limits() {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+    let mut child = rigbridge()
         .args(["twin", "--pty"])
-        .current_dir(repo_path(""))
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
@@ -37,12 +37,12 @@ fn a_job_over_a_pty_at_115200_baud_completes_within_limits() {
         "the twin prints its pty first: {pty:?}"
     );
 
-    let dir = std::env::temp_dir().join(format!("rigbridge-serial-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let (log, report) = (dir.join("pty.mcap"), dir.join("pty.json"));
-    let _ = std::fs::remove_file(&log);
+    let (log, report) = (
+        scratch_file("serial", "pty.mcap"),
+        scratch_file("serial", "pty.json"),
+    );
     let link = format!("serial://{pty}?baud=115200");
-    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+    let output = rigbridge()
         .args([
             "run",
             "--link",
@@ -52,16 +52,10 @@ fn a_job_over_a_pty_at_115200_baud_completes_within_limits() {
             "--report",
             report.to_str().unwrap(),
         ])
-        .current_dir(repo_path(""))
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_succeeded(&output);
+    let report = read_json(&report);
     assert_eq!(report["outcome"], "completed", "{report}");
     assert_eq!(report["limit_violations"], 0);
     assert_eq!(report["gaps"], 0, "{report}");

@@ -9,7 +9,10 @@
 mod common;
 #[path = "common/flood.rs"]
 mod flood;
+#[path = "common/in_process.rs"]
+mod in_process;
 
+use common::cli::assert_succeeded;
 use common::repo_path;
 use common::serve::write_pan_tilt_rig;
 use flood::http;
@@ -76,10 +79,7 @@ fn spawn(args: &[&str]) -> Process {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("rigbridge-jobs-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+    common::scratch_dir("jobs", name)
 }
 
 /// The shipped arm cell, copied to `dir`, streaming over `link`.
@@ -313,11 +313,7 @@ fn events_by_python(python: &str, log: &Path) -> Vec<(f64, String)> {
         .arg(log)
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert_succeeded(&output);
     String::from_utf8(output.stdout)
         .unwrap()
         .lines()
@@ -436,7 +432,7 @@ fn pan_tilt_cell(dir: &Path) -> PathBuf {
 #[test]
 fn a_panicking_job_fails_alone_while_the_daemon_and_the_other_cell_go_on() {
     use rigbridge::daemon::config::load_run_settings;
-    use rigbridge::daemon::server::{ServeOptions, run};
+    use rigbridge::daemon::server::ServeOptions;
     use std::sync::Arc;
     use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -449,28 +445,15 @@ fn a_panicking_job_fails_alone_while_the_daemon_and_the_other_cell_go_on() {
     let armed = Arc::new(AtomicBool::new(true));
     let trigger = armed.clone();
     let options = ServeOptions {
-        runs_dir: dir.join("runs"),
-        virtual_clock: false,
-        token: None,
-        allowed_hosts: Vec::new(),
         before_job: Some(Arc::new(move |cell: &str, id: u64| {
             if cell == "irb120" && trigger.swap(false, Ordering::SeqCst) {
                 panic!("injected panic in job {id}");
             }
         })),
-        foxglove_port: 0,
-        foxglove_allow_remote: false,
-        zenoh_connect: None,
+        ..in_process::options(dir.join("runs"))
     };
-    let runtime = tokio::runtime::Runtime::new().unwrap();
-    let listener = runtime
-        .block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))
-        .unwrap();
-    let address = listener.local_addr().unwrap();
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let server = runtime.spawn(run(listener, cells, options, async {
-        let _ = stopped.await;
-    }));
+    let served = in_process::start(cells, options);
+    let address = served.address;
 
     let (code, other) = call(address, "POST", "/api/cells/pan_tilt/jobs", "");
     assert_eq!(code, 202, "{other}");
@@ -502,9 +485,6 @@ fn a_panicking_job_fails_alone_while_the_daemon_and_the_other_cell_go_on() {
         pan_tilt["last"]["report"]["outcome"], "completed",
         "{pan_tilt}"
     );
-    let _ = stop.send(());
-    let result = runtime
-        .block_on(server)
-        .expect("the server task did not panic");
+    let result = served.stop().expect("the server task did not panic");
     assert!(result.is_ok(), "the daemon stopped cleanly");
 }

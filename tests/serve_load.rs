@@ -77,16 +77,16 @@ fn wait_until(what: &str, timeout: Duration, mut done: impl FnMut() -> bool) {
 
 const JSON: &str = "Content-Type: application/json\r\n";
 
+/// `METHOD PATH` with `headers` and no body to `server`: its status code and body, which
+/// must come within [`ANSWERED_WITHIN`]; fails with `what` where they do not.
+#[track_caller]
+fn answered(server: &Server, method: &str, path: &str, headers: &str, what: &str) -> (u16, String) {
+    let (answer, _) = http(server.address, method, path, headers, "", ANSWERED_WITHIN);
+    answer.expect(what)
+}
+
 fn status(server: &Server) -> serde_json::Value {
-    let (answer, _) = http(
-        server.address,
-        "GET",
-        "/api/status",
-        "",
-        "",
-        ANSWERED_WITHIN,
-    );
-    let (code, body) = answer.expect("status answered");
+    let (code, body) = answered(server, "GET", "/api/status", "", "status answered");
     assert_eq!(code, 200, "{body}");
     serde_json::from_str(&body).unwrap()
 }
@@ -121,26 +121,22 @@ fn an_estop_is_answered_under_500_idle_and_50_slow_connections_at_256_descriptor
         },
     );
 
-    let (answer, _) = http(
-        server.address,
+    let (code, body) = answered(
+        &server,
         "POST",
         "/api/jobs",
         JSON,
-        "",
-        ANSWERED_WITHIN,
+        "a job submitted under load is answered",
     );
-    let (code, body) = answer.expect("a job submitted under load is answered");
     assert_eq!(code, 202, "{body}");
     let id = serde_json::from_str::<serde_json::Value>(&body).unwrap()["id"].clone();
-    let (answer, _) = http(
-        server.address,
+    let (code, body) = answered(
+        &server,
         "POST",
         "/api/estop",
         "",
-        "",
-        ANSWERED_WITHIN,
+        "the e-stop under load is answered",
     );
-    let (code, body) = answer.expect("the e-stop under load is answered");
     assert_eq!(code, 200, "{body}");
     assert_eq!(
         serde_json::from_str::<serde_json::Value>(&body).unwrap()["id"],
@@ -148,15 +144,13 @@ fn an_estop_is_answered_under_500_idle_and_50_slow_connections_at_256_descriptor
     );
     // Again and again: with the job gone, each is a 409, answered.
     for _ in 0..20 {
-        let (answer, _) = http(
-            server.address,
+        let (code, body) = answered(
+            &server,
             "POST",
             "/api/estop",
             "",
-            "",
-            ANSWERED_WITHIN,
+            "every e-stop under load is answered",
         );
-        let (code, body) = answer.expect("every e-stop under load is answered");
         assert!(code == 200 || code == 409, "{code} {body}");
     }
     assert!(
@@ -173,29 +167,21 @@ fn an_estop_is_answered_under_500_idle_and_50_slow_connections_at_256_descriptor
     });
     let last = status(&server);
     assert_eq!(last["last"]["report"]["outcome"], "e_stopped", "{last}");
-    let (answer, _) = http(
-        server.address,
-        "POST",
-        "/api/reset",
-        JSON,
-        "",
-        ANSWERED_WITHIN,
+    assert_eq!(
+        answered(&server, "POST", "/api/reset", JSON, "reset answered").0,
+        200
     );
-    assert_eq!(answer.expect("reset answered").0, 200);
-    let (answer, _) = http(
-        server.address,
-        "POST",
-        "/api/jobs",
-        JSON,
-        "",
-        ANSWERED_WITHIN,
+    assert_eq!(
+        answered(&server, "POST", "/api/jobs", JSON, "a job after the load").0,
+        202
     );
-    assert_eq!(answer.expect("a job after the load").0, 202);
     wait_until("the next job to run", Duration::from_secs(10), || {
         status(&server)["state"] == "running"
     });
-    let (answer, _) = http(server.address, "POST", "/api/stop", "", "", ANSWERED_WITHIN);
-    assert_eq!(answer.expect("stop answered").0, 200);
+    assert_eq!(
+        answered(&server, "POST", "/api/stop", "", "stop answered").0,
+        200
+    );
     assert!(server.alive());
 }
 

@@ -8,8 +8,8 @@ use rigbridge::clock::VirtualClock;
 use rigbridge::link::LoopbackLink;
 use rigbridge::rig::Rig;
 use rigbridge::stream::{
-    CycleRecord, CycleSink, Outcome, StreamControl, StreamError, StreamSettings, slowdown_rate,
-    stream,
+    CycleRecord, CycleSink, Outcome, StreamControl, StreamError, StreamReport, StreamSettings,
+    slowdown_rate, stream,
 };
 use rigbridge::trajectory::Trajectory;
 use rigbridge::twin::{Twin, TwinSettings};
@@ -44,6 +44,24 @@ fn settings(rig: &Rig) -> StreamSettings {
     StreamSettings::new(PERIOD, slowdown_rate(rig, 0.9, 0.8))
 }
 
+/// `trajectory` streamed to a fresh twin at [`START`] under a fresh virtual clock.
+fn stream_to_twin(
+    rig: &Rig,
+    trajectory: &Trajectory,
+    sink: &mut dyn CycleSink,
+    control: &StreamControl,
+) -> Result<StreamReport, StreamError> {
+    stream(
+        trajectory,
+        rig,
+        &mut link(rig),
+        &VirtualClock::new(),
+        sink,
+        control,
+        &settings(rig),
+    )
+}
+
 #[derive(Default)]
 struct Recorded(Vec<CycleRecord>);
 
@@ -74,16 +92,7 @@ fn streams_a_whole_trajectory_sample_by_sample() {
     let rig = irb120();
     let trajectory = sweep(&rig, 1.0, 1001);
     let mut sink = Recorded::default();
-    let report = stream(
-        &trajectory,
-        &rig,
-        &mut link(&rig),
-        &VirtualClock::new(),
-        &mut sink,
-        &StreamControl::default(),
-        &settings(&rig),
-    )
-    .unwrap();
+    let report = stream_to_twin(&rig, &trajectory, &mut sink, &StreamControl::default()).unwrap();
     assert_eq!(report.outcome, Outcome::Completed);
     assert_eq!(report.cycles, 1000);
     assert_eq!(
@@ -124,34 +133,37 @@ impl CycleSink for Lever<'_> {
     }
 }
 
+/// [`stream_to_twin`] with `pull` done to its control at cycle `at`: the report and every
+/// cycle's record.
+fn stream_pulling_at(
+    rig: &Rig,
+    trajectory: &Trajectory,
+    at: usize,
+    pull: fn(&StreamControl),
+) -> (StreamReport, Vec<CycleRecord>) {
+    let control = StreamControl::default();
+    let mut lever = Lever {
+        at,
+        pull: &|| pull(&control),
+        records: Vec::new(),
+    };
+    let report = stream_to_twin(rig, trajectory, &mut lever, &control).unwrap();
+    (report, lever.records)
+}
+
 #[test]
 fn stop_decelerates_along_the_path_and_ends_at_rest() {
     let rig = irb120();
     let trajectory = sweep(&rig, 2.0, 2001);
-    let control = StreamControl::default();
-    let mut lever = Lever {
-        at: 1000,
-        pull: &|| control.stop(),
-        records: Vec::new(),
-    };
-    let report = stream(
-        &trajectory,
-        &rig,
-        &mut link(&rig),
-        &VirtualClock::new(),
-        &mut lever,
-        &control,
-        &settings(&rig),
-    )
-    .unwrap();
+    let (report, records) = stream_pulling_at(&rig, &trajectory, 1000, StreamControl::stop);
     assert_eq!(report.outcome, Outcome::Stopped);
     assert!(
         report.cycles > 1001 && report.cycles < 2000,
         "{}",
         report.cycles
     );
-    assert_commands_safe(&rig, &lever.records);
-    let last = lever.records.last().unwrap();
+    assert_commands_safe(&rig, &records);
+    let last = records.last().unwrap();
     assert!(last.target.velocities.as_slice().iter().all(|v| *v == 0.0));
     let rest = last.target.positions.as_slice()[0];
     assert!(
@@ -180,16 +192,7 @@ fn pause_holds_still_then_resume_finishes() {
         }
     }
     let mut sink = Resume(&mut lever, &control);
-    let report = stream(
-        &trajectory,
-        &rig,
-        &mut link(&rig),
-        &VirtualClock::new(),
-        &mut sink,
-        &control,
-        &settings(&rig),
-    )
-    .unwrap();
+    let report = stream_to_twin(&rig, &trajectory, &mut sink, &control).unwrap();
     assert_eq!(report.outcome, Outcome::Completed);
     let records = &lever.records;
     assert_commands_safe(&rig, records);
@@ -211,16 +214,8 @@ fn refuses_before_motion_a_trajectory_that_breaks_a_limit() {
     let rig = irb120();
     let trajectory = sweep(&rig, 3.0, 101); // 3 rad in 0.4 s: far above axis 1's 4.36 rad/s
     let mut sink = Recorded::default();
-    let error = stream(
-        &trajectory,
-        &rig,
-        &mut link(&rig),
-        &VirtualClock::new(),
-        &mut sink,
-        &StreamControl::default(),
-        &settings(&rig),
-    )
-    .unwrap_err();
+    let error =
+        stream_to_twin(&rig, &trajectory, &mut sink, &StreamControl::default()).unwrap_err();
     assert!(matches!(error, StreamError::Invalid(_)), "{error}");
     assert!(sink.0.is_empty());
 }
@@ -255,24 +250,9 @@ fn refuses_a_trajectory_that_starts_away_from_the_arm() {
 fn estop_halts_at_once() {
     let rig = irb120();
     let trajectory = sweep(&rig, 1.0, 1001);
-    let control = StreamControl::default();
-    let mut lever = Lever {
-        at: 500,
-        pull: &|| control.estop(),
-        records: Vec::new(),
-    };
-    let report = stream(
-        &trajectory,
-        &rig,
-        &mut link(&rig),
-        &VirtualClock::new(),
-        &mut lever,
-        &control,
-        &settings(&rig),
-    )
-    .unwrap();
+    let (report, records) = stream_pulling_at(&rig, &trajectory, 500, StreamControl::estop);
     assert_eq!(report.outcome, Outcome::EStopped);
-    assert_eq!(lever.records.len(), 501);
+    assert_eq!(records.len(), 501);
 }
 
 /// The trajectory run backwards: from its end to its start.

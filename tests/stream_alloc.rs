@@ -9,7 +9,10 @@ use rigbridge::clock::VirtualClock;
 use rigbridge::daemon::config::JobConfig;
 use rigbridge::job::plan_job;
 use rigbridge::link::LoopbackLink;
-use rigbridge::stream::{StreamControl, StreamSettings, slowdown_rate, stream};
+use rigbridge::rig::Rig;
+use rigbridge::stream::{
+    CycleSink, StreamControl, StreamReport, StreamSettings, slowdown_rate, stream,
+};
 use rigbridge::trajectory::PlanSettings;
 use rigbridge::trajectory::Trajectory;
 use rigbridge::twin::{Twin, TwinSettings};
@@ -55,27 +58,35 @@ fn hold(samples: usize) -> Trajectory {
     Trajectory::new(rig.name, names, 0.004, positions, velocities).unwrap()
 }
 
+/// Streams `trajectory` over `link` into `sink` under the virtual clock, then drops the
+/// sink: the report and the allocations this thread made meanwhile (the clock, the control
+/// and the settings are made before counting starts).
+fn stream_counting_allocations(
+    rig: &Rig,
+    trajectory: &Trajectory,
+    link: &mut LoopbackLink,
+    mut sink: impl CycleSink,
+) -> (StreamReport, usize) {
+    let clock = VirtualClock::new();
+    let control = StreamControl::default();
+    let settings = StreamSettings::new(0.004, slowdown_rate(rig, 0.9, 0.8));
+    let before = allocations();
+    let report = stream(
+        trajectory, rig, link, &clock, &mut sink, &control, &settings,
+    )
+    .unwrap();
+    drop(sink);
+    let after = allocations();
+    (report, after - before)
+}
+
 fn allocations_while_streaming(samples: usize) -> usize {
     let rig = irb120();
     let trajectory = hold(samples);
     let mut link = LoopbackLink::new(Twin::new(&rig, TwinSettings::default(), &START).unwrap());
-    let clock = VirtualClock::new();
-    let control = StreamControl::default();
-    let settings = StreamSettings::new(0.004, slowdown_rate(&rig, 0.9, 0.8));
-    let before = allocations();
-    let report = stream(
-        &trajectory,
-        &rig,
-        &mut link,
-        &clock,
-        &mut (),
-        &control,
-        &settings,
-    )
-    .unwrap();
-    let after = allocations();
+    let (report, allocated) = stream_counting_allocations(&rig, &trajectory, &mut link, ());
     assert_eq!(report.cycles as usize, samples - 1);
-    after - before
+    allocated
 }
 
 #[test]
@@ -103,30 +114,15 @@ fn allocations_while_streaming_live(laps: u32) -> (usize, usize) {
         .with_world(Box::new(trace));
     let mut link = LoopbackLink::new(twin);
     let slot = LiveSlot::new(LiveSample::at_rest(&START));
-    let mut sink = LiveSink::new(&slot, 250);
-    let clock = VirtualClock::new();
-    let control = StreamControl::default();
-    let settings = StreamSettings::new(0.004, slowdown_rate(&rig, 0.9, 0.8));
-    let before = allocations();
-    let report = stream(
-        &trajectory,
-        &rig,
-        &mut link,
-        &clock,
-        &mut sink,
-        &control,
-        &settings,
-    )
-    .unwrap();
-    drop(sink);
-    let after = allocations();
+    let sink = LiveSink::new(&slot, 250);
+    let (report, allocated) = stream_counting_allocations(&rig, &trajectory, &mut link, sink);
     assert_eq!(report.cycles as usize, trajectory.len() - 1);
     assert_eq!(
         slot.latest().cycles,
         report.cycles,
         "the view saw the last cycle"
     );
-    (after - before, scene.drain_paint().len())
+    (allocated, scene.drain_paint().len())
 }
 
 #[test]

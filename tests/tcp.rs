@@ -3,12 +3,14 @@
 
 mod common;
 
+use common::cli::{assert_succeeded, read_json, rigbridge};
+use common::runlog::assert_resumes_in_step_after_link_loss;
+use common::twin::{TwinProcess, listen_command, start_listening};
 use common::{irb120, repo_path, wait_for_logged_commands, wait_for_logged_event};
 use rigbridge::log::read_log;
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdout, Command, Stdio};
-use std::sync::mpsc::Receiver;
+use std::process::{Child, Command};
 use std::time::Duration;
 
 const PERIOD: f64 = 0.004;
@@ -17,104 +19,62 @@ const MID_JOB_COMMANDS: usize = 250;
 /// Longer than any of these waits takes on a loaded machine.
 const WAIT: Duration = Duration::from_secs(30);
 
-struct TwinProcess {
-    child: Child,
-    address: String,
-    lines: Receiver<String>,
-}
-
-impl Drop for TwinProcess {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn forward_lines(stdout: ChildStdout) -> Receiver<String> {
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    rx
-}
-
 fn start_twin(listen: &str) -> TwinProcess {
     start_twin_under(listen, None)
 }
 
 /// A twin whose environment's RUST_LOG is `rust_log` (or unset).
 fn start_twin_under(listen: &str, rust_log: Option<&str>) -> TwinProcess {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_rigbridge"));
+    let mut command = listen_command(listen);
     match rust_log {
         Some(directives) => command.env("RUST_LOG", directives),
         None => command.env_remove("RUST_LOG"),
     };
-    let mut child = command
-        .args(["twin", "--listen", listen])
-        .current_dir(repo_path(""))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let lines = forward_lines(child.stdout.take().unwrap());
-    let address = lines
-        .recv_timeout(Duration::from_secs(10))
-        .expect("the twin prints its address");
-    assert!(address.starts_with("tcp://127.0.0.1:"), "{address}");
-    TwinProcess {
-        child,
-        address,
-        lines,
-    }
+    start_listening(&mut command)
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("rigbridge-tcp-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join(name);
-    let _ = std::fs::remove_file(&path);
-    path
+    common::scratch_file("tcp", name)
 }
 
 fn spawn_run(link: &str, log: &Path, report: &Path) -> Child {
-    Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args([
-            "run",
-            "--link",
-            link,
-            "--log",
-            log.to_str().unwrap(),
-            "--report",
-            report.to_str().unwrap(),
-        ])
-        .current_dir(repo_path(""))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap()
+    common::cli::spawn_run(&["--link", link], log, report)
 }
 
-fn report(path: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+/// [`spawn_run`] waited for; it must succeed.
+fn run_to_end(link: &str, log: &Path, report: &Path) {
+    let output = spawn_run(link, log, report).wait_with_output().unwrap();
+    assert_succeeded(&output);
+}
+
+/// A megabyte of xorshift noise from `seed`: garbage for either end of the link.
+fn noise(seed: u64) -> Vec<u8> {
+    let mut state = seed;
+    let mut noise = Vec::with_capacity(1 << 20);
+    while noise.len() < 1 << 20 {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        noise.extend_from_slice(&state.to_le_bytes());
+    }
+    noise
+}
+
+/// The bridge's Hello for the IRB 120 at 250 Hz as a frame on the wire.
+fn hello_frame() -> Vec<u8> {
+    let mut hello = vec![0];
+    let message =
+        rigbridge::protocol::Message::Hello(rigbridge::link::bridge_hello(&irb120(), PERIOD, 25));
+    rigbridge::protocol::encode_frame(&message, &mut hello).unwrap();
+    hello
 }
 
 #[test]
 fn a_job_over_tcp_loses_no_frame_and_stays_within_limits() {
     let twin = start_twin("tcp://127.0.0.1:0");
     let (log, json) = (scratch("whole.mcap"), scratch("whole.json"));
-    let output = spawn_run(&twin.address, &log, &json)
-        .wait_with_output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let report = report(&json);
+    run_to_end(&twin.address, &log, &json);
+    let report = read_json(&json);
     assert_eq!(report["outcome"], "completed");
     // No frame lost either way: no gap or repeat in the echoed sequence, no CRC error.
     // (A feedback later than half a cycle on this shared machine counts as a timeout,
@@ -149,55 +109,18 @@ fn a_restarted_twin_is_rejoined_from_its_actual_position() {
     // Back only once the daemon has seen it go.
     wait_for_logged_event(&log, "link_lost", WAIT);
     let _second = start_twin(address.trim_start_matches("tcp://"));
-    let output = daemon.wait_with_output().unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let report = report(&json);
+    assert_succeeded(&daemon.wait_with_output().unwrap());
+    let report = read_json(&json);
     assert_eq!(report["outcome"], "completed", "{report}");
     assert!(report["reconnects"].as_u64().unwrap() >= 1, "{report}");
 
-    let rig = irb120();
     let run = read_log(&log).unwrap();
-    // Every resumption starts from where the controller held (docs/protocol.md 6.8): from
-    // there on, every command is within one cycle's travel of the one before.
-    let resumes: Vec<(f64, Vec<f64>)> = run
-        .events
-        .iter()
-        .filter(|e| e.kind == "resumed")
-        .map(|e| {
-            (
-                e.t,
-                serde_json::from_value(e.detail["actual"].clone()).unwrap(),
-            )
-        })
-        .collect();
-    assert!(!resumes.is_empty(), "a resumed event");
     let seqs: Vec<u32> = run.commands.iter().map(|c| c.seq).collect();
     assert!(
         seqs.windows(2).all(|w| w[1] == w[0] + 1),
         "one unbroken sequence across the restart"
     );
-    let lost_at = run.events.iter().find(|e| e.kind == "link_lost").unwrap().t;
-    let mut previous: Option<Vec<f64>> = None;
-    let mut next_resume = 0;
-    for command in run.commands.iter().filter(|c| c.t > lost_at + 1e-9) {
-        while next_resume < resumes.len() && resumes[next_resume].0 < command.t {
-            previous = Some(resumes[next_resume].1.clone());
-            next_resume += 1;
-        }
-        let Some(before) = &previous else { continue };
-        for ((q, p), joint) in command.positions.iter().zip(before).zip(&rig.joints) {
-            assert!(
-                (q - p).abs() <= joint.limits.max_speed * PERIOD * (1.0 + 1e-9),
-                "step at seq {}",
-                command.seq
-            );
-        }
-        previous = Some(command.positions.clone());
-    }
+    assert_resumes_in_step_after_link_loss(&run, &irb120(), PERIOD);
 }
 
 #[test]
@@ -243,24 +166,14 @@ fn a_killed_daemon_leaves_the_twin_holding_within_two_cycles() {
 fn a_megabyte_of_garbage_moves_nothing_and_crashes_nothing() {
     let twin = start_twin("tcp://127.0.0.1:0");
     let address = twin.address.trim_start_matches("tcp://").to_string();
-    let mut noise = Vec::with_capacity(1 << 20);
-    let mut state = 0x2545_f491_4f6c_dd1du64;
-    while noise.len() < 1 << 20 {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        noise.extend_from_slice(&state.to_le_bytes());
-    }
+    let noise = noise(0x2545_f491_4f6c_dd1d);
     let mut socket = std::net::TcpStream::connect(&address).unwrap();
     socket
         .set_read_timeout(Some(Duration::from_secs(5)))
         .unwrap();
     // The twin answers with Feedback only once a Hello opened the session
     // (docs/protocol.md 6.1); the garbage follows the Hello.
-    let mut hello = vec![0];
-    let message =
-        rigbridge::protocol::Message::Hello(rigbridge::link::bridge_hello(&irb120(), PERIOD, 25));
-    rigbridge::protocol::encode_frame(&message, &mut hello).unwrap();
+    let hello = hello_frame();
     socket.write_all(&hello).unwrap();
     let reader = {
         let mut socket = socket.try_clone().unwrap();
@@ -300,14 +213,7 @@ fn a_megabyte_of_garbage_moves_nothing_and_crashes_nothing() {
     );
     // And the twin still serves a real job afterwards.
     let (log, json) = (scratch("after-garbage.mcap"), scratch("after-garbage.json"));
-    let output = spawn_run(&twin.address, &log, &json)
-        .wait_with_output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    run_to_end(&twin.address, &log, &json);
 }
 
 /// What the twin sends until it has answered a second Hello and sent a Feedback after it
@@ -341,15 +247,7 @@ fn a_controller_sending_garbage_gets_no_motion_and_no_crash() {
     let address = listener.local_addr().unwrap();
     let server = std::thread::spawn(move || {
         let (mut socket, _) = listener.accept().unwrap();
-        let mut state = 0x9e37_79b9_7f4a_7c15u64;
-        let mut noise = Vec::with_capacity(1 << 20);
-        while noise.len() < 1 << 20 {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            noise.extend_from_slice(&state.to_le_bytes());
-        }
-        let _ = socket.write_all(&noise);
+        let _ = socket.write_all(&noise(0x9e37_79b9_7f4a_7c15));
         let mut received = Vec::new();
         let _ = socket.read_to_end(&mut received);
         received
@@ -402,25 +300,16 @@ fn a_twin_that_never_comes_back_aborts_the_job_with_a_message() {
     .unwrap();
     let twin = start_twin("tcp://127.0.0.1:0");
     let (log, json) = (scratch("abort.mcap"), scratch("abort.json"));
-    let daemon = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
-        .args([
-            "run",
+    let daemon = common::cli::spawn_run(
+        &[
             "--config",
             config.to_str().unwrap(),
             "--link",
             &twin.address,
-        ])
-        .args([
-            "--log",
-            log.to_str().unwrap(),
-            "--report",
-            json.to_str().unwrap(),
-        ])
-        .current_dir(repo_path(""))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+        ],
+        &log,
+        &json,
+    );
     wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     drop(twin);
     let output = daemon.wait_with_output().unwrap();
@@ -431,7 +320,7 @@ fn a_twin_that_never_comes_back_aborts_the_job_with_a_message() {
         "{}",
         String::from_utf8_lossy(&output.stderr)
     );
-    let report = report(&json);
+    let report = read_json(&json);
     assert_eq!(report["outcome"], "link_lost", "{report}");
     let fault = report["fault"].as_str().unwrap();
     assert!(
@@ -449,11 +338,7 @@ fn a_second_bridge_is_refused_with_a_reason_while_one_is_connected() {
     let twin = start_twin("tcp://127.0.0.1:0");
     let address = twin.address.trim_start_matches("tcp://").to_string();
     let first = std::net::TcpStream::connect(&address).unwrap();
-    let mut hello = vec![0];
-    let message =
-        rigbridge::protocol::Message::Hello(rigbridge::link::bridge_hello(&irb120(), PERIOD, 25));
-    rigbridge::protocol::encode_frame(&message, &mut hello).unwrap();
-    (&first).write_all(&hello).unwrap();
+    (&first).write_all(&hello_frame()).unwrap();
     // Wait until the twin has taken the first one.
     let connected = twin
         .lines
@@ -478,9 +363,8 @@ fn a_second_bridge_is_refused_with_a_reason_while_one_is_connected() {
 
 #[test]
 fn a_virtual_clock_over_a_real_link_is_refused() {
-    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+    let output = rigbridge()
         .args(["run", "--clock", "virtual", "--link", "tcp://127.0.0.1:9"])
-        .current_dir(repo_path(""))
         .output()
         .unwrap();
     assert!(!output.status.success());
@@ -495,12 +379,7 @@ fn a_virtual_clock_over_a_real_link_is_refused() {
 fn serve_refuses_a_virtual_clock_for_a_cell_on_a_real_link() {
     let dir = std::env::temp_dir().join(format!("rigbridge-serve-virtual-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let settings = std::fs::read_to_string(repo_path("config/rigbridge.toml"))
-        .unwrap()
-        .replace(
-            "rig = \"irb120.toml\"",
-            &format!("rig = {:?}", repo_path("config/irb120.toml")),
-        )
+    let settings = common::shipped_settings_text()
         .replace("link = \"loopback\"", "link = \"tcp://127.0.0.1:9\"");
     let file = dir.join("cell.toml");
     std::fs::write(&file, settings).unwrap();

@@ -2,13 +2,18 @@
 //! reference data in `../shared/reference`, seeded random configurations, the issue's
 //! figures every passing gait run must meet, waiting on a condition (never for a fixed
 //! time: a loaded machine makes a test slower, not wrong), running the binary with input on
-//! stdin; `serve` starts `rigbridge serve` and talks to it, `cycles` serves tests that hold
-//! real-time cycles, `can` skips the SocketCAN tests where there is no bus.
+//! stdin, scratch paths in the temporary directory, the shipped settings to copy; `serve` starts `rigbridge serve` and
+//! talks to it, `twin` starts and stops `rigbridge twin`, `cli` runs the binary to the end
+//! and reads its reports, `runlog` checks a run log read back, `cycles` serves tests that
+//! hold real-time cycles, `can` skips the SocketCAN tests where there is no bus.
 #![allow(dead_code)]
 
 pub mod can;
+pub mod cli;
 pub mod cycles;
+pub mod runlog;
 pub mod serve;
+pub mod twin;
 
 use glam::{DQuat, DVec3};
 use rand::{Rng, RngExt, SeedableRng};
@@ -64,6 +69,24 @@ pub fn wait_for_logged_event(path: &Path, kind: &str, within: Duration) {
     );
 }
 
+/// The text of the shipped run settings, `config/rigbridge.toml`, with its rig named by
+/// absolute path: a copy anywhere loads the shipped IRB 120.
+pub fn shipped_settings_text() -> String {
+    let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    let rig = repo_path("config/irb120.toml");
+    text.replacen(
+        "rig = \"irb120.toml\"",
+        &format!("rig = {:?}", rig.display().to_string()),
+        1,
+    )
+}
+
+/// [`shipped_settings_text`] with `serve` appended as its `[serve]` table, written to `path`.
+pub fn write_settings_with_serve(path: &Path, serve: &str) {
+    let text = shipped_settings_text();
+    std::fs::write(path, format!("{text}\n[serve]\n{serve}\n")).unwrap();
+}
+
 /// The shipped run settings, `config/rigbridge.toml`.
 pub fn shipped_run_settings() -> rigbridge::daemon::config::RunSettings {
     rigbridge::daemon::config::load_run_settings(&repo_path("config/rigbridge.toml"))
@@ -89,6 +112,26 @@ pub fn output_with_stdin(command: &mut std::process::Command, stdin: &str) -> st
         assert_eq!(e.kind(), std::io::ErrorKind::BrokenPipe, "{e}");
     }
     output
+}
+
+/// `name` in the temporary directory of the test file `suite` in this process
+/// (`rigbridge-{suite}-{pid}`), with what an earlier test left there removed.
+pub fn scratch_file(suite: &str, name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("rigbridge-{suite}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(name);
+    let _ = std::fs::remove_file(&path);
+    path
+}
+
+/// An empty directory `name` of the test file `suite` in this process
+/// (`rigbridge-{suite}-{pid}-{name}` in the temporary directory), emptied if an earlier test
+/// left it.
+pub fn scratch_dir(suite: &str, name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("rigbridge-{suite}-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
 }
 
 pub fn repo_path(relative: &str) -> PathBuf {
