@@ -52,7 +52,14 @@ fn hold(samples: usize) -> Trajectory {
     let positions = START.repeat(samples);
     let velocities = vec![0.0; samples * 6];
     let names = rig.joint_names().map(String::from).collect();
-    Trajectory::new(rig.name, names, 0.004, positions, velocities).unwrap()
+    Trajectory::new(
+        rig.name,
+        names,
+        std::time::Duration::from_millis(4),
+        positions,
+        velocities,
+    )
+    .unwrap()
 }
 
 fn allocations_while_streaming(samples: usize) -> usize {
@@ -61,7 +68,10 @@ fn allocations_while_streaming(samples: usize) -> usize {
     let mut link = LoopbackLink::new(Twin::new(&rig, TwinSettings::default(), &START).unwrap());
     let clock = VirtualClock::new();
     let control = StreamControl::default();
-    let settings = StreamSettings::new(0.004, slowdown_rate(&rig, 0.9, 0.8));
+    let settings = StreamSettings::new(
+        std::time::Duration::from_millis(4),
+        slowdown_rate(&rig, 0.9, 0.8),
+    );
     let before = allocations();
     let report = stream(
         &trajectory,
@@ -106,7 +116,10 @@ fn allocations_while_streaming_live(laps: u32) -> (usize, usize) {
     let mut sink = LiveSink::new(&slot, 250);
     let clock = VirtualClock::new();
     let control = StreamControl::default();
-    let settings = StreamSettings::new(0.004, slowdown_rate(&rig, 0.9, 0.8));
+    let settings = StreamSettings::new(
+        std::time::Duration::from_millis(4),
+        slowdown_rate(&rig, 0.9, 0.8),
+    );
     let before = allocations();
     let report = stream(
         &trajectory,

@@ -258,8 +258,11 @@ fn a_megabyte_of_garbage_moves_nothing_and_crashes_nothing() {
     // The twin answers with Feedback only once a Hello opened the session
     // (docs/protocol.md 6.1); the garbage follows the Hello.
     let mut hello = vec![0];
-    let message =
-        rigbridge::protocol::Message::Hello(rigbridge::link::bridge_hello(&irb120(), PERIOD, 25));
+    let message = rigbridge::protocol::Message::Hello(rigbridge::link::bridge_hello(
+        &irb120(),
+        std::time::Duration::from_millis(4),
+        25,
+    ));
     rigbridge::protocol::encode_frame(&message, &mut hello).unwrap();
     socket.write_all(&hello).unwrap();
     let reader = {
@@ -450,8 +453,11 @@ fn a_second_bridge_is_refused_with_a_reason_while_one_is_connected() {
     let address = twin.address.trim_start_matches("tcp://").to_string();
     let first = std::net::TcpStream::connect(&address).unwrap();
     let mut hello = vec![0];
-    let message =
-        rigbridge::protocol::Message::Hello(rigbridge::link::bridge_hello(&irb120(), PERIOD, 25));
+    let message = rigbridge::protocol::Message::Hello(rigbridge::link::bridge_hello(
+        &irb120(),
+        std::time::Duration::from_millis(4),
+        25,
+    ));
     rigbridge::protocol::encode_frame(&message, &mut hello).unwrap();
     (&first).write_all(&hello).unwrap();
     // Wait until the twin has taken the first one.

@@ -107,16 +107,16 @@ impl LogReport {
 pub fn twin_settings(settings: &RunSettings) -> TwinSettings {
     let twin = &settings.config.twin;
     TwinSettings {
-        period_s: settings.period_s(),
+        period: settings.period(),
         bandwidth_hz: twin.bandwidth_hz,
-        delay_s: twin.delay_ms / 1000.0,
+        delay: settings.twin_delay(),
         watchdog_cycles: twin.watchdog_cycles,
     }
 }
 
 pub fn plan_settings(settings: &RunSettings) -> PlanSettings {
     PlanSettings {
-        period_s: settings.period_s(),
+        period: settings.period(),
         speed_scale: settings.config.plan.speed_scale,
         accel_scale: settings.config.plan.accel_scale,
         ..PlanSettings::default()
@@ -125,7 +125,7 @@ pub fn plan_settings(settings: &RunSettings) -> PlanSettings {
 
 pub fn stream_settings(settings: &RunSettings) -> StreamSettings {
     let mut streaming = StreamSettings::new(
-        settings.period_s(),
+        settings.period(),
         slowdown_rate(
             &settings.rig,
             settings.config.plan.speed_scale,
@@ -147,7 +147,7 @@ pub fn stream_settings(settings: &RunSettings) -> StreamSettings {
 pub fn bridge_hello(settings: &RunSettings) -> crate::protocol::Hello {
     crate::link::bridge_hello(
         &settings.rig,
-        settings.period_s(),
+        settings.period(),
         settings.config.twin.watchdog_cycles,
     )
 }
@@ -231,7 +231,7 @@ fn connect_link(
             *counts_per_turn,
         )?)?),
         LinkSpec::Egm { address } => {
-            let period = Duration::from_secs_f64(settings.period_s());
+            let period = settings.period();
             let axes = settings
                 .config
                 .egm
@@ -272,7 +272,7 @@ pub fn dynamixel_settings(
         ids: ids.to_vec(),
         axes,
         limits: axis_limits(rig),
-        cycle_timeout: Duration::from_secs_f64(settings.period_s()),
+        cycle_timeout: settings.period(),
     })
 }
 
@@ -297,7 +297,7 @@ pub fn canopen_settings(
         nodes: nodes.to_vec(),
         axes,
         limits: axis_limits(rig),
-        period: Duration::from_secs_f64(settings.period_s()),
+        period: settings.period(),
         heartbeat_ms,
     })
 }
@@ -319,7 +319,7 @@ pub fn held_position(
     control: &StreamControl,
 ) -> Result<Vec<f64>, DaemonError> {
     if let Some(hello) = link.controller_hello() {
-        crate::stream::check_controller(&hello, &settings.rig, settings.period_s())
+        crate::stream::check_controller(&hello, &settings.rig, settings.period())
             .map_err(StreamError::from)?;
     }
     match resume::wait_for_hold(settings, link, clock, control, resume::START_HOLD_TIMEOUT)? {
@@ -493,7 +493,7 @@ fn job_metadata(settings: &RunSettings, job: &JobToStream<'_>, link: String) -> 
         "job": job.description,
         "config": settings.file.display().to_string(),
         "rate_hz": settings.config.stream.rate_hz,
-        "period_s": settings.period_s(),
+        "period_s": settings.period().as_secs_f64(),
         "start": job.start,
         "link": link,
     })
@@ -512,7 +512,7 @@ fn stream_recorded(
     if let Some(actions) = actions {
         actions.open(recorder);
     }
-    let mut recording = RecorderSink::new(recorder, io.settings.period_s());
+    let mut recording = RecorderSink::new(recorder, io.settings.period());
     let mut sink = recording::BothSinks(&mut recording, io.sink);
     let io = resume::Streaming {
         settings: io.settings,

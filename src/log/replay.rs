@@ -5,19 +5,22 @@
 
 use super::{LogError, LoggedSample, RunLog};
 use crate::trajectory::{Trajectory, TrajectoryError};
+use std::time::Duration;
 
 /// How far a command's `t` may sit from `t0 + index * period`.
 pub const TIME_TOLERANCE_S: f64 = 1e-6;
 
 impl RunLog {
-    /// The recorded commands, sample `i` at `i * period_s` (the log's first `t` becomes 0).
+    /// The recorded commands, sample `i` at `i * period` (the log's first `t` becomes 0).
     /// Errors name the first command whose seq is not the previous one plus 1, whose `t` is
     /// off the period grid by more than 1 us (measured from the first command, so a drift
     /// cannot hide in per-step slack), or whose value count is not the joint count.
-    pub fn to_trajectory(&self, period_s: f64) -> Result<Trajectory, LogError> {
-        if !(period_s.is_finite() && period_s > 0.0) {
-            return Err(TrajectoryError::BadPeriod { period_s }.into());
+    pub fn to_trajectory(&self, period: Duration) -> Result<Trajectory, LogError> {
+        if period.is_zero() {
+            return Err(TrajectoryError::BadPeriod { period }.into());
         }
+        // The records' `t` are seconds: the period meets them in f64.
+        let period_s = period.as_secs_f64();
         let first = self.commands.first().ok_or(LogError::NoCommands)?;
         let dof = self.joint_names.len();
         let mut positions = Vec::with_capacity(self.commands.len() * dof);
@@ -36,7 +39,7 @@ impl RunLog {
         Ok(Trajectory::new(
             self.rig.clone(),
             self.joint_names.clone(),
-            period_s,
+            period,
             positions,
             velocities,
         )?)
@@ -114,7 +117,7 @@ mod tests {
     #[test]
     fn consecutive_evenly_spaced_commands_make_a_trajectory() {
         let trajectory = log(&[(5, 1.0), (6, 1.004), (7, 1.008)])
-            .to_trajectory(0.004)
+            .to_trajectory(Duration::from_millis(4))
             .unwrap();
         assert_eq!(trajectory.len(), 3);
         assert_eq!(trajectory.position(2), &[1.008]);
@@ -122,7 +125,7 @@ mod tests {
 
     #[test]
     fn gaps_drift_and_bad_periods_are_named() {
-        let gap = log(&[(5, 0.0), (7, 0.004)]).to_trajectory(0.004);
+        let gap = log(&[(5, 0.0), (7, 0.004)]).to_trajectory(Duration::from_millis(4));
         assert!(matches!(
             gap,
             Err(LogError::SeqGap {
@@ -131,16 +134,17 @@ mod tests {
                 seq: 7
             })
         ));
-        let late = log(&[(0, 0.0), (1, 0.004), (2, 0.0080011)]).to_trajectory(0.004);
+        let late =
+            log(&[(0, 0.0), (1, 0.004), (2, 0.0080011)]).to_trajectory(Duration::from_millis(4));
         assert!(matches!(late, Err(LogError::Uneven { index: 2, .. })));
-        let nan = log(&[(0, 0.0), (1, f64::NAN)]).to_trajectory(0.004);
+        let nan = log(&[(0, 0.0), (1, f64::NAN)]).to_trajectory(Duration::from_millis(4));
         assert!(matches!(nan, Err(LogError::Uneven { index: 1, .. })));
-        assert!(log(&[(0, 0.0)]).to_trajectory(0.0).is_err());
+        assert!(log(&[(0, 0.0)]).to_trajectory(Duration::ZERO).is_err());
         assert!(matches!(
-            log(&[]).to_trajectory(0.004),
+            log(&[]).to_trajectory(Duration::from_millis(4)),
             Err(LogError::NoCommands)
         ));
-        let wrap = log(&[(u32::MAX, 0.0), (0, 0.004)]).to_trajectory(0.004);
+        let wrap = log(&[(u32::MAX, 0.0), (0, 0.004)]).to_trajectory(Duration::from_millis(4));
         assert!(wrap.is_ok());
     }
 }

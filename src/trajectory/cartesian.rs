@@ -36,7 +36,7 @@ const SLOWDOWN_MARGIN: f64 = 1.001;
 /// the previous sample's joints. The joint path through them is timed with the fastest
 /// speed profile that keeps every axis within its max speed x `speed_scale` and max
 /// acceleration x `accel_scale` (forward and backward passes over the path, at rest at both
-/// ends; acceleration-limited, not jerk-limited), then sampled every `settings.period_s`.
+/// ends; acceleration-limited, not jerk-limited), then sampled every `settings.period`.
 /// Every output sample is solved again on the line itself, so the tool never leaves the
 /// line by more than the solver's tolerance. Velocities are the profile's.
 ///
@@ -81,7 +81,7 @@ pub fn plan_cartesian(
         }
         from = to;
     }
-    samples.finish(rig, settings.period_s)
+    samples.finish(rig, settings.period)
 }
 
 /// The tool pose at `start` (whose axis count `check_start` has already confirmed).
@@ -325,7 +325,7 @@ impl LinearMove<'_> {
         profile: &SpeedProfile,
         slowdown: f64,
     ) -> Result<Rows, PlanError> {
-        let period_s = self.settings.period_s;
+        let period_s = self.settings.period.as_secs_f64();
         // Whole periods: stretch the profile (slower, so still within limits) to end on one;
         // the 1e-9 keeps a duration a rounding hair over a whole number from adding a period.
         let duration = profile.duration * slowdown;
@@ -363,7 +363,7 @@ impl LinearMove<'_> {
     /// when they stay within). The move starts and ends at rest; its first and last steps
     /// may use half the acceleration, as the neighbouring move may use the other half.
     fn excess(&self, start: &[f64], rows: &Rows) -> Excess {
-        let period_s = self.settings.period_s;
+        let period_s = self.settings.period.as_secs_f64();
         let mut positions: Vec<&[f64]> = vec![start, start];
         positions.extend(rows.iter().map(|(p, _)| p.as_slice()));
         let end = positions[positions.len() - 1];
