@@ -166,12 +166,12 @@ pub fn open_link(
     settings: &RunSettings,
 ) -> Result<Box<dyn Link>, DaemonError> {
     let link = connect_link(spec, settings)?;
-    let mut timeout_s = settings.config.stream.reconnect_timeout_s;
+    let mut timeout = settings.reconnect_timeout();
     // CANopen drives are set up over SDO before the session starts.
     if let crate::link::LinkSpec::Canopen { .. } = spec {
-        timeout_s += crate::link::SETUP_PATIENCE.as_secs_f64();
+        timeout += crate::link::SETUP_PATIENCE;
     }
-    wait_for_link(link.as_ref(), &crate::clock::WallClock::new(), timeout_s);
+    wait_for_link(link.as_ref(), &crate::clock::WallClock::new(), timeout);
     Ok(link)
 }
 
@@ -263,7 +263,7 @@ pub fn dynamixel_settings(
             "{} Hz does not fit a Dynamixel bus of {} servos at {baud} baud: one cycle takes up to {:.2} ms, {:.0} Hz at most (docs/dynamixel.md)",
             settings.config.stream.rate_hz,
             ids.len(),
-            budget.cycle_s * 1e3,
+            budget.cycle.as_secs_f64() * 1e3,
             budget.max_rate_hz
         )));
     }
@@ -602,9 +602,9 @@ fn rig_urdf(settings: &RunSettings) -> Result<Option<String>, DaemonError> {
     })
 }
 
-/// Polls the link until it is up again or `timeout_s` passes.
-pub fn wait_for_link(link: &dyn Link, clock: &dyn Clock, timeout_s: f64) -> bool {
-    let deadline = clock.now() + Duration::from_secs_f64(timeout_s);
+/// Polls the link until it is up again or `timeout` passes.
+pub fn wait_for_link(link: &dyn Link, clock: &dyn Clock, timeout: Duration) -> bool {
+    let deadline = clock.now() + timeout;
     while !link.is_up() {
         if clock.now() >= deadline {
             return false;

@@ -315,7 +315,7 @@ fn resume_once(
     whole: &Trajectory,
     report: &StreamReport,
 ) -> Resumed {
-    let timeout = Duration::from_secs_f64(io.settings.config.stream.reconnect_timeout_s);
+    let timeout = io.settings.reconnect_timeout();
     let hold = match wait_for_hold(io.settings, io.link, io.clock, io.control, timeout) {
         Ok(hold) => hold,
         Err(error) => Hold::TimedOut(super::error_chain(&error)),
