@@ -39,11 +39,13 @@ pub enum ReplayError {
     #[error("the log records rig `{log}`, the run settings describe `{settings}`")]
     RigMismatch { log: String, settings: String },
     #[error(
-        "the log ({recorded_ms:.3} ms a command) replayed at {speed} x speed every {period_ms:.3} ms is refused"
+        "the log ({:.3} ms a command) replayed at {speed} x speed every {:.3} ms is refused",
+        recorded.as_secs_f64() * 1e3,
+        period.as_secs_f64() * 1e3
     )]
     Refused {
-        recorded_ms: f64,
-        period_ms: f64,
+        recorded: Duration,
+        period: Duration,
         speed: f64,
         #[source]
         source: TrajectoryError,
@@ -143,8 +145,8 @@ pub fn replay_trajectory(
     .map_err(crate::log::LogError::from)?;
     let period = settings.period();
     let refused = |source| ReplayError::Refused {
-        recorded_ms: recorded_period.as_secs_f64() * 1e3,
-        period_ms: period.as_secs_f64() * 1e3,
+        recorded: recorded_period,
+        period,
         speed,
         source,
     };
@@ -254,8 +256,8 @@ pub fn replay(
     };
     let approach_samples = trajectory.len() - replayed.trajectory.len();
     validate(&trajectory, &settings.rig).map_err(|source| ReplayError::Refused {
-        recorded_ms: replayed.recorded_period.as_secs_f64() * 1e3,
-        period_ms: settings.period().as_secs_f64() * 1e3,
+        recorded: replayed.recorded_period,
+        period: settings.period(),
         speed,
         source,
     })?;

@@ -91,8 +91,8 @@ pub enum ShapeProblem {
     Samples(Box<TrajectoryError>),
     #[error("the sampled trajectory is refused: {0}")]
     Refused(Box<TrajectoryError>),
-    #[error("{joint} accelerates beyond its limit at t = {t_s:.3} s")]
-    Accelerates { joint: String, t_s: f64 },
+    #[error("{joint} accelerates beyond its limit at t = {:.3} s", at.as_secs_f64())]
+    Accelerates { joint: String, at: Duration },
 }
 
 /// One row: its time (s) and its joint values in SI units (rad, m).
@@ -376,7 +376,7 @@ fn check_acceleration(rig: &Rig, trajectory: &Trajectory) -> Result<(), ShapePro
             if !joint.limits.second_difference_ok(second, dt) {
                 return Err(ShapeProblem::Accelerates {
                     joint: joint.name.clone(),
-                    t_s: k as f64 * dt,
+                    at: trajectory.period.mul_f64(k as f64),
                 });
             }
         }
