@@ -211,8 +211,9 @@ impl Trajectory {
 /// velocities' change `v[k+1] - v[k]` beyond max acceleration x period.
 pub fn validate(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {
     check_axes(trajectory, rig)?;
+    let dt = trajectory.period.as_secs_f64();
     for sample in 0..trajectory.len() {
-        check_sample(trajectory, rig, sample)?;
+        check_sample(trajectory, rig, sample, dt)?;
     }
     check_accelerations(trajectory, rig)
 }
@@ -238,9 +239,14 @@ fn check_axes(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError>
     Ok(())
 }
 
-/// Sample `sample` alone (and its step from the one before): finite, in limits, in speed.
-fn check_sample(trajectory: &Trajectory, rig: &Rig, sample: usize) -> Result<(), TrajectoryError> {
-    let dt = trajectory.period.as_secs_f64();
+/// Sample `sample` alone (and its step from the one before): finite, in limits, in speed
+/// (`dt`: the period in seconds).
+fn check_sample(
+    trajectory: &Trajectory,
+    rig: &Rig,
+    sample: usize,
+    dt: f64,
+) -> Result<(), TrajectoryError> {
     let positions = trajectory.position(sample);
     let velocities = trajectory.velocity(sample);
     let previous = (sample > 0).then(|| trajectory.position(sample - 1));
@@ -327,9 +333,13 @@ impl<'t> Neighbours<'t> {
 }
 
 /// Both accelerations of `axis` at `sample` (axis unit per second squared), from
-/// [`differences_at`].
-fn accelerations_at(trajectory: &Trajectory, sample: usize, axis: usize) -> [Option<f64>; 2] {
-    let dt = trajectory.period.as_secs_f64();
+/// [`differences_at`], over the period `dt` in seconds.
+fn accelerations_at(
+    trajectory: &Trajectory,
+    sample: usize,
+    axis: usize,
+    dt: f64,
+) -> [Option<f64>; 2] {
     let [second, change] = differences_at(trajectory, sample, axis);
     [second.map(|d| d / (dt * dt)), change.map(|d| d / dt)]
 }
@@ -381,10 +391,11 @@ pub struct PeakAcceleration {
 /// samples, or a standstill). The axes must match `rig`'s (as `validate` checks).
 pub fn peak_accelerations(trajectory: &Trajectory, rig: &Rig) -> Vec<Option<PeakAcceleration>> {
     let mut peaks = vec![None; rig.dof().min(trajectory.dof())];
+    let dt = trajectory.period.as_secs_f64();
     for sample in 1..trajectory.len() {
         for (axis, peak) in peaks.iter_mut().enumerate() {
             let max = rig.joints[axis].limits.max_acceleration;
-            for acceleration in accelerations_at(trajectory, sample, axis)
+            for acceleration in accelerations_at(trajectory, sample, axis, dt)
                 .into_iter()
                 .flatten()
             {
