@@ -26,7 +26,7 @@ fn frame_update(c: &mut Criterion) {
         ),
     ] {
         sloth.gait.solver = solver;
-        let walker = Walker::new(&sloth, &scenario, 0.004);
+        let walker = Walker::new(&sloth, &scenario, std::time::Duration::from_millis(4));
         let cycle = (sloth.gait.cycle_s() / 0.004).round() as usize;
         // Mid-stride in the second cycle: rh has just landed, lf is mid-swing.
         let mid_stride = 50 + cycle + cycle / 4 + cycle / 8;

@@ -17,7 +17,7 @@ fn planning(c: &mut Criterion) {
     let mut start = vec![0.0; 10];
     start[8] = 30f64.to_radians();
     let plan = PlanSettings {
-        period_s: 0.01,
+        period: std::time::Duration::from_millis(10),
         ..PlanSettings::default()
     };
     let mut group = c.benchmark_group("paint_plan");

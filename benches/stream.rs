@@ -34,13 +34,14 @@ const SLICES: usize = 6;
 const START: [f64; 6] = [0.0, 0.0, 0.0, 0.0, 0.5, 0.0];
 
 /// Every axis swinging gently (0.3 rad amplitude, 0.25 Hz) for `seconds`.
-fn swing(rig: &Rig, period: f64, seconds: f64) -> Trajectory {
-    let samples = (seconds / period).round() as usize + 1;
+fn swing(rig: &Rig, period: std::time::Duration, seconds: f64) -> Trajectory {
+    let dt = period.as_secs_f64();
+    let samples = (seconds / dt).round() as usize + 1;
     let mut positions = Vec::with_capacity(samples * 6);
     let mut velocities = Vec::with_capacity(samples * 6);
     let omega = std::f64::consts::TAU * 0.25;
     for i in 0..samples {
-        let t = i as f64 * period;
+        let t = i as f64 * dt;
         for start in START {
             let amplitude = 0.3 * (1.0 - (omega * t).cos()) / 2.0;
             positions.push(start + amplitude);
@@ -162,11 +163,11 @@ fn stream_once(
     seconds: f64,
     ros2: Option<&Subscriber>,
 ) -> (StreamReport, u64) {
-    let period = 1.0 / rate_hz;
+    let period = std::time::Duration::from_secs_f64(1.0 / rate_hz);
     let twin = Twin::new(
         rig,
         TwinSettings {
-            period_s: period,
+            period,
             ..TwinSettings::default()
         },
         &START,

@@ -21,7 +21,7 @@ fn main() -> anyhow::Result<()> {
         eprintln!("note: normal priority ({e})");
     }
     let settings = load_run_settings(std::path::Path::new("config/rigbridge.toml"))?;
-    let period = Duration::from_secs_f64(settings.period_s());
+    let period = settings.period();
     let axes = settings.config.egm.axes(&settings.file, &settings.rig)?;
     let mut link = bind_egm("127.0.0.1:0", axes.clone(), period)?;
     let model = EgmRobotModel::new(

@@ -28,7 +28,7 @@ fn fingerprint(plan: &PaintPlan) -> u64 {
         bits(&[band.s_m, band.v_from_m, band.v_to_m], &mut hasher);
     }
     let trajectory = &plan.trajectory;
-    bits(&[trajectory.period_s], &mut hasher);
+    bits(&[trajectory.period.as_secs_f64()], &mut hasher);
     for i in 0..trajectory.len() {
         bits(trajectory.position(i), &mut hasher);
         bits(trajectory.velocity(i), &mut hasher);
@@ -52,7 +52,7 @@ fn main() -> anyhow::Result<()> {
     let mut start = vec![0.0; 10];
     start[8] = 30f64.to_radians();
     let plan = PlanSettings {
-        period_s: 0.01,
+        period: std::time::Duration::from_millis(10),
         ..PlanSettings::default()
     };
     println!("walls seed samples strokes unreachable plan_s fingerprint");

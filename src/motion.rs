@@ -8,6 +8,7 @@
 //! validator; must not plan, stream or import anything but `rig`.
 
 use crate::rig::{JointKind, Rig};
+use std::time::Duration;
 use thiserror::Error;
 
 /// Relative slack on speed checks, for rounding only: the rig's [`crate::rig::LIMIT_SLACK`].
@@ -30,8 +31,8 @@ pub enum TrajectoryError {
     },
     #[error("trajectory data has {values} values, not a whole number of {dof}-axis samples")]
     Ragged { values: usize, dof: usize },
-    #[error("period {period_s} s must be positive and finite")]
-    BadPeriod { period_s: f64 },
+    #[error("period {} s must be positive", period.as_secs_f64())]
+    BadPeriod { period: Duration },
     #[error("time scale {speed} must be positive and finite")]
     BadTimeScale { speed: f64 },
     #[error(
@@ -110,7 +111,7 @@ fn acceleration_unit(joint: &crate::rig::Joint) -> &'static str {
 pub struct Trajectory {
     pub rig: String,
     pub joint_names: Vec<String>,
-    pub period_s: f64,
+    pub period: Duration,
     positions: Vec<f64>,
     velocities: Vec<f64>,
 }
@@ -119,13 +120,13 @@ impl Trajectory {
     pub fn new(
         rig: String,
         joint_names: Vec<String>,
-        period_s: f64,
+        period: Duration,
         positions: Vec<f64>,
         velocities: Vec<f64>,
     ) -> Result<Self, TrajectoryError> {
         let dof = joint_names.len();
-        if !(period_s.is_finite() && period_s > 0.0) {
-            return Err(TrajectoryError::BadPeriod { period_s });
+        if period.is_zero() {
+            return Err(TrajectoryError::BadPeriod { period });
         }
         for values in [&positions, &velocities] {
             if dof == 0 || values.len() % dof != 0 || values.len() != positions.len() {
@@ -138,7 +139,7 @@ impl Trajectory {
         Ok(Self {
             rig,
             joint_names,
-            period_s,
+            period,
             positions,
             velocities,
         })
@@ -166,8 +167,10 @@ impl Trajectory {
         &self.velocities[sample * dof..(sample + 1) * dof]
     }
 
+    /// Seconds from the first sample to the last, for maths and reports: samples x period
+    /// in f64, the value the reports' `duration_s` fields have always carried.
     pub fn duration_s(&self) -> f64 {
-        self.len().saturating_sub(1) as f64 * self.period_s
+        self.len().saturating_sub(1) as f64 * self.period.as_secs_f64()
     }
 
     /// Samples `from..` as a trajectory of their own (where a resumed job picks up).
@@ -177,7 +180,7 @@ impl Trajectory {
         Trajectory {
             rig: self.rig.clone(),
             joint_names: self.joint_names.clone(),
-            period_s: self.period_s,
+            period: self.period,
             positions: self.positions[from * dof..].to_vec(),
             velocities: self.velocities[from * dof..].to_vec(),
         }
@@ -202,8 +205,9 @@ impl Trajectory {
 /// velocities' change `v[k+1] - v[k]` beyond max acceleration x period.
 pub fn validate(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {
     check_axes(trajectory, rig)?;
+    let dt = trajectory.period.as_secs_f64();
     for sample in 0..trajectory.len() {
-        check_sample(trajectory, rig, sample)?;
+        check_sample(trajectory, rig, sample, dt)?;
     }
     check_accelerations(trajectory, rig)
 }
@@ -229,8 +233,14 @@ fn check_axes(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError>
     Ok(())
 }
 
-/// Sample `sample` alone (and its step from the one before): finite, in limits, in speed.
-fn check_sample(trajectory: &Trajectory, rig: &Rig, sample: usize) -> Result<(), TrajectoryError> {
+/// Sample `sample` alone (and its step from the one before): finite, in limits, in speed
+/// (`dt`: the period in seconds).
+fn check_sample(
+    trajectory: &Trajectory,
+    rig: &Rig,
+    sample: usize,
+    dt: f64,
+) -> Result<(), TrajectoryError> {
     let positions = trajectory.position(sample);
     let velocities = trajectory.velocity(sample);
     let previous = (sample > 0).then(|| trajectory.position(sample - 1));
@@ -264,12 +274,12 @@ fn check_sample(trajectory: &Trajectory, rig: &Rig, sample: usize) -> Result<(),
         }
         if let Some(previous) = previous {
             let step = value - previous[axis];
-            if !limits.step_ok(step, trajectory.period_s) {
+            if !limits.step_ok(step, dt) {
                 return Err(TrajectoryError::OverSpeed {
                     sample,
                     joint: joint.name.clone(),
                     step: step.abs(),
-                    max_step: limits.max_speed * trajectory.period_s,
+                    max_step: limits.max_speed * dt,
                 });
             }
         }
@@ -317,15 +327,19 @@ impl<'t> Neighbours<'t> {
 }
 
 /// Both accelerations of `axis` at `sample` (axis unit per second squared), from
-/// [`differences_at`].
-fn accelerations_at(trajectory: &Trajectory, sample: usize, axis: usize) -> [Option<f64>; 2] {
-    let dt = trajectory.period_s;
+/// [`differences_at`], over the period `dt` in seconds.
+fn accelerations_at(
+    trajectory: &Trajectory,
+    sample: usize,
+    axis: usize,
+    dt: f64,
+) -> [Option<f64>; 2] {
     let [second, change] = differences_at(trajectory, sample, axis);
     [second.map(|d| d / (dt * dt)), change.map(|d| d / dt)]
 }
 
 fn check_accelerations(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {
-    let dt = trajectory.period_s;
+    let dt = trajectory.period.as_secs_f64();
     for sample in 1..trajectory.len() {
         let neighbours = Neighbours::at(trajectory, sample);
         for (axis, joint) in rig.joints.iter().enumerate() {
@@ -371,10 +385,11 @@ pub struct PeakAcceleration {
 /// samples, or a standstill). The axes must match `rig`'s (as `validate` checks).
 pub fn peak_accelerations(trajectory: &Trajectory, rig: &Rig) -> Vec<Option<PeakAcceleration>> {
     let mut peaks = vec![None; rig.dof().min(trajectory.dof())];
+    let dt = trajectory.period.as_secs_f64();
     for sample in 1..trajectory.len() {
         for (axis, peak) in peaks.iter_mut().enumerate() {
             let max = rig.joints[axis].limits.max_acceleration;
-            for acceleration in accelerations_at(trajectory, sample, axis)
+            for acceleration in accelerations_at(trajectory, sample, axis, dt)
                 .into_iter()
                 .flatten()
             {

@@ -478,5 +478,5 @@ fn an_interface_down_mid_job_holds_the_twin_and_the_job_resumes() {
 
 /// The bridge's Hello for the IRB 120 at 250 Hz.
 fn irb_hello() -> rigbridge::protocol::Hello {
-    rigbridge::link::bridge_hello(&common::irb120(), 0.004, 25)
+    rigbridge::link::bridge_hello(&common::irb120(), std::time::Duration::from_millis(4), 25)
 }

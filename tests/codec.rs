@@ -1159,3 +1159,24 @@ fn targets_and_feedback_encode_and_decode_without_allocating() {
     assert_eq!(allocations() - before, 0);
     assert_eq!(delivered, 4000);
 }
+
+/// Issue 19: a Hello's `cycle_us` is the period in whole microseconds, rounded to the
+/// nearest, as `(period_s * 1e6).round()` gave it before periods were `Duration`s.
+#[test]
+fn a_hello_cycle_is_the_period_in_whole_microseconds() {
+    use rigbridge::protocol::cycle_us;
+    use std::time::Duration;
+    assert_eq!(cycle_us(Duration::from_millis(4)), 4000);
+    assert_eq!(cycle_us(Duration::from_millis(10)), 10_000);
+    assert_eq!(cycle_us(Duration::from_nanos(1_499)), 1);
+    assert_eq!(cycle_us(Duration::from_nanos(1_500)), 2);
+    for rate_hz in [1.0, 7.0, 100.0, 250.0, 300.0, 333.0, 1000.0] {
+        let period_s: f64 = 1.0 / rate_hz;
+        assert_eq!(
+            cycle_us(Duration::from_secs_f64(period_s)),
+            (period_s * 1e6).round() as u32,
+            "{rate_hz} Hz"
+        );
+    }
+    assert_eq!(cycle_us(Duration::MAX), u32::MAX);
+}

@@ -127,3 +127,43 @@ fn a_limit_beyond_the_wire_range_is_refused_when_the_rig_loads() {
         other => panic!("expected Invalid, got {other}"),
     }
 }
+
+/// Issue 19: the stream period is a `Duration`; for every shipped run settings file its
+/// seconds are bit for bit the `1 / rate_hz` the code used before, and the twin's delay
+/// and the reconnect timeout are the milliseconds and seconds the file says.
+#[test]
+fn the_shipped_periods_are_the_same_seconds_as_durations() {
+    for file in [
+        "config/rigbridge.toml",
+        "config/gait-run.toml",
+        "config/paint-run.toml",
+        "config/protocol-paint.toml",
+    ] {
+        let settings = rigbridge::daemon::config::load_run_settings(&repo_path(file))
+            .unwrap_or_else(|e| panic!("{e}"));
+        let stream = &settings.config.stream;
+        let period = settings.period();
+        assert_eq!(
+            period.as_secs_f64().to_bits(),
+            (1.0 / stream.rate_hz).to_bits(),
+            "{file}: {} Hz",
+            stream.rate_hz
+        );
+        assert_eq!(
+            period.as_nanos(),
+            (1e9 / stream.rate_hz) as u128,
+            "{file}: whole ns"
+        );
+        let delay_ms = settings.config.twin.delay_ms;
+        assert_eq!(
+            settings.twin_delay().as_secs_f64().to_bits(),
+            (delay_ms / 1000.0).to_bits(),
+            "{file}: delay {delay_ms} ms"
+        );
+        assert_eq!(
+            settings.reconnect_timeout().as_secs_f64(),
+            stream.reconnect_timeout_s,
+            "{file}"
+        );
+    }
+}

@@ -46,7 +46,7 @@ fn twin_bus_of(settings: &RunSettings, ids: &[u8]) -> TwinBus {
         .axes(&settings.file, &settings.rig)
         .expect("ticks");
     let twin = DynamixelTwinSettings {
-        period: Duration::from_secs_f64(settings.period_s()),
+        period: settings.period(),
         bandwidth_hz: settings.config.twin.bandwidth_hz,
     };
     let mut bus =

@@ -65,7 +65,7 @@ fn twin_towards_a_socket(
 /// The settings' job over an EGM link bound on loopback, against a twin started towards
 /// it, to its end; asserts it `completed`. The report, the stopped twin and the link.
 fn job_against_the_twin(settings: &RunSettings) -> (RunReport, EgmTwin, EgmLink) {
-    let period = Duration::from_secs_f64(settings.period_s());
+    let period = settings.period();
     let mut link = bind_egm("127.0.0.1:0", axes(settings), period).expect("bind");
     let control = Arc::new(EgmTwinControl::default());
     let twin = twin_towards(settings, link.local_address(), EgmTwinSettings::default());
@@ -127,7 +127,7 @@ fn bridge_streams_the_default_job_to_the_egm_twin_within_its_limits() {
 fn the_link_holds_until_motors_are_on_and_the_clock_follows_the_robot() {
     let _cycles = one_at_a_time();
     let settings = shipped_run_settings();
-    let period = Duration::from_secs_f64(settings.period_s());
+    let period = settings.period();
     let mut link = bind_egm("127.0.0.1:0", axes(&settings), period).expect("bind");
     let egm = EgmTwinSettings {
         motors_on: false,

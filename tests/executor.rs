@@ -140,10 +140,14 @@ impl CycleSink for Slow {
 const START: [f64; 6] = [0.0, 0.0, 0.0, 0.0, 0.5, 0.0];
 const PERIOD: f64 = 0.004;
 
+fn period() -> std::time::Duration {
+    std::time::Duration::from_secs_f64(PERIOD)
+}
+
 fn one_move(rig: &Rig, i: usize) -> Trajectory {
     let target: Vec<f64> = target_deg(i).iter().map(|d| d.to_radians()).collect();
     let settings = PlanSettings {
-        period_s: PERIOD,
+        period: period(),
         ..PlanSettings::default()
     };
     plan_joint_moves(rig, &START, &[target], &settings).unwrap()
@@ -158,14 +162,14 @@ fn stream_one(
     let twin = Twin::new(
         rig,
         TwinSettings {
-            period_s: PERIOD,
+            period: period(),
             ..TwinSettings::default()
         },
         &START,
     )
     .unwrap();
     let control = StreamControl::default();
-    let settings = StreamSettings::new(PERIOD, slowdown_rate(rig, 0.9, 0.8));
+    let settings = StreamSettings::new(period(), slowdown_rate(rig, 0.9, 0.8));
     let report = stream_shared(
         executor,
         &one_move(rig, i),

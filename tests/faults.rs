@@ -631,7 +631,7 @@ fn resume_latency_ms(
 
 fn check_run(run: &Run) -> Verdict {
     let settings = load_run_settings(&repo_path(run.job.config())).expect("job config loads");
-    let (rig, period) = (&settings.rig, settings.period_s());
+    let (rig, period) = (&settings.rig, settings.period().as_secs_f64());
     let mut verdict = Verdict::default();
     let expected = if run.job == JobKind::Paint {
         "stopped"

@@ -791,7 +791,7 @@ fn the_judge_fails_a_head_first_descent_seen_on_the_twin() {
     let settings = settings();
     let sloth = settings.sloth.clone().unwrap();
     let scenario = Scenario::build("straight", None, None).unwrap();
-    let plan = Walker::new(&sloth, &scenario, settings.period_s())
+    let plan = Walker::new(&sloth, &scenario, settings.period())
         .plan()
         .unwrap();
     let pitch = sloth

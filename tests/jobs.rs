@@ -272,7 +272,7 @@ fn follow_trajectory_passes_every_row_and_refuses_a_bad_file_without_quoting_it(
     std::fs::write(dir.join("job.toml"), config).unwrap();
     let settings = load_run_settings(&dir.join("job.toml")).unwrap();
     let trajectory = plan(&settings);
-    let period = trajectory.period_s;
+    let period = trajectory.period.as_secs_f64();
     // Already at the first row, so the file's time is the trajectory's (after the one-sample
     // move to where the rig is).
     for row in rows {

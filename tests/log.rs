@@ -240,14 +240,16 @@ fn commands_replay_as_a_trajectory_and_summarize() {
     assert_eq!(log.joint_names, names);
     assert_eq!(log.joint_kinds, Some(vec![JointKind::Revolute; 6]));
 
-    let trajectory = log.to_trajectory(PERIOD).unwrap();
+    let trajectory = log
+        .to_trajectory(std::time::Duration::from_secs_f64(PERIOD))
+        .unwrap();
     assert_eq!(trajectory.len(), 250);
     assert_eq!(
         trajectory.position(100),
         log.commands[100].positions.as_slice()
     );
     rigbridge::trajectory::validate(&trajectory, &rig).unwrap();
-    let wrong_period = log.to_trajectory(0.001);
+    let wrong_period = log.to_trajectory(std::time::Duration::from_millis(1));
     assert!(
         matches!(wrong_period, Err(RecordedError::Uneven { index: 1, .. })),
         "{wrong_period:?}"

@@ -308,7 +308,7 @@ fn stream_into(
     let twin = Twin::new(
         &settings.rig,
         TwinSettings {
-            period_s: trajectory.period_s,
+            period: trajectory.period,
             ..TwinSettings::default()
         },
         start,
@@ -323,7 +323,7 @@ fn stream_into(
         &VirtualClock::new(),
         &mut (),
         &StreamControl::default(),
-        &StreamSettings::new(trajectory.period_s, slowdown_rate(&settings.rig, 0.9, 0.8)),
+        &StreamSettings::new(trajectory.period, slowdown_rate(&settings.rig, 0.9, 0.8)),
     )
     .unwrap();
     assert_eq!(report.outcome, Outcome::Completed);
@@ -345,7 +345,7 @@ fn head(trajectory: &Trajectory, last: usize) -> Trajectory {
     Trajectory::new(
         trajectory.rig.clone(),
         trajectory.joint_names.clone(),
-        trajectory.period_s,
+        trajectory.period,
         positions,
         velocities,
     )
@@ -361,7 +361,7 @@ fn stroke_edges_are_straight_within_5_mm() {
     settings.config.coverage.cell_m = 0.002;
     let start = start_position();
     let plan = PlanSettings {
-        period_s: 0.01,
+        period: std::time::Duration::from_millis(10),
         ..PlanSettings::default()
     };
     let (room, planned) = plan_room(&settings, 5, 1, &start, &plan).unwrap();
@@ -417,7 +417,7 @@ fn the_brush_is_where_the_streamed_joints_put_it() {
     let settings = paint_settings();
     let start = start_position();
     let plan = PlanSettings {
-        period_s: 0.01,
+        period: std::time::Duration::from_millis(10),
         ..PlanSettings::default()
     };
     let (room, planned) = plan_room(&settings, 4, 2, &start, &plan).unwrap();
@@ -457,7 +457,7 @@ fn an_unreachable_stroke_is_reported_before_motion_and_planned_around() {
     settings.config.strokes.reach_m = 0.95;
     let start = start_position();
     let plan = PlanSettings {
-        period_s: 0.01,
+        period: std::time::Duration::from_millis(10),
         ..PlanSettings::default()
     };
     let outcome = plan_room(&settings, 3, 0, &start, &plan);
@@ -492,7 +492,7 @@ fn shipped_paint_configs_load_and_run_knows_the_job() {
     // `run` plans the same job through the job stage.
     let start = start_position();
     let plan = PlanSettings {
-        period_s: 0.01,
+        period: std::time::Duration::from_millis(10),
         ..PlanSettings::default()
     };
     let trajectory = rigbridge::job::plan_job(&run.config.job, &run.rig, &start, &plan).unwrap();
@@ -679,7 +679,7 @@ fn paint_does_not_depend_on_how_often_the_brush_is_seen() {
     let settings = paint_settings();
     let start = start_position();
     let plan = PlanSettings {
-        period_s: 0.01,
+        period: std::time::Duration::from_millis(10),
         ..PlanSettings::default()
     };
     let (room, planned) = plan_room(&settings, 4, 1, &start, &plan).unwrap();
@@ -760,7 +760,7 @@ fn assert_same_plan(a: &PaintPlan, b: &PaintPlan, what: &str) {
     assert_eq!(unreachable(a), unreachable(b), "{what}: unreachable");
     let (ta, tb) = (&a.trajectory, &b.trajectory);
     assert_eq!(ta.len(), tb.len(), "{what}: samples");
-    assert_eq!(ta.period_s.to_bits(), tb.period_s.to_bits());
+    assert_eq!(ta.period, tb.period);
     for i in 0..ta.len() {
         assert_eq!(
             bits(ta.position(i)),
@@ -783,7 +783,7 @@ fn the_plan_is_the_same_on_any_number_of_threads() {
     let settings = paint_settings();
     let start = start_position();
     let plan = PlanSettings {
-        period_s: 0.01,
+        period: std::time::Duration::from_millis(10),
         ..PlanSettings::default()
     };
     for (walls, seed) in [(8, 0), (3, 1)] {

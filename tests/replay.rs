@@ -251,3 +251,58 @@ fn a_replay_over_tcp_starts_where_the_twin_holds_and_completes() {
     }
     assert_within_limits(&replayed);
 }
+
+/// A log with `period_s` in its metadata and three commands 4 ms apart from the shipped
+/// settings' start.
+fn log_with_period(period_s: serde_json::Value) -> RunLog {
+    let start = vec![0.0, 0.0, 0.0, 0.0, 30f64.to_radians(), 0.0];
+    RunLog {
+        rig: "irb120".into(),
+        joint_names: irb120().joint_names().map(String::from).collect(),
+        joint_kinds: None,
+        metadata: serde_json::json!({ "start": start, "period_s": period_s }),
+        commands: (1..=3)
+            .map(|seq| rigbridge::log::LoggedSample {
+                seq,
+                t: f64::from(seq) * 0.004,
+                positions: start.clone(),
+                velocities: vec![0.0; 6],
+                late_us: None,
+            })
+            .collect(),
+        states: vec![],
+        events: vec![],
+        other_messages: 0,
+        truncated: false,
+        stopped: None,
+    }
+}
+
+/// Issue 19: the log's `period_s` is read once, as a time; one that is no positive period
+/// is refused naming the key and value (never a panic), and the recorded period comes back
+/// as the same seconds the log holds.
+#[test]
+fn a_log_period_that_is_no_time_is_refused_naming_key_and_value() {
+    use rigbridge::daemon::replay::replay_trajectory;
+    let settings =
+        rigbridge::daemon::config::load_run_settings(&repo_path("config/rigbridge.toml")).unwrap();
+    let replayed = replay_trajectory(&log_with_period(0.004.into()), &settings, 1.0).unwrap();
+    assert_eq!(
+        replayed.recorded_period,
+        std::time::Duration::from_millis(4)
+    );
+    assert_eq!(
+        replayed.recorded_period.as_secs_f64().to_bits(),
+        0.004f64.to_bits()
+    );
+    for (value, shown) in [(-0.004, "-0.004"), (0.0, "= 0 "), (1e300, "= 1000000000")] {
+        let error = replay_trajectory(&log_with_period(value.into()), &settings, 1.0)
+            .map(|_| ())
+            .unwrap_err();
+        let error = rigbridge::daemon::error_chain(&error);
+        assert!(
+            error.contains("`period_s`") && error.contains(shown),
+            "{value}: {error}"
+        );
+    }
+}

@@ -15,6 +15,10 @@ use rigbridge::trajectory::Trajectory;
 use rigbridge::twin::{Twin, TwinSettings};
 
 const PERIOD: f64 = 0.004;
+
+fn period() -> std::time::Duration {
+    std::time::Duration::from_secs_f64(PERIOD)
+}
 const START: [f64; 6] = [0.0, 0.0, 0.0, 0.0, 0.5, 0.0];
 
 /// Axis 1 from 0 to `distance` rad and back to rest on a smooth (cosine) speed profile.
@@ -33,7 +37,7 @@ fn sweep(rig: &Rig, distance: f64, samples: usize) -> Trajectory {
         velocities.extend_from_slice(&v);
     }
     let names = rig.joint_names().map(String::from).collect();
-    Trajectory::new(rig.name.clone(), names, PERIOD, positions, velocities).unwrap()
+    Trajectory::new(rig.name.clone(), names, period(), positions, velocities).unwrap()
 }
 
 fn link(rig: &Rig) -> LoopbackLink {
@@ -41,7 +45,7 @@ fn link(rig: &Rig) -> LoopbackLink {
 }
 
 fn settings(rig: &Rig) -> StreamSettings {
-    StreamSettings::new(PERIOD, slowdown_rate(rig, 0.9, 0.8))
+    StreamSettings::new(period(), slowdown_rate(rig, 0.9, 0.8))
 }
 
 /// `trajectory` streamed to a fresh twin at [`START`] under a fresh virtual clock.
@@ -263,7 +267,7 @@ fn reversed(rig: &Rig, trajectory: &Trajectory) -> Trajectory {
         velocities.extend(trajectory.velocity(i).iter().map(|v| -v));
     }
     let names = rig.joint_names().map(String::from).collect();
-    Trajectory::new(rig.name.clone(), names, PERIOD, positions, velocities).unwrap()
+    Trajectory::new(rig.name.clone(), names, period(), positions, velocities).unwrap()
 }
 
 #[test]

@@ -55,7 +55,14 @@ fn hold(samples: usize) -> Trajectory {
     let positions = START.repeat(samples);
     let velocities = vec![0.0; samples * 6];
     let names = rig.joint_names().map(String::from).collect();
-    Trajectory::new(rig.name, names, 0.004, positions, velocities).unwrap()
+    Trajectory::new(
+        rig.name,
+        names,
+        std::time::Duration::from_millis(4),
+        positions,
+        velocities,
+    )
+    .unwrap()
 }
 
 /// Streams `trajectory` over `link` into `sink` under the virtual clock, then drops the
@@ -69,7 +76,10 @@ fn stream_counting_allocations(
 ) -> (StreamReport, usize) {
     let clock = VirtualClock::new();
     let control = StreamControl::default();
-    let settings = StreamSettings::new(0.004, slowdown_rate(rig, 0.9, 0.8));
+    let settings = StreamSettings::new(
+        std::time::Duration::from_millis(4),
+        slowdown_rate(rig, 0.9, 0.8),
+    );
     let before = allocations();
     let report = stream(
         trajectory, rig, link, &clock, &mut sink, &control, &settings,

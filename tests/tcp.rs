@@ -63,8 +63,11 @@ fn noise(seed: u64) -> Vec<u8> {
 /// The bridge's Hello for the IRB 120 at 250 Hz as a frame on the wire.
 fn hello_frame() -> Vec<u8> {
     let mut hello = vec![0];
-    let message =
-        rigbridge::protocol::Message::Hello(rigbridge::link::bridge_hello(&irb120(), PERIOD, 25));
+    let message = rigbridge::protocol::Message::Hello(rigbridge::link::bridge_hello(
+        &irb120(),
+        std::time::Duration::from_secs_f64(PERIOD),
+        25,
+    ));
     rigbridge::protocol::encode_frame(&message, &mut hello).unwrap();
     hello
 }

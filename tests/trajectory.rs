@@ -39,7 +39,7 @@ fn random_in_limits(rig: &Rig, rng: &mut ChaCha8Rng) -> Vec<f64> {
 /// Largest |velocity| and |second difference / period^2| per axis, over the whole trajectory.
 fn peak_velocity_and_acceleration(trajectory: &Trajectory) -> (Vec<f64>, Vec<f64>) {
     let dof = trajectory.dof();
-    let dt = trajectory.period_s;
+    let dt = trajectory.period.as_secs_f64();
     let mut velocity = vec![0.0f64; dof];
     let mut acceleration = vec![0.0f64; dof];
     for k in 0..trajectory.len() {
@@ -93,7 +93,7 @@ fn joint_moves_pass_exactly_through_random_waypoints_within_the_scaled_limits() 
         let trajectory = plan_joint_moves(&rig, &start, &waypoints, &settings).unwrap();
         let planning = began.elapsed();
         validate(&trajectory, &rig).unwrap();
-        assert_eq!(trajectory.period_s, settings.period_s);
+        assert_eq!(trajectory.period, settings.period);
         assert_eq!(trajectory.position(0), start.as_slice());
         assert_eq!(
             trajectory.position(trajectory.len() - 1),
@@ -422,7 +422,7 @@ proptest! {
                             "sample {k}: {} = {q}", joint.name);
                         if k > 0 {
                             let step = (q - trajectory.position(k - 1)[axis]).abs();
-                            let max_step = joint.limits.max_speed * trajectory.period_s;
+                            let max_step = joint.limits.max_speed * trajectory.period.as_secs_f64();
                             prop_assert!(step <= max_step, "sample {k}: {} steps {step} > {max_step}", joint.name);
                         }
                     }

@@ -10,6 +10,7 @@ use glam::{DAffine3, DVec3};
 use proptest::prelude::*;
 use rigbridge::rig::{Joint, JointKind, JointLimits, Rig};
 use rigbridge::trajectory::{Trajectory, TrajectoryError, validate};
+use std::time::Duration;
 
 fn independently_safe(trajectory: &Trajectory) -> bool {
     let rig = irb120();
@@ -17,7 +18,7 @@ fn independently_safe(trajectory: &Trajectory) -> bool {
         let q = trajectory.position(i);
         rig.joints.iter().enumerate().all(|(axis, joint)| {
             let inside = q[axis] >= joint.limits.lower && q[axis] <= joint.limits.upper;
-            let dt = trajectory.period_s;
+            let dt = trajectory.period.as_secs_f64();
             let slow = i == 0
                 || (q[axis] - trajectory.position(i - 1)[axis]).abs()
                     <= joint.limits.max_speed * dt * (1.0 + 1e-9);
@@ -61,7 +62,7 @@ proptest! {
         }
         let velocities = vec![0.0; positions.len()];
         let names = rig.joint_names().map(String::from).collect();
-        let trajectory = Trajectory::new(rig.name.clone(), names, period, positions, velocities).unwrap();
+        let trajectory = Trajectory::new(rig.name.clone(), names, Duration::from_secs_f64(period), positions, velocities).unwrap();
         if validate(&trajectory, &rig).is_ok() {
             prop_assert!(independently_safe(&trajectory));
         }
@@ -79,7 +80,7 @@ fn a_step_just_over_max_speed_is_refused() {
         Trajectory::new(
             rig.name.clone(),
             names.clone(),
-            0.004,
+            Duration::from_millis(4),
             positions,
             vec![0.0; 12],
         )
@@ -117,7 +118,7 @@ fn on_slide(positions: &[f64], velocities: &[f64]) -> Trajectory {
     Trajectory::new(
         "slide".into(),
         vec!["carriage".into()],
-        0.004,
+        Duration::from_millis(4),
         positions.to_vec(),
         velocities.to_vec(),
     )
@@ -214,8 +215,14 @@ fn a_revolute_axis_over_its_acceleration_is_refused_in_rad_per_s2() {
     let mut positions = vec![0.0; 18];
     positions[12] = 3e-4;
     let names = rig.joint_names().map(String::from).collect();
-    let trajectory =
-        Trajectory::new(rig.name.clone(), names, 0.004, positions, vec![0.0; 18]).unwrap();
+    let trajectory = Trajectory::new(
+        rig.name.clone(),
+        names,
+        Duration::from_millis(4),
+        positions,
+        vec![0.0; 18],
+    )
+    .unwrap();
     let error = validate(&trajectory, &rig).unwrap_err();
     assert!(
         matches!(error, TrajectoryError::OverAcceleration { sample: 1, ref joint, acceleration, unit: "rad/s^2", .. }

@@ -11,7 +11,6 @@ use rigbridge::twin::server::ControllerPort;
 use std::process::ExitCode;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Duration;
 
 /// Serves drives `nodes` (default 1, 2, ...) on `interface` until `stop`.
 pub fn canopen_twin(
@@ -27,7 +26,7 @@ pub fn canopen_twin(
         .canopen
         .axes(&settings.file, &settings.rig, counts_per_turn)?;
     let twin = CanopenTwinSettings {
-        period: Duration::from_secs_f64(settings.period_s()),
+        period: settings.period(),
         bandwidth_hz: settings.config.twin.bandwidth_hz,
     };
     let mut bus = CanopenBus::new(&settings.rig, &nodes, &counts, &settings.initial(), twin)?;

@@ -12,7 +12,6 @@ use rigbridge::twin::server::ControllerPort;
 use std::process::ExitCode;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Duration;
 
 /// Serves the bus on `serial` (path, baud), or on a new pty when `None`.
 pub fn dynamixel_twin(
@@ -27,7 +26,7 @@ pub fn dynamixel_twin(
         .dynamixel
         .axes(&settings.file, &settings.rig)?;
     let twin = DynamixelTwinSettings {
-        period: Duration::from_secs_f64(settings.period_s()),
+        period: settings.period(),
         bandwidth_hz: settings.config.twin.bandwidth_hz,
     };
     let mut bus = DynamixelBus::new(&settings.rig, &ids, &ticks, &settings.initial(), twin)?;

@@ -181,7 +181,7 @@ fn protocol_twin(
     let counters = serve_twin(
         &mut twin,
         port.as_mut(),
-        Duration::from_secs_f64(settings.period_s()),
+        settings.period(),
         &WallClock::new(),
         &stop,
     );
@@ -260,7 +260,7 @@ fn egm_twin(
         .parse()
         .with_context(|| format!("--egm needs udp://ADDR:PORT, got {sensor}"))?;
     let egm = EgmTwinSettings {
-        period: Duration::from_secs_f64(settings.period_s()),
+        period: settings.period(),
         comm_timeout: Duration::from_millis(args.comm_timeout_ms),
         gain_per_s: std::f64::consts::TAU * settings.config.twin.bandwidth_hz,
         max_speed_deviation: args.max_speed_deviation_deg_s.to_radians(),

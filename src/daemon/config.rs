@@ -7,6 +7,7 @@ use crate::protocol::{CanMapping, CanSender};
 use crate::rig::{ConfigError, Rig, check_range, load_rig};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -762,14 +763,33 @@ pub struct RunSettings {
 }
 
 impl RunSettings {
-    pub fn period_s(&self) -> f64 {
-        1.0 / self.config.stream.rate_hz
+    /// The stream period, `1 / stream.rate_hz` to the nanosecond.
+    pub fn period(&self) -> Duration {
+        loaded_seconds(1.0 / self.config.stream.rate_hz)
+    }
+
+    /// `[twin] delay_ms` as a time.
+    pub fn twin_delay(&self) -> Duration {
+        loaded_seconds(self.config.twin.delay_ms / 1000.0)
+    }
+
+    /// `[stream] reconnect_timeout_s` as a time.
+    pub fn reconnect_timeout(&self) -> Duration {
+        loaded_seconds(self.config.stream.reconnect_timeout_s)
     }
 
     /// The twin's initial position: degrees for revolute axes, metres for prismatic ones.
     pub fn initial(&self) -> Vec<f64> {
         to_si(&self.config.twin.initial_deg, &self.rig)
     }
+}
+
+/// Seconds from a loaded file as a time. Loading refused what is negative, not finite or
+/// out of range, naming the file, key and value (`check_range`); a settings value built by
+/// hand past that check becomes zero rather than a panic, and zero is no period any
+/// consumer takes (`Trajectory::new` refuses it).
+fn loaded_seconds(seconds: f64) -> Duration {
+    Duration::try_from_secs_f64(seconds).unwrap_or(Duration::ZERO)
 }
 
 /// The axis maps of `[dynamixel]`, `[canopen]` and `[egm]`: the keys given are checked, and

@@ -36,10 +36,10 @@ pub fn run_gait(
             settings.file.display()
         ))
     })?;
-    let (plan, trajectory) = plan_gait(&sloth, scenario, settings.period_s())?;
+    let (plan, trajectory) = plan_gait(&sloth, scenario, settings.period())?;
     let start = trajectory.position(0).to_vec();
     let twin = twin_settings(settings);
-    let lag_frames = (twin.delay_s / twin.period_s).round() as usize;
+    let lag_frames = (twin.delay.as_secs_f64() / twin.period.as_secs_f64()).round() as usize;
     let world = Arc::new(Mutex::new(GaitWorld::new(
         &sloth, scenario, &plan, lag_frames,
     )));

@@ -109,16 +109,16 @@ impl LogReport {
 pub fn twin_settings(settings: &RunSettings) -> TwinSettings {
     let twin = &settings.config.twin;
     TwinSettings {
-        period_s: settings.period_s(),
+        period: settings.period(),
         bandwidth_hz: twin.bandwidth_hz,
-        delay_s: twin.delay_ms / 1000.0,
+        delay: settings.twin_delay(),
         watchdog_cycles: twin.watchdog_cycles,
     }
 }
 
 pub fn plan_settings(settings: &RunSettings) -> PlanSettings {
     PlanSettings {
-        period_s: settings.period_s(),
+        period: settings.period(),
         speed_scale: settings.config.plan.speed_scale,
         accel_scale: settings.config.plan.accel_scale,
         ..PlanSettings::default()
@@ -127,7 +127,7 @@ pub fn plan_settings(settings: &RunSettings) -> PlanSettings {
 
 pub fn stream_settings(settings: &RunSettings) -> StreamSettings {
     let mut streaming = StreamSettings::new(
-        settings.period_s(),
+        settings.period(),
         slowdown_rate(
             &settings.rig,
             settings.config.plan.speed_scale,
@@ -149,7 +149,7 @@ pub fn stream_settings(settings: &RunSettings) -> StreamSettings {
 pub fn bridge_hello(settings: &RunSettings) -> crate::protocol::Hello {
     crate::link::bridge_hello(
         &settings.rig,
-        settings.period_s(),
+        settings.period(),
         settings.config.twin.watchdog_cycles,
     )
 }
@@ -168,12 +168,12 @@ pub fn open_link(
     settings: &RunSettings,
 ) -> Result<Box<dyn Link>, DaemonError> {
     let link = connect_link(spec, settings)?;
-    let mut timeout_s = settings.config.stream.reconnect_timeout_s;
+    let mut timeout = settings.reconnect_timeout();
     // CANopen drives are set up over SDO before the session starts.
     if let crate::link::LinkSpec::Canopen { .. } = spec {
-        timeout_s += crate::link::SETUP_PATIENCE.as_secs_f64();
+        timeout += crate::link::SETUP_PATIENCE;
     }
-    wait_for_link(link.as_ref(), &crate::clock::WallClock::new(), timeout_s);
+    wait_for_link(link.as_ref(), &crate::clock::WallClock::new(), timeout);
     Ok(link)
 }
 
@@ -233,7 +233,7 @@ fn connect_link(
             *counts_per_turn,
         )?)?),
         LinkSpec::Egm { address } => {
-            let period = Duration::from_secs_f64(settings.period_s());
+            let period = settings.period();
             let axes = settings
                 .config
                 .egm
@@ -265,7 +265,7 @@ pub fn dynamixel_settings(
             "{} Hz does not fit a Dynamixel bus of {} servos at {baud} baud: one cycle takes up to {:.2} ms, {:.0} Hz at most (docs/dynamixel.md)",
             settings.config.stream.rate_hz,
             ids.len(),
-            budget.cycle_s * 1e3,
+            budget.cycle.as_secs_f64() * 1e3,
             budget.max_rate_hz
         )));
     }
@@ -274,7 +274,7 @@ pub fn dynamixel_settings(
         ids: ids.to_vec(),
         axes,
         limits: axis_limits(rig),
-        cycle_timeout: Duration::from_secs_f64(settings.period_s()),
+        cycle_timeout: settings.period(),
     })
 }
 
@@ -299,7 +299,7 @@ pub fn canopen_settings(
         nodes: nodes.to_vec(),
         axes,
         limits: axis_limits(rig),
-        period: Duration::from_secs_f64(settings.period_s()),
+        period: settings.period(),
         heartbeat_ms,
     })
 }
@@ -321,7 +321,7 @@ pub fn held_position(
     control: &StreamControl,
 ) -> Result<Vec<f64>, DaemonError> {
     if let Some(hello) = link.controller_hello() {
-        crate::stream::check_controller(&hello, &settings.rig, settings.period_s())
+        crate::stream::check_controller(&hello, &settings.rig, settings.period())
             .map_err(StreamError::from)?;
     }
     match resume::wait_for_hold(settings, link, clock, control, resume::START_HOLD_TIMEOUT)? {
@@ -495,7 +495,7 @@ fn job_metadata(settings: &RunSettings, job: &JobToStream<'_>, link: String) -> 
         "job": job.description,
         "config": settings.file.display().to_string(),
         "rate_hz": settings.config.stream.rate_hz,
-        "period_s": settings.period_s(),
+        "period_s": settings.period().as_secs_f64(),
         "start": job.start,
         "link": link,
     })
@@ -514,7 +514,7 @@ fn stream_recorded(
     if let Some(actions) = actions {
         actions.open(recorder);
     }
-    let mut recording = RecorderSink::new(recorder, io.settings.period_s());
+    let mut recording = RecorderSink::new(recorder, io.settings.period());
     let mut sink = recording::BothSinks(&mut recording, io.sink);
     let io = resume::Streaming {
         settings: io.settings,
@@ -604,9 +604,9 @@ fn rig_urdf(settings: &RunSettings) -> Result<Option<String>, DaemonError> {
     })
 }
 
-/// Polls the link until it is up again or `timeout_s` passes.
-pub fn wait_for_link(link: &dyn Link, clock: &dyn Clock, timeout_s: f64) -> bool {
-    let deadline = clock.now() + Duration::from_secs_f64(timeout_s);
+/// Polls the link until it is up again or `timeout` passes.
+pub fn wait_for_link(link: &dyn Link, clock: &dyn Clock, timeout: Duration) -> bool {
+    let deadline = clock.now() + timeout;
     while !link.is_up() {
         if clock.now() >= deadline {
             return false;

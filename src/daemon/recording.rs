@@ -8,18 +8,19 @@ use crate::log::{EventSender, LogRecord, Recorder};
 use crate::protocol::AxisValues;
 use crate::stream::{CycleRecord, CycleSink};
 use std::sync::{Mutex, PoisonError};
+use std::time::Duration;
 
 pub struct RecorderSink<'a> {
     recorder: &'a Recorder,
-    period_s: f64,
+    period: Duration,
     previous_actual: Option<AxisValues>,
 }
 
 impl<'a> RecorderSink<'a> {
-    pub fn new(recorder: &'a Recorder, period_s: f64) -> Self {
+    pub fn new(recorder: &'a Recorder, period: Duration) -> Self {
         Self {
             recorder,
-            period_s,
+            period,
             previous_actual: None,
         }
     }
@@ -28,13 +29,14 @@ impl<'a> RecorderSink<'a> {
     fn estimated_velocity(&self, actual: &AxisValues) -> AxisValues {
         let mut velocity = AxisValues::zeros(actual.len());
         if let Some(previous) = &self.previous_actual {
+            let dt = self.period.as_secs_f64();
             for ((v, now), before) in velocity
                 .as_mut_slice()
                 .iter_mut()
                 .zip(actual.as_slice())
                 .zip(previous.as_slice())
             {
-                *v = (now - before) / self.period_s;
+                *v = (now - before) / dt;
             }
         }
         velocity

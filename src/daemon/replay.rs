@@ -19,6 +19,7 @@ use crate::trajectory::{
 use serde::Serialize;
 use std::collections::HashMap;
 use std::path::Path;
+use std::time::Duration;
 use thiserror::Error;
 
 /// The held position counts as the recorded start when every axis is this share of
@@ -34,14 +35,18 @@ pub enum ReplayError {
         "the log's metadata has no start position or period (was it written by `rigbridge run`?)"
     )]
     NoMetadata,
+    #[error("the log's metadata key `period_s` = {value} is not a positive period in seconds")]
+    BadPeriod { value: f64 },
     #[error("the log records rig `{log}`, the run settings describe `{settings}`")]
     RigMismatch { log: String, settings: String },
     #[error(
-        "the log ({recorded_ms:.3} ms a command) replayed at {speed} x speed every {period_ms:.3} ms is refused"
+        "the log ({:.3} ms a command) replayed at {speed} x speed every {:.3} ms is refused",
+        recorded.as_secs_f64() * 1e3,
+        period.as_secs_f64() * 1e3
     )]
     Refused {
-        recorded_ms: f64,
-        period_ms: f64,
+        recorded: Duration,
+        period: Duration,
         speed: f64,
         #[source]
         source: TrajectoryError,
@@ -78,7 +83,7 @@ pub struct ReplayReport {
 #[derive(Debug, Clone)]
 pub struct Replayed {
     pub trajectory: Trajectory,
-    pub recorded_period_s: f64,
+    pub recorded_period: Duration,
     pub resampled: bool,
     pub stop_ramp_samples: usize,
     /// The seq the recording gave its trajectory's sample 0 (its first command's, less 1).
@@ -86,7 +91,7 @@ pub struct Replayed {
 }
 
 /// Where the recorded run started and its period, from the log's metadata.
-fn recorded_start(log: &RunLog) -> Result<(Vec<f64>, f64), ReplayError> {
+fn recorded_start(log: &RunLog) -> Result<(Vec<f64>, Duration), ReplayError> {
     let start: Option<Vec<f64>> = log
         .metadata
         .get("start")
@@ -96,7 +101,12 @@ fn recorded_start(log: &RunLog) -> Result<(Vec<f64>, f64), ReplayError> {
         .get("period_s")
         .and_then(serde_json::Value::as_f64);
     match (start, period) {
-        (Some(start), Some(period)) if start.len() == log.joint_names.len() => Ok((start, period)),
+        (Some(start), Some(value)) if start.len() == log.joint_names.len() => {
+            match Duration::try_from_secs_f64(value) {
+                Ok(period) if !period.is_zero() => Ok((start, period)),
+                _ => Err(ReplayError::BadPeriod { value }),
+            }
+        }
         _ => Err(ReplayError::NoMetadata),
     }
 }
@@ -134,10 +144,10 @@ pub fn replay_trajectory(
         velocities,
     )
     .map_err(RecordedError::from)?;
-    let period = settings.period_s();
+    let period = settings.period();
     let refused = |source| ReplayError::Refused {
-        recorded_ms: recorded_period * 1e3,
-        period_ms: period * 1e3,
+        recorded: recorded_period,
+        period,
         speed,
         source,
     };
@@ -151,7 +161,7 @@ pub fn replay_trajectory(
         && (0..recorded.len()).all(|k| resampled.position(k) == recorded.position(k));
     Ok(Replayed {
         trajectory,
-        recorded_period_s: recorded_period,
+        recorded_period,
         resampled: !verbatim,
         stop_ramp_samples: ramp,
         recorded_first_seq: log.commands.first().map_or(0, |c| c.seq.wrapping_sub(1)),
@@ -164,7 +174,7 @@ fn approach(
     held: &[f64],
     first: &[f64],
 ) -> Result<Option<Trajectory>, ReplayError> {
-    let dt = settings.period_s();
+    let dt = settings.period().as_secs_f64();
     let same = settings
         .rig
         .joints
@@ -247,8 +257,8 @@ pub fn replay(
     };
     let approach_samples = trajectory.len() - replayed.trajectory.len();
     validate(&trajectory, &settings.rig).map_err(|source| ReplayError::Refused {
-        recorded_ms: replayed.recorded_period_s * 1e3,
-        period_ms: settings.period_s() * 1e3,
+        recorded: replayed.recorded_period,
+        period: settings.period(),
         speed,
         source,
     })?;
@@ -269,7 +279,7 @@ pub fn replay(
         description: serde_json::json!({
             "kind": "replay",
             "speed": speed,
-            "recorded_period_s": replayed.recorded_period_s,
+            "recorded_period_s": replayed.recorded_period.as_secs_f64(),
             "recorded_job": log.metadata.get("job"),
         }),
         start: &held,
@@ -293,7 +303,7 @@ pub fn replay(
     Ok(ReplayReport {
         speed,
         recorded_commands: log.commands.len(),
-        recorded_period_s: replayed.recorded_period_s,
+        recorded_period_s: replayed.recorded_period.as_secs_f64(),
         resampled: replayed.resampled,
         approach_samples,
         stop_ramp_samples: replayed.stop_ramp_samples,

@@ -49,7 +49,7 @@ pub fn wait_for_hold(
     control: &StreamControl,
     timeout: Duration,
 ) -> Result<Hold, DaemonError> {
-    let period = Duration::from_secs_f64(settings.period_s());
+    let period = settings.period();
     let deadline = clock.now() + timeout;
     let mut stopped_session = None;
     let mut previous: Option<Feedback> = None;
@@ -170,7 +170,7 @@ fn at_rest(settings: &RunSettings, before: &Feedback, now: &Feedback) -> bool {
             .zip(before.positions.as_slice())
             .zip(now.positions.as_slice())
             .all(|((joint, a), b)| {
-                let dt = settings.period_s();
+                let dt = settings.period().as_secs_f64();
                 (a - b).abs() <= AT_REST_SHARE * joint.limits.max_acceleration * dt * dt
             })
 }
@@ -315,7 +315,7 @@ fn resume_once(
     whole: &Trajectory,
     report: &StreamReport,
 ) -> Resumed {
-    let timeout = Duration::from_secs_f64(io.settings.config.stream.reconnect_timeout_s);
+    let timeout = io.settings.reconnect_timeout();
     let hold = match wait_for_hold(io.settings, io.link, io.clock, io.control, timeout) {
         Ok(hold) => hold,
         Err(error) => Hold::TimedOut(super::error_chain(&error)),
@@ -332,7 +332,7 @@ fn resume_once(
         return Resumed::Ended(ended);
     };
     if let Some(hello) = io.link.controller_hello()
-        && let Err(error) = check_controller(&hello, &io.settings.rig, io.settings.period_s())
+        && let Err(error) = check_controller(&hello, &io.settings.rig, io.settings.period())
     {
         let mut ended = report.clone();
         ended.outcome = Outcome::Refused;

@@ -57,7 +57,7 @@ pub enum CartesianError {
 /// the previous sample's joints. The joint path through them is timed with the fastest
 /// speed profile that keeps every axis within its max speed x `speed_scale` and max
 /// acceleration x `accel_scale` (forward and backward passes over the path, at rest at both
-/// ends; acceleration-limited, not jerk-limited), then sampled every `settings.period_s`.
+/// ends; acceleration-limited, not jerk-limited), then sampled every `settings.period`.
 /// Every output sample is solved again on the line itself, so the tool never leaves the
 /// line by more than the solver's tolerance. Velocities are the profile's.
 ///
@@ -106,7 +106,7 @@ pub fn plan_cartesian(
         }
         from = to;
     }
-    Ok(samples.finish(rig, settings.period_s)?)
+    Ok(samples.finish(rig, settings.period)?)
 }
 
 /// The tool pose at `start` (whose axis count `check_start` has already confirmed).

@@ -13,6 +13,7 @@ use crate::trajectory::{Trajectory, TrajectoryError, plan_joint_moves, validate}
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 use thiserror::Error;
 
 /// Most rows a trajectory file may hold: over an hour at 50 rows a second, and a bounded
@@ -90,8 +91,8 @@ pub enum ShapeProblem {
     Samples(Box<TrajectoryError>),
     #[error("the sampled trajectory is refused: {0}")]
     Refused(Box<TrajectoryError>),
-    #[error("{joint} accelerates beyond its limit at t = {t_s:.3} s")]
-    Accelerates { joint: String, t_s: f64 },
+    #[error("{joint} accelerates beyond its limit at t = {:.3} s", at.as_secs_f64())]
+    Accelerates { joint: String, at: Duration },
 }
 
 /// One row: its time (s) and its joint values in SI units (rad, m).
@@ -151,7 +152,7 @@ impl FollowTrajectory {
             std::slice::from_ref(&rows[0].1),
             settings,
         )?;
-        let followed = sample_rows(rig, &rows, settings.period_s)
+        let followed = sample_rows(rig, &rows, settings.period)
             .map_err(|e| self.shape(ShapeProblem::Samples(Box::new(e))))?;
         validate(&followed, rig).map_err(|e| self.shape(ShapeProblem::Refused(Box::new(e))))?;
         check_acceleration(rig, &followed).map_err(|reason| self.shape(reason))?;
@@ -303,11 +304,13 @@ fn check_row(values: &[f64], rig: &Rig, previous: Option<f64>) -> Result<Row, Ro
     Ok((t, si))
 }
 
-/// The rows sampled every `period_s`: a cubic Hermite piece between consecutive rows, its
+/// The rows sampled every `period`: a cubic Hermite piece between consecutive rows, its
 /// tangents the slope over the rows either side (zero at the first and last row, so the
 /// trajectory starts and ends at rest). The last row is the last sample, exactly.
-fn sample_rows(rig: &Rig, rows: &[Row], period_s: f64) -> Result<Trajectory, TrajectoryError> {
+fn sample_rows(rig: &Rig, rows: &[Row], period: Duration) -> Result<Trajectory, TrajectoryError> {
     let dof = rig.dof();
+    // The rows' times are seconds from the file: the sampling is maths in seconds.
+    let period_s = period.as_secs_f64();
     let tangent = |k: usize| -> Vec<f64> {
         if k == 0 || k + 1 == rows.len() {
             return vec![0.0; dof];
@@ -340,7 +343,7 @@ fn sample_rows(rig: &Rig, rows: &[Row], period_s: f64) -> Result<Trajectory, Tra
     Trajectory::new(
         rig.name.clone(),
         rig.joint_names().map(str::to_owned).collect(),
-        period_s,
+        period,
         positions,
         velocities,
     )
@@ -366,16 +369,14 @@ fn hermite(p0: f64, p1: f64, m0: f64, m1: f64, s: f64) -> (f64, f64) {
 fn check_acceleration(rig: &Rig, trajectory: &Trajectory) -> Result<(), ShapeProblem> {
     let n = trajectory.len();
     let at = |k: isize| trajectory.position(k.clamp(0, n as isize - 1) as usize);
+    let dt = trajectory.period.as_secs_f64();
     for k in 0..n as isize {
         for (axis, joint) in rig.joints.iter().enumerate() {
             let second = at(k + 1)[axis] - 2.0 * at(k)[axis] + at(k - 1)[axis];
-            if !joint
-                .limits
-                .second_difference_ok(second, trajectory.period_s)
-            {
+            if !joint.limits.second_difference_ok(second, dt) {
                 return Err(ShapeProblem::Accelerates {
                     joint: joint.name.clone(),
-                    t_s: k as f64 * trajectory.period_s,
+                    at: trajectory.period.mul_f64(k as f64),
                 });
             }
         }

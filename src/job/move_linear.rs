@@ -105,5 +105,5 @@ pub fn top_tool_speed(rig: &Rig, trajectory: &Trajectory) -> f64 {
     (1..trajectory.len())
         .filter_map(|k| Some((tool(k).ok()? - tool(k - 1).ok()?).length()))
         .fold(0.0, f64::max)
-        / trajectory.period_s
+        / trajectory.period.as_secs_f64()
 }

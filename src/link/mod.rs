@@ -60,7 +60,11 @@ pub enum LinkEvent {
 
 /// The bridge's Hello for `rig` (docs/protocol.md 3.1): the rig it plans for, the cycle
 /// it streams at and the watchdog it expects.
-pub fn bridge_hello(rig: &crate::rig::Rig, period_s: f64, watchdog_cycles: u32) -> Hello {
+pub fn bridge_hello(
+    rig: &crate::rig::Rig,
+    period: std::time::Duration,
+    watchdog_cycles: u32,
+) -> Hello {
     Hello {
         axis_names: rig.joint_names().map(String::from).collect(),
         lower: rig.joints.iter().map(|j| j.limits.lower).collect(),
@@ -71,7 +75,7 @@ pub fn bridge_hello(rig: &crate::rig::Rig, period_s: f64, watchdog_cycles: u32) 
             .iter()
             .map(|j| j.limits.max_acceleration)
             .collect(),
-        cycle_us: (period_s * 1e6).round() as u32,
+        cycle_us: crate::protocol::cycle_us(period),
         watchdog_cycles,
         answer: false,
     }

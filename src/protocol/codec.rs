@@ -67,6 +67,11 @@ pub struct Hello {
     pub answer: bool,
 }
 
+/// `period` as a Hello's `cycle_us`: whole microseconds, rounded to the nearest.
+pub fn cycle_us(period: std::time::Duration) -> u32 {
+    u32::try_from((period.as_nanos() + 500) / 1000).unwrap_or(u32::MAX)
+}
+
 /// A controller's notice that it latched a fault, with its own words for it.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct FaultReport {

@@ -10,6 +10,7 @@
 //! (docs/dynamixel.md lists each with its source). It owns bytes only: it must not decide
 //! what to send or judge what a servo does.
 
+use std::time::Duration;
 use thiserror::Error;
 
 /// Every packet starts with these four bytes (Protocol 2.0: header FF FF FD, reserved 00).
@@ -338,7 +339,7 @@ impl AxisTicks {
 
 /// The serial line's load of one cycle with `servos` servos: a Sync Write of Goal Position
 /// (4 bytes each), a Sync Read of Present Position and one status packet per servo.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LineBudget {
     pub baud: u32,
     pub servos: usize,
@@ -347,8 +348,8 @@ pub struct LineBudget {
     /// Bytes with the most stuffing the values can cause: one FF FF FD pattern fits in a
     /// 4-byte position, and none in the ids, addresses, lengths and error bytes around it.
     pub worst_case_bytes: usize,
-    /// Time on the line for the worst case, plus each servo's return delay, s.
-    pub cycle_s: f64,
+    /// Time on the line for the worst case, plus each servo's return delay.
+    pub cycle: Duration,
     pub max_rate_hz: f64,
 }
 
@@ -369,7 +370,8 @@ pub fn line_budget(servos: usize, baud: u32, return_delay_us: f64) -> LineBudget
         servos,
         bytes,
         worst_case_bytes,
-        cycle_s,
+        // A line of 0 baud never ends a cycle: the longest time there is, and 0 Hz.
+        cycle: Duration::try_from_secs_f64(cycle_s).unwrap_or(Duration::MAX),
         max_rate_hz: 1.0 / cycle_s,
     }
 }
@@ -495,10 +497,10 @@ mod tests {
         let budget = line_budget(6, 1_000_000, 0.0);
         assert_eq!(budget.bytes, 154);
         assert_eq!(budget.worst_case_bytes, 166);
-        assert!((budget.cycle_s - 1.66e-3).abs() < 1e-12);
+        assert_eq!(budget.cycle, Duration::from_micros(1660));
         assert!((budget.max_rate_hz - 602.4).abs() < 0.1);
         let slow = line_budget(6, 1_000_000, 500.0);
-        assert!((slow.cycle_s - 4.66e-3).abs() < 1e-12);
+        assert_eq!(slow.cycle, Duration::from_micros(4660));
         // 57600 baud: 1660 bits / 57600 = 28.82 ms, 34.7 Hz.
         let factory = line_budget(6, 57_600, 0.0);
         assert!((factory.max_rate_hz - 57_600.0 / 1660.0).abs() < 1e-9);

@@ -13,7 +13,7 @@ pub mod egm;
 
 pub use can::{CanAssembler, CanCounters, CanMapping, CanPayload, CanSender, can_frames};
 pub use codec::{
-    DecodeError, DecoderCounters, EncodeError, FaultReport, FrameDecoder, Hello, Message,
+    DecodeError, DecoderCounters, EncodeError, FaultReport, FrameDecoder, Hello, Message, cycle_us,
     decode_body, encode_body, encode_frame,
 };
 

@@ -3,8 +3,9 @@
 //! least as high, and the same cycle, compared as the wire integers both sides see. It
 //! reads the controller's Hello only; it must not talk to the link.
 
-use crate::protocol::Hello;
+use crate::protocol::{Hello, cycle_us};
 use crate::rig::{JointKind, Rig};
+use std::time::Duration;
 use thiserror::Error;
 
 /// The first thing the controller's Hello does not admit, naming the axis (1-based in
@@ -41,7 +42,7 @@ fn wire(value: f64) -> i64 {
     (value * 1e6).round() as i64
 }
 
-pub fn check_controller(hello: &Hello, rig: &Rig, period_s: f64) -> Result<(), Incompatible> {
+pub fn check_controller(hello: &Hello, rig: &Rig, period: Duration) -> Result<(), Incompatible> {
     if hello.axis_names.len() != rig.dof() {
         return Err(Incompatible::AxisCount {
             rig: rig.name.clone(),
@@ -94,7 +95,7 @@ pub fn check_controller(hello: &Hello, rig: &Rig, period_s: f64) -> Result<(), I
             });
         }
     }
-    let bridge_us = (period_s * 1e6).round() as u32;
+    let bridge_us = cycle_us(period);
     if bridge_us != hello.cycle_us {
         return Err(Incompatible::Cycle {
             bridge_us,

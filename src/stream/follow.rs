@@ -87,7 +87,7 @@ pub(super) struct Follow {
 }
 
 impl Follow {
-    pub(super) fn new(rig: &Rig, settings: &StreamSettings, _period_s: f64) -> Self {
+    pub(super) fn new(rig: &Rig, settings: &StreamSettings) -> Self {
         Self {
             tolerances: settings.tolerances,
             names: rig.joint_names().map(String::from).collect(),

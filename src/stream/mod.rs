@@ -206,10 +206,10 @@ pub const STALL_CYCLES: u32 = 5;
 impl StreamSettings {
     /// Feedback awaited for half a period; the link counts as lost after 0.1 s of silence,
     /// and so does a controller whose echo stands still for as long.
-    pub fn new(period_s: f64, slowdown_rate_per_s: f64) -> Self {
-        let silent = (0.1 / period_s).ceil() as u32;
+    pub fn new(period: Duration, slowdown_rate_per_s: f64) -> Self {
+        let silent = (0.1 / period.as_secs_f64()).ceil() as u32;
         Self {
-            feedback_timeout: Duration::from_secs_f64(period_s / 2.0),
+            feedback_timeout: period / 2,
             max_silent_cycles: silent,
             first_seq: 0,
             start_scale: 1.0,
@@ -382,7 +382,7 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
             first_seq: newer_seq(settings.first_seq, echo),
             ..*settings
         };
-        let period = Duration::from_secs_f64(trajectory.period_s);
+        let period = trajectory.period;
         Ok(Run {
             cycle: Cycle::new(trajectory, rig, settings),
             trajectory,
@@ -416,7 +416,7 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
         let outcome = self.end.unwrap_or(Err(StreamError::ExecutorStopped))?;
         Ok(self.cycle.report(
             outcome,
-            self.trajectory.period_s,
+            self.trajectory.period,
             self.link.counters(),
             self.link.describe(),
         ))
@@ -426,7 +426,7 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
     /// anything is sent; otherwise events, the next target through the gate, and the send.
     /// True once the stream has ended.
     fn send_half(&mut self, late: Duration) -> bool {
-        self.cycle.record_wake(late, self.trajectory.period_s);
+        self.cycle.record_wake(late, self.period);
         // Checked before anything is sent: what was planned for the stalled cycles is stale.
         let result = if late > self.stall_after {
             self.link
@@ -609,7 +609,7 @@ fn check_start(
         });
     }
     if let Some(hello) = link.controller_hello() {
-        check_controller(&hello, rig, trajectory.period_s)?;
+        check_controller(&hello, rig, trajectory.period)?;
     }
     // Targets flow in this session only: a later one needs a new start from a hold.
     link.adopt_session();
@@ -629,13 +629,14 @@ fn check_start(
         return Err(StreamError::FaultAtStart(fault));
     }
     let first = trajectory.position(0);
+    let dt = trajectory.period.as_secs_f64();
     for ((joint, start), actual) in rig
         .joints
         .iter()
         .zip(first)
         .zip(feedback.positions.as_slice())
     {
-        if !joint.limits.step_ok(start - actual, trajectory.period_s) {
+        if !joint.limits.step_ok(start - actual, dt) {
             return Err(StreamError::StartMismatch {
                 joint: joint.name.clone(),
                 start: *start,
@@ -689,7 +690,7 @@ impl Cycle {
             max_silent_cycles: settings.max_silent_cycles,
             path: 0.0,
             scale: settings.start_scale.clamp(0.0, 1.0),
-            scale_step: settings.slowdown_rate_per_s * trajectory.period_s,
+            scale_step: settings.slowdown_rate_per_s * trajectory.period.as_secs_f64(),
             previous: None,
             before_previous: None,
             jitter: MicrosHistogram::new(HISTOGRAM_CEILING_US),
@@ -707,7 +708,7 @@ impl Cycle {
             fault: None,
             last_late_us: 0.0,
             feedback_timeout: settings.feedback_timeout,
-            follow: Follow::new(rig, settings, trajectory.period_s),
+            follow: Follow::new(rig, settings),
             aborting: None,
         }
     }
@@ -717,11 +718,11 @@ impl Cycle {
         (self.path / last).min(1.0)
     }
 
-    fn record_wake(&mut self, late: Duration, period_s: f64) {
+    fn record_wake(&mut self, late: Duration, period: Duration) {
         let late_us = late.as_secs_f64() * 1e6;
         self.last_late_us = late_us as f32;
         self.jitter.record(late_us);
-        if late_us > period_s * 1e6 {
+        if late > period {
             self.missed += 1;
         }
     }
@@ -819,7 +820,9 @@ impl Cycle {
             positions.as_mut_slice()[axis] = a + fraction * (b - a);
             velocities.as_mut_slice()[axis] = self.scale * (va + fraction * (vb - va));
         }
-        if !self.gate(&positions, &velocities, rig, trajectory.period_s) {
+        // The gate's maths and the target's `t` (a log record) are in seconds.
+        let dt = trajectory.period.as_secs_f64();
+        if !self.gate(&positions, &velocities, rig, dt) {
             self.violations += 1;
             return None;
         }
@@ -827,7 +830,7 @@ impl Cycle {
         self.previous = Some((positions, velocities));
         Some(JointTarget {
             seq: self.seq,
-            t: f64::from(self.seq) * trajectory.period_s,
+            t: f64::from(self.seq) * dt,
             positions,
             velocities,
         })
@@ -835,23 +838,17 @@ impl Cycle {
 
     /// The last line of defence: inside the limits; no velocity, step, velocity change or
     /// position second difference beyond the axis's speed and acceleration.
-    fn gate(
-        &self,
-        positions: &AxisValues,
-        velocities: &AxisValues,
-        rig: &Rig,
-        period_s: f64,
-    ) -> bool {
+    fn gate(&self, positions: &AxisValues, velocities: &AxisValues, rig: &Rig, dt: f64) -> bool {
         rig.joints.iter().enumerate().all(|(axis, joint)| {
             let limits = joint.limits;
             let value = positions.as_slice()[axis];
             let velocity = velocities.as_slice()[axis];
             let moves_ok = self.previous.is_none_or(|(p, v)| {
-                limits.step_ok(value - p.as_slice()[axis], period_s)
-                    && limits.velocity_change_ok(velocity - v.as_slice()[axis], period_s)
+                limits.step_ok(value - p.as_slice()[axis], dt)
+                    && limits.velocity_change_ok(velocity - v.as_slice()[axis], dt)
                     && self.before_previous.is_none_or(|b| {
                         let second = value - 2.0 * p.as_slice()[axis] + b.as_slice()[axis];
-                        limits.second_difference_ok(second, period_s)
+                        limits.second_difference_ok(second, dt)
                     })
             });
             limits.contains(value) && limits.speed_ok(velocity) && moves_ok
@@ -931,7 +928,7 @@ impl Cycle {
     fn report(
         self,
         outcome: Outcome,
-        period_s: f64,
+        period: Duration,
         counters: LinkCounters,
         link: String,
     ) -> StreamReport {
@@ -949,7 +946,7 @@ impl Cycle {
             latency_p99_us: self.latency.percentile(0.99),
             tracking_error_max_deg: self.tracking_max,
             overruns: self.overruns,
-            duration_s: f64::from(self.seq - self.first_seq) * period_s,
+            duration_s: f64::from(self.seq - self.first_seq) * period.as_secs_f64(),
             samples_done: self.path.floor() as usize,
             last_seq: self.seq,
             link,

@@ -16,7 +16,7 @@ pub(crate) use plan::{AxisLimits, Samples, check_start};
 pub use plan::{InvalidValue, PlanError, PlanSettings, plan_joint_moves};
 pub use recorded::{RecordedError, TIME_TOLERANCE_S};
 pub use resample::{ramp_to_rest, resample};
-pub use retime::{RetimeError, Retimed, peak_ratio, retime};
+pub use retime::{RetimeError, Retimed, retime};
 
 pub use crate::motion::{
     PeakAcceleration, SPEED_SLACK, Trajectory, TrajectoryError, peak_accelerations, validate,

@@ -132,7 +132,7 @@ impl PathTiming<'_> {
         slowdown: f64,
         solve_at: &impl Fn(f64, &[f64]) -> Result<Vec<f64>, E>,
     ) -> Result<Rows, E> {
-        let period_s = self.settings.period_s;
+        let period_s = self.settings.period.as_secs_f64();
         // Whole periods: stretch the profile (slower, so still within limits) to end on one;
         // the 1e-9 keeps a duration a rounding hair over a whole number from adding a period.
         let duration = profile.duration * slowdown;
@@ -169,7 +169,7 @@ impl PathTiming<'_> {
     /// when they stay within). The move starts and ends at rest; its first and last steps
     /// may use half the acceleration, as the neighbouring move may use the other half.
     fn excess(&self, start: &[f64], rows: &Rows) -> Excess {
-        let period_s = self.settings.period_s;
+        let period_s = self.settings.period.as_secs_f64();
         let mut positions: Vec<&[f64]> = vec![start, start];
         positions.extend(rows.iter().map(|(p, _)| p.as_slice()));
         let end = positions[positions.len() - 1];

@@ -13,6 +13,7 @@ use rsruckig::prelude::{
     ThrowErrorHandler,
 };
 use std::fmt;
+use std::time::Duration;
 use thiserror::Error;
 
 /// Planned values within this of a limit are rounding from the profile maths and are
@@ -23,8 +24,8 @@ const LIMIT_ROUNDING: f64 = 1e-9;
 /// acceleration to take.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PlanSettings {
-    /// Sample period (s): the streaming cycle.
-    pub period_s: f64,
+    /// Sample period: the streaming cycle.
+    pub period: Duration,
     /// Fraction of each axis' max speed a plan may use. Below 1 so the streamer can scale
     /// time (pause, stop) without the scaled motion breaking the limit.
     pub speed_scale: f64,
@@ -46,7 +47,7 @@ pub struct PlanSettings {
 impl Default for PlanSettings {
     fn default() -> Self {
         Self {
-            period_s: 0.004,
+            period: Duration::from_millis(4),
             speed_scale: 0.9,
             accel_scale: 0.8,
             jerk_per_accel_s: 10.0,
@@ -61,7 +62,7 @@ impl PlanSettings {
     /// Every field must be positive and finite, the scales at most 1.
     pub fn check(&self) -> Result<(), PlanError> {
         let positive = [
-            ("period_s", self.period_s),
+            ("period_s", self.period.as_secs_f64()),
             ("jerk_per_accel_s", self.jerk_per_accel_s),
             ("cartesian_step_m", self.cartesian_step_m),
             ("cartesian_step_rad", self.cartesian_step_rad),
@@ -308,11 +309,11 @@ impl Samples {
     }
 
     /// The trajectory, after the same check every streamed trajectory gets.
-    pub fn finish(self, rig: &Rig, period_s: f64) -> Result<Trajectory, PlanError> {
+    pub fn finish(self, rig: &Rig, period: Duration) -> Result<Trajectory, PlanError> {
         let trajectory = Trajectory::new(
             rig.name.clone(),
             rig.joint_names().map(str::to_owned).collect(),
-            period_s,
+            period,
             self.positions,
             self.velocities,
         )?;
@@ -335,7 +336,7 @@ pub(crate) fn snap_to_limits(rig: &Rig, positions: &mut [f64]) {
 
 /// Point-to-point moves from `start` through each waypoint in turn, stopping at each:
 /// every move is jerk-limited, time-synchronised (all axes start and arrive together) and
-/// as fast as the scaled limits allow, sampled every `settings.period_s` with the profile's
+/// as fast as the scaled limits allow, sampled every `settings.period` with the profile's
 /// velocities. Each move's duration is a whole number of periods, so every waypoint is a
 /// sample, exactly.
 ///
@@ -360,20 +361,20 @@ pub fn plan_joint_moves(
         let mov = JointMove {
             rig,
             limits: &limits,
-            period_s: settings.period_s,
+            period: settings.period,
             waypoint,
         };
         mov.sample(from, to, &mut samples)?;
         from = to;
     }
-    samples.finish(rig, settings.period_s)
+    samples.finish(rig, settings.period)
 }
 
 /// One rest-to-rest move to waypoint `waypoint`.
 struct JointMove<'a> {
     rig: &'a Rig,
     limits: &'a AxisLimits,
-    period_s: f64,
+    period: Duration,
     waypoint: usize,
 }
 
@@ -407,8 +408,9 @@ impl JointMove<'_> {
     /// Appends the samples after `from` up to and including `to`.
     fn sample(&self, from: &[f64], to: &[f64], samples: &mut Samples) -> Result<(), PlanError> {
         let dof = from.len();
+        let dt = self.period.as_secs_f64();
         let input = self.input(from, to);
-        let mut otg = Ruckig::<0, ThrowErrorHandler>::new(Some(dof), self.period_s);
+        let mut otg = Ruckig::<0, ThrowErrorHandler>::new(Some(dof), dt);
         let mut profile = rsruckig::prelude::Trajectory::<0>::new(Some(dof));
         match otg.calculate(&input, &mut profile) {
             Ok(RuckigResult::Working | RuckigResult::Finished) => {}
@@ -423,13 +425,13 @@ impl JointMove<'_> {
             return Err(self.profile_error(format!("duration {duration} s")));
         }
         // Discrete durations are whole periods up to rounding.
-        let periods = (duration / self.period_s).round() as usize;
+        let periods = (duration / dt).round() as usize;
         let mut position = DataArrayOrVec::<f64, 0>::new(Some(dof), 0.0);
         let mut velocity = DataArrayOrVec::<f64, 0>::new(Some(dof), 0.0);
         for k in 1..periods {
             let mut section = None;
             profile.at_time(
-                k as f64 * self.period_s,
+                k as f64 * dt,
                 &mut Some(&mut position),
                 &mut Some(&mut velocity),
                 &mut None,

@@ -6,10 +6,16 @@
 
 use super::{Trajectory, TrajectoryError};
 use crate::log::{LoggedSample, RunLog};
+use std::time::Duration;
 use thiserror::Error;
 
 /// How far a command's `t` may sit from `t0 + index * period`.
 pub const TIME_TOLERANCE_S: f64 = 1e-6;
+/// How far the period handed in may sit from the one the log was written with: a
+/// `Duration` holds it to the nearest nanosecond (1/300 s is 3,333,333 ns), so a log
+/// written before periods were Durations drifts from it by up to half a nanosecond a
+/// command, which the grid check allows on top of its tolerance.
+const PERIOD_ROUNDING_S: f64 = 0.5e-9;
 
 /// Why a run log's commands are not a trajectory.
 #[derive(Debug, Error)]
@@ -51,14 +57,16 @@ pub enum RecordedError {
 // An inherent method of the log's type, defined in the stage above it: `log` must not know
 // trajectories, and `log.to_trajectory(period)` reads as what it does.
 impl RunLog {
-    /// The recorded commands, sample `i` at `i * period_s` (the log's first `t` becomes 0).
+    /// The recorded commands, sample `i` at `i * period` (the log's first `t` becomes 0).
     /// Errors name the first command whose seq is not the previous one plus 1, whose `t` is
     /// off the period grid by more than 1 us (measured from the first command, so a drift
     /// cannot hide in per-step slack), or whose value count is not the joint count.
-    pub fn to_trajectory(&self, period_s: f64) -> Result<Trajectory, RecordedError> {
-        if !(period_s.is_finite() && period_s > 0.0) {
-            return Err(TrajectoryError::BadPeriod { period_s }.into());
+    pub fn to_trajectory(&self, period: Duration) -> Result<Trajectory, RecordedError> {
+        if period.is_zero() {
+            return Err(TrajectoryError::BadPeriod { period }.into());
         }
+        // The records' `t` are seconds: the period meets them in f64.
+        let period_s = period.as_secs_f64();
         let first = self.commands.first().ok_or(RecordedError::NoCommands)?;
         let dof = self.joint_names.len();
         let mut positions = Vec::with_capacity(self.commands.len() * dof);
@@ -77,7 +85,7 @@ impl RunLog {
         Ok(Trajectory::new(
             self.rig.clone(),
             self.joint_names.clone(),
-            period_s,
+            period,
             positions,
             velocities,
         )?)
@@ -116,8 +124,9 @@ fn check_time(
     period_s: f64,
 ) -> Result<(), RecordedError> {
     let expected = t0 + index as f64 * period_s;
+    let tolerance = TIME_TOLERANCE_S + index as f64 * PERIOD_ROUNDING_S;
     // Written so that a NaN time fails too.
-    if (sample.t - expected).abs() <= TIME_TOLERANCE_S {
+    if (sample.t - expected).abs() <= tolerance {
         return Ok(());
     }
     Err(RecordedError::Uneven {
@@ -160,7 +169,7 @@ mod tests {
     #[test]
     fn consecutive_evenly_spaced_commands_make_a_trajectory() {
         let trajectory = log(&[(5, 1.0), (6, 1.004), (7, 1.008)])
-            .to_trajectory(0.004)
+            .to_trajectory(Duration::from_millis(4))
             .unwrap();
         assert_eq!(trajectory.len(), 3);
         assert_eq!(trajectory.position(2), &[1.008]);
@@ -168,7 +177,7 @@ mod tests {
 
     #[test]
     fn gaps_drift_and_bad_periods_are_named() {
-        let gap = log(&[(5, 0.0), (7, 0.004)]).to_trajectory(0.004);
+        let gap = log(&[(5, 0.0), (7, 0.004)]).to_trajectory(Duration::from_millis(4));
         assert!(matches!(
             gap,
             Err(RecordedError::SeqGap {
@@ -177,16 +186,33 @@ mod tests {
                 seq: 7
             })
         ));
-        let late = log(&[(0, 0.0), (1, 0.004), (2, 0.0080011)]).to_trajectory(0.004);
+        let late =
+            log(&[(0, 0.0), (1, 0.004), (2, 0.0080011)]).to_trajectory(Duration::from_millis(4));
         assert!(matches!(late, Err(RecordedError::Uneven { index: 2, .. })));
-        let nan = log(&[(0, 0.0), (1, f64::NAN)]).to_trajectory(0.004);
+        let nan = log(&[(0, 0.0), (1, f64::NAN)]).to_trajectory(Duration::from_millis(4));
         assert!(matches!(nan, Err(RecordedError::Uneven { index: 1, .. })));
-        assert!(log(&[(0, 0.0)]).to_trajectory(0.0).is_err());
+        assert!(log(&[(0, 0.0)]).to_trajectory(Duration::ZERO).is_err());
         assert!(matches!(
-            log(&[]).to_trajectory(0.004),
+            log(&[]).to_trajectory(Duration::from_millis(4)),
             Err(RecordedError::NoCommands)
         ));
-        let wrap = log(&[(u32::MAX, 0.0), (0, 0.004)]).to_trajectory(0.004);
+        let wrap = log(&[(u32::MAX, 0.0), (0, 0.004)]).to_trajectory(Duration::from_millis(4));
         assert!(wrap.is_ok());
+    }
+
+    #[test]
+    fn a_log_at_a_period_of_no_whole_nanoseconds_replays_to_its_end() {
+        // Written with t = i / 300 s in f64, read back with the period to the nanosecond.
+        let records: Vec<(u32, f64)> = (0..100_000).map(|i| (i, i as f64 / 300.0)).collect();
+        let period = Duration::try_from_secs_f64(1.0 / 300.0).unwrap();
+        assert_eq!(period, Duration::from_nanos(3_333_333));
+        assert_eq!(log(&records).to_trajectory(period).unwrap().len(), 100_000);
+        // A command a microsecond and a half off the grid is still named, late in the log.
+        let mut drifted = records.clone();
+        drifted[90_000].1 += 1.5e-6 + 90_000.0 * 0.5e-9;
+        assert!(matches!(
+            log(&drifted).to_trajectory(period),
+            Err(RecordedError::Uneven { index: 90_000, .. })
+        ));
     }
 }

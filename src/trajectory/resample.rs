@@ -8,6 +8,7 @@
 
 use super::{Trajectory, TrajectoryError};
 use crate::rig::Rig;
+use std::time::Duration;
 
 /// Two periods (times a time scale) this close count as the same: the samples are then
 /// taken verbatim, bit for bit, rather than interpolated (a replay at its own rate must
@@ -19,21 +20,22 @@ const SAME_PERIOD: f64 = 1e-12;
 /// one anyway; the cap keeps a crafted input from exhausting memory.
 const MAX_RAMP_SAMPLES: usize = 600_000;
 
-/// `trajectory` as seen at `speed` x its own pace, sampled every `period_s`. Samples are
+/// `trajectory` as seen at `speed` x its own pace, sampled every `period`. Samples are
 /// the cubic Hermite interpolation of the positions and velocities around each instant (C1:
 /// the positions and velocities of the source are honoured at every source sample); the
 /// velocities scale by the time factor. The time grid is stretched by less than half a
 /// period over the whole trajectory so that its last sample is the source's last sample.
-/// When `period_s` x `speed` is the source's period, positions are taken verbatim.
+/// When `period` x `speed` is the source's period, positions are taken verbatim.
 pub fn resample(
     trajectory: &Trajectory,
-    period_s: f64,
+    period: Duration,
     speed: f64,
 ) -> Result<Trajectory, TrajectoryError> {
     if !(speed.is_finite() && speed > 0.0) {
         return Err(TrajectoryError::BadTimeScale { speed });
     }
-    let source_period = trajectory.period_s;
+    let period_s = period.as_secs_f64();
+    let source_period = trajectory.period.as_secs_f64();
     let samples = trajectory.len();
     if (period_s * speed - source_period).abs() <= SAME_PERIOD * source_period || samples < 2 {
         let positions = (0..samples).flat_map(|k| trajectory.position(k).to_vec());
@@ -42,7 +44,7 @@ pub fn resample(
         return Trajectory::new(
             trajectory.rig.clone(),
             trajectory.joint_names.clone(),
-            period_s,
+            period,
             positions.collect(),
             velocities.collect(),
         );
@@ -58,7 +60,7 @@ pub fn resample(
         let t = duration * k as f64 / cycles as f64;
         let (index, s) = segment(t, source_period, samples);
         for axis in 0..dof {
-            let (p, v) = hermite(trajectory, index, s, axis);
+            let (p, v) = hermite(trajectory, source_period, index, s, axis);
             positions.push(p);
             velocities.push(v * factor);
         }
@@ -66,7 +68,7 @@ pub fn resample(
     Trajectory::new(
         trajectory.rig.clone(),
         trajectory.joint_names.clone(),
-        period_s,
+        period,
         positions,
         velocities,
     )
@@ -80,9 +82,9 @@ fn segment(t: f64, period_s: f64, samples: usize) -> (usize, f64) {
     (index, s)
 }
 
-/// Position and time derivative of `axis` at fraction `s` of segment `index`.
-fn hermite(trajectory: &Trajectory, index: usize, s: f64, axis: usize) -> (f64, f64) {
-    let h = trajectory.period_s;
+/// Position and time derivative of `axis` at fraction `s` of segment `index`, `h` the
+/// trajectory's period in seconds.
+fn hermite(trajectory: &Trajectory, h: f64, index: usize, s: f64, axis: usize) -> (f64, f64) {
     let (p0, p1) = (
         trajectory.position(index)[axis],
         trajectory.position(index + 1)[axis],
@@ -116,7 +118,7 @@ pub fn ramp_to_rest(
     accel_share: f64,
 ) -> Result<(Trajectory, usize), TrajectoryError> {
     let len = trajectory.len();
-    let period = trajectory.period_s;
+    let period = trajectory.period.as_secs_f64();
     if len == 0 || rig.dof() != trajectory.dof() {
         return Ok((trajectory.clone(), 0));
     }
@@ -163,7 +165,7 @@ pub fn ramp_to_rest(
     let ramp = Trajectory::new(
         trajectory.rig.clone(),
         trajectory.joint_names.clone(),
-        period,
+        trajectory.period,
         positions,
         velocities,
     )?;
@@ -181,7 +183,7 @@ mod tests {
         Trajectory::new(
             "r".into(),
             vec!["a".into()],
-            period_s,
+            Duration::from_secs_f64(period_s),
             positions,
             vec![speed; samples],
         )
@@ -191,7 +193,7 @@ mod tests {
     #[test]
     fn a_constant_speed_line_resamples_onto_the_same_line() {
         let source = line(0.01, 101, 0.5);
-        let resampled = resample(&source, 0.004, 1.0).unwrap();
+        let resampled = resample(&source, Duration::from_millis(4), 1.0).unwrap();
         assert_eq!(resampled.len(), 251);
         for k in 0..resampled.len() {
             let expected = k as f64 * 0.004 * 0.5;
@@ -203,7 +205,7 @@ mod tests {
     #[test]
     fn half_speed_takes_twice_the_samples_at_half_the_velocity() {
         let source = line(0.004, 101, 0.5);
-        let slow = resample(&source, 0.004, 0.5).unwrap();
+        let slow = resample(&source, Duration::from_millis(4), 0.5).unwrap();
         assert_eq!(slow.len(), 201);
         assert!((slow.velocity(100)[0] - 0.25).abs() < 1e-9);
         assert_eq!(slow.position(200), source.position(100));
@@ -212,7 +214,7 @@ mod tests {
     #[test]
     fn the_same_period_is_taken_verbatim() {
         let source = line(0.004, 11, 0.3);
-        let same = resample(&source, 0.004, 1.0).unwrap();
+        let same = resample(&source, Duration::from_millis(4), 1.0).unwrap();
         assert_eq!(same, source);
     }
 }

@@ -16,6 +16,7 @@
 //! sqrt(u) at most one sample per period.
 
 use crate::rig::Rig;
+use std::time::Duration;
 use thiserror::Error;
 
 #[derive(Debug, Clone, PartialEq, Error)]
@@ -26,8 +27,8 @@ pub enum RetimeError {
         values: usize,
         dof: usize,
     },
-    #[error("period {period_s} s must be positive and finite")]
-    BadPeriod { period_s: f64 },
+    #[error("period {} s must be positive", period.as_secs_f64())]
+    BadPeriod { period: Duration },
     #[error("acceleration share {share} must be in (0, 1]")]
     BadShare { share: f64 },
     #[error("sample {sample}: the path turns a corner no finite acceleration follows")]
@@ -55,7 +56,7 @@ const MONOTONE_TANGENT_BOUND: f64 = 3.0;
 /// is passed.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Retimed {
-    /// Row-major, `dof` values per sample, every `period_s`.
+    /// Row-major, `dof` values per sample, every period.
     pub positions: Vec<f64>,
     /// Per original sample, its time in the new motion.
     pub sample_times_s: Vec<f64>,
@@ -66,22 +67,23 @@ pub struct Retimed {
 
 impl Retimed {
     /// The new sample nearest original sample `sample` (the last, past the end).
-    pub fn sample_of(&self, sample: usize, period_s: f64, dof: usize) -> usize {
+    pub fn sample_of(&self, sample: usize, period: Duration, dof: usize) -> usize {
         let last = (self.positions.len() / dof).saturating_sub(1);
+        let dt = period.as_secs_f64();
         self.sample_times_s
             .get(sample)
-            .map_or(last, |t| ((t / period_s).round() as usize).min(last))
+            .map_or(last, |t| ((t / dt).round() as usize).min(last))
     }
 }
 
-/// Re-times `positions` (`rig`'s axes, row-major, one sample every `period_s`, at rest at
+/// Re-times `positions` (`rig`'s axes, row-major, one sample every `period`, at rest at
 /// both ends) so that no axis' acceleration exceeds `share` x its max, and resamples at
-/// `period_s`. Where the samples already stay within it they keep their timing; the
+/// `period`. Where the samples already stay within it they keep their timing; the
 /// motion starts and ends at rest.
 pub fn retime(
     positions: &[f64],
     rig: &Rig,
-    period_s: f64,
+    period: Duration,
     share: f64,
 ) -> Result<Retimed, RetimeError> {
     let dof = rig.dof();
@@ -92,9 +94,10 @@ pub fn retime(
             dof,
         });
     }
-    if !(period_s.is_finite() && period_s > 0.0) {
-        return Err(RetimeError::BadPeriod { period_s });
+    if period.is_zero() {
+        return Err(RetimeError::BadPeriod { period });
     }
+    let dt = period.as_secs_f64();
     if !(share > 0.0 && share <= 1.0) {
         return Err(RetimeError::BadShare { share });
     }
@@ -102,8 +105,8 @@ pub fn retime(
     let mut budget = share;
     let mut best: Option<Retimed> = None;
     for _ in 0..BUDGET_ROUNDS {
-        let law = TimeLaw::solve(&path, rig, period_s, budget)?;
-        let retimed = law.resample(&path, rig, period_s);
+        let law = TimeLaw::solve(&path, rig, dt, budget)?;
+        let retimed = law.resample(&path, rig, dt);
         let done = retimed.peak_ratio <= share;
         let overshoot = retimed.peak_ratio / share;
         if best
@@ -295,11 +298,11 @@ struct TimeLaw {
 }
 
 impl TimeLaw {
-    fn solve(path: &Path, rig: &Rig, period_s: f64, share: f64) -> Result<TimeLaw, RetimeError> {
+    fn solve(path: &Path, rig: &Rig, dt: f64, share: f64) -> Result<TimeLaw, RetimeError> {
         let step = 1.0 / GRID_PER_SAMPLE as f64;
         let points = (path.len.saturating_sub(1)) * GRID_PER_SAMPLE + 1;
         let rows = grid_rows(path, rig, share);
-        let ceilings = speed_ceilings(path, rig, period_s);
+        let ceilings = speed_ceilings(path, rig, dt);
         // Backward: the largest u at each point from which the end, at rest, stays reachable.
         let mut high = vec![0.0; points];
         for i in (0..points.saturating_sub(1)).rev() {
@@ -327,17 +330,17 @@ impl TimeLaw {
         Ok(TimeLaw { step, u, times })
     }
 
-    /// Samples the law every `period_s` (the last at the path's end, at rest) and the
+    /// Samples the law every `dt` seconds (the last at the path's end, at rest) and the
     /// largest acceleration ratio of the result.
-    fn resample(&self, path: &Path, rig: &Rig, period_s: f64) -> Retimed {
+    fn resample(&self, path: &Path, rig: &Rig, dt: f64) -> Retimed {
         let dof = path.dof;
         let end = *self.times.last().unwrap_or(&0.0);
-        let count = (end / period_s).ceil() as usize + 1;
+        let count = (end / dt).ceil() as usize + 1;
         let last_s = path.len.saturating_sub(1) as f64;
         let mut positions = Vec::with_capacity(count * dof);
         let mut i = 0;
         for j in 0..count {
-            let t = j as f64 * period_s;
+            let t = j as f64 * dt;
             while i + 1 < self.times.len() && self.times[i + 1] <= t {
                 i += 1;
             }
@@ -357,7 +360,7 @@ impl TimeLaw {
             .step_by(GRID_PER_SAMPLE)
             .copied()
             .collect();
-        let peak_ratio = peak_ratio(&positions, rig, period_s);
+        let peak_ratio = peak_ratio(&positions, rig, dt);
         Retimed {
             positions,
             sample_times_s,
@@ -392,9 +395,9 @@ fn grid_rows(path: &Path, rig: &Rig, share: f64) -> Vec<Vec<Row>> {
 }
 
 /// Per grid point, the largest u: one sample per period, and every axis within max speed.
-fn speed_ceilings(path: &Path, rig: &Rig, period_s: f64) -> Vec<f64> {
+fn speed_ceilings(path: &Path, rig: &Rig, dt: f64) -> Vec<f64> {
     let points = (path.len.saturating_sub(1)) * GRID_PER_SAMPLE + 1;
-    let planned = 1.0 / (period_s * period_s);
+    let planned = 1.0 / (dt * dt);
     (0..points)
         .map(|i| {
             let (k, j) = (i / GRID_PER_SAMPLE, i % GRID_PER_SAMPLE);
@@ -464,11 +467,12 @@ fn largest_controllable(rows: &[Row], ceiling: f64, next_high: f64, step: f64) -
     low
 }
 
-/// The largest |p[k+1] - 2 p[k] + p[k-1]| / (max acceleration x period^2) of any axis.
-pub fn peak_ratio(positions: &[f64], rig: &Rig, period_s: f64) -> f64 {
+/// The largest |p[k+1] - 2 p[k] + p[k-1]| / (max acceleration x `dt`^2) of any axis, `dt`
+/// the period in seconds.
+fn peak_ratio(positions: &[f64], rig: &Rig, dt: f64) -> f64 {
     let dof = rig.dof();
     let len = positions.len() / dof.max(1);
-    let dt2 = period_s * period_s;
+    let dt2 = dt * dt;
     let mut peak: f64 = 0.0;
     for k in 1..len.saturating_sub(1) {
         for (axis, joint) in rig.joints.iter().enumerate() {
@@ -529,7 +533,7 @@ mod tests {
         Trajectory::new(
             rig.name.clone(),
             names,
-            PERIOD_S,
+            Duration::from_secs_f64(PERIOD_S),
             positions.to_vec(),
             velocities,
         )
@@ -554,7 +558,8 @@ mod tests {
         let rig = rig(2, 1.0);
         let path = abrupt_line(0.4, 0.3, -0.5);
         assert!(validate(&trajectory(&rig, &path), &rig).is_err());
-        let retimed = retime(&path, &rig, PERIOD_S, SHARE).expect("retimes");
+        let retimed =
+            retime(&path, &rig, Duration::from_secs_f64(PERIOD_S), SHARE).expect("retimes");
         assert!(retimed.peak_ratio <= SHARE, "{}", retimed.peak_ratio);
         validate(&trajectory(&rig, &retimed.positions), &rig).expect("valid");
         // Past a corner of the samples the cubic may overshoot by up to 4/27 of its
@@ -581,7 +586,8 @@ mod tests {
         let path: Vec<f64> = (0..=500)
             .map(|k| 0.05 * (1.0 - (std::f64::consts::PI * k as f64 / 500.0).cos()))
             .collect();
-        let retimed = retime(&path, &rig, PERIOD_S, SHARE).expect("retimes");
+        let retimed =
+            retime(&path, &rig, Duration::from_secs_f64(PERIOD_S), SHARE).expect("retimes");
         for (k, t) in retimed.sample_times_s.iter().enumerate() {
             // Never faster than planned, and at most a sample's worth of start-up later.
             assert!(*t >= k as f64 * PERIOD_S - 1e-9, "sample {k} at {t}");
@@ -599,7 +605,8 @@ mod tests {
         let path: Vec<f64> = (0..200)
             .map(|k| (k as f64 * 0.45 * PERIOD_S).min(upper))
             .collect();
-        let retimed = retime(&path, &rig, PERIOD_S, SHARE).expect("retimes");
+        let retimed =
+            retime(&path, &rig, Duration::from_secs_f64(PERIOD_S), SHARE).expect("retimes");
         assert!(
             retimed.positions.iter().all(|x| *x <= upper),
             "past the limit"
@@ -611,7 +618,7 @@ mod tests {
     fn ragged_samples_and_shares_outside_zero_to_one_are_refused() {
         let rig = rig(2, 1.0);
         assert!(matches!(
-            retime(&[0.0; 3], &rig, PERIOD_S, SHARE),
+            retime(&[0.0; 3], &rig, Duration::from_secs_f64(PERIOD_S), SHARE),
             Err(RetimeError::Ragged {
                 values: 3,
                 dof: 2,
@@ -620,12 +627,12 @@ mod tests {
         ));
         for share in [0.0, 1.5, f64::NAN] {
             assert!(matches!(
-                retime(&[0.0; 4], &rig, PERIOD_S, share),
+                retime(&[0.0; 4], &rig, Duration::from_secs_f64(PERIOD_S), share),
                 Err(RetimeError::BadShare { .. })
             ));
         }
         assert!(matches!(
-            retime(&[0.0; 4], &rig, 0.0, SHARE),
+            retime(&[0.0; 4], &rig, Duration::ZERO, SHARE),
             Err(RetimeError::BadPeriod { .. })
         ));
     }

@@ -71,10 +71,10 @@ pub struct CanopenTwinCounters {
     /// SYNCs that came with new targets (RPDOs since the SYNC before).
     pub streamed_syncs: u64,
     pub overruns: u64,
-    /// The longest SYNC interval while streaming, s.
-    pub longest_interval_s: f64,
-    /// Seconds from the first SYNC to the last.
-    pub sync_span_s: f64,
+    /// The longest SYNC interval while streaming.
+    pub longest_interval: Duration,
+    /// From the first SYNC to the last.
+    pub sync_span: Duration,
     pub sdo_requests: u64,
     pub sdo_aborts: u64,
     pub rpdos: u64,
@@ -96,8 +96,8 @@ impl CanopenTwinCounters {
 
     /// Share of a 1 Mbit/s bus the traffic took between the first and last SYNC.
     pub fn bus_load(&self) -> f64 {
-        if self.sync_span_s > 0.0 {
-            self.bus_bits as f64 / self.sync_span_s / BUS_BITRATE
+        if !self.sync_span.is_zero() {
+            self.bus_bits as f64 / self.sync_span.as_secs_f64() / BUS_BITRATE
         } else {
             0.0
         }
@@ -111,7 +111,7 @@ impl CanopenTwinCounters {
             self.frames_sent,
             self.syncs,
             self.streamed_syncs,
-            self.longest_interval_s * 1e3,
+            self.longest_interval.as_secs_f64() * 1e3,
             self.overruns,
             100.0 * self.bus_load(),
             self.sdo_requests,
@@ -670,7 +670,7 @@ impl CanopenBus {
     fn note_sync(&mut self, now: Instant, streamed: bool) {
         self.counters.syncs += 1;
         let first = *self.first_sync.get_or_insert(now);
-        self.counters.sync_span_s = now.duration_since(first).as_secs_f64();
+        self.counters.sync_span = now.duration_since(first);
         if streamed {
             self.counters.streamed_syncs += 1;
             if self.faulted {
@@ -681,9 +681,9 @@ impl CanopenBus {
             && streamed
             && self.last_streamed
         {
-            let interval = now.duration_since(last).as_secs_f64();
-            self.counters.longest_interval_s = self.counters.longest_interval_s.max(interval);
-            if interval > OVERRUN_PERIODS * self.period(0).as_secs_f64() {
+            let interval = now.duration_since(last);
+            self.counters.longest_interval = self.counters.longest_interval.max(interval);
+            if interval.as_secs_f64() > OVERRUN_PERIODS * self.period(0).as_secs_f64() {
                 self.counters.overruns += 1;
             }
         }

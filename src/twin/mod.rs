@@ -26,6 +26,7 @@ use crate::protocol::{
 };
 use crate::rig::{JointLimits, LIMIT_SLACK, Rig};
 use std::collections::VecDeque;
+use std::time::Duration;
 use thiserror::Error;
 
 /// Values cross the wire as whole micro-units: two roundings may add 1 µrad to a step or
@@ -36,12 +37,12 @@ const WIRE_ROUNDING_SECOND_DIFFERENCE: f64 = 2e-6;
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TwinSettings {
-    /// The controller's cycle (s).
-    pub period_s: f64,
+    /// The controller's cycle.
+    pub period: Duration,
     /// Servo bandwidth (Hz): first-order lag from setpoint to actual position.
     pub bandwidth_hz: f64,
-    /// Transport delay from a target's arrival to its use (s), rounded to whole cycles.
-    pub delay_s: f64,
+    /// Transport delay from a target's arrival to its use, rounded to whole cycles.
+    pub delay: Duration,
     /// Cycles without a target before the twin decelerates and holds.
     pub watchdog_cycles: u32,
 }
@@ -49,9 +50,9 @@ pub struct TwinSettings {
 impl Default for TwinSettings {
     fn default() -> Self {
         Self {
-            period_s: 0.004,
+            period: Duration::from_millis(4),
             bandwidth_hz: 20.0,
-            delay_s: 0.012,
+            delay: Duration::from_millis(12),
             watchdog_cycles: 25,
         }
     }
@@ -138,15 +139,15 @@ impl Twin {
                 value,
             });
         }
-        check_setting("period_s", settings.period_s, settings.period_s > 0.0)?;
+        let dt = settings.period.as_secs_f64();
+        check_setting("period_s", dt, !settings.period.is_zero())?;
         check_setting(
             "bandwidth_hz",
             settings.bandwidth_hz,
             settings.bandwidth_hz > 0.0,
         )?;
-        check_setting("delay_s", settings.delay_s, settings.delay_s >= 0.0)?;
         let positions = AxisValues::from_slice(initial).expect("dof checked against MAX_AXES");
-        let delay_cycles = (settings.delay_s / settings.period_s).round() as usize;
+        let delay_cycles = (settings.delay.as_secs_f64() / dt).round() as usize;
         Ok(Self {
             limits: rig.joints.iter().map(|j| j.limits).collect(),
             names: rig.joint_names().map(String::from).collect(),
@@ -168,8 +169,7 @@ impl Twin {
             counters: TwinCounters::default(),
             notice: None,
             world: None,
-            smoothing: 1.0
-                - (-std::f64::consts::TAU * settings.bandwidth_hz * settings.period_s).exp(),
+            smoothing: 1.0 - (-std::f64::consts::TAU * settings.bandwidth_hz * dt).exp(),
         })
     }
 
@@ -201,7 +201,7 @@ impl Twin {
             upper: self.limits.iter().map(|l| l.upper).collect(),
             max_speed: self.limits.iter().map(|l| l.max_speed).collect(),
             max_acceleration: self.limits.iter().map(|l| l.max_acceleration).collect(),
-            cycle_us: (self.settings.period_s * 1e6).round() as u32,
+            cycle_us: crate::protocol::cycle_us(self.settings.period),
             watchdog_cycles: self.settings.watchdog_cycles,
             answer,
         }
@@ -384,7 +384,7 @@ impl Twin {
         cycles: f64,
     ) -> Option<(Fault, String)> {
         let limits = &self.limits[axis];
-        let dt = self.settings.period_s;
+        let dt = self.settings.period.as_secs_f64();
         let name = &self.names[axis];
         let index = axis as u8;
         let value = target.positions.as_slice()[axis];
@@ -464,7 +464,7 @@ impl Twin {
     /// Brings the setpoint to rest from its last velocity at each axis' max deceleration,
     /// never past a limit.
     fn decelerate(&mut self) {
-        let dt = self.settings.period_s;
+        let dt = self.settings.period.as_secs_f64();
         for ((position, velocity), limits) in self
             .setpoint
             .as_mut_slice()

@@ -188,7 +188,7 @@ mod tests {
         let paint = load_paint_settings(&file).expect("config/paint.toml loads");
         let start = vec![0.0; paint.rig.dof()];
         let settings = PlanSettings {
-            period_s: 0.01,
+            period: std::time::Duration::from_millis(10),
             ..PlanSettings::default()
         };
         let (room, plan) = plan_room(&paint, 3, 0, &start, &settings).expect("room plans");

@@ -411,7 +411,7 @@ impl Cell {
             let seq = control.cycles();
             detail["seq"] = seq.into();
             actions.record(
-                seq as f64 * self.settings.period_s(),
+                seq as f64 * self.settings.period().as_secs_f64(),
                 action,
                 detail.clone(),
             );

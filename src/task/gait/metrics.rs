@@ -78,7 +78,7 @@ impl GaitWorld {
             scenario: scenario.clone(),
             stances,
             lag_frames,
-            settle_frames: (SETTLE_AFTER_TOUCHDOWN_S / plan.period_s).round() as usize,
+            settle_frames: (SETTLE_AFTER_TOUCHDOWN_S / plan.period.as_secs_f64()).round() as usize,
             cycles_seen: 0,
             stance_origin: vec![None; sloth.limbs.len()],
             limbs,
@@ -211,7 +211,8 @@ pub struct GaitReport {
 /// second differences of the commanded positions (the central-difference velocities the
 /// trajectory carries change by the mean of two of them, never more).
 pub fn peak_acceleration(sloth: &SlothRig, plan: &GaitPlan) -> (f64, usize) {
-    let dt2 = plan.period_s * plan.period_s;
+    let dt = plan.period.as_secs_f64();
+    let dt2 = dt * dt;
     let mut peak = (0.0, 0);
     for k in 1..plan.len().saturating_sub(1) {
         let (before, here, after) = (plan.frame(k - 1), plan.frame(k), plan.frame(k + 1));
@@ -278,7 +279,7 @@ fn speed(world: &GaitWorld, plan: &GaitPlan, from: usize, to: usize) -> f64 {
         .windows(2)
         .map(|w| w[0].distance(w[1]))
         .sum();
-    length / ((to - from) as f64 * plan.period_s)
+    length / ((to - from) as f64 * plan.period.as_secs_f64())
 }
 
 /// Judges a run: the plan's schedule and residuals, the twin's measurements.
@@ -325,7 +326,7 @@ pub fn judge(
         limbs,
         min_body_clearance_mm: world.min_body_clearance_m * 1000.0,
         max_ik_residual_mm: plan.ik_residual_max_m * 1000.0,
-        duration_s: plan.len().saturating_sub(1) as f64 * plan.period_s,
+        duration_s: plan.len().saturating_sub(1) as f64 * plan.period.as_secs_f64(),
         body_rise_m: match (world.body_path.first(), world.body_path.last()) {
             (Some(first), Some(last)) => last.z - first.z,
             _ => 0.0,

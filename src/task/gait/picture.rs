@@ -134,7 +134,7 @@ pub fn render(
         svg,
         r#"<text x="{MARGIN}" y="{:.0}" font-size="14">gait diagram: stance bars over {:.1} s</text>"#,
         diagram_top + 18.0,
-        (frames - 1.0) * plan.period_s
+        (frames - 1.0) * plan.period.as_secs_f64()
     );
     for (index, limb) in sloth.limbs.iter().enumerate() {
         let y = diagram_top + 30.0 + ROW * index as f64;

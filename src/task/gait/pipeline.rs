@@ -12,6 +12,7 @@ use crate::trajectory::{
     PlanError, PlanSettings, RetimeError, Trajectory, TrajectoryError, plan_joint_moves, retime,
     validate,
 };
+use std::time::Duration;
 use thiserror::Error;
 
 /// Share of each axis' max acceleration the gait plans within: the plan's default
@@ -52,18 +53,19 @@ fn because(reason: &Option<RuleBroken>) -> String {
 /// against the streamed rig.
 pub fn trajectory_from_plan(sloth: &SlothRig, plan: &GaitPlan) -> Result<Trajectory, GaitError> {
     let (dof, len) = (plan.dof, plan.len());
+    let dt = plan.period.as_secs_f64();
     let mut velocities = vec![0.0; plan.frames.len()];
     for k in 1..len.saturating_sub(1) {
         for axis in 0..dof {
             velocities[k * dof + axis] = (plan.frames[(k + 1) * dof + axis]
                 - plan.frames[(k - 1) * dof + axis])
-                / (2.0 * plan.period_s);
+                / (2.0 * dt);
         }
     }
     let trajectory = Trajectory::new(
         sloth.streamed.name.clone(),
         sloth.streamed.joint_names().map(str::to_owned).collect(),
-        plan.period_s,
+        plan.period,
         plan.frames.clone(),
         velocities,
     )?;
@@ -71,13 +73,13 @@ pub fn trajectory_from_plan(sloth: &SlothRig, plan: &GaitPlan) -> Result<Traject
     Ok(trajectory)
 }
 
-/// Walks `scenario` at `period_s` and returns the plan with its validated trajectory.
+/// Walks `scenario` at `period` and returns the plan with its validated trajectory.
 pub fn plan_gait(
     sloth: &SlothRig,
     scenario: &Scenario,
-    period_s: f64,
+    period: Duration,
 ) -> Result<(GaitPlan, Trajectory), GaitError> {
-    let mut plan = Walker::new(sloth, scenario, period_s).plan()?;
+    let mut plan = Walker::new(sloth, scenario, period).plan()?;
     smooth_plan(&mut plan, sloth);
     if plan.is_empty() {
         return Err(GaitError::Empty {
@@ -98,7 +100,7 @@ pub fn plan_gait_job(
     start: &[f64],
     settings: &PlanSettings,
 ) -> Result<Trajectory, GaitError> {
-    let (_, gait) = plan_gait(sloth, scenario, settings.period_s)?;
+    let (_, gait) = plan_gait(sloth, scenario, settings.period)?;
     let mut trajectory = plan_joint_moves(
         &sloth.streamed,
         start,
@@ -116,14 +118,14 @@ pub fn plan_gait_job(
 /// moves every frame number the plan carries (stances, touchdowns, cycles) onto the new
 /// sample passing the same point of the path.
 pub fn retime_plan(plan: &mut GaitPlan, sloth: &SlothRig) -> Result<(), GaitError> {
-    let retimed = retime(&plan.frames, &sloth.streamed, plan.period_s, ACCEL_SHARE)?;
-    let (old_len, dof, period_s) = (plan.len(), plan.dof, plan.period_s);
+    let retimed = retime(&plan.frames, &sloth.streamed, plan.period, ACCEL_SHARE)?;
+    let (old_len, dof, period) = (plan.len(), plan.dof, plan.period);
     let map = |frame: usize| {
         if frame >= old_len {
             // One past the last frame (the end of the last whole cycle): one past the new last.
             retimed.positions.len() / dof
         } else {
-            retimed.sample_of(frame, period_s, dof)
+            retimed.sample_of(frame, period, dof)
         }
     };
     for stance in &mut plan.stances {

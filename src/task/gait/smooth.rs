@@ -17,6 +17,7 @@
 use super::rig::SlothRig;
 use super::walker::GaitPlan;
 use glam::{DMat3, DVec3};
+use std::time::Duration;
 
 /// The moving average every frame gets: 60 ms, three times (a 180 ms bell). Wider smears
 /// a limb's lift-off and touchdown into its stance (the twin judges slip from 60 ms after
@@ -31,21 +32,26 @@ const BASE_PASSES: usize = 3;
 /// the sloth's own ones they widened the stance holds' failures on transfer-to-trunk
 /// (slip 2-3 mm; docs/gait.md, "Acceleration").
 pub fn smooth_plan(plan: &mut GaitPlan, sloth: &SlothRig) {
-    let width = odd_frames(BASE_WIDTH_S, plan.period_s);
+    let width = odd_frames(BASE_WIDTH_S, plan.period);
     for _ in 0..BASE_PASSES {
         plan.frames = moving_average(&plan.frames, plan.dof, width);
     }
     hold_stances(plan, sloth);
     // Each stance is held on its contact once its correction has faded in.
-    let fade = ((HOLD_FADE_S / plan.period_s).round() as usize).max(1);
+    let fade = frames(HOLD_FADE_S, plan.period).max(1);
     for stance in &mut plan.stances {
         stance.settled = stance.settled.max((stance.start + fade).min(stance.end));
     }
 }
 
+/// `seconds` (the smoothing's maths) in whole frames of `period`.
+fn frames(seconds: f64, period: Duration) -> usize {
+    (seconds / period.as_secs_f64()).round() as usize
+}
+
 /// `seconds` as a whole, odd number of frames (at least 1), so the average is centred.
-fn odd_frames(seconds: f64, period_s: f64) -> usize {
-    let frames = (seconds / period_s).round() as usize;
+fn odd_frames(seconds: f64, period: Duration) -> usize {
+    let frames = frames(seconds, period);
     frames.max(1) | 1
 }
 
@@ -98,8 +104,8 @@ const JACOBIAN_STEP_RAD: f64 = 1e-6;
 /// out over as long after lift-off (the hand or foot is lifting away). A joint the
 /// correction would take past a limit keeps the share of it that stays inside.
 fn hold_stances(plan: &mut GaitPlan, sloth: &SlothRig) {
-    let fade = ((HOLD_FADE_S / plan.period_s).round() as usize).max(1);
-    let fade_out = ((HOLD_FADE_OUT_S / plan.period_s).round() as usize).max(1);
+    let fade = frames(HOLD_FADE_S, plan.period).max(1);
+    let fade_out = frames(HOLD_FADE_OUT_S, plan.period).max(1);
     let dof = plan.dof;
     for stance in &plan.stances {
         let limb = &sloth.limbs[stance.limb];

@@ -24,6 +24,7 @@ use crate::ik::{IkSolver, Tolerance};
 use crate::rig::Pose;
 use glam::{DAffine3, DQuat, DVec3};
 use serde::Serialize;
+use std::time::Duration;
 use thiserror::Error;
 
 #[derive(Debug, Clone, PartialEq, Error)]
@@ -57,7 +58,7 @@ pub struct Stance {
 /// The planned gait: joint samples at the stream period and what they mean.
 #[derive(Debug, Clone)]
 pub struct GaitPlan {
-    pub period_s: f64,
+    pub period: Duration,
     pub dof: usize,
     /// Row-major samples of the streamed joint vector.
     pub frames: Vec<f64>,
@@ -159,7 +160,7 @@ pub struct Walker<'a> {
     cold_solvers: Vec<Box<dyn IkSolver + Send + Sync>>,
     /// Each limb's neutral pose: the middle of every joint's range.
     neutral: Vec<Vec<f64>>,
-    period_s: f64,
+    period: Duration,
 }
 
 /// Iterations for a cold start (the first frame), where no previous frame is near.
@@ -201,7 +202,7 @@ fn min_jerk(phase: f64) -> f64 {
 }
 
 impl<'a> Walker<'a> {
-    pub fn new(sloth: &'a SlothRig, scenario: &'a Scenario, period_s: f64) -> Self {
+    pub fn new(sloth: &'a SlothRig, scenario: &'a Scenario, period: Duration) -> Self {
         let tolerance = Tolerance {
             position_m: sloth.gait.ik_tolerance_m,
             orientation_rad: std::f64::consts::PI,
@@ -234,12 +235,13 @@ impl<'a> Walker<'a> {
                         .collect()
                 })
                 .collect(),
-            period_s,
+            period,
         }
     }
 
+    /// `seconds` (the gait's maths) in whole frames of the period.
     fn frames(&self, seconds: f64) -> usize {
-        (seconds / self.period_s).round() as usize
+        (seconds / self.period.as_secs_f64()).round() as usize
     }
 
     /// Where each limb stands at the start: staggered as in the steady gait (a limb that
@@ -393,7 +395,7 @@ impl<'a> Walker<'a> {
         } else {
             HOLD_BACK_RATE_M_S
         };
-        let most = rate * self.period_s;
+        let most = rate * self.period.as_secs_f64();
         held_back.clamp(state.held_back_m - most, state.held_back_m + most)
     }
 
@@ -428,7 +430,7 @@ impl<'a> Walker<'a> {
             shift += self.torso_clearing(&raised, state.torso_margin_m);
         }
         if state.has_previous {
-            let most = SHIFT_RATE_M_S * self.period_s;
+            let most = SHIFT_RATE_M_S * self.period.as_secs_f64();
             let change = shift - state.shift;
             if change.length() > most {
                 shift = state.shift + change * (most / change.length());
@@ -632,7 +634,7 @@ impl<'a> Walker<'a> {
 
     fn check_speeds(&self, previous: &[f64], next: &[f64]) -> Result<(), RuleBroken> {
         for ((joint, a), b) in self.sloth.streamed.joints.iter().zip(previous).zip(next) {
-            let max_step = SPEED_SHARE * joint.limits.max_speed * self.period_s;
+            let max_step = SPEED_SHARE * joint.limits.max_speed * self.period.as_secs_f64();
             if (b - a).abs() > max_step {
                 return Err(RuleBroken::TooFast {
                     joint: joint.name.clone(),
@@ -848,7 +850,7 @@ impl<'a> Walker<'a> {
 
     fn empty_plan(&self) -> GaitPlan {
         GaitPlan {
-            period_s: self.period_s,
+            period: self.period,
             dof: self.sloth.dof(),
             frames: Vec::new(),
             stances: Vec::new(),

@@ -405,7 +405,7 @@ impl<'a> Planner<'a> {
         Trajectory::new(
             piece.rig.clone(),
             piece.joint_names.clone(),
-            piece.period_s,
+            piece.period,
             positions,
             velocities,
         )
@@ -1150,7 +1150,7 @@ fn same_bits(a: &Trajectory, b: &Trajectory) -> bool {
     let same = |x: &[f64], y: &[f64]| x.iter().zip(y).all(|(x, y)| x.to_bits() == y.to_bits());
     a.rig == b.rig
         && a.joint_names == b.joint_names
-        && a.period_s.to_bits() == b.period_s.to_bits()
+        && a.period == b.period
         && a.len() == b.len()
         && a.dof() == b.dof()
         && (0..a.len())
@@ -1169,7 +1169,7 @@ fn reversed(trajectory: &Trajectory) -> Result<Trajectory, TrajectoryError> {
     Trajectory::new(
         trajectory.rig.clone(),
         trajectory.joint_names.clone(),
-        trajectory.period_s,
+        trajectory.period,
         positions,
         velocities,
     )
