@@ -343,13 +343,16 @@ fn main() {
         subscriber_process(&keep_off);
         return;
     }
+    let cpu = rigbridge::realtime::streaming_cpu();
+    // The subscriber is another process, started before this thread pins itself and rises
+    // to SCHED_FIFO: a child inherits both, and would see the streaming CPU as its only one.
+    let ros2 = subscriber(cpu);
     match rigbridge::stream::raise_priority(50) {
         Ok(()) => println!("streaming at SCHED_FIFO priority 50"),
         Err(e) => println!("streaming at normal priority (SCHED_FIFO refused: {e})"),
     }
     // As `rigbridge run` does with a ROS 2 node: the cycle keeps to one CPU (in both runs,
     // so that they compare), the node's threads and the subscriber's keep off it.
-    let cpu = rigbridge::realtime::streaming_cpu();
     if let Some(cpu) = cpu {
         rigbridge::realtime::pin_to(cpu).expect("pin the streaming thread");
         println!("streaming on CPU {cpu}; the Zenoh threads on the others");
@@ -361,8 +364,6 @@ fn main() {
     )))
     .expect("rig");
     let (long, short) = if quick { (5.0, 5.0) } else { (60.0, 10.0) };
-    // The subscriber is another process, which steps down from the SCHED_FIFO it inherits.
-    let ros2 = subscriber(cpu);
     let results = [
         run(&rig, 250.0, long, &ros2, cpu),
         run(&rig, 1000.0, short, &ros2, cpu),
