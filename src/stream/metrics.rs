@@ -28,10 +28,12 @@ impl MicrosHistogram {
             .saturating_sub(FINE_CEILING_US)
             .div_ceil(COARSE_BIN_US);
         let len = fine + 1 + coarse;
-        // Not `vec![0; len]`: zeroed memory may come as pages the kernel maps on first
-        // touch; `resize` writes every bin now.
-        let mut bins = Vec::with_capacity(len);
-        bins.resize(len, 0);
+        // Zeroed memory may come as pages the kernel maps on first touch, and a compiler
+        // may drop plain zero writes to it: `black_box` makes each write one it must do.
+        let mut bins = vec![0; len];
+        for bin in &mut bins {
+            *bin = std::hint::black_box(0);
+        }
         Self {
             bins,
             ceiling_us,
