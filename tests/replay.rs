@@ -259,7 +259,6 @@ fn log_with_period(period_s: serde_json::Value) -> RunLog {
     RunLog {
         rig: "irb120".into(),
         joint_names: irb120().joint_names().map(String::from).collect(),
-        joint_kinds: None,
         metadata: serde_json::json!({ "start": start, "period_s": period_s }),
         commands: (1..=3)
             .map(|seq| rigbridge::log::LoggedSample {
@@ -270,11 +269,7 @@ fn log_with_period(period_s: serde_json::Value) -> RunLog {
                 late_us: None,
             })
             .collect(),
-        states: vec![],
-        events: vec![],
-        other_messages: 0,
-        truncated: false,
-        stopped: None,
+        ..rigbridge::log::RunLog::default()
     }
 }
 

@@ -9,12 +9,11 @@
 
 use super::LogError;
 use crate::rig::{Joint, Rig, generated_link_names, origin_from_xyz_rpy, path_to, rig_to_urdf};
-use crate::scene::foxglove::{full_update, paint_update};
+use crate::scene::foxglove::{full_update, paint_update, vector};
 use crate::scene::{PaintQuad, SceneView};
 use foxglove::Encode;
 use foxglove::messages::{
     FrameTransform, FrameTransforms, JointState, JointStates, Quaternion, SceneUpdate, Timestamp,
-    Vector3,
 };
 use glam::{DAffine3, DQuat, DVec3};
 use mcap::records::MessageHeader;
@@ -550,14 +549,6 @@ pub fn timestamp(nanos: u64) -> Timestamp {
     // Job times under 136 years fit u32 seconds; saturate beyond, as job_time_ns does.
     let sec = u32::try_from(nanos / NANOS).unwrap_or(u32::MAX);
     Timestamp::new(sec, (nanos % NANOS) as u32)
-}
-
-fn vector(v: DVec3) -> Vector3 {
-    Vector3 {
-        x: v.x,
-        y: v.y,
-        z: v.z,
-    }
 }
 
 fn quaternion(q: DQuat) -> Quaternion {

@@ -113,8 +113,8 @@ pub struct ReadStop {
     pub reason: String,
 }
 
-/// Everything a run log holds, in file order.
-#[derive(Debug, Clone, PartialEq)]
+/// Everything a run log holds, in file order. The default is an empty log of no rig.
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct RunLog {
     pub rig: String,
     pub joint_names: Vec<String>,

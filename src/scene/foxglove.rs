@@ -245,7 +245,8 @@ fn point(p: DVec3) -> Point3 {
     }
 }
 
-fn vector(p: DVec3) -> Vector3 {
+/// A Foxglove vector of a glam one; the log's transforms use it too.
+pub(crate) fn vector(p: DVec3) -> Vector3 {
     Vector3 {
         x: p.x,
         y: p.y,

@@ -146,8 +146,6 @@ mod tests {
         RunLog {
             rig: "r".into(),
             joint_names: vec!["a".into()],
-            joint_kinds: None,
-            metadata: serde_json::Value::Null,
             commands: samples
                 .iter()
                 .map(|&(seq, t)| LoggedSample {
@@ -158,11 +156,7 @@ mod tests {
                     late_us: None,
                 })
                 .collect(),
-            states: vec![],
-            events: vec![],
-            other_messages: 0,
-            truncated: false,
-            stopped: None,
+            ..RunLog::default()
         }
     }
 
