@@ -13,8 +13,17 @@
 //! streams) wakes every millisecond and does nothing else. The wakes it gets later than a
 //! 1 kHz period, and later than a cell's period, are stalls of the machine itself (a shared
 //! VM's host taking its CPU, a kernel thread that the kernel does not preempt), which no
-//! design can avoid. A cell's missed cycles beside as many witness stalls over the cell's
-//! period are the machine's; beyond them, the design's.
+//! design can avoid; they are counted for each CPU. A cell's missed cycles beside as many
+//! witness stalls over the cell's period on the executor's CPU are the machine's; beyond
+//! them, the design's.
+//!
+//! The shared executor runs as `rigbridge serve` runs it by default: its thread on the last
+//! CPU and the daemon's other threads kept off it (`[serve] pin_executor`); `CELLS_UNPINNED=1`
+//! adds the design `shared_unpinned`, which leaves them all where the scheduler puts them.
+//! Other processes still run on that CPU: the VM's own agent does, and on this kernel a
+//! thread in a system call keeps the CPU until it yields. `CELLS_SHIELD=1` moves every
+//! thread of other processes that may move off the executor's CPU for the run, and back at
+//! the end: what `isolcpus` or a cpuset does on a machine set up for real time.
 //!
 //! `cargo bench --bench cells`; sizes: `CELLS=1,8,32,128` (250 Hz), `CELLS_1KHZ=1,8,16`;
 //! the shared executor's thread counts to compare: `CELLS_THREADS=1,2` (default 1, the
@@ -24,8 +33,11 @@
 mod flood;
 #[path = "../tests/common/in_process.rs"]
 mod in_process;
+#[path = "../tests/common/shield.rs"]
+mod shield;
 
 use rigbridge::daemon::config::{ExecutorKind, RunSettings, load_run_settings};
+use rigbridge::daemon::server::ServeOptions;
 use serde_json::{Value, json};
 use std::net::SocketAddr;
 use std::path::Path;
@@ -57,11 +69,18 @@ fn main() {
             .filter_map(|n| n.trim().parse().ok())
             .collect()
     };
+    let unpinned = std::env::var("CELLS_UNPINNED").is_ok_and(|v| v == "1");
     let designs: Vec<String> = std::iter::once("thread_per_cell".to_string())
         .chain(sizes("CELLS_THREADS", "1").into_iter().map(shared_design))
+        .chain(unpinned.then(|| "shared_unpinned".to_string()))
         .collect();
     let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     println!("load average (1, 5, 15 min) at start: {}", load.trim());
+    let shield = std::env::var("CELLS_SHIELD")
+        .is_ok_and(|v| v == "1")
+        .then(rigbridge::realtime::streaming_cpu)
+        .flatten()
+        .map(shield::Shield::raise);
     let mut rows = Vec::new();
     for (rate, sizes) in [
         (250.0, sizes("CELLS", "1,8,32,128")),
@@ -76,6 +95,7 @@ fn main() {
         }
     }
     print_ratios(&rows);
+    drop(shield);
     let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     println!("load average at end: {}", load.trim());
 }
@@ -88,15 +108,17 @@ fn shared_design(threads: usize) -> String {
     }
 }
 
-/// The executor kind and thread count a design name stands for.
-fn executor_of(design: &str) -> (ExecutorKind, usize) {
+/// The executor kind, thread count and pinning a design name stands for.
+fn executor_of(design: &str) -> (ExecutorKind, usize, bool) {
     match design.strip_prefix("shared") {
-        Some("") => (ExecutorKind::Shared, 1),
+        Some("") => (ExecutorKind::Shared, 1, true),
+        Some("_unpinned") => (ExecutorKind::Shared, 1, false),
         Some(threads) => (
             ExecutorKind::Shared,
             threads.trim_start_matches("_x").parse().unwrap_or(1),
+            true,
         ),
-        None => (ExecutorKind::ThreadPerCell, 1),
+        None => (ExecutorKind::ThreadPerCell, 1, false),
     }
 }
 
@@ -119,7 +141,7 @@ fn print_row(row: &Value) {
         return;
     }
     println!(
-        "{:>6} Hz {:>4} cells {:>16}: jitter p50 {:>5} us, p99 {:>5} us (worst cell {:>5} us = {:>5.1} % of the cycle), max {:>6} us; missed {:>5} of {:>7} (per cell {}..{}); overruns {:>3}; log records dropped {}; CPU {:>6.1} us per cell-cycle; {:>5.2} MB per cell; {} of {} completed; machine stalls seen by the idle witnesses: {} over 1 ms, {} over the cells' period (longest {} us)",
+        "{:>6} Hz {:>4} cells {:>16}: jitter p50 {:>5} us, p99 {:>5} us (worst cell {:>5} us = {:>5.1} % of the cycle), max {:>6} us; missed {:>5} of {:>7} (per cell {}..{}); overruns {:>3}; log records dropped {}; CPU {:>6.1} us per cell-cycle; {:>5.2} MB per cell; {} of {} completed; machine stalls seen by the idle witnesses, by CPU: {} over 1 ms, {} over the cells' period (longest {} us); executor's own CPUs {}",
         row["rate_hz"],
         row["cells"],
         row["design"].as_str().unwrap_or(""),
@@ -141,6 +163,7 @@ fn print_row(row: &Value) {
         row["witness_stalls"],
         row["witness_over_period"],
         row["witness_max_us"],
+        row["executor_cpus"],
     );
 }
 
@@ -186,7 +209,7 @@ fn child(spec: &str) {
         "/config/rigbridge.toml"
     )))
     .expect("run settings");
-    let (executor, threads) = executor_of(&design);
+    let (executor, threads, pinned) = executor_of(&design);
     let cells: Vec<RunSettings> = (0..n)
         .map(|i| {
             let mut cell = base.clone();
@@ -194,24 +217,39 @@ fn child(spec: &str) {
             cell.config.stream.rate_hz = rate;
             cell.config.serve.executor = executor;
             cell.config.serve.executor_threads = threads;
+            cell.config.serve.pin_executor = pinned;
             cell
         })
         .collect();
+    // Every CPU gets a witness, counted before this thread keeps off some.
+    let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+    // As `rigbridge serve` does before it starts its runtime: this thread, and every thread
+    // the daemon starts from it, keeps off the executor's CPUs.
+    let executor_cpus = cells[0].config.serve.executor_cpus();
+    if !executor_cpus.is_empty() {
+        rigbridge::realtime::keep_off_all(&executor_cpus).expect("keep off the executor's CPUs");
+    }
     let runs = std::env::temp_dir().join(format!("rigbridge-cells-bench-{}", std::process::id()));
     let rss_before = rss_bytes();
     // Only the cycles are measured: no Foxglove server beside them.
-    let served = in_process::start(cells, in_process::options(runs.clone()));
-    let witnesses = Witnesses::start(Duration::from_secs_f64(1.0 / rate));
+    let options = ServeOptions {
+        executor_cpus: executor_cpus.clone(),
+        ..in_process::options(runs.clone())
+    };
+    let served = in_process::start(cells, options);
+    let witnesses = Witnesses::start(Duration::from_secs_f64(1.0 / rate), cpus);
     let figures = measure(served.address, n, rate);
     let stalls = witnesses.stop();
     let _ = served.stop();
     let _ = std::fs::remove_dir_all(&runs);
     let mut row = figures.finish(n);
     row["design"] = design.into();
+    row["executor_cpus"] = json!(executor_cpus);
     row["rate_hz"] = rate.into();
-    row["witness_stalls"] = stalls.count.into();
-    row["witness_over_period"] = stalls.over_period.into();
-    row["witness_max_us"] = (stalls.max.as_secs_f64() * 1e6).round().into();
+    let by_cpu = |f: &dyn Fn(&Stalls) -> u64| json!(stalls.iter().map(f).collect::<Vec<_>>());
+    row["witness_stalls"] = by_cpu(&|s| s.count);
+    row["witness_over_period"] = by_cpu(&|s| s.over_period);
+    row["witness_max_us"] = by_cpu(&|s| s.max.as_micros() as u64);
     row["mb_per_cell"] =
         ((figures.rss_streaming.saturating_sub(rss_before)) as f64 / n as f64 / 1e6).into();
     println!("{row}");
@@ -356,9 +394,9 @@ struct Stalls {
 }
 
 impl Witnesses {
-    fn start(cell_period: Duration) -> Witnesses {
+    /// A witness on each of CPUs `0..cpus`.
+    fn start(cell_period: Duration, cpus: usize) -> Witnesses {
         let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-        let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
         let threads = (0..cpus)
             .map(|cpu| {
                 let stop = stop.clone();
@@ -372,16 +410,13 @@ impl Witnesses {
         Witnesses { stop, threads }
     }
 
-    fn stop(self) -> Stalls {
+    /// Each CPU's stalls, in the order of the CPUs.
+    fn stop(self) -> Vec<Stalls> {
         self.stop.store(true, std::sync::atomic::Ordering::SeqCst);
-        let mut stalls = Stalls::default();
-        for thread in self.threads {
-            let one = thread.join().unwrap_or_default();
-            stalls.count += one.count;
-            stalls.over_period += one.over_period;
-            stalls.max = stalls.max.max(one.max);
-        }
-        stalls
+        self.threads
+            .into_iter()
+            .map(|thread| thread.join().unwrap_or_default())
+            .collect()
     }
 }
 

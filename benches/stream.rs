@@ -10,6 +10,10 @@
 //! two long runs one after the other compare the host's moods more than the node. Each
 //! way's p99 is the median of its slices' p99s; its missed cycles are their sum.
 //!
+//! The streaming thread keeps to the last CPU in both ways. `STREAM_SHIELD=1` also moves
+//! every other process' movable threads off that CPU for the bench (`tests/common/shield.rs`:
+//! what `isolcpus` or a cpuset does on a machine set up for real time).
+//!
 //! `cargo bench --bench stream` (add `-- --quick` for 5 s runs).
 
 use rigbridge::clock::WallClock;
@@ -24,6 +28,9 @@ use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use zenoh::Wait;
+
+#[path = "../tests/common/shield.rs"]
+mod shield;
 
 /// Most the ROS 2 node may add to the jitter's p99 (us), and no missed cycle (issue 17).
 const MAX_ADDED_P99_US: f64 = 5.0;
@@ -212,6 +219,8 @@ struct Way {
     published: u64,
     /// The streaming CPU's [`INTERRUPTS`] while this way streamed.
     interrupts: [u64; 3],
+    /// Slices that ended otherwise than completed (a stall the stream stops for), and why.
+    unfinished: Vec<String>,
 }
 
 impl Way {
@@ -222,6 +231,10 @@ impl Way {
         self.max_us = self.max_us.max(report.jitter_max_us);
         self.seconds += report.duration_s;
         self.published += published;
+        if report.outcome != rigbridge::stream::Outcome::Completed {
+            let why = report.fault.unwrap_or_default();
+            self.unfinished.push(format!("{}: {why}", report.outcome));
+        }
     }
 
     fn median_p99(&self) -> f64 {
@@ -257,6 +270,9 @@ impl Way {
                 "OUTSIDE TARGET"
             }
         );
+        for why in &self.unfinished {
+            println!("        a slice ended early, {why}");
+        }
         within
     }
 }
@@ -357,6 +373,11 @@ fn main() {
         rigbridge::realtime::pin_to(cpu).expect("pin the streaming thread");
         println!("streaming on CPU {cpu}; the Zenoh threads on the others");
     }
+    let _shield = std::env::var("STREAM_SHIELD")
+        .is_ok_and(|v| v == "1")
+        .then_some(cpu)
+        .flatten()
+        .map(shield::Shield::raise);
     let quick = std::env::args().any(|a| a == "--quick");
     let rig = load_rig(Path::new(concat!(
         env!("CARGO_MANIFEST_DIR"),

@@ -7,7 +7,11 @@
 //! with the cycle unless it steps down. The same goes for the CPUs a thread may run on:
 //! with a ROS 2 node beside the stream, the streaming thread keeps to one CPU and the
 //! node's threads (Zenoh's runtime among them) keep off it, so that their system calls and
-//! the loopback network's soft interrupts run on another CPU than the cycle. This module
+//! the loopback network's soft interrupts run on another CPU than the cycle; in `serve` the
+//! shared executor's threads keep to the last CPUs and the daemon's other threads keep off
+//! them (a kernel thread or another thread in a system call is not preempted on this
+//! machine's kernel until it yields: a CPU of their own is what keeps the cycles on time,
+//! `docs/architecture.md`, "The shared executor"). This module
 //! owns only the scheduler calls; which thread runs where and at which priority is its
 //! callers' decision.
 
@@ -41,11 +45,19 @@ pub fn normal_priority() -> std::io::Result<()> {
 /// the last of the process's CPUs. `None` when there is one only, where there is nothing
 /// to keep apart.
 pub fn streaming_cpu() -> Option<usize> {
+    reserved_cpus(1).map(|cpus| cpus[0])
+}
+
+/// The CPUs `count` real-time threads keep to, one each: the last `count` of the process's
+/// CPUs, so that the first ones stay for everything else (the runtime, the log writers, the
+/// other processes a default setup starts there first). `None` when no CPU would be left
+/// over, where there is nothing to keep apart.
+pub fn reserved_cpus(count: usize) -> Option<Vec<usize>> {
     let cpus = process_cpus();
-    if cpus.len() < 2 {
+    if count == 0 || count >= cpus.len() {
         return None;
     }
-    cpus.last().copied()
+    Some(cpus[cpus.len() - count..].to_vec())
 }
 
 /// Keeps the calling thread (and the threads it creates later) on `cpu` only.
@@ -57,10 +69,15 @@ pub fn pin_to(cpu: usize) -> std::io::Result<()> {
 /// `cpu`, even when it was created by a thread pinned to `cpu`. With no other CPU it is
 /// left as it is.
 pub fn keep_off(cpu: usize) -> std::io::Result<()> {
+    keep_off_all(&[cpu])
+}
+
+/// [`keep_off`] for several CPUs: the calling thread keeps to the process's other CPUs.
+pub fn keep_off_all(reserved: &[usize]) -> std::io::Result<()> {
     let others: Vec<usize> = process_cpus()
         .iter()
         .copied()
-        .filter(|&c| c != cpu)
+        .filter(|c| !reserved.contains(c))
         .collect();
     if others.is_empty() {
         return Ok(());
@@ -92,8 +109,8 @@ fn allowed_cpus() -> std::io::Result<Vec<usize>> {
 }
 
 fn set_affinity(cpus: &[usize]) -> std::io::Result<()> {
-    // SAFETY: as above; CPU_SET is only given CPUs below CPU_SETSIZE, which allowed_cpus
-    // and streaming_cpu return.
+    // SAFETY: as above; CPU_SET is only given CPUs below CPU_SETSIZE (the filter), as
+    // allowed_cpus and reserved_cpus return.
     unsafe {
         let mut set: libc::cpu_set_t = std::mem::zeroed();
         for &cpu in cpus.iter().filter(|&&c| c < libc::CPU_SETSIZE as usize) {
@@ -144,5 +161,27 @@ mod tests {
         .unwrap();
         assert_eq!(on, vec![cpu]);
         assert_eq!(off_from_pinned, off);
+    }
+
+    #[test]
+    fn reserved_cpus_are_the_last_ones_and_leave_one_over() {
+        let cpus = process_cpus().to_vec();
+        assert_eq!(reserved_cpus(0), None);
+        assert_eq!(reserved_cpus(cpus.len()), None, "no CPU would be left over");
+        if cpus.len() < 2 {
+            eprintln!("skipped the rest: this machine lets the test run on one CPU only");
+            return;
+        }
+        assert_eq!(reserved_cpus(1), Some(vec![cpus[cpus.len() - 1]]));
+        assert_eq!(streaming_cpu(), Some(cpus[cpus.len() - 1]));
+        let reserved = reserved_cpus(cpus.len() - 1).unwrap();
+        assert_eq!(reserved, cpus[1..]);
+        let off = std::thread::spawn(move || {
+            keep_off_all(&reserved).unwrap();
+            allowed_cpus().unwrap()
+        })
+        .join()
+        .unwrap();
+        assert_eq!(off, vec![cpus[0]]);
     }
 }

@@ -117,6 +117,25 @@ fn refuse_virtual_clock_with_real_links(cells: &[RunSettings]) -> anyhow::Result
     Ok(())
 }
 
+/// Keeps this thread, and so every thread the daemon starts from it (the runtime, the jobs,
+/// their log writers), off the CPUs the shared executor will keep to; returns them, or none
+/// (unpinned executor) when that is refused.
+fn keep_off_executor_cpus(cpus: Vec<usize>) -> Vec<usize> {
+    if cpus.is_empty() {
+        return cpus;
+    }
+    match rigbridge::realtime::keep_off_all(&cpus) {
+        Ok(()) => cpus,
+        Err(e) => {
+            eprintln!(
+                "note: the shared executor gets no CPU of its own (cannot keep the daemon's \
+                 other threads off it: {e}); its cycles may wake later"
+            );
+            Vec::new()
+        }
+    }
+}
+
 pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
     let cells = load_cells(&args.config)?;
     let settings = &cells[0];
@@ -147,18 +166,25 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
             settings.file.display()
         );
     }
-    if matches!(args.clock, ClockChoice::Virtual) {
+    let virtual_clock = matches!(args.clock, ClockChoice::Virtual);
+    if virtual_clock {
         refuse_virtual_clock_with_real_links(&cells)?;
     }
+    let executor_cpus = if virtual_clock {
+        Vec::new()
+    } else {
+        keep_off_executor_cpus(serve.executor_cpus())
+    };
     let options = ServeOptions {
         runs_dir: args.runs_dir,
-        virtual_clock: matches!(args.clock, ClockChoice::Virtual),
+        virtual_clock,
         token,
         allowed_hosts: settings.config.serve.hosts.clone(),
         before_job: None,
         foxglove_port,
         foxglove_allow_remote: serve.foxglove_allow_remote,
         zenoh_connect: args.zenoh_connect,
+        executor_cpus,
     };
     tokio::runtime::Runtime::new()?.block_on(async move {
         let address = std::net::SocketAddr::new(bind, args.port);

@@ -417,6 +417,10 @@ pub struct ServeConfig {
     /// The shared executor's threads (1..=64, default 1).
     #[serde(default = "default_executor_threads")]
     pub executor_threads: usize,
+    /// The shared executor's threads keep to the last CPUs, one each, and the daemon's other
+    /// threads keep off them (when at least one CPU is left over). Default on.
+    #[serde(default = "default_pin_executor")]
+    pub pin_executor: bool,
 }
 
 /// See [`ServeConfig::executor`].
@@ -433,6 +437,13 @@ fn default_executor_threads() -> usize {
     1
 }
 
+/// On this machine's kernel (no forced preemption) a thread in a system call, the log
+/// writers' among them, keeps its CPU until it yields, hundreds of microseconds at times:
+/// the executor's wakes are only sure on a CPU of its own (docs/architecture.md).
+fn default_pin_executor() -> bool {
+    true
+}
+
 /// More threads than this would be a thread per cell again, in all but name.
 pub const MAX_EXECUTOR_THREADS: usize = 64;
 
@@ -446,7 +457,20 @@ impl Default for ServeConfig {
             foxglove_allow_remote: false,
             executor: ExecutorKind::default(),
             executor_threads: default_executor_threads(),
+            pin_executor: default_pin_executor(),
         }
+    }
+}
+
+impl ServeConfig {
+    /// The CPUs the shared executor's threads keep to (`pin_executor`): the process's last
+    /// `executor_threads` CPUs, when at least one is left for the daemon's other threads;
+    /// none otherwise, or for a thread per cell.
+    pub fn executor_cpus(&self) -> Vec<usize> {
+        if self.executor != ExecutorKind::Shared || !self.pin_executor {
+            return Vec::new();
+        }
+        crate::realtime::reserved_cpus(self.executor_threads).unwrap_or_default()
     }
 }
 
@@ -485,6 +509,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("foxglove_allow_remote", &self.foxglove_allow_remote)
             .field("executor", &self.executor)
             .field("executor_threads", &self.executor_threads)
+            .field("pin_executor", &self.pin_executor)
             .finish()
     }
 }

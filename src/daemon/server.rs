@@ -87,6 +87,12 @@ pub struct ServeOptions {
     /// `--zenoh-connect`: the Zenoh endpoint every cell joins ROS 2 through, in place of
     /// its `[ros2] zenoh_connect` (docs/ros2.md).
     pub zenoh_connect: Option<String>,
+    /// The CPUs the shared executor's threads keep to, one each (`[serve] pin_executor`:
+    /// [`crate::daemon::config::ServeConfig::executor_cpus`]); empty leaves them unpinned.
+    /// Keeping the process's other threads off them is the caller's part, done before it
+    /// starts its runtime (`rigbridge serve` does), since a thread inherits where it may run
+    /// from the thread that starts it.
+    pub executor_cpus: Vec<usize>,
 }
 
 /// See [`ServeOptions::before_job`].
@@ -405,7 +411,7 @@ fn start_cells(
     options: &ServeOptions,
 ) -> Result<Vec<Arc<Cell>>, DaemonError> {
     std::fs::create_dir_all(&options.runs_dir).map_err(crate::link::LinkError::Io)?;
-    let executor = shared_executor(&cells[0], options.virtual_clock)?;
+    let executor = shared_executor(&cells[0], options)?;
     let cells = cells
         .into_iter()
         .map(|settings| Cell::new(settings, executor.clone()).map(Arc::new))
@@ -492,14 +498,15 @@ fn bind_foxglove(
 /// cell, and under a virtual clock (its cycles do not wait, so nothing needs sharing).
 fn shared_executor(
     first: &RunSettings,
-    virtual_clock: bool,
+    options: &ServeOptions,
 ) -> Result<Option<Arc<Executor>>, DaemonError> {
     let serve = &first.config.serve;
-    if virtual_clock || serve.executor != ExecutorKind::Shared {
+    if options.virtual_clock || serve.executor != ExecutorKind::Shared {
         return Ok(None);
     }
     let settings = ExecutorSettings {
         threads: serve.executor_threads,
+        cpus: options.executor_cpus.clone(),
         ..ExecutorSettings::default()
     };
     let executor = Executor::new(settings).map_err(crate::link::LinkError::Io)?;

@@ -12,6 +12,10 @@
 //! cycles in a row the stream is handed back to the thread that submitted it, which runs
 //! the rest of it on its own clock-driven loop: its neighbours keep their deadlines.
 //!
+//! A worker sleeps until a spin before its next deadline, then spins; the spin follows how
+//! late this machine's timer ends its sleeps (the 99th percentile of the last 2,000), within
+//! 10 to 150 us. Its threads keep to the CPUs the settings give, if any.
+//!
 //! The executor owns the timing of the cycles it runs, never what a cycle does: that is the
 //! stream's ([`CycleTask`]). Between submission and end it neither allocates nor blocks in a
 //! cycle (a submission waits in a queue the worker only `try_lock`s).
@@ -74,14 +78,19 @@ pub enum Handback {
     },
 }
 
-/// How many threads and how long they spin before a deadline.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// How many threads, how long they spin before a deadline at first, and where they run.
+#[derive(Debug, Clone, PartialEq)]
 pub struct ExecutorSettings {
     pub threads: usize,
-    /// The last stretch before a deadline is spun rather than slept: a real-time thread with
-    /// no timer slack wakes within tens of microseconds, so less than the 150 us a thread per
-    /// stream spins at normal priority.
+    /// The last stretch before a deadline is spun rather than slept, to begin with: a
+    /// real-time thread with no timer slack wakes within tens of microseconds, so less than
+    /// the 150 us a thread per stream spins at normal priority. Each worker then sets its
+    /// spin from how late its own sleeps end (see [`WakeLateness`]).
     pub spin: Duration,
+    /// The CPUs the workers keep to, one each in order (`realtime::reserved_cpus`); empty
+    /// leaves them where the scheduler puts them. Keeping the process's other threads off
+    /// these CPUs is the caller's part.
+    pub cpus: Vec<usize>,
 }
 
 impl Default for ExecutorSettings {
@@ -89,9 +98,28 @@ impl Default for ExecutorSettings {
         ExecutorSettings {
             threads: 1,
             spin: Duration::from_micros(50),
+            cpus: Vec::new(),
         }
     }
 }
+
+/// The spin covers this share of a worker's timed sleeps: how late they end is the
+/// machine's (tens of microseconds in this VM, whose halted CPU the host must wake; a few
+/// on bare metal with a real-time kernel), and a wake later than the spin is jitter for
+/// every stream of its slot.
+const SPIN_COVERS: f64 = 0.99;
+/// Added to that quantile: the bins' width, and the first half of the slot's first stream.
+const SPIN_MARGIN: Duration = Duration::from_micros(10);
+/// The spin's bounds: below the floor a sleep's end is never that early anyway; above the
+/// ceiling (a thread per stream's spin) spinning costs more CPU than the rare late wake it
+/// would save, and such wakes are the machine's stalls, not its timer.
+const MIN_SPIN: Duration = Duration::from_micros(10);
+const MAX_SPIN: Duration = Duration::from_micros(150);
+/// Sleeps per estimate: at 1 kHz two seconds, enough for the 20 latest to set a 99 % quantile.
+const WAKES_PER_ESTIMATE: u32 = 2000;
+const WAKE_BIN: Duration = Duration::from_micros(5);
+/// Bins up to the ceiling, the last one holding every later wake.
+const WAKE_BINS: usize = (MAX_SPIN.as_micros() / WAKE_BIN.as_micros()) as usize + 1;
 
 const RUNNING: u8 = 0;
 const ENDED: u8 = 1;
@@ -189,8 +217,10 @@ impl Executor {
                 inbox: inbox.clone(),
                 clock: clock.clone(),
                 spin: settings.spin,
+                wakes: WakeLateness::default(),
                 cost: FIRST_COST,
             };
+            let cpu = settings.cpus.get(index).copied();
             let realtime = realtime.clone();
             let started_tx = started_tx.clone();
             let handle = std::thread::Builder::new()
@@ -198,6 +228,10 @@ impl Executor {
                 .spawn(move || {
                     if raise_priority(PRIORITY).is_ok() {
                         realtime.fetch_add(1, Ordering::SeqCst);
+                    }
+                    if let Some(cpu) = cpu {
+                        // Unpinned, the worker still runs; only its wakes are less sure.
+                        let _ = crate::realtime::pin_to(cpu);
                     }
                     no_timer_slack();
                     let _ = started_tx.send(());
@@ -337,6 +371,7 @@ struct Worker {
     inbox: Arc<Inbox>,
     clock: Arc<WallClock>,
     spin: Duration,
+    wakes: WakeLateness,
     /// Running mean of one cycle's work, for filling slots.
     cost: Duration,
 }
@@ -470,19 +505,69 @@ impl Worker {
     }
 
     /// Sleeps to the spin margin before the next deadline, then spins to it. A submission
-    /// unparks the thread early; the loop then looks again.
-    fn wait_for_next(&self, entries: &[Entry]) {
+    /// unparks the thread early; the loop then looks again. A sleep that ran its course
+    /// tells how late this machine's timer wakes the thread, which sets the spin.
+    fn wait_for_next(&mut self, entries: &[Entry]) {
         let Some(next) = entries.iter().map(|e| e.deadline).min() else {
             return;
         };
         let now = self.clock.now();
         if next > now + self.spin {
-            std::thread::park_timeout(next - now - self.spin);
+            let wake = next - self.spin;
+            std::thread::park_timeout(wake - now);
+            let woke = self.clock.now();
+            if woke >= wake
+                && let Some(spin) = self.wakes.record(woke - wake)
+            {
+                self.spin = spin;
+            }
             return;
         }
         while self.clock.now() < next {
             std::hint::spin_loop();
         }
+    }
+}
+
+/// How late a worker's timed sleeps end, over the last [`WAKES_PER_ESTIMATE`] of them, in
+/// [`WAKE_BIN`] bins; every so many, the spin that covers [`SPIN_COVERS`] of them.
+struct WakeLateness {
+    bins: [u32; WAKE_BINS],
+    wakes: u32,
+}
+
+impl Default for WakeLateness {
+    fn default() -> Self {
+        WakeLateness {
+            bins: [0; WAKE_BINS],
+            wakes: 0,
+        }
+    }
+}
+
+impl WakeLateness {
+    /// Counts one sleep that ended `late` after it was due; once the estimate is complete,
+    /// the new spin (and the count starts over, so the spin follows the machine's load).
+    fn record(&mut self, late: Duration) -> Option<Duration> {
+        let bin = usize::try_from(late.as_nanos() / WAKE_BIN.as_nanos()).unwrap_or(usize::MAX);
+        self.bins[bin.min(WAKE_BINS - 1)] += 1;
+        self.wakes += 1;
+        if self.wakes < WAKES_PER_ESTIMATE {
+            return None;
+        }
+        let covered = (f64::from(self.wakes) * SPIN_COVERS).ceil() as u32;
+        let mut seen = 0;
+        let mut quantile = MAX_SPIN;
+        for (index, count) in self.bins.iter().enumerate() {
+            seen += count;
+            if seen >= covered {
+                // The bin's upper edge: every wake counted in it was at most that late.
+                quantile = WAKE_BIN * (index as u32 + 1);
+                break;
+            }
+        }
+        *self = WakeLateness::default();
+        Some((quantile + SPIN_MARGIN).clamp(MIN_SPIN, MAX_SPIN))
     }
 }
 
@@ -533,6 +618,86 @@ mod tests {
         assert_eq!(first, Duration::from_micros(12_500));
         let on_grid = first_deadline(Duration::from_micros(8_500), period, offset);
         assert_eq!(on_grid, Duration::from_micros(8_500));
+    }
+
+    /// Feeds `late` wakes: most at `usual`, the rest (`rare` of them) at `outlier`.
+    fn estimate(usual: Duration, outlier: Duration, rare: u32) -> Option<Duration> {
+        let mut wakes = WakeLateness::default();
+        let mut spin = None;
+        for k in 0..WAKES_PER_ESTIMATE {
+            let late = if k < rare { outlier } else { usual };
+            spin = wakes.record(late);
+            assert!(
+                spin.is_none() || k == WAKES_PER_ESTIMATE - 1,
+                "an estimate before the count was complete, at wake {k}"
+            );
+        }
+        spin
+    }
+
+    #[test]
+    fn the_spin_covers_the_latest_but_one_percent_of_wakes() {
+        let us = Duration::from_micros;
+        // 1 % at 300 us: the spin covers the other 99 %, 42 us (the 40-45 us bin) + 10 us.
+        assert_eq!(estimate(us(42), us(300), 20), Some(us(55)));
+        // 2 % that late: the quantile is among them, beyond the ceiling.
+        assert_eq!(estimate(us(42), us(300), 40), Some(MAX_SPIN));
+        // A machine that wakes on time: the floor.
+        assert_eq!(estimate(us(0), us(0), 0), Some(us(15)));
+    }
+
+    #[test]
+    fn the_estimate_starts_over() {
+        let mut wakes = WakeLateness::default();
+        for _ in 0..WAKES_PER_ESTIMATE {
+            wakes.record(Duration::from_micros(140));
+        }
+        assert_eq!(wakes.wakes, 0);
+        assert!(wakes.bins.iter().all(|&count| count == 0));
+    }
+
+    /// The CPUs each of this process' executor workers may run on, as /proc lists them.
+    fn workers_cpus() -> Vec<String> {
+        let tasks = std::fs::read_dir("/proc/self/task").unwrap();
+        tasks
+            .filter_map(|task| {
+                let path = task.ok()?.path();
+                let comm = std::fs::read_to_string(path.join("comm")).ok()?;
+                // Thread names are cut to 15 bytes: "rigbridge-execu".
+                if !comm.starts_with("rigbridge-execu") {
+                    return None;
+                }
+                let status = std::fs::read_to_string(path.join("status")).ok()?;
+                status
+                    .lines()
+                    .find_map(|l| l.strip_prefix("Cpus_allowed_list:"))
+                    .map(|list| list.trim().to_string())
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_worker_keeps_to_the_cpu_it_is_given() {
+        let Some(cpu) = crate::realtime::streaming_cpu() else {
+            eprintln!("skipped: this machine lets the test run on one CPU only");
+            return;
+        };
+        let pinned = cpu.to_string();
+        let executor = Executor::new(ExecutorSettings {
+            cpus: vec![cpu],
+            ..ExecutorSettings::default()
+        })
+        .unwrap();
+        assert!(
+            workers_cpus().contains(&pinned),
+            "no worker on CPU {cpu} alone: {:?}",
+            workers_cpus()
+        );
+        drop(executor);
+        assert!(
+            !workers_cpus().contains(&pinned),
+            "the worker outlived its executor"
+        );
     }
 
     #[test]

@@ -11,9 +11,10 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 
 /// A server's options in a test or a bench: jobs' logs in `runs_dir`, the wall clock, no
-/// token, no host names beyond the default, no hook, no Zenoh, and no Foxglove server
+/// token, no host names beyond the default, no hook, no Zenoh, no Foxglove server
 /// (several run side by side, and its default port is one; a bench measures the cycles
-/// alone).
+/// alone), and an executor on no CPU of its own (the test's other threads would have to
+/// keep off it).
 pub fn options(runs_dir: PathBuf) -> ServeOptions {
     ServeOptions {
         runs_dir,
@@ -24,6 +25,7 @@ pub fn options(runs_dir: PathBuf) -> ServeOptions {
         foxglove_port: 0,
         foxglove_allow_remote: false,
         zenoh_connect: None,
+        executor_cpus: Vec::new(),
     }
 }
 
