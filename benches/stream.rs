@@ -40,13 +40,16 @@ const SLICES: usize = 6;
 
 const START: [f64; 6] = [0.0, 0.0, 0.0, 0.0, 0.5, 0.0];
 
-/// Every axis swinging gently (0.3 rad amplitude, 0.25 Hz) for `seconds`.
+/// Every axis swinging gently (0.3 rad amplitude, whole swings of about 4 s, at least one)
+/// for `seconds`: each slice starts and ends at rest, as a planned job does, so that it can
+/// complete (the gate refuses to hold a trajectory's last sample while it still moves).
 fn swing(rig: &Rig, period: std::time::Duration, seconds: f64) -> Trajectory {
     let dt = period.as_secs_f64();
     let samples = (seconds / dt).round() as usize + 1;
     let mut positions = Vec::with_capacity(samples * 6);
     let mut velocities = Vec::with_capacity(samples * 6);
-    let omega = std::f64::consts::TAU * 0.25;
+    let swings = (seconds / 4.0).round().max(1.0);
+    let omega = std::f64::consts::TAU * swings / ((samples - 1) as f64 * dt);
     for i in 0..samples {
         let t = i as f64 * dt;
         for start in START {

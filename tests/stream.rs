@@ -224,6 +224,45 @@ fn refuses_before_motion_a_trajectory_that_breaks_a_limit() {
     assert!(sink.0.is_empty());
 }
 
+/// The first `samples` samples of `trajectory`.
+fn cut(rig: &Rig, trajectory: &Trajectory, samples: usize) -> Trajectory {
+    let (mut positions, mut velocities) = (Vec::new(), Vec::new());
+    for i in 0..samples {
+        positions.extend_from_slice(trajectory.position(i));
+        velocities.extend_from_slice(trajectory.velocity(i));
+    }
+    let names = rig.joint_names().map(String::from).collect();
+    Trajectory::new(rig.name.clone(), names, period(), positions, velocities).unwrap()
+}
+
+#[test]
+fn a_trajectory_that_ends_moving_is_refused_at_its_end_and_the_report_says_why() {
+    let rig = irb120();
+    // Cut at the sweep's middle, where axis 1 moves fastest (about 1.6 rad/s): holding the
+    // last sample would stop it within one period, far beyond its acceleration.
+    let trajectory = cut(&rig, &sweep(&rig, 0.5, 251), 126);
+    let mut sink = Recorded::default();
+    let report = stream_to_twin(&rig, &trajectory, &mut sink, &StreamControl::default()).unwrap();
+    assert_eq!(report.outcome, Outcome::GateRefused, "{report:?}");
+    assert_eq!(report.limit_violations, 1);
+    let fault = report.fault.unwrap_or_default();
+    for words in [
+        "safety gate refused",
+        rig.joints[0].name.as_str(),
+        "acceleration",
+        "beyond its limit",
+        "deg/s^2",
+    ] {
+        assert!(fault.contains(words), "no {words:?} in {fault:?}");
+    }
+    // Every sample after the start was sent, and nothing after the last: the refused hold
+    // was not.
+    assert_eq!(sink.0.len(), trajectory.len() - 1);
+    let last = sink.0.last().unwrap().target.positions;
+    assert_eq!(last.as_slice(), trajectory.position(trajectory.len() - 1));
+    assert_commands_safe(&rig, &sink.0);
+}
+
 #[test]
 fn refuses_a_trajectory_that_starts_away_from_the_arm() {
     let rig = irb120();

@@ -16,12 +16,14 @@
 mod controller;
 mod executor;
 mod follow;
+mod gate;
 mod metrics;
 
 pub use crate::realtime::raise_priority;
 pub use controller::{Incompatible, check_controller};
 pub use executor::{CycleTask, Executor, ExecutorSettings, Handback};
 pub use follow::Tolerances;
+pub use gate::{GateCheck, GateRefusal};
 pub use metrics::MicrosHistogram;
 
 use crate::clock::Clock;
@@ -656,8 +658,7 @@ struct Cycle {
     scale: f64,
     scale_step: f64,
     /// The last two targets sent: the gate checks steps and accelerations against them.
-    previous: Option<(AxisValues, AxisValues)>,
-    before_previous: Option<AxisValues>,
+    sent: gate::Sent,
     jitter: MicrosHistogram,
     latency: MicrosHistogram,
     missed: u64,
@@ -691,8 +692,7 @@ impl Cycle {
             path: 0.0,
             scale: settings.start_scale.clamp(0.0, 1.0),
             scale_step: settings.slowdown_rate_per_s * trajectory.period.as_secs_f64(),
-            previous: None,
-            before_previous: None,
+            sent: gate::Sent::default(),
             jitter: MicrosHistogram::new(HISTOGRAM_CEILING_US),
             latency: MicrosHistogram::new(HISTOGRAM_CEILING_US),
             missed: 0,
@@ -822,36 +822,19 @@ impl Cycle {
         }
         // The gate's maths and the target's `t` (a log record) are in seconds.
         let dt = trajectory.period.as_secs_f64();
-        if !self.gate(&positions, &velocities, rig, dt) {
+        if let Err(refusal) = gate::check(rig, &positions, &velocities, &self.sent, dt) {
             self.violations += 1;
+            // The stream ends here: the words may allocate.
+            self.fault.get_or_insert_with(|| refusal.to_string());
             return None;
         }
-        self.before_previous = self.previous.map(|(p, _)| p);
-        self.previous = Some((positions, velocities));
+        self.sent.before_previous = self.sent.previous.map(|(p, _)| p);
+        self.sent.previous = Some((positions, velocities));
         Some(JointTarget {
             seq: self.seq,
             t: f64::from(self.seq) * dt,
             positions,
             velocities,
-        })
-    }
-
-    /// The last line of defence: inside the limits; no velocity, step, velocity change or
-    /// position second difference beyond the axis's speed and acceleration.
-    fn gate(&self, positions: &AxisValues, velocities: &AxisValues, rig: &Rig, dt: f64) -> bool {
-        rig.joints.iter().enumerate().all(|(axis, joint)| {
-            let limits = joint.limits;
-            let value = positions.as_slice()[axis];
-            let velocity = velocities.as_slice()[axis];
-            let moves_ok = self.previous.is_none_or(|(p, v)| {
-                limits.step_ok(value - p.as_slice()[axis], dt)
-                    && limits.velocity_change_ok(velocity - v.as_slice()[axis], dt)
-                    && self.before_previous.is_none_or(|b| {
-                        let second = value - 2.0 * p.as_slice()[axis] + b.as_slice()[axis];
-                        limits.second_difference_ok(second, dt)
-                    })
-            });
-            limits.contains(value) && limits.speed_ok(velocity) && moves_ok
         })
     }
 
