@@ -376,7 +376,7 @@ fn main() {
         rigbridge::realtime::pin_to(cpu).expect("pin the streaming thread");
         println!("streaming on CPU {cpu}; the Zenoh threads on the others");
     }
-    let _shield = std::env::var("STREAM_SHIELD")
+    let shield = std::env::var("STREAM_SHIELD")
         .is_ok_and(|v| v == "1")
         .then_some(cpu)
         .flatten()
@@ -392,6 +392,8 @@ fn main() {
         run(&rig, 250.0, long, &ros2, cpu),
         run(&rig, 1000.0, short, &ros2, cpu),
     ];
+    // `exit` runs no destructor: the other processes get their CPUs back first.
+    drop(shield);
     if results.contains(&false) {
         std::process::exit(1);
     }

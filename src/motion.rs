@@ -68,6 +68,18 @@ pub enum TrajectoryError {
         max_step: f64,
     },
     #[error(
+        "the trajectory ends moving: {joint} at {:.4} {unit}/s over its last period; it must end \
+         at rest (its last step within one period's deceleration), since the stream holds the \
+         last sample and the safety gate would refuse that hold with the arm still moving",
+        kind.to_user(*speed), unit = kind.unit()
+    )]
+    EndsMoving {
+        joint: String,
+        /// SI units per second (rad/s or m/s).
+        speed: f64,
+        kind: JointKind,
+    },
+    #[error(
         "sample {sample}: {joint} velocity {velocity:.6} is above its max speed {max_speed:.6}"
     )]
     VelocityOverSpeed {
@@ -202,14 +214,46 @@ impl Trajectory {
 /// step between samples beyond max speed x period, no velocity above max speed, and, on
 /// every axis, no acceleration above its max: neither the positions' second difference
 /// `p[k+1] - 2 p[k] + p[k-1]` beyond max acceleration x period^2, nor the sampled
-/// velocities' change `v[k+1] - v[k]` beyond max acceleration x period.
+/// velocities' change `v[k+1] - v[k]` beyond max acceleration x period; and it ends at
+/// rest, its last step within one period's deceleration, since the stream holds the last
+/// sample once the path is done.
 pub fn validate(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {
+    validate_motion(trajectory, rig)?;
+    check_ends_at_rest(trajectory, rig)
+}
+
+/// [`validate`] but for the end: for a motion that is not streamed as it is, but first
+/// brought to rest (a recorded run cut short, which replay ends with a ramp to rest and
+/// then validates whole).
+pub fn validate_motion(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {
     check_axes(trajectory, rig)?;
     let dt = trajectory.period.as_secs_f64();
     for sample in 0..trajectory.len() {
         check_sample(trajectory, rig, sample, dt)?;
     }
     check_accelerations(trajectory, rig)
+}
+
+/// Once the path is done the stream holds the last sample: from the step before it, that
+/// hold is a second difference the gate checks against each axis's acceleration.
+fn check_ends_at_rest(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {
+    let len = trajectory.len();
+    if len < 2 {
+        return Ok(());
+    }
+    let dt = trajectory.period.as_secs_f64();
+    let (last, before) = (trajectory.position(len - 1), trajectory.position(len - 2));
+    for (axis, joint) in rig.joints.iter().enumerate() {
+        let step = last[axis] - before[axis];
+        if !joint.limits.second_difference_ok(step, dt) {
+            return Err(TrajectoryError::EndsMoving {
+                joint: joint.name.clone(),
+                speed: step.abs() / dt,
+                kind: joint.kind,
+            });
+        }
+    }
+    Ok(())
 }
 
 fn check_axes(trajectory: &Trajectory, rig: &Rig) -> Result<(), TrajectoryError> {

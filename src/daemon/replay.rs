@@ -14,7 +14,7 @@ use crate::log::RunLog;
 use crate::stream::{CycleRecord, CycleSink, StreamControl};
 use crate::trajectory::{
     PlanError, RecordedError, Trajectory, TrajectoryError, plan_joint_moves, ramp_to_rest,
-    resample, validate,
+    resample, validate, validate_motion,
 };
 use serde::Serialize;
 use std::collections::HashMap;
@@ -152,7 +152,8 @@ pub fn replay_trajectory(
         source,
     };
     let resampled = resample(&recorded, period, speed).map_err(refused)?;
-    validate(&resampled, &settings.rig).map_err(refused)?;
+    // Whole but for its end: a run cut short ends moving until the ramp brings it to rest.
+    validate_motion(&resampled, &settings.rig).map_err(refused)?;
     let accel_share = settings.config.plan.accel_scale;
     let (trajectory, ramp) =
         ramp_to_rest(&resampled, &settings.rig, accel_share).map_err(ReplayError::Ramp)?;

@@ -20,4 +20,5 @@ pub use retime::{RetimeError, Retimed, retime};
 
 pub use crate::motion::{
     PeakAcceleration, SPEED_SLACK, Trajectory, TrajectoryError, peak_accelerations, validate,
+    validate_motion,
 };

@@ -4,7 +4,9 @@
 //! What `isolcpus` or a cpuset does on a machine set up for real time; here the VM's own
 //! agent and its kernel threads would otherwise run beside the cycles, and on this kernel a
 //! thread in a system call keeps its CPU until it yields. Per-CPU kernel threads may not
-//! move and stay. Owns no measurement.
+//! move and stay. Owns no measurement. Its `Drop` puts the threads back: a bench that
+//! leaves by `std::process::exit` drops it first, and one killed before its end leaves them
+//! moved (`taskset -a -p -c 0-N PID` puts one back).
 #![allow(dead_code)]
 
 use std::collections::HashMap;
