@@ -24,11 +24,11 @@ impl Shield {
         let mut stayed = 0;
         for tid in other_threads(own) {
             match move_off(tid, cpu) {
-                Some(Some(before)) => {
+                Move::Moved(before) => {
                     moved.insert(tid, before);
                 }
-                Some(None) => {}
-                None => stayed += 1,
+                Move::NotThere => {}
+                Move::Stuck => stayed += 1,
             }
         }
         println!(
@@ -69,10 +69,18 @@ fn other_threads(own: i32) -> Vec<i32> {
         .collect()
 }
 
-/// Takes `cpu` out of the thread's CPUs: `Some(Some(before))` when it was moved,
-/// `Some(None)` when it was not on `cpu` (or is gone), `None` when it may not move
-/// (bound to `cpu` alone, or refused).
-fn move_off(tid: i32, cpu: usize) -> Option<Option<libc::cpu_set_t>> {
+/// What [`move_off`] did with a thread.
+enum Move {
+    /// Off `cpu` now; the CPUs it had.
+    Moved(libc::cpu_set_t),
+    /// Not on `cpu` (or gone): left alone.
+    NotThere,
+    /// Bound to `cpu` alone, or the move was refused.
+    Stuck,
+}
+
+/// Takes `cpu` out of the thread's CPUs.
+fn move_off(tid: i32, cpu: usize) -> Move {
     let size = std::mem::size_of::<libc::cpu_set_t>();
     // SAFETY: an all-zero cpu_set_t is a valid empty set; the calls read and write at
     // most `size` bytes of the sets they are given, and CPU_ISSET/CPU_CLR/CPU_COUNT
@@ -80,19 +88,19 @@ fn move_off(tid: i32, cpu: usize) -> Option<Option<libc::cpu_set_t>> {
     unsafe {
         let mut before: libc::cpu_set_t = std::mem::zeroed();
         if libc::sched_getaffinity(tid, size, &mut before) != 0 {
-            return Some(None);
+            return Move::NotThere;
         }
         if !libc::CPU_ISSET(cpu, &before) {
-            return Some(None);
+            return Move::NotThere;
         }
         if libc::CPU_COUNT(&before) < 2 {
-            return None;
+            return Move::Stuck;
         }
         let mut after = before;
         libc::CPU_CLR(cpu, &mut after);
         if libc::sched_setaffinity(tid, size, &after) != 0 {
-            return None;
+            return Move::Stuck;
         }
-        Some(Some(before))
+        Move::Moved(before)
     }
 }
