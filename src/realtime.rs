@@ -134,31 +134,34 @@ mod tests {
             return;
         };
         let off = std::thread::spawn(move || {
-            keep_off(cpu).unwrap();
-            allowed_cpus().unwrap()
+            keep_off(cpu).expect("the thread keeps off the streaming CPU");
+            allowed_cpus().expect("the thread's CPUs are readable")
         })
         .join()
-        .unwrap();
+        .expect("the kept-off thread does not panic");
         assert!(
             !off.is_empty() && !off.contains(&cpu),
             "{off:?} still has {cpu}"
         );
         let (on, off_from_pinned) = std::thread::spawn(move || {
-            pin_to(cpu).unwrap();
+            pin_to(cpu).expect("the thread pins to the streaming CPU");
             // A thread created by a pinned one starts pinned too (what Zenoh's runtime
             // threads rely on), and can still keep off (a node started from the cycle's
             // thread).
-            let on = std::thread::spawn(allowed_cpus).join().unwrap().unwrap();
+            let on = std::thread::spawn(allowed_cpus)
+                .join()
+                .expect("the pinned thread's child does not panic")
+                .expect("the child's CPUs are readable");
             let off = std::thread::spawn(move || {
-                keep_off(cpu).unwrap();
-                allowed_cpus().unwrap()
+                keep_off(cpu).expect("the child keeps off the streaming CPU");
+                allowed_cpus().expect("the child's CPUs are readable")
             })
             .join()
-            .unwrap();
+            .expect("the kept-off child does not panic");
             (on, off)
         })
         .join()
-        .unwrap();
+        .expect("the pinned thread does not panic");
         assert_eq!(on, vec![cpu]);
         assert_eq!(off_from_pinned, off);
     }
@@ -174,14 +177,14 @@ mod tests {
         }
         assert_eq!(reserved_cpus(1), Some(vec![cpus[cpus.len() - 1]]));
         assert_eq!(streaming_cpu(), Some(cpus[cpus.len() - 1]));
-        let reserved = reserved_cpus(cpus.len() - 1).unwrap();
+        let reserved = reserved_cpus(cpus.len() - 1).expect("all but one CPU can be reserved");
         assert_eq!(reserved, cpus[1..]);
         let off = std::thread::spawn(move || {
-            keep_off_all(&reserved).unwrap();
-            allowed_cpus().unwrap()
+            keep_off_all(&reserved).expect("the thread keeps off the reserved CPUs");
+            allowed_cpus().expect("the thread's CPUs are readable")
         })
         .join()
-        .unwrap();
+        .expect("the kept-off thread does not panic");
         assert_eq!(off, vec![cpus[0]]);
     }
 }

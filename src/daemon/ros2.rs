@@ -89,7 +89,7 @@ mod tests {
             env!("CARGO_MANIFEST_DIR"),
             "/config/irb120.toml"
         )))
-        .unwrap()
+        .expect("the IRB 120 rig loads")
     }
 
     fn point(positions: Vec<f64>, sec: i32, nanosec: u32) -> JointTrajectoryPoint {
@@ -113,10 +113,12 @@ mod tests {
             ],
             ..Default::default()
         };
-        let Job::FollowTrajectory(job) = trajectory_job(&message, &rig).unwrap() else {
+        let Job::FollowTrajectory(job) =
+            trajectory_job(&message, &rig).expect("the trajectory becomes a job")
+        else {
             panic!("a follow_trajectory job");
         };
-        let rows = job.rows.unwrap();
+        let rows = job.rows.expect("the job carries inline rows");
         assert_eq!(rows[0][0], 0.0);
         assert_eq!(rows[1][0], 1.5);
         assert!((rows[0][1] - 0.1_f64.to_degrees()).abs() < 1e-12);

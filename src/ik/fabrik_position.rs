@@ -319,7 +319,10 @@ mod tests {
     /// and forward kinematics of those joints within the tolerance of the target.
     fn assert_genuine(rig: &Rig, target: DVec3, solution: &IkSolution) {
         assert_eq!(rig.first_limit_violation(&solution.joints), None);
-        let reached = rig.tool_pose(&solution.joints).unwrap().position;
+        let reached = rig
+            .tool_pose(&solution.joints)
+            .expect("the solution has the rig's joint count")
+            .position;
         assert!(reached.distance(target) <= TOLERANCE_M, "{solution:?}");
         assert!((reached.distance(target) - solution.position_error_m).abs() < 1e-12);
     }
@@ -331,7 +334,9 @@ mod tests {
             let solver = solver(rig.clone());
             for _ in 0..200 {
                 let pose = random_joints(&rig, &mut rng);
-                let target = rig.tool_pose(&pose).unwrap();
+                let target = rig
+                    .tool_pose(&pose)
+                    .expect("the pose has the rig's joint count");
                 // The previous frame's joints, as in the gait: within a degree or so.
                 let seed: Vec<f64> = pose
                     .iter()
@@ -354,7 +359,9 @@ mod tests {
         for rig in limbs() {
             let solver = solver(rig.clone());
             for _ in 0..250 {
-                let target = rig.tool_pose(&random_joints(&rig, &mut rng)).unwrap();
+                let target = rig
+                    .tool_pose(&random_joints(&rig, &mut rng))
+                    .expect("the random pose has the rig's joint count");
                 match solver.solve(&target, &middle(&rig)) {
                     Ok(solution) => {
                         solved += 1;
@@ -416,7 +423,9 @@ mod tests {
         let solver = solver(rig.clone());
         for _ in 0..100 {
             let pose = random_joints(&rig, &mut rng);
-            let target = rig.tool_pose(&pose).unwrap();
+            let target = rig
+                .tool_pose(&pose)
+                .expect("the pose has the rig's joint count");
             let seed: Vec<f64> = pose
                 .iter()
                 .map(|q| q + rng.random_range(-0.05..0.05))
@@ -473,7 +482,9 @@ mod tests {
         let solver = solver(rig.clone());
         for _ in 0..100 {
             let pose = random_joints(&rig, &mut rng);
-            let target = rig.tool_pose(&pose).unwrap();
+            let target = rig
+                .tool_pose(&pose)
+                .expect("the pose has the rig's joint count");
             let solution = solver.solve(&target, &middle(&rig)).expect("reaches");
             assert_genuine(&rig, target.position, &solution);
         }
@@ -490,7 +501,9 @@ mod tests {
     #[test]
     fn refuses_a_seed_of_the_wrong_length() {
         let rig = limbs().remove(0);
-        let target = rig.tool_pose(&middle(&rig)).unwrap();
+        let target = rig
+            .tool_pose(&middle(&rig))
+            .expect("the middle pose has the rig's joint count");
         assert!(matches!(
             solver(rig).solve(&target, &[0.0; 3]),
             Err(IkError::InvalidSeed(_))

@@ -79,7 +79,7 @@ mod tests {
             [DVec3::X, DVec3::Y, DVec3::X],
             DMat3::IDENTITY,
         )
-        .unwrap()
+        .expect("the axes form a spherical wrist")
     }
 
     #[test]

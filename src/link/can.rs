@@ -306,7 +306,8 @@ mod tests {
 
     #[test]
     fn a_controller_mapping_is_refused_for_the_bridge() {
-        let mapping = CanMapping::new(0x100, false, CanSender::Controller).unwrap();
+        let mapping = CanMapping::new(0x100, false, CanSender::Controller)
+            .expect("base ID 0x100 is a valid mapping");
         let hello = crate::protocol::Hello {
             axis_names: vec![],
             lower: vec![],

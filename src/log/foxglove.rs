@@ -567,7 +567,8 @@ mod tests {
     use std::path::Path;
 
     fn irb120() -> Rig {
-        load_rig(&Path::new(env!("CARGO_MANIFEST_DIR")).join("config/irb120.toml")).unwrap()
+        load_rig(&Path::new(env!("CARGO_MANIFEST_DIR")).join("config/irb120.toml"))
+            .expect("the IRB 120 rig loads")
     }
 
     #[test]
@@ -577,9 +578,9 @@ mod tests {
         let q = [0.3, -0.4, 0.5, -1.1, 0.7, 2.0];
         let tool = robot
             .link_transforms(&q)
-            .unwrap()
+            .expect("the IRB 120 takes six positions")
             .fold(DAffine3::IDENTITY, |a, b| a * b);
-        let expected = rig.forward(&q).unwrap();
+        let expected = rig.forward(&q).expect("the IRB 120 takes six positions");
         assert!((tool.translation - expected.translation).length() < 1e-12);
         let frames: Vec<_> = robot.frames().collect();
         assert_eq!(frames.len(), 7);
@@ -591,7 +592,8 @@ mod tests {
     fn a_urdf_file_keeps_its_fixed_links_and_a_wrong_one_is_refused() {
         let rig = irb120();
         let text = rig_to_urdf(&rig);
-        let robot = RobotDescription::from_urdf(&rig, text.clone()).unwrap();
+        let robot = RobotDescription::from_urdf(&rig, text.clone())
+            .expect("the generated URDF matches the rig");
         assert_eq!(
             robot.frames().collect::<Vec<_>>(),
             RobotDescription::generated(&rig)

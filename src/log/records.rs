@@ -195,7 +195,7 @@ mod tests {
         string(&mut map, "arm");
         body.extend((map.len() as u32).to_le_bytes());
         body.extend(&map);
-        let parsed = channel(&body).unwrap();
+        let parsed = channel(&body).expect("the channel record parses");
         assert_eq!(parsed.id, 3);
         assert_eq!(parsed.topic, "/arm/joint_state");
         assert_eq!(parsed.metadata.get("rig").map(String::as_str), Some("arm"));

@@ -355,6 +355,6 @@ mod tests {
         let text = summary.to_string();
         assert!(text.contains("1 seq gaps (2 missing): 1 -> 4"), "{text}");
         assert!(text.contains("file: complete"), "{text}");
-        serde_json::to_string(&summary).unwrap();
+        serde_json::to_string(&summary).expect("the summary serialises to JSON");
     }
 }

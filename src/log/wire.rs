@@ -309,8 +309,8 @@ mod tests {
             velocity: &velocity,
             late_us: Some(12.5),
         };
-        let json = serde_json::to_vec(&out).unwrap();
-        let back = decode_sample(&json).unwrap();
+        let json = serde_json::to_vec(&out).expect("the sample serialises");
+        let back = decode_sample(&json).expect("the sample decodes");
         assert_eq!(back.seq, 7);
         assert_eq!(back.positions[0].to_bits(), position[0].to_bits());
         assert!(back.positions[1].is_nan());
@@ -342,7 +342,8 @@ mod tests {
                 velocity: &[-value],
                 late_us: None,
             };
-            let back = decode_sample(&serde_json::to_vec(&out).unwrap()).unwrap();
+            let back = decode_sample(&serde_json::to_vec(&out).expect("the sample serialises"))
+                .expect("the sample decodes");
             assert_eq!(back.t.to_bits(), value.to_bits(), "{value:e}");
             assert_eq!(back.positions[0].to_bits(), value.to_bits(), "{value:e}");
             assert_eq!(
@@ -374,7 +375,7 @@ mod tests {
         let names = vec!["j1".to_owned(), "slide".to_owned()];
         let kinds = [JointKind::Revolute, JointKind::Prismatic];
         let map = identity_map("rig", &names, Some(&kinds));
-        let identity = parse_identity(&map).unwrap();
+        let identity = parse_identity(&map).expect("the identity map parses");
         assert_eq!(identity.rig.as_deref(), Some("rig"));
         assert_eq!(identity.joint_names, Some(names));
         assert_eq!(identity.joint_kinds, Some(kinds.to_vec()));

@@ -380,7 +380,8 @@ mod tests {
 
     #[test]
     fn sdo_requests_and_answers_round_trip() {
-        let write = sdo_download((0x6060, 0), &Value::Integer8(8)).unwrap();
+        let write = sdo_download((0x6060, 0), &Value::Integer8(8))
+            .expect("an Integer8 fits an expedited download");
         // CiA 301 example: 0x2F = download, expedited, size indicated, 1 byte.
         assert_eq!(write, [0x2F, 0x60, 0x60, 0, 8, 0, 0, 0]);
         assert_eq!(

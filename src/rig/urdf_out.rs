@@ -173,12 +173,13 @@ mod tests {
     #[test]
     fn the_generated_urdf_loads_back_with_urdf_rs_and_gives_the_same_fk() {
         for file in ["irb120.toml", "painter.toml"] {
-            let rig = load_rig(&config(file)).unwrap();
+            let rig = load_rig(&config(file)).expect("the shipped rig loads");
             let text = rig_to_urdf(&rig);
-            let robot = urdf_rs::read_from_string(&text).unwrap();
+            let robot = urdf_rs::read_from_string(&text).expect("urdf-rs reads the generated URDF");
             let links: Vec<&str> = robot.links.iter().map(|l| l.name.as_str()).collect();
             assert!(links.contains(&rig.base_frame.as_str()) && links.contains(&"tool0"));
-            let back = rig_from_urdf(&text, Path::new("generated.urdf")).unwrap();
+            let back = rig_from_urdf(&text, Path::new("generated.urdf"))
+                .expect("the generated URDF loads back as a rig");
             assert_eq!(back.dof(), rig.dof());
             assert_eq!(back.base_frame, rig.base_frame);
             assert_eq!(back.tool_frame, rig.tool_frame);
@@ -187,8 +188,10 @@ mod tests {
                 assert_eq!(a.limits, b.limits);
             }
             for q in probes(&rig) {
-                let ours = rig.forward(&q).unwrap();
-                let theirs = back.forward(&q).unwrap();
+                let ours = rig.forward(&q).expect("the rig takes the probe positions");
+                let theirs = back
+                    .forward(&q)
+                    .expect("the loaded-back rig takes the probe positions");
                 let dp = (ours.translation - theirs.translation).length();
                 let dr = (ours.matrix3 - theirs.matrix3).abs().to_cols_array();
                 assert!(dp <= 1e-12, "{file}: tool moved {dp} m");
@@ -199,7 +202,7 @@ mod tests {
 
     #[test]
     fn link_names_avoid_the_base_and_tool_frames() {
-        let mut rig = load_rig(&config("irb120.toml")).unwrap();
+        let mut rig = load_rig(&config("irb120.toml")).expect("the IRB 120 rig loads");
         rig.joints[0].name = rig.base_frame.clone();
         assert_eq!(generated_link_names(&rig)[0], "base_link_link");
         assert_eq!(generated_link_names(&rig)[1], "joint_2");

@@ -108,7 +108,7 @@ mod tests {
             velocity: vec![],
             effort: vec![],
         };
-        let bytes = encode(&state).unwrap();
+        let bytes = encode(&state).expect("the joint state encodes");
         // Written out from the OMG CDR rules by hand: header, sec, nanosec, the empty
         // frame_id (length 1: its NUL), one name "a" (length 2 with its NUL), padding to 8,
         // then one double, and the two empty sequences.
@@ -129,7 +129,10 @@ mod tests {
         ]
         .concat();
         assert_eq!(bytes, expected);
-        assert_eq!(decode_joint_state(&bytes).unwrap(), state);
+        assert_eq!(
+            decode_joint_state(&bytes).expect("the joint state decodes"),
+            state
+        );
     }
 
     #[test]
@@ -142,11 +145,14 @@ mod tests {
             }],
             ..Default::default()
         };
-        let bytes = encode(&trajectory).unwrap();
-        assert_eq!(decode_joint_trajectory(&bytes).unwrap(), trajectory);
+        let bytes = encode(&trajectory).expect("the trajectory encodes");
+        assert_eq!(
+            decode_joint_trajectory(&bytes).expect("the trajectory decodes"),
+            trajectory
+        );
         assert!(decode_joint_trajectory(&bytes[..bytes.len() - 3]).is_err());
         // A points count of four billion in a short payload.
-        let mut lying = encode(&JointTrajectory::default()).unwrap();
+        let mut lying = encode(&JointTrajectory::default()).expect("an empty trajectory encodes");
         let count = lying.len() - 4;
         lying[count..].copy_from_slice(&u32::MAX.to_le_bytes());
         assert!(decode_joint_trajectory(&lying).is_err());

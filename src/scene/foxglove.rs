@@ -323,8 +323,14 @@ mod tests {
         let ids: Vec<&str> = full.entities.iter().map(|e| e.id.as_str()).collect();
         assert_eq!(ids, ["walls", "cylinders", "paint-0"]);
         let branch = &full.entities[1].cylinders[0];
-        assert!((branch.size.as_ref().unwrap().z - 2.0).abs() < 1e-12);
-        let centre = branch.pose.as_ref().unwrap().position.as_ref().unwrap();
+        assert!((branch.size.as_ref().expect("the cylinder has a size").z - 2.0).abs() < 1e-12);
+        let centre = branch
+            .pose
+            .as_ref()
+            .expect("the cylinder has a pose")
+            .position
+            .as_ref()
+            .expect("the pose has a position");
         assert!((centre.y - 1.0).abs() < 1e-12);
         let paint = &full.entities[2].triangles[0];
         assert!((area(&paint.points) - 0.25).abs() < 1e-9);
@@ -336,7 +342,8 @@ mod tests {
                 .all(|p| (p.y + PAINT_OFFSET_M).abs() < 1e-12)
         );
         assert!(paint_update(&view, &[], 1, "world", stamp).is_none());
-        let more = paint_update(&view, &view.paint, 1, "world", stamp).unwrap();
+        let more =
+            paint_update(&view, &view.paint, 1, "world", stamp).expect("new paint gives an update");
         assert_eq!(more.entities[0].id, "paint-1");
         assert!(more.deletions.is_empty());
     }

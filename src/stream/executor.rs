@@ -658,7 +658,7 @@ mod tests {
 
     /// The CPUs each of this process' executor workers may run on, as /proc lists them.
     fn workers_cpus() -> Vec<String> {
-        let tasks = std::fs::read_dir("/proc/self/task").unwrap();
+        let tasks = std::fs::read_dir("/proc/self/task").expect("/proc/self/task is readable");
         tasks
             .filter_map(|task| {
                 let path = task.ok()?.path();
@@ -687,7 +687,7 @@ mod tests {
             cpus: vec![cpu],
             ..ExecutorSettings::default()
         })
-        .unwrap();
+        .expect("the executor starts on the streaming CPU");
         assert!(
             workers_cpus().contains(&pinned),
             "no worker on CPU {cpu} alone: {:?}",

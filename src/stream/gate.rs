@@ -149,7 +149,7 @@ mod tests {
 
     fn rig() -> Rig {
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/irb120.toml");
-        crate::rig::load_rig(std::path::Path::new(path)).unwrap()
+        crate::rig::load_rig(std::path::Path::new(path)).expect("the IRB 120 rig loads")
     }
 
     fn values(first: f64) -> AxisValues {

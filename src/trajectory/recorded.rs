@@ -164,7 +164,7 @@ mod tests {
     fn consecutive_evenly_spaced_commands_make_a_trajectory() {
         let trajectory = log(&[(5, 1.0), (6, 1.004), (7, 1.008)])
             .to_trajectory(Duration::from_millis(4))
-            .unwrap();
+            .expect("the commands make a trajectory");
         assert_eq!(trajectory.len(), 3);
         assert_eq!(trajectory.position(2), &[1.008]);
     }
@@ -198,9 +198,15 @@ mod tests {
     fn a_log_at_a_period_of_no_whole_nanoseconds_replays_to_its_end() {
         // Written with t = i / 300 s in f64, read back with the period to the nanosecond.
         let records: Vec<(u32, f64)> = (0..100_000).map(|i| (i, i as f64 / 300.0)).collect();
-        let period = Duration::try_from_secs_f64(1.0 / 300.0).unwrap();
+        let period = Duration::try_from_secs_f64(1.0 / 300.0).expect("1/300 s is a valid duration");
         assert_eq!(period, Duration::from_nanos(3_333_333));
-        assert_eq!(log(&records).to_trajectory(period).unwrap().len(), 100_000);
+        assert_eq!(
+            log(&records)
+                .to_trajectory(period)
+                .expect("the log replays as a trajectory")
+                .len(),
+            100_000
+        );
         // A command a microsecond and a half off the grid is still named, late in the log.
         let mut drifted = records.clone();
         drifted[90_000].1 += 1.5e-6 + 90_000.0 * 0.5e-9;

@@ -187,13 +187,14 @@ mod tests {
             positions,
             vec![speed; samples],
         )
-        .unwrap()
+        .expect("the line is a valid trajectory")
     }
 
     #[test]
     fn a_constant_speed_line_resamples_onto_the_same_line() {
         let source = line(0.01, 101, 0.5);
-        let resampled = resample(&source, Duration::from_millis(4), 1.0).unwrap();
+        let resampled =
+            resample(&source, Duration::from_millis(4), 1.0).expect("the line resamples");
         assert_eq!(resampled.len(), 251);
         for k in 0..resampled.len() {
             let expected = k as f64 * 0.004 * 0.5;
@@ -205,7 +206,7 @@ mod tests {
     #[test]
     fn half_speed_takes_twice_the_samples_at_half_the_velocity() {
         let source = line(0.004, 101, 0.5);
-        let slow = resample(&source, Duration::from_millis(4), 0.5).unwrap();
+        let slow = resample(&source, Duration::from_millis(4), 0.5).expect("the line resamples");
         assert_eq!(slow.len(), 201);
         assert!((slow.velocity(100)[0] - 0.25).abs() < 1e-9);
         assert_eq!(slow.position(200), source.position(100));
@@ -214,7 +215,7 @@ mod tests {
     #[test]
     fn the_same_period_is_taken_verbatim() {
         let source = line(0.004, 11, 0.3);
-        let same = resample(&source, Duration::from_millis(4), 1.0).unwrap();
+        let same = resample(&source, Duration::from_millis(4), 1.0).expect("the line resamples");
         assert_eq!(same, source);
     }
 }

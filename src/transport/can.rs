@@ -375,7 +375,8 @@ mod tests {
     fn filters_cover_exactly_the_peers_half_of_the_block() {
         for base in [0x000u16, 0x100, 0x140, 0x123, 0x780] {
             for (sender, offset) in [(CanSender::Bridge, 0x40), (CanSender::Controller, 0)] {
-                let mapping = CanMapping::new(base, false, sender).unwrap();
+                let mapping =
+                    CanMapping::new(base, false, sender).expect("the base ID is a valid mapping");
                 let filters = receive_filters(&mapping);
                 let first = u32::from(base) + offset;
                 assert_eq!(
@@ -400,7 +401,8 @@ mod tests {
         classic.can_id = 0x142;
         classic.can_dlc = 8;
         classic.data = [1, 2, 3, 4, 5, 6, 7, 8];
-        let payload = payload_of(&CanRawFrame::Classic(classic)).unwrap();
+        let payload =
+            payload_of(&CanRawFrame::Classic(classic)).expect("the classic frame gives a payload");
         assert_eq!((payload.id, payload.len, payload.fd), (0x142, 8, false));
         assert_eq!(payload.data(), &[1, 2, 3, 4, 5, 6, 7, 8]);
         classic.can_id = 0x142 | libc::CAN_EFF_FLAG;
@@ -411,7 +413,7 @@ mod tests {
         fd.can_id = 0x141;
         fd.len = 48;
         fd.data[0] = 42;
-        let payload = payload_of(&CanRawFrame::Fd(fd)).unwrap();
+        let payload = payload_of(&CanRawFrame::Fd(fd)).expect("the FD frame gives a payload");
         assert_eq!((payload.id, payload.len, payload.fd), (0x141, 48, true));
         assert_eq!(payload.data()[0], 42);
     }

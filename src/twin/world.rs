@@ -81,12 +81,15 @@ mod tests {
     fn the_world_sees_every_cycle_of_actual_positions() {
         let trace = Arc::new(Mutex::new(Trace(Vec::new())));
         let mut twin = Twin::new(&one_axis_rig(), TwinSettings::default(), &[0.25])
-            .unwrap()
+            .expect("the one-axis twin starts")
             .with_world(Box::new(trace.clone()));
         let mut reported = Vec::new();
         for _ in 0..3 {
             reported.push(twin.tick().positions.as_slice().to_vec());
         }
-        assert_eq!(trace.lock().unwrap().0, reported);
+        assert_eq!(
+            trace.lock().expect("the trace lock is not poisoned").0,
+            reported
+        );
     }
 }

@@ -183,8 +183,13 @@ mod tests {
         for (got, want) in chain.iter().zip(expected) {
             assert!(close(*got, want), "{chain:?}");
         }
-        let tool = rig.forward(&[0.3, std::f64::consts::FRAC_PI_2]).unwrap();
-        assert!(close(*chain.last().unwrap(), point(tool.translation)));
+        let tool = rig
+            .forward(&[0.3, std::f64::consts::FRAC_PI_2])
+            .expect("the rig takes two positions");
+        assert!(close(
+            *chain.last().expect("the chain has points"),
+            point(tool.translation)
+        ));
         assert!(joint_origins(&rig, &[0.3]).is_empty(), "wrong axis count");
     }
 
@@ -209,7 +214,7 @@ mod tests {
             radius_m: 0.12,
             laps: 1,
         });
-        let wall = job_wall(&job).unwrap();
+        let wall = job_wall(&job).expect("the star job has a wall");
         assert!(wall.corners.iter().all(|c| c[0] == 0.45));
         let (ys, zs): (Vec<f64>, Vec<f64>) = wall.corners.iter().map(|c| (c[1], c[2])).unzip();
         let span = |v: &[f64]| {

@@ -269,7 +269,7 @@ mod tests {
             env!("CARGO_MANIFEST_DIR"),
             "/config/irb120.toml"
         )))
-        .unwrap()
+        .expect("the IRB 120 rig loads")
     }
 
     #[test]
@@ -287,22 +287,41 @@ mod tests {
         let hub = LiveHub::new(rig(), 250.0, 50.0, slot, Box::new(painter));
         let (_, mut frames) = hub.subscribe();
         let sent = hub.tick(Duration::from_millis(20), JobView::default());
-        assert_eq!(frames.try_recv().unwrap(), sent);
-        let frame: serde_json::Value = serde_json::from_str(&sent).unwrap();
+        assert_eq!(
+            frames.try_recv().expect("the frame reached the subscriber"),
+            sent
+        );
+        let frame: serde_json::Value = serde_json::from_str(&sent).expect("the frame is JSON");
         assert_eq!(frame["type"], "frame");
-        let actual: Vec<f64> = serde_json::from_value(frame["actual"].clone()).unwrap();
+        let actual: Vec<f64> =
+            serde_json::from_value(frame["actual"].clone()).expect("actual is a list of numbers");
         assert!((actual[4] - 30.0).abs() < 1e-9, "degrees: {actual:?}");
-        let chain = frame["chains"][0].as_array().unwrap();
+        let chain = frame["chains"][0]
+            .as_array()
+            .expect("the first chain is a list");
         // Joint 1 sits on the base and tool0 on joint 6's origin: they add no point.
         assert_eq!(chain.len(), 6, "base and joints 2..=6: {chain:?}");
-        assert_eq!(frame["paint"].as_array().unwrap().len(), 1);
+        assert_eq!(frame["paint"].as_array().expect("paint is a list").len(), 1);
         let again: serde_json::Value =
-            serde_json::from_str(&hub.tick(Duration::from_millis(40), JobView::default())).unwrap();
-        assert!(again["paint"].as_array().unwrap().is_empty(), "sent once");
+            serde_json::from_str(&hub.tick(Duration::from_millis(40), JobView::default()))
+                .expect("the second frame is JSON");
+        assert!(
+            again["paint"]
+                .as_array()
+                .expect("paint is a list")
+                .is_empty(),
+            "sent once"
+        );
         let (scene, _) = hub.subscribe();
-        let scene: serde_json::Value = serde_json::from_str(&scene).unwrap();
+        let scene: serde_json::Value = serde_json::from_str(&scene).expect("the scene is JSON");
         assert_eq!(scene["type"], "scene");
-        assert_eq!(scene["scene"]["paint"].as_array().unwrap().len(), 1);
+        assert_eq!(
+            scene["scene"]["paint"]
+                .as_array()
+                .expect("the scene's paint is a list")
+                .len(),
+            1
+        );
         assert_eq!(scene["joints"][0]["unit"], "deg");
     }
 

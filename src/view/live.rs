@@ -176,7 +176,7 @@ mod tests {
     use crate::protocol::{Feedback, JointTarget};
 
     fn cycle(seq: u32, position: f64, late_us: f32, latency_us: Option<f32>) -> CycleRecord {
-        let positions = AxisValues::from_slice(&[position]).unwrap();
+        let positions = AxisValues::from_slice(&[position]).expect("one axis fits");
         CycleRecord {
             target: JointTarget {
                 seq,
@@ -186,7 +186,7 @@ mod tests {
             },
             feedback: Some(Feedback {
                 seq,
-                positions: AxisValues::from_slice(&[position / 2.0]).unwrap(),
+                positions: AxisValues::from_slice(&[position / 2.0]).expect("one axis fits"),
                 status: ControllerStatus::Ok,
             }),
             late_us,
@@ -224,7 +224,7 @@ mod tests {
             }
             assert_eq!(slot.latest().late_max_us, 5.0, "two windows later");
             // The view holds the slot: the cycle skips its publish instead of waiting.
-            let reading = slot.latest.lock().unwrap();
+            let reading = slot.latest.lock().expect("the slot lock is not poisoned");
             sink.record(&cycle(11, 1.0, 5.0, None));
             drop(reading);
             assert_eq!(slot.latest().seq, 10);

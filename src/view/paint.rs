@@ -199,7 +199,7 @@ mod tests {
         for sample in 0..plan.trajectory.len() {
             world
                 .lock()
-                .unwrap()
+                .expect("the world lock is not poisoned")
                 .observe(plan.trajectory.position(sample));
             if sample % 2 == 1 {
                 quads.extend(scene.drain_paint());
@@ -210,7 +210,7 @@ mod tests {
         let quad_area: f64 = quads.iter().map(|q| area(&q.quad)).sum();
         let painted: f64 = world
             .lock()
-            .unwrap()
+            .expect("the world lock is not poisoned")
             .grids()
             .iter()
             .map(|g| g.stats().painted_m2)

@@ -989,9 +989,9 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("rigbridge-ids-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         assert_eq!(first_job_id(&dir), 1, "no directory yet");
-        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::create_dir_all(&dir).expect("the temporary log directory is created");
         for name in ["job-3.mcap", "job-12.mcap", "job-x.mcap", "run-99.mcap"] {
-            std::fs::write(dir.join(name), b"").unwrap();
+            std::fs::write(dir.join(name), b"").expect("the empty log file is written");
         }
         assert_eq!(first_job_id(&dir), 13);
         let _ = std::fs::remove_dir_all(&dir);

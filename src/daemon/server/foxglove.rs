@@ -637,11 +637,12 @@ mod tests {
     fn ops_parse_and_others_are_told_apart() {
         let op: ClientOp =
             serde_json::from_str(r#"{"op":"subscribe","subscriptions":[{"id":0,"channelId":3}]}"#)
-                .unwrap();
+                .expect("the subscribe op parses");
         assert!(
             matches!(op, ClientOp::Subscribe { subscriptions } if subscriptions[0].channel_id == 3)
         );
-        let op: ClientOp = serde_json::from_str(r#"{"op":"advertise","channels":[]}"#).unwrap();
+        let op: ClientOp = serde_json::from_str(r#"{"op":"advertise","channels":[]}"#)
+            .expect("the advertise op parses");
         assert!(matches!(op, ClientOp::Other));
     }
 }

@@ -141,7 +141,7 @@ mod tests {
 
     #[test]
     fn hosts_are_ips_localhost_and_the_configured_names() {
-        let bound: SocketAddr = "127.0.0.1:8080".parse().unwrap();
+        let bound: SocketAddr = "127.0.0.1:8080".parse().expect("a valid socket address");
         let check = HostCheck::new(bound, &["Rig.Example".to_string()]);
         for ok in [
             "127.0.0.1:8080",

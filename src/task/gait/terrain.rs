@@ -200,7 +200,7 @@ mod tests {
     fn a_sideways_ray_hits_the_near_side() {
         let (t, p) = branch()
             .trace(DVec3::new(0.3, -0.5, 0.0), DVec3::Y)
-            .unwrap();
+            .expect("the sideways ray hits the branch");
         assert!((t - 0.48).abs() < 1e-12 && (p.y + 0.02).abs() < 1e-12);
         assert!(
             branch()
