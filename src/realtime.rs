@@ -11,9 +11,24 @@
 //! shared executor's threads keep to the last CPUs and the daemon's other threads keep off
 //! them (a kernel thread or another thread in a system call is not preempted on this
 //! machine's kernel until it yields: a CPU of their own is what keeps the cycles on time,
-//! `docs/architecture.md`, "The shared executor"). This module
-//! owns only the scheduler calls; which thread runs where and at which priority is its
-//! callers' decision.
+//! `docs/architecture.md`, "The shared executor"). A side thread that a cycle's thread
+//! starts (a log writer) inherits the cycle's priority and CPU unless it steps aside
+//! ([`step_aside`]). This module owns only the scheduler calls and the CPUs cycles were
+//! pinned to; which thread runs where and at which priority is its callers' decision.
+//! `docs/realtime.md` says what the machine must allow.
+
+use std::sync::{Mutex, PoisonError};
+
+/// The SCHED_FIFO priority of every thread that runs cycles: `run`'s stream, the shared
+/// executor's workers, a `serve` job streaming on its own thread, the twin's cycle. One
+/// level for all, so that no cycle preempts another mid-cycle; the middle of the range,
+/// level with a `PREEMPT_RT` kernel's interrupt threads (50 by default), so that a busy
+/// cycle does not starve the interrupts of the link's own device.
+pub const CYCLE_PRIORITY: i32 = 50;
+
+/// The CPUs cycle threads of this process were pinned to ([`pin_to`]): side threads keep
+/// off them ([`step_aside`]).
+static CYCLE_CPUS: Mutex<Vec<usize>> = Mutex::new(Vec::new());
 
 /// Moves the calling thread to SCHED_FIFO at `priority` (1-99).
 pub fn raise_priority(priority: i32) -> std::io::Result<()> {
@@ -60,9 +75,31 @@ pub fn reserved_cpus(count: usize) -> Option<Vec<usize>> {
     Some(cpus[cpus.len() - count..].to_vec())
 }
 
-/// Keeps the calling thread (and the threads it creates later) on `cpu` only.
+/// Keeps the calling thread, a cycle's (and the threads it creates later), on `cpu` only;
+/// side threads that step aside keep off `cpu` from then on.
 pub fn pin_to(cpu: usize) -> std::io::Result<()> {
-    set_affinity(&[cpu])
+    set_affinity(&[cpu])?;
+    let mut cycle_cpus = CYCLE_CPUS.lock().unwrap_or_else(PoisonError::into_inner);
+    if !cycle_cpus.contains(&cpu) {
+        cycle_cpus.push(cpu);
+    }
+    Ok(())
+}
+
+/// For a side thread, whoever started it: back to normal priority, and off every CPU a
+/// cycle thread was pinned to. A thread inherits its creator's policy and CPUs, so a log
+/// writer a cycle's thread starts would otherwise compete with the cycle at the cycle's
+/// own priority, on the cycle's CPU. With no cycle pinned the CPUs stay as they are.
+pub fn step_aside() -> std::io::Result<()> {
+    normal_priority()?;
+    let cycle_cpus = CYCLE_CPUS
+        .lock()
+        .unwrap_or_else(PoisonError::into_inner)
+        .clone();
+    if cycle_cpus.is_empty() {
+        return Ok(());
+    }
+    keep_off_all(&cycle_cpus)
 }
 
 /// Keeps the calling thread (and the threads it creates later) on the process's CPUs but
@@ -164,6 +201,54 @@ mod tests {
         .expect("the pinned thread does not panic");
         assert_eq!(on, vec![cpu]);
         assert_eq!(off_from_pinned, off);
+    }
+
+    /// The calling thread's scheduling policy and CPUs.
+    fn policy_and_cpus() -> (i32, Vec<usize>) {
+        // SAFETY: sched_getscheduler takes no pointer; pid 0 is the calling thread.
+        let policy = unsafe { libc::sched_getscheduler(0) };
+        (
+            policy,
+            allowed_cpus().expect("the thread's CPUs are readable"),
+        )
+    }
+
+    #[test]
+    fn a_side_thread_of_a_pinned_cycle_thread_steps_aside_to_normal_priority_and_other_cpus() {
+        let Some(cpu) = streaming_cpu() else {
+            eprintln!("skipped: this machine lets the test run on one CPU only");
+            return;
+        };
+        let threads = std::thread::spawn(move || {
+            raise_priority(CYCLE_PRIORITY)?;
+            pin_to(cpu).expect("the cycle's thread pins to the streaming CPU");
+            let inherited = std::thread::spawn(policy_and_cpus)
+                .join()
+                .expect("the inheriting thread does not panic");
+            let aside = std::thread::spawn(|| {
+                step_aside().expect("the side thread steps aside");
+                policy_and_cpus()
+            })
+            .join()
+            .expect("the side thread does not panic");
+            Ok::<_, std::io::Error>((inherited, aside))
+        })
+        .join()
+        .expect("the cycle's thread does not panic");
+        let (inherited, (policy, cpus)) = match threads {
+            Ok(threads) => threads,
+            Err(e) => {
+                eprintln!("skipped: real-time scheduling refused here ({e})");
+                return;
+            }
+        };
+        // What a side thread is before it steps aside: the cycle's policy, on its CPU.
+        assert_eq!(inherited, (libc::SCHED_FIFO, vec![cpu]));
+        assert_eq!(policy, libc::SCHED_OTHER);
+        assert!(
+            !cpus.is_empty() && !cpus.contains(&cpu),
+            "{cpus:?} has {cpu}"
+        );
     }
 
     #[test]

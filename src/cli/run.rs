@@ -79,7 +79,7 @@ pub fn spawn_streaming<T: Send + 'static>(
     Ok(std::thread::Builder::new()
         .name("rigbridge-stream".into())
         .spawn(move || {
-            if let Err(e) = rigbridge::stream::raise_priority(50) {
+            if let Err(e) = rigbridge::stream::raise_priority(rigbridge::realtime::CYCLE_PRIORITY) {
                 eprintln!("note: streaming at normal priority (real-time scheduling refused: {e})");
             }
             work()

@@ -115,7 +115,7 @@ pub fn bus_ids(settings: &RunSettings, given: &[u8], what: &str) -> anyhow::Resu
 
 /// Real-time scheduling for the twin's loop, or a note that it runs without.
 pub fn raise_twin_priority() {
-    if let Err(e) = rigbridge::stream::raise_priority(50) {
+    if let Err(e) = rigbridge::stream::raise_priority(rigbridge::realtime::CYCLE_PRIORITY) {
         eprintln!("note: twin at normal priority (real-time scheduling refused: {e})");
     }
 }

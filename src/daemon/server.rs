@@ -869,6 +869,7 @@ async fn submit(
 fn start_refused(cell: &Cell, refused: StartRefused) -> Response {
     let status = match refused {
         StartRefused::Poisoned => StatusCode::INTERNAL_SERVER_ERROR,
+        StartRefused::Spawn(_) => StatusCode::SERVICE_UNAVAILABLE,
         StartRefused::Busy | StartRefused::Faulted(_) => StatusCode::CONFLICT,
     };
     error(status, start_refusal(cell, refused))
@@ -882,6 +883,10 @@ fn start_refusal(cell: &Cell, refused: StartRefused) -> String {
             cell.name()
         ),
         StartRefused::Poisoned => "state lock poisoned".to_string(),
+        StartRefused::Spawn(e) => format!(
+            "cell `{}` cannot start the job's thread ({e}): try again later",
+            cell.name()
+        ),
         StartRefused::Faulted(fault) => format!(
             "the controller of cell `{0}` has a latched fault ({fault}): reset it first \
              (POST /api/cells/{0}/reset) once its cause is gone",

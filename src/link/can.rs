@@ -55,9 +55,9 @@ pub fn connect_can(interface: &str, mapping: CanMapping, hello: Hello) -> io::Re
         .enable_all()
         .build()?;
     let interface = interface.to_string();
-    std::thread::Builder::new()
-        .name("rigbridge-can".into())
-        .spawn(move || runtime.block_on(keep_open(interface, mapping, ends, session, first)))?;
+    super::spawn_io_thread("rigbridge-can", move || {
+        runtime.block_on(keep_open(interface, mapping, ends, session, first))
+    })?;
     Ok(link)
 }
 

@@ -145,9 +145,7 @@ pub fn start<D: Device>(
         device,
     });
     let io = hub.clone();
-    let thread = std::thread::Builder::new()
-        .name(thread.into())
-        .spawn(move || keep_open(&io))?;
+    let thread = super::spawn_io_thread(thread, move || keep_open(&io))?;
     Ok(DeviceLink {
         hub,
         seen: 0,

@@ -201,9 +201,7 @@ pub fn bind_egm(address: &str, axes: EgmAxes, period: Duration) -> std::io::Resu
         axes,
     });
     let io = shared.clone();
-    let thread = std::thread::Builder::new()
-        .name("rigbridge-egm".into())
-        .spawn(move || serve(&socket, &io))?;
+    let thread = super::spawn_io_thread("rigbridge-egm", move || serve(&socket, &io))?;
     Ok(EgmLink {
         shared,
         seen: 0,

@@ -35,6 +35,22 @@ use crate::protocol::{Command, EncodeError, FaultReport, Feedback, Hello};
 use std::time::Duration;
 use thiserror::Error;
 
+/// Starts a link's I/O thread named `name`: at the cycles' priority whoever opens the link
+/// (a `serve` job opens a remote link before it rises), since the cycle waits on the
+/// feedback it carries and, for EGM, on the clock it paces. A refusal changes nothing else:
+/// the cycle's own thread says so.
+fn spawn_io_thread<T: Send + 'static>(
+    name: &str,
+    io: impl FnOnce() -> T + Send + 'static,
+) -> std::io::Result<std::thread::JoinHandle<T>> {
+    std::thread::Builder::new()
+        .name(name.to_owned())
+        .spawn(move || {
+            let _ = crate::realtime::raise_priority(crate::realtime::CYCLE_PRIORITY);
+            io()
+        })
+}
+
 #[derive(Debug, Error)]
 pub enum LinkError {
     #[error("link is closed: {0}")]

@@ -25,9 +25,9 @@ pub fn connect_serial(settings: SerialSettings, hello: Hello) -> std::io::Result
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
-    std::thread::Builder::new()
-        .name("rigbridge-serial".into())
-        .spawn(move || runtime.block_on(keep_open(settings, ends, session)))?;
+    super::spawn_io_thread("rigbridge-serial", move || {
+        runtime.block_on(keep_open(settings, ends, session))
+    })?;
     Ok(link)
 }
 

@@ -41,9 +41,9 @@ pub fn connect_tcp(settings: TcpSettings, hello: Hello) -> std::io::Result<Chann
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
-    std::thread::Builder::new()
-        .name("rigbridge-tcp".into())
-        .spawn(move || runtime.block_on(keep_connected(settings, ends, session)))?;
+    super::spawn_io_thread("rigbridge-tcp", move || {
+        runtime.block_on(keep_connected(settings, ends, session))
+    })?;
     Ok(link)
 }
 

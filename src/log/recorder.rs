@@ -259,7 +259,12 @@ impl Recorder {
         let thread_dropped = Arc::clone(&dropped);
         let writer = std::thread::Builder::new()
             .name("rigbridge-log".to_owned())
-            .spawn(move || sink.run(&mut records_rx, &events_rx, &thread_dropped))
+            .spawn(move || {
+                // Started from the cycle's thread: it must not compete with the cycle at
+                // the cycle's priority, on the cycle's CPU. Refusal changes nothing else.
+                let _ = crate::realtime::step_aside();
+                sink.run(&mut records_rx, &events_rx, &thread_dropped)
+            })
             .map_err(|e| LogError::io("starting the log writer thread", e))?;
         Ok(Self {
             path: path.to_owned(),

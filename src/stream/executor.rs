@@ -29,8 +29,6 @@ use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::{JoinHandle, Thread};
 use std::time::Duration;
 
-/// The executor's threads ask for SCHED_FIFO at the priority `run` streams at.
-const PRIORITY: i32 = 50;
 /// A cycle's work (both halves) beyond this share of its period is an overrun: at a tenth,
 /// the jitter its neighbours may see, it would already spend their whole margin.
 const OVERRUN_SHARE: f64 = 0.1;
@@ -226,7 +224,7 @@ impl Executor {
             let handle = std::thread::Builder::new()
                 .name(format!("rigbridge-executor-{index}"))
                 .spawn(move || {
-                    if raise_priority(PRIORITY).is_ok() {
+                    if raise_priority(crate::realtime::CYCLE_PRIORITY).is_ok() {
                         realtime.fetch_add(1, Ordering::SeqCst);
                     }
                     if let Some(cpu) = cpu {

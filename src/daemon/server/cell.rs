@@ -198,6 +198,8 @@ fn state_of(job: Option<&JobStatus>) -> &'static str {
 pub enum StartRefused {
     Busy,
     Poisoned,
+    /// The job's thread could not be started (the system's thread limit, say).
+    Spawn(std::io::Error),
     /// The controller has this fault latched: it must be reset first.
     Faulted(String),
 }
@@ -651,7 +653,9 @@ impl Cell {
             actions: actions.clone(),
             planned: planned_tx,
         };
-        let handle = self.spawn_job(id, job, job_io, options);
+        let handle = self
+            .spawn_job(id, job, job_io, options)
+            .map_err(StartRefused::Spawn)?;
         *slot = Some(ActiveJob {
             id,
             name: name.clone(),
@@ -670,52 +674,55 @@ impl Cell {
         job: JobConfig,
         io: JobIo,
         options: &ServeOptions,
-    ) -> std::thread::JoinHandle<()> {
+    ) -> std::io::Result<std::thread::JoinHandle<()>> {
         let cell = self.clone();
         let virtual_clock = options.virtual_clock;
         let before_job = options.before_job.clone();
         let log = options.runs_dir.join(job_log_name(id));
-        std::thread::spawn(move || {
-            let clock: Box<dyn Clock> = if virtual_clock {
-                Box::new(VirtualClock::new())
-            } else {
-                Box::new(WallClock::new())
-            };
-            let result = contain_panic(|| {
-                if let Some(hook) = &before_job {
-                    hook(cell.name(), id);
-                }
-                cell.run_job(&job, io, clock.as_ref(), &log)
-            });
-            if let Ok(Ok(report)) = &result {
-                cell.learn_from(report);
-            }
-            let outcome = match result {
-                Ok(Ok(report)) => JobResult::Finished {
-                    id,
-                    report: Box::new(report),
-                },
-                Ok(Err(e)) => JobResult::Failed {
-                    id,
-                    error: error_chain(&e),
-                },
-                Err(panic) => {
-                    let name = cell.name();
-                    tracing::error!(
-                        cell = %name,
-                        job = id,
-                        "cell {name}: job {id} panicked: {panic}"
-                    );
-                    // The job is gone; the next one must still find the link.
-                    cell.link.clear_poison();
-                    JobResult::Failed {
-                        id,
-                        error: format!("the job failed unexpectedly: {panic}"),
+        // Named for `ps -L`: docs/realtime.md checks the job's priority by this name.
+        std::thread::Builder::new()
+            .name("rigbridge-job".into())
+            .spawn(move || {
+                let clock: Box<dyn Clock> = if virtual_clock {
+                    Box::new(VirtualClock::new())
+                } else {
+                    Box::new(WallClock::new())
+                };
+                let result = contain_panic(|| {
+                    if let Some(hook) = &before_job {
+                        hook(cell.name(), id);
                     }
+                    cell.run_job(&job, io, clock.as_ref(), &log)
+                });
+                if let Ok(Ok(report)) = &result {
+                    cell.learn_from(report);
                 }
-            };
-            *cell.last() = Some(outcome);
-        })
+                let outcome = match result {
+                    Ok(Ok(report)) => JobResult::Finished {
+                        id,
+                        report: Box::new(report),
+                    },
+                    Ok(Err(e)) => JobResult::Failed {
+                        id,
+                        error: error_chain(&e),
+                    },
+                    Err(panic) => {
+                        let name = cell.name();
+                        tracing::error!(
+                            cell = %name,
+                            job = id,
+                            "cell {name}: job {id} panicked: {panic}"
+                        );
+                        // The job is gone; the next one must still find the link.
+                        cell.link.clear_poison();
+                        JobResult::Failed {
+                            id,
+                            error: format!("the job failed unexpectedly: {panic}"),
+                        }
+                    }
+                };
+                *cell.last() = Some(outcome);
+            })
     }
 
     fn run_job(
@@ -767,6 +774,9 @@ impl Cell {
         let mut live = LiveSink::new(self.hub.slot(), rate);
         // A device-paced link keeps its own pacing, on this thread.
         let executor = executor.filter(|_| pacing.is_none());
+        if !clock.is_virtual() {
+            self.rise_for_cycles(executor.is_none());
+        }
         let sinks = Sinks {
             live: &mut live,
             actions: Some(&actions),
@@ -781,6 +791,22 @@ impl Cell {
             control,
             sinks,
         )
+    }
+
+    /// Moves the job's thread, planning done, to the cycles' priority: it runs the cycles
+    /// of a remote or device-paced link, of a thread per cell, and of a stream the
+    /// executor hands back. Refused, it says so when the cycles are its own from the start
+    /// (the executor said so for its own threads when the daemon started).
+    fn rise_for_cycles(&self, own_cycles: bool) {
+        if let Err(e) = crate::realtime::raise_priority(crate::realtime::CYCLE_PRIORITY)
+            && own_cycles
+        {
+            let name = self.name();
+            tracing::warn!(
+                cell = %name,
+                "cell {name}: the job streams at normal priority (real-time scheduling refused: {e})"
+            );
+        }
     }
 
     /// What a finished job tells of the controller: an e-stop or a fault it latched.
