@@ -1,6 +1,7 @@
 //! Which threads run at the cycles' priority, seen from the kernel (`/proc/self/task`,
-//! `sched_getscheduler`): a `serve` job that streams on its own thread rises to SCHED_FIFO
-//! at `realtime::CYCLE_PRIORITY` once planned, so does a link's I/O thread whoever opens
+//! `sched_getscheduler`): a `serve` job that streams to a remote controller rises to
+//! SCHED_FIFO at `realtime::CYCLE_PRIORITY` once planned (a twin cell's with a thread per
+//! cell does not), so does a link's I/O thread whoever opens
 //! the link, and the log writer a cycle's thread starts steps aside to normal priority,
 //! off the CPU the cycle keeps to. Without permission for
 //! real-time scheduling there is nothing to see, and the tests say they skip.
@@ -39,6 +40,14 @@ fn tasks_named(name: &str) -> Vec<Task> {
         .collect()
 }
 
+/// The threads named `name` that are not among `before`.
+fn new_tasks_named(name: &str, before: &[Task]) -> Vec<Task> {
+    tasks_named(name)
+        .into_iter()
+        .filter(|t| !before.iter().any(|b| b.tid == t.tid))
+        .collect()
+}
+
 /// Thread `tid`, or `None` once it has ended.
 fn task(tid: i32) -> Option<Task> {
     let name = std::fs::read_to_string(format!("/proc/self/task/{tid}/comm")).ok()?;
@@ -68,6 +77,14 @@ fn task(tid: i32) -> Option<Task> {
     })
 }
 
+/// The tests that start a `serve` job or a log look at every `rigbridge-job` or
+/// `rigbridge-log` thread of this process: one at a time, so that each sees its own.
+fn one_job_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    static JOBS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    JOBS.lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
 /// Whether this process may use real-time scheduling: asked on a thread of its own, which
 /// ends with its answer.
 fn real_time_allowed() -> Result<(), std::io::Error> {
@@ -82,6 +99,7 @@ fn a_log_writer_started_by_a_pinned_cycle_thread_steps_aside() {
         eprintln!("skipped: real-time scheduling refused here ({e})");
         return;
     }
+    let _one = one_job_at_a_time();
     let cpu = streaming_cpu();
     let path = scratch_file("realtime", "writer.mcap");
     let writers = std::thread::spawn(move || {
@@ -124,16 +142,21 @@ fn a_log_writer_started_by_a_pinned_cycle_thread_steps_aside() {
 }
 
 #[test]
-fn a_serve_job_streaming_on_its_own_thread_runs_at_the_cycle_priority() {
+fn a_serve_job_streaming_to_a_remote_controller_runs_at_the_cycle_priority() {
     if let Err(e) = real_time_allowed() {
         eprintln!("skipped: real-time scheduling refused here ({e})");
         return;
     }
+    let _one = one_job_at_a_time();
+    let twin =
+        common::twin::start_listening(&mut common::twin::listen_command("tcp://127.0.0.1:0"));
     let mut settings = load_run_settings(&repo_path("config/rigbridge.toml")).expect("settings");
-    // The job's own thread runs its cycles, as for a remote or device-paced link.
-    settings.config.serve.executor = ExecutorKind::ThreadPerCell;
+    // A controller of its own: the job's own thread runs the cycles.
+    settings.config.stream.link = twin.address.clone();
     let runs = scratch_dir("realtime", "serve-runs");
     let served = in_process::start(vec![settings], in_process::options(runs));
+    // A job thread of an earlier test may still be ending: this test looks at its own.
+    let before = tasks_named("rigbridge-job");
     let job = serde_json::json!({"job": {"kind": "move_joints", "targets_deg": [[40, -20, 20, 0, 50, -40]]}});
     let (answer, _) = flood::http(
         served.address,
@@ -147,19 +170,62 @@ fn a_serve_job_streaming_on_its_own_thread_runs_at_the_cycle_priority() {
     assert_eq!(code, 202, "{body}");
     // Planned, the job's thread streams at the cycles' priority; its log writer does not.
     let (job, writers) = wait_until(
-        "the job's thread at real-time priority",
+        "the job's thread at real-time priority, its log writer at normal priority",
         Duration::from_secs(20),
         || {
-            let job = tasks_named("rigbridge-job")
+            let job = new_tasks_named("rigbridge-job", &before)
                 .into_iter()
                 .find(|t| t.policy == libc::SCHED_FIFO)?;
-            Some((job, tasks_named("rigbridge-log")))
+            // A writer steps aside first thing, but after it has started: look until it has.
+            let writers = tasks_named("rigbridge-log");
+            let aside =
+                !writers.is_empty() && writers.iter().all(|w| w.policy == libc::SCHED_OTHER);
+            aside.then_some((job, writers))
         },
     );
     assert_eq!(job.priority, CYCLE_PRIORITY, "{job:?}");
-    assert!(!writers.is_empty(), "the job logs");
     for writer in writers {
-        assert_eq!(writer.policy, libc::SCHED_OTHER, "{writer:?}");
+        assert_eq!(writer.priority, 0, "{writer:?}");
+    }
+    served.stop().expect("the server stops").expect("cleanly");
+}
+
+#[test]
+fn a_serve_job_on_the_twin_with_a_thread_per_cell_stays_at_normal_priority() {
+    let _one = one_job_at_a_time();
+    let mut settings = load_run_settings(&repo_path("config/rigbridge.toml")).expect("settings");
+    settings.config.serve.executor = ExecutorKind::ThreadPerCell;
+    let runs = scratch_dir("realtime", "per-cell-runs");
+    let served = in_process::start(vec![settings], in_process::options(runs));
+    let before = tasks_named("rigbridge-job");
+    let job = serde_json::json!({"job": {"kind": "move_joints", "targets_deg": [[-40, 20, -20, 0, 40, 40]]}});
+    let (answer, _) = flood::http(
+        served.address,
+        "POST",
+        "/api/jobs",
+        "Content-Type: application/json\r\n",
+        &job.to_string(),
+        Duration::from_secs(30),
+    );
+    let (code, body) = answer.expect("the job is answered");
+    assert_eq!(code, 202, "{body}");
+    // Well into its cycles (as the cell's status counts them), its thread is still at
+    // normal priority.
+    let streaming = wait_until("the job streaming", Duration::from_secs(20), || {
+        let (answer, _) = flood::http(
+            served.address,
+            "GET",
+            "/api/status",
+            "",
+            "",
+            Duration::from_secs(30),
+        );
+        let status: serde_json::Value = serde_json::from_str(&answer?.1).ok()?;
+        (status["job"]["cycles"].as_u64()? > 50).then(|| new_tasks_named("rigbridge-job", &before))
+    });
+    assert!(!streaming.is_empty(), "the job's thread is there");
+    for job in streaming {
+        assert_eq!(job.policy, libc::SCHED_OTHER, "{job:?}");
     }
     served.stop().expect("the server stops").expect("cleanly");
 }
@@ -181,9 +247,9 @@ fn a_link_opened_at_normal_priority_carries_its_feedback_at_the_cycle_priority()
     let link = rigbridge::link::connect_tcp(rigbridge::link::TcpSettings::new(address), hello)
         .expect("the link starts");
     let io = wait_until("the link's I/O thread", Duration::from_secs(10), || {
-        tasks_named("rigbridge-tcp")
+        new_tasks_named("rigbridge-tcp", &before)
             .into_iter()
-            .find(|t| !before.iter().any(|b| b.tid == t.tid) && t.policy == libc::SCHED_FIFO)
+            .find(|t| t.policy == libc::SCHED_FIFO)
     });
     assert_eq!(io.priority, CYCLE_PRIORITY, "{io:?}");
     drop(link);

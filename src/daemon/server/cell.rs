@@ -746,6 +746,7 @@ impl Cell {
             CellLink::Twin(_) if !clock.is_virtual() => self.executor.as_deref(),
             _ => None,
         };
+        let remote = matches!(&*guard, CellLink::Remote(_));
         let link: &mut dyn Link = match &mut *guard {
             CellLink::Twin(twin) => twin.as_mut(),
             CellLink::Remote(remote) => match self.remote(remote) {
@@ -774,8 +775,8 @@ impl Cell {
         let mut live = LiveSink::new(self.hub.slot(), rate);
         // A device-paced link keeps its own pacing, on this thread.
         let executor = executor.filter(|_| pacing.is_none());
-        if !clock.is_virtual() {
-            self.rise_for_cycles(executor.is_none());
+        if remote && !clock.is_virtual() {
+            self.rise_for_cycles();
         }
         let sinks = Sinks {
             live: &mut live,
@@ -793,14 +794,13 @@ impl Cell {
         )
     }
 
-    /// Moves the job's thread, planning done, to the cycles' priority: it runs the cycles
-    /// of a remote or device-paced link, of a thread per cell, and of a stream the
-    /// executor hands back. Refused, it says so when the cycles are its own from the start
-    /// (the executor said so for its own threads when the daemon started).
-    fn rise_for_cycles(&self, own_cycles: bool) {
-        if let Err(e) = crate::realtime::raise_priority(crate::realtime::CYCLE_PRIORITY)
-            && own_cycles
-        {
+    /// Moves the job's thread, planning done, to the cycles' priority, for the cycles of a
+    /// remote (or device-paced) link: a real controller's. The twin's cycles are the shared
+    /// executor's; with a thread per cell, or handed back by the executor, they stay at
+    /// normal priority, since a hundred real-time threads that spin would starve the
+    /// control API (an e-stop among its requests) once they outgrow the CPUs.
+    fn rise_for_cycles(&self) {
+        if let Err(e) = crate::realtime::raise_priority(crate::realtime::CYCLE_PRIORITY) {
             let name = self.name();
             tracing::warn!(
                 cell = %name,
