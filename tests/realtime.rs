@@ -93,6 +93,21 @@ fn real_time_allowed() -> Result<(), std::io::Error> {
         .expect("the asking thread does not panic")
 }
 
+/// Asks the server at `address` for a move to `target_deg`; fails the test unless accepted.
+fn start_move(address: std::net::SocketAddr, target_deg: [f64; 6]) {
+    let job = serde_json::json!({"job": {"kind": "move_joints", "targets_deg": [target_deg]}});
+    let (answer, _) = flood::http(
+        address,
+        "POST",
+        "/api/jobs",
+        "Content-Type: application/json\r\n",
+        &job.to_string(),
+        Duration::from_secs(30),
+    );
+    let (code, body) = answer.expect("the job is answered");
+    assert_eq!(code, 202, "{body}");
+}
+
 #[test]
 fn a_log_writer_started_by_a_pinned_cycle_thread_steps_aside() {
     if let Err(e) = real_time_allowed() {
@@ -157,17 +172,7 @@ fn a_serve_job_streaming_to_a_remote_controller_runs_at_the_cycle_priority() {
     let served = in_process::start(vec![settings], in_process::options(runs));
     // A job thread of an earlier test may still be ending: this test looks at its own.
     let before = tasks_named("rigbridge-job");
-    let job = serde_json::json!({"job": {"kind": "move_joints", "targets_deg": [[40, -20, 20, 0, 50, -40]]}});
-    let (answer, _) = flood::http(
-        served.address,
-        "POST",
-        "/api/jobs",
-        "Content-Type: application/json\r\n",
-        &job.to_string(),
-        Duration::from_secs(30),
-    );
-    let (code, body) = answer.expect("the job is answered");
-    assert_eq!(code, 202, "{body}");
+    start_move(served.address, [40.0, -20.0, 20.0, 0.0, 50.0, -40.0]);
     // Planned, the job's thread streams at the cycles' priority; its log writer does not.
     let (job, writers) = wait_until(
         "the job's thread at real-time priority, its log writer at normal priority",
@@ -198,17 +203,7 @@ fn a_serve_job_on_the_twin_with_a_thread_per_cell_stays_at_normal_priority() {
     let runs = scratch_dir("realtime", "per-cell-runs");
     let served = in_process::start(vec![settings], in_process::options(runs));
     let before = tasks_named("rigbridge-job");
-    let job = serde_json::json!({"job": {"kind": "move_joints", "targets_deg": [[-40, 20, -20, 0, 40, 40]]}});
-    let (answer, _) = flood::http(
-        served.address,
-        "POST",
-        "/api/jobs",
-        "Content-Type: application/json\r\n",
-        &job.to_string(),
-        Duration::from_secs(30),
-    );
-    let (code, body) = answer.expect("the job is answered");
-    assert_eq!(code, 202, "{body}");
+    start_move(served.address, [-40.0, 20.0, -20.0, 0.0, 40.0, 40.0]);
     // Well into its cycles (as the cell's status counts them), its thread is still at
     // normal priority.
     let streaming = wait_until("the job streaming", Duration::from_secs(20), || {
