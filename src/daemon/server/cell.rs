@@ -694,35 +694,45 @@ impl Cell {
                     }
                     cell.run_job(&job, io, clock.as_ref(), &log)
                 });
-                if let Ok(Ok(report)) = &result {
-                    cell.learn_from(report);
-                }
-                let outcome = match result {
-                    Ok(Ok(report)) => JobResult::Finished {
-                        id,
-                        report: Box::new(report),
-                    },
-                    Ok(Err(e)) => JobResult::Failed {
-                        id,
-                        error: error_chain(&e),
-                    },
-                    Err(panic) => {
-                        let name = cell.name();
-                        tracing::error!(
-                            cell = %name,
-                            job = id,
-                            "cell {name}: job {id} panicked: {panic}"
-                        );
-                        // The job is gone; the next one must still find the link.
-                        cell.link.clear_poison();
-                        JobResult::Failed {
-                            id,
-                            error: format!("the job failed unexpectedly: {panic}"),
-                        }
-                    }
-                };
+                let outcome = cell.job_result(id, result);
                 *cell.last() = Some(outcome);
             })
+    }
+
+    /// How job `id` ended, from what its thread returned: the controller's latched fault
+    /// learnt from a report, a panic logged and the link made usable for the next job.
+    fn job_result(
+        &self,
+        id: u64,
+        result: Result<Result<RunReport, DaemonError>, Panicked>,
+    ) -> JobResult {
+        match result {
+            Ok(Ok(report)) => {
+                self.learn_from(&report);
+                JobResult::Finished {
+                    id,
+                    report: Box::new(report),
+                }
+            }
+            Ok(Err(e)) => JobResult::Failed {
+                id,
+                error: error_chain(&e),
+            },
+            Err(panic) => {
+                let name = self.name();
+                tracing::error!(
+                    cell = %name,
+                    job = id,
+                    "cell {name}: job {id} panicked: {panic}"
+                );
+                // The job is gone; the next one must still find the link.
+                self.link.clear_poison();
+                JobResult::Failed {
+                    id,
+                    error: format!("the job failed unexpectedly: {panic}"),
+                }
+            }
+        }
     }
 
     fn run_job(
