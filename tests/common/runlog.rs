@@ -20,15 +20,21 @@ pub fn resumptions(log: &RunLog) -> Vec<(f64, Vec<f64>)> {
         .collect()
 }
 
-/// After the log's first `link_lost` event: the stream resumed at least once, and every
-/// resumption starts from where the controller held (docs/protocol.md 6.8), so that from
-/// there on every command is within one cycle's travel (max speed x `period`) of the one
-/// before.
+/// After the log's first interruption (`link_lost`, or `stalled`: on a slow emulated
+/// machine a stall can come first, and the link's loss then falls within its wait for the
+/// hold, with no event of its own): the stream resumed at least once, and every resumption
+/// starts from where the controller held (docs/protocol.md 6.8), so that from there on
+/// every command is within one cycle's travel (max speed x `period`) of the one before.
 #[track_caller]
 pub fn assert_resumes_in_step_after_link_loss(log: &RunLog, rig: &Rig, period: f64) {
     let resumes = resumptions(log);
     assert!(!resumes.is_empty(), "a resumed event");
-    let lost_at = log.events.iter().find(|e| e.kind == "link_lost").unwrap().t;
+    let lost_at = log
+        .events
+        .iter()
+        .find(|e| e.kind == "link_lost" || e.kind == "stalled")
+        .expect("a link_lost or stalled event")
+        .t;
     let mut previous: Option<Vec<f64>> = None;
     let mut next_resume = 0;
     for command in log.commands.iter().filter(|c| c.t > lost_at + 1e-9) {
