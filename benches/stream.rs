@@ -466,8 +466,9 @@ fn main() {
     // The subscriber is another process, started before this thread pins itself and rises
     // to SCHED_FIFO: a child inherits both, and would see the streaming CPU as its only one.
     let ros2 = subscriber(cpu);
-    match rigbridge::stream::raise_priority(50) {
-        Ok(()) => println!("streaming at SCHED_FIFO priority 50"),
+    let priority = rigbridge::realtime::CYCLE_PRIORITY;
+    match rigbridge::stream::raise_priority(priority) {
+        Ok(()) => println!("streaming at SCHED_FIFO priority {priority}"),
         Err(e) => println!("streaming at normal priority (SCHED_FIFO refused: {e})"),
     }
     // As `rigbridge run` does with a ROS 2 node: the cycle keeps to one CPU (in both runs,

@@ -85,12 +85,16 @@ fn one_job_at_a_time() -> std::sync::MutexGuard<'static, ()> {
         .unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
-/// Whether this process may use real-time scheduling: asked on a thread of its own, which
-/// ends with its answer.
-fn real_time_allowed() -> Result<(), std::io::Error> {
-    std::thread::spawn(|| raise_priority(CYCLE_PRIORITY))
+/// Whether this process may use real-time scheduling, asked on a thread of its own, which
+/// ends with its answer; when not, says that the calling test skips and why.
+fn real_time_allowed() -> bool {
+    let asked = std::thread::spawn(|| raise_priority(CYCLE_PRIORITY))
         .join()
-        .expect("the asking thread does not panic")
+        .expect("the asking thread does not panic");
+    if let Err(e) = &asked {
+        eprintln!("skipped: real-time scheduling refused here ({e})");
+    }
+    asked.is_ok()
 }
 
 /// Asks the server at `address` for a move to `target_deg`; fails the test unless accepted.
@@ -110,8 +114,7 @@ fn start_move(address: std::net::SocketAddr, target_deg: [f64; 6]) {
 
 #[test]
 fn a_log_writer_started_by_a_pinned_cycle_thread_steps_aside() {
-    if let Err(e) = real_time_allowed() {
-        eprintln!("skipped: real-time scheduling refused here ({e})");
+    if !real_time_allowed() {
         return;
     }
     let _one = one_job_at_a_time();
@@ -158,8 +161,7 @@ fn a_log_writer_started_by_a_pinned_cycle_thread_steps_aside() {
 
 #[test]
 fn a_serve_job_streaming_to_a_remote_controller_runs_at_the_cycle_priority() {
-    if let Err(e) = real_time_allowed() {
-        eprintln!("skipped: real-time scheduling refused here ({e})");
+    if !real_time_allowed() {
         return;
     }
     let _one = one_job_at_a_time();
@@ -227,8 +229,7 @@ fn a_serve_job_on_the_twin_with_a_thread_per_cell_stays_at_normal_priority() {
 
 #[test]
 fn a_link_opened_at_normal_priority_carries_its_feedback_at_the_cycle_priority() {
-    if let Err(e) = real_time_allowed() {
-        eprintln!("skipped: real-time scheduling refused here ({e})");
+    if !real_time_allowed() {
         return;
     }
     // A `serve` job opens a remote link before it rises: so does this test's thread.

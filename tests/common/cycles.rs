@@ -20,7 +20,7 @@ pub fn one_at_a_time() -> MutexGuard<'static, ()> {
 /// as `rigbridge run` and `rigbridge twin` do: on a loaded 2-core machine an ordinary thread
 /// is preempted for milliseconds, longer than a cycle.
 pub fn real_time() {
-    if let Err(e) = rigbridge::stream::raise_priority(50) {
+    if let Err(e) = rigbridge::stream::raise_priority(rigbridge::realtime::CYCLE_PRIORITY) {
         println!("note: normal priority (real-time scheduling refused: {e})");
     }
 }
