@@ -218,17 +218,198 @@ fn run_publishes_joint_states_that_rosbags_decodes_with_rmw_zenohs_tokens() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Where the twin rests ([0, 0, 0, 0, 30 deg, 0]), rad.
+const TWIN_REST: &str = "0,0,0,0,0.5235987755982988,0";
+/// A valid trajectory from where the twin rests, and its last point (rad).
+const GOOD_TRAJECTORY: &str =
+    "0:0,0,0,0,0.5235987755982988,0;1.5:0.3,0.2,-0.1,0.2,0.6,0.1;3:0.4,0.1,0,0,0.5,0";
+const GOOD_LAST_POINT: [f64; 6] = [0.4, 0.1, 0.0, 0.0, 0.5, 0.0];
+/// The Zenoh users of the authenticated tests: the daemon's and an operator's.
+const DAEMON_USER: &str = "rigbridge";
+const OPERATOR_USER: &str = "operator";
+
+/// Polls the daemon's status until its last job finished and it is idle.
+fn finished_status(serve: &Serve) -> serde_json::Value {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let status = serve.get("/api/status");
+        if status["last"]["result"] == "finished" && status["state"] == "idle" {
+            return status;
+        }
+        assert!(Instant::now() < deadline, "no job finished: {status}");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
+fn event_actions(status: &serde_json::Value) -> Vec<String> {
+    status["events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["action"].as_str().unwrap().to_string())
+        .collect()
+}
+
+/// Each axis of the status' actual position within [`ARRIVED_DEG`] of `point` (rad).
+fn assert_arm_at(status: &serde_json::Value, point: &[f64]) {
+    for (axis, value) in status["actual"].as_array().unwrap().iter().enumerate() {
+        let deg = value["value"].as_f64().unwrap();
+        assert!(
+            (deg - point[axis].to_degrees()).abs() < ARRIVED_DEG,
+            "axis {axis}: {deg} deg, expected {} deg",
+            point[axis].to_degrees()
+        );
+    }
+}
+
+/// The daemon's and the operator's passwords in files, and the router's dictionary of both.
+struct Logins {
+    daemon_password: PathBuf,
+    operator_password: PathBuf,
+    wrong_password: PathBuf,
+    dictionary: PathBuf,
+}
+
+fn logins(dir: &Path) -> Logins {
+    let write = |name: &str, text: &str| {
+        let file = dir.join(name);
+        std::fs::write(&file, text).unwrap();
+        file
+    };
+    Logins {
+        daemon_password: write("rigbridge.password", "daemon-Secret-1\n"),
+        operator_password: write("operator.password", "operator-Secret-2\n"),
+        wrong_password: write("wrong.password", "operator-Secret-3\n"),
+        dictionary: write(
+            "zenoh-users.txt",
+            &format!("{DAEMON_USER}:daemon-Secret-1\n{OPERATOR_USER}:operator-Secret-2\n"),
+        ),
+    }
+}
+
+/// The `[ros2]` body that takes motion, the daemon logged in as [`DAEMON_USER`].
+fn daemon_login(logins: &Logins) -> String {
+    let file = logins
+        .daemon_password
+        .file_name()
+        .unwrap()
+        .to_str()
+        .unwrap();
+    format!("accept_motion = true\nuser = \"{DAEMON_USER}\"\npassword_file = \"{file}\"\n")
+}
+
 #[test]
-fn serve_runs_a_joint_trajectory_from_ros_2_and_refuses_an_invalid_one() {
+fn serve_takes_motion_only_from_a_logged_in_zenoh_session_and_from_where_the_arm_is() {
     let Some(python) = peer_python() else { return };
     let dir = scratch("serve");
     let endpoint = free_endpoint();
+    let logins = logins(&dir);
     let joints = irb120_joints().join(",");
-    // From where the twin rests ([0, 0, 0, 0, 30 deg, 0]); the bad one takes joint_1 to
-    // 3.5 rad, past its 165 deg.
-    let start = "0,0,0,0,0.5235987755982988,0";
-    let bad = format!("0:{start};1:3.5,0,0,0,0.5235987755982988,0");
-    let good = format!("0:{start};1.5:0.3,0.2,-0.1,0.2,0.6,0.1;3:0.4,0.1,0,0,0.5,0");
+    let router = Peer::start(
+        &python,
+        &[
+            "router",
+            "--endpoint",
+            &endpoint,
+            "--dictionary",
+            logins.dictionary.to_str().unwrap(),
+            "--timeout",
+            "300",
+        ],
+    );
+    let config = cell_settings(&dir, "irb120", &daemon_login(&logins));
+    let serve = Serve::start(
+        &[&config],
+        &["--zenoh-connect", &endpoint],
+        &dir.join("runs"),
+    );
+    // Refused at the transport: no login, a wrong password. The router does not admit the
+    // session, so nothing it would send can reach the daemon.
+    let operator = |password: Option<&Path>, sends: &[&str]| {
+        let mut args = vec![
+            "trajectory",
+            "--connect",
+            "--endpoint",
+            &endpoint,
+            "--rig",
+            "irb120",
+            "--joints",
+            &joints,
+        ];
+        if let Some(password) = password {
+            args.extend(["--user", OPERATOR_USER]);
+            args.extend(["--password-file", password.to_str().unwrap()]);
+        }
+        for send in sends {
+            args.extend(["--send", send]);
+        }
+        Peer::start(&python, &args).result()
+    };
+    for (who, password) in [
+        ("anonymous", None),
+        ("wrong password", Some(&*logins.wrong_password)),
+    ] {
+        let refused = operator(password, &[GOOD_TRAJECTORY]);
+        println!("{who}: {refused}");
+        assert_eq!(refused["opened"], false, "{who}: {refused}");
+    }
+    // Logged in: out of limits (joint_1 to 3.5 rad, past its 165 deg), starting far from
+    // where the arm rests (joint_1 at 160 deg, the audit's swing), then a valid one.
+    let out_of_limits = format!("0:{TWIN_REST};1:3.5,0,0,0,0.5235987755982988,0");
+    let far_start = "0:2.792526803190927,0,0,0,0.5235987755982988,0;2:2.7,0,0,0,0.5,0";
+    let sent = operator(
+        Some(&logins.operator_password),
+        &[&out_of_limits, far_start, GOOD_TRAJECTORY],
+    );
+    assert_eq!(sent["opened"], true, "{sent}");
+    assert_eq!(sent["subscribed"], true, "{sent}");
+    assert_eq!(sent["sent"], 3);
+    let status = finished_status(&serve);
+    let report = &status["last"]["report"];
+    assert_eq!(report["job"], "follow_trajectory");
+    assert_eq!(report["outcome"], "completed", "{report}");
+    assert_eq!(
+        event_actions(&status),
+        [
+            "ros2_motion",
+            "ros2_trajectory_refused",
+            "ros2_trajectory_refused",
+            "ros2_trajectory_started"
+        ]
+    );
+    let motion = status["events"][0]["result"].as_str().unwrap();
+    assert!(motion.starts_with("on: "), "{motion}");
+    let limits = status["events"][1]["result"].as_str().unwrap();
+    assert!(limits.contains("outside the limits of joint_1"), "{limits}");
+    assert!(limits.contains("(refusal 1 from ROS 2"), "{limits}");
+    let far = status["events"][2]["result"].as_str().unwrap();
+    assert!(
+        far.contains("starts joint_1 at 160.000 deg but the rig holds it at 0.000 deg"),
+        "{far}"
+    );
+    assert!(far.contains("(refusal 2 from ROS 2"), "{far}");
+    let stderr = serve.stderr.lock().unwrap().clone();
+    assert!(
+        stderr.contains("ros2_trajectory_refused") && stderr.contains("outside the limits"),
+        "{stderr}"
+    );
+    assert!(
+        !stderr.contains("daemon-Secret-1"),
+        "the password is never logged"
+    );
+    assert_arm_at(&status, &GOOD_LAST_POINT);
+    drop(serve);
+    drop(router);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn with_accept_motion_off_no_trajectory_from_ros_2_runs() {
+    let Some(python) = peer_python() else { return };
+    let dir = scratch("motion-off");
+    let endpoint = free_endpoint();
+    let joints = irb120_joints().join(",");
+    // The shipped settings: no [ros2], so accept_motion is off; an open Zenoh peer.
     let peer = Peer::start(
         &python,
         &[
@@ -239,10 +420,16 @@ fn serve_runs_a_joint_trajectory_from_ros_2_and_refuses_an_invalid_one() {
             "irb120",
             "--joints",
             &joints,
-            "--bad",
-            &bad,
-            "--good",
-            &good,
+            "--token-timeout",
+            "5",
+            "--gap",
+            "0.5",
+            "--send",
+            GOOD_TRAJECTORY,
+            "--send",
+            GOOD_TRAJECTORY,
+            "--send",
+            GOOD_TRAJECTORY,
         ],
     );
     let config = repo_path("config/rigbridge.toml");
@@ -251,53 +438,74 @@ fn serve_runs_a_joint_trajectory_from_ros_2_and_refuses_an_invalid_one() {
         &["--zenoh-connect", &endpoint],
         &dir.join("runs"),
     );
-    assert_eq!(peer.result()["sent"], 2);
-    let deadline = Instant::now() + Duration::from_secs(60);
-    let status = loop {
-        let status = serve.get("/api/status");
-        if status["last"]["result"] == "finished" && status["state"] == "idle" {
-            break status;
-        }
-        assert!(Instant::now() < deadline, "no job finished: {status}");
-        std::thread::sleep(Duration::from_millis(200));
-    };
-    let report = &status["last"]["report"];
-    assert_eq!(report["job"], "follow_trajectory");
-    assert_eq!(report["outcome"], "completed", "{report}");
-    let actions: Vec<&str> = status["events"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|e| e["action"].as_str().unwrap())
-        .collect();
+    let result = peer.result();
+    println!("accept_motion off: {result}");
+    assert_eq!(result["node_seen"], true, "the daemon joined: {result}");
+    assert!(
+        result["joint_states"].as_u64().unwrap() > 100,
+        "joint states are still published: {result}"
+    );
     assert_eq!(
-        actions,
-        ["ros2_trajectory_refused", "ros2_trajectory_started"]
+        result["subscribed"], false,
+        "no JointTrajectory subscription"
     );
-    let refusal = status["events"][0]["result"].as_str().unwrap();
-    assert!(
-        refusal.contains("outside the limits of joint_1"),
-        "{refusal}"
-    );
-    let stderr = serve.stderr.lock().unwrap().clone();
-    assert!(
-        stderr.contains("ros2_trajectory_refused") && stderr.contains("outside the limits"),
-        "{stderr}"
-    );
-    let last_point = [0.4_f64, 0.1, 0.0, 0.0, 0.5, 0.0];
-    for (axis, value) in status["actual"].as_array().unwrap().iter().enumerate() {
-        let deg = value["value"].as_f64().unwrap();
-        assert!(
-            (deg - last_point[axis].to_degrees()).abs() < ARRIVED_DEG,
-            "axis {axis}: {deg} deg"
-        );
-    }
+    assert_eq!(result["sent"], 3);
+    // Given a second for anything that would have come of them.
+    std::thread::sleep(Duration::from_secs(1));
+    let status = serve.get("/api/status");
+    assert_eq!(status["state"], "idle", "{status}");
+    assert!(status["last"].is_null(), "no job ran: {status}");
+    assert_eq!(event_actions(&status), ["ros2_motion"]);
+    let motion = status["events"][0]["result"].as_str().unwrap();
+    assert!(motion.starts_with("off: "), "{motion}");
+    assert_arm_at(&status, &[0.0, 0.0, 0.0, 0.0, 30f64.to_radians(), 0.0]);
     drop(serve);
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Run settings for a copy of the IRB 120 named `name`, joining ROS 2 through `endpoint`.
-fn named_cell(dir: &Path, name: &str, endpoint: &str) -> PathBuf {
+#[test]
+fn a_daemon_with_a_login_does_not_join_a_zenoh_peer_that_asks_for_none() {
+    let Some(python) = peer_python() else { return };
+    let dir = scratch("no-auth-router");
+    let endpoint = free_endpoint();
+    let logins = logins(&dir);
+    let joints = irb120_joints().join(",");
+    let peer = Peer::start(
+        &python,
+        &[
+            "trajectory",
+            "--endpoint",
+            &endpoint,
+            "--rig",
+            "irb120",
+            "--joints",
+            &joints,
+            "--token-timeout",
+            "5",
+            "--send",
+            GOOD_TRAJECTORY,
+        ],
+    );
+    let config = cell_settings(&dir, "irb120", &daemon_login(&logins));
+    let serve = Serve::start(
+        &[&config],
+        &["--zenoh-connect", &endpoint],
+        &dir.join("runs"),
+    );
+    let result = peer.result();
+    println!("open peer, daemon with a login: {result}");
+    assert_eq!(result["node_seen"], false, "{result}");
+    assert_eq!(result["subscribed"], false, "{result}");
+    assert_eq!(result["joint_states"], 0, "{result}");
+    let status = serve.get("/api/status");
+    assert!(status["last"].is_null(), "no job ran: {status}");
+    drop(serve);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Run settings for the IRB 120 under the name `name` in `dir`, with `ros2` as the body
+/// of its `[ros2]` section.
+fn cell_settings(dir: &Path, name: &str, ros2: &str) -> PathBuf {
     let rig = std::fs::read_to_string(repo_path("config/irb120.toml"))
         .unwrap()
         .replacen("name = \"irb120\"", &format!("name = \"{name}\""), 1);
@@ -310,10 +518,15 @@ fn named_cell(dir: &Path, name: &str, endpoint: &str) -> PathBuf {
             &format!("rig = \"{name}.toml\""),
             1,
         )
-        + &format!("\n[ros2]\nzenoh_connect = \"{endpoint}\"\n");
+        + &format!("\n[ros2]\n{ros2}");
     let file = dir.join(format!("{name}-run.toml"));
     std::fs::write(&file, settings).unwrap();
     file
+}
+
+/// Run settings for a copy of the IRB 120 named `name`, joining ROS 2 through `endpoint`.
+fn named_cell(dir: &Path, name: &str, endpoint: &str) -> PathBuf {
+    cell_settings(dir, name, &format!("zenoh_connect = \"{endpoint}\"\n"))
 }
 
 #[test]
@@ -397,6 +610,7 @@ fn ros2_settings_are_validated_with_file_key_and_value() {
     assert!(rate.contains("ros2.joint_states_hz"), "{rate}");
     let unknown = load_error(&dir, "unknown", "[ros2]\nzenoh = \"tcp/h:1\"\n");
     assert!(unknown.contains("zenoh"), "{unknown}");
+    motion_settings_are_validated(&dir);
     // The command line's override is checked the same way: a usage error.
     let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
         .args([
@@ -415,4 +629,88 @@ fn ros2_settings_are_validated_with_file_key_and_value() {
         "{stderr}"
     );
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `accept_motion` needs a login or the lab opt-out; `user` and `password_file` go together,
+/// the file must hold one line; no error or debug rendering shows the password.
+fn motion_settings_are_validated(dir: &Path) {
+    let motion = load_error(dir, "motion", "[ros2]\naccept_motion = true\n");
+    assert!(
+        motion.contains("ros2.accept_motion")
+            && motion.contains("true")
+            && motion.contains("allow_unauthenticated_motion"),
+        "{motion}"
+    );
+    let user_only = load_error(dir, "user-only", "[ros2]\nuser = \"rigbridge\"\n");
+    assert!(
+        user_only.contains("ros2.user") && user_only.contains("password_file"),
+        "{user_only}"
+    );
+    let missing = load_error(
+        dir,
+        "missing",
+        "[ros2]\nuser = \"rigbridge\"\npassword_file = \"absent.password\"\n",
+    );
+    assert!(
+        missing.contains("ros2.password_file") && missing.contains("absent.password"),
+        "{missing}"
+    );
+    std::fs::write(dir.join("empty.password"), "\n").unwrap();
+    let empty = load_error(
+        dir,
+        "empty",
+        "[ros2]\nuser = \"rigbridge\"\npassword_file = \"empty.password\"\n",
+    );
+    assert!(empty.contains("is empty"), "{empty}");
+    std::fs::write(dir.join("two.password"), "Secret-one\nSecret-two\n").unwrap();
+    let two = load_error(
+        dir,
+        "two",
+        "[ros2]\nuser = \"rigbridge\"\npassword_file = \"two.password\"\n",
+    );
+    assert!(
+        two.contains("one line") && !two.contains("Secret-"),
+        "{two}"
+    );
+    std::fs::write(dir.join("good.password"), "Secret-good\n").unwrap();
+    let colon = load_error(
+        dir,
+        "colon",
+        "[ros2]\nuser = \"rig:bridge\"\npassword_file = \"good.password\"\n",
+    );
+    assert!(
+        colon.contains("ros2.user") && colon.contains("rig:bridge"),
+        "{colon}"
+    );
+    // Loads: a login, or the opt-out; the password shows nowhere.
+    for (name, ros2) in [
+        (
+            "login",
+            "accept_motion = true\nuser = \"rigbridge\"\npassword_file = \"good.password\"\n",
+        ),
+        (
+            "opt-out",
+            "accept_motion = true\nallow_unauthenticated_motion = true\n",
+        ),
+    ] {
+        let file = dir.join(format!("{name}.toml"));
+        std::fs::write(
+            &file,
+            format!(
+                "rig = \"{}\"\n[job]\nkind = \"move_joints\"\ntargets_deg = [[0, 0, 0, 0, 30, 0]]\n[ros2]\n{ros2}",
+                repo_path("config/irb120.toml").display()
+            ),
+        )
+        .unwrap();
+        let settings = rigbridge::daemon::config::load_run_settings(&file)
+            .unwrap_or_else(|e| panic!("{name}: {e}"));
+        let ros2 = settings
+            .config
+            .ros2
+            .settings(Some("tcp/127.0.0.1:7447"))
+            .unwrap();
+        assert!(ros2.accept_motion, "{name}");
+        assert_eq!(ros2.login.is_some(), name == "login");
+        assert!(!format!("{ros2:?}").contains("Secret-good"), "{name}");
+    }
 }

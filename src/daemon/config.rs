@@ -77,8 +77,8 @@ impl EgmConfig {
     }
 }
 
-/// `[ros2]`: publish the rig's joint states (and, under `serve`, take joint trajectories as
-/// jobs) over Zenoh the way rmw_zenoh does.
+/// `[ros2]`: publish the rig's joint states (and, under `serve`, when `accept_motion` says
+/// so, take joint trajectories as jobs) over Zenoh the way rmw_zenoh does.
 #[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Ros2Config {
@@ -90,7 +90,30 @@ pub struct Ros2Config {
     pub domain_id: u32,
     /// JointState messages a second, 125 when absent; 1..=1000.
     pub joint_states_hz: Option<f64>,
+    /// Whether `serve` takes JointTrajectory messages as jobs; false when absent (the node
+    /// then does not subscribe at all). True needs `user` and `password_file`, unless
+    /// `allow_unauthenticated_motion` is set.
+    #[serde(default)]
+    pub accept_motion: bool,
+    /// The Zenoh user the session logs in to its router as (Zenoh's `usrpwd`
+    /// authentication); with `password_file`, both or neither.
+    pub user: Option<String>,
+    /// A file holding the password (one line), relative to this file. Never the password
+    /// itself in the settings: they are logged and shown.
+    pub password_file: Option<PathBuf>,
+    /// `accept_motion` without a login: anyone who reaches the Zenoh network can then move
+    /// the arm. Only for an isolated lab network; false when absent.
+    #[serde(default)]
+    pub allow_unauthenticated_motion: bool,
+    /// The login read from `user` and `password_file` on load.
+    #[serde(skip)]
+    login: Option<crate::ros2::Login>,
 }
+
+/// Largest password file read (bytes): a password is a line, and the file is read whole.
+const MAX_PASSWORD_FILE_BYTES: u64 = 4096;
+/// Longest Zenoh user name taken.
+const MAX_USER_CHARS: usize = 256;
 
 impl Ros2Config {
     /// The ROS 2 settings of `file`, with `endpoint` (`--zenoh-connect`, already checked)
@@ -103,10 +126,13 @@ impl Ros2Config {
             joint_states_hz: self
                 .joint_states_hz
                 .unwrap_or(crate::ros2::DEFAULT_JOINT_STATES_HZ),
+            login: self.login.clone(),
+            accept_motion: self.accept_motion,
         })
     }
 
-    fn check(&self, file: &Path) -> Result<(), ConfigError> {
+    /// Checks the keys and reads the password file.
+    fn check(&mut self, file: &Path) -> Result<(), ConfigError> {
         if let Some(endpoint) = &self.zenoh_connect
             && let Some(reason) = crate::ros2::endpoint_problem(endpoint)
         {
@@ -128,8 +154,90 @@ impl Ros2Config {
         if let Some(rate) = self.joint_states_hz {
             check_range(file, "ros2.joint_states_hz", rate, 1.0, 1000.0)?;
         }
+        self.login = self.read_login(file)?;
+        if self.accept_motion && self.login.is_none() && !self.allow_unauthenticated_motion {
+            return Err(ConfigError::invalid(
+                file,
+                "ros2.accept_motion",
+                true,
+                "needs Zenoh authentication: set ros2.user and ros2.password_file (and a \
+                 router that asks for them, docs/ros2.md), or, on an isolated lab network \
+                 only, ros2.allow_unauthenticated_motion = true",
+            ));
+        }
         Ok(())
     }
+
+    /// The login of `user` and `password_file`: both or neither.
+    fn read_login(&self, file: &Path) -> Result<Option<crate::ros2::Login>, ConfigError> {
+        let (user, password_file) = match (&self.user, &self.password_file) {
+            (None, None) => return Ok(None),
+            (Some(user), Some(password_file)) => (user, password_file),
+            (Some(user), None) => {
+                return Err(ConfigError::invalid(
+                    file,
+                    "ros2.user",
+                    user,
+                    "needs ros2.password_file too",
+                ));
+            }
+            (None, Some(password_file)) => {
+                return Err(ConfigError::invalid(
+                    file,
+                    "ros2.password_file",
+                    password_file.display().to_string(),
+                    "needs ros2.user too",
+                ));
+            }
+        };
+        if user.is_empty()
+            || user.chars().count() > MAX_USER_CHARS
+            || user.contains(|c: char| c == ':' || c.is_whitespace() || c.is_control())
+        {
+            return Err(ConfigError::invalid(
+                file,
+                "ros2.user",
+                user,
+                &format!(
+                    "must be 1 to {MAX_USER_CHARS} characters without `:`, spaces or control \
+                     characters (a Zenoh dictionary file holds `user:password` lines)"
+                ),
+            ));
+        }
+        let path = config_dir(file).join(password_file);
+        let password = read_password(&path).map_err(|reason| {
+            ConfigError::invalid(
+                file,
+                "ros2.password_file",
+                password_file.display().to_string(),
+                &format!("{}: {reason}", path.display()),
+            )
+        })?;
+        Ok(Some(crate::ros2::Login::new(user.clone(), password)))
+    }
+}
+
+/// The password in `path`: its one line, without surrounding whitespace (a Zenoh dictionary
+/// trims its entries the same way). Why not, if not; the reason never quotes the content.
+fn read_password(path: &Path) -> Result<String, String> {
+    let size = std::fs::metadata(path)
+        .map_err(|e| format!("cannot read: {e}"))?
+        .len();
+    if size > MAX_PASSWORD_FILE_BYTES {
+        return Err(format!(
+            "{size} bytes; a password file holds one line of at most \
+             {MAX_PASSWORD_FILE_BYTES} bytes"
+        ));
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read: {e}"))?;
+    let password = text.trim();
+    if password.is_empty() {
+        return Err("is empty: it must hold the password".into());
+    }
+    if password.lines().count() > 1 || password.contains(|c: char| c.is_control()) {
+        return Err("must hold the password alone, on one line".into());
+    }
+    Ok(password.to_string())
 }
 
 /// `[canopen]`: per axis, counts = zero_offset + rad * counts_per_turn / 2 pi, or on a

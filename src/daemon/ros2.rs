@@ -5,17 +5,70 @@
 //!
 //! Owns the translation from the message to a job; the Zenoh side is `crate::ros2`.
 
+use crate::clock::Clock;
 use crate::job::{FollowTrajectory, Job, JobInvalid};
 use crate::rig::Rig;
 use crate::ros2::messages::JointTrajectory;
+use std::time::Duration;
 
 /// Nanoseconds a second, to read a `Duration`'s two fields.
 const NANOS_PER_SECOND: f64 = 1e9;
+/// At most one refusal is logged in this time: a peer that floods the topic with bad
+/// messages must not flood stderr, the status and the journal too. Every refusal is
+/// counted, and the next one logged says how many were not.
+pub const REFUSAL_LOG_INTERVAL: Duration = Duration::from_secs(1);
+
+/// The refusals of a cell's ROS 2 trajectories: all counted, logged at most once every
+/// [`REFUSAL_LOG_INTERVAL`] (the first at once).
+pub struct Refusals {
+    clock: Box<dyn Clock>,
+    total: u64,
+    unlogged: u64,
+    last_logged: Option<Duration>,
+}
+
+impl Refusals {
+    pub fn new(clock: Box<dyn Clock>) -> Refusals {
+        Refusals {
+            clock,
+            total: 0,
+            unlogged: 0,
+            last_logged: None,
+        }
+    }
+
+    /// Counts a refusal for `reason`; returns what to log when one may be logged now: the
+    /// reason, the count so far and how many went unlogged since the last one logged.
+    pub fn refuse(&mut self, reason: &str) -> Option<String> {
+        self.total += 1;
+        let now = self.clock.now();
+        if self
+            .last_logged
+            .is_some_and(|last| now.saturating_sub(last) < REFUSAL_LOG_INTERVAL)
+        {
+            self.unlogged += 1;
+            return None;
+        }
+        self.last_logged = Some(now);
+        let unlogged = std::mem::take(&mut self.unlogged);
+        Some(format!(
+            "{reason} (refusal {} from ROS 2; {unlogged} more since the last one logged, \
+             not logged)",
+            self.total
+        ))
+    }
+
+    /// Trajectories refused so far.
+    pub fn total(&self) -> u64 {
+        self.total
+    }
+}
 
 /// The job a JointTrajectory asks for on `rig`: its points as `follow_trajectory` rows in
 /// the rig's joint order and config units (degrees, metres), times taken from the first
-/// point (the job moves to the first point from wherever the rig is, at the planner's
-/// speeds, then follows the points as timed). Only names and positions are read: the
+/// point, with no approach: the first point must be where the rig holds, or the job is
+/// refused when it is planned (nothing moves to a far first point on a message from the
+/// network). Only names and positions are read: the
 /// points' velocities and accelerations are not, since the job joins the points with its
 /// own checked curve. What is not valid for the rig is left to the job's validation.
 pub fn trajectory_job(message: &JointTrajectory, rig: &Rig) -> Result<Job, JobInvalid> {
@@ -43,6 +96,7 @@ pub fn trajectory_job(message: &JointTrajectory, rig: &Rig) -> Result<Job, JobIn
     Ok(Job::FollowTrajectory(FollowTrajectory {
         file: None,
         rows: Some(rows),
+        approach: false,
     }))
 }
 
@@ -118,11 +172,52 @@ mod tests {
         else {
             panic!("a follow_trajectory job");
         };
+        assert!(
+            !job.approach,
+            "a message from the network gets no approach move"
+        );
         let rows = job.rows.expect("the job carries inline rows");
         assert_eq!(rows[0][0], 0.0);
         assert_eq!(rows[1][0], 1.5);
         assert!((rows[0][1] - 0.1_f64.to_degrees()).abs() < 1e-12);
         assert!((rows[0][6] - 0.6_f64.to_degrees()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn refusals_are_all_counted_and_logged_at_most_once_an_interval() {
+        let clock = std::sync::Arc::new(crate::clock::VirtualClock::new());
+        struct Shared(std::sync::Arc<crate::clock::VirtualClock>);
+        impl Clock for Shared {
+            fn now(&self) -> Duration {
+                self.0.now()
+            }
+            fn sleep_until(&self, deadline: Duration) {
+                self.0.sleep_until(deadline);
+            }
+            fn is_virtual(&self) -> bool {
+                true
+            }
+        }
+        let mut refusals = Refusals::new(Box::new(Shared(clock.clone())));
+        let first = refusals.refuse("bad").expect("the first refusal is logged");
+        assert!(
+            first.starts_with("bad (refusal 1 from ROS 2; 0 more"),
+            "{first}"
+        );
+        let logged = (0..999)
+            .filter(|_| {
+                clock.advance(Duration::from_micros(500));
+                refusals.refuse("bad").is_some()
+            })
+            .count();
+        assert_eq!(logged, 0, "999 refusals within 0.5 s after the first");
+        clock.advance(REFUSAL_LOG_INTERVAL);
+        let next = refusals.refuse("worse").expect("one a second is logged");
+        assert!(
+            next.starts_with("worse (refusal 1001 from ROS 2; 999 more"),
+            "{next}"
+        );
+        assert_eq!(refusals.total(), 1001);
     }
 
     #[test]

@@ -532,10 +532,13 @@ fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::Ros2Node>, Daemon
         let Some(ros2) = settings.config.ros2.settings(endpoint) else {
             continue;
         };
-        let handler = {
+        // Off: no subscription at all, so nothing any peer sends can reach a job.
+        let handler = ros2.accept_motion.then(|| {
             let (daemon, cell) = (daemon.clone(), cell.clone());
-            Box::new(move |message| take_trajectory(&daemon, &cell, message))
-        };
+            let mut refusals = super::ros2::Refusals::new(Box::new(crate::clock::WallClock::new()));
+            Box::new(move |message| take_trajectory(&daemon, &cell, &mut refusals, message))
+                as crate::ros2::TrajectoryHandler
+        });
         // Zenoh's own runtime must not be entered from the server's: a thread of its own.
         let (joints, slot) = (
             settings.rig.joint_names().map(String::from).collect(),
@@ -543,8 +546,10 @@ fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::Ros2Node>, Daemon
         );
         let (rig, known) = (cell.name().to_string(), cell.streams_to_twin());
         let endpoint = ros2.zenoh_connect.clone();
+        let motion = motion_from_ros2(&ros2);
+        let motion_unauthenticated = ros2.accept_motion && ros2.login.is_none();
         let node = std::thread::spawn(move || {
-            crate::ros2::Ros2Node::start(&ros2, &rig, joints, slot, known, Some(handler))
+            crate::ros2::Ros2Node::start(&ros2, &rig, joints, slot, known, handler)
         })
         .join()
         .map_err(|_| DaemonError::Unavailable("the ROS 2 node's start panicked".into()))?
@@ -560,9 +565,31 @@ fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::Ros2Node>, Daemon
             endpoint,
             node.joint_states_key()
         );
+        if motion_unauthenticated {
+            tracing::warn!(cell = %cell.name(), "cell {}: ROS 2: {motion}", cell.name());
+        }
+        cell.log_ros2("ros2_motion", None, motion.to_string());
         nodes.push(node);
     }
     Ok(nodes)
+}
+
+/// Whether and how a cell takes motion from ROS 2, as its status and journal say it.
+fn motion_from_ros2(ros2: &crate::ros2::Ros2Settings) -> &'static str {
+    match (ros2.accept_motion, &ros2.login) {
+        (false, _) => {
+            "off: JointTrajectory is not subscribed to ([ros2] accept_motion = false); \
+             joint states are published"
+        }
+        (true, Some(_)) => {
+            "on: JointTrajectory taken as jobs, from a Zenoh session logged in with \
+             [ros2] user and password_file"
+        }
+        (true, None) => {
+            "on WITHOUT AUTHENTICATION ([ros2] allow_unauthenticated_motion): anyone who \
+             reaches the Zenoh network can move the arm"
+        }
+    }
 }
 
 /// A JointTrajectory received for `cell`: a job like any other, or a refusal logged with
@@ -570,9 +597,16 @@ fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::Ros2Node>, Daemon
 fn take_trajectory(
     daemon: &Daemon,
     cell: &Arc<Cell>,
+    refusals: &mut super::ros2::Refusals,
     message: Result<crate::ros2::messages::JointTrajectory, crate::ros2::messages::CdrError>,
 ) {
     const REFUSED: &str = "ros2_trajectory_refused";
+    // Counted always, logged at most once an interval (a flood of bad messages).
+    let mut refuse = |job: Option<u64>, reason: String| {
+        if let Some(text) = refusals.refuse(&reason) {
+            cell.log_ros2(REFUSED, job, text);
+        }
+    };
     let job = message
         .map_err(|e| error_chain(&e))
         .and_then(|message| {
@@ -581,24 +615,20 @@ fn take_trajectory(
         .and_then(|job| cell.validate(job).map_err(|e| e.to_string()));
     let job = match job {
         Ok(job) => job,
-        Err(reason) => return cell.log_ros2(REFUSED, None, reason),
+        Err(reason) => return refuse(None, reason),
     };
     let id = daemon.next_job_id();
     let started = match cell.start(id, job, &daemon.options) {
         Ok(started) => started,
-        Err(refused) => return cell.log_ros2(REFUSED, None, start_refusal(cell, refused)),
+        Err(refused) => return refuse(None, start_refusal(cell, refused)),
     };
     match started.planned.blocking_recv() {
         Ok(Ok(())) => cell.log_ros2("ros2_trajectory_started", Some(id), "streaming".into()),
         Ok(Err(message)) => {
             cell.reap(id);
-            cell.log_ros2(REFUSED, Some(id), message.to_string());
+            refuse(Some(id), message.to_string());
         }
-        Err(_) => cell.log_ros2(
-            REFUSED,
-            Some(id),
-            "the job thread ended before planning".into(),
-        ),
+        Err(_) => refuse(Some(id), "the job thread ended before planning".into()),
     }
 }
 

@@ -35,6 +35,21 @@ pub struct FollowTrajectory {
     /// then one value per joint (degrees, metres for prismatic axes). One of the two.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rows: Option<Vec<Vec<f64>>>,
+    /// Whether the rig first moves to the first row from wherever it holds (true when
+    /// absent). False: the first row must be where the rig holds, every axis within one
+    /// cycle's step at its speed limit (the check the stream makes of a trajectory's first
+    /// target against the controller), else the job is refused before anything moves. A
+    /// trajectory from ROS 2 is taken this way (docs/ros2.md).
+    #[serde(default = "approach_when_absent", skip_serializing_if = "approaches")]
+    pub approach: bool,
+}
+
+fn approach_when_absent() -> bool {
+    true
+}
+
+fn approaches(approach: &bool) -> bool {
+    *approach
 }
 
 /// Why a trajectory file is refused: where, never what it holds.
@@ -110,12 +125,14 @@ impl FollowTrajectory {
                 Ok(FollowTrajectory {
                     file: Some(file),
                     rows: None,
+                    approach: self.approach,
                 })
             }
             (None, Some(rows)) => match inline_rows(&rows, context.rig) {
                 Ok(_) => Ok(FollowTrajectory {
                     file: None,
                     rows: Some(rows),
+                    approach: self.approach,
                 }),
                 Err(TrajectoryFileError::InlineRow { row, reason }) => Err(JobInvalid::new(
                     format!("job.rows[{row}]"),
@@ -146,6 +163,9 @@ impl FollowTrajectory {
     pub fn plan(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
         let rows = self.rows(context.rig)?;
         let (rig, settings) = (context.rig, context.settings);
+        if !self.approach {
+            starts_where_held(rig, &rows[0].1, context.start, settings.period)?;
+        }
         let mut trajectory = plan_joint_moves(
             rig,
             context.start,
@@ -170,6 +190,37 @@ impl FollowTrajectory {
         }
         .into()
     }
+}
+
+/// Refuses a first row (SI units) further from `held` than one cycle of `period` at an
+/// axis' speed limit: the tolerance the stream gives a trajectory's first target against
+/// the controller's position (`stream::check_start`).
+fn starts_where_held(
+    rig: &Rig,
+    first: &[f64],
+    held: &[f64],
+    period: Duration,
+) -> Result<(), JobInvalid> {
+    let dt = period.as_secs_f64();
+    for ((joint, first), held) in rig.joints.iter().zip(first).zip(held) {
+        if !joint.limits.step_ok(first - held, dt) {
+            let (kind, unit) = (joint.kind, joint.kind.unit());
+            return Err(JobInvalid::new(
+                "job.rows[0]",
+                kind.to_user(*first),
+                format!(
+                    "starts {} at {:.3} {unit} but the rig holds it at {:.3} {unit}: with \
+                     approach = false the first point must be where the rig holds (within \
+                     {:.3} {unit}, one cycle at the axis' speed limit)",
+                    joint.name,
+                    kind.to_user(*first),
+                    kind.to_user(*held),
+                    kind.to_user(joint.limits.max_speed * dt),
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Inline rows (`t` then the joints, config units) checked like a file's, in SI units.

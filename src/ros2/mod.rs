@@ -31,6 +31,31 @@ pub struct Ros2Settings {
     pub zenoh_connect: String,
     pub domain_id: u32,
     pub joint_states_hz: f64,
+    /// The user and password the session logs in to its router with (Zenoh's `usrpwd`
+    /// authentication); `None`: it connects anonymously.
+    pub login: Option<Login>,
+    /// Whether `serve` subscribes to `/<rig>/joint_trajectory` and runs what comes as jobs.
+    pub accept_motion: bool,
+}
+
+/// A Zenoh user and password. The password is never shown: not by `Debug`, not in an
+/// error; it goes only into the session's configuration.
+#[derive(Clone, PartialEq)]
+pub struct Login {
+    pub user: String,
+    password: String,
+}
+
+impl Login {
+    pub fn new(user: String, password: String) -> Login {
+        Login { user, password }
+    }
+}
+
+impl std::fmt::Debug for Login {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Login {{ user: {}, password: (hidden) }}", self.user)
+    }
 }
 
 #[derive(Debug, Error)]

@@ -155,7 +155,9 @@ fn open_node(
 
 /// A peer session like rmw_zenoh's default one: it connects to `endpoint` (a router, or
 /// any peer) and keeps retrying in the background while that is down; no multicast
-/// scouting, and it listens on nothing (everything goes through the endpoint).
+/// scouting, and it listens on nothing (everything goes through the endpoint). With a
+/// login it authenticates with Zenoh's `usrpwd` (a challenge: the password itself does not
+/// travel), and Zenoh then also refuses an endpoint that does not ask for one.
 fn open_session(settings: &Ros2Settings) -> Result<zenoh::Session, Ros2Error> {
     let endpoint = &settings.zenoh_connect;
     let mut config = zenoh::Config::default();
@@ -165,7 +167,12 @@ fn open_session(settings: &Ros2Settings) -> Result<zenoh::Session, Ros2Error> {
         ("listen/endpoints", "[]".to_string()),
         ("scouting/multicast/enabled", "false".to_string()),
     ];
-    for (key, value) in entries {
+    // User and password in one insertion: Zenoh refuses a user without a password.
+    let login = settings.login.as_ref().map(|login| {
+        let value = serde_json::json!({ "user": login.user, "password": login.password });
+        ("transport/auth/usrpwd", value.to_string())
+    });
+    for (key, value) in entries.into_iter().chain(login) {
         config
             .insert_json5(key, &value)
             .map_err(|cause| Ros2Error::Config {

@@ -6,11 +6,19 @@ session and rosbags for the CDR messages and the RIHS01 type hashes. Used by tes
       with rosbags and its attachment with zenoh.ext; once it has seen N rigs it counts for S
       seconds, asks the liveliness tokens, then (--wait-end) waits for the samples to stop
       (1 s of silence) and prints one JSON object per rig and the tokens.
-  trajectory --endpoint E --rig R --joints j1,j2,.. --bad P1 --good P2
-      listens on E, waits for R's JointTrajectory subscription token, then publishes a
-      JointTrajectory whose points are P1 (refused: the test chooses it out of limits),
-      then one with points P2 (run as a job). P: `t:q1,q2,..;t:q1,..` (s, rad).
-Prints `ready` on its own line once listening.
+  trajectory --endpoint E --rig R --joints j1,j2,.. --send P [--send P ..]
+             [--connect] [--user U --password-file F] [--token-timeout S] [--gap S]
+      listens on E (or, with --connect, connects to the router at E as a client, logged in
+      as U with the password in F when given), waits up to S seconds for R's
+      JointTrajectory subscription token, then publishes one JointTrajectory for each P in
+      order, --gap seconds apart (also when no subscription came: a peer that sends
+      anyway). P: `t:q1,q2,..;t:q1,..` (s, rad). Prints whether the subscription and the
+      node's token were seen and how many of R's JointState samples arrived; or, when the
+      session cannot be opened (the router refused the login), `opened: false` and why.
+  router --endpoint E --dictionary F
+      a Zenoh router listening on E that admits only sessions logging in with a
+      `user:password` line of F (Zenoh's usrpwd authentication); runs until killed.
+Prints `ready` on its own line once listening (or once the open was tried, with --connect).
 """
 
 import argparse
@@ -127,31 +135,79 @@ def trajectory_message(joints, spec):
     return bytes(TYPES.serialize_cdr(message, TRAJECTORY))
 
 
+def open_client(args):
+    """A client session to the router at the endpoint, logged in when asked; None and why
+    when the router does not admit it."""
+    config = zenoh.Config()
+    config.insert_json5("mode", '"client"')
+    config.insert_json5("connect/endpoints", json.dumps([args.endpoint]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    if args.user is not None:
+        with open(args.password_file) as f:
+            password = f.read().strip()
+        config.insert_json5("transport/auth/usrpwd",
+                            json.dumps({"user": args.user, "password": password}))
+    try:
+        session = zenoh.open(config)
+    except zenoh.ZError as e:
+        print("ready", flush=True)
+        return None, str(e)
+    print("ready", flush=True)
+    return session, None
+
+
 def trajectory(args):
-    session = open_listening(args.endpoint)
-    deadline = time.monotonic() + args.timeout
-    wanted = f"%{args.rig}%joint_trajectory/trajectory_msgs::msg::dds_::JointTrajectory_/"
-    while not any("/MS/" in t and wanted in t for t in tokens(session, args.domain)):
-        if time.monotonic() > deadline:
-            print(json.dumps({"error": "no JointTrajectory subscription token"}), flush=True)
+    if args.connect:
+        session, refused = open_client(args)
+        if session is None:
+            print(json.dumps({"opened": False, "error": refused}), flush=True)
             return
+    else:
+        session = open_listening(args.endpoint)
+    states = session.declare_subscriber(f"{args.domain}/{args.rig}/joint_states/**")
+    deadline = time.monotonic() + args.token_timeout
+    wanted = f"%{args.rig}%joint_trajectory/trajectory_msgs::msg::dds_::JointTrajectory_/"
+    node = f"/NN/%/%{args.rig}/rigbridge"
+    seen = []
+    while time.monotonic() < deadline:
+        seen = tokens(session, args.domain)
+        if any("/MS/" in t and wanted in t for t in seen):
+            break
         time.sleep(0.2)
+    subscribed = any("/MS/" in t and wanted in t for t in seen)
     key = (f"{args.domain}/{args.rig}/joint_trajectory/"
            f"trajectory_msgs::msg::dds_::JointTrajectory_/{TYPES.hash_rihs01(TRAJECTORY)}")
     joints = args.joints.split(",")
     gid = bytes(range(16))
-    for sequence, spec in enumerate((args.bad, args.good), start=1):
+    for sequence, spec in enumerate(args.send, start=1):
         attachment = z_serialize(("sequence_number", Int64(sequence), "source_timestamp",
                                   Int64(time.time_ns()), "source_gid", gid))
         session.put(key, trajectory_message(joints, spec), attachment=attachment)
-        time.sleep(1.0)
+        time.sleep(args.gap)
+    received = 0
+    while states.try_recv() is not None:
+        received += 1
     session.close()
-    print(json.dumps({"sent": 2, "key": key}), flush=True)
+    print(json.dumps({"opened": True, "sent": len(args.send), "key": key,
+                      "subscribed": subscribed, "node_seen": any(t.endswith(node) for t in seen),
+                      "joint_states": received}), flush=True)
+
+
+def router(args):
+    config = zenoh.Config()
+    config.insert_json5("mode", '"router"')
+    config.insert_json5("listen/endpoints", json.dumps([args.endpoint]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(args.dictionary))
+    session = zenoh.open(config)
+    print("ready", flush=True)
+    time.sleep(args.timeout)
+    session.close()
 
 
 def main():
     parser = argparse.ArgumentParser()
-    parser.add_argument("mode", choices=["listen", "trajectory"])
+    parser.add_argument("mode", choices=["listen", "trajectory", "router"])
     parser.add_argument("--endpoint", required=True)
     parser.add_argument("--domain", type=int, default=0)
     parser.add_argument("--seconds", type=float, default=2.0)
@@ -160,10 +216,15 @@ def main():
     parser.add_argument("--timeout", type=float, default=60.0)
     parser.add_argument("--rig")
     parser.add_argument("--joints")
-    parser.add_argument("--bad")
-    parser.add_argument("--good")
+    parser.add_argument("--send", action="append", default=[])
+    parser.add_argument("--gap", type=float, default=1.5)
+    parser.add_argument("--token-timeout", type=float, default=60.0)
+    parser.add_argument("--connect", action="store_true")
+    parser.add_argument("--user")
+    parser.add_argument("--password-file")
+    parser.add_argument("--dictionary")
     args = parser.parse_args()
-    listen(args) if args.mode == "listen" else trajectory(args)
+    {"listen": listen, "trajectory": trajectory, "router": router}[args.mode](args)
 
 
 if __name__ == "__main__":
