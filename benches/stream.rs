@@ -238,6 +238,8 @@ fn stream_once(rig: &Rig, rate_hz: f64, seconds: f64, ros2: Option<&Subscriber>)
             zenoh_connect: subscriber.endpoint.clone(),
             domain_id: 0,
             joint_states_hz: DEFAULT_JOINT_STATES_HZ,
+            login: None,
+            accept_motion: false,
         };
         let joints = rig.joint_names().map(String::from).collect();
         Ros2Node::start(&settings, &rig.name, joints, slot.clone(), true, None).expect("node")

@@ -1,7 +1,9 @@
 //! The daemon's side of ROS 2 (docs/ros2.md): which settings a rig joins with (its
 //! `[ros2]`, or `--zenoh-connect`), and what a JointTrajectory received by `serve` becomes:
 //! a `follow_trajectory` job with the points as inline rows, validated and started exactly
-//! like a job from a file or `POST /api/jobs`, or refused with its reason logged.
+//! like a job from a file or `POST /api/jobs` but with no approach move (its first point
+//! must be where the arm holds), or refused with its reason counted and logged, at most
+//! once a second.
 //!
 //! Owns the translation from the message to a job; the Zenoh side is `crate::ros2`.
 
@@ -188,10 +190,10 @@ mod tests {
         let clock = std::sync::Arc::new(crate::clock::VirtualClock::new());
         struct Shared(std::sync::Arc<crate::clock::VirtualClock>);
         impl Clock for Shared {
-            fn now(&self) -> Duration {
+            fn now(&self) -> std::time::Duration {
                 self.0.now()
             }
-            fn sleep_until(&self, deadline: Duration) {
+            fn sleep_until(&self, deadline: std::time::Duration) {
                 self.0.sleep_until(deadline);
             }
             fn is_virtual(&self) -> bool {
@@ -206,7 +208,7 @@ mod tests {
         );
         let logged = (0..999)
             .filter(|_| {
-                clock.advance(Duration::from_micros(500));
+                clock.advance(std::time::Duration::from_micros(500));
                 refusals.refuse("bad").is_some()
             })
             .count();

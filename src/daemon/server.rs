@@ -592,8 +592,9 @@ fn motion_from_ros2(ros2: &crate::ros2::Ros2Settings) -> &'static str {
     }
 }
 
-/// A JointTrajectory received for `cell`: a job like any other, or a refusal logged with
-/// its reason (on stderr, in the cell's events and journal).
+/// A JointTrajectory received for `cell`: a job like any other, or a refusal counted in
+/// `refusals` and logged with its reason (on stderr, in the cell's events and journal) at
+/// most once an interval.
 fn take_trajectory(
     daemon: &Daemon,
     cell: &Arc<Cell>,

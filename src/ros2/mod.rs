@@ -1,8 +1,9 @@
 //! ROS 2 over Zenoh, as rmw_zenoh speaks it (docs/ros2.md): each rig is a node in its own
 //! namespace (`/<rig>`) that publishes `sensor_msgs/msg/JointState` on `/<rig>/joint_states`
-//! and, under `serve`, takes `trajectory_msgs/msg/JointTrajectory` on
-//! `/<rig>/joint_trajectory`. Any ROS 2 node on rmw_zenoh (or any Zenoh session) that
-//! reaches the same router or peer sees it, so several daemons form one fleet.
+//! and, under `serve` with `[ros2] accept_motion`, takes `trajectory_msgs/msg/JointTrajectory`
+//! on `/<rig>/joint_trajectory`. Any ROS 2 node on rmw_zenoh (or any Zenoh session) that
+//! reaches the same router or peer sees it, so several daemons form one fleet; with a
+//! [`Login`], only sessions the router admits by user and password reach it.
 //!
 //! `type_hash` computes the RIHS01 hashes, `messages` encodes CDR, `graph` names keys,
 //! tokens and attachments, `node` runs the Zenoh session. This module sits beside the live
