@@ -123,9 +123,16 @@ impl Relay {
         let stop = Arc::new(AtomicBool::new(false));
         let twin_address = Arc::new(Mutex::new(None::<SocketAddr>));
         let up = {
-            let (to_bridge, from_twin) = (robot_side.try_clone().expect("clone"), twin_facing.try_clone().expect("clone"));
-            let (captured, forwarded, stop, twin_address) =
-                (captured.clone(), forwarded.clone(), stop.clone(), twin_address.clone());
+            let (to_bridge, from_twin) = (
+                robot_side.try_clone().expect("clone"),
+                twin_facing.try_clone().expect("clone"),
+            );
+            let (captured, forwarded, stop, twin_address) = (
+                captured.clone(),
+                forwarded.clone(),
+                stop.clone(),
+                twin_address.clone(),
+            );
             std::thread::spawn(move || {
                 let mut buffer = [0u8; 2048];
                 while !stop.load(Ordering::SeqCst) {
@@ -348,7 +355,10 @@ fn call(address: SocketAddr, method: &str, path: &str) -> (u16, serde_json::Valu
     };
     let (answer, _) = flood::http(address, method, path, headers, "", PATIENCE);
     let (code, body) = answer.expect("an answer");
-    (code, serde_json::from_str(&body).unwrap_or(serde_json::Value::Null))
+    (
+        code,
+        serde_json::from_str(&body).unwrap_or(serde_json::Value::Null),
+    )
 }
 
 fn count(value: &serde_json::Value, key: &str) -> u64 {
@@ -368,10 +378,7 @@ fn ten_thousand_forged_datagrams_from_other_ports_move_nothing_and_are_counted()
     let (twin, control) = twin_towards(&settings, relay.twin_side);
     let twin = spawn(twin, &control);
     let runs = common::scratch_dir("egm_spoof", "forged-runs");
-    let served = in_process::start(
-        vec![settings.clone()],
-        in_process::options(runs),
-    );
+    let served = in_process::start(vec![settings.clone()], in_process::options(runs));
     let address = served.address;
     let (code, started) = call(address, "POST", "/api/jobs");
     assert_eq!(code, 202, "{started}");
@@ -384,7 +391,10 @@ fn ten_thousand_forged_datagrams_from_other_ports_move_nothing_and_are_counted()
     let kernel_dropped = udp_receive_buffer_errors() - dropped_before;
     // While the job streams, the status shows the counts.
     let (_, during) = call(address, "GET", "/api/status");
-    assert_eq!(during["state"], "running", "the forgeries outlasted the job: {during}");
+    assert_eq!(
+        during["state"], "running",
+        "the forgeries outlasted the job: {during}"
+    );
     let shown = count(&during["link_counters"], "foreign_dropped");
     wait_for("the job's end", Duration::from_secs(30), || {
         call(address, "GET", "/api/status").1["state"] == "idle"
@@ -404,7 +414,10 @@ fn ten_thousand_forged_datagrams_from_other_ports_move_nothing_and_are_counted()
         count(&after["link_counters"], "foreign_dropped"),
         twin.model().counters
     );
-    assert!(counted <= FORGED && counted + kernel_dropped >= FORGED, "{report}");
+    assert!(
+        counted <= FORGED && counted + kernel_dropped >= FORGED,
+        "{report}"
+    );
     assert!(shown > 0 && shown <= counted, "{during}");
     assert_eq!(count(&after["link_counters"], "foreign_dropped"), counted);
     // 0 adopted: no forgery was answered, none of their motor states or positions taken
@@ -412,13 +425,23 @@ fn ten_thousand_forged_datagrams_from_other_ports_move_nothing_and_are_counted()
     // source was out of order or out of reach.
     assert_eq!(answered, 0, "the bridge answered forgeries");
     let taken = count(&after["link_counters"], "frames_received");
-    assert!(taken <= real, "{taken} messages taken, {real} real ones sent");
+    assert!(
+        taken <= real,
+        "{taken} messages taken, {real} real ones sent"
+    );
     assert_eq!(count(report, "reconnects"), 0, "{report}");
     assert_eq!(count(report, "replays_dropped"), 0, "{report}");
     assert_eq!(count(report, "feedback_jumps"), 0, "{report}");
-    assert_eq!(count(report, "second_robots"), 0, "a named robot's intruders are only counted");
+    assert_eq!(
+        count(report, "second_robots"),
+        0,
+        "a named robot's intruders are only counted"
+    );
     let tracking = report["tracking_error_max_deg"].as_f64().expect("tracking");
-    assert!(tracking < 5.0, "{tracking} deg: a forged position was taken");
+    assert!(
+        tracking < 5.0,
+        "{tracking} deg: a forged position was taken"
+    );
     // 0 references over a limit, from the twin's side.
     let counters = twin.model().counters;
     assert_no_bad_reference(&counters);
@@ -464,8 +487,15 @@ fn job_on_a_thread(
     let handle = std::thread::spawn(move || {
         let clock = link.pacing().expect("an EGM link paces the streamer");
         let job = settings.config.job.clone();
-        let report = run_job(&settings, &job, &mut link, clock.as_ref(), None, &job_control)
-            .expect("the job runs");
+        let report = run_job(
+            &settings,
+            &job,
+            &mut link,
+            clock.as_ref(),
+            None,
+            &job_control,
+        )
+        .expect("the job runs");
         (report, link)
     });
     (control, handle)
@@ -483,8 +513,12 @@ fn a_replay_from_the_robot_s_own_address_is_dropped_and_the_job_completes() {
         control,
     } = bench(&settings, false);
     let (job, handle) = job_on_a_thread(&settings, link);
-    wait_for("the job to stream", PATIENCE, || job.cycles() >= FORGE_AFTER_CYCLES);
-    wait_for("1.2 s of real messages", PATIENCE, || relay.captured() >= 300);
+    wait_for("the job to stream", PATIENCE, || {
+        job.cycles() >= FORGE_AFTER_CYCLES
+    });
+    wait_for("1.2 s of real messages", PATIENCE, || {
+        relay.captured() >= 300
+    });
     // Real messages of 0.1 .. 1 s ago, from the robot's own address, one a cycle.
     let replays: Vec<EgmRobot> = (25..250).step_by(9).map(|back| relay.real(back)).collect();
     for message in &replays {
@@ -496,8 +530,15 @@ fn a_replay_from_the_robot_s_own_address_is_dropped_and_the_job_completes() {
     relay.finish();
     assert_eq!(report.stream.outcome, Outcome::Completed, "{report:?}");
     let counters = link.counters();
-    assert_eq!(counters.replays_dropped, replays.len() as u64, "{counters:?}");
-    assert_eq!(report.stream.counters.replays_dropped, counters.replays_dropped);
+    assert_eq!(
+        counters.replays_dropped,
+        replays.len() as u64,
+        "{counters:?}"
+    );
+    assert_eq!(
+        report.stream.counters.replays_dropped,
+        counters.replays_dropped
+    );
     assert_eq!(counters.feedback_jumps, 0, "{counters:?}");
     // Not answered: an answer would have reached the twin as a second one in its cycle.
     assert_no_bad_reference(&twin.model().counters);
@@ -515,7 +556,9 @@ fn a_far_jump_from_the_robot_s_own_address_stops_the_job_at_rest() {
         control,
     } = bench(&settings, true);
     let (job, handle) = job_on_a_thread(&settings, link);
-    wait_for("the job to stream", PATIENCE, || job.cycles() >= FORGE_AFTER_CYCLES);
+    wait_for("the job to stream", PATIENCE, || {
+        job.cycles() >= FORGE_AFTER_CYCLES
+    });
     // A message of the robot's, numbered 0.4 s ahead (so it is in order whenever it comes),
     // with joint_1 at 90 deg.
     relay.inject(&far(relay.real(0), 100));
@@ -524,7 +567,10 @@ fn a_far_jump_from_the_robot_s_own_address_stops_the_job_at_rest() {
     relay.finish();
     assert_eq!(report.stream.outcome, Outcome::Faulted, "{report:?}");
     let fault = report.stream.fault.clone().unwrap_or_default();
-    assert!(fault.contains("joint_1") && fault.contains("jumped"), "{fault}");
+    assert!(
+        fault.contains("joint_1") && fault.contains("jumped"),
+        "{fault}"
+    );
     assert!(report.stream.cycles < STAR_CYCLES, "{report:?}");
     assert_eq!(link.counters().feedback_jumps, 1);
     assert_eq!(report.stream.counters.feedback_jumps, 1);
@@ -549,7 +595,9 @@ fn a_second_robot_on_an_unnamed_session_is_reported_and_stops_the_job_at_rest() 
     } = bench(&settings, false);
     let bridge = relay.bridge;
     let (job, handle) = job_on_a_thread(&settings, link);
-    wait_for("the job to stream", PATIENCE, || job.cycles() >= FORGE_AFTER_CYCLES);
+    wait_for("the job to stream", PATIENCE, || {
+        job.cycles() >= FORGE_AFTER_CYCLES
+    });
     // Another robot, a whole twin of its own, sends to the same sensor port.
     let (other, other_control) = twin_towards(&settings, bridge);
     let other_address = other.local_address().expect("address");
@@ -561,7 +609,10 @@ fn a_second_robot_on_an_unnamed_session_is_reported_and_stops_the_job_at_rest() 
     assert_eq!(report.stream.outcome, Outcome::Faulted, "{report:?}");
     let fault = report.stream.fault.clone().unwrap_or_default();
     let port = format!(":{}", other_address.port());
-    assert!(fault.contains("second robot") && fault.contains(&port), "{fault}");
+    assert!(
+        fault.contains("second robot") && fault.contains(&port),
+        "{fault}"
+    );
     assert!(report.stream.cycles < STAR_CYCLES, "{report:?}");
     let counters = link.counters();
     assert_eq!(counters.second_robots, 1, "{counters:?}");
@@ -592,7 +643,10 @@ fn an_egm_restart_at_seqno_zero_is_a_new_session_not_a_replay() {
     let after = relay.real(0).seqno().expect("a seqno");
     let twin = stop(twin, &control);
     relay.finish();
-    assert!(after < before, "seqno {after} after the restart, {before} before");
+    assert!(
+        after < before,
+        "seqno {after} after the restart, {before} before"
+    );
     assert_eq!(link.counters().replays_dropped, 0, "{:?}", link.counters());
     assert_eq!(link.state().sessions, 2, "{:?}", link.state());
     assert_eq!(twin.model().counters.sessions, 2);

@@ -238,8 +238,12 @@ fn connect_link(
                 .egm
                 .axes(&settings.file, &settings.rig)
                 .map_err(|e| DaemonError::Unavailable(e.to_string()))?;
-            let egm =
-                crate::link::EgmLinkSettings::for_rig(&settings.rig, axes, settings.period(), *robot);
+            let egm = crate::link::EgmLinkSettings::for_rig(
+                &settings.rig,
+                axes,
+                settings.period(),
+                *robot,
+            );
             Box::new(crate::link::bind_egm(address, egm).map_err(LinkError::Io)?)
         }
     })

@@ -96,17 +96,20 @@ impl EgmLinkSettings {
 /// What the robot last said about itself, and the session's bookkeeping.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EgmState {
+    /// The robot the session is bound to (the named one, or the first to send).
     pub robot: Option<SocketAddr>,
     pub motors: MotorState,
     pub mci: MciState,
     pub rapid: RapidState,
     pub utilization_rate: Option<f64>,
-    /// EgmRobot messages received and EgmSensor replies sent.
+    /// EgmRobot messages taken (the robot's, in order, within reach: src/link/egm_guard.rs)
+    /// and EgmSensor replies sent.
     pub messages: u64,
     pub replies: u64,
     /// Robot seqno jumps (lost EgmRobot messages).
     pub robot_gaps: u64,
-    /// Datagrams that were not an EgmRobot with this rig's joints and external axes.
+    /// Datagrams from the robot (or before there was one) that were not an EgmRobot with a
+    /// seqno and this rig's joints and external axes.
     pub malformed: u64,
     /// Robot cycles in a job with no target ready (the position was held).
     pub underruns: u64,
@@ -521,11 +524,9 @@ fn answer(
         .and_then(|values| AxisValues::from_slice(&values));
     let mut session = shared.lock();
     let message = robot.as_ref().zip(actual.as_ref());
-    let verdict = session.guard.judge(
-        from,
-        message.map(|(r, a)| (r, a.as_slice())),
-        arrived,
-    );
+    let verdict = session
+        .guard
+        .judge(from, message.map(|(r, a)| (r, a.as_slice())), arrived);
     let new_run = match verdict {
         Verdict::Accept { new_run } => new_run,
         Verdict::Malformed => {

@@ -394,7 +394,11 @@ mod tests {
         let restart = message(0, 0, 7_004_000);
         let verdict = guard.judge(robot, Some((&restart, &[0.0])), t0 + 2 * CYCLE);
         assert_eq!(verdict, Verdict::Accept { new_run: true });
-        let next = guard.judge(robot, Some((&message(1, 4, 7_008_000), &[0.0])), t0 + 3 * CYCLE);
+        let next = guard.judge(
+            robot,
+            Some((&message(1, 4, 7_008_000), &[0.0])),
+            t0 + 3 * CYCLE,
+        );
         assert_eq!(next, Verdict::Accept { new_run: false });
     }
 
@@ -407,7 +411,8 @@ mod tests {
         guard.judge(robot, Some((&message(1, 4, 1_000_000), &[start])), t0);
         // 90 deg one cycle later: 250 deg/s reaches 2 deg in a cycle and the slack.
         let far = [90f64.to_radians()];
-        let Verdict::Jump(words) = guard.judge(robot, Some((&message(2, 8, 1_004_000), &far)), t0 + CYCLE)
+        let Verdict::Jump(words) =
+            guard.judge(robot, Some((&message(2, 8, 1_004_000), &far)), t0 + CYCLE)
         else {
             panic!("a jump");
         };
