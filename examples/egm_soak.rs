@@ -6,7 +6,7 @@
 
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::daemon::run_job;
-use rigbridge::link::{Link, bind_egm};
+use rigbridge::link::{EgmLinkSettings, Link, bind_egm};
 use rigbridge::stream::StreamControl;
 use rigbridge::twin::egm::{
     EgmRobotModel, EgmTwin, EgmTwinControl, EgmTwinSettings, spawn_egm_twin,
@@ -23,7 +23,8 @@ fn main() -> anyhow::Result<()> {
     let settings = load_run_settings(std::path::Path::new("config/rigbridge.toml"))?;
     let period = settings.period();
     let axes = settings.config.egm.axes(&settings.file, &settings.rig)?;
-    let mut link = bind_egm("127.0.0.1:0", axes.clone(), period)?;
+    let egm = EgmLinkSettings::for_rig(&settings.rig, axes.clone(), period, None);
+    let mut link = bind_egm("127.0.0.1:0", egm)?;
     let model = EgmRobotModel::new(
         &settings.rig,
         axes,

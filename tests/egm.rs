@@ -11,7 +11,7 @@ use prost::Message;
 use rigbridge::clock::Clock;
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::{RunReport, run_job};
-use rigbridge::link::{EgmLink, Link, bind_egm};
+use rigbridge::link::{EgmLink, EgmLinkSettings, Link, bind_egm};
 use rigbridge::protocol::egm::{EgmAxes, EgmRobot, EgmSensor, MciState, MotorState};
 use rigbridge::stream::{Outcome, StreamControl};
 use rigbridge::twin::egm::{
@@ -66,7 +66,8 @@ fn twin_towards_a_socket(
 /// it, to its end; asserts it `completed`. The report, the stopped twin and the link.
 fn job_against_the_twin(settings: &RunSettings) -> (RunReport, EgmTwin, EgmLink) {
     let period = settings.period();
-    let mut link = bind_egm("127.0.0.1:0", axes(settings), period).expect("bind");
+    let egm = EgmLinkSettings::for_rig(&settings.rig, axes(settings), period, None);
+    let mut link = bind_egm("127.0.0.1:0", egm).expect("bind");
     let control = Arc::new(EgmTwinControl::default());
     let twin = twin_towards(settings, link.local_address(), EgmTwinSettings::default());
     let twin = spawn_egm_twin(twin, control.clone()).expect("twin thread");
@@ -128,7 +129,8 @@ fn the_link_holds_until_motors_are_on_and_the_clock_follows_the_robot() {
     let _cycles = one_at_a_time();
     let settings = shipped_run_settings();
     let period = settings.period();
-    let mut link = bind_egm("127.0.0.1:0", axes(&settings), period).expect("bind");
+    let egm = EgmLinkSettings::for_rig(&settings.rig, axes(&settings), period, None);
+    let mut link = bind_egm("127.0.0.1:0", egm).expect("bind");
     let egm = EgmTwinSettings {
         motors_on: false,
         ..EgmTwinSettings::default()

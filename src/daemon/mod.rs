@@ -232,14 +232,19 @@ fn connect_link(
             nodes,
             *counts_per_turn,
         )?)?),
-        LinkSpec::Egm { address } => {
-            let period = settings.period();
+        LinkSpec::Egm { address, robot } => {
             let axes = settings
                 .config
                 .egm
                 .axes(&settings.file, &settings.rig)
                 .map_err(|e| DaemonError::Unavailable(e.to_string()))?;
-            Box::new(crate::link::bind_egm(address, axes, period).map_err(LinkError::Io)?)
+            let egm = crate::link::EgmLinkSettings::for_rig(
+                &settings.rig,
+                axes,
+                settings.period(),
+                *robot,
+            );
+            Box::new(crate::link::bind_egm(address, egm).map_err(LinkError::Io)?)
         }
     })
 }

@@ -73,6 +73,8 @@ pub fn wait_for_hold(
                 LinkEvent::Fault(report) => {
                     return Ok(Hold::Faulted(fault_text(&report.fault, &report.text)));
                 }
+                // Never a hold from a link that stopped trusting what it hears.
+                LinkEvent::Untrusted(words) => return Ok(Hold::Faulted(words)),
                 _ => previous = None,
             }
         }

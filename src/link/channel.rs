@@ -54,6 +54,7 @@ impl LinkShared {
             duplicates: get(&self.duplicates),
             gaps: get(&self.gaps),
             reconnects: get(&self.reconnects),
+            ..LinkCounters::default()
         }
     }
 

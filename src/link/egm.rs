@@ -18,8 +18,14 @@
 //! position, drops targets and reports itself down, so a job waits for it or resumes from
 //! where the arm is. It owns the socket and the EGM session state; it must not plan, check
 //! limits (the streamer's gate does) or change a target's values.
+//!
+//! Every datagram passes the [`RobotGuard`] first (src/link/egm_guard.rs): only the robot
+//! the session is bound to is answered, in order, with feedback the arm could have reached.
+//! A second robot (unless the robot was named) and a feedback jump are a
+//! [`LinkEvent::Untrusted`]: the job is brought to rest and ends, never resumed from them.
 
-use super::{Link, LinkCounters, LinkError};
+use super::egm_guard::{RobotGuard, Verdict};
+use super::{Link, LinkCounters, LinkError, LinkEvent};
 use crate::clock::Clock;
 use crate::protocol::egm::{EgmAxes, EgmRobot, EgmSensor, MciState, MotorState, RapidState};
 use crate::protocol::{AxisValues, Command, ControllerStatus, Feedback, JointTarget};
@@ -49,25 +55,66 @@ const DEADLINE_ROUNDING: Duration = Duration::from_micros(1);
 const TURNAROUND_BUCKETS: usize = 10_000;
 /// Largest datagram read: an EgmRobot is a few hundred bytes.
 const DATAGRAM: usize = 2048;
+/// An Untrusted event nobody took within this long happened while no job ran (a job reads
+/// the link's events every cycle): it is dropped, its counts stay.
+const EVENT_MEMORY: Duration = Duration::from_secs(1);
+
+/// What the EGM link needs to know besides the address it binds.
+#[derive(Debug, Clone)]
+pub struct EgmLinkSettings {
+    /// Where each rig axis travels in EGM.
+    pub axes: EgmAxes,
+    /// The stream period: one EgmRobot is one period.
+    pub period: Duration,
+    /// Each rig axis' name and max speed (rad/s, m/s): feedback that moved further than
+    /// this between two robot messages is a jump.
+    pub names: Vec<String>,
+    pub max_speeds: Vec<f64>,
+    /// The robot named by `?robot=`: the only source taken. `None`: the first to send.
+    pub robot: Option<SocketAddr>,
+}
+
+impl EgmLinkSettings {
+    /// The settings for `rig` laid out as `axes`, streamed every `period`, bound to `robot`
+    /// when given.
+    pub fn for_rig(
+        rig: &crate::rig::Rig,
+        axes: EgmAxes,
+        period: Duration,
+        robot: Option<SocketAddr>,
+    ) -> Self {
+        Self {
+            axes,
+            period,
+            names: rig.joint_names().map(String::from).collect(),
+            max_speeds: rig.joints.iter().map(|j| j.limits.max_speed).collect(),
+            robot,
+        }
+    }
+}
 
 /// What the robot last said about itself, and the session's bookkeeping.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EgmState {
+    /// The robot the session is bound to (the named one, or the first to send).
     pub robot: Option<SocketAddr>,
     pub motors: MotorState,
     pub mci: MciState,
     pub rapid: RapidState,
     pub utilization_rate: Option<f64>,
-    /// EgmRobot messages received and EgmSensor replies sent.
+    /// EgmRobot messages taken (the robot's, in order, within reach: src/link/egm_guard.rs)
+    /// and EgmSensor replies sent.
     pub messages: u64,
     pub replies: u64,
     /// Robot seqno jumps (lost EgmRobot messages).
     pub robot_gaps: u64,
-    /// Datagrams that were not an EgmRobot with this rig's joints and external axes.
+    /// Datagrams from the robot (or before there was one) that were not an EgmRobot with a
+    /// seqno and this rig's joints and external axes.
     pub malformed: u64,
     /// Robot cycles in a job with no target ready (the position was held).
     pub underruns: u64,
-    /// Sessions begun: motors on and EGM running after being otherwise or silent.
+    /// Sessions begun: motors on and EGM running after being otherwise or silent, or a new
+    /// EGM run (seqno 0) while running.
     pub sessions: u64,
 }
 
@@ -130,6 +177,10 @@ struct Session {
     last_seqno: Option<u32>,
     time: DeviceTime,
     turnaround: Vec<u64>,
+    /// Who may be answered, and what was dropped.
+    guard: RobotGuard,
+    /// Untrusted events not yet taken, with when they happened.
+    events: VecDeque<(Instant, LinkEvent)>,
 }
 
 struct Shared {
@@ -155,9 +206,16 @@ pub struct EgmLink {
     thread: Option<std::thread::JoinHandle<()>>,
 }
 
-/// Binds `address` (such as `0.0.0.0:6510`) for a rig whose axes travel as `axes` lays
-/// them out, streamed every `period`, and starts answering the robot.
-pub fn bind_egm(address: &str, axes: EgmAxes, period: Duration) -> std::io::Result<EgmLink> {
+/// Binds `address` (such as `0.0.0.0:6510`) for a rig as `settings` say, and starts
+/// answering the robot.
+pub fn bind_egm(address: &str, settings: EgmLinkSettings) -> std::io::Result<EgmLink> {
+    let EgmLinkSettings {
+        axes,
+        period,
+        names,
+        max_speeds,
+        robot,
+    } = settings;
     let socket = UdpSocket::bind(address)?;
     socket.set_read_timeout(Some(POLL))?;
     let local = socket.local_addr()?;
@@ -194,6 +252,8 @@ pub fn bind_egm(address: &str, axes: EgmAxes, period: Duration) -> std::io::Resu
                 ticking: false,
             },
             turnaround: vec![0; TURNAROUND_BUCKETS],
+            guard: RobotGuard::new(robot, names, max_speeds),
+            events: VecDeque::new(),
         }),
         changed: Condvar::new(),
         closed: AtomicBool::new(false),
@@ -206,7 +266,10 @@ pub fn bind_egm(address: &str, axes: EgmAxes, period: Duration) -> std::io::Resu
         shared,
         seen: 0,
         local,
-        description: format!("egm://{address}"),
+        description: match robot {
+            Some(robot) => format!("egm://{address}?robot={robot}"),
+            None => format!("egm://{address}"),
+        },
         thread: Some(thread),
     })
 }
@@ -292,6 +355,10 @@ impl Link for EgmLink {
             Command::Heartbeat => {
                 session.adopted = session.id;
                 session.flush = false;
+                // A job starting while a second robot still sends hears of it again.
+                if let Some(words) = session.guard.second_robot_words(Instant::now()) {
+                    raise(&mut session, words);
+                }
             }
         }
         Ok(())
@@ -327,7 +394,21 @@ impl Link for EgmLink {
             duplicates: 0,
             gaps: session.state.robot_gaps,
             reconnects: session.state.sessions.saturating_sub(1),
+            foreign_dropped: session.guard.counters.foreign,
+            replays_dropped: session.guard.counters.replays,
+            feedback_jumps: session.guard.counters.jumps,
+            second_robots: session.guard.counters.second_robots,
         }
+    }
+
+    fn next_event(&mut self) -> Option<LinkEvent> {
+        let mut session = self.shared.lock();
+        while let Some((at, event)) = session.events.pop_front() {
+            if at.elapsed() < EVENT_MEMORY {
+                return Some(event);
+            }
+        }
+        None
     }
 
     fn describe(&self) -> String {
@@ -423,7 +504,8 @@ fn serve(socket: &UdpSocket, shared: &Shared) {
 }
 
 /// Reads one EgmRobot and decides the answer (positions rad, speeds rad/s); `None` for a
-/// datagram that is not one this rig can answer.
+/// datagram that is not answered: not the robot's, not one this rig can answer, a replay or
+/// a jump (docs/egm.md).
 fn answer(
     shared: &Shared,
     bytes: &[u8],
@@ -431,8 +513,7 @@ fn answer(
     arrived: Instant,
 ) -> Option<(Vec<f64>, Vec<f64>)> {
     let robot = EgmRobot::decode(bytes).ok();
-    let mut session = shared.lock();
-    let feedback = robot
+    let actual = robot
         .as_ref()
         .and_then(|r| {
             shared
@@ -441,17 +522,34 @@ fn answer(
         })
         .filter(|values| values.iter().all(|v| v.is_finite()))
         .and_then(|values| AxisValues::from_slice(&values));
-    let (Some(robot), Some(actual)) = (robot, feedback) else {
-        session.state.malformed += 1;
-        return None;
+    let mut session = shared.lock();
+    let message = robot.as_ref().zip(actual.as_ref());
+    let verdict = session
+        .guard
+        .judge(from, message.map(|(r, a)| (r, a.as_slice())), arrived);
+    let new_run = match verdict {
+        Verdict::Accept { new_run } => new_run,
+        Verdict::Malformed => {
+            session.state.malformed += 1;
+            return None;
+        }
+        Verdict::Foreign {
+            second_robot: Some(words),
+        }
+        | Verdict::Jump(words) => {
+            raise(&mut session, words);
+            return None;
+        }
+        Verdict::Foreign { second_robot: None } | Verdict::Replay => return None,
     };
-    note_robot(&mut session, &robot, from, arrived);
+    let (robot, actual) = message?;
+    note_robot(&mut session, robot, arrived, new_run);
     let ready = session.state.ready();
-    let (positions, speeds) = next_reference(&mut session, ready, actual, shared.axes.dof());
+    let (positions, speeds) = next_reference(&mut session, ready, *actual, shared.axes.dof());
     session.time.tick(ready, shared.period, arrived);
     session.feedback = Some(Feedback {
         seq: session.last_played,
-        positions: actual,
+        positions: *actual,
         // Holding (docs/protocol.md 3.4): the robot keeps the last reference, at rest, when
         // no target is playing or motion is not allowed.
         status: if ready && session.playing {
@@ -466,15 +564,31 @@ fn answer(
     Some((positions, speeds))
 }
 
-/// Takes in the robot's states and starts a new session when motion becomes allowed.
-fn note_robot(session: &mut Session, robot: &EgmRobot, from: SocketAddr, arrived: Instant) {
+/// Says that what the link hears cannot be trusted (a second robot, a feedback jump): on
+/// stderr at once, and as an event for the job, unless one is already waiting.
+fn raise(session: &mut Session, words: String) {
+    tracing::error!("EGM: {words}");
+    if !session
+        .events
+        .iter()
+        .any(|(_, e)| matches!(e, LinkEvent::Untrusted(_)))
+    {
+        session
+            .events
+            .push_back((Instant::now(), LinkEvent::Untrusted(words)));
+    }
+}
+
+/// Takes in the robot's states and starts a new session when motion becomes allowed, or
+/// when the robot starts a new EGM run (`new_run`) while it is.
+fn note_robot(session: &mut Session, robot: &EgmRobot, arrived: Instant, new_run: bool) {
     let was_ready = session.state.ready()
         && session
             .last_message
             .is_some_and(|t| arrived.duration_since(t) < LINK_SILENCE);
     let state = &mut session.state;
     state.messages += 1;
-    state.robot = Some(from);
+    state.robot = session.guard.robot();
     state.motors = robot.motors();
     state.mci = robot.mci();
     state.rapid = robot.rapid();
@@ -486,7 +600,7 @@ fn note_robot(session: &mut Session, robot: &EgmRobot, from: SocketAddr, arrived
     }
     session.last_seqno = robot.seqno();
     session.last_message = Some(arrived);
-    if state.ready() && !was_ready {
+    if state.ready() && (!was_ready || new_run) {
         state.sessions += 1;
         session.id += 1;
         session.queue.clear();

@@ -8,6 +8,7 @@ mod channel;
 mod device;
 mod dynamixel;
 mod egm;
+mod egm_guard;
 mod loopback;
 mod serial;
 mod session;
@@ -24,7 +25,10 @@ pub use dynamixel::{
     DynamixelError, DynamixelLink, DynamixelSettings, LOST_AFTER_CYCLES, connect_dynamixel,
     operating_mode,
 };
-pub use egm::{EgmClock, EgmLink, EgmState, LINK_SILENCE, PLAYOUT_DEPTH, bind_egm};
+pub use egm::{
+    EgmClock, EgmLink, EgmLinkSettings, EgmState, LINK_SILENCE, PLAYOUT_DEPTH, bind_egm,
+};
+pub use egm_guard::{JUMP_SLACK, LOCK_RELEASE};
 pub use loopback::LoopbackLink;
 pub use serial::connect_serial;
 pub use session::{BridgeSession, Due, Outgoing};
@@ -72,6 +76,10 @@ pub enum LinkEvent {
     Fault(FaultReport),
     /// A command could not be encoded for the wire, so nothing was sent.
     EncodeFailed(EncodeError),
+    /// What the link hears can no longer be taken as the bound controller's (EGM: a second
+    /// robot on the sensor port, feedback that jumped further than the arm can move), in
+    /// words. The job is brought to rest along its path and ends `faulted`, never resumed.
+    Untrusted(String),
 }
 
 /// The bridge's Hello for `rig` (docs/protocol.md 3.1): the rig it plans for, the cycle
@@ -106,6 +114,15 @@ pub struct LinkCounters {
     pub duplicates: u64,
     pub gaps: u64,
     pub reconnects: u64,
+    /// EGM (docs/egm.md; 0 on other links): datagrams from a source other than the robot the
+    /// session is bound to, dropped.
+    pub foreign_dropped: u64,
+    /// EGM: the robot's messages whose seqno or robot time repeated or went back, dropped.
+    pub replays_dropped: u64,
+    /// EGM: feedback further than the arm can move since the last, dropped (the job stops).
+    pub feedback_jumps: u64,
+    /// EGM: second robots reported on the sensor port.
+    pub second_robots: u64,
 }
 
 pub trait Link: Send {

@@ -1,6 +1,7 @@
 //! Link addresses as users write them: `loopback`, `tcp://HOST:PORT`,
-//! `serial:///dev/PATH?baud=N`, `can://IFACE`, `egm://ADDR:PORT` (rigbridge as an ABB EGM
-//! sensor, bound to ADDR:PORT), `dynamixel:///dev/PATH?baud=N&ids=1,2,...` (rigbridge as
+//! `serial:///dev/PATH?baud=N`, `can://IFACE`, `egm://ADDR:PORT[?robot=HOST:PORT]` (rigbridge
+//! as an ABB EGM sensor, bound to ADDR:PORT, answering only the robot at HOST:PORT when
+//! named), `dynamixel:///dev/PATH?baud=N&ids=1,2,...` (rigbridge as
 //! the Dynamixel Protocol 2.0 master of one servo per axis, ids in axis order),
 //! `canopen://IFACE?nodes=1,2,...&counts_per_turn=N` (rigbridge as the CANopen master of one
 //! CiA 402 drive per axis, node ids in axis order).
@@ -24,9 +25,12 @@ pub enum LinkSpec {
     Can {
         interface: String,
     },
-    /// The UDP address to bind, such as `0.0.0.0:6510`.
+    /// The UDP address to bind, such as `0.0.0.0:6510`, and the robot controller's address
+    /// and port (`?robot=`), the only source the session takes; without it, the first robot
+    /// to send is (docs/egm.md).
     Egm {
         address: String,
+        robot: Option<std::net::SocketAddr>,
     },
     /// CiA 402 drives on a SocketCAN interface: node ids in axis order, and the counts a
     /// turn of every axis (when given; `[canopen]` in the config may set them per axis).
@@ -39,7 +43,7 @@ pub enum LinkSpec {
 
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 #[error(
-    "link `{text}`: {reason} (expected loopback, tcp://HOST:PORT, serial:///dev/PATH?baud=N, can://IFACE, egm://ADDR:PORT, dynamixel:///dev/PATH?baud=N&ids=1,2,... or canopen://IFACE?nodes=1,2,...)"
+    "link `{text}`: {reason} (expected loopback, tcp://HOST:PORT, serial:///dev/PATH?baud=N, can://IFACE, egm://ADDR:PORT[?robot=HOST:PORT], dynamixel:///dev/PATH?baud=N&ids=1,2,... or canopen://IFACE?nodes=1,2,...)"
 )]
 pub struct LinkSpecError {
     pub text: String,
@@ -92,15 +96,8 @@ impl FromStr for LinkSpec {
         if let Some(rest) = text.strip_prefix("canopen://") {
             return parse_canopen(rest).map_err(fail);
         }
-        if let Some(address) = text.strip_prefix("egm://") {
-            if address.parse::<std::net::SocketAddr>().is_err() {
-                return Err(fail(
-                    "needs an IP address and port to bind, such as 0.0.0.0:6510",
-                ));
-            }
-            return Ok(LinkSpec::Egm {
-                address: address.to_string(),
-            });
+        if let Some(rest) = text.strip_prefix("egm://") {
+            return parse_egm(rest).map_err(fail);
         }
         if let Some(interface) = text.strip_prefix("can://") {
             if interface.is_empty() || interface.contains('/') {
@@ -112,6 +109,26 @@ impl FromStr for LinkSpec {
         }
         Err(fail("unknown scheme"))
     }
+}
+
+/// `ADDR:PORT?robot=HOST:PORT`: the address to bind, and the robot's (optional). Both are
+/// IP addresses: a name would be resolved to whatever a name server says.
+fn parse_egm(rest: &str) -> Result<LinkSpec, &'static str> {
+    let (address, query) = rest.split_once('?').unwrap_or((rest, ""));
+    if address.parse::<std::net::SocketAddr>().is_err() {
+        return Err("needs an IP address and port to bind, such as 0.0.0.0:6510");
+    }
+    let robot = match query.split_once('=') {
+        None if query.is_empty() => None,
+        Some(("robot", robot)) => Some(robot.parse().map_err(|_| {
+            "robot= needs the robot controller's IP address and the port it sends from, such as robot=192.168.125.1:6510"
+        })?),
+        _ => return Err("the only option is robot=HOST:PORT"),
+    };
+    Ok(LinkSpec::Egm {
+        address: address.to_string(),
+        robot,
+    })
 }
 
 /// `PATH?baud=N&ids=1,2,...`: ids required (one per axis, in axis order), baud optional.
@@ -243,7 +260,15 @@ mod tests {
         assert_eq!(
             "egm://0.0.0.0:6510".parse(),
             Ok(LinkSpec::Egm {
-                address: "0.0.0.0:6510".into()
+                address: "0.0.0.0:6510".into(),
+                robot: None
+            })
+        );
+        assert_eq!(
+            "egm://0.0.0.0:6510?robot=192.168.125.1:6511".parse(),
+            Ok(LinkSpec::Egm {
+                address: "0.0.0.0:6510".into(),
+                robot: Some("192.168.125.1:6511".parse().expect("an address"))
             })
         );
         assert_eq!(
@@ -271,6 +296,9 @@ mod tests {
             "canopen://vcan0?nodes=1&bitrate=500000",
             "egm://robot:6510",
             "egm://127.0.0.1",
+            "egm://0.0.0.0:6510?robot=controller:6511",
+            "egm://0.0.0.0:6510?robot=192.168.125.1",
+            "egm://0.0.0.0:6510?peer=192.168.125.1:6511",
             "tcp://nohost",
             "tcp://h:99999",
             "serial://dev/x",

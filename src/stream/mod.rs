@@ -729,7 +729,8 @@ impl Cycle {
 
     /// The link's events: a controller fault ends the stream with its words; a
     /// controller that restarted (or a new session) is link loss; a command that did
-    /// not fit the wire ends it too.
+    /// not fit the wire ends it too; a link that no longer trusts what it hears brings the
+    /// arm to rest first.
     fn events(&mut self, link: &mut dyn Link) -> Option<Outcome> {
         // One event a cycle: each of them ends the stream.
         if let Some(event) = link.next_event() {
@@ -745,6 +746,12 @@ impl Cycle {
                 LinkEvent::EncodeFailed(error) => {
                     self.fault = Some(format!("a command does not fit the wire: {error}"));
                     return Some(Outcome::EncodeFailed);
+                }
+                LinkEvent::Untrusted(words) => {
+                    // The arm still follows our targets only: bring it to rest along the
+                    // path, then end faulted (see `Cycle::report`: never resumed).
+                    self.fault = Some(words);
+                    self.aborting = Some(Outcome::Faulted);
                 }
             }
         }
@@ -915,6 +922,13 @@ impl Cycle {
         counters: LinkCounters,
         link: String,
     ) -> StreamReport {
+        // A stream being brought to rest because the link stopped trusting what it hears
+        // (LinkEvent::Untrusted) ends faulted even when the link then falls silent or the
+        // cycle stalls: a resume would plan from that feedback.
+        let outcome = match (self.aborting, outcome) {
+            (Some(Outcome::Faulted), Outcome::LinkLost | Outcome::Stalled) => Outcome::Faulted,
+            _ => outcome,
+        };
         StreamReport {
             outcome,
             fault: self.fault,

@@ -11,6 +11,8 @@
 //! the same way; MaxSpeedDeviation bounds the robot's joints' correction, an external
 //! axis' correction is bounded by its own max speed. Without a reply for CommTimeout
 //! the session ends in the HOLD stop mode (decelerate, stay); motors can go off and on.
+//! The header seqno restarts at 0 with every EGM session, which abb_libegm reads as a
+//! session's first message; feedBack.time is the host's clock, which goes on.
 //! It owns the simulated robot only; it must not know about trajectories or jobs.
 
 use crate::clock::{Clock, WallClock};
@@ -510,6 +512,9 @@ impl EgmTwin {
         let period = self.model.settings.period;
         let mut last_reply = Instant::now();
         let mut seqno: u32 = 0;
+        // The sessions the last message went out in: a new one restarts the seqno at 0, the
+        // first message of an EGM session as abb_libegm reads it (docs/egm.md).
+        let mut session_of_seqno = 0;
         let mut deadline = clock.now();
         while !control.stop.load(Ordering::SeqCst) {
             self.operator(control, &mut last_reply);
@@ -521,7 +526,12 @@ impl EgmTwin {
                 self.model.counters.comm_timeouts += 1;
                 tracing::warn!("comm timeout: EGM session ended in HOLD");
             }
-            seqno = seqno.wrapping_add(1);
+            seqno = if self.model.counters.sessions == session_of_seqno {
+                seqno.wrapping_add(1)
+            } else {
+                session_of_seqno = self.model.counters.sessions;
+                0
+            };
             let wall = std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
                 .unwrap_or_default();

@@ -14,7 +14,7 @@ use crate::daemon::reset::{RESET_TIMEOUT, ResetOutcome, reset_controller};
 use crate::daemon::{
     ActionLog, DaemonError, RunReport, Sinks, error_chain, plan_for, stream_planned_with,
 };
-use crate::link::{Link, LinkSpec, LoopbackLink};
+use crate::link::{Link, LinkCounters, LinkSpec, LoopbackLink};
 use crate::log::Recorder;
 use crate::protocol::ControllerStatus;
 use crate::rig::JointKind;
@@ -62,7 +62,7 @@ fn occupied_resource(link: &str) -> Option<String> {
         LinkSpec::Tcp { address } => Some(format!("tcp://{address}")),
         LinkSpec::Serial { path, .. } => Some(format!("serial://{path}")),
         LinkSpec::Can { interface } => Some(format!("can://{interface}")),
-        LinkSpec::Egm { address } => Some(format!("egm://{address}")),
+        LinkSpec::Egm { address, .. } => Some(format!("egm://{address}")),
         // One SYNC producer and NMT master a bus: the interface is the resource.
         LinkSpec::Canopen { interface, .. } => Some(format!("can://{interface}")),
     }
@@ -144,6 +144,9 @@ pub struct Status {
     /// The twin's actual position per axis, in the axis' unit; empty while a job streams
     /// (the live view has it then).
     actual: Vec<AxisValue>,
+    /// The link's counters (as in the run report): the link's own while it is free, as of
+    /// the last streamed cycle while a job holds it.
+    link_counters: LinkCounters,
 }
 
 /// The controller's state: `status` is `ok`, `holding`, `fault` or `unknown` (a remote
@@ -495,6 +498,15 @@ impl Cell {
             job,
             last: self.last().clone(),
             actual,
+            link_counters: self.link_counters(),
+        }
+    }
+
+    fn link_counters(&self) -> LinkCounters {
+        match self.link.try_lock().as_deref() {
+            Ok(CellLink::Twin(link)) => link.counters(),
+            Ok(CellLink::Remote(Some(link))) => link.counters(),
+            _ => self.hub.slot().latest().counters,
         }
     }
 
