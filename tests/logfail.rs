@@ -260,7 +260,7 @@ fn a_full_log_disk_brings_the_job_to_rest_within_a_second_and_the_report_is_true
     assert_eq!(log_error["stopped_job"], true, "{report:#}");
     let error = log_error["error"].as_str().unwrap();
     assert!(error.contains("logfail-stop.mcap"), "{error}");
-    assert_eq!(run.code, Some(4), "a run whose log failed exits 4");
+    assert_eq!(run.code, Some(5), "a run whose log failed exits 5");
 }
 
 #[test]
@@ -284,7 +284,7 @@ fn with_on_error_continue_the_job_completes_and_the_report_says_the_log_failed()
     assert!(rest > failed, "the job went on after the log failed");
     assert_eq!(report["log_error"]["on_error"], "continue", "{report:#}");
     assert_eq!(report["log_error"]["stopped_job"], false, "{report:#}");
-    assert_eq!(run.code, Some(4), "a run whose log failed exits 4");
+    assert_eq!(run.code, Some(5), "a run whose log failed exits 5");
 }
 
 #[test]
@@ -386,6 +386,21 @@ fn serve_keeps_the_report_of_a_job_whose_log_failed_and_says_it_while_it_runs() 
             .contains("job-1.mcap"),
         "{report:#}"
     );
+    let shown = live_log_error(&served.address);
+    println!("live page frame: job.log_error = {shown}");
+    assert!(shown.contains("job-1.mcap"), "{shown}");
+}
+
+/// The log error the live page is sent in its frames' `job` (`/api/live`).
+fn live_log_error(address: &str) -> String {
+    let (mut socket, _) = tungstenite::connect(format!("ws://{address}/api/live")).unwrap();
+    wait_until("a live frame with the job's log error", RUN_TIMEOUT, || {
+        let tungstenite::Message::Text(text) = socket.read().unwrap() else {
+            return None;
+        };
+        let frame: serde_json::Value = serde_json::from_str(&text).ok()?;
+        frame["job"]["log_error"].as_str().map(String::from)
+    })
 }
 
 #[test]

@@ -230,12 +230,13 @@ fn finish(
 }
 
 /// The exit code of a run whose log failed, when its outcome alone would say success or
-/// an operator's stop: the run's record is incomplete (docs/logs.md).
-pub const EXIT_LOG_FAILED: u8 = 4;
+/// an operator's stop: the run's record is incomplete (docs/logs.md). Not 4, which `gait`
+/// gives a walk that missed its figures.
+pub const EXIT_LOG_FAILED: u8 = 5;
 
 /// [`exit_code`] of the outcome, but [`EXIT_LOG_FAILED`] for a completed or stopped run
-/// whose log failed.
-fn run_exit_code(report: &RunReport) -> ExitCode {
+/// whose log failed (`run`, `replay`, `paint`).
+pub fn run_exit_code(report: &RunReport) -> ExitCode {
     match (report.stream.outcome, &report.log_error) {
         (Outcome::Completed | Outcome::Stopped, Some(_)) => ExitCode::from(EXIT_LOG_FAILED),
         (outcome, _) => exit_code(outcome),
