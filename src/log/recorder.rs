@@ -857,6 +857,31 @@ mod tests {
     }
 
     #[test]
+    fn health_keeps_the_first_failure_with_its_path_and_cause() {
+        let health = LogHealth::default();
+        assert!(!health.is_failed() && health.failure().is_none());
+        let full = std::io::Error::from_raw_os_error(libc::ENOSPC);
+        let first = LogError::io("writing a chunk", full);
+        health.fail(Path::new("runs/job-7.mcap"), &first, 2.5);
+        let later = LogError::Setup("a later failure".into());
+        health.fail(Path::new("runs/job-7.mcap"), &later, 3.0);
+        assert!(health.is_failed());
+        let failure = health.failure().expect("the failure is kept");
+        assert_eq!(failure.at_s, 2.5);
+        assert!(
+            failure.error.contains("runs/job-7.mcap"),
+            "{}",
+            failure.error
+        );
+        assert!(
+            failure.error.contains("writing a chunk"),
+            "{}",
+            failure.error
+        );
+        assert!(!failure.error.contains("later"), "{}", failure.error);
+    }
+
+    #[test]
     fn a_record_is_small_enough_to_preallocate_thousands() {
         assert!(std::mem::size_of::<LogRecord>() <= 560);
     }
