@@ -2,7 +2,7 @@
 //! (which measures the paint), with progress, then print a summary and write the report
 //! (JSON) and the picture (SVG).
 
-use super::run::{ClockChoice, default_log_path, exit_code, make_clock, print_stream_summary};
+use super::run::{ClockChoice, default_log_path, make_clock, print_stream_summary};
 use anyhow::Context;
 use clap::Args;
 use rigbridge::daemon::config::{JobConfig, load_run_settings};
@@ -93,7 +93,7 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
         kind.write(picture, &world, &run.paint)?;
         say!("  picture: {}", picture.display());
     }
-    Ok(exit_code(r.stream.outcome))
+    Ok(super::run::run_exit_code(r))
 }
 
 #[derive(Clone, Copy)]

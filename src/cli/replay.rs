@@ -110,7 +110,7 @@ pub fn replay_command(args: ReplayArgs) -> anyhow::Result<ExitCode> {
         None => say!("  resampled: no cycle to compare one for one with the recording"),
     }
     write_report(args.report.as_deref(), &report)?;
-    Ok(super::run::exit_code(run.stream.outcome))
+    Ok(super::run::run_exit_code(run))
 }
 
 pub fn log_command(command: LogCommand) -> anyhow::Result<ExitCode> {

@@ -1,6 +1,8 @@
 //! `rigbridge run`: one job against the twin, with a progress bar, Ctrl-C handling (the
 //! rig is brought to rest along its path, then the log is closed and the report written),
-//! and a summary at the end.
+//! and a summary at the end. A report is written whole or not at all: to a temporary file
+//! beside it, then renamed over it, so a full disk leaves the previous report (never an
+//! empty one) and an error naming the path and cause.
 
 use anyhow::Context;
 use clap::{Args, ValueEnum};
@@ -212,8 +214,34 @@ fn finish(
     };
     print_summary(&report)?;
     say!("  log: {}", log.display());
+    if let Some(failed) = &report.log_error {
+        say!(
+            "  log failed at job time {:.3} s ({}): {}",
+            failed.at_s,
+            if failed.stopped_job {
+                "the job was brought to rest"
+            } else {
+                "the job went on"
+            },
+            failed.error
+        );
+    }
     write_report(args.report.as_deref(), &report)?;
-    Ok(exit_code(report.stream.outcome))
+    Ok(run_exit_code(&report))
+}
+
+/// The exit code of a run whose log failed, when its outcome alone would say success or
+/// an operator's stop: the run's record is incomplete (docs/logs.md). Not 4, which `gait`
+/// gives a walk that missed its figures.
+pub const EXIT_LOG_FAILED: u8 = 5;
+
+/// [`exit_code`] of the outcome, but [`EXIT_LOG_FAILED`] for a completed or stopped run
+/// whose log failed (`run`, `replay`, `paint`).
+pub fn run_exit_code(report: &RunReport) -> ExitCode {
+    match (report.stream.outcome, &report.log_error) {
+        (Outcome::Completed | Outcome::Stopped, Some(_)) => ExitCode::from(EXIT_LOG_FAILED),
+        (outcome, _) => exit_code(outcome),
+    }
 }
 
 /// The rig's ROS 2 node when `[ros2]` or `--zenoh-connect` says where to connect.
@@ -267,16 +295,48 @@ pub fn wait<T>(
         .map_err(|_| anyhow::anyhow!("the streaming thread panicked"))?
 }
 
+/// Writes `report` as JSON to `path`, if given, whole or not at all: to a temporary file in
+/// the same directory, synced, then renamed over `path`. When any step fails the temporary
+/// file is removed, whatever was at `path` stays as it was, and the error names the path
+/// and the cause.
 pub fn write_report(
     path: Option<&std::path::Path>,
     report: &impl serde::Serialize,
 ) -> anyhow::Result<()> {
     if let Some(path) = path {
-        let json = serde_json::to_string_pretty(report)?;
-        std::fs::write(path, json + "\n")
-            .with_context(|| format!("cannot write report {}", path.display()))?;
+        let json = serde_json::to_string_pretty(report)? + "\n";
+        let temporary = temporary_beside(path);
+        let written = write_synced(&temporary, json.as_bytes())
+            .and_then(|()| std::fs::rename(&temporary, path));
+        if let Err(cause) = written {
+            let _ = std::fs::remove_file(&temporary);
+            return Err(cause).with_context(|| {
+                format!(
+                    "cannot write report {} (any earlier report there is left as it was)",
+                    path.display()
+                )
+            });
+        }
     }
     Ok(())
+}
+
+/// A name in `path`'s directory no other run uses at the same time (the process id), and
+/// hidden, for the report before it is renamed to `path`.
+fn temporary_beside(path: &std::path::Path) -> PathBuf {
+    let name = path
+        .file_name()
+        .map_or_else(|| "report".into(), |n| n.to_string_lossy().into_owned());
+    path.with_file_name(format!(".{name}.{}.tmp", std::process::id()))
+}
+
+/// Creates `path` with `bytes`, on disk before it returns (a rename after a crash must not
+/// reveal an empty file).
+fn write_synced(path: &std::path::Path, bytes: &[u8]) -> std::io::Result<()> {
+    use std::io::Write;
+    let mut file = std::fs::File::create(path)?;
+    file.write_all(bytes)?;
+    file.sync_all()
 }
 
 fn print_summary(report: &RunReport) -> anyhow::Result<()> {

@@ -43,6 +43,40 @@ pub struct RunConfig {
     /// twin). Optional.
     #[serde(default)]
     pub egm: EgmConfig,
+    /// `[log]`: what a job does when its log cannot be written (docs/logs.md). Optional.
+    #[serde(default)]
+    pub log: LogConfig,
+}
+
+/// `[log]`: the run log of every job (docs/logs.md, "When the log cannot be written").
+#[derive(Debug, Clone, Copy, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LogConfig {
+    /// What a job does once a write to its log fails (a full disk): `stop` (default) or
+    /// `continue`. Checked on load: any other value is refused, naming the key.
+    #[serde(default)]
+    pub on_error: OnLogError,
+}
+
+/// See [`LogConfig::on_error`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OnLogError {
+    /// Bring the job to rest along its path, as an operator's Stop does: a job with no
+    /// record of what the arm did does not go on (the default).
+    #[default]
+    Stop,
+    /// Go on streaming without a log; the failure is still said at once and reported.
+    Continue,
+}
+
+impl std::fmt::Display for OnLogError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            OnLogError::Stop => "stop",
+            OnLogError::Continue => "continue",
+        })
+    }
 }
 
 /// `[egm]`: a rig with more axes than the robot's six (a track, a lift) sends the others as

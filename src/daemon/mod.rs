@@ -83,6 +83,24 @@ pub struct RunReport {
     pub stream: StreamReport,
     /// The MCAP log of this run, and what the recorder wrote.
     pub log: Option<LogReport>,
+    /// Why the log ended early, when it did (docs/logs.md, "When the log cannot be
+    /// written"); `null` otherwise. The outcome and cycles beside it stay what the arm did.
+    pub log_error: Option<LogErrorReport>,
+}
+
+/// A log that failed during a run: what failed, from when, and what the job did about it.
+#[derive(Debug, Clone, Serialize)]
+pub struct LogErrorReport {
+    /// The file, what was being written and the cause.
+    pub error: String,
+    /// Job time (s) of the latest record taken when the write failed: the log holds
+    /// nothing from about then on.
+    pub at_s: f64,
+    /// `[log] on_error` for this run.
+    pub on_error: config::OnLogError,
+    /// Whether the failure brought the job to rest (`on_error = "stop"`, with no stop or
+    /// e-stop under way then): the outcome is then `stopped` for this reason alone.
+    pub stopped_job: bool,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -471,13 +489,25 @@ pub fn stream_job_with(
         events: None,
         executor,
     };
-    let report = match &recorder {
-        Some(recorder) => stream_recorded(io, job.trajectory, recorder, metadata, actions),
-        None => resume::stream_resuming(io, job.trajectory),
+    let on_error = settings.config.log.on_error;
+    let (report, stopped_job) = match &recorder {
+        Some(recorder) => {
+            stream_recorded(io, job.trajectory, recorder, metadata, actions, on_error)
+        }
+        None => (resume::stream_resuming(io, job.trajectory), false),
     };
-    let log_report = match (recorder, log) {
-        (Some(recorder), Some(path)) => Some(close_log(recorder, actions, &report, path)?),
-        _ => None,
+    let (log_report, log_error) = match (recorder, log) {
+        (Some(recorder), Some(path)) => {
+            let (written, failure) = close_log(recorder, actions, &report, path);
+            let log_error = failure.map(|failure| LogErrorReport {
+                error: failure.error,
+                at_s: failure.at_s,
+                on_error,
+                stopped_job,
+            });
+            (Some(written), log_error)
+        }
+        _ => (None, None),
     };
     Ok(RunReport {
         rig: settings.rig.name.clone(),
@@ -491,6 +521,7 @@ pub fn stream_job_with(
         planned_duration_s: job.trajectory.duration_s(),
         stream: report,
         log: log_report,
+        log_error,
     })
 }
 
@@ -507,19 +538,25 @@ fn job_metadata(settings: &RunSettings, job: &JobToStream<'_>, link: String) -> 
 }
 
 /// [`resume::stream_resuming`] with every cycle and event also going to `recorder`, and
-/// `actions` open on it while the job streams.
+/// `actions` open on it while the job streams. With `on_error = "stop"`, the first cycle
+/// after a failed write stops the job along its path; the report, and whether that stop
+/// was the log's.
 fn stream_recorded(
     io: resume::Streaming<'_>,
     trajectory: &crate::trajectory::Trajectory,
     recorder: &Recorder,
     metadata: serde_json::Value,
     actions: Option<&ActionLog>,
-) -> StreamReport {
+    on_error: config::OnLogError,
+) -> (StreamReport, bool) {
     recorder.event(0.0, "job_started", metadata);
     if let Some(actions) = actions {
         actions.open(recorder);
     }
     let mut recording = RecorderSink::new(recorder, io.settings.period());
+    if on_error == config::OnLogError::Stop {
+        recording = recording.stopping_on_failure(io.control);
+    }
     let mut sink = recording::BothSinks(&mut recording, io.sink);
     let io = resume::Streaming {
         settings: io.settings,
@@ -530,24 +567,28 @@ fn stream_recorded(
         events: Some(recorder),
         executor: io.executor,
     };
-    resume::stream_resuming(io, trajectory)
+    let report = resume::stream_resuming(io, trajectory);
+    (report, recording.stopped_job())
 }
 
 /// Closes `actions`, ends the log with `job_ended` and the report, and says what the
-/// recorder wrote to `path`.
+/// recorder wrote to `path`, and the log's first failure, if it failed (while the job
+/// streamed or as it closed): a failed log never takes the run's report with it.
 fn close_log(
     recorder: Recorder,
     actions: Option<&ActionLog>,
     report: &StreamReport,
     path: &std::path::Path,
-) -> Result<LogReport, DaemonError> {
+) -> (LogReport, Option<crate::log::LogFailure>) {
     if let Some(actions) = actions {
         actions.close();
     }
     let ended = serde_json::to_value(report).unwrap_or_default();
     recorder.event(report.duration_s, "job_ended", ended);
-    let stats = recorder.finish()?;
-    Ok(LogReport::new(path, stats))
+    let health = recorder.health();
+    let closed = recorder.close();
+    // A failure is in `health` as soon as the writer meets it, one at closing included.
+    (LogReport::new(path, closed.stats), health.failure())
 }
 
 /// The job's recorder at `path`, its metadata written first. Under a virtual clock nothing

@@ -1,19 +1,28 @@
 //! The bridge from the streaming cycle to the recorder: each cycle's command and the
 //! controller's measured state, as log records; and [`BothSinks`], so the recorder and the
-//! live view see the same cycles. Allocation-free, like the cycle itself. Also
-//! [`ActionLog`], through which an operator's actions (pause, stop, ...) reach the log of
-//! the job they act on from another thread.
+//! live view see the same cycles. Allocation-free, like the cycle itself. With `[log]
+//! on_error = "stop"`, the sink is also where a failed log stops the job: it looks at the
+//! log's health every cycle (one atomic load) and asks the stream to stop along its path
+//! the first cycle after a write failed. Also [`ActionLog`], through which an operator's
+//! actions (pause, stop, ...) reach the log of the job they act on from another thread, and
+//! through which the control API learns that the job's log failed.
 
-use crate::log::{EventSender, LogRecord, Recorder};
+use crate::log::{EventSender, LogFailure, LogHealth, LogRecord, Recorder};
 use crate::protocol::AxisValues;
-use crate::stream::{CycleRecord, CycleSink};
-use std::sync::{Mutex, PoisonError};
+use crate::stream::{CycleRecord, CycleSink, StreamControl};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
 pub struct RecorderSink<'a> {
     recorder: &'a Recorder,
     period: Duration,
     previous_actual: Option<AxisValues>,
+    /// The job's controls, when a failed log must stop it (`on_error = "stop"`).
+    stop_on_failure: Option<&'a StreamControl>,
+    /// The failure was seen (and acted on): the sink looks no more.
+    failure_seen: bool,
+    /// The failure is what stopped the job (it was neither stopping nor e-stopped then).
+    stopped_job: bool,
 }
 
 impl<'a> RecorderSink<'a> {
@@ -22,6 +31,36 @@ impl<'a> RecorderSink<'a> {
             recorder,
             period,
             previous_actual: None,
+            stop_on_failure: None,
+            failure_seen: false,
+            stopped_job: false,
+        }
+    }
+
+    /// Stops the job through `control` (along its path) once a log write fails.
+    pub fn stopping_on_failure(mut self, control: &'a StreamControl) -> Self {
+        self.stop_on_failure = Some(control);
+        self
+    }
+
+    /// Whether the log's failure brought the job to rest.
+    pub fn stopped_job(&self) -> bool {
+        self.stopped_job
+    }
+
+    /// The first cycle after a write failed: asks the stream to stop, unless it is already
+    /// stopping or e-stopped (an operator's stop stays the operator's).
+    fn check_log(&mut self) {
+        if self.failure_seen || !self.recorder.failed() {
+            return;
+        }
+        self.failure_seen = true;
+        if let Some(control) = self.stop_on_failure
+            && !control.is_stopping()
+            && !control.is_estopped()
+        {
+            control.stop();
+            self.stopped_job = true;
         }
     }
 
@@ -45,6 +84,7 @@ impl<'a> RecorderSink<'a> {
 
 impl CycleSink for RecorderSink<'_> {
     fn record(&mut self, cycle: &CycleRecord) {
+        self.check_log();
         let target = &cycle.target;
         self.recorder.record(LogRecord::Command {
             seq: target.seq,
@@ -85,6 +125,8 @@ impl CycleSink for BothSinks<'_> {
 #[derive(Default)]
 pub struct ActionLog {
     sender: Mutex<Option<EventSender>>,
+    /// The job's log's health, kept after `close`: whether it failed stays known.
+    health: Mutex<Option<Arc<LogHealth>>>,
 }
 
 impl ActionLog {
@@ -94,6 +136,17 @@ impl ActionLog {
 
     pub(super) fn open(&self, recorder: &Recorder) {
         *self.slot() = recorder.event_sender();
+        *self.health.lock().unwrap_or_else(PoisonError::into_inner) = Some(recorder.health());
+    }
+
+    /// The first write the job's log failed, as soon as the writer met it; `None` while
+    /// the log is sound (or not opened yet).
+    pub fn log_failure(&self) -> Option<LogFailure> {
+        self.health
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .as_ref()
+            .and_then(|health| health.failure())
     }
 
     pub(super) fn close(&self) {

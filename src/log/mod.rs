@@ -27,8 +27,9 @@ pub use foxglove::{
 };
 pub use reader::{read_log, read_log_from};
 pub use recorder::{
-    DEFAULT_CAPACITY, DEFAULT_CHUNK_BYTES, DEFAULT_CHUNK_INTERVAL, EventSender, LogRecord,
-    MAX_CHUNK_BYTES, Recorder, RecorderOptions, RecorderStats, capacity_for_rate,
+    Closed, DEFAULT_CAPACITY, DEFAULT_CHUNK_BYTES, DEFAULT_CHUNK_INTERVAL, EventSender, LogFailure,
+    LogHealth, LogRecord, MAX_CHUNK_BYTES, Recorder, RecorderOptions, RecorderStats,
+    capacity_for_rate,
 };
 pub use summary::{ChannelSummary, LogSummary, SeqGap, TrackingError, summarize};
 pub use wire::{EVENTS_TOPIC, LogDecodeError, METADATA_NAME, command_topic, state_topic};

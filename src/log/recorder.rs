@@ -3,7 +3,10 @@
 //! full ring drops and counts); one writer thread serialises them to JSON (and, for a rig,
 //! to Foxglove protobuf: `foxglove.rs`) and writes MCAP chunks. Owns the writer thread and
 //! the file it writes; must not touch the link, the controller or the cycle's timing, and
-//! never blocks the caller of `record`.
+//! never blocks the caller of `record`. A write that fails is said at once (a `tracing`
+//! error, and [`LogHealth`], which anyone watching the job reads without waiting); the
+//! writer then drops and counts what comes after it. What the job does about it is the
+//! daemon's choice (`[log] on_error`), not the recorder's.
 
 use super::LogError;
 use super::foxglove::{FoxgloveLog, RobotDescription, SceneSource};
@@ -20,7 +23,7 @@ use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{self, Receiver, Sender};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
@@ -70,6 +73,75 @@ const POLL: Duration = Duration::from_millis(10);
 const WAIT_FOR_ROOM: Duration = Duration::from_micros(100);
 /// Records written per pass before events and chunk closing get a turn.
 const BATCH: usize = 1024;
+
+/// The first write a log failed: what and why, and when in the job.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct LogFailure {
+    /// The file, what was being written and the operating system's cause, in words.
+    pub error: String,
+    /// Job time (s) of the latest record or event the writer had taken when it failed:
+    /// nothing from about then on is in the file.
+    pub at_s: f64,
+}
+
+/// Whether a recorder's file still takes writes, shared by its writer thread with whoever
+/// watches the job (the cycle's sink, the control API's status). Reading it never waits on
+/// the writer: the flag is an atomic, the words behind it are set once.
+#[derive(Debug, Default)]
+pub struct LogHealth {
+    failed: AtomicBool,
+    failure: Mutex<Option<LogFailure>>,
+}
+
+impl LogHealth {
+    /// Whether a write has failed: one atomic load, for the cycle.
+    pub fn is_failed(&self) -> bool {
+        self.failed.load(Ordering::Acquire)
+    }
+
+    /// The first failure, if there was one.
+    pub fn failure(&self) -> Option<LogFailure> {
+        self.failure
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+
+    /// Keeps the first failure and says it on stderr, at once; later ones add nothing.
+    fn fail(&self, path: &Path, error: &LogError, at_s: f64) {
+        let mut slot = self.failure.lock().unwrap_or_else(PoisonError::into_inner);
+        if slot.is_some() {
+            return;
+        }
+        let failure = LogFailure {
+            error: format!("writing log {}: {}", path.display(), error_text(error)),
+            at_s,
+        };
+        tracing::error!(
+            path = %path.display(),
+            at_s,
+            "log failed at job time {at_s:.3} s: {}; what the job records from then on is lost",
+            failure.error
+        );
+        *slot = Some(failure);
+        self.failed.store(true, Ordering::Release);
+    }
+}
+
+/// An error and its sources, one line (the MCAP writer's error wraps the I/O error).
+fn error_text(error: &LogError) -> String {
+    let mut text = error.to_string();
+    let mut source = std::error::Error::source(error);
+    while let Some(cause) = source {
+        let cause_text = cause.to_string();
+        if !text.ends_with(&cause_text) {
+            text.push_str(": ");
+            text.push_str(&cause_text);
+        }
+        source = cause.source();
+    }
+    text
+}
 
 /// One cycle's command or measured state, handed to [`Recorder::record`] by value.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -179,6 +251,8 @@ struct Written {
     states: u64,
     events: u64,
     bytes: u64,
+    /// Job time of the latest record or event taken.
+    last_t: f64,
 }
 
 /// Queues events into a [`Recorder`] from any thread, like [`Recorder::event`]. Once the
@@ -209,8 +283,22 @@ pub struct Recorder {
     // Unbounded: events are rare, may allocate, and must not be lost to a full channel.
     events: Option<Sender<EventMessage>>,
     dropped: Arc<AtomicU64>,
-    writer: Option<JoinHandle<Result<Written, LogError>>>,
+    writer: Option<JoinHandle<Result<Written, Failed>>>,
     wait_when_full: bool,
+    health: Arc<LogHealth>,
+}
+
+/// How a writer thread that failed ended: what it had written, and the first error.
+struct Failed {
+    written: Written,
+    error: LogError,
+}
+
+/// A recorder closed whatever happened: what it wrote, and the first error, if any (the
+/// file then ends early; see [`LogHealth`]).
+pub struct Closed {
+    pub stats: RecorderStats,
+    pub error: Option<LogError>,
 }
 
 impl Recorder {
@@ -257,13 +345,15 @@ impl Recorder {
         let (events_tx, events_rx) = mpsc::channel();
         let dropped = Arc::new(AtomicU64::new(0));
         let thread_dropped = Arc::clone(&dropped);
+        let health = Arc::new(LogHealth::default());
+        let thread_health = Arc::clone(&health);
         let writer = std::thread::Builder::new()
             .name("rigbridge-log".to_owned())
             .spawn(move || {
                 // Started from the cycle's thread: it must not compete with the cycle at
                 // the cycle's priority, on the cycle's CPU. Refusal changes nothing else.
                 let _ = crate::realtime::step_aside();
-                sink.run(&mut records_rx, &events_rx, &thread_dropped)
+                sink.run(&mut records_rx, &events_rx, &thread_dropped, &thread_health)
             })
             .map_err(|e| LogError::io("starting the log writer thread", e))?;
         Ok(Self {
@@ -273,6 +363,7 @@ impl Recorder {
             dropped,
             writer: Some(writer),
             wait_when_full,
+            health,
         })
     }
 
@@ -324,28 +415,64 @@ impl Recorder {
         self.dropped.load(Ordering::Relaxed)
     }
 
-    /// Writes everything queued, the summary and the footer, and closes the file.
-    pub fn finish(mut self) -> Result<RecorderStats, LogError> {
-        let written = self.stop_writer()?;
-        Ok(RecorderStats {
-            commands: written.commands,
-            states: written.states,
-            events: written.events,
-            dropped: self.dropped(),
-            bytes: written.bytes,
-        })
+    /// Whether the file still takes writes, for whoever watches the job.
+    pub fn health(&self) -> Arc<LogHealth> {
+        Arc::clone(&self.health)
     }
 
-    fn stop_writer(&mut self) -> Result<Written, LogError> {
+    /// Whether a write has failed (one atomic load).
+    pub fn failed(&self) -> bool {
+        self.health.is_failed()
+    }
+
+    /// Writes everything queued, the summary and the footer, and closes the file.
+    pub fn finish(self) -> Result<RecorderStats, LogError> {
+        let closed = self.close();
+        match closed.error {
+            Some(error) => Err(error),
+            None => Ok(closed.stats),
+        }
+    }
+
+    /// [`Recorder::finish`], keeping what was written when it failed: the counts hold what
+    /// the writer took before the first error, `dropped` everything after.
+    pub fn close(mut self) -> Closed {
+        let (written, error) = match self.stop_writer() {
+            Ok(written) => (written, None),
+            Err(failed) => (failed.written, Some(failed.error)),
+        };
+        Closed {
+            stats: RecorderStats {
+                commands: written.commands,
+                states: written.states,
+                events: written.events,
+                dropped: self.dropped(),
+                bytes: written.bytes,
+            },
+            error,
+        }
+    }
+
+    fn stop_writer(&mut self) -> Result<Written, Failed> {
         // Closing both channels is the writer's signal to drain and finish.
         self.records = None;
         self.events = None;
-        match self.writer.take() {
-            Some(handle) => handle.join().map_err(|_| LogError::WriterPanicked {
-                path: self.path.clone(),
-            })?,
-            None => Ok(Written::default()),
+        let Some(handle) = self.writer.take() else {
+            return Ok(Written::default());
+        };
+        let result = handle.join().unwrap_or_else(|_| {
+            Err(Failed {
+                written: Written::default(),
+                error: LogError::WriterPanicked {
+                    path: self.path.clone(),
+                },
+            })
+        });
+        if let Err(failed) = &result {
+            self.health
+                .fail(&self.path, &failed.error, failed.written.last_t);
         }
+        result
     }
 }
 
@@ -464,10 +591,11 @@ impl Sink {
         records: &mut RecordReceiver,
         events: &Receiver<EventMessage>,
         dropped: &AtomicU64,
-    ) -> Result<Written, LogError> {
+        health: &LogHealth,
+    ) -> Result<Written, Failed> {
         let mut failure: Option<LogError> = None;
         loop {
-            let (taken, closed) = self.pass(records, events, dropped, &mut failure);
+            let (taken, closed) = self.pass(records, events, dropped, &mut failure, health);
             if closed {
                 break;
             }
@@ -476,10 +604,20 @@ impl Sink {
             }
         }
         // Events sent before finish() are queued by now; write them last.
-        self.drain_events(events, &mut failure);
+        self.drain_events(events, &mut failure, health);
+        let written = std::mem::take(&mut self.written);
         match failure {
-            Some(error) => Err(error),
-            None => self.close(),
+            Some(error) => Err(Failed { written, error }),
+            None => self.close(written),
+        }
+    }
+
+    /// Keeps the first error and says it at once (stderr, `health`): the writer goes on
+    /// taking records, only to drop and count them.
+    fn failed(&self, failure: &mut Option<LogError>, error: LogError, health: &LogHealth) {
+        if failure.is_none() {
+            health.fail(&self.path, &error, self.written.last_t);
+            *failure = Some(error);
         }
     }
 
@@ -491,6 +629,7 @@ impl Sink {
         events: &Receiver<EventMessage>,
         dropped: &AtomicU64,
         failure: &mut Option<LogError>,
+        health: &LogHealth,
     ) -> (usize, bool) {
         let mut taken = 0;
         let mut closed = false;
@@ -502,7 +641,7 @@ impl Sink {
                         dropped.fetch_add(1, Ordering::Relaxed);
                     } else if let Err(error) = self.write_record(&record) {
                         dropped.fetch_add(1, Ordering::Relaxed);
-                        *failure = Some(error);
+                        self.failed(failure, error, health);
                     }
                 }
                 Err(NoRecord::Empty) => break,
@@ -512,21 +651,26 @@ impl Sink {
                 }
             }
         }
-        self.drain_events(events, failure);
+        self.drain_events(events, failure, health);
         if failure.is_none()
             && let Err(error) = self.close_chunk_if_old()
         {
-            *failure = Some(error);
+            self.failed(failure, error, health);
         }
         (taken, closed)
     }
 
-    fn drain_events(&mut self, events: &Receiver<EventMessage>, failure: &mut Option<LogError>) {
+    fn drain_events(
+        &mut self,
+        events: &Receiver<EventMessage>,
+        failure: &mut Option<LogError>,
+        health: &LogHealth,
+    ) {
         while let Ok(event) = events.try_recv() {
             if failure.is_none()
                 && let Err(error) = self.write_event(&event)
             {
-                *failure = Some(error);
+                self.failed(failure, error, health);
             }
         }
     }
@@ -554,6 +698,7 @@ impl Sink {
                 Some(*late_us),
             ),
         };
+        self.written.last_t = *t;
         self.json.clear();
         let sample = SampleOut {
             seq: *seq,
@@ -580,6 +725,9 @@ impl Sink {
     }
 
     fn write_event(&mut self, event: &EventMessage) -> Result<(), LogError> {
+        if event.t.is_finite() {
+            self.written.last_t = self.written.last_t.max(event.t);
+        }
         self.json.clear();
         let out = EventOut {
             t: event.t,
@@ -632,7 +780,15 @@ impl Sink {
         Ok(())
     }
 
-    fn close(mut self) -> Result<Written, LogError> {
+    fn close(self, written: Written) -> Result<Written, Failed> {
+        match self.finish_file() {
+            Ok(bytes) => Ok(Written { bytes, ..written }),
+            Err(error) => Err(Failed { written, error }),
+        }
+    }
+
+    /// Writes the summary and footer and syncs the file; its size.
+    fn finish_file(mut self) -> Result<u64, LogError> {
         let context = || format!("closing log {}", self.path.display());
         self.writer.finish()?;
         let file = self
@@ -641,14 +797,10 @@ impl Sink {
             .into_inner()
             .map_err(|e| LogError::io(context(), e.into_error()))?;
         file.sync_all().map_err(|e| LogError::io(context(), e))?;
-        let bytes = file
+        Ok(file
             .metadata()
             .map_err(|e| LogError::io(context(), e))?
-            .len();
-        Ok(Written {
-            bytes,
-            ..self.written
-        })
+            .len())
     }
 }
 
@@ -702,6 +854,31 @@ mod tests {
         assert_eq!(job_time_ns(-1.0), 0);
         assert_eq!(job_time_ns(f64::NAN), 0);
         assert_eq!(job_time_ns(f64::INFINITY), 0);
+    }
+
+    #[test]
+    fn health_keeps_the_first_failure_with_its_path_and_cause() {
+        let health = LogHealth::default();
+        assert!(!health.is_failed() && health.failure().is_none());
+        let full = std::io::Error::from_raw_os_error(libc::ENOSPC);
+        let first = LogError::io("writing a chunk", full);
+        health.fail(Path::new("runs/job-7.mcap"), &first, 2.5);
+        let later = LogError::Setup("a later failure".into());
+        health.fail(Path::new("runs/job-7.mcap"), &later, 3.0);
+        assert!(health.is_failed());
+        let failure = health.failure().expect("the failure is kept");
+        assert_eq!(failure.at_s, 2.5);
+        assert!(
+            failure.error.contains("runs/job-7.mcap"),
+            "{}",
+            failure.error
+        );
+        assert!(
+            failure.error.contains("writing a chunk"),
+            "{}",
+            failure.error
+        );
+        assert!(!failure.error.contains("later"), "{}", failure.error);
     }
 
     #[test]

@@ -33,6 +33,9 @@ pub struct JobView {
     /// The controller's latched fault (an e-stop included) until a reset clears it: the
     /// page shows it in place of the last cycle's status, which predates the latch.
     pub controller: Option<String>,
+    /// The running job's log failure, or the last job's: the page shows it until the next
+    /// job starts with a sound log (docs/logs.md).
+    pub log_error: Option<String>,
 }
 
 /// How far a follower of the scene has got ([`LiveHub::scene_since`]).

@@ -116,6 +116,7 @@ impl ActiveJob {
             cycles: self.control.cycles(),
             overruns: self.control.overruns(),
             paused: self.control.is_paused(),
+            log_error: self.actions.log_failure(),
         }
     }
 }
@@ -186,6 +187,9 @@ pub struct JobStatus {
     /// its own thread).
     overruns: u64,
     paused: bool,
+    /// The job's log's first failed write, as soon as it failed (docs/logs.md); `null`
+    /// while the log is sound.
+    log_error: Option<crate::log::LogFailure>,
 }
 
 fn state_of(job: Option<&JobStatus>) -> &'static str {
@@ -618,6 +622,12 @@ impl Cell {
             JobResult::Failed { error, .. } => format!("failed: {error}"),
         });
         let controller = self.controller().fault;
+        let last_log_error = self.last().as_ref().and_then(|result| match result {
+            JobResult::Finished { report, .. } => {
+                report.log_error.as_ref().map(|e| e.error.clone())
+            }
+            JobResult::Failed { .. } => None,
+        });
         match self.running() {
             Some(job) => JobView {
                 state: state_of(Some(&job)),
@@ -626,11 +636,13 @@ impl Cell {
                 progress: job.progress,
                 last,
                 controller,
+                log_error: job.log_error.map(|failure| failure.error),
             },
             None => JobView {
                 state: "idle",
                 last,
                 controller,
+                log_error: last_log_error,
                 ..JobView::default()
             },
         }

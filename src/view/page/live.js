@@ -533,6 +533,8 @@ function showStatus(frame) {
   document.getElementById('job-progress').value = job.progress;
   document.getElementById('job-percent').textContent = (100 * job.progress).toFixed(1) + ' %';
   document.getElementById('job-last').textContent = job.last ? 'last job: ' + job.last : '';
+  // A failed log is said as soon as the writer meets it, and stays until the next job.
+  document.getElementById('job-log-error').textContent = job.log_error ? 'log failed: ' + job.log_error : '';
 }
 
 // Rates over the last second.
