@@ -255,11 +255,22 @@ fn run_case(job: &Job, case: Case) -> Ran {
         })
     });
     let settings = &job.settings;
-    let report = match plan_for(settings, &settings.config.job, &mut link, clock.as_ref(), &control)
-    {
-        Ok(planned) => {
-            stream_planned(settings, &planned, &mut link, clock.as_ref(), None, &control).unwrap()
-        }
+    let report = match plan_for(
+        settings,
+        &settings.config.job,
+        &mut link,
+        clock.as_ref(),
+        &control,
+    ) {
+        Ok(planned) => stream_planned(
+            settings,
+            &planned,
+            &mut link,
+            clock.as_ref(),
+            None,
+            &control,
+        )
+        .unwrap(),
         Err(DaemonError::Halted(halted)) => {
             halted.report(settings, &settings.config.job.name(), &link, clock.as_ref())
         }

@@ -148,8 +148,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         // A device-paced link (EGM) brings the clock the cycle must follow.
         let clock = link.pacing().unwrap_or(clock);
         let job = settings.config.job.clone();
-        let planned = match plan_for(&settings, &job, link.as_mut(), clock.as_ref(), &job_control)
-        {
+        let planned = match plan_for(&settings, &job, link.as_mut(), clock.as_ref(), &job_control) {
             Err(DaemonError::Halted(halted)) => {
                 let name = job.name();
                 return Ok(halted.report(&settings, &name, link.as_ref(), clock.as_ref()));

@@ -68,7 +68,11 @@ pub struct Halted {
 
 impl std::fmt::Display for Halted {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{} while {}, before any motion", self.outcome, self.phase)
+        write!(
+            f,
+            "{} while {}, before any motion",
+            self.outcome, self.phase
+        )
     }
 }
 
@@ -128,7 +132,11 @@ impl Halted {
 }
 
 fn clock_name(clock: &dyn Clock) -> &'static str {
-    if clock.is_virtual() { "virtual" } else { "wall" }
+    if clock.is_virtual() {
+        "virtual"
+    } else {
+        "wall"
+    }
 }
 
 /// An error and all its sources, as one line ("job refused before motion: job target 0 ...").

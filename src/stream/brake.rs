@@ -131,7 +131,10 @@ impl Last {
             }
         }
         not_faster(speed_share(motion.rig, &step, dt), self.step_speed)
-            && not_faster(speed_share(motion.rig, &velocities, 1.0), self.commanded_speed)
+            && not_faster(
+                speed_share(motion.rig, &velocities, 1.0),
+                self.commanded_speed,
+            )
     }
 }
 

@@ -5,8 +5,10 @@
 //! path tolerance, and reaches the goal tolerance at the end. Only then is a job
 //! `completed`.
 //!
-//! Pause and stop never cut motion short: they ramp a time scale on the trajectory down to
+//! Pause never cuts motion short: it ramps a time scale on the trajectory down to
 //! standstill (and back up on resume) at a rate that keeps every axis within its limits.
+//! A stop brakes along the path (`brake`): never faster than the cycle before, to rest as
+//! soon as the accelerations allow; before the first target it sends no target at all.
 //! A last gate checks every outgoing target against the rig's limits, speeds and
 //! accelerations. A cycle that wakes several cycles late (a stall) sends nothing it
 //! planned and ends the stream for the daemon to resume from where the arm holds. The

@@ -52,7 +52,10 @@ impl Phase {
 
     /// 0 stands for "none" in the atomics below.
     fn code(self) -> u8 {
-        Phase::ALL.iter().position(|p| *p == self).map_or(0, |i| i as u8 + 1)
+        Phase::ALL
+            .iter()
+            .position(|p| *p == self)
+            .map_or(0, |i| i as u8 + 1)
     }
 
     fn from_code(code: u8) -> Option<Phase> {

@@ -136,7 +136,11 @@ impl TcpPort {
 impl ControllerPort for TcpPort {
     fn attached(&mut self) -> bool {
         while let Ok((stream, _)) = self.listener.accept() {
-            if self.client.as_ref().is_some_and(|client| !peer_closed(client)) {
+            if self
+                .client
+                .as_ref()
+                .is_some_and(|client| !peer_closed(client))
+            {
                 self.refuse(stream);
                 continue;
             }

@@ -14,11 +14,11 @@ use crate::daemon::reset::{RESET_TIMEOUT, ResetOutcome, reset_controller};
 use crate::daemon::{
     ActionLog, DaemonError, RunReport, Sinks, error_chain, plan_for, stream_planned_with,
 };
-use crate::stream::Phase;
 use crate::link::{Link, LinkSpec, LoopbackLink};
 use crate::log::Recorder;
 use crate::protocol::ControllerStatus;
 use crate::rig::JointKind;
+use crate::stream::Phase;
 use crate::stream::{Executor, Outcome, StreamControl};
 use crate::twin::{SharedWorld, Twin};
 use crate::view::{JobView, LiveHub, LiveSample, LiveSink, LiveSlot};
