@@ -133,9 +133,12 @@ fn jobs_can_be_submitted_paused_resumed_and_stopped() {
     assert_eq!(request(&server, "POST", "/api/resume", None).0, 200);
     wait_for(&server, "resume", |s| s["state"] == "running");
 
-    assert_eq!(request(&server, "POST", "/api/stop", None).0, 200);
+    let (code, stopped) = request(&server, "POST", "/api/stop", None);
+    assert_eq!(code, 200, "{stopped}");
+    assert_eq!(stopped["phase"], "streaming", "{stopped}");
     let done = wait_for(&server, "stop", |s| s["state"] == "idle");
     assert_eq!(done["last"]["report"]["outcome"], "stopped", "{done}");
+    assert_eq!(done["last"]["report"]["stopped_in"], "streaming", "{done}");
     assert_eq!(done["last"]["report"]["limit_violations"], 0);
     assert_eq!(
         request(&server, "POST", "/api/stop", None).0,
@@ -159,9 +162,12 @@ fn estop_halts_the_job_and_a_bad_job_is_refused_before_motion() {
     wait_for(&server, "motion", |s| {
         s["job"]["cycles"].as_u64().unwrap_or(0) > 100
     });
-    assert_eq!(request(&server, "POST", "/api/estop", None).0, 200);
+    let (code, estopped) = request(&server, "POST", "/api/estop", None);
+    assert_eq!(code, 200, "{estopped}");
+    assert_eq!(estopped["phase"], "streaming", "{estopped}");
     let done = wait_for(&server, "e-stop", |s| s["state"] == "idle");
     assert_eq!(done["last"]["report"]["outcome"], "e_stopped", "{done}");
+    assert_eq!(done["last"]["report"]["stopped_in"], "streaming", "{done}");
 }
 
 #[test]

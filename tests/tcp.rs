@@ -443,3 +443,33 @@ fn the_twin_prints_its_events_plainly_even_under_rust_log() {
         );
     }
 }
+
+/// A controller that stalls (SIGSTOP of the twin process for 3 s, within the 5 s
+/// reconnect timeout) and comes back: the bridge's old connection, which it closed when the
+/// controller went silent, is still queued in the stopped twin behind the bridge's new
+/// one. The twin must take the new one (its peer closed the old), and the job resumes and
+/// completes rather than ending `faulted: busy with another bridge`.
+#[test]
+fn a_controller_stalled_for_three_seconds_is_resumed_when_it_comes_back() {
+    let twin = start_twin("tcp://127.0.0.1:0");
+    let (log, json) = (scratch("stalled.mcap"), scratch("stalled.json"));
+    let daemon = spawn_run(&twin.address, &log, &json);
+    wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
+    let pid = twin.child.id() as libc::pid_t;
+    // SAFETY: kill(2) on our own child's pid.
+    unsafe { libc::kill(pid, libc::SIGSTOP) };
+    std::thread::sleep(Duration::from_secs(3));
+    // SAFETY: as above.
+    unsafe { libc::kill(pid, libc::SIGCONT) };
+    let output = daemon.wait_with_output().unwrap();
+    let report = read_json(&json);
+    assert_succeeded(&output);
+    assert_eq!(report["outcome"], "completed", "{report}");
+    let run = read_log(&log).unwrap();
+    assert!(
+        run.events.iter().any(|e| e.kind == "resumed"),
+        "a resume event in the log: {:?}",
+        run.events.iter().map(|e| &e.kind).collect::<Vec<_>>()
+    );
+    assert_resumes_in_step_after_link_loss(&run, &irb120(), PERIOD);
+}

@@ -9,7 +9,7 @@ use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use rigbridge::clock::{Clock, VirtualClock, WallClock};
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
-use rigbridge::daemon::{RunReport, open_link, plan_for, stream_planned_with};
+use rigbridge::daemon::{DaemonError, RunReport, open_link, plan_for, stream_planned_with};
 use rigbridge::link::LinkSpec;
 use rigbridge::ros2::Ros2Node;
 use rigbridge::stream::{Outcome, StreamControl};
@@ -151,7 +151,13 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         // A device-paced link (EGM) brings the clock the cycle must follow.
         let clock = link.pacing().unwrap_or(clock);
         let job = settings.config.job.clone();
-        let planned = plan_for(&settings, &job, link.as_mut(), clock.as_ref(), &job_control)?;
+        let planned = match plan_for(&settings, &job, link.as_mut(), clock.as_ref(), &job_control) {
+            Err(DaemonError::Halted(halted)) => {
+                let name = job.name();
+                return Ok(halted.report(&settings, &name, link.as_ref(), clock.as_ref()));
+            }
+            planned => planned?,
+        };
         // The cycle offers each state to the slot the ROS 2 node publishes from.
         let mut live = LiveSink::new(&slot, settings.config.stream.rate_hz.round() as u64);
         Ok(stream_planned_with(

@@ -18,7 +18,9 @@ use crate::clock::Clock;
 use crate::job::JobError;
 use crate::link::{Link, LinkError, LoopbackLink};
 use crate::log::{LogError, Recorder, RecorderStats};
-use crate::stream::{StreamControl, StreamError, StreamReport, StreamSettings, slowdown_rate};
+use crate::stream::{
+    Outcome, Phase, StreamControl, StreamError, StreamReport, StreamSettings, slowdown_rate,
+};
 use crate::trajectory::PlanSettings;
 use crate::twin::{Twin, TwinError, TwinSettings};
 use config::RunSettings;
@@ -52,6 +54,89 @@ pub enum DaemonError {
     Unavailable(String),
     #[error(transparent)]
     Cells(#[from] server::CellError),
+    /// A stop or e-stop ended the job before any motion.
+    #[error("{0}")]
+    Halted(Halted),
+}
+
+/// A job a stop or e-stop ended before any motion: how, and in which phase.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Halted {
+    pub outcome: Outcome,
+    pub phase: Phase,
+}
+
+impl std::fmt::Display for Halted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} while {}, before any motion",
+            self.outcome, self.phase
+        )
+    }
+}
+
+impl Halted {
+    /// The stop or e-stop `control` had acknowledged (an e-stop wins), in the phase it found.
+    pub fn of(control: &StreamControl) -> Halted {
+        Halted {
+            outcome: if control.is_estopped() {
+                Outcome::EStopped
+            } else {
+                Outcome::Stopped
+            },
+            phase: control.halted_in().unwrap_or_else(|| control.phase()),
+        }
+    }
+
+    /// Tells the controller (an EStop or a Stop: the arm is at rest, nothing else goes
+    /// out) when the link is up, and ends the job with this.
+    fn told(self, link: &mut dyn Link) -> DaemonError {
+        if link.is_up() {
+            let command = match self.outcome {
+                Outcome::EStopped => crate::protocol::Command::EStop,
+                _ => crate::protocol::Command::Stop,
+            };
+            // Ending anyway: a link that fails now has nothing to stop.
+            let _ = link.send(&command);
+        }
+        DaemonError::Halted(self)
+    }
+
+    /// The report of the job it ended: no cycles, the outcome and the phase.
+    pub fn report(
+        self,
+        settings: &RunSettings,
+        job: &str,
+        link: &dyn Link,
+        clock: &dyn Clock,
+    ) -> RunReport {
+        RunReport {
+            rig: settings.rig.name.clone(),
+            job: job.to_string(),
+            rate_hz: settings.config.stream.rate_hz,
+            clock: clock_name(clock),
+            planned_duration_s: 0.0,
+            stream: StreamReport {
+                stopped_in: Some(self.phase),
+                ..StreamReport::without_motion(
+                    self.outcome,
+                    self.to_string(),
+                    link.describe(),
+                    link.counters(),
+                )
+            },
+            log: None,
+        }
+    }
+}
+
+fn clock_name(clock: &dyn Clock) -> &'static str {
+    if clock.is_virtual() {
+        "virtual"
+    } else {
+        "wall"
+    }
 }
 
 /// An error and all its sources, as one line ("job refused before motion: job target 0 ...").
@@ -185,13 +270,28 @@ pub fn open_link(
     spec: &crate::link::LinkSpec,
     settings: &RunSettings,
 ) -> Result<Box<dyn Link>, DaemonError> {
+    open_link_for(spec, settings, &StreamControl::default())
+}
+
+/// [`open_link`] for a job: the wait for the link ends early on the job's stop or e-stop
+/// (the job then ends before any motion, in [`plan_for`]).
+pub fn open_link_for(
+    spec: &crate::link::LinkSpec,
+    settings: &RunSettings,
+    control: &StreamControl,
+) -> Result<Box<dyn Link>, DaemonError> {
     let link = connect_link(spec, settings)?;
     let mut timeout = settings.reconnect_timeout();
     // CANopen drives are set up over SDO before the session starts.
     if let crate::link::LinkSpec::Canopen { .. } = spec {
         timeout += crate::link::SETUP_PATIENCE;
     }
-    wait_for_link(link.as_ref(), &crate::clock::WallClock::new(), timeout);
+    wait_for_link(
+        link.as_ref(),
+        &crate::clock::WallClock::new(),
+        timeout,
+        control,
+    );
     Ok(link)
 }
 
@@ -349,8 +449,10 @@ pub fn held_position(
     }
     match resume::wait_for_hold(settings, link, clock, control, resume::START_HOLD_TIMEOUT)? {
         resume::Hold::At(position) => Ok(position),
-        resume::Hold::Stopped => Err(DaemonError::Unavailable("stopped before motion".into())),
-        resume::Hold::EStopped => Err(DaemonError::Unavailable("e-stopped before motion".into())),
+        // The wait told the controller already.
+        resume::Hold::Stopped | resume::Hold::EStopped => {
+            Err(DaemonError::Halted(Halted::of(control)))
+        }
         resume::Hold::Faulted(text) | resume::Hold::TimedOut(text) => {
             Err(DaemonError::NotHeld(text))
         }
@@ -373,12 +475,19 @@ pub fn plan_for(
     control: &StreamControl,
 ) -> Result<PlannedJob, DaemonError> {
     let start = held_position(settings, link, clock, control)?;
+    if control.enter(Phase::Planning) {
+        return Err(Halted::of(control).told(link));
+    }
     let trajectory = job.plan(&crate::job::PlanContext {
         rig: &settings.rig,
         sloth: settings.sloth.as_deref(),
         start: &start,
         settings: &plan_settings(settings),
     })?;
+    // A stop asked for while planning ends the job now, before any motion.
+    if control.is_halted() {
+        return Err(Halted::of(control).told(link));
+    }
     Ok(PlannedJob {
         job: job.clone(),
         start,
@@ -490,12 +599,13 @@ pub fn stream_job_with(
         executor,
     };
     let on_error = settings.config.log.on_error;
-    let (report, stopped_job) = match &recorder {
+    let (mut report, stopped_job) = match &recorder {
         Some(recorder) => {
             stream_recorded(io, job.trajectory, recorder, metadata, actions, on_error)
         }
         None => (resume::stream_resuming(io, job.trajectory), false),
     };
+    report.stopped_in = control.halted_in();
     let (log_report, log_error) = match (recorder, log) {
         (Some(recorder), Some(path)) => {
             let (written, failure) = close_log(recorder, actions, &report, path);
@@ -513,11 +623,7 @@ pub fn stream_job_with(
         rig: settings.rig.name.clone(),
         job: job.name.clone(),
         rate_hz: settings.config.stream.rate_hz,
-        clock: if clock.is_virtual() {
-            "virtual"
-        } else {
-            "wall"
-        },
+        clock: clock_name(clock),
         planned_duration_s: job.trajectory.duration_s(),
         stream: report,
         log: log_report,
@@ -650,11 +756,16 @@ fn rig_urdf(settings: &RunSettings) -> Result<Option<String>, DaemonError> {
     })
 }
 
-/// Polls the link until it is up again or `timeout` passes.
-pub fn wait_for_link(link: &dyn Link, clock: &dyn Clock, timeout: Duration) -> bool {
+/// Polls the link until it is up again, `timeout` passes or `control` is stopped.
+pub fn wait_for_link(
+    link: &dyn Link,
+    clock: &dyn Clock,
+    timeout: Duration,
+    control: &StreamControl,
+) -> bool {
     let deadline = clock.now() + timeout;
     while !link.is_up() {
-        if clock.now() >= deadline {
+        if clock.now() >= deadline || control.is_halted() {
             return false;
         }
         clock.sleep_until(clock.now() + Duration::from_millis(10));

@@ -13,7 +13,7 @@ use crate::link::{Link, LinkEvent};
 use crate::log::Recorder;
 use crate::protocol::{Command, ControllerStatus, Feedback};
 use crate::stream::{
-    CycleSink, Executor, Outcome, StreamControl, StreamError, StreamReport, StreamSettings,
+    CycleSink, Executor, Outcome, Phase, StreamControl, StreamError, StreamReport, StreamSettings,
     check_controller, fault_text, stream, stream_shared,
 };
 use crate::trajectory::Trajectory;
@@ -55,6 +55,11 @@ pub fn wait_for_hold(
     let mut previous: Option<Feedback> = None;
     let mut was_up = false;
     loop {
+        control.enter(if link.is_up() {
+            Phase::WaitingForHold
+        } else {
+            Phase::WaitingForController
+        });
         if let Some(end) = requested_end(link, control)? {
             return Ok(end);
         }
@@ -271,6 +276,8 @@ impl Streaming<'_> {
 /// target. Always returns a report.
 pub fn stream_resuming(mut io: Streaming<'_>, trajectory: &Trajectory) -> StreamReport {
     let mut streaming = stream_settings(io.settings);
+    // A stop asked for already is the stream's to honour: it sends no target.
+    io.control.enter(Phase::Streaming);
     let mut report = io.run(trajectory, &mut streaming);
     let mut remaining = trajectory.tail(report.samples_done);
     while matches!(report.outcome, Outcome::LinkLost | Outcome::Stalled) {
@@ -289,6 +296,7 @@ pub fn stream_resuming(mut io: Streaming<'_>, trajectory: &Trajectory) -> Stream
         if !approached {
             continue;
         }
+        io.control.enter(Phase::Streaming);
         let mut rest = StreamSettings {
             start_scale: 0.0,
             ..streaming
@@ -341,6 +349,8 @@ fn resume_once(
         ended.fault = Some(format!("the controller no longer admits this job: {error}"));
         return Resumed::Ended(ended);
     }
+    // A stop asked for already is the approach stream's to honour: it sends no target.
+    io.control.enter(Phase::Resuming);
     let resume_at = remaining.position(0).to_vec();
     io.event(
         report.duration_s,

@@ -941,12 +941,27 @@ async fn resume(CellRef(cell): CellRef) -> Response {
     with_control(&cell, "resume", StreamControl::resume)
 }
 
+/// A stop or e-stop: 200 with the job's number and the phase it was in when the request
+/// was acknowledged (`planning`, `waiting_for_controller`, `waiting_for_hold`, `resuming`,
+/// `streaming`); from then on nothing that moves the arm is sent but a braking ramp when it
+/// was moving.
+fn with_halt(
+    cell: &Cell,
+    what: &'static str,
+    request: impl Fn(&StreamControl) -> crate::stream::Phase,
+) -> Response {
+    match cell.halt(what, request) {
+        Some((id, phase)) => Json(serde_json::json!({ "id": id, "phase": phase })).into_response(),
+        None => error(StatusCode::CONFLICT, "no job is running"),
+    }
+}
+
 async fn stop(CellRef(cell): CellRef) -> Response {
-    with_control(&cell, "stop", StreamControl::stop)
+    with_halt(&cell, "stop", StreamControl::request_stop)
 }
 
 async fn estop(CellRef(cell): CellRef) -> Response {
-    with_control(&cell, "estop", StreamControl::estop)
+    with_halt(&cell, "estop", StreamControl::request_estop)
 }
 
 /// `POST .../reset`: asks the cell's controller to clear its latched fault (docs/protocol.md

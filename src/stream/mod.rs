@@ -5,19 +5,23 @@
 //! path tolerance, and reaches the goal tolerance at the end. Only then is a job
 //! `completed`.
 //!
-//! Pause and stop never cut motion short: they ramp a time scale on the trajectory down to
+//! Pause never cuts motion short: it ramps a time scale on the trajectory down to
 //! standstill (and back up on resume) at a rate that keeps every axis within its limits.
+//! A stop brakes along the path (`brake`): never faster than the cycle before, to rest as
+//! soon as the accelerations allow; before the first target it sends no target at all.
 //! A last gate checks every outgoing target against the rig's limits, speeds and
 //! accelerations. A cycle that wakes several cycles late (a stall) sends nothing it
 //! planned and ends the stream for the daemon to resume from where the arm holds. The
 //! cycle allocates nothing and never touches the disk: records go to a [`CycleSink`].
 //! It owns the cycle only; it must not plan, encode bytes or write files.
 
+mod brake;
 mod controller;
 mod executor;
 mod follow;
 mod gate;
 mod metrics;
+mod phase;
 
 pub use crate::realtime::raise_priority;
 pub use controller::{Incompatible, check_controller};
@@ -25,11 +29,12 @@ pub use executor::{CycleTask, Executor, ExecutorSettings, Handback};
 pub use follow::Tolerances;
 pub use gate::{GateCheck, GateRefusal};
 pub use metrics::MicrosHistogram;
+pub use phase::{Halting, Phase};
 
 use crate::clock::Clock;
 use crate::link::{Link, LinkCounters, LinkError, LinkEvent};
 use crate::motion::{Trajectory, TrajectoryError, validate};
-use crate::protocol::{AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget};
+use crate::protocol::{Command, ControllerStatus, Fault, Feedback, JointTarget};
 use crate::rig::{JointKind, Rig};
 use follow::Follow;
 use serde::Serialize;
@@ -112,12 +117,12 @@ impl std::fmt::Display for Outcome {
     }
 }
 
-/// Pause, stop and e-stop requests, and progress, shared with whoever runs the job.
+/// Pause, stop and e-stop requests, the job's phase, and progress, shared with whoever
+/// runs the job.
 #[derive(Debug, Default)]
 pub struct StreamControl {
     paused: AtomicBool,
-    stop: AtomicBool,
-    estop: AtomicBool,
+    halting: Halting,
     progress_bits: AtomicU64,
     cycles: AtomicU64,
     overruns: AtomicU64,
@@ -130,21 +135,46 @@ impl StreamControl {
     pub fn resume(&self) {
         self.paused.store(false, Ordering::SeqCst);
     }
-    /// Decelerate to standstill along the path, then end the job.
+    /// Brake along the path to standstill (at once when the arm is at rest), then end the
+    /// job.
     pub fn stop(&self) {
-        self.stop.store(true, Ordering::SeqCst);
+        self.halting.stop();
+    }
+    /// [`StreamControl::stop`]; the phase the job was in when the stop was acknowledged.
+    pub fn request_stop(&self) -> Phase {
+        self.halting.stop()
     }
     pub fn estop(&self) {
-        self.estop.store(true, Ordering::SeqCst);
+        self.halting.estop();
+    }
+    /// [`StreamControl::estop`]; the phase the job was in when it was acknowledged.
+    pub fn request_estop(&self) -> Phase {
+        self.halting.estop()
     }
     pub fn is_stopping(&self) -> bool {
-        self.stop.load(Ordering::SeqCst)
+        self.halting.is_stopping()
     }
     pub fn is_estopped(&self) -> bool {
-        self.estop.load(Ordering::SeqCst)
+        self.halting.is_estopped()
+    }
+    /// Whether a stop or an e-stop was asked for.
+    pub fn is_halted(&self) -> bool {
+        self.is_stopping() || self.is_estopped()
     }
     pub fn is_paused(&self) -> bool {
         self.paused.load(Ordering::SeqCst)
+    }
+    /// The job enters `phase`; true when a stop or e-stop was asked for already (the job
+    /// ends there).
+    pub fn enter(&self, phase: Phase) -> bool {
+        self.halting.enter(phase)
+    }
+    pub fn phase(&self) -> Phase {
+        self.halting.phase()
+    }
+    /// The phase the job was in when its e-stop (else its stop) was acknowledged.
+    pub fn halted_in(&self) -> Option<Phase> {
+        self.halting.estopped_in().or(self.halting.stopped_in())
     }
     /// Fraction of the trajectory done, 0..=1.
     pub fn progress(&self) -> f64 {
@@ -258,6 +288,8 @@ pub struct StreamReport {
     /// The seq of the last target sent (the first seq of a stream that continues it).
     pub last_seq: u32,
     pub link: String,
+    /// The phase the job was in when a stop or e-stop was acknowledged, if one was.
+    pub stopped_in: Option<Phase>,
     #[serde(flatten)]
     pub counters: LinkCounters,
 }
@@ -468,9 +500,13 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
     }
 
     /// Events, the next target through the gate, sent. `Some(outcome)` ends the stream.
+    /// The target is decided and sent while a stop or e-stop cannot be acknowledged, so an
+    /// acknowledged one is seen by the next target.
     fn gate_and_send(&mut self) -> Result<Option<Outcome>, StreamError> {
         let (cycle, link) = (&mut self.cycle, &mut *self.link);
-        if self.control.estop.load(Ordering::SeqCst) {
+        let late = latest_feedback(link)?;
+        let _acknowledging = self.control.halting.exclusive();
+        if self.control.is_estopped() {
             link.send(&Command::EStop)?;
             return Ok(Some(Outcome::EStopped));
         }
@@ -480,12 +516,16 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
             }
             return Ok(Some(outcome));
         }
-        let finished = cycle.advance(self.control, self.trajectory);
+        // Nothing sent yet: the arm is at rest where the controller holds it.
+        if self.control.is_stopping() && cycle.sent.previous.is_none() {
+            link.send(&Command::Stop)?;
+            return Ok(Some(Outcome::Stopped));
+        }
+        let finished = cycle.advance(self.control, self.trajectory, self.rig);
         let Some(target) = cycle.target(self.trajectory, self.rig) else {
             link.send(&Command::Stop)?;
             return Ok(Some(Outcome::GateRefused));
         };
-        let late = latest_feedback(link)?;
         link.send(&Command::Target(target))?;
         cycle.sent_at[target.seq as usize % SEND_TIMES] = self.clock.now();
         self.sent = Some(Sent {
@@ -758,23 +798,32 @@ impl Cycle {
         None
     }
 
-    /// Moves along the path by the time scale, ramping it toward 0 when paused or
-    /// stopping, toward 1 otherwise. True once the path's end is reached (the goal check
-    /// then decides); `Stopped` (or the abort's reason) is decided in [`Cycle::conclude`].
-    fn advance(&mut self, control: &StreamControl, trajectory: &Trajectory) -> bool {
+    /// Moves along the path by the time scale: when stopping (or aborting) by the rate of
+    /// [`brake::rate`], otherwise ramping it toward 0 when paused, toward 1 otherwise. True
+    /// once the path's end is reached (the goal check then decides); `Stopped` (or the
+    /// abort's reason) is decided in [`Cycle::conclude`].
+    fn advance(&mut self, control: &StreamControl, trajectory: &Trajectory, rig: &Rig) -> bool {
         self.seq += 1;
-        let stopping = control.stop.load(Ordering::SeqCst) || self.aborting.is_some();
-        let wanted = if stopping || control.is_paused() {
-            0.0
-        } else {
-            1.0
-        };
-        self.scale = if wanted > self.scale {
-            (self.scale + self.scale_step).min(wanted)
-        } else {
-            (self.scale - self.scale_step).max(wanted)
-        };
+        let stopping = control.is_stopping() || self.aborting.is_some();
         let last = (trajectory.len() - 1) as f64;
+        self.scale = if stopping {
+            brake::rate(
+                &brake::Motion {
+                    trajectory,
+                    rig,
+                    path: self.path,
+                    rate: self.scale,
+                },
+                &self.sent,
+            )
+        } else {
+            let wanted = if control.is_paused() { 0.0 } else { 1.0 };
+            if wanted > self.scale {
+                (self.scale + self.scale_step).min(wanted)
+            } else {
+                (self.scale - self.scale_step).max(wanted)
+            }
+        };
         self.path = (self.path + self.scale).min(last);
         if stopping && self.scale == 0.0 && self.path < last {
             self.aborting.get_or_insert(Outcome::Stopped);
@@ -809,24 +858,7 @@ impl Cycle {
 
     /// The target at the current path position, if it passes the gate.
     fn target(&mut self, trajectory: &Trajectory, rig: &Rig) -> Option<JointTarget> {
-        let dof = trajectory.dof();
-        let index = (self.path.floor() as usize).min(trajectory.len() - 1);
-        let next = (index + 1).min(trajectory.len() - 1);
-        let fraction = self.path - index as f64;
-        let mut positions = AxisValues::zeros(dof);
-        let mut velocities = AxisValues::zeros(dof);
-        for axis in 0..dof {
-            let (a, b) = (
-                trajectory.position(index)[axis],
-                trajectory.position(next)[axis],
-            );
-            let (va, vb) = (
-                trajectory.velocity(index)[axis],
-                trajectory.velocity(next)[axis],
-            );
-            positions.as_mut_slice()[axis] = a + fraction * (b - a);
-            velocities.as_mut_slice()[axis] = self.scale * (va + fraction * (vb - va));
-        }
+        let (positions, velocities) = brake::sample_at(trajectory, self.path, self.scale);
         // The gate's maths and the target's `t` (a log record) are in seconds.
         let dt = trajectory.period.as_secs_f64();
         if let Err(refusal) = gate::check(rig, &positions, &velocities, &self.sent, dt) {
@@ -911,6 +943,7 @@ impl Cycle {
             samples_done: 0,
             last_seq: 0,
             link,
+            stopped_in: None,
             counters,
         }
     }
@@ -947,6 +980,7 @@ impl Cycle {
             samples_done: self.path.floor() as usize,
             last_seq: self.seq,
             link,
+            stopped_in: None,
             counters,
         }
     }

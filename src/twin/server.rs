@@ -43,6 +43,24 @@ pub trait ControllerPort {
     fn has_connections(&self) -> bool {
         false
     }
+    /// Which connection is attached: a change while attached is a new peer that replaced
+    /// the last one. A transport without connections has one, 0.
+    fn connection(&self) -> u64 {
+        0
+    }
+}
+
+/// Whether the peer of `stream` closed its side (or the connection broke), even with its
+/// last bytes still unread: such a peer sends nothing more, a newcomer may replace it.
+fn peer_closed(stream: &std::net::TcpStream) -> bool {
+    let mut poll = libc::pollfd {
+        fd: stream.as_raw_fd(),
+        events: libc::POLLRDHUP,
+        revents: 0,
+    };
+    // SAFETY: one valid pollfd for the call's duration; a zero timeout never blocks.
+    let ready = unsafe { libc::poll(&mut poll, 1, 0) };
+    ready > 0 && poll.revents & (libc::POLLRDHUP | libc::POLLHUP | libc::POLLERR) != 0
 }
 
 /// Waits until `fd` is readable or `timeout` passes, with the precision of the kernel's
@@ -75,11 +93,14 @@ pub fn wait_readable(fd: &impl AsRawFd, timeout: Duration) -> std::io::Result<bo
 }
 
 /// TCP: one bridge at a time. A second one gets a Fault notice (busy) and is closed; a new
-/// client replaces a lost one.
+/// client replaces a lost one, and one whose peer closed its side already (a bridge that
+/// gave up on a stalled twin and reconnected: its old connection is still queued here).
 pub struct TcpPort {
     listener: std::net::TcpListener,
     client: Option<std::net::TcpStream>,
     busy_frame: Vec<u8>,
+    /// Counts the clients taken: a change tells the session a new connection began.
+    taken: u64,
 }
 
 impl TcpPort {
@@ -96,6 +117,7 @@ impl TcpPort {
             listener,
             client: None,
             busy_frame,
+            taken: 0,
         })
     }
 
@@ -114,15 +136,25 @@ impl TcpPort {
 impl ControllerPort for TcpPort {
     fn attached(&mut self) -> bool {
         while let Ok((stream, _)) = self.listener.accept() {
-            if self.client.is_some() {
+            if self
+                .client
+                .as_ref()
+                .is_some_and(|client| !peer_closed(client))
+            {
                 self.refuse(stream);
                 continue;
             }
+            self.detach();
             let _ = stream.set_nodelay(true);
             let _ = stream.set_write_timeout(Some(WRITE_TIMEOUT));
             self.client = Some(stream);
+            self.taken += 1;
         }
         self.client.is_some()
+    }
+
+    fn connection(&self) -> u64 {
+        self.taken
     }
 
     fn read_within(&mut self, buffer: &mut [u8], timeout: Duration) -> std::io::Result<usize> {
@@ -231,6 +263,8 @@ struct Session {
     last_heard: Duration,
     period: Duration,
     last_status: ControllerStatus,
+    /// The port's connection this session serves.
+    connection: u64,
 }
 
 impl Session {
@@ -245,11 +279,18 @@ impl Session {
             last_heard: Duration::ZERO,
             period,
             last_status: status,
+            connection: 0,
         }
     }
 
     fn attach(&mut self, twin: &mut Twin, port: &mut dyn ControllerPort, now: Duration) {
         let attached = port.attached();
+        if attached && self.attached && port.connection() != self.connection {
+            // The peer closed its side and a new one took its place: the old one is lost.
+            self.lost_quietly(twin, "replaced by a new connection");
+            self.attached = false;
+        }
+        self.connection = port.connection();
         if attached && !self.attached {
             self.counters.connections += 1;
             self.decoder = FrameDecoder::default();
@@ -366,8 +407,13 @@ impl Session {
     }
 
     fn lose(&mut self, twin: &mut Twin, port: &mut dyn ControllerPort, why: &str) {
-        twin.link_lost();
         port.detach();
+        self.lost_quietly(twin, why);
+    }
+
+    /// The link is lost (the port has dropped the peer already): hold, unbound.
+    fn lost_quietly(&mut self, twin: &mut Twin, why: &str) {
+        twin.link_lost();
         self.attached = false;
         self.greeted = false;
         self.counters.link_losses += 1;

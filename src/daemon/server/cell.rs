@@ -18,6 +18,7 @@ use crate::link::{Link, LinkCounters, LinkSpec, LoopbackLink};
 use crate::log::Recorder;
 use crate::protocol::ControllerStatus;
 use crate::rig::JointKind;
+use crate::stream::Phase;
 use crate::stream::{Executor, Outcome, StreamControl};
 use crate::twin::{SharedWorld, Twin};
 use crate::view::{JobView, LiveHub, LiveSample, LiveSink, LiveSlot};
@@ -569,7 +570,7 @@ impl Cell {
             match &mut *guard {
                 CellLink::Twin(twin) => reset_controller(twin.as_mut(), RESET_TIMEOUT),
                 CellLink::Remote(remote) => self
-                    .remote(remote)
+                    .remote(remote, &StreamControl::default())
                     .and_then(|link| reset_controller(link, RESET_TIMEOUT)),
             }
         };
@@ -783,7 +784,7 @@ impl Cell {
         let remote = matches!(&*guard, CellLink::Remote(_));
         let link: &mut dyn Link = match &mut *guard {
             CellLink::Twin(twin) => twin.as_mut(),
-            CellLink::Remote(remote) => match self.remote(remote) {
+            CellLink::Remote(remote) => match self.remote(remote, control) {
                 Ok(link) => link,
                 Err(e) => {
                     let _ = planned.send(Err(NotPlanned(error_chain(&e))));
@@ -795,12 +796,17 @@ impl Cell {
         let pacing = link.pacing();
         let clock: &dyn Clock = pacing.as_deref().unwrap_or(clock);
         let plan = plan_for(&self.settings, job, link, clock, control);
-        let _ = planned.send(
-            plan.as_ref()
-                .map(|_| ())
-                .map_err(|e| NotPlanned(error_chain(e))),
-        );
-        let plan = plan?;
+        let _ = planned.send(match &plan {
+            // The job was taken; a stop ended it before any motion (its report says so).
+            Ok(_) | Err(DaemonError::Halted(_)) => Ok(()),
+            Err(e) => Err(NotPlanned(error_chain(e))),
+        });
+        let plan = match plan {
+            Err(DaemonError::Halted(halted)) => {
+                return Ok(halted.report(&self.settings, &job.name(), link, clock));
+            }
+            plan => plan?,
+        };
         let (scene, world) = scene_for_job(&self.settings, job);
         // Nothing streams yet: the twin is not observing.
         self.world.lock().unwrap_or_else(PoisonError::into_inner).0 = world;
@@ -859,16 +865,22 @@ impl Cell {
     }
 
     /// The remote link, opened now if it is not yet (or its last opening failed).
+    /// The wait for it ends early on `control`'s stop (a reset's control is never stopped).
     fn remote<'a>(
         &self,
         remote: &'a mut Option<Box<dyn Link>>,
+        control: &StreamControl,
     ) -> Result<&'a mut dyn Link, DaemonError> {
         if remote.is_none() {
             let spec = self
                 .link_name
                 .parse::<LinkSpec>()
                 .map_err(|e| DaemonError::Unavailable(e.reason))?;
-            *remote = Some(crate::daemon::open_link(&spec, &self.settings)?);
+            *remote = Some(crate::daemon::open_link_for(
+                &spec,
+                &self.settings,
+                control,
+            )?);
         }
         match remote.as_deref_mut() {
             Some(link) => Ok(link),
@@ -879,15 +891,40 @@ impl Cell {
     /// Applies `act` (called `action` in the cell's events) to the running job; its number,
     /// or `None` when no job runs.
     pub fn control(&self, action: &'static str, act: impl Fn(&StreamControl)) -> Option<u64> {
+        self.act_on_job(action, |control| {
+            act(control);
+            None
+        })
+        .map(|(id, _)| id)
+    }
+
+    /// Asks the running job to stop or e-stop (`request`, called `action` in the cell's
+    /// events): its number and the phase it was in when the request was acknowledged, or
+    /// `None` when no job runs.
+    pub fn halt(
+        &self,
+        action: &'static str,
+        request: impl Fn(&StreamControl) -> Phase,
+    ) -> Option<(u64, Phase)> {
+        let (id, phase) = self.act_on_job(action, |control| Some(request(control)))?;
+        phase.map(|phase| (id, phase))
+    }
+
+    /// Applies `act` to the running job and logs it with what `act` returned, the phase of
+    /// a stop (in words: `while planning`).
+    fn act_on_job(
+        &self,
+        action: &'static str,
+        act: impl Fn(&StreamControl) -> Option<Phase>,
+    ) -> Option<(u64, Option<Phase>)> {
         let job = self.job.lock().unwrap_or_else(PoisonError::into_inner);
         let running = job.as_ref().filter(|j| !j.handle.is_finished());
-        if let Some(running) = running {
-            act(&running.control);
-        }
+        let phase = running.and_then(|running| act(&running.control));
         let id = running.map(|j| j.id);
         let on_job = running.map(|j| (&*j.actions, &*j.control));
-        self.log_event(action, id, None, on_job);
-        id
+        let result = phase.map(|phase| format!("while {phase}"));
+        self.log_event(action, id, result, on_job);
+        id.map(|id| (id, phase))
     }
 
     /// Waits for the thread of job `id` (refused at planning, so about to end) and frees
