@@ -527,3 +527,36 @@ fn an_idle_client_is_closed_and_a_subscribed_one_stays() {
     assert!(got as f64 >= 25.0 * window.as_secs_f64(), "{got}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `[serve] foxglove_origins` is checked on load (naming the key and the value) and lets its
+/// origins in.
+#[test]
+fn foxglove_origins_are_checked_on_load_and_let_in() {
+    let dir = scratch("origins");
+    for bad in ["https://x.example/path", "x.example", "https://a b"] {
+        let file = settings_with_serve(&dir, &format!("foxglove_origins = [\"{bad}\"]"));
+        let error = load_run_settings(&file).unwrap_err().to_string();
+        assert!(error.contains("serve.foxglove_origins"), "{error}");
+        assert!(error.contains(bad), "{error}");
+    }
+    let port = free_port();
+    let file = settings_with_serve(
+        &dir,
+        &format!(
+            "foxglove_port = {port}\nfoxglove_origins = [\"https://viewer.example:8443\", \"null\"]"
+        ),
+    );
+    let _server = serve(&dir, &["--config", file.to_str().unwrap()]);
+    for allowed in [
+        "https://viewer.example:8443",
+        "null",
+        "https://app.foxglove.dev",
+    ] {
+        assert!(open(port, Some(allowed), "127.0.0.1").is_ok(), "{allowed}");
+    }
+    let (code, _) = open(port, Some("https://attacker.example"), "127.0.0.1")
+        .err()
+        .unwrap();
+    assert_eq!(code, 403);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -183,4 +183,44 @@ mod tests {
             assert!(!check.allows(bad), "{bad}");
         }
     }
+    #[test]
+    fn origins_pass_when_absent_this_server_or_listed() {
+        let headers = |origin: Option<&str>| {
+            let mut map = axum::http::HeaderMap::new();
+            map.insert(
+                header::HOST,
+                "127.0.0.1:8765".parse().expect("a header value"),
+            );
+            if let Some(origin) = origin {
+                map.insert(header::ORIGIN, origin.parse().expect("a header value"));
+            }
+            map
+        };
+        let also = [
+            "https://app.foxglove.dev".to_string(),
+            "file://".to_string(),
+        ];
+        for ok in [
+            None,
+            Some("http://127.0.0.1:8765"),
+            Some("https://app.foxglove.dev"),
+            Some("HTTPS://APP.FOXGLOVE.DEV"),
+            Some("file://"),
+        ] {
+            assert!(origin_allowed(&headers(ok), &also), "{ok:?}");
+        }
+        for bad in [
+            "https://attacker.example",
+            "null",
+            "http://127.0.0.1:1",
+            "https://app.foxglove.dev.attacker.example",
+        ] {
+            assert!(!origin_allowed(&headers(Some(bad)), &also), "{bad}");
+            assert!(!origin_allowed(&headers(Some(bad)), &[]), "{bad}");
+        }
+        assert!(!origin_allowed(
+            &headers(Some("https://app.foxglove.dev")),
+            &[]
+        ));
+    }
 }
