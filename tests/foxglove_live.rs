@@ -11,7 +11,7 @@ use common::cli::{assert_succeeded_as, numbers};
 use common::serve::{Served, request_json, serve_args, start_serve};
 use common::{irb120, repo_path};
 use rigbridge::daemon::config::load_run_settings;
-use rigbridge::daemon::server::FOXGLOVE_BACKLOG;
+use rigbridge::daemon::server::{FOXGLOVE_BACKLOG, FOXGLOVE_IDLE_TIMEOUT};
 use rigbridge::rig::rig_from_urdf;
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
@@ -334,5 +334,229 @@ fn off_loopback_the_foxglove_server_needs_foxglove_allow_remote() {
     assert!(!output.status.success(), "serve must refuse: {stderr}");
     assert!(stderr.contains("foxglove_allow_remote = true"), "{stderr}");
     assert!(stderr.contains("0.0.0.0:8765"), "{stderr}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A ws-protocol client socket on the Foxglove port, with read timeouts.
+type Socket = tungstenite::WebSocket<TcpStream>;
+
+/// A handshake to the Foxglove server on 127.0.0.1:`port` as a browser on `origin` would
+/// send it (none: not a browser), to the host name `host`: the socket, or the refusal's
+/// status and body.
+fn open(port: u16, origin: Option<&str>, host: &str) -> Result<Socket, (u16, String)> {
+    use tungstenite::client::IntoClientRequest;
+    let mut request = format!("ws://{host}:{port}/")
+        .into_client_request()
+        .unwrap();
+    let headers = request.headers_mut();
+    headers.insert(
+        "Sec-WebSocket-Protocol",
+        "foxglove.websocket.v1".parse().unwrap(),
+    );
+    if let Some(origin) = origin {
+        headers.insert("Origin", origin.parse().unwrap());
+    }
+    let stream = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    stream
+        .set_read_timeout(Some(std::time::Duration::from_secs(10)))
+        .unwrap();
+    match tungstenite::client(request, stream) {
+        Ok((socket, _)) => Ok(socket),
+        Err(tungstenite::HandshakeError::Failure(tungstenite::Error::Http(response))) => {
+            let body = response.body().clone().unwrap_or_default();
+            Err((
+                response.status().as_u16(),
+                String::from_utf8_lossy(&body).into_owned(),
+            ))
+        }
+        Err(e) => panic!("handshake with {origin:?}: {e}"),
+    }
+}
+
+/// serverInfo and advertise, then a subscription to the first `/joint_states`; its channel.
+fn subscribe_joint_states(socket: &mut Socket) -> u64 {
+    let mut text = || -> serde_json::Value {
+        serde_json::from_str(socket.read().unwrap().to_text().unwrap()).unwrap()
+    };
+    assert_eq!(text()["op"], "serverInfo");
+    let advertise = text();
+    let channel = advertise["channels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["topic"].as_str().unwrap().ends_with("/joint_states"))
+        .unwrap()["id"]
+        .as_u64()
+        .unwrap();
+    let subscribe =
+        format!(r#"{{"op": "subscribe", "subscriptions": [{{"id": 9, "channelId": {channel}}}]}}"#);
+    socket.send(tungstenite::Message::text(subscribe)).unwrap();
+    channel
+}
+
+/// Message Data frames (opcode 1, subscription 9) read from `socket` within `window`.
+fn count_messages(socket: &mut Socket, window: std::time::Duration) -> usize {
+    let end = std::time::Instant::now() + window;
+    let mut count = 0;
+    while std::time::Instant::now() < end {
+        if let tungstenite::Message::Binary(data) = socket.read().unwrap()
+            && data[0] == 1
+            && data[1..5] == [9, 0, 0, 0]
+        {
+            count += 1;
+        }
+    }
+    count
+}
+
+/// The close frame `socket` gets (after the hello), waiting out read timeouts for at most
+/// a minute.
+fn wait_for_close(socket: &mut Socket) -> (u16, String) {
+    let end = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    loop {
+        match socket.read() {
+            Err(tungstenite::Error::Io(e))
+                if e.kind() == std::io::ErrorKind::WouldBlock
+                    && std::time::Instant::now() < end => {}
+            Ok(tungstenite::Message::Close(Some(frame))) => {
+                return (u16::from(frame.code), frame.reason.to_string());
+            }
+            Ok(tungstenite::Message::Close(None)) => return (0, String::new()),
+            Ok(_) => {}
+            Err(e) => panic!("no close frame: {e}"),
+        }
+    }
+}
+
+/// A page of another site is refused before any message, as on the HTTP API; the Foxglove
+/// app's origins, and a client with no origin, get in. A Host the daemon does not answer
+/// to (DNS rebinding) is refused too.
+#[test]
+fn a_foreign_origin_is_refused_and_the_apps_get_in() {
+    let dir = scratch("origin");
+    let port = free_port();
+    let _server = serve(&dir, &["--foxglove-port", &port.to_string()]);
+    for foreign in ["https://attacker.example", "null", "http://127.0.0.1:1"] {
+        let (code, body) = open(port, Some(foreign), "127.0.0.1")
+            .err()
+            .unwrap_or_else(|| panic!("{foreign} was let in"));
+        println!("Origin {foreign}: {code} {body}");
+        assert_eq!(code, 403, "{foreign}: {body}");
+        assert!(
+            body.contains(foreign) && body.contains("foxglove_origins"),
+            "{body}"
+        );
+    }
+    let (code, body) = open(port, None, "attacker.example").err().unwrap();
+    assert_eq!(code, 421, "an unknown Host: {body}");
+    for app in [Some("https://app.foxglove.dev"), Some("file://"), None] {
+        let mut socket = open(port, app, "localhost").unwrap_or_else(|e| panic!("{app:?}: {e:?}"));
+        subscribe_joint_states(&mut socket);
+        let got = count_messages(&mut socket, std::time::Duration::from_millis(500));
+        println!("Origin {app:?}: {got} /joint_states in 0.5 s");
+        assert!(got > 5, "{app:?}: {got}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Idle clients hold no place against the app: with 100 connected (each past the
+/// handshake, none subscribing), a newcomer takes the place of the one idle longest, and the
+/// app connects and receives messages.
+#[test]
+fn with_100_idle_clients_the_app_still_connects() {
+    let dir = scratch("idle100");
+    let port = free_port();
+    let _server = serve(&dir, &["--foxglove-port", &port.to_string()]);
+    let mut idle = Vec::new();
+    for i in 0..100 {
+        match open(port, None, "127.0.0.1") {
+            Ok(socket) => idle.push(socket),
+            Err((code, body)) => panic!("idle client {i} refused: {code} {body}"),
+        }
+    }
+    let start = std::time::Instant::now();
+    let mut app = open(port, Some("https://app.foxglove.dev"), "localhost")
+        .unwrap_or_else(|e| panic!("the app is refused: {e:?}"));
+    subscribe_joint_states(&mut app);
+    let got = count_messages(&mut app, std::time::Duration::from_secs(1));
+    println!(
+        "with 100 idle clients: the app connected and subscribed, {got} /joint_states in its \
+         first second ({:.3} s from its handshake)",
+        start.elapsed().as_secs_f64()
+    );
+    assert!(got >= 25, "50 a second expected, got {got}");
+    // The first idle client was told why it went.
+    let (code, reason) = wait_for_close(&mut idle[0]);
+    println!("the first idle client: closed {code}: {reason}");
+    assert_eq!(code, 1000);
+    assert!(reason.contains("new client"), "{reason}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A client with no subscription is closed after FOXGLOVE_IDLE_TIMEOUT; a subscribed one
+/// that reads stays.
+#[test]
+fn an_idle_client_is_closed_and_a_subscribed_one_stays() {
+    let dir = scratch("idletime");
+    let port = free_port();
+    let _server = serve(&dir, &["--foxglove-port", &port.to_string()]);
+    let mut idle = open(port, None, "127.0.0.1").unwrap();
+    let opened = std::time::Instant::now();
+    let watcher = std::thread::spawn(move || {
+        let closed = wait_for_close(&mut idle);
+        (closed, opened.elapsed())
+    });
+    let mut reader = open(port, None, "127.0.0.1").unwrap();
+    subscribe_joint_states(&mut reader);
+    let window = FOXGLOVE_IDLE_TIMEOUT + std::time::Duration::from_secs(3);
+    let got = count_messages(&mut reader, window);
+    let ((code, reason), after) = watcher.join().unwrap();
+    println!(
+        "idle client closed after {:.1} s ({code}: {reason}); the subscribed one read {got} \
+         messages in {:.0} s",
+        after.as_secs_f64(),
+        window.as_secs_f64()
+    );
+    assert_eq!(code, 1000);
+    assert!(reason.contains("idle"), "{reason}");
+    assert!(after >= FOXGLOVE_IDLE_TIMEOUT, "{after:?}");
+    assert!(
+        after < FOXGLOVE_IDLE_TIMEOUT + std::time::Duration::from_secs(3),
+        "{after:?}"
+    );
+    assert!(got as f64 >= 25.0 * window.as_secs_f64(), "{got}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `[serve] foxglove_origins` is checked on load (naming the key and the value) and lets its
+/// origins in.
+#[test]
+fn foxglove_origins_are_checked_on_load_and_let_in() {
+    let dir = scratch("origins");
+    for bad in ["https://x.example/path", "x.example", "https://a b"] {
+        let file = settings_with_serve(&dir, &format!("foxglove_origins = [\"{bad}\"]"));
+        let error = load_run_settings(&file).unwrap_err().to_string();
+        assert!(error.contains("serve.foxglove_origins"), "{error}");
+        assert!(error.contains(bad), "{error}");
+    }
+    let port = free_port();
+    let file = settings_with_serve(
+        &dir,
+        &format!(
+            "foxglove_port = {port}\nfoxglove_origins = [\"https://viewer.example:8443\", \"null\"]"
+        ),
+    );
+    let _server = serve(&dir, &["--config", file.to_str().unwrap()]);
+    for allowed in [
+        "https://viewer.example:8443",
+        "null",
+        "https://app.foxglove.dev",
+    ] {
+        assert!(open(port, Some(allowed), "127.0.0.1").is_ok(), "{allowed}");
+    }
+    let (code, _) = open(port, Some("https://attacker.example"), "127.0.0.1")
+        .err()
+        .unwrap();
+    assert_eq!(code, 403);
     let _ = std::fs::remove_dir_all(&dir);
 }

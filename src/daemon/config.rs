@@ -551,6 +551,13 @@ pub struct ServeConfig {
     /// the rigs' state. Off by default; without it such a bind is refused.
     #[serde(default)]
     pub foxglove_allow_remote: bool,
+    /// Browser origins the Foxglove server lets in besides the Foxglove app's own
+    /// (`docs/foxglove.md`: `https://app.foxglove.dev`, `https://studio.foxglove.dev`,
+    /// `file://`) and clients that send none: each `scheme://host[:port]`, or `null`
+    /// (which any site can send from a sandboxed frame: add it only when the desktop app
+    /// is refused with it). Default none.
+    #[serde(default)]
+    pub foxglove_origins: Vec<String>,
     /// Who runs the cells' streaming cycles (docs/architecture.md, "The shared executor"):
     /// `shared` (default), a small pool of real-time threads for every cell on the in-process
     /// twin; or `thread_per_cell`, each job's own thread.
@@ -597,6 +604,7 @@ impl Default for ServeConfig {
             hosts: Vec::new(),
             foxglove_port: default_foxglove_port(),
             foxglove_allow_remote: false,
+            foxglove_origins: Vec::new(),
             executor: ExecutorKind::default(),
             executor_threads: default_executor_threads(),
             pin_executor: default_pin_executor(),
@@ -640,6 +648,22 @@ pub fn foxglove_bind_problem(
     })
 }
 
+/// Whether `text` is an `Origin` value: `null`, or a scheme, `://` and a host with an
+/// optional port and nothing after it (`file://` has an empty host).
+fn is_origin(text: &str) -> bool {
+    if text == "null" {
+        return true;
+    }
+    let Some((scheme, host)) = text.split_once("://") else {
+        return false;
+    };
+    let scheme_ok = scheme.starts_with(|c: char| c.is_ascii_alphabetic())
+        && scheme
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "+-.".contains(c));
+    scheme_ok && !host.contains(['/', '?', '#', ' ', '@'])
+}
+
 /// Never prints the token itself.
 impl std::fmt::Debug for ServeConfig {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -649,6 +673,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("hosts", &self.hosts)
             .field("foxglove_port", &self.foxglove_port)
             .field("foxglove_allow_remote", &self.foxglove_allow_remote)
+            .field("foxglove_origins", &self.foxglove_origins)
             .field("executor", &self.executor)
             .field("executor_threads", &self.executor_threads)
             .field("pin_executor", &self.pin_executor)
@@ -1144,6 +1169,15 @@ impl ServeConfig {
                 "serve.foxglove_allow_remote",
                 crate::rig::Verbatim(self.foxglove_allow_remote),
                 &reason,
+            ));
+        }
+        if let Some(bad) = self.foxglove_origins.iter().find(|o| !is_origin(o)) {
+            return Err(ConfigError::invalid(
+                file,
+                "serve.foxglove_origins",
+                bad,
+                "each must be an origin as a browser sends it, `scheme://host[:port]` with no \
+                 path (`https://app.example.com`), or `null`",
             ));
         }
         if !(1..=MAX_EXECUTOR_THREADS).contains(&self.executor_threads) {

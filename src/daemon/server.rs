@@ -27,8 +27,9 @@ mod scene;
 pub use cell::{CellError, check_cells};
 pub use connections::{HEADER_TIMEOUT, IDLE_TIMEOUT, LISTEN_BACKLOG, bind, connection_cap};
 pub use foxglove::{
-    FOXGLOVE_BACKLOG, FOXGLOVE_SUBPROTOCOL, MAX_FOXGLOVE_CLIENTS, MAX_FOXGLOVE_MESSAGE_BYTES,
-    SEND_TIMEOUT as FOXGLOVE_SEND_TIMEOUT, URDF_URI_PREFIX,
+    FOXGLOVE_APP_ORIGINS, FOXGLOVE_BACKLOG, FOXGLOVE_IDLE_TIMEOUT, FOXGLOVE_SUBPROTOCOL,
+    MAX_FOXGLOVE_CLIENTS, MAX_FOXGLOVE_MESSAGE_BYTES, SEND_TIMEOUT as FOXGLOVE_SEND_TIMEOUT,
+    URDF_URI_PREFIX,
 };
 pub use guard::{BODY_TIMEOUT, HostCheck, MAX_BODY_BYTES, MAX_LIVE_MESSAGE_BYTES, MAX_LIVE_PAGES};
 pub use scene::log_scene_for_job;
@@ -235,17 +236,7 @@ pub async fn require_live_token(
 /// `Origin` on every cross-origin POST; it must name the host the request went to.
 /// Requests without `Origin` (curl, scripts, tests) pass.
 pub async fn require_same_origin(request: Request, next: Next) -> Response {
-    let headers = request.headers();
-    let host = headers.get(header::HOST).and_then(|h| h.to_str().ok());
-    let origin = headers.get(header::ORIGIN).and_then(|o| o.to_str().ok());
-    let same = match origin {
-        None => true,
-        Some(origin) => {
-            let origin_host = origin.split_once("://").map_or(origin, |(_, rest)| rest);
-            host.is_some_and(|host| host == origin_host)
-        }
-    };
-    if same {
+    if guard::origin_allowed(request.headers(), &[]) {
         next.run(request).await
     } else {
         error(
@@ -367,15 +358,17 @@ pub async fn run(
     });
     let app = routes(&daemon, exposed)
         .layer(axum::middleware::from_fn_with_state(
-            hosts,
+            hosts.clone(),
             guard::require_known_host,
         ))
         .layer(axum::extract::DefaultBodyLimit::max(MAX_BODY_BYTES))
         .with_state(daemon.clone());
     let ros2 = start_ros2(&daemon).await?;
     let frames = tokio::spawn(send_frames(daemon.clone()));
-    let foxglove = foxglove_listener
-        .map(|listener| tokio::spawn(foxglove::serve(listener, daemon.clone(), stopping.clone())));
+    let foxglove = foxglove_listener.map(|listener| {
+        let serve = foxglove::serve(listener, daemon.clone(), hosts.clone(), stopping.clone());
+        tokio::spawn(serve)
+    });
     tokio::spawn(async move {
         shutdown.await;
         let _ = stop_live.send(true);

@@ -8,7 +8,7 @@
 //! per-link transforms; it must not touch the JSON channels replay reads, nor the rig.
 
 use super::LogError;
-use crate::rig::{Joint, Rig, generated_link_names, origin_from_xyz_rpy, path_to, rig_to_urdf};
+use crate::rig::{Joint, Rig, UrdfTree, generated_link_names, origin_from_xyz_rpy, rig_to_urdf};
 use crate::scene::foxglove::{full_update, paint_update, vector};
 use crate::scene::{PaintQuad, SceneView};
 use foxglove::Encode;
@@ -109,17 +109,19 @@ impl RobotDescription {
     /// it gives the rig's forward kinematics.
     pub fn from_urdf(rig: &Rig, urdf: String) -> Result<Self, LogError> {
         let bad = |reason: String| LogError::Setup(format!("URDF for rig {}: {reason}", rig.name));
+        let file = std::path::Path::new(&rig.name);
+        crate::rig::check_urdf_size(&urdf, file).map_err(|e| bad(e.to_string()))?;
         let robot = urdf_rs::read_from_string(&urdf).map_err(|e| bad(e.to_string()))?;
-        let is_child = |link: &str| robot.joints.iter().any(|j| j.child.link == link);
-        let root = robot
-            .links
-            .iter()
-            .find(|l| !is_child(&l.name))
-            .ok_or_else(|| bad("no root link".to_owned()))?;
+        let tree = UrdfTree::new(&robot, file).map_err(|e| bad(e.to_string()))?;
         let mut segments = Vec::new();
         let mut actuated = rig.joints.iter().enumerate();
-        let chain = path_to(&robot, &root.name, &rig.tool_frame)
-            .ok_or_else(|| bad(format!("no chain from {} to {}", root.name, rig.tool_frame)))?;
+        let chain = tree.path_to(&rig.tool_frame).ok_or_else(|| {
+            bad(format!(
+                "no chain from {} to {}",
+                tree.root(),
+                rig.tool_frame
+            ))
+        })?;
         for urdf_joint in chain {
             let origin = origin_from_xyz_rpy(
                 DVec3::from_array(*urdf_joint.origin.xyz),

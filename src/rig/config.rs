@@ -79,6 +79,7 @@ fn is_xml(text: &str) -> bool {
 /// [`load_rig`] ending at `tool_frame` when given: any link of a URDF; for a TOML rig, only
 /// the frame its file names (a TOML rig has one tool frame).
 pub fn load_rig_with_tool(path: &Path, tool_frame: Option<&str>) -> Result<Rig, ConfigError> {
+    refuse_oversized(path)?;
     let text = super::shipped::read(path)?;
     if is_xml(&text) || path.extension().is_some_and(|e| e == "urdf") {
         return super::urdf::rig_from_urdf_to(&text, path, tool_frame);
@@ -96,6 +97,24 @@ pub fn load_rig_with_tool(path: &Path, tool_frame: Option<&str>) -> Result<Rig, 
         )),
         _ => Ok(rig),
     }
+}
+
+/// Refuses a rig file on disk larger than [`super::MAX_URDF_BYTES`] before reading it: no
+/// rig, TOML or URDF, comes near that, and reading one whole is what the parser would do.
+/// A file whose size cannot be read is left to the reader, which says why.
+fn refuse_oversized(path: &Path) -> Result<(), ConfigError> {
+    let Ok(meta) = std::fs::metadata(path) else {
+        return Ok(());
+    };
+    if meta.len() <= super::MAX_URDF_BYTES as u64 {
+        return Ok(());
+    }
+    Err(ConfigError::invalid(
+        path,
+        "(file size)",
+        Verbatim(format!("{} bytes", meta.len())),
+        &format!("a rig file is at most {} bytes", super::MAX_URDF_BYTES),
+    ))
 }
 
 /// Parses a rig description; `file` is only used to name the source in errors.

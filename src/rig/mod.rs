@@ -17,8 +17,8 @@ pub(crate) use config::{
 };
 pub use fk::{DofMismatch, JointAxis};
 pub use pose::{Pose, PoseError, UNIT_QUATERNION_TOLERANCE, rotation_angle_between};
-pub(crate) use urdf::path_to;
-pub use urdf::rig_from_urdf;
+pub use urdf::{MAX_URDF_BYTES, MAX_URDF_JOINTS, rig_from_urdf};
+pub(crate) use urdf::{UrdfTree, check_size as check_urdf_size};
 pub use urdf_out::{generated_link_names, rig_to_urdf};
 
 use glam::{DAffine3, DQuat, DVec3};

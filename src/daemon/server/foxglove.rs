@@ -3,26 +3,34 @@
 //! on its own listener and read-only. Per cell it advertises `/tf`, `/joint_states` and
 //! `/scene` (prefixed `/<cell>` when the daemon runs several), fed by the live view's frame
 //! task from each cell's hub, never by the streaming cycle, and it serves each cell's URDF
-//! through `fetchAsset` as `package://rigbridge/<cell>.urdf`. Owns the protocol, the channels
-//! and the subscriptions; it must not control a cell.
+//! through `fetchAsset` as `package://rigbridge/<cell>.urdf`. Like the HTTP API it refuses a
+//! `Host` it does not answer to and a browser page of another site (`Origin`: only the
+//! Foxglove app's own origins, [`FOXGLOVE_APP_ORIGINS`], and `[serve] foxglove_origins` pass).
+//! A client with no subscription is idle: closed after [`FOXGLOVE_IDLE_TIMEOUT`], and when
+//! every place is taken a newcomer takes the place of the longest idle. Owns the protocol,
+//! the channels, the subscriptions and the clients' places; it must not control a cell.
 
+use super::guard::{HostCheck, origin_allowed, require_known_host, shorten};
 use super::{Daemon, connections};
 use crate::log::{RobotDescription, RobotMessages, timestamp};
 use crate::scene::SceneView;
 use crate::scene::foxglove::{full_update, paint_update};
 use crate::view::{LiveHub, SceneChange, SceneCursor};
-use axum::extract::State;
 use axum::extract::ws::{CloseFrame, Message as WsMessage, WebSocket, WebSocketUpgrade};
-use axum::http::StatusCode;
+use axum::extract::{Request, State};
+use axum::http::{StatusCode, header};
+use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use base64::Engine;
 use foxglove::Encode;
 use foxglove::messages::{FrameTransforms, JointStates, SceneUpdate};
 use serde::Deserialize;
 use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
-use tokio::sync::{Semaphore, broadcast, watch};
+use tokio::sync::{Notify, broadcast, watch};
+use tokio::time::Instant;
 
 /// The ws-protocol version served (the Foxglove app offers it, with newer ones).
 pub const FOXGLOVE_SUBPROTOCOL: &str = "foxglove.websocket.v1";
@@ -32,7 +40,24 @@ pub const URDF_URI_PREFIX: &str = "package://rigbridge/";
 /// a few hundred bytes; anything larger closes the connection (1009).
 pub const MAX_FOXGLOVE_MESSAGE_BYTES: usize = 16 * 1024;
 /// Most Foxglove clients at once: each costs a socket and a place in the message backlog.
+/// When all are taken, a newcomer takes the place of the client idle longest (none idle:
+/// 503).
 pub const MAX_FOXGLOVE_CLIENTS: usize = 16;
+/// How long a client may stay with no subscription before it is closed: it receives
+/// nothing, yet keeps the feed encoding every message at 50 Hz and holds a place. The
+/// Foxglove app subscribes to what its panels show as soon as it has the advertisement;
+/// 30 s leaves a person time to add a first panel to an empty layout. A subscribed client
+/// is never idle (one that stops reading is dropped by [`SEND_TIMEOUT`]).
+pub const FOXGLOVE_IDLE_TIMEOUT: Duration = Duration::from_secs(30);
+/// The origins the Foxglove app's WebSocket handshakes carry (`docs/foxglove.md` cites
+/// each): the web app, at `app.foxglove.dev` and formerly `studio.foxglove.dev`, and the
+/// desktop app, whose pages are `file://` URLs. A client that sends no `Origin` (not a
+/// browser) passes as it does on the HTTP API.
+pub const FOXGLOVE_APP_ORIGINS: [&str; 3] = [
+    "https://app.foxglove.dev",
+    "https://studio.foxglove.dev",
+    "file://",
+];
 /// Messages a slow client may fall behind (all channels, all cells: at 50 Hz and three
 /// channels a cell, about a second for two cells) before it skips to the present; the
 /// backlog is shared, so memory stays bounded whatever the clients do.
@@ -51,6 +76,9 @@ const OP_MESSAGE_DATA: u8 = 1;
 const OP_FETCH_ASSET_RESPONSE: u8 = 4;
 /// RFC 6455 7.4.1: 1009, a message too big to process.
 const CLOSE_MESSAGE_TOO_BIG: u16 = 1009;
+/// RFC 6455 7.4.1: 1000, a normal closure (idle, or its place given to a newcomer); the
+/// reason says which.
+const CLOSE_NORMAL: u16 = 1000;
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Kind {
@@ -100,7 +128,7 @@ pub struct FoxgloveFeed {
     cells: Vec<Mutex<CellFeed>>,
     names: Vec<String>,
     sender: broadcast::Sender<Arc<Outgoing>>,
-    clients: Arc<Semaphore>,
+    seats: Arc<Seats>,
 }
 
 /// Why `fetchAsset` found nothing (its text goes back to the client).
@@ -189,7 +217,7 @@ impl FoxgloveFeed {
             cells: feeds,
             names: cells.iter().map(|c| c.name.to_owned()).collect(),
             sender,
-            clients: Arc::new(Semaphore::new(MAX_FOXGLOVE_CLIENTS)),
+            seats: Arc::default(),
         }
     }
 
@@ -330,23 +358,143 @@ fn unix_ns() -> u64 {
         .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
 }
 
-/// Serves ws-protocol on `listener` until `stopping` turns true.
+/// The connected clients' places: each with when it went idle (`None` while it has a
+/// subscription) and how to tell it to go.
+#[derive(Default)]
+struct Seats {
+    next: AtomicU64,
+    open: Mutex<BTreeMap<u64, SeatEntry>>,
+}
+
+struct SeatEntry {
+    idle_since: Option<Instant>,
+    evict: Arc<Notify>,
+}
+
+impl Seats {
+    fn open(&self) -> std::sync::MutexGuard<'_, BTreeMap<u64, SeatEntry>> {
+        self.open.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// A place for a newcomer (idle from now until it subscribes): a free one, else the
+    /// place of the client idle longest, which is told to go; `None` when every client is
+    /// subscribed.
+    fn take(self: &Arc<Self>) -> Option<Seat> {
+        let mut open = self.open();
+        if open.len() >= MAX_FOXGLOVE_CLIENTS {
+            let (_, victim) = open
+                .iter()
+                .filter_map(|(id, seat)| seat.idle_since.map(|since| (since, *id)))
+                .min()?;
+            if let Some(seat) = open.remove(&victim) {
+                seat.evict.notify_one();
+            }
+        }
+        let id = self.next.fetch_add(1, Ordering::Relaxed);
+        let evicted = Arc::new(Notify::new());
+        open.insert(
+            id,
+            SeatEntry {
+                idle_since: Some(Instant::now()),
+                evict: evicted.clone(),
+            },
+        );
+        Some(Seat {
+            id,
+            seats: self.clone(),
+            evicted,
+        })
+    }
+}
+
+/// One client's place; given back when dropped.
+struct Seat {
+    id: u64,
+    seats: Arc<Seats>,
+    /// Notified when a newcomer took the place.
+    evicted: Arc<Notify>,
+}
+
+impl Seat {
+    fn set_idle_since(&self, since: Option<Instant>) {
+        if let Some(seat) = self.seats.open().get_mut(&self.id) {
+            seat.idle_since = since;
+        }
+    }
+}
+
+impl Drop for Seat {
+    fn drop(&mut self) {
+        self.seats.open().remove(&self.id);
+    }
+}
+
+/// Serves ws-protocol on `listener` until `stopping` turns true, behind the HTTP API's
+/// `Host` check (`hosts`) and the origin check ([`require_app_origin`]).
 pub(super) async fn serve(
     listener: tokio::net::TcpListener,
     daemon: Arc<Daemon>,
+    hosts: HostCheck,
     stopping: watch::Receiver<bool>,
 ) {
+    let origins: Vec<String> = FOXGLOVE_APP_ORIGINS
+        .iter()
+        .map(|o| (*o).to_owned())
+        .chain(
+            daemon.cells[0]
+                .settings()
+                .config
+                .serve
+                .foxglove_origins
+                .iter()
+                .cloned(),
+        )
+        .collect();
     let app = axum::Router::new()
         .route("/", axum::routing::get(upgrade))
+        .layer(axum::middleware::from_fn_with_state(
+            Arc::<[String]>::from(origins),
+            require_app_origin,
+        ))
+        .layer(axum::middleware::from_fn_with_state(
+            hosts,
+            require_known_host,
+        ))
         .with_state(daemon);
     connections::serve(listener, app, MAX_FOXGLOVE_CLIENTS * 2, stopping).await;
 }
 
+/// Refuses a handshake whose `Origin` is neither absent, this server, nor one of `origins`
+/// with 403, before any message: a page of another site in a local browser must not read
+/// the rigs' state.
+async fn require_app_origin(
+    State(origins): State<Arc<[String]>>,
+    request: Request,
+    next: Next,
+) -> Response {
+    if origin_allowed(request.headers(), &origins) {
+        return next.run(request).await;
+    }
+    let origin = request
+        .headers()
+        .get(header::ORIGIN)
+        .map(|o| shorten(&String::from_utf8_lossy(o.as_bytes())))
+        .unwrap_or_default();
+    super::error(
+        StatusCode::FORBIDDEN,
+        format!(
+            "cross-origin WebSocket refused: origin {origin} is not the Foxglove app's ({}); \
+             add it to [serve] foxglove_origins to let it in",
+            origins.join(", ")
+        ),
+    )
+}
+
 async fn upgrade(State(daemon): State<Arc<Daemon>>, upgrade: WebSocketUpgrade) -> Response {
-    let Ok(permit) = daemon.foxglove.clients.clone().try_acquire_owned() else {
+    let Some(seat) = daemon.foxglove.seats.take() else {
         return (
             StatusCode::SERVICE_UNAVAILABLE,
-            format!("{MAX_FOXGLOVE_CLIENTS} Foxglove clients are connected already"),
+            format!("{MAX_FOXGLOVE_CLIENTS} Foxglove clients are connected and subscribed already"),
         )
             .into_response();
     };
@@ -358,9 +506,8 @@ async fn upgrade(State(daemon): State<Arc<Daemon>>, upgrade: WebSocketUpgrade) -
             // A client that offered no subprotocol we speak gets none back: the spec says
             // the connection must not go on.
             if socket.protocol().is_some() {
-                Client::new(socket, daemon).run().await;
+                Client::new(socket, daemon, seat).run().await;
             }
-            drop(permit);
         })
 }
 
@@ -398,18 +545,39 @@ struct Gone;
 struct Client {
     socket: WebSocket,
     daemon: Arc<Daemon>,
+    seat: Seat,
+    /// Since when the client has had no subscription and sent nothing; `None` while it has
+    /// a subscription.
+    idle_since: Option<Instant>,
     /// channel id -> subscription id: one subscription per channel, so at most as many
     /// entries as channels.
     subscriptions: BTreeMap<u32, u32>,
 }
 
 impl Client {
-    fn new(socket: WebSocket, daemon: Arc<Daemon>) -> Self {
+    fn new(socket: WebSocket, daemon: Arc<Daemon>, seat: Seat) -> Self {
         Client {
             socket,
             daemon,
+            seat,
+            idle_since: Some(Instant::now()),
             subscriptions: BTreeMap::new(),
         }
+    }
+
+    /// After a message from the client: idle from now if it has no subscription.
+    fn note_activity(&mut self) {
+        self.idle_since = self.subscriptions.is_empty().then(Instant::now);
+        self.seat.set_idle_since(self.idle_since);
+    }
+
+    async fn close(&mut self, reason: String) -> Result<(), Gone> {
+        let close = CloseFrame {
+            code: CLOSE_NORMAL,
+            reason: reason.into(),
+        };
+        let _ = self.send(WsMessage::Close(Some(close))).await;
+        Err(Gone)
     }
 
     async fn run(mut self) {
@@ -422,10 +590,22 @@ impl Client {
                 return;
             }
         }
+        let evicted = self.seat.evicted.clone();
         loop {
+            let idle_until = self.idle_since.map(|since| since + FOXGLOVE_IDLE_TIMEOUT);
             let step = tokio::select! {
                 message = messages.recv() => self.forward(message).await,
                 incoming = self.socket.recv() => self.receive(incoming).await,
+                () = sleep_until(idle_until) => {
+                    let reason = format!(
+                        "idle: no subscription for {} s",
+                        FOXGLOVE_IDLE_TIMEOUT.as_secs()
+                    );
+                    self.close(reason).await
+                }
+                () = evicted.notified() => {
+                    self.close("idle: a new client took this place".into()).await
+                }
                 _ = stopping.changed() => {
                     let _ = self.send(WsMessage::Close(None)).await;
                     Err(Gone)
@@ -496,8 +676,13 @@ impl Client {
         incoming: Option<Result<WsMessage, axum::Error>>,
     ) -> Result<(), Gone> {
         match incoming {
-            Some(Ok(WsMessage::Text(text))) => self.handle(text.as_str()).await,
+            Some(Ok(WsMessage::Text(text))) => {
+                let handled = self.handle(text.as_str()).await;
+                self.note_activity();
+                handled
+            }
             Some(Ok(WsMessage::Binary(_))) => {
+                self.note_activity();
                 self.status(
                     STATUS_ERROR,
                     "this server is read-only: clients cannot publish",
@@ -581,6 +766,14 @@ impl Client {
     async fn status(&mut self, level: u8, message: &str) -> Result<(), Gone> {
         let text = serde_json::json!({ "op": "status", "level": level, "message": message });
         self.send(WsMessage::Text(text.to_string().into())).await
+    }
+}
+
+/// Completes at `deadline`; never without one.
+async fn sleep_until(deadline: Option<Instant>) {
+    match deadline {
+        Some(deadline) => tokio::time::sleep_until(deadline).await,
+        None => std::future::pending().await,
     }
 }
 

@@ -1,7 +1,8 @@
 //! What a request must look like before any handler reads it: a `Host` this daemon answers
 //! to (DNS rebinding), `Content-Type: application/json` on control requests, and a body of
-//! bounded size that arrives in bounded time. Owns those checks and their limits; tokens and
-//! origins stay in `server.rs`, connection timeouts in `connections.rs`.
+//! bounded size that arrives in bounded time, and an `Origin` that is this server's own page
+//! or one it names (a page of another site in a local browser). Owns those checks and
+//! their limits; tokens stay in `server.rs`, connection timeouts in `connections.rs`.
 
 use super::error;
 use axum::extract::{Request, State};
@@ -80,6 +81,26 @@ pub async fn require_known_host(
              [serve] hosts",
         ),
     }
+}
+
+/// Whether a request's `Origin` may pass: none (curl, scripts, the Foxglove desktop app as
+/// `docs/foxglove.md` says: only browsers send one), the host the request went to (a page
+/// this server served), or one of `also`, compared whole (`scheme://host[:port]`, case
+/// aside). Browsers send `Origin` on every cross-origin POST and WebSocket handshake and a
+/// page cannot change it, so a page of another site is told apart here.
+pub fn origin_allowed(headers: &axum::http::HeaderMap, also: &[String]) -> bool {
+    let Some(origin) = headers.get(header::ORIGIN) else {
+        return true;
+    };
+    let Ok(origin) = origin.to_str() else {
+        return false;
+    };
+    if also.iter().any(|o| o.eq_ignore_ascii_case(origin)) {
+        return true;
+    }
+    let host = headers.get(header::HOST).and_then(|h| h.to_str().ok());
+    let origin_host = origin.split_once("://").map_or(origin, |(_, rest)| rest);
+    host.is_some_and(|host| host == origin_host)
 }
 
 /// Refuses a control request that is not `Content-Type: application/json` with 415: a
@@ -161,5 +182,45 @@ mod tests {
         ] {
             assert!(!check.allows(bad), "{bad}");
         }
+    }
+    #[test]
+    fn origins_pass_when_absent_this_server_or_listed() {
+        let headers = |origin: Option<&str>| {
+            let mut map = axum::http::HeaderMap::new();
+            map.insert(
+                header::HOST,
+                "127.0.0.1:8765".parse().expect("a header value"),
+            );
+            if let Some(origin) = origin {
+                map.insert(header::ORIGIN, origin.parse().expect("a header value"));
+            }
+            map
+        };
+        let also = [
+            "https://app.foxglove.dev".to_string(),
+            "file://".to_string(),
+        ];
+        for ok in [
+            None,
+            Some("http://127.0.0.1:8765"),
+            Some("https://app.foxglove.dev"),
+            Some("HTTPS://APP.FOXGLOVE.DEV"),
+            Some("file://"),
+        ] {
+            assert!(origin_allowed(&headers(ok), &also), "{ok:?}");
+        }
+        for bad in [
+            "https://attacker.example",
+            "null",
+            "http://127.0.0.1:1",
+            "https://app.foxglove.dev.attacker.example",
+        ] {
+            assert!(!origin_allowed(&headers(Some(bad)), &also), "{bad}");
+            assert!(!origin_allowed(&headers(Some(bad)), &[]), "{bad}");
+        }
+        assert!(!origin_allowed(
+            &headers(Some("https://app.foxglove.dev")),
+            &[]
+        ));
     }
 }
