@@ -59,7 +59,7 @@ fn a_day_long_trajectory_over_http_is_refused_before_planning_and_the_daemon_sta
     let error = body["error"].as_str().unwrap_or_default();
     contains_all(
         error,
-        &["job.rows[1]", "86400 s", "3600 s", "max_job_duration_s"],
+        &["job.rows[1]", "86400 s", "7200 s", "max_job_duration_s"],
     );
     let peak = peak_kb(served.child.id());
     println!(
@@ -100,7 +100,7 @@ fn a_day_long_trajectory_file_is_refused_by_the_config_loader_naming_the_cap() {
             "job.toml",
             "job.file",
             "86400 s",
-            "3600 s",
+            "7200 s",
             "max_job_duration_s",
         ],
     );
@@ -169,7 +169,7 @@ fn a_ros2_trajectory_goes_through_the_same_caps_as_a_job_from_http_or_a_file() {
     let refused = job.validate(&context).unwrap_err().to_string();
     contains_all(
         &refused,
-        &["job.rows[1]", "86400 s", "3600 s", "max_job_duration_s"],
+        &["job.rows[1]", "86400 s", "7200 s", "max_job_duration_s"],
     );
     // The points' cap, lowered: three points refused, naming the cap.
     let few = JobLimits {

@@ -130,7 +130,7 @@ mod tests {
             .check_duration("job.rows", 86_400.0, PERIOD, 6)
             .unwrap_err();
         let text = refused.to_string();
-        for part in ["job.rows", "86400 s", "3600 s", "max_job_duration_s"] {
+        for part in ["job.rows", "86400 s", "7200 s", "max_job_duration_s"] {
             assert!(text.contains(part), "{part} missing from: {text}");
         }
     }

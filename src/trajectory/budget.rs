@@ -13,15 +13,16 @@ pub const BYTES_PER_AXIS_SAMPLE: u64 = 16;
 /// Bytes in a megabyte, as the caps and messages count them (MiB).
 pub const BYTES_PER_MB: f64 = 1024.0 * 1024.0;
 
-/// The longest plan by default (s): an hour. The longest job shipped (a 1000-lap star,
-/// `job.laps`'s cap) plans 51 minutes; longer work is several jobs, each stoppable and
-/// logged on its own. Override: `[limits] max_job_duration_s`.
-pub const DEFAULT_MAX_DURATION_S: f64 = 3_600.0;
+/// The longest plan by default (s): two hours. The longest jobs shipped plan 90 minutes (a
+/// 32-wall room, `job.walls`' cap) and 51 minutes (a 1000-lap star, `job.laps`' cap);
+/// longer work is several jobs, each stoppable and logged on its own. Override:
+/// `[limits] max_job_duration_s`.
+pub const DEFAULT_MAX_DURATION_S: f64 = 7_200.0;
 
-/// The most memory one plan's samples may take by default (MB): an hour of six axes at
-/// 250 Hz is 82 MB, so 128 MB holds the longest default job of up to eight axes at 250 Hz,
-/// while a daemon with a few cells stays far inside a small controller PC's memory.
-/// Override: `[limits] max_plan_mb`.
+/// The most memory one plan's samples may take by default (MB): the 32-wall room's ten axes
+/// at its 100 Hz take 82 MB, an hour of six axes at 250 Hz 82 MB, so 128 MB holds them while
+/// a daemon with a few cells stays far inside a small controller PC's memory (planning holds
+/// a plan up to twice). Override: `[limits] max_plan_mb`.
 pub const DEFAULT_MAX_PLAN_MB: f64 = 128.0;
 
 /// How much one plan may take: its duration and its samples' memory. `spent` counts the
@@ -146,6 +147,9 @@ mod tests {
     fn memory_counts_axes_and_what_was_spent() {
         // 900,001 samples (an hour at 250 Hz) of 10 axes: 137.3 MB, over 128.
         let budget = SampleBudget::default();
+        assert!(budget.check_seconds(7_200.0, PERIOD, 1).is_ok());
+        let longer = budget.check_seconds(7_201.0, PERIOD, 1).unwrap_err();
+        assert!(matches!(longer, OverBudget::Duration { .. }), "{longer}");
         let refused = budget.check_seconds(3_600.0, PERIOD, 10).unwrap_err();
         assert!(
             matches!(
@@ -157,7 +161,11 @@ mod tests {
             ),
             "{refused}"
         );
-        let half = budget.after(450_000);
+        let hour = SampleBudget {
+            max_duration_s: 3_600.0,
+            ..budget
+        };
+        let half = hour.after(450_000);
         assert!(half.check(450_001, PERIOD, 6).is_ok());
         assert!(
             half.check(450_002, PERIOD, 6).is_err(),
