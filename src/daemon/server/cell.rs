@@ -1154,6 +1154,21 @@ impl Journal {
     }
 }
 
+/// The summary of `action`'s `window`, over after `seconds`, if it counted any refusal
+/// beyond its first.
+fn summarise(
+    action: &'static str,
+    window: RefusalWindow,
+    seconds: std::time::Duration,
+) -> Option<RefusalSummary> {
+    (window.more > 0).then_some(RefusalSummary {
+        action,
+        more: window.more,
+        seconds: seconds.as_secs_f64(),
+        last: window.last,
+    })
+}
+
 /// How long refusals of one kind are counted before they are told again: one full line,
 /// then one summary with the count, per window, whatever the flood.
 const REFUSAL_WINDOW: std::time::Duration = std::time::Duration::from_secs(10);
@@ -1234,12 +1249,7 @@ impl Refusals {
             return None;
         }
         let window = self.windows.remove(action)?;
-        (window.more > 0).then(|| RefusalSummary {
-            action,
-            more: window.more,
-            seconds: seconds.as_secs_f64(),
-            last: window.last,
-        })
+        summarise(action, window, seconds)
     }
 
     /// Every window that is over (`all`: every window, the daemon is stopping), summarised.
@@ -1251,13 +1261,8 @@ impl Refusals {
             .filter_map(|action| {
                 if all {
                     let window = self.windows.remove(action)?;
-                    let seconds = now.saturating_sub(window.opened).as_secs_f64();
-                    (window.more > 0).then(|| RefusalSummary {
-                        action,
-                        more: window.more,
-                        seconds,
-                        last: window.last,
-                    })
+                    let seconds = now.saturating_sub(window.opened);
+                    summarise(action, window, seconds)
                 } else {
                     self.close_if_over(action, now)
                 }
