@@ -125,6 +125,8 @@ fn toml_and_json_refuse_the_same_jobs_with_the_same_text() {
         rig: &settings.rig,
         sloth: None,
         base_dir: &dir,
+        limits: &settings.config.limits,
+        period: settings.period(),
     };
     let cases = [
         ("laps = 4294967295", r#""laps": 4294967295"#),

@@ -43,6 +43,10 @@ pub struct RunConfig {
     /// twin). Optional.
     #[serde(default)]
     pub egm: EgmConfig,
+    /// `[limits]`: the caps on one job's duration, points and plan memory (docs/jobs.md,
+    /// "Limits"). Optional: every key has a default.
+    #[serde(default)]
+    pub limits: crate::job::JobLimits,
     /// `[log]`: what a job does when its log cannot be written (docs/logs.md). Optional.
     #[serde(default)]
     pub log: LogConfig,
@@ -1013,10 +1017,13 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     check_links(file, &config, &rig)?;
     config.twin.check(file, &rig)?;
     config.plan.check(file)?;
+    check_limits(file, &config.limits)?;
     let context = crate::job::JobContext {
         rig: &rig,
         sloth: sloth.as_deref(),
         base_dir: &base_dir,
+        limits: &config.limits,
+        period: loaded_seconds(1.0 / config.stream.rate_hz),
     };
     config.job = config
         .job
@@ -1131,6 +1138,36 @@ impl PlanConfig {
         check_range(file, "plan.accel_scale", self.accel_scale, 0.01, 0.99)?;
         Ok(())
     }
+}
+
+/// `[limits]`: each cap positive, and no wider than a config may set (`crate::job`'s
+/// ceilings).
+fn check_limits(file: &Path, limits: &crate::job::JobLimits) -> Result<(), ConfigError> {
+    use crate::job::{CEILING_DURATION_S, CEILING_PLAN_MB, CEILING_POINTS};
+    let duration = limits.max_job_duration_s;
+    check_range(
+        file,
+        "limits.max_job_duration_s",
+        duration,
+        1.0,
+        CEILING_DURATION_S,
+    )?;
+    check_range(
+        file,
+        "limits.max_plan_mb",
+        limits.max_plan_mb,
+        1.0,
+        CEILING_PLAN_MB,
+    )?;
+    if !(2..=CEILING_POINTS).contains(&limits.max_job_points) {
+        return Err(ConfigError::invalid(
+            file,
+            "limits.max_job_points",
+            limits.max_job_points,
+            &format!("must lie in [2, {CEILING_POINTS}]"),
+        ));
+    }
+    Ok(())
 }
 
 impl Ros2Config {

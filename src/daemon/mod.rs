@@ -224,6 +224,7 @@ pub fn plan_settings(settings: &RunSettings) -> PlanSettings {
         period: settings.period(),
         speed_scale: settings.config.plan.speed_scale,
         accel_scale: settings.config.plan.accel_scale,
+        budget: settings.config.limits.budget(),
         ..PlanSettings::default()
     }
 }

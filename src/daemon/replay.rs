@@ -51,6 +51,12 @@ pub enum ReplayError {
         #[source]
         source: TrajectoryError,
     },
+    #[error("the log replayed at {speed} x speed is refused before it is resampled")]
+    OverBudget {
+        speed: f64,
+        #[source]
+        source: crate::trajectory::OverBudget,
+    },
     #[error("the stop ramp after the log's last command is refused")]
     Ramp(#[source] TrajectoryError),
     #[error("cannot plan the approach from where the controller holds to the log's start")]
@@ -151,6 +157,13 @@ pub fn replay_trajectory(
         speed,
         source,
     };
+    // Resampling at a low speed multiplies the samples: the same caps as any job's plan.
+    settings
+        .config
+        .limits
+        .budget()
+        .check_seconds(recorded.duration_s() / speed, period, recorded.dof())
+        .map_err(|source| ReplayError::OverBudget { speed, source })?;
     let resampled = resample(&recorded, period, speed).map_err(refused)?;
     // Whole but for its end: a run cut short ends moving until the ramp brings it to rest.
     validate_motion(&resampled, &settings.rig).map_err(refused)?;

@@ -594,7 +594,7 @@ fn take_trajectory(
     refusals: &mut super::ros2::Refusals,
     message: Result<crate::ros2::messages::JointTrajectory, crate::ros2::messages::CdrError>,
 ) {
-    const REFUSED: &str = "ros2_trajectory_refused";
+    const REFUSED: &str = cell::ROS2_REFUSED;
     // Counted always, logged at most once an interval (a flood of bad messages).
     let mut refuse = |job: Option<u64>, reason: String| {
         if let Some(text) = refusals.refuse(&reason) {
@@ -845,19 +845,21 @@ async fn submit(
         let request: JobRequest = match serde_json::from_slice(&body) {
             Ok(request) => request,
             Err(e) => {
-                return error(
-                    StatusCode::BAD_REQUEST,
-                    format!(
-                        "job request is not valid: {}; send {{\"job\": {{\"kind\": ...}}}} \
-                         (GET /api/schema) or an empty body for the cell's job",
-                        guard::shorten(&e.to_string())
-                    ),
+                let reason = format!(
+                    "job request is not valid: {}; send {{\"job\": {{\"kind\": ...}}}} \
+                     (GET /api/schema) or an empty body for the cell's job",
+                    guard::shorten(&e.to_string())
                 );
+                cell.log_refusal(cell::JOB_REFUSED, None, reason.clone());
+                return error(StatusCode::BAD_REQUEST, reason);
             }
         };
         match cell.validate(request.job) {
             Ok(job) => job,
-            Err(refused) => return error(StatusCode::UNPROCESSABLE_ENTITY, refused),
+            Err(refused) => {
+                cell.log_refusal(cell::JOB_REFUSED, None, refused.to_string());
+                return error(StatusCode::UNPROCESSABLE_ENTITY, refused);
+            }
         }
     };
     let id = daemon.next_job_id();
@@ -879,7 +881,9 @@ async fn submit(
             // The refused job's thread is ending: once the refusal is answered the cell must
             // take the next job, not answer "busy".
             let id = started.id;
+            let logged = cell.clone();
             let _ = tokio::task::spawn_blocking(move || cell.reap(id)).await;
+            logged.log_refusal(cell::JOB_REFUSED, Some(id), message.to_string());
             error(StatusCode::UNPROCESSABLE_ENTITY, message)
         }
         Err(_) => error(

@@ -84,7 +84,7 @@ pub fn plan_cartesian(
         .collect::<Result<Vec<_>, _>>()?;
     let mut from = start_pose(rig, start)?;
     let mut joints = start.to_vec();
-    let mut samples = Samples::at_rest(start);
+    let mut samples = Samples::at_rest(start, settings.budget, settings.period);
     for (waypoint, to) in targets.into_iter().enumerate() {
         let line = Line { from, to };
         let mov = LinearMove {

@@ -5,25 +5,48 @@
 //! trajectory at the stream's period: a joint move from where the rig is to the first row,
 //! then the rows, joined by cubic Hermite pieces (tangents from the neighbouring rows, at
 //! rest at both ends), checked like every trajectory and for acceleration too. It stays at
-//! the last row. No error quotes the file's content: they name the row and column.
+//! the last row. No error quotes the file's content: they name the row and column. The rows'
+//! count and duration, and the memory their plan takes, are held to `[limits]`
+//! (`super::limits`) while they are read, before anything is sampled.
 
+use super::limits::{CEILING_DURATION_S, CEILING_POINTS, JobLimits};
 use super::{JobContext, JobError, JobInvalid, PlanContext, resolve_file, to_si};
 use crate::rig::Rig;
-use crate::trajectory::{Trajectory, TrajectoryError, plan_joint_moves, validate};
+use crate::trajectory::{
+    OverBudget, SampleBudget, Trajectory, TrajectoryError, plan_joint_moves, validate,
+};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use thiserror::Error;
 
-/// Most rows a trajectory file may hold: over an hour at 50 rows a second, and a bounded
-/// amount of memory for a daemon that reads it.
-pub const MAX_ROWS: usize = 200_000;
 /// Largest trajectory file (bytes), read before anything is parsed.
 const MAX_FILE_BYTES: u64 = 32 * 1024 * 1024;
-/// Longest trajectory (s): a day, so that a typo in `t` cannot make a plan of billions of
-/// samples.
-const MAX_DURATION_S: f64 = 86_400.0;
+
+/// How many rows may be read and how far their `t` may go: `[limits]`' caps when a job is
+/// validated; at planning, when the rows were validated already, only the ceilings a config
+/// may set (the plan's own budget bounds what is sampled).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RowCaps {
+    pub max_rows: usize,
+    pub max_t_s: f64,
+}
+
+impl RowCaps {
+    pub fn of(limits: &JobLimits) -> Self {
+        RowCaps {
+            max_rows: limits.max_job_points,
+            max_t_s: limits.max_job_duration_s,
+        }
+    }
+
+    /// The widest caps a config may set: for rows that were validated under the config's.
+    pub const CEILING: RowCaps = RowCaps {
+        max_rows: CEILING_POINTS,
+        max_t_s: CEILING_DURATION_S,
+    };
+}
 
 #[derive(Debug, Clone, PartialEq, Deserialize, Serialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
@@ -81,8 +104,8 @@ pub enum TrajectoryFileError {
 /// What is wrong with one row of a trajectory file.
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum RowProblem {
-    #[error("more than {MAX_ROWS} rows")]
-    TooMany,
+    #[error("more than the cap of {max} rows (`[limits] max_job_points`)")]
+    TooMany { max: usize },
     #[error("needs {0} columns")]
     Columns(usize),
     #[error("column {0} is not a finite number")]
@@ -91,8 +114,10 @@ pub enum RowProblem {
     FirstNotZero,
     #[error("t must increase from row to row")]
     NotIncreasing,
-    #[error("t beyond {MAX_DURATION_S} s")]
-    TooLong,
+    #[error(
+        "t = {t} s is beyond the cap of {max_s} s on a job's duration (`[limits] max_job_duration_s`)"
+    )]
+    TooLong { t: f64, max_s: f64 },
     #[error("column {column} is outside the limits of {joint}")]
     OutsideLimits { column: usize, joint: String },
 }
@@ -104,6 +129,8 @@ pub enum ShapeProblem {
     NoRows,
     #[error(transparent)]
     Samples(Box<TrajectoryError>),
+    #[error("refused before sampling: {0}")]
+    OverBudget(OverBudget),
     #[error("the sampled trajectory is refused: {0}")]
     Refused(Box<TrajectoryError>),
     #[error("{joint} accelerates beyond its limit at t = {:.3} s", at.as_secs_f64())]
@@ -115,12 +142,14 @@ pub type Row = (f64, Vec<f64>);
 
 impl FollowTrajectory {
     pub fn validate(self, context: &JobContext) -> Result<Self, JobInvalid> {
+        let caps = RowCaps::of(context.limits);
         match (self.file, self.rows) {
             (Some(file), None) => {
                 let given = file.display().to_string();
                 let file = resolve_file(context.base_dir, "job.file", &file)?;
-                if let Err(e) = read_trajectory_csv(&file, context.rig) {
-                    return Err(JobInvalid::new("job.file", given, trim_file(&e, &file)));
+                match read_trajectory_csv(&file, context.rig, caps) {
+                    Ok(rows) => check_plan_size("job.file", &rows, context)?,
+                    Err(e) => return Err(JobInvalid::new("job.file", given, trim_file(&e, &file))),
                 }
                 Ok(FollowTrajectory {
                     file: Some(file),
@@ -128,12 +157,15 @@ impl FollowTrajectory {
                     approach: self.approach,
                 })
             }
-            (None, Some(rows)) => match inline_rows(&rows, context.rig) {
-                Ok(_) => Ok(FollowTrajectory {
-                    file: None,
-                    rows: Some(rows),
-                    approach: self.approach,
-                }),
+            (None, Some(rows)) => match inline_rows(&rows, context.rig, caps) {
+                Ok(checked) => {
+                    check_plan_size("job.rows", &checked, context)?;
+                    Ok(FollowTrajectory {
+                        file: None,
+                        rows: Some(rows),
+                        approach: self.approach,
+                    })
+                }
                 Err(TrajectoryFileError::InlineRow { row, reason }) => Err(JobInvalid::new(
                     format!("job.rows[{row}]"),
                     &rows[row],
@@ -152,8 +184,8 @@ impl FollowTrajectory {
     /// The rows in SI units, from the file or inline.
     fn rows(&self, rig: &Rig) -> Result<Vec<Row>, TrajectoryFileError> {
         match (&self.file, &self.rows) {
-            (Some(file), _) => read_trajectory_csv(file, rig),
-            (None, Some(rows)) => inline_rows(rows, rig),
+            (Some(file), _) => read_trajectory_csv(file, rig, RowCaps::CEILING),
+            (None, Some(rows)) => inline_rows(rows, rig, RowCaps::CEILING),
             (None, None) => Err(TrajectoryFileError::InlineShape {
                 reason: ShapeProblem::NoRows,
             }),
@@ -172,8 +204,9 @@ impl FollowTrajectory {
             std::slice::from_ref(&rows[0].1),
             settings,
         )?;
-        let followed = sample_rows(rig, &rows, settings.period)
-            .map_err(|e| self.shape(ShapeProblem::Samples(Box::new(e))))?;
+        let budget = settings.budget.after(trajectory.len());
+        let followed =
+            sample_rows(rig, &rows, settings.period, budget).map_err(|e| self.shape(e))?;
         validate(&followed, rig).map_err(|e| self.shape(ShapeProblem::Refused(Box::new(e))))?;
         check_acceleration(rig, &followed).map_err(|reason| self.shape(reason))?;
         trajectory.append(&followed);
@@ -223,21 +256,37 @@ fn starts_where_held(
     Ok(())
 }
 
+/// The plan of `rows` (already within the caps on points and `t`) within the memory cap
+/// too: its duration at the stream's period on the rig's axes, refused under `key`.
+fn check_plan_size(key: &str, rows: &[Row], context: &JobContext) -> Result<(), JobInvalid> {
+    let last_t = rows.last().map_or(0.0, |row| row.0);
+    context
+        .limits
+        .check_duration(key, last_t, context.period, context.rig.dof())
+}
+
 /// Inline rows (`t` then the joints, config units) checked like a file's, in SI units.
-fn inline_rows(rows: &[Vec<f64>], rig: &Rig) -> Result<Vec<Row>, TrajectoryFileError> {
+fn inline_rows(
+    rows: &[Vec<f64>],
+    rig: &Rig,
+    caps: RowCaps,
+) -> Result<Vec<Row>, TrajectoryFileError> {
     if rows.is_empty() {
         return Err(TrajectoryFileError::InlineShape {
             reason: ShapeProblem::NoRows,
         });
     }
-    let mut checked: Vec<Row> = Vec::with_capacity(rows.len().min(MAX_ROWS));
+    if rows.len() > caps.max_rows {
+        return Err(TrajectoryFileError::InlineRow {
+            row: caps.max_rows,
+            reason: RowProblem::TooMany { max: caps.max_rows },
+        });
+    }
+    let mut checked: Vec<Row> = Vec::with_capacity(rows.len());
     for (row, values) in rows.iter().enumerate() {
         let bad = |reason| TrajectoryFileError::InlineRow { row, reason };
-        if row == MAX_ROWS {
-            return Err(bad(RowProblem::TooMany));
-        }
         let previous = checked.last().map(|r| r.0);
-        checked.push(check_row(values, rig, previous).map_err(bad)?);
+        checked.push(check_row(values, rig, previous, caps.max_t_s).map_err(bad)?);
     }
     Ok(checked)
 }
@@ -250,8 +299,13 @@ fn trim_file(e: &TrajectoryFileError, file: &Path) -> String {
 }
 
 /// The rows of a trajectory file for `rig`: header `t,j1,...,jN` (or `t` and the rig's joint
-/// names), `t` from 0 and strictly increasing, every value finite and inside its limits.
-pub fn read_trajectory_csv(file: &Path, rig: &Rig) -> Result<Vec<Row>, TrajectoryFileError> {
+/// names), `t` from 0 and strictly increasing, every value finite and inside its limits, at
+/// most `caps.max_rows` rows and `t` at most `caps.max_t_s`.
+pub fn read_trajectory_csv(
+    file: &Path,
+    rig: &Rig,
+    caps: RowCaps,
+) -> Result<Vec<Row>, TrajectoryFileError> {
     let io = |source| TrajectoryFileError::Io {
         file: file.to_path_buf(),
         source,
@@ -275,10 +329,10 @@ pub fn read_trajectory_csv(file: &Path, rig: &Rig) -> Result<Vec<Row>, Trajector
             row,
             reason,
         };
-        if rows.len() == MAX_ROWS {
-            return Err(bad(RowProblem::TooMany));
+        if rows.len() == caps.max_rows {
+            return Err(bad(RowProblem::TooMany { max: caps.max_rows }));
         }
-        let parsed = parse_row(line, rig, rows.last().map(|r| r.0)).map_err(bad)?;
+        let parsed = parse_row(line, rig, rows.last().map(|r| r.0), caps.max_t_s).map_err(bad)?;
         rows.push(parsed);
     }
     if rows.is_empty() {
@@ -312,8 +366,13 @@ fn check_header(file: &Path, rig: &Rig, header: Option<&str>) -> Result<(), Traj
     }
 }
 
-/// One data row; `previous` is the time of the row before.
-fn parse_row(line: &str, rig: &Rig, previous: Option<f64>) -> Result<Row, RowProblem> {
+/// One data row; `previous` is the time of the row before, `max_t_s` the cap on `t`.
+fn parse_row(
+    line: &str,
+    rig: &Rig,
+    previous: Option<f64>,
+    max_t_s: f64,
+) -> Result<Row, RowProblem> {
     let cells: Vec<&str> = line.split(',').map(str::trim).collect();
     if cells.len() != rig.dof() + 1 {
         return Err(RowProblem::Columns(rig.dof() + 1));
@@ -326,12 +385,18 @@ fn parse_row(line: &str, rig: &Rig, previous: Option<f64>) -> Result<Row, RowPro
             _ => Err(RowProblem::NotANumber(column + 1)),
         })
         .collect::<Result<Vec<_>, _>>()?;
-    check_row(&values, rig, previous)
+    check_row(&values, rig, previous, max_t_s)
 }
 
 /// One row's values (`t`, then each joint in config units) checked: the column count,
-/// every value finite, `t` from 0 and increasing, the joints inside their limits.
-fn check_row(values: &[f64], rig: &Rig, previous: Option<f64>) -> Result<Row, RowProblem> {
+/// every value finite, `t` from 0, increasing and at most `max_t_s`, the joints inside their
+/// limits.
+fn check_row(
+    values: &[f64],
+    rig: &Rig,
+    previous: Option<f64>,
+    max_t_s: f64,
+) -> Result<Row, RowProblem> {
     if values.len() != rig.dof() + 1 {
         return Err(RowProblem::Columns(rig.dof() + 1));
     }
@@ -342,7 +407,7 @@ fn check_row(values: &[f64], rig: &Rig, previous: Option<f64>) -> Result<Row, Ro
     match previous {
         None if t != 0.0 => return Err(RowProblem::FirstNotZero),
         Some(before) if t <= before => return Err(RowProblem::NotIncreasing),
-        _ if t > MAX_DURATION_S => return Err(RowProblem::TooLong),
+        _ if t > max_t_s => return Err(RowProblem::TooLong { t, max_s: max_t_s }),
         _ => {}
     }
     let si = to_si(&values[1..], rig);
@@ -357,8 +422,14 @@ fn check_row(values: &[f64], rig: &Rig, previous: Option<f64>) -> Result<Row, Ro
 
 /// The rows sampled every `period`: a cubic Hermite piece between consecutive rows, its
 /// tangents the slope over the rows either side (zero at the first and last row, so the
-/// trajectory starts and ends at rest). The last row is the last sample, exactly.
-fn sample_rows(rig: &Rig, rows: &[Row], period: Duration) -> Result<Trajectory, TrajectoryError> {
+/// trajectory starts and ends at rest). The last row is the last sample, exactly. Refused
+/// before anything is sampled when the samples would break `budget`.
+fn sample_rows(
+    rig: &Rig,
+    rows: &[Row],
+    period: Duration,
+    budget: SampleBudget,
+) -> Result<Trajectory, ShapeProblem> {
     let dof = rig.dof();
     // The rows' times are seconds from the file: the sampling is maths in seconds.
     let period_s = period.as_secs_f64();
@@ -372,6 +443,9 @@ fn sample_rows(rig: &Rig, rows: &[Row], period: Duration) -> Result<Trajectory, 
             .collect()
     };
     let end = rows[rows.len() - 1].0;
+    budget
+        .check_seconds(end, period, dof)
+        .map_err(ShapeProblem::OverBudget)?;
     let periods = (end / period_s).ceil() as usize;
     let mut positions = Vec::with_capacity((periods + 1) * dof);
     let mut velocities = Vec::with_capacity((periods + 1) * dof);
@@ -398,6 +472,7 @@ fn sample_rows(rig: &Rig, rows: &[Row], period: Duration) -> Result<Trajectory, 
         positions,
         velocities,
     )
+    .map_err(|e| ShapeProblem::Samples(Box::new(e)))
 }
 
 /// Position and derivative (per unit `s`) of the cubic Hermite piece from `p0` (slope `m0`)

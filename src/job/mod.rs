@@ -13,6 +13,7 @@ mod files;
 mod follow_trajectory;
 mod gait;
 mod joint_waypoints;
+mod limits;
 mod move_joints;
 mod move_linear;
 mod move_poses;
@@ -21,9 +22,13 @@ mod poses;
 mod wall_figure;
 
 pub use files::resolve_file;
-pub use follow_trajectory::{FollowTrajectory, TrajectoryFileError, read_trajectory_csv};
+pub use follow_trajectory::{FollowTrajectory, RowCaps, TrajectoryFileError, read_trajectory_csv};
 pub use gait::Gait;
 pub use joint_waypoints::JointWaypoints;
+pub use limits::{
+    CEILING_DURATION_S, CEILING_PLAN_MB, CEILING_POINTS, DEFAULT_MAX_JOB_POINTS, JobLimits,
+    planned_mb,
+};
 pub use move_joints::MoveJoints;
 pub use move_linear::{MoveLinear, top_tool_speed};
 pub use move_poses::MovePoses;
@@ -38,6 +43,7 @@ use crate::trajectory::{PlanError, PlanSettings, Trajectory};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+use std::time::Duration;
 use thiserror::Error;
 
 /// Most targets, poses or trajectory rows one job may hold: far more than a hand-written job
@@ -67,13 +73,16 @@ pub enum Job {
     Paint(Paint),
 }
 
-/// What validating a job needs: the rig it runs on, the sloth behind it for a gait, and the
-/// directory files are named relative to.
+/// What validating a job needs: the rig it runs on, the sloth behind it for a gait, the
+/// directory files are named relative to, and the caps on its cost (`[limits]`) with the
+/// stream period its plan will be sampled at.
 #[derive(Clone, Copy)]
 pub struct JobContext<'a> {
     pub rig: &'a Rig,
     pub sloth: Option<&'a SlothRig>,
     pub base_dir: &'a Path,
+    pub limits: &'a JobLimits,
+    pub period: Duration,
 }
 
 /// What planning a job needs: the rig, the sloth behind it for a gait, where the rig is,
@@ -178,8 +187,20 @@ impl Job {
         })
     }
 
-    /// The whole job's trajectory from `context.start`.
+    /// The whole job's trajectory from `context.start`, within `context.settings.budget`:
+    /// the planners check it before each piece they sample; a gait's or a room's plan is
+    /// checked whole, once planned (their sizes are bounded by their keys' ranges).
     pub fn plan(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
+        let trajectory = self.plan_unchecked(context)?;
+        let settings = context.settings;
+        settings
+            .budget
+            .check(trajectory.len() as u64, settings.period, trajectory.dof())
+            .map_err(PlanError::from)?;
+        Ok(trajectory)
+    }
+
+    fn plan_unchecked(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
         match self {
             Job::WallFigure(job) => job.plan(context),
             Job::JointWaypoints(job) => job.plan(context),

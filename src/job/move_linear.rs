@@ -67,7 +67,7 @@ impl MoveLinear {
             std::slice::from_ref(&first.joints),
             context.settings,
         )?;
-        let mut settings = *context.settings;
+        let mut settings = context.settings.after(&approach);
         let mut attempt = 0;
         loop {
             let mut trajectory = approach.clone();

@@ -58,10 +58,16 @@ impl WallFigure {
             })?;
         let mut trajectory =
             plan_joint_moves(rig, start, std::slice::from_ref(&first.joints), settings)?;
-        let figure = plan_cartesian(&solver, &first.joints, &poses[1..], settings)?;
+        let figure = plan_cartesian(
+            &solver,
+            &first.joints,
+            &poses[1..],
+            &settings.after(&trajectory),
+        )?;
         trajectory.append(&figure);
         let end = figure.position(figure.len() - 1).to_vec();
-        trajectory.append(&plan_joint_moves(rig, &end, &[start.to_vec()], settings)?);
+        let back = plan_joint_moves(rig, &end, &[start.to_vec()], &settings.after(&trajectory))?;
+        trajectory.append(&back);
         Ok(trajectory)
     }
 }

@@ -5,12 +5,17 @@
 //! the streamer below can take them. Must not solve IK (the `ik` stage above calls into
 //! `path`) or talk to links or controllers.
 
+mod budget;
 mod path;
 mod plan;
 mod recorded;
 mod resample;
 mod retime;
 
+pub use budget::{
+    BYTES_PER_AXIS_SAMPLE, BYTES_PER_MB, DEFAULT_MAX_DURATION_S, DEFAULT_MAX_PLAN_MB, OverBudget,
+    SampleBudget, plan_mb,
+};
 pub(crate) use path::{JointPath, PathNode, PathTiming};
 pub(crate) use plan::{AxisLimits, Samples, check_start};
 pub use plan::{InvalidValue, PlanError, PlanSettings, plan_joint_moves};

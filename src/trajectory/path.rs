@@ -101,7 +101,7 @@ impl PathTiming<'_> {
         let mut slowdown = 1.0;
         let mut attempts = 0;
         let rows = loop {
-            let rows = self.sample(path, &profile, slowdown, &solve_at)?;
+            let rows = self.sample(path, &profile, slowdown, &solve_at, samples)?;
             let excess = self.excess(&path.nodes[0].joints, &rows);
             attempts += 1;
             if excess.ratio <= 1.0 {
@@ -131,12 +131,17 @@ impl PathTiming<'_> {
         profile: &SpeedProfile,
         slowdown: f64,
         solve_at: &impl Fn(f64, &[f64]) -> Result<Vec<f64>, E>,
-    ) -> Result<Rows, E> {
+        samples: &Samples,
+    ) -> Result<Rows, E>
+    where
+        E: From<PlanError>,
+    {
         let period_s = self.settings.period.as_secs_f64();
         // Whole periods: stretch the profile (slower, so still within limits) to end on one;
         // the 1e-9 keeps a duration a rounding hair over a whole number from adding a period.
         let duration = profile.duration * slowdown;
         let periods = ((duration / period_s - 1e-9).ceil() as usize).max(1);
+        samples.ensure_room(periods).map_err(PlanError::from)?;
         let stretch = periods as f64 * period_s / profile.duration;
         let mut rows = Vec::with_capacity(periods);
         let mut cursor = 0;

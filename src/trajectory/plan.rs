@@ -6,6 +6,7 @@
 //! typed [`PlanError`], never a different motion. Cartesian lines are solved in
 //! `ik/cartesian.rs` and timed in `path.rs`.
 
+use super::budget::{OverBudget, SampleBudget};
 use super::{Trajectory, TrajectoryError, validate};
 use crate::rig::Rig;
 use rsruckig::prelude::{
@@ -42,6 +43,9 @@ pub struct PlanSettings {
     /// of a linear move; more means the solver switched branch (or a singularity is in the
     /// way), which the arm cannot follow at a bounded speed.
     pub max_joint_jump: f64,
+    /// How long the plan may last and how much memory its samples may take, checked
+    /// before each piece is sampled (`[limits]`, docs/jobs.md).
+    pub budget: SampleBudget,
 }
 
 impl Default for PlanSettings {
@@ -54,11 +58,21 @@ impl Default for PlanSettings {
             cartesian_step_m: 0.001,
             cartesian_step_rad: 0.5_f64.to_radians(),
             max_joint_jump: 5.0_f64.to_radians(),
+            budget: SampleBudget::default(),
         }
     }
 }
 
 impl PlanSettings {
+    /// These settings for the next piece of a job that has planned `done` already: what is
+    /// left of the budget.
+    pub fn after(&self, done: &Trajectory) -> PlanSettings {
+        PlanSettings {
+            budget: self.budget.after(done.len()),
+            ..*self
+        }
+    }
+
     /// Every field must be positive and finite, the scales at most 1.
     pub fn check(&self) -> Result<(), PlanError> {
         let positive = [
@@ -184,6 +198,8 @@ pub enum PlanError {
     },
     #[error("move to waypoint {waypoint}: profile generator failed: {message}")]
     Profile { waypoint: usize, message: String },
+    #[error("refused before planning: {0}")]
+    OverBudget(#[from] OverBudget),
     #[error("planned trajectory is invalid (a planner bug): {0}")]
     Trajectory(#[from] TrajectoryError),
 }
@@ -292,15 +308,26 @@ fn check_waypoint(rig: &Rig, waypoint: usize, values: &[f64]) -> Result<(), Plan
 pub(crate) struct Samples {
     positions: Vec<f64>,
     velocities: Vec<f64>,
+    budget: SampleBudget,
+    period: Duration,
 }
 
 impl Samples {
-    /// At rest at `start`.
-    pub fn at_rest(start: &[f64]) -> Self {
+    /// At rest at `start`, to be sampled every `period` within `budget`.
+    pub fn at_rest(start: &[f64], budget: SampleBudget, period: Duration) -> Self {
         Self {
             positions: start.to_vec(),
             velocities: vec![0.0; start.len()],
+            budget,
+            period,
         }
+    }
+
+    /// Refuses `more` samples that would break the budget, before they are sampled.
+    pub fn ensure_room(&self, more: usize) -> Result<(), OverBudget> {
+        let dof = self.positions.len().max(1);
+        let held = self.positions.len() / dof;
+        self.budget.after(held).check(more as u64, self.period, dof)
     }
 
     pub fn push(&mut self, positions: &[f64], velocities: &[f64]) {
@@ -355,7 +382,7 @@ pub fn plan_joint_moves(
     for (waypoint, values) in waypoints.iter().enumerate() {
         check_waypoint(rig, waypoint, values)?;
     }
-    let mut samples = Samples::at_rest(start);
+    let mut samples = Samples::at_rest(start, settings.budget, settings.period);
     let mut from = start;
     for (waypoint, to) in waypoints.iter().enumerate() {
         let mov = JointMove {
@@ -426,6 +453,7 @@ impl JointMove<'_> {
         }
         // Discrete durations are whole periods up to rounding.
         let periods = (duration / dt).round() as usize;
+        samples.ensure_room(periods)?;
         let mut position = DataArrayOrVec::<f64, 0>::new(Some(dof), 0.0);
         let mut velocity = DataArrayOrVec::<f64, 0>::new(Some(dof), 0.0);
         for k in 1..periods {

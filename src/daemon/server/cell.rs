@@ -233,6 +233,12 @@ pub struct ControlEvent {
     result: Option<String>,
 }
 
+/// The event of a job refused before it started (`POST /api/jobs`), logged rate-limited.
+pub const JOB_REFUSED: &str = "job_refused";
+
+/// The event of a JointTrajectory refused (docs/ros2.md), logged rate-limited.
+pub const ROS2_REFUSED: &str = "ros2_trajectory_refused";
+
 /// How many control events a cell keeps for its status.
 const KEPT_EVENTS: usize = 32;
 
@@ -257,6 +263,8 @@ pub struct Cell {
     /// The cell's journal: every control action (reset included, which acts on no job) as an
     /// event, in `runs/cell-<name>-<time>-<pid>.mcap`; `None` until the daemon opens it.
     journal: Mutex<Option<Journal>>,
+    /// Refusals logged rate-limited (in the journal too), with counts.
+    refusals: Mutex<Refusals>,
     /// The fault the controller latched, as last learnt (a job that ended e-stopped or
     /// faulted, a reset it refused); cleared by a reset it carried out. The in-process
     /// twin's own status wins whenever the link is free to read it.
@@ -313,6 +321,7 @@ impl Cell {
             hub,
             world,
             journal: Mutex::new(None),
+            refusals: Mutex::new(Refusals::new()),
             latched: Mutex::new(None),
             executor,
         })
@@ -326,15 +335,20 @@ impl Cell {
         Ok(path)
     }
 
-    /// Writes out and closes the journal (the daemon is stopping).
+    /// Writes out and closes the journal (the daemon is stopping), after the refusals still
+    /// being counted.
     pub fn close_journal(&self) {
+        let pending = self.refusal_lock().drain(true);
+        for summary in pending {
+            self.log_summary(summary);
+        }
         let journal = self
             .journal
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .take();
         if let Some(journal) = journal
-            && let Err(e) = journal.recorder.finish()
+            && let Err(e) = journal.finish()
         {
             tracing::error!(
                 cell = %self.name(),
@@ -373,6 +387,8 @@ impl Cell {
             rig: &self.settings.rig,
             sloth: self.settings.sloth.as_deref(),
             base_dir: &base_dir,
+            limits: &self.settings.config.limits,
+            period: self.settings.period(),
         };
         job.validate(&context).map_err(|mut refused| {
             if let Some(cause) = refused.cause.take() {
@@ -426,7 +442,7 @@ impl Cell {
                 detail.clone(),
             );
         }
-        if let Some(journal) = &*self.journal.lock().unwrap_or_else(PoisonError::into_inner) {
+        if let Some(journal) = &mut *self.journal.lock().unwrap_or_else(PoisonError::into_inner) {
             journal.record(action, detail);
         }
         let mut events = self.events.lock().unwrap_or_else(PoisonError::into_inner);
@@ -442,9 +458,41 @@ impl Cell {
     }
 
     /// Logs what came of a JointTrajectory received over ROS 2 (docs/ros2.md) the way a
-    /// control action is logged: on stderr, in the status' events and in the journal.
+    /// control action is logged: on stderr, in the status' events and in the journal. Its
+    /// refusals ([`ROS2_REFUSED`]) arrive already rate-limited and numbered by the ROS 2
+    /// side (`daemon::ros2::Refusals`, at most one a second), so they are not limited twice.
     pub fn log_ros2(&self, action: &'static str, job: Option<u64>, result: String) {
         self.log_event(action, job, Some(result), None);
+    }
+
+    /// Logs a refused job (`action`: [`JOB_REFUSED`]) like a
+    /// control action, but rate-limited: the first of each [`REFUSAL_WINDOW`] in full, the
+    /// rest counted and told as one summary with the last reason once the window is over.
+    pub fn log_refusal(&self, action: &'static str, job: Option<u64>, reason: String) {
+        let (full, closed) = self.refusal_lock().admit(action, &reason);
+        if let Some(summary) = closed {
+            self.log_summary(summary);
+        }
+        if full {
+            self.log_event(action, job, Some(reason), None);
+        }
+    }
+
+    /// Summaries of the refusal windows that are over: the status asks, so a flood that
+    /// stopped is still told.
+    fn flush_refusals(&self) {
+        let over = self.refusal_lock().drain(false);
+        for summary in over {
+            self.log_summary(summary);
+        }
+    }
+
+    fn log_summary(&self, summary: RefusalSummary) {
+        self.log_event(summary.action, None, Some(summary.to_string()), None);
+    }
+
+    fn refusal_lock(&self) -> std::sync::MutexGuard<'_, Refusals> {
+        self.refusals.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
     /// Whether the cell streams to its in-process twin, whose position is known before any
@@ -464,6 +512,7 @@ impl Cell {
     }
 
     pub fn status(&self) -> Status {
+        self.flush_refusals();
         let job = self.running();
         let controller = self.controller();
         // A streaming job holds the link: the live view has the position then.
@@ -960,22 +1009,76 @@ struct JobIo {
     planned: oneshot::Sender<Result<(), NotPlanned>>,
 }
 
-/// A cell's journal: an MCAP log (`docs/logs.md`) holding only events, one per control
-/// action on the cell (`pause`, `resume`, `stop`, `estop`, `reset`), at seconds since the
-/// daemon started, with the job acted on, the Unix time and the result. Unlike a job's log
-/// it also holds the resets, which act on no job.
+/// A cell's journal: MCAP logs (`docs/logs.md`) holding only events, one per control
+/// action on the cell (`pause`, `resume`, `stop`, `estop`, `reset`) and per refusal
+/// (rate-limited, [`Refusals`]), at seconds since the daemon started, with the job acted
+/// on, the Unix time and the result. Unlike a job's log it also holds the resets, which act
+/// on no job. It rotates: once a file has taken [`JournalCap::file_bytes`] a new one is
+/// begun (`cell-<rig>-<unix>-<pid>-<part>.mcap`), and only the newest
+/// [`JournalCap::files`] are kept, so a flood of events cannot fill the disk.
 struct Journal {
+    /// The file being written.
     path: PathBuf,
     recorder: Recorder,
     clock: WallClock,
+    /// What the journal needs to begin its next file.
+    setup: JournalSetup,
+    /// Bytes the current file has taken, as counted by [`event_bytes`] (at least what it
+    /// holds on disk).
+    written: u64,
+    /// The files kept, oldest first, the current one last.
+    kept: std::collections::VecDeque<PathBuf>,
+    cap: JournalCap,
 }
+
+/// How much journal a cell keeps.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct JournalCap {
+    file_bytes: u64,
+    files: usize,
+}
+
+/// Each journal file up to 4 MB (about 10,000 events) and four of them: 16 MB a cell at
+/// most, for months of control actions at any human pace, while a flood of events
+/// (rate-limited refusals are one a window) rotates rather than fills the disk.
+const JOURNAL_CAP: JournalCap = JournalCap {
+    file_bytes: 4 * 1024 * 1024,
+    files: 4,
+};
+
+/// Room counted in each file before its first event: the MCAP header, the journal's
+/// metadata, and the summary and footer written when it is closed.
+const JOURNAL_FILE_RESERVE: u64 = 16 * 1024;
+
+/// What an event costs a journal file beyond its kind and detail: its message record, its
+/// index entry and, since the journal's chunks close on a timer, a chunk of its own with
+/// that chunk's index in the summary. An over-count: rotation comes early, never late.
+const JOURNAL_EVENT_OVERHEAD: u64 = 512;
 
 /// A journal records no cycles: the smallest record channel will do.
 const JOURNAL_RECORD_CAPACITY: usize = 1;
 
-impl Journal {
-    fn create(runs_dir: &std::path::Path, settings: &RunSettings) -> Result<Journal, DaemonError> {
-        let clock = WallClock::new();
+/// Bytes an event of kind `action` with `detail` takes in a journal file, at most.
+fn event_bytes(action: &str, detail: &serde_json::Value) -> u64 {
+    let detail = serde_json::to_string(detail).map_or(0, |text| text.len());
+    (action.len() + detail) as u64 + JOURNAL_EVENT_OVERHEAD
+}
+
+/// Where a cell's journal files go and what each begins with.
+struct JournalSetup {
+    runs_dir: PathBuf,
+    /// `cell-<rig>-<unix>-<pid>`: the first file's name without `.mcap`.
+    stem: String,
+    rig: String,
+    joint_names: Vec<String>,
+    metadata: serde_json::Value,
+    options: crate::log::RecorderOptions,
+    /// The part the next file is (the first is 1).
+    next_part: u32,
+}
+
+impl JournalSetup {
+    fn new(runs_dir: &std::path::Path, settings: &RunSettings) -> JournalSetup {
         let unix_s = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_secs());
@@ -992,7 +1095,6 @@ impl Journal {
                 }
             })
             .collect();
-        let path = runs_dir.join(format!("cell-{name}-{unix_s}-{}.mcap", std::process::id()));
         let options = crate::log::RecorderOptions {
             capacity: JOURNAL_RECORD_CAPACITY,
             // A handful of events: compressing them saves nothing and would keep a zstd
@@ -1000,24 +1102,231 @@ impl Journal {
             compressed: false,
             ..crate::log::RecorderOptions::for_rig(&settings.rig)
         };
-        let names: Vec<String> = settings.rig.joint_names().map(str::to_owned).collect();
-        let metadata = serde_json::json!({
-            "journal": settings.rig.name,
-            "config": settings.file.display().to_string(),
-            "link": settings.config.stream.link,
-            "unix_s": unix_s,
-        });
-        let recorder = Recorder::create_with(&path, &settings.rig.name, &names, metadata, options)?;
+        JournalSetup {
+            runs_dir: runs_dir.to_path_buf(),
+            stem: format!("cell-{name}-{unix_s}-{}", std::process::id()),
+            rig: settings.rig.name.clone(),
+            joint_names: settings.rig.joint_names().map(str::to_owned).collect(),
+            metadata: serde_json::json!({
+                "journal": settings.rig.name,
+                "config": settings.file.display().to_string(),
+                "link": settings.config.stream.link,
+                "unix_s": unix_s,
+            }),
+            options,
+            next_part: 1,
+        }
+    }
+
+    /// The next file: its path and recorder.
+    fn open_next(&mut self) -> Result<(PathBuf, Recorder), DaemonError> {
+        let part = self.next_part;
+        let name = match part {
+            1 => format!("{}.mcap", self.stem),
+            _ => format!("{}-{part}.mcap", self.stem),
+        };
+        let path = self.runs_dir.join(name);
+        let mut metadata = self.metadata.clone();
+        metadata["part"] = part.into();
+        let recorder = Recorder::create_with(
+            &path,
+            &self.rig,
+            &self.joint_names,
+            metadata,
+            self.options.clone(),
+        )?;
+        self.next_part = part.saturating_add(1);
+        Ok((path, recorder))
+    }
+}
+
+impl Journal {
+    fn create(runs_dir: &std::path::Path, settings: &RunSettings) -> Result<Journal, DaemonError> {
+        Journal::create_capped(runs_dir, settings, JOURNAL_CAP)
+    }
+
+    fn create_capped(
+        runs_dir: &std::path::Path,
+        settings: &RunSettings,
+        cap: JournalCap,
+    ) -> Result<Journal, DaemonError> {
+        let mut setup = JournalSetup::new(runs_dir, settings);
+        let (path, recorder) = setup.open_next()?;
         Ok(Journal {
+            kept: std::collections::VecDeque::from([path.clone()]),
             path,
             recorder,
-            clock,
+            clock: WallClock::new(),
+            setup,
+            written: JOURNAL_FILE_RESERVE,
+            cap,
         })
     }
 
-    fn record(&self, action: &str, detail: serde_json::Value) {
+    fn record(&mut self, action: &str, detail: serde_json::Value) {
+        let bytes = event_bytes(action, &detail);
+        if self.written + bytes > self.cap.file_bytes {
+            self.rotate();
+        }
+        self.written += bytes;
         self.recorder
             .event(self.clock.now().as_secs_f64(), action, detail);
+    }
+
+    /// Closes the current file, begins the next and deletes the oldest beyond the cap. A
+    /// file that will not open leaves the journal on the one it has (logged), rather than
+    /// losing events.
+    fn rotate(&mut self) {
+        let (path, recorder) = match self.setup.open_next() {
+            Ok(next) => next,
+            Err(e) => {
+                tracing::error!(
+                    "journal {}: cannot begin its next file: {}",
+                    self.path.display(),
+                    error_chain(&e)
+                );
+                return;
+            }
+        };
+        let full = std::mem::replace(&mut self.recorder, recorder);
+        if let Err(e) = full.finish() {
+            tracing::error!(
+                "journal {}: closing it: {}",
+                self.path.display(),
+                error_chain(&e)
+            );
+        }
+        self.path = path.clone();
+        self.kept.push_back(path);
+        self.written = JOURNAL_FILE_RESERVE;
+        while self.kept.len() > self.cap.files {
+            if let Some(old) = self.kept.pop_front()
+                && let Err(e) = std::fs::remove_file(&old)
+            {
+                tracing::warn!("journal {}: removing it: {e}", old.display());
+            }
+        }
+    }
+
+    fn finish(self) -> Result<crate::log::RecorderStats, crate::log::LogError> {
+        self.recorder.finish()
+    }
+}
+
+/// The summary of `action`'s `window`, over after `seconds`, if it counted any refusal
+/// beyond its first.
+fn summarise(
+    action: &'static str,
+    window: RefusalWindow,
+    seconds: std::time::Duration,
+) -> Option<RefusalSummary> {
+    (window.more > 0).then_some(RefusalSummary {
+        action,
+        more: window.more,
+        seconds: seconds.as_secs_f64(),
+        last: window.last,
+    })
+}
+
+/// How long refusals of one kind are counted before they are told again: one full line,
+/// then one summary with the count, per window, whatever the flood.
+const REFUSAL_WINDOW: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// Refusals (a job over HTTP, a ROS 2 trajectory) logged rate-limited: the first of a
+/// window in full; the others counted, with the last reason kept, and told as one summary
+/// once the window is over ("refused 4312 more ... in the last 10.0 s; the last: ...").
+struct Refusals {
+    clock: WallClock,
+    windows: std::collections::HashMap<&'static str, RefusalWindow>,
+}
+
+struct RefusalWindow {
+    opened: std::time::Duration,
+    more: u64,
+    last: String,
+}
+
+/// A summary of refusals counted in a window that is over.
+struct RefusalSummary {
+    action: &'static str,
+    more: u64,
+    seconds: f64,
+    last: String,
+}
+
+impl std::fmt::Display for RefusalSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "refused {} more in the last {:.1} s; the last: {}",
+            self.more, self.seconds, self.last
+        )
+    }
+}
+
+impl Refusals {
+    fn new() -> Refusals {
+        Refusals {
+            clock: WallClock::new(),
+            windows: std::collections::HashMap::new(),
+        }
+    }
+
+    /// A refusal of kind `action`: whether to log it in full (the first of its window),
+    /// and the summary of the window it closed, if that counted any.
+    fn admit(&mut self, action: &'static str, reason: &str) -> (bool, Option<RefusalSummary>) {
+        let now = self.clock.now();
+        let closed = self.close_if_over(action, now);
+        match self.windows.get_mut(action) {
+            Some(window) => {
+                window.more += 1;
+                window.last.clear();
+                window.last.push_str(reason);
+                (false, closed)
+            }
+            None => {
+                let window = RefusalWindow {
+                    opened: now,
+                    more: 0,
+                    last: String::new(),
+                };
+                self.windows.insert(action, window);
+                (true, closed)
+            }
+        }
+    }
+
+    /// Ends `action`'s window if it is over at `now`: its summary if it counted any.
+    fn close_if_over(
+        &mut self,
+        action: &'static str,
+        now: std::time::Duration,
+    ) -> Option<RefusalSummary> {
+        let window = self.windows.get(action)?;
+        let seconds = now.saturating_sub(window.opened);
+        if seconds < REFUSAL_WINDOW {
+            return None;
+        }
+        let window = self.windows.remove(action)?;
+        summarise(action, window, seconds)
+    }
+
+    /// Every window that is over (`all`: every window, the daemon is stopping), summarised.
+    fn drain(&mut self, all: bool) -> Vec<RefusalSummary> {
+        let now = self.clock.now();
+        let actions: Vec<&'static str> = self.windows.keys().copied().collect();
+        actions
+            .into_iter()
+            .filter_map(|action| {
+                if all {
+                    let window = self.windows.remove(action)?;
+                    let seconds = now.saturating_sub(window.opened);
+                    summarise(action, window, seconds)
+                } else {
+                    self.close_if_over(action, now)
+                }
+            })
+            .collect()
     }
 }
 
@@ -1079,6 +1388,72 @@ mod tests {
         let result: Result<(), Panicked> = contain_panic(|| panic!("boom {}", 7));
         assert_eq!(result.unwrap_err().0, "boom 7");
         assert_eq!(contain_panic(|| 3).ok(), Some(3));
+    }
+
+    #[test]
+    fn a_journal_rotates_under_its_cap_keeping_the_newest_files() {
+        let dir = std::env::temp_dir().join(format!("rigbridge-journal-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("the temporary journal directory is created");
+        let settings = crate::daemon::config::load_run_settings(std::path::Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/config/rigbridge.toml"
+        )))
+        .expect("the shipped settings load");
+        let cap = JournalCap {
+            file_bytes: 64 * 1024,
+            files: 3,
+        };
+        let mut journal = Journal::create_capped(&dir, &settings, cap).expect("journal opens");
+        let events = 5_000;
+        for n in 0..events {
+            let detail = serde_json::json!({ "job": n, "result": "refused: laps = 0" });
+            journal.record("job_refused", detail);
+        }
+        let newest = journal.path.clone();
+        journal.finish().expect("the journal closes");
+        let files: Vec<_> = std::fs::read_dir(&dir)
+            .expect("the directory lists")
+            .map(|e| e.expect("an entry").path())
+            .collect();
+        assert_eq!(files.len(), cap.files, "{files:?}");
+        for file in &files {
+            let bytes = std::fs::metadata(file).expect("a kept file").len();
+            assert!(bytes <= cap.file_bytes, "{}: {bytes} bytes", file.display());
+        }
+        // The newest file holds the last events, readable.
+        let log = crate::log::read_log(&newest).expect("the newest journal file reads");
+        let last = log.events.last().expect("it holds events");
+        assert_eq!(last.detail["job"], events - 1);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn refusals_are_told_once_a_window_then_counted() {
+        let mut refusals = Refusals::new();
+        assert!(matches!(refusals.admit(JOB_REFUSED, "a"), (true, None)));
+        for reason in ["b", "c"] {
+            assert!(matches!(refusals.admit(JOB_REFUSED, reason), (false, None)));
+        }
+        // Another kind has its own window.
+        assert!(matches!(refusals.admit(ROS2_REFUSED, "r"), (true, None)));
+        let pending = refusals.drain(true);
+        let summary = pending
+            .iter()
+            .find(|s| s.action == JOB_REFUSED)
+            .expect("the counted refusals are summarised");
+        assert_eq!(summary.more, 2);
+        assert!(
+            summary
+                .to_string()
+                .starts_with("refused 2 more in the last")
+        );
+        assert!(summary.to_string().ends_with("the last: c"));
+        assert_eq!(
+            pending.len(),
+            1,
+            "the ROS 2 window counted none beyond its first"
+        );
     }
 
     #[test]
