@@ -127,6 +127,7 @@ impl Halted {
                 )
             },
             log: None,
+            log_error: None,
         }
     }
 }
