@@ -227,8 +227,8 @@ fn failed_at(run: &Run) -> Duration {
 #[test]
 fn a_full_log_disk_brings_the_job_to_rest_within_a_second_and_the_report_is_true() {
     let disk = FullDisk::new("logfail-stop");
-    // accel_scale 0.7: the stop ramp is 0.75 s here (the shipped 0.8 ramps 1.125 s).
-    let config = settings("logfail-stop.toml", 20, 0.7, "on_error = \"stop\"");
+    // The shipped accel_scale: the stop brakes at the axes' acceleration (stream/brake.rs).
+    let config = settings("logfail-stop.toml", 20, 0.8, "on_error = \"stop\"");
     let run = run_through_proxy(&config, &disk, "logfail-stop");
     let failed = failed_at(&run);
     let rest = run.wire.last_motion.expect("the arm moved");

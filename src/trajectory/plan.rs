@@ -308,6 +308,8 @@ fn check_waypoint(rig: &Rig, waypoint: usize, values: &[f64]) -> Result<(), Plan
 pub(crate) struct Samples {
     positions: Vec<f64>,
     velocities: Vec<f64>,
+    /// Axes per sample (the start's), fixed for the plan.
+    dof: usize,
     budget: SampleBudget,
     period: Duration,
 }
@@ -318,6 +320,7 @@ impl Samples {
         Self {
             positions: start.to_vec(),
             velocities: vec![0.0; start.len()],
+            dof: start.len(),
             budget,
             period,
         }
@@ -325,9 +328,10 @@ impl Samples {
 
     /// Refuses `more` samples that would break the budget, before they are sampled.
     pub fn ensure_room(&self, more: usize) -> Result<(), OverBudget> {
-        let dof = self.positions.len().max(1);
-        let held = self.positions.len() / dof;
-        self.budget.after(held).check(more as u64, self.period, dof)
+        let held = self.positions.len() / self.dof.max(1);
+        self.budget
+            .after(held)
+            .check(more as u64, self.period, self.dof)
     }
 
     pub fn push(&mut self, positions: &[f64], velocities: &[f64]) {
@@ -473,5 +477,38 @@ impl JointMove<'_> {
             samples.push(to, &vec![0.0; dof]);
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 10,000 held samples of 6 axes and 1,000 more: 11,000 x 6 x 16 B = 1.007 MiB, counted
+    /// by hand. The room a planner asks for counts samples and axes, not the values held.
+    #[test]
+    fn room_counts_the_samples_held_and_their_axes() {
+        const HELD: usize = 10_000;
+        let period = Duration::from_millis(4);
+        let budget = |max_plan_mb| SampleBudget {
+            max_plan_mb,
+            ..SampleBudget::default()
+        };
+        let filled = |budget| {
+            let mut samples = Samples::at_rest(&[0.0; 6], budget, period);
+            for _ in 1..HELD {
+                samples.push(&[0.0; 6], &[0.0; 6]);
+            }
+            samples
+        };
+        assert!(filled(budget(1.01)).ensure_room(1_000).is_ok());
+        assert!(matches!(
+            filled(budget(1.0)).ensure_room(1_000),
+            Err(OverBudget::Memory {
+                samples: 11_000,
+                dof: 6,
+                ..
+            })
+        ));
     }
 }
