@@ -12,7 +12,7 @@ pub mod resume;
 pub mod ros2;
 pub mod server;
 
-pub use recording::{ActionLog, RecorderSink};
+pub use recording::{ActionLog, HeldActions, RecorderSink};
 
 use crate::clock::Clock;
 use crate::job::JobError;

@@ -156,7 +156,24 @@ impl ActionLog {
     /// Logs `kind` at job time `t` (s); `false` when the job has no log open (not started
     /// streaming yet, or ended).
     pub fn record(&self, t: f64, kind: &str, detail: serde_json::Value) -> bool {
-        self.slot()
+        self.hold_open().record(t, kind, detail)
+    }
+
+    /// Keeps the log as it is (open or not) until the guard is dropped: an action applied
+    /// while it is held is recorded before the job can close its log (an e-stop ends a job
+    /// within a cycle, faster than the control API writes its event).
+    pub fn hold_open(&self) -> HeldActions<'_> {
+        HeldActions(self.slot())
+    }
+}
+
+/// The job's action log held open, from [`ActionLog::hold_open`].
+pub struct HeldActions<'a>(std::sync::MutexGuard<'a, Option<EventSender>>);
+
+impl HeldActions<'_> {
+    /// As [`ActionLog::record`].
+    pub fn record(&self, t: f64, kind: &str, detail: serde_json::Value) -> bool {
+        self.0
             .as_ref()
             .is_some_and(|sender| sender.event(t, kind, detail))
     }

@@ -12,7 +12,8 @@ use crate::clock::{Clock, VirtualClock, WallClock};
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::daemon::reset::{RESET_TIMEOUT, ResetOutcome, reset_controller};
 use crate::daemon::{
-    ActionLog, DaemonError, RunReport, Sinks, error_chain, plan_for, stream_planned_with,
+    ActionLog, DaemonError, HeldActions, RunReport, Sinks, error_chain, plan_for,
+    stream_planned_with,
 };
 use crate::link::{Link, LinkCounters, LinkSpec, LoopbackLink};
 use crate::log::Recorder;
@@ -410,7 +411,7 @@ impl Cell {
         action: &'static str,
         job: Option<u64>,
         result: Option<String>,
-        on_job: Option<(&ActionLog, &StreamControl)>,
+        on_job: Option<(&HeldActions<'_>, &StreamControl)>,
     ) {
         let at_s = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
@@ -968,9 +969,11 @@ impl Cell {
     ) -> Option<(u64, Option<Phase>)> {
         let job = self.job.lock().unwrap_or_else(PoisonError::into_inner);
         let running = job.as_ref().filter(|j| !j.handle.is_finished());
+        // Held across the act and its record: the job it ends cannot close its log between.
+        let held = running.map(|j| (j.actions.hold_open(), &*j.control));
         let phase = running.and_then(|running| act(&running.control));
         let id = running.map(|j| j.id);
-        let on_job = running.map(|j| (&*j.actions, &*j.control));
+        let on_job = held.as_ref().map(|(actions, control)| (actions, *control));
         let result = phase.map(|phase| format!("while {phase}"));
         self.log_event(action, id, result, on_job);
         id.map(|id| (id, phase))
