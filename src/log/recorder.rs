@@ -529,6 +529,32 @@ struct Sink {
     foxglove: Option<FoxgloveLog>,
 }
 
+/// How long a log file's creation waits for a descriptor when the process has none free:
+/// the control API closes its oldest connections for newcomers under a flood, and their
+/// descriptors come free within milliseconds; a job should not fail to start for that.
+const DESCRIPTOR_WAIT: Duration = Duration::from_millis(500);
+/// How often the creation is tried again meanwhile.
+const DESCRIPTOR_RETRY: Duration = Duration::from_millis(5);
+
+/// Creates the log at `path` (never over an existing file), waiting up to
+/// [`DESCRIPTOR_WAIT`] while the process is out of descriptors. A wait for the OS, not a
+/// motion time: it sleeps on the thread, before the job streams.
+fn create_log_file(path: &Path) -> std::io::Result<File> {
+    let mut waited = Duration::ZERO;
+    loop {
+        match File::create_new(path) {
+            Err(e)
+                if matches!(e.raw_os_error(), Some(libc::EMFILE | libc::ENFILE))
+                    && waited < DESCRIPTOR_WAIT =>
+            {
+                std::thread::sleep(DESCRIPTOR_RETRY);
+                waited += DESCRIPTOR_RETRY;
+            }
+            result => return result,
+        }
+    }
+}
+
 impl Sink {
     fn open(
         path: &Path,
@@ -538,7 +564,7 @@ impl Sink {
         options: &RecorderOptions,
     ) -> Result<Self, LogError> {
         let context = || format!("creating log {}", path.display());
-        let file = File::create_new(path).map_err(|e| LogError::io(context(), e))?;
+        let file = create_log_file(path).map_err(|e| LogError::io(context(), e))?;
         let write_options = WriteOptions::new()
             .compression(options.compressed.then_some(Compression::Zstd))
             .compression_level(ZSTD_LEVEL)
