@@ -255,25 +255,33 @@ impl Ros2Config {
     }
 }
 
+/// Why a password file cannot be used; never quotes the content.
+#[derive(Debug, thiserror::Error)]
+enum PasswordFileError {
+    #[error("cannot read: {0}")]
+    Unreadable(#[from] std::io::Error),
+    #[error("{0} bytes; a password file holds one line of at most {MAX_PASSWORD_FILE_BYTES} bytes")]
+    TooLarge(u64),
+    #[error("is empty: it must hold the password")]
+    Empty,
+    #[error("must hold the password alone, on one line")]
+    NotOneLine,
+}
+
 /// The password in `path`: its one line, without surrounding whitespace (a Zenoh dictionary
-/// trims its entries the same way). Why not, if not; the reason never quotes the content.
-fn read_password(path: &Path) -> Result<String, String> {
-    let size = std::fs::metadata(path)
-        .map_err(|e| format!("cannot read: {e}"))?
-        .len();
+/// trims its entries the same way).
+fn read_password(path: &Path) -> Result<String, PasswordFileError> {
+    let size = std::fs::metadata(path)?.len();
     if size > MAX_PASSWORD_FILE_BYTES {
-        return Err(format!(
-            "{size} bytes; a password file holds one line of at most \
-             {MAX_PASSWORD_FILE_BYTES} bytes"
-        ));
+        return Err(PasswordFileError::TooLarge(size));
     }
-    let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read: {e}"))?;
+    let text = std::fs::read_to_string(path)?;
     let password = text.trim();
     if password.is_empty() {
-        return Err("is empty: it must hold the password".into());
+        return Err(PasswordFileError::Empty);
     }
     if password.lines().count() > 1 || password.contains(|c: char| c.is_control()) {
-        return Err("must hold the password alone, on one line".into());
+        return Err(PasswordFileError::NotOneLine);
     }
     Ok(password.to_string())
 }
