@@ -140,22 +140,9 @@ fn clock_name(clock: &dyn Clock) -> &'static str {
     }
 }
 
-/// An error and all its sources, as one line ("job refused before motion: job target 0 ...").
-pub fn error_chain(error: &dyn std::error::Error) -> String {
-    let mut text = error.to_string();
-    let mut source = error.source();
-    while let Some(cause) = source {
-        // A message that already ends with its cause's (thiserror's `{source}` in the
-        // format) says it once.
-        let cause_text = cause.to_string();
-        if !text.ends_with(&cause_text) {
-            text.push_str(": ");
-            text.push_str(&cause_text);
-        }
-        source = cause.source();
-    }
-    text
-}
+/// An error and all its sources, as one line: [`crate::log::error_chain`], which the log's
+/// own failures need too and `log` sits below this layer.
+pub use crate::log::error_chain;
 
 /// What `run` prints and writes with `--report`.
 #[derive(Debug, Clone, Serialize)]

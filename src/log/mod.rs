@@ -135,3 +135,22 @@ pub struct RunLog {
     pub truncated: bool,
     pub stopped: Option<ReadStop>,
 }
+
+/// An error and all its sources, as one line ("job refused before motion: job target 0 ...").
+/// Here because a failed log write is said this way too, and every layer above `log` uses
+/// it through `daemon::error_chain`.
+pub fn error_chain(error: &dyn std::error::Error) -> String {
+    let mut text = error.to_string();
+    let mut source = error.source();
+    while let Some(cause) = source {
+        // A message that already ends with its cause's (thiserror's `{source}` in the
+        // format) says it once.
+        let cause_text = cause.to_string();
+        if !text.ends_with(&cause_text) {
+            text.push_str(": ");
+            text.push_str(&cause_text);
+        }
+        source = cause.source();
+    }
+    text
+}

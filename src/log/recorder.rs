@@ -114,7 +114,11 @@ impl LogHealth {
             return;
         }
         let failure = LogFailure {
-            error: format!("writing log {}: {}", path.display(), error_text(error)),
+            error: format!(
+                "writing log {}: {}",
+                path.display(),
+                super::error_chain(error)
+            ),
             at_s,
         };
         tracing::error!(
@@ -126,21 +130,6 @@ impl LogHealth {
         *slot = Some(failure);
         self.failed.store(true, Ordering::Release);
     }
-}
-
-/// An error and its sources, one line (the MCAP writer's error wraps the I/O error).
-fn error_text(error: &LogError) -> String {
-    let mut text = error.to_string();
-    let mut source = std::error::Error::source(error);
-    while let Some(cause) = source {
-        let cause_text = cause.to_string();
-        if !text.ends_with(&cause_text) {
-            text.push_str(": ");
-            text.push_str(&cause_text);
-        }
-        source = cause.source();
-    }
-    text
 }
 
 /// One cycle's command or measured state, handed to [`Recorder::record`] by value.
