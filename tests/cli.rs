@@ -116,3 +116,103 @@ fn help_explains_the_commands() {
         "{text}"
     );
 }
+
+/// The subcommands a `--help` text lists under "Commands:" (without `help`).
+fn subcommands(help: &str) -> Vec<String> {
+    help.split("Commands:")
+        .nth(1)
+        .map(|section| section.split("\n\n").next().unwrap_or(""))
+        .unwrap_or("")
+        .lines()
+        .filter_map(|line| line.split_whitespace().next())
+        .filter(|name| *name != "help")
+        .map(str::to_string)
+        .collect()
+}
+
+/// Every argument and option of a `-h` text that has no description, or only a default:
+/// clap puts the description after the name on the same line, or (when names are long) on
+/// the next line, indented further.
+fn undescribed(help: &str) -> Vec<String> {
+    let mut bare = Vec::new();
+    for section in ["Arguments:", "Options:"] {
+        let Some(body) = help.split(section).nth(1) else {
+            continue;
+        };
+        let lines: Vec<&str> = body.split("\n\n").next().unwrap_or("").lines().collect();
+        for (i, line) in lines.iter().enumerate() {
+            let indent = line.len() - line.trim_start().len();
+            let entry = line.trim();
+            if entry.is_empty() || indent > 6 || !entry.starts_with(['-', '<']) {
+                continue;
+            }
+            let same_line = entry
+                .split("  ")
+                .map(str::trim)
+                .filter(|p| !p.is_empty())
+                .nth(1);
+            let next_line = lines
+                .get(i + 1)
+                .filter(|next| next.len() - next.trim_start().len() > 6)
+                .map(|next| next.trim());
+            match same_line.or(next_line) {
+                Some(text) if !text.starts_with('[') => {}
+                _ => bare.push(entry.to_string()),
+            }
+        }
+    }
+    bare
+}
+
+/// Issue 32: every command's every argument says what it is, and every command that takes
+/// `--link` lists every link form there is (one text, rigbridge::link::LINK_FORMS).
+#[test]
+fn every_argument_is_described_and_every_link_form_listed() {
+    let mut commands: Vec<Vec<String>> = subcommands(&String::from_utf8_lossy(
+        &rigbridge(&["--help"], None).stdout,
+    ))
+    .into_iter()
+    .map(|c| vec![c])
+    .collect();
+    let mut checked = 0;
+    let mut problems = Vec::new();
+    while let Some(command) = commands.pop() {
+        let mut args: Vec<&str> = command.iter().map(String::as_str).collect();
+        args.push("-h");
+        let short = String::from_utf8_lossy(&rigbridge(&args, None).stdout).to_string();
+        for nested in subcommands(&short) {
+            let mut deeper = command.clone();
+            deeper.push(nested);
+            commands.push(deeper);
+        }
+        for bare in undescribed(&short) {
+            problems.push(format!(
+                "rigbridge {}: `{bare}` has no description",
+                command.join(" ")
+            ));
+        }
+        if short.contains("--link") {
+            *args.last_mut().unwrap() = "--help";
+            let long = String::from_utf8_lossy(&rigbridge(&args, None).stdout).to_string();
+            for scheme in [
+                "loopback",
+                "tcp://",
+                "serial://",
+                "can://",
+                "egm://",
+                "dynamixel://",
+                "canopen://",
+            ] {
+                if !long.contains(scheme) {
+                    problems.push(format!(
+                        "rigbridge {} --help leaves out {scheme}",
+                        command.join(" ")
+                    ));
+                }
+            }
+        }
+        checked += 1;
+    }
+    assert!(checked >= 10, "only {checked} commands found in --help");
+    assert!(problems.is_empty(), "{}", problems.join("\n"));
+}

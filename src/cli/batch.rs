@@ -67,6 +67,8 @@ pub struct IkArgs {
     /// all zeros). Later rows are seeded by the previous row's solution.
     #[arg(long, value_delimiter = ',', allow_negative_numbers = true)]
     seed: Option<Vec<f64>>,
+    /// The IK solver: fabrik (six-axis arms with a spherical wrist; the planner), ccd or gd
+    /// (comparisons, for other chains too; docs/kinematics.md).
     #[arg(long, value_enum, default_value = "fabrik")]
     solver: SolverChoice,
 }

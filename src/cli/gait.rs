@@ -51,6 +51,8 @@ pub struct GaitArgs {
     /// Write the picture (SVG: side and top views, gait diagram) here.
     #[arg(long)]
     picture: Option<PathBuf>,
+    /// Whose time the cycles run on: wall (real time) or virtual (the same cycles without
+    /// waiting).
     #[arg(long, value_enum, default_value = "wall")]
     clock: ClockChoice,
     /// Limb IK solver, ccd or fabrik (default: the sloth file's `[gait] solver`).

@@ -28,6 +28,8 @@ pub struct PaintArgs {
     /// when its job paints, else embedded:/paint.toml].
     #[arg(long)]
     paint_config: Option<PathBuf>,
+    /// Whose time the cycles run on: wall (real time) or virtual (the same cycles without
+    /// waiting).
     #[arg(long, value_enum, default_value = "wall")]
     clock: ClockChoice,
     /// Record the run to this MCAP file (default: runs/paint-<unix time>-<pid>.mcap).

@@ -163,7 +163,18 @@ fn series(run: &RunLog, dof: usize) -> Vec<(Series, Series, Series)> {
         .collect()
 }
 
+/// The smallest span a joint's chart shows (deg for a revolute axis, m for a prismatic one):
+/// an axis that holds still varies by float noise only, and a chart 1e-9 wide labels every
+/// tick "0.0". One degree or one centimetre shows a still axis as the flat line it is.
+const MIN_SPAN_DEG: f64 = 1.0;
+const MIN_SPAN_M: f64 = 0.01;
+
 fn bounds(values: impl Iterator<Item = f64>) -> (f64, f64) {
+    bounds_at_least(values, 0.0)
+}
+
+/// The values' range with 5 % padding, widened about its middle to at least `min_span`.
+fn bounds_at_least(values: impl Iterator<Item = f64>, min_span: f64) -> (f64, f64) {
     let (lo, hi) = values.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
         (lo.min(v), hi.max(v))
     });
@@ -171,7 +182,9 @@ fn bounds(values: impl Iterator<Item = f64>) -> (f64, f64) {
         return (0.0, 1.0);
     }
     let pad = ((hi - lo) * 0.05).max(1e-9);
-    (lo - pad, hi + pad)
+    let (lo, hi) = (lo - pad, hi + pad);
+    let widen = ((min_span - (hi - lo)) / 2.0).max(0.0);
+    (lo - widen, hi + widen)
 }
 
 fn plot(run: &RunLog, path: &Path, size: (u32, u32)) -> anyhow::Result<()> {
@@ -208,7 +221,11 @@ fn plot(run: &RunLog, path: &Path, size: (u32, u32)) -> anyhow::Result<()> {
             break;
         };
         let (_, unit) = axis_unit(run.joint_kinds.as_deref(), axis);
-        let (y0, y1) = bounds(commanded.iter().chain(actual).map(|p| p.1));
+        let min_span = match run.joint_kinds.as_deref().and_then(|k| k.get(axis)) {
+            Some(JointKind::Prismatic) => MIN_SPAN_M,
+            _ => MIN_SPAN_DEG,
+        };
+        let (y0, y1) = bounds_at_least(commanded.iter().chain(actual).map(|p| p.1), min_span);
         let mut chart = ChartBuilder::on(area)
             .caption(format!("{} [{unit}]", run.joint_names[axis]), (FONT, 16))
             .margin(6)
@@ -366,4 +383,24 @@ fn draw_jitter(run: &RunLog, area: &DrawingArea<BitMapBackend<'_>, Shift>) -> an
             }),
     )?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Issue 32: a joint that holds still (joint_4 of the star job varies by float noise)
+    /// got a chart 2e-9 wide whose every tick read "0.0".
+    #[test]
+    fn a_still_axis_gets_a_chart_a_degree_wide_about_its_value() {
+        let (lo, hi) = bounds_at_least([12.0, 12.0 + 1e-12].into_iter(), MIN_SPAN_DEG);
+        assert!((hi - lo - 1.0).abs() < 1e-9, "{lo}..{hi}");
+        assert!(((lo + hi) / 2.0 - 12.0).abs() < 1e-9, "{lo}..{hi}");
+    }
+
+    #[test]
+    fn a_moving_axis_keeps_its_own_range_with_five_percent_padding() {
+        let (lo, hi) = bounds_at_least([-30.0, 50.0].into_iter(), MIN_SPAN_DEG);
+        assert_eq!((lo, hi), (-34.0, 54.0));
+    }
 }

@@ -23,9 +23,8 @@ pub struct ReplayArgs {
     /// Run settings for the rig and the twin (the log's rig must match).
     #[arg(long, env = "RIGBRIDGE_CONFIG", default_value = rigbridge::rig::shipped::DEFAULT_RUN_SETTINGS)]
     config: PathBuf,
-    /// Where to stream (overrides the config): loopback, tcp://HOST:PORT,
-    /// serial:///dev/PATH?baud=N, can://IFACE or egm://ADDR:PORT, as for `run`.
-    #[arg(long)]
+    /// Where to stream (overrides the config's `[stream] link`); `--help` lists every form.
+    #[arg(long, long_help = format!("Where to stream (overrides the config's `[stream] link`), as for `run`: {}", rigbridge::link::LINK_FORMS))]
     link: Option<String>,
     /// Time factor at the stream's own rate: 0.5 takes twice as long, 2 half as long
     /// (refused, naming the axis, if that breaks a speed or acceleration limit).
@@ -34,8 +33,12 @@ pub struct ReplayArgs {
     /// Record the replay to this MCAP file.
     #[arg(long)]
     record: Option<PathBuf>,
+    /// Write the replay's report here as JSON (outcome, cycles, what was replayed), like
+    /// `run --report`; written to a temporary file and renamed.
     #[arg(long)]
     report: Option<PathBuf>,
+    /// Whose time the cycles run on: wall (real time) or virtual (the same cycles without
+    /// waiting).
     #[arg(long, value_enum, default_value = "wall")]
     clock: ClockChoice,
 }
@@ -44,6 +47,7 @@ pub struct ReplayArgs {
 pub enum LogCommand {
     /// Summarise a run log: rig, channels, duration, sequence gaps, events, tracking error.
     Info {
+        /// The run log (an MCAP file `run`, `serve` or `replay --record` wrote).
         log: PathBuf,
         /// Print JSON instead of text.
         #[arg(long)]

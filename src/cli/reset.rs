@@ -13,9 +13,8 @@ use std::process::ExitCode;
 
 #[derive(Args)]
 pub struct ResetArgs {
-    /// The controller: loopback, tcp://HOST:PORT, serial:///dev/PATH?baud=N or can://IFACE
-    /// (default: the config's `[stream] link`).
-    #[arg(long)]
+    /// The controller (default: the config's `[stream] link`); `--help` lists every form.
+    #[arg(long, long_help = format!("The controller whose latched fault or e-stop to clear (default: the config's `[stream] link`): {}", rigbridge::link::LINK_FORMS))]
     link: Option<String>,
     /// Run settings: the rig and stream rate the bridge's Hello announces.
     #[arg(long, env = "RIGBRIDGE_CONFIG", default_value = rigbridge::rig::shipped::DEFAULT_RUN_SETTINGS)]

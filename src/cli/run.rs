@@ -32,10 +32,8 @@ pub struct RunArgs {
     /// Run settings: rig, stream rate, twin, plan and job.
     #[arg(long, env = "RIGBRIDGE_CONFIG", default_value = rigbridge::rig::shipped::DEFAULT_RUN_SETTINGS)]
     config: PathBuf,
-    /// Where to stream (overrides the config): loopback, tcp://HOST:PORT,
-    /// serial:///dev/PATH?baud=N, can://IFACE or egm://ADDR:PORT[?robot=HOST:PORT] (bind, as an
-    /// ABB EGM sensor answering only that robot: docs/egm.md).
-    #[arg(long)]
+    /// Where to stream (overrides the config's `[stream] link`); `--help` lists every form.
+    #[arg(long, long_help = format!("Where to stream (overrides the config's `[stream] link`): {}. egm:// binds as an ABB EGM sensor, answering only the robot named after ?robot= (docs/egm.md); dynamixel:// and canopen:// drive one servo or drive per axis (docs/dynamixel.md, docs/canopen.md)", rigbridge::link::LINK_FORMS))]
     link: Option<String>,
     /// Record the run to this MCAP file (default: runs/run-<unix time>-<pid>.mcap).
     #[arg(long)]
@@ -43,6 +41,8 @@ pub struct RunArgs {
     /// Write the run report (JSON) here.
     #[arg(long)]
     report: Option<PathBuf>,
+    /// Whose time the cycles run on: wall (real time) or virtual (the same cycles without
+    /// waiting).
     #[arg(long, value_enum, default_value = "wall")]
     clock: ClockChoice,
     /// Publish the rig's joint states to ROS 2 over Zenoh through this router or peer

@@ -36,6 +36,8 @@ pub struct ServeArgs {
     /// Where each job's MCAP log goes.
     #[arg(long, default_value = "runs")]
     runs_dir: PathBuf,
+    /// Whose time the cycles run on: wall (real time) or virtual (the same cycles without
+    /// waiting).
     #[arg(long, value_enum, default_value = "wall")]
     clock: ClockChoice,
     /// Port of the live Foxglove WebSocket server on the bind address [default: `[serve]

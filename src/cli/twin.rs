@@ -34,6 +34,7 @@ pub struct TwinArgs {
     /// Serve on a serial device.
     #[arg(long)]
     serial: Option<PathBuf>,
+    /// The serial line's baud rate, with --serial.
     #[arg(long, default_value_t = rigbridge::link::DEFAULT_BAUD)]
     baud: u32,
     /// Open a pseudo-terminal pair and serve on it; its path is the first line printed.

@@ -32,7 +32,7 @@ pub use egm_guard::{JUMP_SLACK, LOCK_RELEASE};
 pub use loopback::LoopbackLink;
 pub use serial::connect_serial;
 pub use session::{BridgeSession, Due, Outgoing};
-pub use spec::{DEFAULT_BAUD, DYNAMIXEL_DEFAULT_BAUD, LinkSpec, LinkSpecError};
+pub use spec::{DEFAULT_BAUD, DYNAMIXEL_DEFAULT_BAUD, LINK_FORMS, LinkSpec, LinkSpecError};
 pub use tcp::{TcpSettings, connect_tcp};
 
 use crate::protocol::{Command, EncodeError, FaultReport, Feedback, Hello};

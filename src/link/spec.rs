@@ -41,10 +41,12 @@ pub enum LinkSpec {
     },
 }
 
+/// Every link address form, as the command line's help and a bad address's error list
+/// them: one text, so a new scheme cannot be left out of either.
+pub const LINK_FORMS: &str = "loopback, tcp://HOST:PORT, serial:///dev/PATH?baud=N, can://IFACE, egm://ADDR:PORT[?robot=HOST:PORT], dynamixel:///dev/PATH?baud=N&ids=1,2,... or canopen://IFACE?nodes=1,2,...[&counts_per_turn=N]";
+
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
-#[error(
-    "link `{text}`: {reason} (expected loopback, tcp://HOST:PORT, serial:///dev/PATH?baud=N, can://IFACE, egm://ADDR:PORT[?robot=HOST:PORT], dynamixel:///dev/PATH?baud=N&ids=1,2,... or canopen://IFACE?nodes=1,2,...)"
-)]
+#[error("link `{text}`: {reason} (expected {LINK_FORMS})")]
 pub struct LinkSpecError {
     pub text: String,
     pub reason: String,
