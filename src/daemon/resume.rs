@@ -106,8 +106,17 @@ pub fn wait_for_hold(
     }
 }
 
+/// Why the wait for a hold at rest ended: the link's own reason when it never came up
+/// (connection refused, no such device, a node that did not answer), a silent controller
+/// only when the transport opened and nothing answered the Hello.
 fn timed_out(link: &dyn Link, was_up: bool, timeout: Duration) -> String {
-    if was_up {
+    if let Some(reason) = link.down_reason().filter(|_| !link.is_up()) {
+        format!(
+            "no session with {} for {:.1} s: {reason}",
+            link.describe(),
+            timeout.as_secs_f64()
+        )
+    } else if was_up {
         format!(
             "{} did not hold at rest within {:.1} s",
             link.describe(),

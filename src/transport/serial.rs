@@ -39,6 +39,19 @@ impl SerialSettings {
             .timeout(READ_TIMEOUT)
             .open()
     }
+
+    /// Why [`SerialSettings::open`] failed, naming the device: a missing device and a
+    /// refused permission in those words, anything else with the system's.
+    pub fn open_failure(&self, error: &serialport::Error) -> String {
+        use serialport::ErrorKind;
+        match error.kind() {
+            ErrorKind::Io(std::io::ErrorKind::NotFound) => format!("no such device {}", self.path),
+            ErrorKind::Io(std::io::ErrorKind::PermissionDenied) => {
+                format!("permission denied opening {}", self.path)
+            }
+            _ => format!("cannot open {}: {error}", self.path),
+        }
+    }
 }
 
 /// How long a read waits before the reader checks whether the link was closed.
