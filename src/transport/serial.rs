@@ -54,5 +54,32 @@ impl SerialSettings {
     }
 }
 
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serialport::{Error, ErrorKind};
+    use std::io::ErrorKind as Io;
+
+    /// What the system says when opening fails, in words naming the device (a permission
+    /// cannot be refused to the root user these tests run as, so the error is made here).
+    #[test]
+    fn open_failures_name_the_device_and_the_cause() {
+        let settings = SerialSettings::new("/dev/ttyUSB7", 115_200);
+        let said = |kind| settings.open_failure(&Error::new(kind, "from the system"));
+        assert_eq!(
+            said(ErrorKind::Io(Io::NotFound)),
+            "no such device /dev/ttyUSB7"
+        );
+        assert_eq!(
+            said(ErrorKind::Io(Io::PermissionDenied)),
+            "permission denied opening /dev/ttyUSB7"
+        );
+        assert_eq!(
+            said(ErrorKind::NoDevice),
+            "cannot open /dev/ttyUSB7: from the system"
+        );
+    }
+}
+
 /// How long a read waits before the reader checks whether the link was closed.
 const READ_TIMEOUT: Duration = Duration::from_millis(20);
