@@ -509,7 +509,10 @@ fn doc_tables_regenerate_in_place_and_hold_nothing_else() {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/docs/protocol.md");
     let doc = std::fs::read_to_string(path).expect("docs/protocol.md");
     for mark in RUNNER_OUTPUT {
-        assert!(!doc.contains(mark), "docs/protocol.md holds test output: {mark}");
+        assert!(
+            !doc.contains(mark),
+            "docs/protocol.md holds test output: {mark}"
+        );
     }
     let again = regenerated(&doc);
     for (name, _) in doc_blocks() {
@@ -530,7 +533,10 @@ fn doc_examples_and_figures_match_the_code() {
     let doc = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/docs/protocol.md"))
         .expect("docs/protocol.md");
     for mark in RUNNER_OUTPUT {
-        assert!(!doc.contains(mark), "docs/protocol.md holds test output: {mark}");
+        assert!(
+            !doc.contains(mark),
+            "docs/protocol.md holds test output: {mark}"
+        );
     }
     let mut drifted = Vec::new();
     for (name, generated) in doc_blocks() {

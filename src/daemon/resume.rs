@@ -24,7 +24,7 @@ pub const START_HOLD_TIMEOUT: Duration = Duration::from_secs(2);
 /// The arm counts as at rest when two feedbacks in a row differ by at most this share of
 /// `a_max T^2` on every axis: the first target after a hold must lie within `a_max T^2`
 /// of the held position (docs/protocol.md 6.6), and a settling servo is that close then.
-const AT_REST_SHARE: f64 = 0.1;
+const AT_REST_SHARE: f64 = 0.01;
 /// Positions travel as integers of 1e-6 rad (or m) (docs/protocol.md 1): an axis held on
 /// its limit is reported as the integer nearest it, up to half of this beyond.
 const WIRE_QUANTUM: f64 = 1e-6;
