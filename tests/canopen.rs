@@ -41,6 +41,21 @@ const PEER_RATE_HZ: f64 = 10.0;
 const PEER_HEARTBEAT_MS: u32 = 1000;
 /// config/rigbridge.toml's initial position, deg.
 const INITIAL_DEG: [f64; 6] = [0.0, 0.0, 0.0, 0.0, 30.0, 0.0];
+/// Where the lagging Python drives boot (deg): anywhere within the axes' limits, none at
+/// the job's usual start (issue 33).
+const BOOT_DEG: [f64; 6] = [5.0, -10.0, 12.0, -15.0, 30.0, 20.0];
+/// The lagging drives' servo: a first-order lag of this time constant (ms), 2 SYNC periods
+/// at 250 Hz.
+const SERVO_LAG_MS: f64 = 8.0;
+/// The rate the lagging drives run at. A CiA 402 cell streams at 250 Hz, which six Python
+/// drives in one interpreter do not answer in the CI VM (measured: at a load average of
+/// 15 on the 2-core host the bridge's cycle woke up to 28 ms late and 431 TPDOs were
+/// missing in the first 3 cycles, link lost); at [`PEER_RATE_HZ`] they answer every SYNC.
+/// The servo's lag stays 8 ms: what is judged is the same, the drive's pipeline (a whole
+/// period, 100 ms of motion here) is not counted as tracking error.
+const LAGGING_RATE_HZ: f64 = PEER_RATE_HZ;
+/// The shipped path tolerance (config/rigbridge.toml has none: the streamer's default).
+const PATH_TOLERANCE_DEG: f64 = 10.0;
 /// A fault is raised this long after targets start arriving: mid-job.
 const FAULT_AFTER: Duration = Duration::from_millis(800);
 
@@ -418,14 +433,6 @@ fn the_bridge_drives_python_canopen_local_nodes() {
         PEER_RATE_HZ,
         &format!("[canopen]\nheartbeat_ms = {PEER_HEARTBEAT_MS}\n"),
     );
-    // The Python drives' TPDOs may answer a SYNC after the bridge's collect window (in the
-    // emulated VM): their positions are then a cycle old, 0.1 s of motion at 10 Hz.
-    let text = std::fs::read_to_string(&config).unwrap();
-    std::fs::write(
-        &config,
-        text.replacen("[stream]\n", "[stream]\npath_tolerance_deg = 30.0\n", 1),
-    )
-    .unwrap();
     let json = scratch("python-drives.json");
     let (report, ok) = finish_run(spawn_run(&config, &json), &json);
     // SAFETY: kill(2) on our own child's pid.
@@ -504,6 +511,118 @@ fn the_bridge_drives_python_canopen_local_nodes() {
     }
 }
 
+/// The Python drives' summary line (JSON), after a SIGTERM.
+fn peer_summary(peer: &mut Child, lines: &Receiver<String>) -> serde_json::Value {
+    // SAFETY: kill(2) on our own child's pid.
+    unsafe { libc::kill(peer.id() as libc::pid_t, libc::SIGTERM) };
+    let said = lines
+        .recv_timeout(Duration::from_secs(30))
+        .unwrap_or_else(|_| {
+            let mut err = String::new();
+            let _ = peer.stderr.take().unwrap().read_to_string(&mut err);
+            panic!("the Python drives printed no summary: {err}")
+        });
+    let _ = peer.wait();
+    serde_json::from_str(&said).unwrap()
+}
+
+/// Drives written with PyPI's `canopen` that boot away from zero ([`BOOT_DEG`]) and follow
+/// as servos do ([`SERVO_LAG_MS`] first-order lag): the default job completes,
+/// the report's tracking error (the position each drive measured against the target it
+/// held when it measured) is within the default path tolerance, and no target reached a
+/// drive outside its axis' limits, over its speed or over its acceleration.
+#[test]
+fn lagging_python_drives_booting_anywhere_complete_the_default_job() {
+    let Some((_one, python)) = on_the_bus_with_python() else {
+        return;
+    };
+    let start: Vec<String> = BOOT_DEG
+        .iter()
+        .map(|d| format!("{}", counts(d.to_radians())))
+        .collect();
+    let lag = format!("{SERVO_LAG_MS}");
+    let mut peer = python_peer(
+        &python,
+        "canopen_drives.py",
+        &["--start", &start.join(","), "--lag-ms", &lag],
+    );
+    let lines = lines_of(peer.stdout.take().unwrap());
+    assert_eq!(
+        lines.recv_timeout(Duration::from_secs(60)).as_deref(),
+        Ok("ready")
+    );
+    let config = config_with(
+        LAGGING_RATE_HZ,
+        &format!("[canopen]\nheartbeat_ms = {PEER_HEARTBEAT_MS}\n"),
+    );
+    let json = scratch("lagging-drives.json");
+    let (report, ok) = finish_run(spawn_run(&config, &json), &json);
+    let seen = peer_summary(&mut peer, &lines);
+    let scale = COUNTS_PER_TURN / std::f64::consts::TAU;
+    let drives_following_deg = seen["drives"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| d["max_following"].as_f64().unwrap() / scale)
+        .fold(0.0_f64, f64::max)
+        .to_degrees();
+    println!(
+        "--- lagging python canopen drives ({SERVO_LAG_MS} ms, booted at {BOOT_DEG:?} deg): {} after {} cycles at {LAGGING_RATE_HZ} Hz; tracking error max {:.3} deg (the drives measured {drives_following_deg:.3} deg); missed cycles {}, feedback timeouts {}, TPDO gaps {}, jitter p99 {:.0} us; fault {}; peer: {} SYNCs, {} with targets, longest interval {:.1} ms",
+        report["outcome"],
+        report["cycles"],
+        number(&report, "tracking_error_max_deg"),
+        report["missed_cycles"],
+        report["feedback_timeouts"],
+        report["gaps"],
+        number(&report, "jitter_p99_us"),
+        report["fault"],
+        seen["syncs"],
+        seen["streamed_syncs"],
+        seen["longest_interval_s"].as_f64().unwrap_or_default() * 1e3,
+    );
+    assert!(ok, "{report}");
+    assert_eq!(report["outcome"], "completed", "{report}");
+    let tracking = number(&report, "tracking_error_max_deg");
+    assert!(tracking <= PATH_TOLERANCE_DEG, "{report}");
+    // What the drives measured themselves is printed, not compared: an interpreter under
+    // emulation answers some SYNCs a cycle late, which no bus-side figure can tell from
+    // the servo (tests/stream.rs compares the two where the timing is exact).
+    assert_drives_took_only_feasible_targets(&seen, LAGGING_RATE_HZ);
+}
+
+/// Every target a Python drive took was within its axis' limits, speed and acceleration,
+/// beyond rounding to counts (one count a step, two a second difference).
+fn assert_drives_took_only_feasible_targets(seen: &serde_json::Value, rate_hz: f64) {
+    let rig = irb120();
+    let dt = 1.0 / rate_hz;
+    let scale = COUNTS_PER_TURN / std::f64::consts::TAU;
+    for (axis, drive) in seen["drives"].as_array().unwrap().iter().enumerate() {
+        let limits = rig.joints[axis].limits;
+        assert!(drive["targets"].as_u64().unwrap() > 0, "{drive}");
+        let (lowest, highest) = (
+            drive["lowest"].as_f64().unwrap(),
+            drive["highest"].as_f64().unwrap(),
+        );
+        assert!(
+            lowest >= (limits.lower * scale).floor(),
+            "axis {}: {drive}",
+            axis + 1
+        );
+        assert!(
+            highest <= (limits.upper * scale).ceil(),
+            "axis {}: {drive}",
+            axis + 1
+        );
+        let step = drive["max_step"].as_f64().unwrap();
+        let second = drive["max_second"].as_f64().unwrap();
+        assert!(step <= limits.max_speed * scale * dt + 1.0, "{drive}");
+        assert!(
+            second <= limits.max_acceleration * scale * dt * dt + 2.0,
+            "{drive}"
+        );
+    }
+}
+
 #[test]
 fn a_python_canopen_master_moves_the_twins_drives() {
     let Some((_one, python)) = on_the_bus_with_python() else {
@@ -544,6 +663,31 @@ fn a_python_canopen_master_moves_the_twins_drives() {
         "faults",
     ] {
         assert_eq!(twin_count(&summary, what), 0.0, "{what}: {summary}");
+    }
+}
+
+/// No drive on the bus: the link names the node that did not answer, the interface, and
+/// how (no boot-up, no SDO answer), not a silent controller.
+#[test]
+fn an_absent_node_is_named_with_its_cause() {
+    use rigbridge::link::Link;
+    let Some(_one) = on_the_bus() else { return };
+    let settings = rigbridge::daemon::config::load_run_settings(&config(RATE_HZ)).unwrap();
+    let nodes = [1, 2, 3, 4, 5, 6];
+    let link_settings =
+        rigbridge::daemon::canopen_settings(&settings, INTERFACE, &nodes, None).unwrap();
+    let link = rigbridge::link::connect_canopen(link_settings).unwrap();
+    let reason = common::wait_until("the link's reason", Duration::from_secs(30), || {
+        link.down_reason()
+    });
+    println!("--- an absent node: {reason}");
+    assert!(!link.is_up());
+    for part in [
+        "node 1 (axis 1) did not answer on vcan0",
+        "no boot-up",
+        "SDO timeout",
+    ] {
+        assert!(reason.contains(part), "{part} in {reason}");
     }
 }
 

@@ -456,10 +456,88 @@ fn normalise(name: &str, text: &str) -> Vec<String> {
     }
 }
 
+/// Where `name`'s block lies in `doc` (byte range of its content, as [`doc_section`] reads it).
+fn section_range(doc: &str, name: &str) -> Option<std::ops::Range<usize>> {
+    let content = doc_section(doc, name)?;
+    let at = doc.find(&format!(" {name} -->"))?;
+    let start = at + doc[at..].find(&content)?;
+    Some(start..start + content.len())
+}
+
+/// `doc` with every block replaced by what the code generates, and nothing else changed:
+/// the text between the blocks is copied from `doc` as it is.
+fn regenerated(doc: &str) -> String {
+    let mut blocks: Vec<(std::ops::Range<usize>, String)> = doc_blocks()
+        .into_iter()
+        .filter_map(|(name, generated)| {
+            let range = section_range(doc, name)?;
+            let content = if name.ends_with("-body") || name.ends_with("-frame") {
+                // Hex blocks keep their prose comments: only tables are rewritten whole.
+                doc[range.clone()].to_string()
+            } else {
+                generated
+            };
+            Some((range, content))
+        })
+        .collect();
+    blocks.sort_by_key(|(range, _)| range.start);
+    let mut out = String::with_capacity(doc.len());
+    let mut copied = 0;
+    for (range, content) in blocks {
+        out.push_str(&doc[copied..range.start]);
+        out.push_str(&content);
+        copied = range.end;
+    }
+    out.push_str(&doc[copied..]);
+    out
+}
+
+/// What a test runner prints, which must never land in the doc (it once did, in section 5).
+const RUNNER_OUTPUT: [&str; 5] = [
+    "stack backtrace:",
+    "panicked at",
+    "rust_begin_unwind",
+    "RUST_BACKTRACE",
+    " stdout ----",
+];
+
+/// The doc's tables can be rewritten from the code (`RIGBRIDGE_REGENERATE_DOC=1`): only the
+/// blocks change, from the generator's strings, through a file renamed into place; the doc
+/// never holds anything a test runner prints.
+#[test]
+fn doc_tables_regenerate_in_place_and_hold_nothing_else() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/docs/protocol.md");
+    let doc = std::fs::read_to_string(path).expect("docs/protocol.md");
+    for mark in RUNNER_OUTPUT {
+        assert!(
+            !doc.contains(mark),
+            "docs/protocol.md holds test output: {mark}"
+        );
+    }
+    let again = regenerated(&doc);
+    for (name, _) in doc_blocks() {
+        assert!(section_range(&again, name).is_some(), "{name} lost");
+    }
+    // Regenerating what is already regenerated changes nothing: the blocks are the only
+    // thing written.
+    assert_eq!(regenerated(&again), again);
+    if std::env::var("RIGBRIDGE_REGENERATE_DOC").as_deref() == Ok("1") && again != doc {
+        let temporary = format!("{path}.regenerated");
+        std::fs::write(&temporary, &again).unwrap();
+        std::fs::rename(&temporary, path).unwrap();
+    }
+}
+
 #[test]
 fn doc_examples_and_figures_match_the_code() {
     let doc = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/docs/protocol.md"))
         .expect("docs/protocol.md");
+    for mark in RUNNER_OUTPUT {
+        assert!(
+            !doc.contains(mark),
+            "docs/protocol.md holds test output: {mark}"
+        );
+    }
     let mut drifted = Vec::new();
     for (name, generated) in doc_blocks() {
         let in_doc = doc_section(&doc, name);

@@ -141,6 +141,16 @@ impl Outcome {
 /// Starts the controller with `controller_args`, runs `rigbridge run` against it (default
 /// job, wall clock) and collects what both said.
 fn run_against(name: &str, controller_args: &[&str], bridge_limit: Duration) -> Outcome {
+    run_against_with(name, controller_args, &[], bridge_limit)
+}
+
+/// [`run_against`] with `bridge_args` added to the bridge's `rigbridge run`.
+fn run_against_with(
+    name: &str,
+    controller_args: &[&str],
+    bridge_args: &[&str],
+    bridge_limit: Duration,
+) -> Outcome {
     let _guard = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let dir = TempDir::new(name);
     let summary_path = dir.0.join("summary.json");
@@ -206,6 +216,7 @@ fn run_against(name: &str, controller_args: &[&str], bridge_limit: Duration) -> 
         .arg(&report_path)
         .arg("--log")
         .arg(dir.0.join("run.mcap"))
+        .args(bridge_args)
         .stdin(Stdio::null())
         .stdout(std::fs::File::create(&bridge_out).unwrap())
         .stderr(std::fs::File::create(&bridge_err).unwrap())
@@ -565,6 +576,56 @@ fn controller_reset_mid_job_is_resumed_from_the_held_position() {
     // the unbound controller.
     assert!(run.count("dropped_unbound") <= 3, "{ctx}");
     assert!(run.count("accepted") > 1000, "{ctx}");
+}
+
+/// 6.5/6.6/6.8 read as one rule: after a hold the reference is the held setpoint. A
+/// strict controller whose servo lags by 50 ms (a 3.18 Hz first-order servo: its measured
+/// position settles onto the setpoint for 12 cycles) accepts every first target after the
+/// resume, since the bridge plans from a position at rest within 6.8's test.
+#[test]
+fn a_50_ms_servo_lag_refuses_no_first_target_after_a_resume() {
+    skip_without_python!("a_50_ms_servo_lag_refuses_no_first_target_after_a_resume");
+    // 1 / (2 pi 50 ms).
+    let bandwidth_hz = format!("{:.4}", 1.0 / (std::f64::consts::TAU * 0.050));
+    // The shipped settings with a path tolerance that covers a 50 ms servo and the
+    // controller's 12 ms transport delay on the star's fastest axis (3.4 rad/s: 12 deg).
+    let config = std::env::temp_dir().join(format!(
+        "rigbridge-conformance-{}-lagging.toml",
+        std::process::id()
+    ));
+    let shipped = std::fs::read_to_string(manifest_dir().join("config/rigbridge.toml")).unwrap();
+    let rig = manifest_dir().join("config/irb120.toml");
+    std::fs::write(
+        &config,
+        shipped
+            .replacen(
+                "rig = \"irb120.toml\"",
+                &format!("rig = {:?}", rig.display().to_string()),
+                1,
+            )
+            .replacen("[stream]\n", "[stream]\npath_tolerance_deg = 20.0\n", 1),
+    )
+    .unwrap();
+    let run = run_against_with(
+        "lagging-reset",
+        &[
+            "--local-reset-after",
+            "600",
+            "--bandwidth-hz",
+            &bandwidth_hz,
+        ],
+        &["--config", config.to_str().unwrap()],
+        Duration::from_secs(90),
+    );
+    let _ = std::fs::remove_file(&config);
+    let ctx = run.context();
+    assert_eq!(run.count("local_resets"), 1, "{ctx}");
+    assert_eq!(run.outcome(), Some("completed"), "{ctx}");
+    assert!(
+        run.summary["refused"].as_array().unwrap().is_empty(),
+        "{ctx}"
+    );
+    assert!(run.bridge.success(), "bridge exit code: {ctx}");
 }
 
 #[test]

@@ -146,6 +146,30 @@ fn the_bridge_drives_six_twin_servos_through_the_default_job_over_a_pty() {
     // the job completing with nothing refused at the servos is.
 }
 
+/// A servo id that is not on the bus: the link says which id did not answer its ping, and
+/// on which line (not that a controller kept silent).
+#[test]
+fn an_absent_servo_id_is_named_by_its_ping() {
+    let _cycles = one_at_a_time();
+    let settings = shipped_run_settings();
+    // The bus has 1 to 5 and 7; the link asks for 1 to 6.
+    let twin = twin_bus_of(&settings, &[1, 2, 3, 4, 5, 7]);
+    let link_settings =
+        dynamixel_settings(&settings, &twin.path, 1_000_000, &IDS).expect("link settings");
+    let link = connect_dynamixel(link_settings).expect("link");
+    let reason = common::wait_until("the link's reason", PATIENCE, || link.down_reason());
+    println!("{reason}");
+    assert!(!link.is_up());
+    assert!(
+        reason.contains(&format!("id 6 (axis 6) did not answer its ping"))
+            && reason.contains(&twin.path),
+        "{reason}"
+    );
+    drop(link);
+    twin.control.stop.store(true, Ordering::SeqCst);
+    let _ = twin.thread.join();
+}
+
 #[test]
 fn a_servo_hardware_error_stops_the_job_with_a_drive_fault() {
     let _cycles = one_at_a_time();

@@ -46,7 +46,7 @@ const LANES: usize = 2;
 const MAX_RUNS: u64 = 80;
 /// The bridge's test of "at rest" (docs/protocol.md 6.8): two feedbacks within this share
 /// of `a_max T^2` on every axis.
-const AT_REST_SHARE: f64 = 0.1;
+const AT_REST_SHARE: f64 = 0.01;
 /// Float rounding of the wire's 1e-6 integers in the step and acceleration checks.
 const WIRE_SLACK: f64 = 2.5e-6;
 /// A feedback reaches the bridge's cycle at most a cycle after the proxy forwards it (the

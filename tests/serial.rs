@@ -18,6 +18,31 @@ impl Drop for TwinProcess {
     }
 }
 
+/// A serial device that does not exist: the run ends naming it, not a silent controller.
+#[test]
+fn a_missing_serial_device_is_named() {
+    let path = format!("/dev/rigbridge-no-such-tty-{}", std::process::id());
+    let (log, report) = (
+        scratch_file("serial", "missing.mcap"),
+        scratch_file("serial", "missing.json"),
+    );
+    let output = common::cli::spawn_run(
+        &["--link", &format!("serial://{path}?baud=115200")],
+        &log,
+        &report,
+    )
+    .wait_with_output()
+    .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    println!("{}", stderr.trim());
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains(&format!("no such device {path}")),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("Hello"), "{stderr}");
+}
+
 #[test]
 fn a_job_over_a_pty_at_115200_baud_completes_within_limits() {
     let mut child = rigbridge()

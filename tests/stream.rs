@@ -5,7 +5,8 @@ mod common;
 
 use common::irb120;
 use rigbridge::clock::VirtualClock;
-use rigbridge::link::LoopbackLink;
+use rigbridge::link::{Link, LinkCounters, LinkError, LoopbackLink};
+use rigbridge::protocol::{AxisValues, Command, ControllerStatus, Feedback};
 use rigbridge::rig::Rig;
 use rigbridge::stream::{
     CycleRecord, CycleSink, Outcome, StreamControl, StreamError, StreamReport, StreamSettings,
@@ -353,5 +354,123 @@ fn a_second_stream_on_the_same_session_numbers_on_and_is_followed() {
             .0
             .iter()
             .any(|r| r.feedback.is_some_and(|f| f.seq > last))
+    );
+}
+
+/// CiA 402 drives in cyclic synchronous position, as the CANopen link sees them: at each
+/// SYNC a drive measures its position (the feedback), then takes the cycle's target, and
+/// follows it as a servo does (a first-order lag). So a feedback echoing target k was
+/// measured while the drive held target k - 1: the pipeline's cycle is not a tracking error.
+struct MeasuringBeforeTaking {
+    position: Vec<f64>,
+    held: Vec<f64>,
+    /// Share of the distance to the held target covered each cycle: 1 - exp(-T / lag).
+    step: f64,
+    pending: Option<Feedback>,
+    seq: u32,
+    moving: bool,
+    /// The drives' own figure: the largest |measured - target held when measured|, rad.
+    following_max: f64,
+}
+
+impl MeasuringBeforeTaking {
+    fn booted_at(start: &[f64], lag: std::time::Duration) -> Self {
+        Self {
+            position: start.to_vec(),
+            held: start.to_vec(),
+            step: 1.0 - (-PERIOD / lag.as_secs_f64()).exp(),
+            pending: None,
+            seq: 0,
+            moving: false,
+            following_max: 0.0,
+        }
+    }
+
+    /// One SYNC: the servo's period under the held target, then the measurement.
+    fn sync(&mut self) -> Vec<f64> {
+        for (p, h) in self.position.iter_mut().zip(&self.held) {
+            *p += (h - *p) * self.step;
+            self.following_max = self.following_max.max((*p - h).abs());
+        }
+        self.position.clone()
+    }
+
+    fn answer(&mut self, measured: &[f64]) {
+        self.pending = Some(Feedback {
+            seq: self.seq,
+            positions: AxisValues::from_slice(measured).unwrap(),
+            status: if self.moving {
+                ControllerStatus::Ok
+            } else {
+                ControllerStatus::Holding
+            },
+        });
+    }
+}
+
+impl Link for MeasuringBeforeTaking {
+    fn send(&mut self, command: &Command) -> Result<(), LinkError> {
+        let measured = self.sync();
+        match command {
+            Command::Target(target) => {
+                self.held = target.positions.as_slice().to_vec();
+                self.seq = target.seq;
+                self.moving = true;
+            }
+            _ => self.moving = false,
+        }
+        self.answer(&measured);
+        Ok(())
+    }
+
+    fn receive(&mut self, _: std::time::Duration) -> Result<Option<Feedback>, LinkError> {
+        Ok(self.pending.take())
+    }
+
+    fn counters(&self) -> LinkCounters {
+        LinkCounters::default()
+    }
+
+    fn describe(&self) -> String {
+        "drives measuring before taking".into()
+    }
+
+    fn measured_cycles_behind(&self) -> u32 {
+        1
+    }
+}
+
+/// Drives with an 8 ms servo lag that measure at the SYNC handing them the next target: the
+/// report's tracking error is what the drives themselves measured (position against the
+/// target held when measuring), the pipeline's cycle left out, and the following check
+/// judges the same thing, so the job completes.
+#[test]
+fn tracking_is_judged_against_the_target_a_drive_held_when_it_measured() {
+    let rig = irb120();
+    // Axis 1 through 2 rad in 1.2 s: 2.6 rad/s at its fastest.
+    let trajectory = sweep(&rig, 2.0, 301);
+    let mut drives = MeasuringBeforeTaking::booted_at(&START, std::time::Duration::from_millis(8));
+    let report = stream(
+        &trajectory,
+        &rig,
+        &mut drives,
+        &VirtualClock::new(),
+        &mut Recorded::default(),
+        &StreamControl::default(),
+        &settings(&rig),
+    )
+    .unwrap();
+    let measured_deg = drives.following_max.to_degrees();
+    println!(
+        "tracking error: report {:.4} deg, the drives {measured_deg:.4} deg",
+        report.tracking_error_max_deg
+    );
+    assert_eq!(report.outcome, Outcome::Completed, "{report:?}");
+    // 2.6 rad/s over an 8 ms lag: about 1.2 deg; the pipeline's 4 ms would add 0.6.
+    assert!(measured_deg > 0.5, "the drives lag: {measured_deg}");
+    assert!(
+        (report.tracking_error_max_deg - measured_deg).abs() < 1e-9,
+        "the report says {} deg, the drives measured {measured_deg} deg",
+        report.tracking_error_max_deg
     );
 }

@@ -314,6 +314,7 @@ fn a_twin_that_never_comes_back_aborts_the_job_with_a_message() {
         &json,
     );
     wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
+    let address = twin.address.trim_start_matches("tcp://").to_string();
     drop(twin);
     let output = daemon.wait_with_output().unwrap();
     std::fs::remove_file(&config).unwrap();
@@ -325,15 +326,40 @@ fn a_twin_that_never_comes_back_aborts_the_job_with_a_message() {
     );
     let report = read_json(&json);
     assert_eq!(report["outcome"], "link_lost", "{report}");
+    // Nothing listens where the twin was: the bridge's reconnects are refused, and the
+    // fault says so, naming the address (a silent controller would be another message).
     let fault = report["fault"].as_str().unwrap();
     assert!(
-        fault.contains("did not answer the bridge's Hello") && fault.contains("aborted"),
+        fault.contains(&format!("connection refused at {address}")) && fault.contains("aborted"),
         "{fault}"
     );
+    assert!(!fault.contains("Hello"), "{fault}");
     assert!(
         !read_log(&log).unwrap().truncated,
         "the log is closed properly"
     );
+}
+
+/// Nothing listens at the address: the run ends saying the connection was refused there,
+/// not that a controller kept silent.
+#[test]
+fn a_refused_connection_is_named_with_its_address() {
+    let address = {
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        listener.local_addr().unwrap()
+    };
+    let (log, json) = (scratch("refused.mcap"), scratch("refused.json"));
+    let output = spawn_run(&format!("tcp://{address}"), &log, &json)
+        .wait_with_output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    println!("{}", stderr.trim());
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains(&format!("connection refused at {address}")),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("Hello"), "{stderr}");
 }
 
 #[test]

@@ -24,7 +24,7 @@ pub const START_HOLD_TIMEOUT: Duration = Duration::from_secs(2);
 /// The arm counts as at rest when two feedbacks in a row differ by at most this share of
 /// `a_max T^2` on every axis: the first target after a hold must lie within `a_max T^2`
 /// of the held position (docs/protocol.md 6.6), and a settling servo is that close then.
-const AT_REST_SHARE: f64 = 0.1;
+const AT_REST_SHARE: f64 = 0.01;
 /// Positions travel as integers of 1e-6 rad (or m) (docs/protocol.md 1): an axis held on
 /// its limit is reported as the integer nearest it, up to half of this beyond.
 const WIRE_QUANTUM: f64 = 1e-6;
@@ -106,8 +106,17 @@ pub fn wait_for_hold(
     }
 }
 
+/// Why the wait for a hold at rest ended: the link's own reason when it never came up
+/// (connection refused, no such device, a node that did not answer), a silent controller
+/// only when the transport opened and nothing answered the Hello.
 fn timed_out(link: &dyn Link, was_up: bool, timeout: Duration) -> String {
-    if was_up {
+    if let Some(reason) = link.down_reason().filter(|_| !link.is_up()) {
+        format!(
+            "no session with {} for {:.1} s: {reason}",
+            link.describe(),
+            timeout.as_secs_f64()
+        )
+    } else if was_up {
         format!(
             "{} did not hold at rest within {:.1} s",
             link.describe(),

@@ -125,6 +125,9 @@ impl Device for Canopen {
     const NAME: &'static str = "CANopen";
     const TARGET_FIELD: &'static str = "target position (0x607A) counts";
     const TARGET_RANGE: &'static str = "a drive's 32-bit position range";
+    /// A synchronous TPDO samples the position at the SYNC (CiA 301 7.3.2.2), the SYNC at
+    /// which the drive takes the cycle's target: it was measured under the target before.
+    const MEASURED_CYCLES_BEHIND: u32 = 1;
 
     fn axes(&self) -> &[AxisTicks] {
         &self.settings.axes
@@ -237,6 +240,10 @@ pub struct Bus {
     heard: Vec<(usize, String)>,
     /// Whether the drives should be operational (after NMT start).
     operational: bool,
+    /// Node ids heard booting (a heartbeat with NMT state 0) since the bus opened.
+    booted: Vec<u8>,
+    /// The last SDO request went unanswered (all its attempts): the node is silent.
+    unanswered: bool,
 }
 
 impl Bus {
@@ -249,6 +256,8 @@ impl Bus {
             started: Instant::now(),
             heard: Vec::new(),
             operational: false,
+            booted: Vec::new(),
+            unanswered: false,
         })
     }
 
@@ -296,6 +305,14 @@ impl Bus {
         }
     }
 
+    /// Reads whatever has arrived, noting EMCYs and heartbeats and dropping the rest: what
+    /// answers a SYNC arrives after it.
+    fn discard_stale(&mut self, shared: &Shared) -> Result<(), BusError> {
+        let now = Instant::now();
+        while self.next_frame(shared, now)?.is_some() {}
+        Ok(())
+    }
+
     /// Notes an EMCY or heartbeat of one of our drives; true when the frame was one.
     fn observe(&mut self, shared: &Shared, frame: &CanPayload) -> bool {
         let (function, node) = cob::split(frame.id);
@@ -322,6 +339,9 @@ impl Bus {
             }
             cob::HEARTBEAT if data.len() == 1 => {
                 let state = data[0] & 0x7F;
+                if state == nmt_state::BOOT_UP && !self.booted.contains(&node) {
+                    self.booted.push(node);
+                }
                 let confirmed = match self.heartbeats.get_mut(axis) {
                     Some(entry) => {
                         let was = entry.1;
@@ -355,6 +375,7 @@ impl Bus {
         at: (u16, u8),
     ) -> Result<SdoAnswer, BusError> {
         let node = shared.device.settings.nodes[axis];
+        self.unanswered = false;
         for _ in 0..SDO_ATTEMPTS {
             self.send(shared, cob::SDO_RX + u32::from(node), &request)?;
             let deadline = Instant::now() + SDO_TIMEOUT;
@@ -383,11 +404,13 @@ impl Bus {
                 }
             }
         }
+        self.unanswered = true;
         Err(BusError::Lost(format!(
-            "node {node} (axis {}): no SDO answer for {:#06x}:{}",
+            "node {node} (axis {}) did not answer: SDO timeout on {:#06x}:{} ({SDO_ATTEMPTS} tries of {} ms)",
             axis + 1,
             at.0,
-            at.1
+            at.1,
+            SDO_TIMEOUT.as_millis()
         )))
     }
 
@@ -444,6 +467,24 @@ fn node_text(shared: &Shared, axis: usize) -> String {
     )
 }
 
+/// A node that said nothing within [`BOOT_PATIENCE`] of NMT reset communication, in words:
+/// whether it booted, and that it left its SDO unanswered.
+fn silent_node(bus: &Bus, shared: &Shared, axis: usize) -> BusError {
+    let node = shared.device.settings.nodes[axis];
+    let boot = if bus.booted.contains(&node) {
+        "booted, then"
+    } else {
+        "no boot-up and"
+    };
+    BusError::Lost(format!(
+        "node {node} (axis {}) did not answer on {}: {boot} no SDO answer to {:#06x}:0 within {:.1} s of NMT reset communication (SDO timeout)",
+        axis + 1,
+        shared.device.settings.interface,
+        object::DEVICE_TYPE,
+        BOOT_PATIENCE.as_secs_f64()
+    ))
+}
+
 /// NMT reset communication, then each drive read until it answers, its device type checked.
 fn reset_communication(bus: &mut Bus, shared: &Shared) -> Result<(), BusError> {
     bus.operational = false;
@@ -455,7 +496,10 @@ fn reset_communication(bus: &mut Bus, shared: &Shared) -> Result<(), BusError> {
         let device_type = loop {
             match bus.read(shared, axis, (object::DEVICE_TYPE, 0), false) {
                 Ok(value) => break value,
-                Err(BusError::Lost(_)) if started.elapsed() < BOOT_PATIENCE => {}
+                Err(BusError::Lost(_)) if bus.unanswered && started.elapsed() < BOOT_PATIENCE => {}
+                Err(BusError::Lost(_)) if bus.unanswered => {
+                    return Err(silent_node(bus, shared, axis));
+                }
                 Err(e) => return Err(e),
             }
         };
@@ -869,6 +913,9 @@ fn sync_cycle(bus: &mut Bus, shared: &Shared, cycle: &mut Cycle) -> Result<bool,
     {
         shared.device.overruns.fetch_add(1, Ordering::Relaxed);
     }
+    // A TPDO still queued answered an earlier SYNC (its cycle counted it missing): read as
+    // this SYNC's, every later cycle's feedback would be one SYNC older than it says.
+    bus.discard_stale(shared)?;
     bus.send(shared, cob::SYNC, &[])?;
     shared.device.syncs.fetch_add(1, Ordering::Relaxed);
     cycle.last_sync = Some(now);

@@ -39,12 +39,22 @@ pub struct LinkShared {
     /// the I/O thread are stale and never sent.
     pub stale_up_to: AtomicU32,
     pub controller_hello: Mutex<Option<Hello>>,
+    /// Why the transport did not open or connect the last time it was tried (cleared when
+    /// it does): what [`Link::down_reason`] says.
+    pub problem: Mutex<Option<String>>,
     /// The cycle asks the I/O thread to close and reopen the transport.
     pub restart: tokio::sync::Notify,
     pub closed: AtomicBool,
 }
 
 impl LinkShared {
+    /// Records why the transport did not open (or `None`: it did).
+    pub fn set_problem(&self, problem: Option<String>) {
+        if let Ok(mut slot) = self.problem.lock() {
+            *slot = problem;
+        }
+    }
+
     pub fn counters(&self) -> LinkCounters {
         let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
         LinkCounters {
@@ -206,6 +216,10 @@ impl Link for ChannelLink {
 
     fn controller_hello(&self) -> Option<Hello> {
         self.shared.controller_hello.lock().ok()?.clone()
+    }
+
+    fn down_reason(&self) -> Option<String> {
+        self.shared.problem.lock().ok()?.clone()
     }
 
     fn sessions(&self) -> u64 {

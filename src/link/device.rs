@@ -87,6 +87,9 @@ pub trait Device: Send + Sync + Sized + 'static {
     /// Begins the session ([`Hub::begin_session`]) and runs cycles until loss, a Reset that
     /// needs a new set-up, or the link is dropped.
     fn run(&self, bus: &mut Self::Bus, hub: &Hub<Self>, start: Self::Start);
+    /// How many targets before the one a cycle's feedback echoes its positions were
+    /// measured against ([`super::Link::measured_cycles_behind`]).
+    const MEASURED_CYCLES_BEHIND: u32 = 0;
     /// Latches `fault` with `text` (every one, by default).
     fn latch(hub: &Hub<Self>, fault: Fault, text: &str) {
         hub.latch(fault, text);
@@ -464,6 +467,14 @@ impl<D: Device> Link for DeviceLink<D> {
 
     fn sessions(&self) -> u64 {
         self.hub.lock().sessions
+    }
+
+    fn measured_cycles_behind(&self) -> u32 {
+        D::MEASURED_CYCLES_BEHIND
+    }
+
+    fn down_reason(&self) -> Option<String> {
+        self.problem()
     }
 
     fn restart(&mut self) {

@@ -167,7 +167,7 @@ impl Bus {
     fn open(settings: &SerialSettings) -> Result<Self, BusError> {
         let port = settings
             .open()
-            .map_err(|e| BusError::Lost(format!("cannot open {}: {e}", settings.path)))?;
+            .map_err(|e| BusError::Lost(settings.open_failure(&e)))?;
         Ok(Self {
             port,
             decoder: PacketDecoder::default(),
@@ -252,7 +252,16 @@ impl Bus {
             }
             return Ok(data.to_vec());
         }
-        Err(BusError::Lost(format!("servo id {id} did not answer")))
+        let asked = if instruction == instruction::PING {
+            "its ping".to_string()
+        } else {
+            format!("instruction {instruction:#04x}")
+        };
+        Err(BusError::Lost(format!(
+            "id {id} (axis {}) did not answer {asked} ({SETUP_ATTEMPTS} tries) on {}",
+            axis + 1,
+            shared.device.settings.serial.path
+        )))
     }
 
     fn read_register(

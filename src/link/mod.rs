@@ -161,4 +161,18 @@ pub trait Link: Send {
     fn pacing(&self) -> Option<std::sync::Arc<dyn crate::clock::Clock>> {
         None
     }
+    /// Why the link is not up, when it knows: the transport's or a device's own failure
+    /// the last time it tried (connection refused, no such device, a node that did not
+    /// answer). `None` when it has none to give (a controller that accepted the
+    /// connection and is silent).
+    fn down_reason(&self) -> Option<String> {
+        None
+    }
+    /// How many targets before the one a feedback echoes its position was measured
+    /// against: 0 when the controller takes a target and then measures; 1 on CANopen, where
+    /// a drive measures at the SYNC that hands it the next target (its pipeline delay,
+    /// which is no tracking error).
+    fn measured_cycles_behind(&self) -> u32 {
+        0
+    }
 }

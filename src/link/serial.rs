@@ -48,7 +48,8 @@ async fn keep_open(settings: SerialSettings, mut ends: IoEnds, session: BridgeSe
     while !ends.shared.closed.load(Ordering::SeqCst) {
         let port = match settings.open() {
             Ok(port) => port,
-            Err(_) => {
+            Err(e) => {
+                ends.shared.set_problem(Some(settings.open_failure(&e)));
                 tokio::time::sleep(backoff.next_wait()).await;
                 continue;
             }
@@ -58,6 +59,7 @@ async fn keep_open(settings: SerialSettings, mut ends: IoEnds, session: BridgeSe
         }
         sessions += 1;
         backoff.reset();
+        ends.shared.set_problem(None);
         while ends.commands.try_recv().is_ok() {}
         while answers.try_recv().is_ok() {}
         let Ok(reader) = port.try_clone() else {

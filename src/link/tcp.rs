@@ -58,6 +58,7 @@ async fn keep_connected(settings: TcpSettings, mut ends: IoEnds, mut bridge: Bri
                 }
                 sessions += 1;
                 backoff.reset();
+                ends.shared.set_problem(None);
                 let _ = stream.set_nodelay(true);
                 while ends.commands.try_recv().is_ok() {}
                 ends.shared.connected.store(true, Ordering::SeqCst);
@@ -68,10 +69,21 @@ async fn keep_connected(settings: TcpSettings, mut ends: IoEnds, mut bridge: Bri
                     return;
                 }
             }
-            Err(_) => {
+            Err(e) => {
+                ends.shared
+                    .set_problem(Some(connect_failure(&settings.address, &e)));
                 tokio::time::sleep(backoff.next_wait()).await;
             }
         }
+    }
+}
+
+/// Why a connection to `address` failed: a refusal (nothing listens there) in those words,
+/// anything else with the system's.
+fn connect_failure(address: &str, error: &std::io::Error) -> String {
+    match error.kind() {
+        std::io::ErrorKind::ConnectionRefused => format!("connection refused at {address}"),
+        _ => format!("cannot connect to {address}: {error}"),
     }
 }
 

@@ -5,16 +5,17 @@
 //! JointTrajectoryController does. It judges feedback only; it must not send anything.
 
 use super::StreamSettings;
-use crate::protocol::{AxisValues, ControllerStatus, Feedback, JointTarget, MAX_AXES};
+use crate::protocol::{AxisValues, ControllerStatus, Feedback, MAX_AXES};
 use crate::rig::{JointKind, Rig};
 use std::time::Duration;
 
 /// How far the arm may be from what was commanded, per axis (rad or m).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Tolerances {
-    /// While moving: measured against the target sent in the same cycle, so it must
-    /// cover the controller's lag (the twin's 12 ms delay and 20 Hz servo reach about
-    /// 6 deg at 250 deg/s).
+    /// While moving: measured against the target the controller held when it measured
+    /// (the one its feedback echoes, or the one before on a link whose devices measure
+    /// before taking the next), so it must cover the servo's lag (the twin's 12 ms delay
+    /// and 20 Hz servo reach about 6 deg at 250 deg/s), not the pipeline's.
     pub path: AxisValues,
     /// At the end, against the last target.
     pub goal: AxisValues,
@@ -104,11 +105,13 @@ impl Follow {
         }
     }
 
-    /// `finished`: the path's end was reached and the last target is being held.
+    /// `target`: what the controller held when it measured `feedback` (the streamer's
+    /// `held_when_measured`). `finished`: the path's end was reached and the last target is
+    /// being held.
     pub(super) fn check(
         &mut self,
         feedback: Option<&Feedback>,
-        target: &JointTarget,
+        target: &AxisValues,
         finished: bool,
         now: Duration,
     ) -> Verdict {
@@ -155,7 +158,7 @@ impl Follow {
         None
     }
 
-    fn goal(&mut self, feedback: &Feedback, target: &JointTarget, now: Duration) -> Verdict {
+    fn goal(&mut self, feedback: &Feedback, target: &AxisValues, now: Duration) -> Verdict {
         let since = *self.goal_since.get_or_insert(now);
         let limit = &self.tolerances.goal;
         // Words only once they end the stream: the cycles of settling at the goal allocate
@@ -177,11 +180,11 @@ impl Follow {
     fn worst_axis(
         &self,
         feedback: &Feedback,
-        target: &JointTarget,
+        target: &AxisValues,
         limit: &AxisValues,
     ) -> Option<usize> {
         let actual = feedback.positions.as_slice();
-        let commanded = target.positions.as_slice();
+        let commanded = target.as_slice();
         let mut worst: Option<(usize, f64)> = None;
         for axis in 0..commanded.len().min(actual.len()) {
             let off = (actual[axis] - commanded[axis]).abs();
@@ -199,11 +202,11 @@ impl Follow {
         &self,
         axis: usize,
         feedback: &Feedback,
-        target: &JointTarget,
+        target: &AxisValues,
         limit: &AxisValues,
     ) -> String {
         let actual = feedback.positions.as_slice();
-        let commanded = target.positions.as_slice();
+        let commanded = target.as_slice();
         let off = (actual[axis] - commanded[axis]).abs();
         let allowed = limit.as_slice().get(axis).copied().unwrap_or(0.0);
         if self.revolute.get(axis).copied().unwrap_or(true) {

@@ -34,7 +34,7 @@ pub use phase::{Halting, Phase};
 use crate::clock::Clock;
 use crate::link::{Link, LinkCounters, LinkError, LinkEvent};
 use crate::motion::{Trajectory, TrajectoryError, validate};
-use crate::protocol::{Command, ControllerStatus, Fault, Feedback, JointTarget};
+use crate::protocol::{AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget};
 use crate::rig::{JointKind, Rig};
 use follow::Follow;
 use serde::Serialize;
@@ -48,6 +48,9 @@ const HISTOGRAM_CEILING_US: usize = 100_000;
 const START_FEEDBACK_TIMEOUT: Duration = Duration::from_millis(200);
 /// Send times kept for matching feedback to its target (by seq modulo this).
 const SEND_TIMES: usize = 256;
+/// Targets kept for judging a feedback against the target its controller held when it
+/// measured (by seq modulo this): more than any link's [`Link::measured_cycles_behind`].
+const HELD_TARGETS: usize = 8;
 
 #[derive(Debug, Error)]
 pub enum StreamError {
@@ -417,8 +420,10 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
             ..*settings
         };
         let period = trajectory.period;
+        let mut cycle = Cycle::new(trajectory, rig, settings);
+        cycle.behind = link.measured_cycles_behind().min(HELD_TARGETS as u32 - 1);
         Ok(Run {
-            cycle: Cycle::new(trajectory, rig, settings),
+            cycle,
             trajectory,
             rig,
             link,
@@ -549,7 +554,10 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
         let (cycle, link, clock, control) =
             (&mut self.cycle, &mut *self.link, self.clock, self.control);
         let feedback = await_echo(link, target.seq, cycle.feedback_timeout)?.or(late);
-        let latency_us = cycle.record_feedback(feedback.as_ref(), &target, clock.now());
+        // What the feedback is judged against, by the tracking figure and the following
+        // check alike: the target the controller held when it measured.
+        let reference = feedback.map_or(target.positions, |f| cycle.held_when_measured(&f));
+        let latency_us = cycle.record_feedback(feedback.as_ref(), &reference, clock.now());
         self.sink.record(&CycleRecord {
             target,
             feedback,
@@ -567,7 +575,7 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
         }
         let verdict = cycle
             .follow
-            .check(feedback.as_ref(), &target, finished, clock.now());
+            .check(feedback.as_ref(), &reference, finished, clock.now());
         if let Some(outcome) = cycle.conclude(verdict, finished) {
             if outcome != Outcome::Completed {
                 link.send(&Command::Stop)?;
@@ -709,6 +717,13 @@ struct Cycle {
     revolute: Vec<bool>,
     fault: Option<String>,
     sent_at: [Duration; SEND_TIMES],
+    /// The targets sent last, by seq modulo [`HELD_TARGETS`], and where the arm stood
+    /// before the first (the trajectory's start, checked against the controller).
+    held: [(u32, AxisValues); HELD_TARGETS],
+    start: AxisValues,
+    /// Cycles between the target a feedback echoes and the one its position was measured
+    /// against ([`Link::measured_cycles_behind`]).
+    behind: u32,
     silent_cycles: u32,
     max_silent_cycles: u32,
     first_seq: u32,
@@ -722,11 +737,15 @@ struct Cycle {
 
 impl Cycle {
     fn new(trajectory: &Trajectory, rig: &Rig, settings: &StreamSettings) -> Self {
+        let start = brake::sample_at(trajectory, 0.0, 0.0).0;
         Self {
             seq: settings.first_seq,
             first_seq: settings.first_seq,
             last_echo: None,
             sent_at: [Duration::ZERO; SEND_TIMES],
+            held: [(settings.first_seq, start); HELD_TARGETS],
+            start,
+            behind: 0,
             silent_cycles: 0,
             max_silent_cycles: settings.max_silent_cycles,
             path: 0.0,
@@ -869,6 +888,7 @@ impl Cycle {
         }
         self.sent.before_previous = self.sent.previous.map(|(p, _)| p);
         self.sent.previous = Some((positions, velocities));
+        self.held[self.seq as usize % HELD_TARGETS] = (self.seq, positions);
         Some(JointTarget {
             seq: self.seq,
             t: f64::from(self.seq) * dt,
@@ -877,12 +897,28 @@ impl Cycle {
         })
     }
 
+    /// The target the controller held when it measured `feedback`'s position: the one
+    /// [`Cycle::behind`] before the seq it echoes (a CiA 402 drive measures at the SYNC that
+    /// hands it the next target), the start before this stream's first target. A feedback
+    /// older than the targets kept is judged against the newest sent.
+    fn held_when_measured(&self, feedback: &Feedback) -> AxisValues {
+        let wanted = feedback.seq.wrapping_sub(self.behind);
+        if wanted.wrapping_sub(self.first_seq).wrapping_sub(1) >= 1 << 31 {
+            return self.start;
+        }
+        match self.held[wanted as usize % HELD_TARGETS] {
+            (seq, positions) if seq == wanted => positions,
+            _ => self.held[self.seq as usize % HELD_TARGETS].1,
+        }
+    }
+
     /// Latency runs from sending the target a feedback echoes to receiving that feedback;
-    /// returns it (us) when this cycle measured one.
+    /// returns it (us) when this cycle measured one. The tracking error is `feedback`
+    /// against `reference`, what the following check judges it against.
     fn record_feedback(
         &mut self,
         feedback: Option<&Feedback>,
-        target: &JointTarget,
+        reference: &AxisValues,
         now: Duration,
     ) -> Option<f64> {
         let Some(feedback) = feedback else {
@@ -903,8 +939,7 @@ impl Cycle {
             latency_us = Some(micros);
             self.last_echo = Some(feedback.seq);
         }
-        for ((commanded, actual), revolute) in target
-            .positions
+        for ((commanded, actual), revolute) in reference
             .as_slice()
             .iter()
             .zip(feedback.positions.as_slice())

@@ -39,6 +39,46 @@ impl SerialSettings {
             .timeout(READ_TIMEOUT)
             .open()
     }
+
+    /// Why [`SerialSettings::open`] failed, naming the device: a missing device and a
+    /// refused permission in those words, anything else with the system's.
+    pub fn open_failure(&self, error: &serialport::Error) -> String {
+        use serialport::ErrorKind;
+        match error.kind() {
+            ErrorKind::Io(std::io::ErrorKind::NotFound) => format!("no such device {}", self.path),
+            ErrorKind::Io(std::io::ErrorKind::PermissionDenied) => {
+                format!("permission denied opening {}", self.path)
+            }
+            _ => format!("cannot open {}: {error}", self.path),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serialport::{Error, ErrorKind};
+    use std::io::ErrorKind as Io;
+
+    /// What the system says when opening fails, in words naming the device (a permission
+    /// cannot be refused to the root user these tests run as, so the error is made here).
+    #[test]
+    fn open_failures_name_the_device_and_the_cause() {
+        let settings = SerialSettings::new("/dev/ttyUSB7", 115_200);
+        let said = |kind| settings.open_failure(&Error::new(kind, "from the system"));
+        assert_eq!(
+            said(ErrorKind::Io(Io::NotFound)),
+            "no such device /dev/ttyUSB7"
+        );
+        assert_eq!(
+            said(ErrorKind::Io(Io::PermissionDenied)),
+            "permission denied opening /dev/ttyUSB7"
+        );
+        assert_eq!(
+            said(ErrorKind::NoDevice),
+            "cannot open /dev/ttyUSB7: from the system"
+        );
+    }
 }
 
 /// How long a read waits before the reader checks whether the link was closed.

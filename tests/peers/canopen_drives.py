@@ -6,19 +6,24 @@ server, the NMT slave and heartbeat producer, the PDO maps as the master configu
 through SDO (read back with RemoteNode-style `pdo.read()` at NMT start). This script adds
 only what a drive's firmware would: boot-up and pre-operational after an NMT reset, the
 CiA 402 power state machine on the controlword, and cyclic synchronous position: at each
-SYNC the last RPDO's target is taken (the drive follows it at once) and the TPDO goes out.
+SYNC the position is measured and the TPDO goes out, then the last RPDO's target is taken.
+With `--lag-ms 0` the drive is at the target it took by the next SYNC; with `--lag-ms T` it
+follows as a servo does, a first-order lag of time constant T over each interpolation
+period (0x60C2), so the position measured at a SYNC lags the target taken at the one before.
 
 It records what the master did and prints one JSON object when it ends (SIGTERM or
 --seconds): the order of the SDO writes (checked against the CiA 301 PDO remapping
 procedure), the mode and period written, the controlwords, the largest step and second
-difference of the targets per axis (counts per SYNC), SYNC intervals, and errors.
+difference of the targets per axis (counts per SYNC), the lowest and highest target, the
+largest |position measured - target held when measured| (counts), SYNC intervals, and errors.
 
 usage: canopen_drives.py --channel vcan0 --eds FILE --nodes 1,2,3 --start C1,C2,C3
-                         [--seconds S] [--fault-after-syncs N --fault-axis A]
+                         [--lag-ms T] [--seconds S] [--fault-after-syncs N --fault-axis A]
 """
 
 import argparse
 import json
+import math
 import signal
 import struct
 import sys
@@ -37,7 +42,7 @@ FAULT = 0x0218
 
 
 class Drive:
-    def __init__(self, network, node_id, eds, start):
+    def __init__(self, network, node_id, eds, start, lag_s):
         self.node = canopen.LocalNode(node_id, eds)
         network.add_node(self.node)
         self.network = network
@@ -45,6 +50,15 @@ class Drive:
         self.status = SWITCH_ON_DISABLED
         self.controlword = 0
         self.actual = start
+        # Where the position is, unrounded: the servo's own state.
+        self.position = float(start)
+        self.lag_s = lag_s
+        # 0x60C2 sub 1 and 2, the EDS's defaults until written: 1 ms.
+        self.interpolation = [1, -3]
+        self.target = None
+        self.lowest = None
+        self.highest = None
+        self.max_following = 0
         self.history = [start, start]
         self.max_step = 0
         self.max_second = 0
@@ -70,6 +84,8 @@ class Drive:
         self.writes.append([index, subindex, value])
         if index == 0x6060:
             self.node.set_data(0x6061, 0, data)
+        if index == 0x60C2:
+            self.interpolation[subindex - 1] = value
         if index == 0x6040:
             self.on_controlword(value, "sdo")
 
@@ -95,6 +111,7 @@ class Drive:
             nxt = s
         if nxt == ENABLED and s != ENABLED:
             self.history = [self.actual, self.actual]
+            self.target = None
         self.status = nxt
         self.store()
 
@@ -113,19 +130,36 @@ class Drive:
         elif command in (0x02, 0x80):
             self.operational = False
 
+    def period_s(self):
+        """The interpolation period 0x60C2 as the master wrote it (s)."""
+        return self.interpolation[0] * 10.0 ** self.interpolation[1]
+
+    def servo(self):
+        """One interpolation period of following the target taken at the last SYNC."""
+        if self.target is None or self.status != ENABLED:
+            return
+        if self.lag_s > 0:
+            self.position += (self.target - self.position) * (1 - math.exp(-self.period_s() / self.lag_s))
+        else:
+            self.position = float(self.target)
+        self.actual = int(round(self.position))
+        self.max_following = max(self.max_following, abs(self.actual - self.target))
+        self.store()
+
     def on_sync(self):
         if not self.operational:
             return
+        self.servo()
+        if self.tpdo is not None and self.tpdo.enabled and 1 <= self.tpdo.trans_type <= 240:
+            self.tpdo["Statusword"].raw = self.status
+            self.tpdo["Position actual value"].raw = int(self.actual)
+            self.tpdo.transmit()
         rpdo = self.rpdo
         if rpdo is not None and rpdo.is_received:
             rpdo.is_received = False
             self.on_controlword(rpdo["Controlword"].raw, "rpdo")
             if self.status == ENABLED:
                 self.take(rpdo["Target position"].raw)
-        if self.tpdo is not None and self.tpdo.enabled and 1 <= self.tpdo.trans_type <= 240:
-            self.tpdo["Statusword"].raw = self.status
-            self.tpdo["Position actual value"].raw = int(self.actual)
-            self.tpdo.transmit()
 
     def take(self, target):
         before, last = self.history
@@ -133,8 +167,9 @@ class Drive:
         self.max_second = max(self.max_second, abs(target - 2 * last + before))
         self.history = [last, target]
         self.targets += 1
-        self.actual = target
-        self.store()
+        self.target = target
+        self.lowest = target if self.lowest is None else min(self.lowest, target)
+        self.highest = target if self.highest is None else max(self.highest, target)
 
     def fault(self):
         self.status = FAULT
@@ -149,6 +184,7 @@ def main():
     parser.add_argument("--eds", required=True)
     parser.add_argument("--nodes", required=True)
     parser.add_argument("--start", required=True)
+    parser.add_argument("--lag-ms", type=float, default=0.0)
     parser.add_argument("--seconds", type=float, default=120.0)
     parser.add_argument("--fault-after-syncs", type=int, default=0)
     parser.add_argument("--fault-axis", type=int, default=1)
@@ -157,7 +193,7 @@ def main():
     starts = [int(c) for c in args.start.split(",")]
     network = canopen.Network()
     network.connect(interface="socketcan", channel=args.channel)
-    drives = [Drive(network, n, args.eds, s) for n, s in zip(nodes, starts)]
+    drives = [Drive(network, n, args.eds, s, args.lag_ms / 1e3) for n, s in zip(nodes, starts)]
     syncs = []
     streamed = [0]
     faulted_at = [None]
@@ -206,6 +242,9 @@ def main():
                 "max_second": d.max_second,
                 "status": d.status,
                 "actual": d.actual,
+                "lowest": d.lowest,
+                "highest": d.highest,
+                "max_following": d.max_following,
             }
             for d in drives
         ],
