@@ -1126,9 +1126,10 @@ def parse_args(argv):
         help="after N accepted targets, reset locally once: hold, unbound, unprompted Hello",
     )
     ap.add_argument(
-        "--unprompted-hello", choices=["first", "every", "never"], default="first",
-        help="send an unprompted Hello on the first connection (the controller's start), "
-        "on every connection, or never",
+        "--unprompted-hello", choices=["first", "every", "never"], default="never",
+        help="on TCP the bridge speaks first and a controller sends no unprompted Hello when a "
+        "connection opens (6.1 step 2, 8.2); to test that the bridge ignores one anyway: on "
+        "the first connection (the controller's start) or on every connection",
     )
     ap.add_argument("--max-sessions", type=int, default=1, help="exit after N sessions (0: never)")
     a = ap.parse_args(argv)
