@@ -33,8 +33,9 @@ pub struct RunArgs {
     #[arg(long, env = "RIGBRIDGE_CONFIG", default_value = rigbridge::rig::shipped::DEFAULT_RUN_SETTINGS)]
     config: PathBuf,
     /// Where to stream (overrides the config): loopback, tcp://HOST:PORT,
-    /// serial:///dev/PATH?baud=N, can://IFACE or egm://ADDR:PORT[?robot=HOST:PORT] (bind, as an
-    /// ABB EGM sensor answering only that robot: docs/egm.md).
+    /// serial:///dev/PATH?baud=N, can://IFACE or egm://ADDR:PORT[?robot=HOST:PORT&mode=pose]
+    /// (bind, as an ABB EGM sensor answering only that robot, streaming joints or, with
+    /// mode=pose, tool poses: docs/egm.md).
     #[arg(long)]
     link: Option<String>,
     /// Record the run to this MCAP file (default: runs/run-<unix time>-<pid>.mcap).
