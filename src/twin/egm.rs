@@ -533,10 +533,9 @@ impl EgmRobotModel {
     /// acceleration and a repeat of a moving reference: what the sensor sent, not refused.
     fn observe(&mut self, positions: &[f64]) {
         let dt = self.settings.period.as_secs_f64();
-        let Some(last) = self.history[1].as_deref() else {
-            return;
-        };
-        let before = self.history[0].as_deref();
+        // A session's first reference steps from where the arm is.
+        let last = self.history[1].as_deref().unwrap_or(&self.position);
+        let before = self.history[1].as_deref().and(self.history[0].as_deref());
         let mut over_speed = false;
         let mut over_acceleration = false;
         for (axis, limits) in self.limits.iter().enumerate() {
