@@ -53,6 +53,16 @@ pub struct TwinArgs {
     /// EGM: EGMActJoint MaxSpeedDeviation, deg/s.
     #[arg(long, default_value_t = 25.0)]
     max_speed_deviation_deg_s: f64,
+    /// EGM: EGMActJoint \LpFilter, Hz (0: no filter).
+    #[arg(long, default_value_t = 20.0)]
+    lp_filter_hz: f64,
+    /// EGM: EGMRunJoint \PosCorrGain, 0 to 1.
+    #[arg(long, default_value_t = 1.0)]
+    pos_corr_gain: f64,
+    /// EGM: pose mode (EGMActPose): follow planned.cartesian, solving the joints with the
+    /// project's IK, instead of joint mode.
+    #[arg(long)]
+    pose: bool,
     /// EGM: start with the motors off.
     #[arg(long)]
     motors_off: bool,
@@ -255,7 +265,7 @@ fn egm_twin(
     sensor: &str,
     settings: &rigbridge::daemon::config::RunSettings,
 ) -> anyhow::Result<ExitCode> {
-    use rigbridge::twin::egm::{EgmRobotModel, EgmTwin, EgmTwinControl, EgmTwinSettings};
+    use rigbridge::twin::egm::{EgmMode, EgmRobotModel, EgmTwin, EgmTwinControl, EgmTwinSettings};
     let address = sensor.strip_prefix("udp://").unwrap_or(sensor);
     let sensor: std::net::SocketAddr = address
         .parse()
@@ -265,10 +275,20 @@ fn egm_twin(
         comm_timeout: Duration::from_millis(args.comm_timeout_ms),
         gain_per_s: std::f64::consts::TAU * settings.config.twin.bandwidth_hz,
         max_speed_deviation: args.max_speed_deviation_deg_s.to_radians(),
+        lp_filter_hz: args.lp_filter_hz,
+        pos_corr_gain: args.pos_corr_gain,
+        delay: settings.twin_delay(),
+        mode: if args.pose {
+            EgmMode::Pose
+        } else {
+            EgmMode::Joint
+        },
         motors_on: !args.motors_off,
     };
     let axes = settings.config.egm.axes(&settings.file, &settings.rig)?;
-    let model = EgmRobotModel::new(&settings.rig, axes, egm, &settings.initial())?;
+    let solver = rigbridge::ik::FabrikSolver::new(settings.rig.clone())?;
+    let model = EgmRobotModel::new(&settings.rig, axes, egm, &settings.initial())?
+        .with_pose_solver(Box::new(solver));
     let mut twin = EgmTwin::new(model, sensor)?;
     let local = twin.local_address().context("no local address")?;
     say(&format!("udp://{local} -> udp://{sensor}"));
@@ -291,16 +311,18 @@ fn egm_twin(
     twin.run(&control);
     let c = twin.model().counters;
     eprintln!(
-        "EGM twin stopped: {} messages, {} replies; cycles with one reply {}, none {}, several {}; {} outside limits, {} over speed, {} over acceleration, {} wrong axis count; {} comm timeouts, {} sessions, {} host stalls",
+        "EGM twin stopped: {} messages, {} replies; cycles with one reply {}, none {}, several {}; refused: {} outside limits, {} wrong axis count, {} poses out of reach; followed: {} over speed, {} over acceleration, {} repeated; {} comm timeouts, {} sessions, {} host stalls",
         c.messages_sent,
         c.replies,
         c.cycles_one_reply,
         c.cycles_no_reply,
         c.cycles_several_replies,
         c.outside_limits,
+        c.axis_count,
+        c.unreachable,
         c.over_speed,
         c.over_acceleration,
-        c.axis_count,
+        c.repeated,
         c.comm_timeouts,
         c.sessions,
         c.host_stalls

@@ -339,7 +339,11 @@ fn connect_link(
             nodes,
             *counts_per_turn,
         )?)?),
-        LinkSpec::Egm { address, robot } => {
+        LinkSpec::Egm {
+            address,
+            robot,
+            mode,
+        } => {
             let axes = settings
                 .config
                 .egm
@@ -350,7 +354,8 @@ fn connect_link(
                 axes,
                 settings.period(),
                 *robot,
-            );
+            )
+            .in_mode(*mode);
             Box::new(crate::link::bind_egm(address, egm).map_err(LinkError::Io)?)
         }
     })

@@ -121,6 +121,18 @@ pub trait IkSolver {
     }
 }
 
+/// Any solver is the EGM twin's controller kinematics in pose mode: the joints nearest the
+/// reference before, within limits, verified by forward kinematics.
+impl<T: IkSolver + Send> crate::twin::egm::PoseSolver for T {
+    fn solve_pose(
+        &self,
+        pose: &Pose,
+        seed: &[f64],
+    ) -> Result<Vec<f64>, Box<dyn std::error::Error + Send + Sync>> {
+        Ok(self.solve(pose, seed)?.joints)
+    }
+}
+
 /// Checks a seed has the rig's joint count and finite values. Seeds outside the limits are
 /// accepted: they only say where to search from.
 fn check_seed(rig: &Rig, seed: &[f64]) -> Result<(), IkError> {

@@ -1,11 +1,17 @@
-//! The EGM link: rigbridge as the sensor of ABB's Externally Guided Motion, joint mode.
+//! The EGM link: rigbridge as the sensor of ABB's Externally Guided Motion, in joint mode
+//! or (`egm://...?mode=pose`) pose mode.
 //!
 //! The robot controller sends an EgmRobot every EGM cycle (4 ms) to the address this link
 //! binds; an I/O thread answers each one at once with exactly one EgmSensor, sent to the
 //! EgmRobot's source address: header seqno +1 per message, `tm` in ms, MSGTYPE_CORRECTION,
 //! `planned.joints` in degrees and `speedRef.joints` in deg/s (docs/egm.md). A rig with
 //! more axes than the robot's six sends the others as external axes (`externalJoints`,
-//! degrees or mm) as [`EgmAxes`] lays them out.
+//! degrees or mm) as [`EgmAxes`] lays them out. In pose mode the answer carries the
+//! tool's pose at the target instead (`planned.cartesian`, mm and a unit quaternion in the
+//! robot's base frame, with `speedRef.cartesians`): the forward kinematics of the very
+//! joint target the streamer's gate checked (limits, speed, acceleration), so the joints
+//! behind every pose sent are within the limits; the controller's IK, seeded where its last
+//! reference was, finds those joints again.
 //!
 //! The robot's messages are the clock: [`EgmLink::pacing`] hands out an [`EgmClock`] whose
 //! time advances one stream period per EgmRobot, so the streamer's cycle follows the
@@ -27,7 +33,9 @@
 use super::egm_guard::{RobotGuard, Verdict};
 use super::{Link, LinkCounters, LinkError, LinkEvent};
 use crate::clock::Clock;
-use crate::protocol::egm::{EgmAxes, EgmRobot, EgmSensor, MciState, MotorState, RapidState};
+use crate::protocol::egm::{
+    EgmAxes, EgmKinematics, EgmMode, EgmRobot, EgmSensor, MciState, MotorState, RapidState,
+};
 use crate::protocol::{AxisValues, Command, ControllerStatus, Feedback, JointTarget};
 use prost::Message;
 use std::collections::VecDeque;
@@ -72,6 +80,10 @@ pub struct EgmLinkSettings {
     pub max_speeds: Vec<f64>,
     /// The robot named by `?robot=`: the only source taken. `None`: the first to send.
     pub robot: Option<SocketAddr>,
+    /// Joint references, or (`?mode=pose`) the tool's poses.
+    pub mode: EgmMode,
+    /// The rig, for pose mode's forward kinematics.
+    pub rig: crate::rig::Rig,
 }
 
 impl EgmLinkSettings {
@@ -89,7 +101,14 @@ impl EgmLinkSettings {
             names: rig.joint_names().map(String::from).collect(),
             max_speeds: rig.joints.iter().map(|j| j.limits.max_speed).collect(),
             robot,
+            mode: EgmMode::Joint,
+            rig: rig.clone(),
         }
+    }
+
+    /// The same settings streaming in `mode`.
+    pub fn in_mode(self, mode: EgmMode) -> Self {
+        Self { mode, ..self }
     }
 }
 
@@ -188,7 +207,8 @@ struct Shared {
     changed: Condvar,
     closed: AtomicBool,
     period: Duration,
-    axes: EgmAxes,
+    kinematics: EgmKinematics,
+    mode: EgmMode,
 }
 
 impl Shared {
@@ -215,6 +235,8 @@ pub fn bind_egm(address: &str, settings: EgmLinkSettings) -> std::io::Result<Egm
         names,
         max_speeds,
         robot,
+        mode,
+        rig,
     } = settings;
     let socket = UdpSocket::bind(address)?;
     socket.set_read_timeout(Some(POLL))?;
@@ -258,7 +280,8 @@ pub fn bind_egm(address: &str, settings: EgmLinkSettings) -> std::io::Result<Egm
         changed: Condvar::new(),
         closed: AtomicBool::new(false),
         period,
-        axes,
+        kinematics: EgmKinematics { rig, axes },
+        mode,
     });
     let io = shared.clone();
     let thread = super::spawn_io_thread("rigbridge-egm", move || serve(&socket, &io))?;
@@ -266,12 +289,25 @@ pub fn bind_egm(address: &str, settings: EgmLinkSettings) -> std::io::Result<Egm
         shared,
         seen: 0,
         local,
-        description: match robot {
-            Some(robot) => format!("egm://{address}?robot={robot}"),
-            None => format!("egm://{address}"),
-        },
+        description: describe(address, robot, mode),
         thread: Some(thread),
     })
+}
+
+/// The link as `egm://` writes it.
+fn describe(address: &str, robot: Option<SocketAddr>, mode: EgmMode) -> String {
+    let mut options = Vec::new();
+    if let Some(robot) = robot {
+        options.push(format!("robot={robot}"));
+    }
+    if mode == EgmMode::Pose {
+        options.push("mode=pose".to_string());
+    }
+    if options.is_empty() {
+        format!("egm://{address}")
+    } else {
+        format!("egm://{address}?{}", options.join("&"))
+    }
 }
 
 impl EgmLink {
@@ -493,7 +529,14 @@ fn serve(socket: &UdpSocket, shared: &Shared) {
         seqno = seqno.wrapping_add(1);
         let tm = u32::try_from(started.elapsed().as_millis() % (1 << 32)).unwrap_or(0);
         out.clear();
-        let message = EgmSensor::joint_correction(seqno, tm, &shared.axes, &reply.0, &reply.1);
+        let message = match shared.mode {
+            EgmMode::Joint => {
+                EgmSensor::joint_correction(seqno, tm, &shared.kinematics.axes, &reply.0, &reply.1)
+            }
+            EgmMode::Pose => {
+                EgmSensor::pose_correction(seqno, tm, &shared.kinematics, &reply.0, &reply.1)
+            }
+        };
         if message.encode(&mut out).is_ok() && socket.send_to(&out, from).is_ok() {
             let micros = arrived.elapsed().as_micros() as usize;
             let mut session = shared.lock();
@@ -517,6 +560,7 @@ fn answer(
         .as_ref()
         .and_then(|r| {
             shared
+                .kinematics
                 .axes
                 .join(r.feedback_joints()?, r.feedback_external())
         })
@@ -545,7 +589,8 @@ fn answer(
     let (robot, actual) = message?;
     note_robot(&mut session, robot, arrived, new_run);
     let ready = session.state.ready();
-    let (positions, speeds) = next_reference(&mut session, ready, *actual, shared.axes.dof());
+    let (positions, speeds) =
+        next_reference(&mut session, ready, *actual, shared.kinematics.axes.dof());
     session.time.tick(ready, shared.period, arrived);
     session.feedback = Some(Feedback {
         seq: session.last_played,

@@ -283,6 +283,7 @@ mod tests {
             }),
             feed_back: Some(EgmFeedBack {
                 joints: None,
+                cartesian: None,
                 external_joints: None,
                 time: Some(EgmClock {
                     sec: time_us / 1_000_000,

@@ -1,5 +1,5 @@
 //! Link addresses as users write them: `loopback`, `tcp://HOST:PORT`,
-//! `serial:///dev/PATH?baud=N`, `can://IFACE`, `egm://ADDR:PORT[?robot=HOST:PORT]` (rigbridge
+//! `serial:///dev/PATH?baud=N`, `can://IFACE`, `egm://ADDR:PORT[?robot=HOST:PORT&mode=joint|pose]` (rigbridge
 //! as an ABB EGM sensor, bound to ADDR:PORT, answering only the robot at HOST:PORT when
 //! named), `dynamixel:///dev/PATH?baud=N&ids=1,2,...` (rigbridge as
 //! the Dynamixel Protocol 2.0 master of one servo per axis, ids in axis order),
@@ -27,10 +27,12 @@ pub enum LinkSpec {
     },
     /// The UDP address to bind, such as `0.0.0.0:6510`, and the robot controller's address
     /// and port (`?robot=`), the only source the session takes; without it, the first robot
-    /// to send is (docs/egm.md).
+    /// to send is (docs/egm.md); `?mode=pose` streams tool poses (RAPID's EGMActPose)
+    /// rather than joints.
     Egm {
         address: String,
         robot: Option<std::net::SocketAddr>,
+        mode: crate::protocol::egm::EgmMode,
     },
     /// CiA 402 drives on a SocketCAN interface: node ids in axis order, and the counts a
     /// turn of every axis (when given; `[canopen]` in the config may set them per axis).
@@ -43,7 +45,7 @@ pub enum LinkSpec {
 
 /// Every link address form, as the command line's help and a bad address's error list
 /// them: one text, so a new scheme cannot be left out of either.
-pub const LINK_FORMS: &str = "loopback, tcp://HOST:PORT, serial:///dev/PATH?baud=N, can://IFACE, egm://ADDR:PORT[?robot=HOST:PORT], dynamixel:///dev/PATH?baud=N&ids=1,2,... or canopen://IFACE?nodes=1,2,...[&counts_per_turn=N]";
+pub const LINK_FORMS: &str = "loopback, tcp://HOST:PORT, serial:///dev/PATH?baud=N, can://IFACE, egm://ADDR:PORT[?robot=HOST:PORT&mode=joint|pose], dynamixel:///dev/PATH?baud=N&ids=1,2,... or canopen://IFACE?nodes=1,2,...[&counts_per_turn=N]";
 
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 #[error("link `{text}`: {reason} (expected {LINK_FORMS})")]
@@ -113,23 +115,32 @@ impl FromStr for LinkSpec {
     }
 }
 
-/// `ADDR:PORT?robot=HOST:PORT`: the address to bind, and the robot's (optional). Both are
-/// IP addresses: a name would be resolved to whatever a name server says.
+/// `ADDR:PORT?robot=HOST:PORT&mode=joint|pose`: the address to bind, the robot's (optional)
+/// and what is streamed (joints when absent). Both addresses are IP addresses: a name would
+/// be resolved to whatever a name server says.
 fn parse_egm(rest: &str) -> Result<LinkSpec, &'static str> {
+    use crate::protocol::egm::EgmMode;
     let (address, query) = rest.split_once('?').unwrap_or((rest, ""));
     if address.parse::<std::net::SocketAddr>().is_err() {
         return Err("needs an IP address and port to bind, such as 0.0.0.0:6510");
     }
-    let robot = match query.split_once('=') {
-        None if query.is_empty() => None,
-        Some(("robot", robot)) => Some(robot.parse().map_err(|_| {
-            "robot= needs the robot controller's IP address and the port it sends from, such as robot=192.168.125.1:6510"
-        })?),
-        _ => return Err("the only option is robot=HOST:PORT"),
-    };
+    let mut robot = None;
+    let mut mode = EgmMode::Joint;
+    for option in query.split('&').filter(|o| !o.is_empty()) {
+        match option.split_once('=') {
+            Some(("robot", value)) => robot = Some(value.parse().map_err(|_| {
+                "robot= needs the robot controller's IP address and the port it sends from, such as robot=192.168.125.1:6510"
+            })?),
+            Some(("mode", "joint")) => mode = EgmMode::Joint,
+            Some(("mode", "pose")) => mode = EgmMode::Pose,
+            Some(("mode", _)) => return Err("mode= is joint (EGMActJoint) or pose (EGMActPose)"),
+            _ => return Err("the options are robot=HOST:PORT and mode=joint|pose"),
+        }
+    }
     Ok(LinkSpec::Egm {
         address: address.to_string(),
         robot,
+        mode,
     })
 }
 
@@ -263,14 +274,24 @@ mod tests {
             "egm://0.0.0.0:6510".parse(),
             Ok(LinkSpec::Egm {
                 address: "0.0.0.0:6510".into(),
-                robot: None
+                robot: None,
+                mode: crate::protocol::egm::EgmMode::Joint,
+            })
+        );
+        assert_eq!(
+            "egm://0.0.0.0:6510?mode=pose&robot=192.168.125.1:6511".parse(),
+            Ok(LinkSpec::Egm {
+                address: "0.0.0.0:6510".into(),
+                robot: Some("192.168.125.1:6511".parse().expect("an address")),
+                mode: crate::protocol::egm::EgmMode::Pose,
             })
         );
         assert_eq!(
             "egm://0.0.0.0:6510?robot=192.168.125.1:6511".parse(),
             Ok(LinkSpec::Egm {
                 address: "0.0.0.0:6510".into(),
-                robot: Some("192.168.125.1:6511".parse().expect("an address"))
+                robot: Some("192.168.125.1:6511".parse().expect("an address")),
+                mode: crate::protocol::egm::EgmMode::Joint,
             })
         );
         assert_eq!(
@@ -301,6 +322,7 @@ mod tests {
             "egm://0.0.0.0:6510?robot=controller:6511",
             "egm://0.0.0.0:6510?robot=192.168.125.1",
             "egm://0.0.0.0:6510?peer=192.168.125.1:6511",
+            "egm://0.0.0.0:6510?mode=cartesian",
             "tcp://nohost",
             "tcp://h:99999",
             "serial://dev/x",

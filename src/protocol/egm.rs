@@ -10,10 +10,14 @@
 //! `externalJoints` ([`EgmAxes`]), and the unit conversions (degrees; mm on linear axes);
 //! it must not know about streaming or sessions.
 //!
+//! The robot's pose travels as egm.proto's EgmPose: `pos` in mm, `orient` a unit quaternion
+//! (`u0` the scalar part), relative to the robot's base frame ([`robot_pose`]).
+//!
 //! Written by hand rather than generated: a `prost-build` step would need `protoc` on every
 //! machine before `cargo clippy`, and a copy of ABB's file in this repository.
 
-use crate::rig::{JointKind, Rig};
+use crate::rig::{JointKind, Pose, Rig};
+use glam::{DAffine3, DQuat, DVec3};
 use prost::Message;
 use thiserror::Error;
 
@@ -24,6 +28,16 @@ pub const MAX_ROBOT_JOINTS: usize = 6;
 pub const MAX_EXTERNAL_AXES: usize = 6;
 /// Millimetres a metre: EGM gives linear axes in mm (and mm/s).
 const MM_PER_M: f64 = 1000.0;
+
+/// What the sensor streams: joint references (RAPID's EGMActJoint / EGMRunJoint, EGMSetupUC
+/// `\Joint`) or tool poses (EGMActPose / EGMRunPose, `\Pose`), which the controller solves
+/// into joints itself.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum EgmMode {
+    #[default]
+    Joint,
+    Pose,
+}
 
 /// proto2 repeated scalars are not packed unless declared so, and egm.proto does not.
 #[derive(Clone, PartialEq, Message)]
@@ -62,13 +76,88 @@ pub struct EgmClock {
     pub usec: u64,
 }
 
+/// egm.proto's EgmCartesian: "Cartesian position in mm" (every field required).
+#[derive(Clone, PartialEq, Message)]
+pub struct EgmCartesian {
+    #[prost(double, required, tag = "1")]
+    pub x: f64,
+    #[prost(double, required, tag = "2")]
+    pub y: f64,
+    #[prost(double, required, tag = "3")]
+    pub z: f64,
+}
+
+/// egm.proto's EgmQuaternion: u0 the scalar part, u1..u3 x, y, z (every field required).
+#[derive(Clone, PartialEq, Message)]
+pub struct EgmQuaternion {
+    #[prost(double, required, tag = "1")]
+    pub u0: f64,
+    #[prost(double, required, tag = "2")]
+    pub u1: f64,
+    #[prost(double, required, tag = "3")]
+    pub u2: f64,
+    #[prost(double, required, tag = "4")]
+    pub u3: f64,
+}
+
+/// egm.proto's EgmPose: "Pose (i.e. cartesian position and Quaternion orientation) relative
+/// to the correction frame defined by EGMActPose". Its field 3 (Euler angles, which take
+/// priority when a sensor sends both) is not sent; a received one is skipped.
+#[derive(Clone, PartialEq, Message)]
+pub struct EgmPose {
+    #[prost(message, optional, tag = "1")]
+    pub pos: Option<EgmCartesian>,
+    #[prost(message, optional, tag = "2")]
+    pub orient: Option<EgmQuaternion>,
+}
+
+impl EgmPose {
+    /// `pose` (m, unit quaternion) on the wire: mm and the quaternion w first.
+    pub fn from_pose(pose: &Pose) -> Self {
+        let (p, q) = (pose.position * MM_PER_M, pose.orientation);
+        Self {
+            pos: Some(EgmCartesian {
+                x: p.x,
+                y: p.y,
+                z: p.z,
+            }),
+            orient: Some(EgmQuaternion {
+                u0: q.w,
+                u1: q.x,
+                u2: q.y,
+                u3: q.z,
+            }),
+        }
+    }
+
+    /// The pose in metres, `None` without a position or an orientation. The quaternion is
+    /// as sent: whether it is a unit one is the reader's check.
+    pub fn to_pose(&self) -> Option<Pose> {
+        let (p, q) = (self.pos.as_ref()?, self.orient.as_ref()?);
+        Some(Pose::new(
+            DVec3::new(p.x, p.y, p.z) / MM_PER_M,
+            DQuat::from_xyzw(q.u1, q.u2, q.u3, q.u0),
+        ))
+    }
+}
+
+/// egm.proto's EgmCartesianSpeed: "Array of 6 speed reference values in mm/s or degrees/s"
+/// (the tool's linear x, y, z then angular x, y, z).
+#[derive(Clone, PartialEq, Message)]
+pub struct EgmCartesianSpeed {
+    #[prost(double, repeated, packed = "false", tag = "1")]
+    pub value: Vec<f64>,
+}
+
 /// egm.proto's EgmPlanned (the robot's planned or the sensor's commanded position) and
-/// EgmFeedBack (the measured position): the same fields, joints 1, cartesian 2 (not used
-/// here), external joints 3 and time 4, so one struct serves both.
+/// EgmFeedBack (the measured position): the same fields, joints 1, cartesian 2, external
+/// joints 3 and time 4, so one struct serves both.
 #[derive(Clone, PartialEq, Message)]
 pub struct EgmJointPosition {
     #[prost(message, optional, tag = "1")]
     pub joints: Option<EgmJoints>,
+    #[prost(message, optional, tag = "2")]
+    pub cartesian: Option<EgmPose>,
     #[prost(message, optional, tag = "3")]
     pub external_joints: Option<EgmJoints>,
     #[prost(message, optional, tag = "4")]
@@ -78,11 +167,13 @@ pub struct EgmJointPosition {
 pub type EgmPlanned = EgmJointPosition;
 pub type EgmFeedBack = EgmJointPosition;
 
-/// Speed references, deg/s in joint mode; field 2 (cartesians) is not used here.
+/// Speed references: deg/s in joint mode, mm/s and deg/s of the tool in pose mode.
 #[derive(Clone, PartialEq, Message)]
 pub struct EgmSpeedRef {
     #[prost(message, optional, tag = "1")]
     pub joints: Option<EgmJoints>,
+    #[prost(message, optional, tag = "2")]
+    pub cartesians: Option<EgmCartesianSpeed>,
     #[prost(message, optional, tag = "3")]
     pub external_joints: Option<EgmJoints>,
 }
@@ -195,6 +286,72 @@ impl EgmRobot {
     pub fn seqno(&self) -> Option<u32> {
         self.header.as_ref().and_then(|h| h.seqno)
     }
+
+    /// The measured tool pose (m), when the message has one.
+    pub fn feedback_pose(&self) -> Option<Pose> {
+        self.feed_back.as_ref()?.cartesian.as_ref()?.to_pose()
+    }
+
+    /// The planned tool pose (m), when the message has one.
+    pub fn planned_pose(&self) -> Option<Pose> {
+        self.planned.as_ref()?.cartesian.as_ref()?.to_pose()
+    }
+}
+
+/// Time step of the numerical derivative that turns joint speeds into the tool's speed: 1 ms
+/// of motion, small enough that the curvature of the tool's path at the IRB 120's speeds
+/// changes the result by well under 0.1 %, large enough that rounding does not matter.
+const SPEED_STEP_S: f64 = 1e-3;
+
+/// The robot's kinematics as EGM sees them: the rig, and which of its axes are the robot's.
+/// Poses are the rig's tool frame (tool0 for the shipped IRB 120) in the robot's base frame:
+/// the frame before the robot's first joint, which the external axes before it (a track, a
+/// lift) carry. With `\Tool:=tool0 \WObj:=wobj0` and the correction frame EGM_FRAME_BASE at
+/// no offset (docs/egm.md), that is the frame of EGMActPose's poses.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EgmKinematics {
+    pub rig: Rig,
+    pub axes: EgmAxes,
+}
+
+impl EgmKinematics {
+    /// The robot's base frame in the rig's base frame at `positions`.
+    fn robot_base(&self, positions: &[f64]) -> DAffine3 {
+        let first = self.axes.robot.first().copied().unwrap_or(0);
+        self.rig.joints[..first]
+            .iter()
+            .zip(positions)
+            .fold(DAffine3::IDENTITY, |frame, (joint, q)| {
+                frame * joint.transform(*q)
+            })
+    }
+
+    /// The tool's pose in the robot's base frame at `positions` (rig axes, rad and m).
+    pub fn pose(&self, positions: &[f64]) -> Pose {
+        let base = self.robot_base(positions);
+        let tool = self.rig.forward(positions).unwrap_or(DAffine3::IDENTITY);
+        Pose::from_affine(&(base.inverse() * tool))
+    }
+
+    /// The tool's speed at `positions` moving at `speeds`, as EgmCartesianSpeed carries it:
+    /// linear mm/s then angular deg/s, in the robot's base frame.
+    pub fn tool_speed(&self, positions: &[f64], speeds: &[f64]) -> [f64; 6] {
+        let ahead: Vec<f64> = positions
+            .iter()
+            .zip(speeds)
+            .map(|(q, v)| q + v * SPEED_STEP_S)
+            .collect();
+        let (now, next) = (self.pose(positions), self.pose(&ahead));
+        let linear = (next.position - now.position) * (MM_PER_M / SPEED_STEP_S);
+        let turn = next.orientation * now.orientation.conjugate();
+        // The short way round: q and -q are the same rotation.
+        let turn = if turn.w < 0.0 { -turn } else { turn };
+        let (axis, angle) = turn.to_axis_angle();
+        let angular = axis * (angle.to_degrees() / SPEED_STEP_S);
+        [
+            linear.x, linear.y, linear.z, angular.x, angular.y, angular.z,
+        ]
+    }
 }
 
 impl EgmSensor {
@@ -217,14 +374,54 @@ impl EgmSensor {
             }),
             planned: Some(EgmPlanned {
                 joints: Some(joints),
+                cartesian: None,
                 external_joints: external,
                 time: None,
             }),
             speed_ref: Some(EgmSpeedRef {
                 joints: Some(joint_speeds),
+                cartesians: None,
                 external_joints: external_speeds,
             }),
         }
+    }
+
+    /// A pose-mode correction: the tool's pose at `positions` (rig axes, rad and m) in the
+    /// robot's base frame, and its speed at `speeds`; the external axes as in joint mode.
+    pub fn pose_correction(
+        seqno: u32,
+        tm_ms: u32,
+        kinematics: &EgmKinematics,
+        positions: &[f64],
+        speeds: &[f64],
+    ) -> Self {
+        let (_, external) = kinematics.axes.split(positions);
+        let (_, external_speeds) = kinematics.axes.split(speeds);
+        Self {
+            header: Some(EgmHeader {
+                seqno: Some(seqno),
+                tm: Some(tm_ms),
+                mtype: Some(MessageType::Correction as i32),
+            }),
+            planned: Some(EgmPlanned {
+                joints: None,
+                cartesian: Some(EgmPose::from_pose(&kinematics.pose(positions))),
+                external_joints: external,
+                time: None,
+            }),
+            speed_ref: Some(EgmSpeedRef {
+                joints: None,
+                cartesians: Some(EgmCartesianSpeed {
+                    value: kinematics.tool_speed(positions, speeds).to_vec(),
+                }),
+                external_joints: external_speeds,
+            }),
+        }
+    }
+
+    /// The commanded pose (m), when the message has one with a position and an orientation.
+    pub fn planned_pose(&self) -> Option<Pose> {
+        self.planned.as_ref()?.cartesian.as_ref()?.to_pose()
     }
 
     /// The commanded joint positions, degrees, when the message has them.
