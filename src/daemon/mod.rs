@@ -595,6 +595,7 @@ pub fn stream_job_with(
         None => (resume::stream_resuming(io, job.trajectory), false),
     };
     report.stopped_in = control.halted_in();
+    control.end();
     let (log_report, log_error) = match (recorder, log) {
         (Some(recorder), Some(path)) => {
             let (written, failure) = close_log(recorder, actions, &report, path);
