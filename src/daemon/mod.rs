@@ -448,6 +448,26 @@ pub fn held_position(
     }
 }
 
+/// A trajectory that holds the arm at `position` (two samples, at rest): what an online
+/// session streams until its commands take over.
+pub fn hold_at(
+    settings: &RunSettings,
+    position: &[f64],
+) -> Result<crate::trajectory::Trajectory, DaemonError> {
+    let rig = &settings.rig;
+    let positions = [position, position].concat();
+    let velocities = vec![0.0; positions.len()];
+    let trajectory = crate::trajectory::Trajectory::new(
+        rig.name.clone(),
+        rig.joint_names().map(String::from).collect(),
+        settings.period(),
+        positions,
+        velocities,
+    )
+    .map_err(StreamError::from)?;
+    Ok(trajectory)
+}
+
 /// A job planned from where the rig is: nothing has moved yet. A job with a bad target
 /// never gets this far.
 pub struct PlannedJob {
