@@ -47,6 +47,10 @@ const LIMIT_MARGIN_M: f64 = 0.0005;
 /// Damping of the least-squares solve (m): near a singularity the joint speeds stay
 /// bounded and the tool slows down instead.
 const DLS_DAMPING: f64 = 0.01;
+/// The share of the jog speed a jog aims at: rsruckig follows a target velocity that
+/// changes each cycle (a Cartesian jog's joints) with limited jerk, so it may overshoot it by
+/// a little; the tool stays under the jog speed.
+const TRACKING_SHARE: f64 = 0.95;
 /// A velocity below this (rad/s or m/s) on every axis is at rest.
 const REST_SPEED: f64 = 1e-9;
 
@@ -88,6 +92,9 @@ pub struct OnlineCommands {
     keepalives: AtomicU64,
     /// The goal the session moves to, kept for a resume after a link loss.
     goal: Mutex<Option<AxisValues>>,
+    /// An online session holds at a goal it reached, waiting for more; a planned job whose
+    /// goal was changed ends there.
+    session: AtomicBool,
 }
 
 impl OnlineCommands {
@@ -108,6 +115,11 @@ impl OnlineCommands {
     /// The jog goes on for another [`DEADMAN`].
     pub fn keep_alive(&self) {
         self.keepalives.fetch_add(1, Ordering::SeqCst);
+    }
+
+    /// Marks an online session: a goal reached is held, not the end (see [`IDLE_END`]).
+    pub fn open_session(&self) {
+        self.session.store(true, Ordering::SeqCst);
     }
 
     /// Whether the session moves online (a command was given).
@@ -318,8 +330,15 @@ impl Online {
         } else {
             self.rest_since.get_or_insert(self.cycle);
         }
-        let finished = match self.intent {
+        let reached = match self.intent {
             Intent::Goal(goal) => !braked && !moving && self.at(&goal),
+            _ => false,
+        };
+        if reached && commands.session.load(Ordering::SeqCst) {
+            self.intent = Intent::Idle;
+        }
+        let finished = match self.intent {
+            Intent::Goal(_) => reached,
             Intent::Idle => self.rest_since.is_some_and(|since| {
                 (self.cycle - since) as f64 * self.dt >= self.settings.idle_end.as_secs_f64()
             }),
@@ -413,7 +432,7 @@ impl Online {
             .forward_with_axes(positions.as_slice(), &mut self.axes)
             .ok()?;
         let tcp = tool.translation;
-        let jog_speed = speed * self.settings.jog_speed_m_s;
+        let jog_speed = speed * self.settings.jog_speed_m_s * TRACKING_SHARE;
         let mut velocity = AxisValues::zeros(self.dof);
         match jog {
             Jog::Joint { axis, direction } => {
@@ -439,6 +458,7 @@ impl Online {
                     Frame::Tool => tool.matrix3 * direction,
                 };
                 self.cartesian(rig, tcp, direction.normalize_or_zero() * jog_speed, &mut velocity);
+                let linear = self.tool_speed(rig, tcp, &velocity);
                 let share = rig
                     .joints
                     .iter()
@@ -446,7 +466,8 @@ impl Online {
                     .map(|(joint, v)| {
                         v.abs() / (speed * self.settings.speed_scale * joint.limits.max_speed)
                     })
-                    .fold(1.0, f64::max);
+                    .fold(1.0, f64::max)
+                    .max(linear / jog_speed);
                 for v in velocity.as_mut_slice() {
                     *v /= share;
                 }
@@ -493,9 +514,35 @@ impl Online {
         }
     }
 
-    /// Whether every axis can still stop before its limit (less the margin) moving at its
-    /// present velocity and toward `wanted`.
+    /// The tool's linear speed (m/s) at joint velocities `velocity`.
+    fn tool_speed(&self, rig: &Rig, tcp: DVec3, velocity: &AxisValues) -> f64 {
+        let mut linear = DVec3::ZERO;
+        for (axis, joint) in rig.joints.iter().enumerate() {
+            let a = self.axes[axis];
+            let v = velocity.as_slice()[axis];
+            linear += match joint.kind {
+                JointKind::Revolute => a.direction.cross(tcp - a.point) * v,
+                JointKind::Prismatic => a.direction * v,
+            };
+        }
+        linear.length()
+    }
+
+    /// Whether every axis can still stop before its limit (less the margin), moving at its
+    /// present velocity or at `wanted`, whichever is faster, with the brake: all axes slow
+    /// down together, so each takes as long as the slowest to stop.
     fn clear_of_limits(&self, rig: &Rig, wanted: &AxisValues) -> bool {
+        let fastest = |axis: usize| {
+            self.velocity.as_slice()[axis]
+                .abs()
+                .max(wanted.as_slice()[axis].abs())
+        };
+        let braking = rig
+            .joints
+            .iter()
+            .enumerate()
+            .map(|(axis, joint)| fastest(axis) / (BRAKE_SHARE * joint.limits.max_acceleration))
+            .fold(0.0, f64::max);
         rig.joints.iter().enumerate().all(|(axis, joint)| {
             let limits = joint.limits;
             let v = self.velocity.as_slice()[axis];
@@ -503,16 +550,13 @@ impl Online {
             if toward == 0.0 {
                 return true;
             }
-            let brake = BRAKE_SHARE * limits.max_acceleration;
             let margin = match joint.kind {
                 JointKind::Revolute => LIMIT_MARGIN_RAD,
                 JointKind::Prismatic => LIMIT_MARGIN_M,
             };
-            let fastest = v.abs().max(wanted.as_slice()[axis].abs());
-            // Braking distance, one more cycle at this speed, and what a cycle's
-            // acceleration adds before the brake takes over.
-            let needed = fastest * fastest / (2.0 * brake)
-                + 2.0 * fastest * self.dt
+            // Braking (half the speed over the brake's time), two more cycles at this
+            // speed, and what a cycle's acceleration adds before the brake takes over.
+            let needed = fastest(axis) * (0.5 * braking + 2.0 * self.dt)
                 + limits.max_acceleration * self.dt * self.dt
                 + margin;
             let p = self.position.as_slice()[axis];

@@ -798,6 +798,7 @@ impl Cell {
         };
         let control = Arc::new(StreamControl::with_speed(self.speed.clone()));
         if let Some(command) = first {
+            control.online().open_session();
             control.online().give(command);
         }
         let actions = Arc::new(ActionLog::default());
