@@ -115,12 +115,16 @@ fn over_a_limit(settings: &RunSettings, targets: &[Received]) -> Option<String> 
             }
             let change = (v - before.velocities[axis]) / dt;
             if change.abs() > accel {
-                return Some(format!("target {k}: {name} velocity changes at {change} /s^2"));
+                return Some(format!(
+                    "target {k}: {name} velocity changes at {change} /s^2"
+                ));
             }
             if let Some(older) = k.checked_sub(2).map(|i| &targets[i]) {
                 let second = (p - 2.0 * before.positions[axis] + older.positions[axis]) / (dt * dt);
                 if second.abs() > accel {
-                    return Some(format!("target {k}: {name} second difference {second} /s^2"));
+                    return Some(format!(
+                        "target {k}: {name} second difference {second} /s^2"
+                    ));
                 }
             }
         }
@@ -182,7 +186,12 @@ fn an_override_from_100_to_10_percent_mid_job_ramps_within_acceleration_and_comp
         &control,
     )
     .unwrap();
-    assert_eq!(report.stream.outcome, Outcome::Completed, "{:?}", report.stream.fault);
+    assert_eq!(
+        report.stream.outcome,
+        Outcome::Completed,
+        "{:?}",
+        report.stream.fault
+    );
     let targets = &link.targets;
     assert_eq!(over_a_limit(&settings, targets), None);
     // The second half at a tenth of the pace: about ten times the cycles.
@@ -225,14 +234,19 @@ fn worst_acceleration_share(settings: &RunSettings, targets: &[Received]) -> f64
     let dt = settings.period().as_secs_f64();
     (2..targets.len())
         .flat_map(|k| {
-            settings.rig.joints.iter().enumerate().map(move |(axis, j)| {
-                let (a, b, c) = (
-                    targets[k - 2].positions[axis],
-                    targets[k - 1].positions[axis],
-                    targets[k].positions[axis],
-                );
-                (c - 2.0 * b + a).abs() / (dt * dt) / j.limits.max_acceleration
-            })
+            settings
+                .rig
+                .joints
+                .iter()
+                .enumerate()
+                .map(move |(axis, j)| {
+                    let (a, b, c) = (
+                        targets[k - 2].positions[axis],
+                        targets[k - 1].positions[axis],
+                        targets[k].positions[axis],
+                    );
+                    (c - 2.0 * b + a).abs() / (dt * dt) / j.limits.max_acceleration
+                })
         })
         .fold(0.0, f64::max)
 }
@@ -325,7 +339,12 @@ fn the_deadman_brings_a_jog_to_rest_within_the_stated_distance() {
             Duration::from_millis(400),
             script,
         );
-        assert_eq!(report.outcome, Outcome::Completed, "case {case}: {:?}", report.fault);
+        assert_eq!(
+            report.outcome,
+            Outcome::Completed,
+            "case {case}: {:?}",
+            report.fault
+        );
         assert_eq!(over_a_limit(&settings, &targets), None, "case {case}");
         // The last keep-alive went out before target `held`; rest: velocities all zero.
         let rest = (held..targets.len())
@@ -361,7 +380,10 @@ fn the_deadman_brings_a_jog_to_rest_within_the_stated_distance() {
         let jog_speed = rigbridge::stream::REDUCED_SPEED_M_S;
         let stated_time = 0.2 + 2.0 * dt + braking;
         let stated_distance = jog_speed * (0.2 + 2.0 * dt) + 0.5 * jog_speed * braking;
-        assert!(time <= stated_time, "case {case}: at rest {time:.3} s after release");
+        assert!(
+            time <= stated_time,
+            "case {case}: at rest {time:.3} s after release"
+        );
         assert!(
             travelled <= stated_distance,
             "case {case}: the tool went {travelled:.4} m after the last keep-alive"
@@ -450,7 +472,10 @@ fn random_goals_jogs_and_overrides_stay_within_every_limit_and_react_in_a_cycle(
             if let Some(fraction) = set {
                 speed.set(fraction);
             }
-            if matches!(command, Some(OnlineCommand::Goal(_) | OnlineCommand::Jog(_))) {
+            if matches!(
+                command,
+                Some(OnlineCommand::Goal(_) | OnlineCommand::Jog(_))
+            ) {
                 log.lock().unwrap().push(sent);
             }
             next += 1;

@@ -13,8 +13,8 @@ use crate::link::{Link, LinkEvent};
 use crate::log::Recorder;
 use crate::protocol::{Command, ControllerStatus, Feedback};
 use crate::stream::{
-    CycleSink, Executor, OnlineCommand, Outcome, Phase, StreamControl, StreamError, StreamReport, StreamSettings,
-    check_controller, fault_text, stream, stream_shared,
+    CycleSink, Executor, OnlineCommand, Outcome, Phase, StreamControl, StreamError, StreamReport,
+    StreamSettings, check_controller, fault_text, stream, stream_shared,
 };
 use crate::trajectory::Trajectory;
 use std::time::Duration;

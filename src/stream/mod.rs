@@ -589,8 +589,7 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
             link.send(&Command::Stop)?;
             return Ok(Some(Outcome::Stopped));
         }
-        let (positions, velocities, finished) =
-            cycle.next(self.control, self.trajectory, self.rig);
+        let (positions, velocities, finished) = cycle.next(self.control, self.trajectory, self.rig);
         self.control
             .halting
             .streaming(&_acknowledging, cycle.scale > 0.0);
@@ -885,11 +884,7 @@ impl Cycle {
         control: &StreamControl,
         trajectory: &Trajectory,
         rig: &Rig,
-    ) -> (
-        AxisValues,
-        AxisValues,
-        bool,
-    ) {
+    ) -> (AxisValues, AxisValues, bool) {
         if !self.online.engaged() && !control.online.given() {
             let finished = self.advance(control, trajectory, rig);
             let (positions, velocities) = brake::sample_at(trajectory, self.path, self.scale);
@@ -917,11 +912,7 @@ impl Cycle {
         if stopping && !step.moving {
             self.aborting.get_or_insert(Outcome::Stopped);
         }
-        (
-            step.positions,
-            step.velocities,
-            step.finished && !stopping,
-        )
+        (step.positions, step.velocities, step.finished && !stopping)
     }
 
     /// Moves along the path by the time scale: when stopping (or aborting) by the rate of

@@ -289,9 +289,8 @@ impl Online {
             self.velocity = velocities;
             if let Some(before) = previous_velocity {
                 for axis in 0..self.dof {
-                    self.acceleration.as_mut_slice()[axis] = (velocities.as_slice()[axis]
-                        - before.as_slice()[axis])
-                        / self.dt;
+                    self.acceleration.as_mut_slice()[axis] =
+                        (velocities.as_slice()[axis] - before.as_slice()[axis]) / self.dt;
                 }
             }
         }
@@ -375,7 +374,10 @@ impl Online {
     }
 
     fn at_rest(&self) -> bool {
-        self.velocity.as_slice().iter().all(|v| v.abs() <= REST_SPEED)
+        self.velocity
+            .as_slice()
+            .iter()
+            .all(|v| v.abs() <= REST_SPEED)
     }
 
     /// One cycle of rsruckig toward the intent; false when it must brake instead (a limit
@@ -414,6 +416,11 @@ impl Online {
             _ => return false,
         }
         if cell.admits(&self.output.new_position).is_err() {
+            return false;
+        }
+        if let Intent::Jog(_) = self.intent
+            && self.tool_too_fast(rig, speed)
+        {
             return false;
         }
         for axis in 0..self.dof {
@@ -457,7 +464,12 @@ impl Online {
                     Frame::Base => direction,
                     Frame::Tool => tool.matrix3 * direction,
                 };
-                self.cartesian(rig, tcp, direction.normalize_or_zero() * jog_speed, &mut velocity);
+                self.cartesian(
+                    rig,
+                    tcp,
+                    direction.normalize_or_zero() * jog_speed,
+                    &mut velocity,
+                );
                 let linear = self.tool_speed(rig, tcp, &velocity);
                 let share = rig
                     .joints
@@ -512,6 +524,21 @@ impl Online {
             let c = column(axis);
             out.as_mut_slice()[axis] = (0..6).map(|i| c[i] * y[i]).sum();
         }
+    }
+
+    /// Whether rsruckig's next state moves the tool faster than the jog speed (it follows a
+    /// Cartesian jog's joint velocities, which change each cycle, with limited jerk): the
+    /// arm brakes from the present state instead, and the jog goes on from there.
+    fn tool_too_fast(&mut self, rig: &Rig, speed: f64) -> bool {
+        let mut next = AxisValues::zeros(self.dof);
+        for axis in 0..self.dof {
+            next.as_mut_slice()[axis] = self.output.new_velocity[axis];
+        }
+        let new_position: &[f64] = &self.output.new_position;
+        let Ok(tool) = rig.forward_with_axes(new_position, &mut self.axes) else {
+            return true;
+        };
+        self.tool_speed(rig, tool.translation, &next) > speed * self.settings.jog_speed_m_s
     }
 
     /// The tool's linear speed (m/s) at joint velocities `velocity`.

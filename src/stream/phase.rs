@@ -225,7 +225,11 @@ mod tests {
         assert_eq!(halting.stop(), Phase::Planning, "the first request's phase");
         assert_eq!(halting.stopped_in(), Some(Phase::Planning));
         assert_eq!(halting.estopped_in(), None);
-        assert_eq!(halting.phase(), Phase::Ended, "a stopped session at rest ends");
+        assert_eq!(
+            halting.phase(),
+            Phase::Ended,
+            "a stopped session at rest ends"
+        );
         assert_eq!(halting.estop(), Phase::Ended);
     }
 
@@ -238,7 +242,11 @@ mod tests {
         assert_eq!(halting.stop(), Phase::Holding, "the phase the stop found");
         assert_eq!(halting.phase(), Phase::Stopping);
         halting.streaming(&halting.exclusive(), true);
-        assert_eq!(halting.phase(), Phase::Stopping, "the cycle cannot undo a stop");
+        assert_eq!(
+            halting.phase(),
+            Phase::Stopping,
+            "the cycle cannot undo a stop"
+        );
         assert!(halting.enter(Phase::Streaming));
         assert_eq!(halting.phase(), Phase::Stopping);
         halting.end();

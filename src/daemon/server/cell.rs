@@ -12,17 +12,15 @@ use crate::clock::{Clock, VirtualClock, WallClock};
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::daemon::reset::{RESET_TIMEOUT, ResetOutcome, reset_controller};
 use crate::daemon::{
-    ActionLog, DaemonError, HeldActions, JobToStream, RunReport, Sinks, error_chain,
-    held_position, plan_for, stream_job_with, stream_planned_with,
+    ActionLog, DaemonError, HeldActions, JobToStream, RunReport, Sinks, error_chain, held_position,
+    plan_for, stream_job_with, stream_planned_with,
 };
 use crate::link::{Link, LinkCounters, LinkSpec, LoopbackLink};
 use crate::log::Recorder;
 use crate::protocol::ControllerStatus;
 use crate::rig::JointKind;
 use crate::stream::Phase;
-use crate::stream::{
-    Executor, Frame, Jog, OnlineCommand, Outcome, SpeedOverride, StreamControl,
-};
+use crate::stream::{Executor, Frame, Jog, OnlineCommand, Outcome, SpeedOverride, StreamControl};
 use crate::twin::{SharedWorld, Twin};
 use crate::view::{JobView, LiveHub, LiveSample, LiveSink, LiveSlot};
 use serde::Serialize;
@@ -264,7 +262,10 @@ fn describe(command: &OnlineCommand, rig: &crate::rig::Rig) -> String {
         }
         OnlineCommand::Jog(Jog::Joint { axis, direction }) => {
             let name = rig.joints.get(*axis).map_or("?", |j| j.name.as_str());
-            format!("joint jog {name} {}", if *direction > 0.0 { "+" } else { "-" })
+            format!(
+                "joint jog {name} {}",
+                if *direction > 0.0 { "+" } else { "-" }
+            )
         }
         OnlineCommand::Jog(Jog::Cartesian { frame, direction }) => {
             let frame = match frame {

@@ -69,10 +69,7 @@ pub async fn speed(super::CellRef(cell): super::CellRef, request: Request) -> Re
     if !request.percent.is_finite() || !cell.set_speed(fraction) {
         return error(
             StatusCode::UNPROCESSABLE_ENTITY,
-            format!(
-                "speed override {} % is outside 0..=100 %",
-                request.percent
-            ),
+            format!("speed override {} % is outside 0..=100 %", request.percent),
         );
     }
     Json(serde_json::json!({ "percent": request.percent })).into_response()
@@ -115,7 +112,12 @@ pub async fn goal(
         Ok(goal) => goal,
         Err(why) => return error(StatusCode::UNPROCESSABLE_ENTITY, why),
     };
-    act(&daemon, &cell, Some(OnlineCommand::Goal(goal)), Some("goal"))
+    act(
+        &daemon,
+        &cell,
+        Some(OnlineCommand::Goal(goal)),
+        Some("goal"),
+    )
 }
 
 fn act(
