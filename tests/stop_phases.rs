@@ -103,7 +103,13 @@ impl Watched {
     fn tick(&self) {
         let phase = self.control.phase();
         let mut calls = self.calls_in_phase.get();
-        let index = PHASES.iter().position(|p| *p == phase).unwrap();
+        // Holding, stopping and ended follow a case's phase: its request was pulled.
+        let Some(index) = PHASES.iter().position(|p| *p == phase) else {
+            if self.entered.get() || phase == Phase::Holding {
+                pull(&self.control, self.case.request, &self.seen);
+            }
+            return;
+        };
         calls[index] += 1;
         self.calls_in_phase.set(calls);
         if phase == self.case.phase {

@@ -453,6 +453,26 @@ pub fn held_position(
     }
 }
 
+/// A trajectory that holds the arm at `position` (two samples, at rest): what an online
+/// session streams until its commands take over.
+pub fn hold_at(
+    settings: &RunSettings,
+    position: &[f64],
+) -> Result<crate::trajectory::Trajectory, DaemonError> {
+    let rig = &settings.rig;
+    let positions = [position, position].concat();
+    let velocities = vec![0.0; positions.len()];
+    let trajectory = crate::trajectory::Trajectory::new(
+        rig.name.clone(),
+        rig.joint_names().map(String::from).collect(),
+        settings.period(),
+        positions,
+        velocities,
+    )
+    .map_err(StreamError::from)?;
+    Ok(trajectory)
+}
+
 /// A job planned from where the rig is: nothing has moved yet. A job with a bad target
 /// never gets this far.
 pub struct PlannedJob {
@@ -600,6 +620,7 @@ pub fn stream_job_with(
         None => (resume::stream_resuming(io, job.trajectory), false),
     };
     report.stopped_in = control.halted_in();
+    control.end();
     let (log_report, log_error) = match (recorder, log) {
         (Some(recorder), Some(path)) => {
             let (written, failure) = close_log(recorder, actions, &report, path);

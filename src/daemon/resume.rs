@@ -13,8 +13,8 @@ use crate::link::{Link, LinkEvent};
 use crate::log::Recorder;
 use crate::protocol::{Command, ControllerStatus, Feedback};
 use crate::stream::{
-    CycleSink, Executor, Outcome, Phase, StreamControl, StreamError, StreamReport, StreamSettings,
-    check_controller, fault_text, stream, stream_shared,
+    CycleSink, Executor, OnlineCommand, Outcome, Phase, StreamControl, StreamError, StreamReport,
+    StreamSettings, check_controller, fault_text, stream, stream_shared,
 };
 use crate::trajectory::Trajectory;
 use std::time::Duration;
@@ -296,6 +296,15 @@ pub fn stream_resuming(mut io: Streaming<'_>, trajectory: &Trajectory) -> Stream
             &report.outcome.to_string(),
             serde_json::json!({ "at_sample": report.samples_done, "why": report.fault }),
         );
+        if io.control.online().given() {
+            // Online motion has no path to return to: from where the arm holds, the goal
+            // it was moving to is given again (a jog waits for its next command).
+            match resume_online(&mut io, &mut streaming, &report) {
+                Resumed::Ended(report) => return report,
+                Resumed::Approach(part, _) => report = part,
+            }
+            continue;
+        }
         let (part, approached) =
             match resume_once(&mut io, &remaining, &mut streaming, trajectory, &report) {
                 Resumed::Ended(report) => return report,
@@ -324,6 +333,43 @@ enum Resumed {
     Ended(StreamReport),
     /// The approach to the path was streamed (merged report; whether it completed).
     Approach(StreamReport, bool),
+}
+
+/// One resumption of an online session: the wait for a hold, then a session from there
+/// with the goal it had (merged report).
+fn resume_online(
+    io: &mut Streaming<'_>,
+    streaming: &mut StreamSettings,
+    report: &StreamReport,
+) -> Resumed {
+    let timeout = io.settings.reconnect_timeout();
+    let hold = match wait_for_hold(io.settings, io.link, io.clock, io.control, timeout) {
+        Ok(hold) => hold,
+        Err(error) => Hold::TimedOut(super::error_chain(&error)),
+    };
+    let Hold::At(actual) = hold else {
+        return Resumed::Ended(ended_waiting(report.clone(), hold));
+    };
+    let hold = match super::hold_at(io.settings, &actual) {
+        Ok(hold) => hold,
+        Err(error) => {
+            let mut ended = report.clone();
+            ended.outcome = Outcome::Refused;
+            ended.fault = Some(super::error_chain(&error));
+            return Resumed::Ended(ended);
+        }
+    };
+    io.control.enter(Phase::Resuming);
+    if let Some(goal) = io.control.online().goal() {
+        io.control.online().give(OnlineCommand::Goal(goal));
+    }
+    io.event(
+        report.duration_s,
+        "resumed",
+        serde_json::json!({ "actual": actual, "online": true }),
+    );
+    let part = io.run(&hold, streaming);
+    Resumed::Approach(report.clone().merge(part), true)
 }
 
 /// One resumption: the wait for a hold, then the approach to where the job stopped.

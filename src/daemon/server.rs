@@ -22,6 +22,7 @@ mod cell;
 mod connections;
 mod foxglove;
 mod guard;
+mod online;
 mod scene;
 
 pub use cell::{CellError, check_cells};
@@ -643,7 +644,10 @@ fn routes(daemon: &Arc<Daemon>, exposed: bool) -> Router<Arc<Daemon>> {
             .route(&format!("{prefix}/resume"), post(resume))
             .route(&format!("{prefix}/stop"), post(stop))
             .route(&format!("{prefix}/estop"), post(estop))
-            .route(&format!("{prefix}/reset"), post(reset));
+            .route(&format!("{prefix}/reset"), post(reset))
+            .route(&format!("{prefix}/speed"), post(online::speed))
+            .route(&format!("{prefix}/jog"), post(online::jog))
+            .route(&format!("{prefix}/goal"), post(online::goal));
     }
     let control = control
         .route_layer(axum::middleware::from_fn(guard::require_json))

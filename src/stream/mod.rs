@@ -21,6 +21,7 @@ mod executor;
 mod follow;
 mod gate;
 mod metrics;
+mod online;
 mod phase;
 
 pub use crate::realtime::raise_priority;
@@ -29,6 +30,10 @@ pub use executor::{CycleTask, Executor, ExecutorSettings, Handback};
 pub use follow::Tolerances;
 pub use gate::{GateCheck, GateRefusal};
 pub use metrics::MicrosHistogram;
+pub use online::{
+    CellCheck, DEADMAN, Frame, IDLE_END, Jog, NoCell, OnlineCommand, OnlineCommands,
+    OnlineSettings, REDUCED_SPEED_M_S,
+};
 pub use phase::{Halting, Phase};
 
 use crate::clock::Clock;
@@ -37,8 +42,10 @@ use crate::motion::{Trajectory, TrajectoryError, validate};
 use crate::protocol::{AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget};
 use crate::rig::{JointKind, Rig};
 use follow::Follow;
+use online::Online;
 use serde::Serialize;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 use thiserror::Error;
 
@@ -120,8 +127,36 @@ impl std::fmt::Display for Outcome {
     }
 }
 
-/// Pause, stop and e-stop requests, the job's phase, and progress, shared with whoever
-/// runs the job.
+/// The speed override, 0..=1 of the planned speed, like a pendant's: shared by a cell's
+/// sessions, read by every cycle. A change is applied at once, ramped within the
+/// accelerations (the time scale of a planned motion, rsruckig's limits of an online one).
+#[derive(Debug)]
+pub struct SpeedOverride(AtomicU64);
+
+impl Default for SpeedOverride {
+    /// 100 %.
+    fn default() -> Self {
+        Self(AtomicU64::new(1.0_f64.to_bits()))
+    }
+}
+
+impl SpeedOverride {
+    /// Sets the override to `fraction`; false (and unchanged) unless it is in 0..=1.
+    pub fn set(&self, fraction: f64) -> bool {
+        if !(0.0..=1.0).contains(&fraction) {
+            return false;
+        }
+        self.0.store(fraction.to_bits(), Ordering::SeqCst);
+        true
+    }
+
+    pub fn fraction(&self) -> f64 {
+        f64::from_bits(self.0.load(Ordering::SeqCst))
+    }
+}
+
+/// Pause, stop and e-stop requests, the session's phase, the speed override, the online
+/// commands (jog, retarget) and progress, shared with whoever runs the session.
 #[derive(Debug, Default)]
 pub struct StreamControl {
     paused: AtomicBool,
@@ -129,9 +164,33 @@ pub struct StreamControl {
     progress_bits: AtomicU64,
     cycles: AtomicU64,
     overruns: AtomicU64,
+    speed: Arc<SpeedOverride>,
+    online: OnlineCommands,
+    /// The workcell's check of online targets (see [`CellCheck`]); none admits all.
+    cell: OnceLock<Arc<dyn CellCheck>>,
 }
 
 impl StreamControl {
+    /// A session under the cell's speed override.
+    pub fn with_speed(speed: Arc<SpeedOverride>) -> Self {
+        Self {
+            speed,
+            ..Self::default()
+        }
+    }
+    /// The override the session runs under (0..=1).
+    pub fn speed(&self) -> f64 {
+        self.speed.fraction()
+    }
+    /// The online commands: a goal or a jog given here takes over the session's motion.
+    pub fn online(&self) -> &OnlineCommands {
+        &self.online
+    }
+    /// Where the workcell's collision model checks every online target (the hook for
+    /// src/cell/, issue 27); false when one was set already.
+    pub fn set_cell_check(&self, check: Arc<dyn CellCheck>) -> bool {
+        self.cell.set(check).is_ok()
+    }
     pub fn pause(&self) {
         self.paused.store(true, Ordering::SeqCst);
     }
@@ -174,6 +233,10 @@ impl StreamControl {
     }
     pub fn phase(&self) -> Phase {
         self.halting.phase()
+    }
+    /// The session is over: its phase is `Ended` (the job's report is being written).
+    pub fn end(&self) {
+        self.halting.end();
     }
     /// The phase the job was in when its e-stop (else its stop) was acknowledged.
     pub fn halted_in(&self) -> Option<Phase> {
@@ -231,6 +294,8 @@ pub struct StreamSettings {
     /// Cycles of targets without a new echo before the controller counts as not following.
     pub echo_patience_cycles: u32,
     pub tolerances: Tolerances,
+    /// How online motion (jog, retarget) may use the rig.
+    pub online: OnlineSettings,
 }
 
 /// A wake 5 cycles late (20 ms at 250 Hz) is a stall: the arm has had no new target for
@@ -252,6 +317,7 @@ impl StreamSettings {
             stall_cycles: STALL_CYCLES,
             echo_patience_cycles: silent,
             tolerances: Tolerances::default(),
+            online: OnlineSettings::default(),
         }
     }
 }
@@ -417,6 +483,8 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
         // numbers on from the controller's echo.
         let settings = &StreamSettings {
             first_seq: newer_seq(settings.first_seq, echo),
+            // A plan starts at rest: it may start at the override's pace at once.
+            start_scale: settings.start_scale.min(control.speed()),
             ..*settings
         };
         let period = trajectory.period;
@@ -526,8 +594,12 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
             link.send(&Command::Stop)?;
             return Ok(Some(Outcome::Stopped));
         }
-        let finished = cycle.advance(self.control, self.trajectory, self.rig);
-        let Some(target) = cycle.target(self.trajectory, self.rig) else {
+        let (positions, velocities, finished) = cycle.next(self.control, self.trajectory, self.rig);
+        self.control
+            .halting
+            .streaming(&_acknowledging, cycle.scale > 0.0);
+        let Some(target) = cycle.target(positions, velocities, self.trajectory.period, self.rig)
+        else {
             link.send(&Command::Stop)?;
             return Ok(Some(Outcome::GateRefused));
         };
@@ -733,6 +805,10 @@ struct Cycle {
     follow: Follow,
     /// Why the stream is being brought to rest, when it is not the user's stop.
     aborting: Option<Outcome>,
+    /// Online motion, once a command took over from the trajectory.
+    online: Online,
+    /// The commanded velocities of the target before the last (its acceleration).
+    velocity_before: Option<AxisValues>,
 }
 
 impl Cycle {
@@ -769,6 +845,8 @@ impl Cycle {
             feedback_timeout: settings.feedback_timeout,
             follow: Follow::new(rig, settings),
             aborting: None,
+            online: Online::new(rig, trajectory.period, settings.online),
+            velocity_before: None,
         }
     }
 
@@ -817,6 +895,45 @@ impl Cycle {
         None
     }
 
+    /// The next target's positions and velocities, and whether the motion's end is reached:
+    /// online once a command was given (from the last target sent, or from the start),
+    /// along the trajectory before.
+    fn next(
+        &mut self,
+        control: &StreamControl,
+        trajectory: &Trajectory,
+        rig: &Rig,
+    ) -> (AxisValues, AxisValues, bool) {
+        if !self.online.engaged() && !control.online.given() {
+            let finished = self.advance(control, trajectory, rig);
+            let (positions, velocities) = brake::sample_at(trajectory, self.path, self.scale);
+            return (positions, velocities, finished);
+        }
+        if !self.online.engaged() {
+            self.online.start_at(trajectory.position(0));
+            self.online.engage(&self.sent, self.velocity_before);
+        }
+        self.seq += 1;
+        let stopping = control.is_stopping() || self.aborting.is_some();
+        let speed = if control.is_paused() {
+            0.0
+        } else {
+            control.speed()
+        };
+        let cell: &dyn CellCheck = match control.cell.get() {
+            Some(check) => check.as_ref(),
+            None => &NoCell,
+        };
+        let step = self
+            .online
+            .step(rig, &control.online, stopping, speed, cell);
+        self.scale = if step.moving { 1.0 } else { 0.0 };
+        if stopping && !step.moving {
+            self.aborting.get_or_insert(Outcome::Stopped);
+        }
+        (step.positions, step.velocities, step.finished && !stopping)
+    }
+
     /// Moves along the path by the time scale: when stopping (or aborting) by the rate of
     /// [`brake::rate`], otherwise ramping it toward 0 when paused, toward 1 otherwise. True
     /// once the path's end is reached (the goal check then decides); `Stopped` (or the
@@ -836,7 +953,11 @@ impl Cycle {
                 &self.sent,
             )
         } else {
-            let wanted = if control.is_paused() { 0.0 } else { 1.0 };
+            let wanted = if control.is_paused() {
+                0.0
+            } else {
+                control.speed()
+            };
             if wanted > self.scale {
                 (self.scale + self.scale_step).min(wanted)
             } else {
@@ -875,11 +996,16 @@ impl Cycle {
         }
     }
 
-    /// The target at the current path position, if it passes the gate.
-    fn target(&mut self, trajectory: &Trajectory, rig: &Rig) -> Option<JointTarget> {
-        let (positions, velocities) = brake::sample_at(trajectory, self.path, self.scale);
+    /// The target of these positions and velocities, if it passes the gate.
+    fn target(
+        &mut self,
+        positions: AxisValues,
+        velocities: AxisValues,
+        period: Duration,
+        rig: &Rig,
+    ) -> Option<JointTarget> {
         // The gate's maths and the target's `t` (a log record) are in seconds.
-        let dt = trajectory.period.as_secs_f64();
+        let dt = period.as_secs_f64();
         if let Err(refusal) = gate::check(rig, &positions, &velocities, &self.sent, dt) {
             self.violations += 1;
             // The stream ends here: the words may allocate.
@@ -887,6 +1013,7 @@ impl Cycle {
             return None;
         }
         self.sent.before_previous = self.sent.previous.map(|(p, _)| p);
+        self.velocity_before = self.sent.previous.map(|(_, v)| v);
         self.sent.previous = Some((positions, velocities));
         self.held[self.seq as usize % HELD_TARGETS] = (self.seq, positions);
         Some(JointTarget {

@@ -1,15 +1,21 @@
-//! Where a job is in its life, and the stop and e-stop requests that may end it there: the
-//! seed of the session's state machine. A request is acknowledged under the same lock the
-//! cycle holds while it decides and sends a target, so an acknowledged stop is seen by the
-//! next target (never one decided before it and sent after), and each request records the
-//! phase it found the job in. Owns the phase and the requests only; what each phase does
-//! on a stop is its owner's (the wait for a hold, the planner's caller, the cycle).
+//! The session's state machine: where a streaming session (a planned job, a replay, a jog,
+//! a retargeted motion) is in its life, and the stop and e-stop requests that end it. Every
+//! mode passes through the same [`Phase`]s, and a request means the same in each: at rest
+//! (waiting for the controller or the hold, planning) the session ends before any target;
+//! moving (resuming, streaming, holding) it enters `Stopping` and the cycle brings the arm
+//! to rest along its path; at the end it is `Ended`. A request is acknowledged under the
+//! same lock the cycle holds while it decides and sends a target, so an acknowledged stop
+//! is seen by the next target (never one decided before it and sent after), and each
+//! request records the phase it found the session in. Owns the phase, its transitions and
+//! the requests only; what each phase does is its owner's (the wait for a hold, the
+//! planner's caller, the cycle).
 
 use serde::Serialize;
 use std::sync::atomic::{AtomicBool, AtomicU8, Ordering};
 use std::sync::{Mutex, MutexGuard, PoisonError};
 
-/// The phases of a job, in the order a job passes them (a link loss goes back to waiting).
+/// The phases of a session, in the order it passes them (a link loss goes back to
+/// waiting; streaming and holding alternate; a stop leads through stopping to the end).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Phase {
@@ -21,17 +27,27 @@ pub enum Phase {
     Planning,
     /// After a link loss or a stall: planning and streaming the way back to the path.
     Resuming,
-    /// Targets of the job's own trajectory flow.
+    /// Targets of the session's motion flow.
     Streaming,
+    /// Targets flow but hold the arm at rest: paused, a speed override of 0 %, or an online
+    /// session waiting for its next command.
+    Holding,
+    /// A stop (or e-stop) was acknowledged while targets flowed: braking to rest.
+    Stopping,
+    /// Nothing more is sent in this session.
+    Ended,
 }
 
 impl Phase {
-    const ALL: [Phase; 5] = [
+    const ALL: [Phase; 8] = [
         Phase::WaitingForController,
         Phase::WaitingForHold,
         Phase::Planning,
         Phase::Resuming,
         Phase::Streaming,
+        Phase::Holding,
+        Phase::Stopping,
+        Phase::Ended,
     ];
 
     /// Its name, as the HTTP API and the report spell it.
@@ -42,12 +58,19 @@ impl Phase {
             Phase::Planning => "planning",
             Phase::Resuming => "resuming",
             Phase::Streaming => "streaming",
+            Phase::Holding => "holding",
+            Phase::Stopping => "stopping",
+            Phase::Ended => "ended",
         }
     }
 
-    /// Whether targets can move the arm in this phase; in the others it is at rest.
+    /// Whether targets flow (and may move the arm) in this phase; in the others it is at
+    /// rest and nothing is sent.
     pub fn moves(self) -> bool {
-        matches!(self, Phase::Resuming | Phase::Streaming)
+        matches!(
+            self,
+            Phase::Resuming | Phase::Streaming | Phase::Holding | Phase::Stopping
+        )
     }
 
     /// 0 stands for "none" in the atomics below.
@@ -108,28 +131,62 @@ impl Halting {
     /// Asks for a stop; the phase the job was in (the first request's, when repeated).
     pub fn stop(&self) -> Phase {
         let _acknowledging = self.exclusive();
-        Self::request(&self.stop, &self.stopped_in, self.phase())
+        self.request(&self.stop, &self.stopped_in)
     }
 
     /// Asks for an e-stop; the phase the job was in (the first request's, when repeated).
     pub fn estop(&self) -> Phase {
         let _acknowledging = self.exclusive();
-        Self::request(&self.estop, &self.estopped_in, self.phase())
+        self.request(&self.estop, &self.estopped_in)
     }
 
-    fn request(flag: &AtomicBool, found: &AtomicU8, phase: Phase) -> Phase {
+    /// Sets the flag, records the phase found (the first request's), and moves a session
+    /// whose targets flow to `Stopping`; one at rest ends at its next [`Halting::enter`].
+    fn request(&self, flag: &AtomicBool, found: &AtomicU8) -> Phase {
+        let phase = self.phase();
         if !flag.swap(true, Ordering::SeqCst) {
             found.store(phase.code(), Ordering::SeqCst);
+        }
+        if phase.moves() {
+            self.phase.store(Phase::Stopping.code(), Ordering::SeqCst);
         }
         Phase::from_code(found.load(Ordering::SeqCst)).unwrap_or(phase)
     }
 
-    /// The job enters `phase`. True when a stop or e-stop was asked for already: the caller
-    /// ends the job there (a request made after this sees the new phase).
+    /// The session enters `phase`. True when a stop or e-stop was asked for already: the
+    /// caller ends the session there, so it is `Ended` for any later request instead (a
+    /// request made after this sees the new phase).
     pub fn enter(&self, phase: Phase) -> bool {
         let _acknowledging = self.exclusive();
+        let halted = self.is_stopping() || self.is_estopped();
+        let phase = match phase {
+            _ if halted && self.phase() == Phase::Stopping => Phase::Stopping,
+            _ if halted => Phase::Ended,
+            phase => phase,
+        };
         self.phase.store(phase.code(), Ordering::SeqCst);
-        self.is_stopping() || self.is_estopped()
+        halted
+    }
+
+    /// The cycle, holding [`Halting::exclusive`], says whether its targets move the arm
+    /// (`Streaming`) or hold it (`Holding`); any other phase (resuming, stopping, ended)
+    /// stays.
+    pub fn streaming(&self, _held: &MutexGuard<'_, ()>, moving: bool) {
+        if !matches!(self.phase(), Phase::Streaming | Phase::Holding) {
+            return;
+        }
+        let phase = if moving {
+            Phase::Streaming
+        } else {
+            Phase::Holding
+        };
+        self.phase.store(phase.code(), Ordering::SeqCst);
+    }
+
+    /// The session is over: nothing more is sent.
+    pub fn end(&self) {
+        let _acknowledging = self.exclusive();
+        self.phase.store(Phase::Ended.code(), Ordering::SeqCst);
     }
 
     pub fn phase(&self) -> Phase {
@@ -168,7 +225,32 @@ mod tests {
         assert_eq!(halting.stop(), Phase::Planning, "the first request's phase");
         assert_eq!(halting.stopped_in(), Some(Phase::Planning));
         assert_eq!(halting.estopped_in(), None);
-        assert_eq!(halting.estop(), Phase::Streaming);
+        assert_eq!(
+            halting.phase(),
+            Phase::Ended,
+            "a stopped session at rest ends"
+        );
+        assert_eq!(halting.estop(), Phase::Ended);
+    }
+
+    #[test]
+    fn a_stop_while_targets_flow_brakes_and_then_ends() {
+        let halting = Halting::default();
+        assert!(!halting.enter(Phase::Streaming));
+        halting.streaming(&halting.exclusive(), false);
+        assert_eq!(halting.phase(), Phase::Holding);
+        assert_eq!(halting.stop(), Phase::Holding, "the phase the stop found");
+        assert_eq!(halting.phase(), Phase::Stopping);
+        halting.streaming(&halting.exclusive(), true);
+        assert_eq!(
+            halting.phase(),
+            Phase::Stopping,
+            "the cycle cannot undo a stop"
+        );
+        assert!(halting.enter(Phase::Streaming));
+        assert_eq!(halting.phase(), Phase::Stopping);
+        halting.end();
+        assert_eq!(halting.phase(), Phase::Ended);
     }
 
     #[test]

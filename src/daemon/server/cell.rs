@@ -12,15 +12,15 @@ use crate::clock::{Clock, VirtualClock, WallClock};
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::daemon::reset::{RESET_TIMEOUT, ResetOutcome, reset_controller};
 use crate::daemon::{
-    ActionLog, DaemonError, HeldActions, RunReport, Sinks, error_chain, plan_for,
-    stream_planned_with,
+    ActionLog, DaemonError, HeldActions, JobToStream, RunReport, Sinks, error_chain, held_position,
+    plan_for, stream_job_with, stream_planned_with,
 };
 use crate::link::{Link, LinkCounters, LinkSpec, LoopbackLink};
 use crate::log::Recorder;
 use crate::protocol::ControllerStatus;
 use crate::rig::JointKind;
 use crate::stream::Phase;
-use crate::stream::{Executor, Outcome, StreamControl};
+use crate::stream::{Executor, Frame, Jog, OnlineCommand, Outcome, SpeedOverride, StreamControl};
 use crate::twin::{SharedWorld, Twin};
 use crate::view::{JobView, LiveHub, LiveSample, LiveSink, LiveSlot};
 use serde::Serialize;
@@ -118,6 +118,7 @@ impl ActiveJob {
             cycles: self.control.cycles(),
             overruns: self.control.overruns(),
             paused: self.control.is_paused(),
+            phase: self.control.phase(),
             log_error: self.actions.log_failure(),
         }
     }
@@ -150,6 +151,8 @@ pub struct Status {
     /// The link's counters (as in the run report): the link's own while it is free, as of
     /// the last streamed cycle while a job holds it.
     link_counters: LinkCounters,
+    /// The speed override every motion of the cell runs under, 0..=100 %.
+    speed_percent: f64,
 }
 
 /// The controller's state: `status` is `ok`, `holding`, `fault` or `unknown` (a remote
@@ -189,6 +192,8 @@ pub struct JobStatus {
     /// its own thread).
     overruns: u64,
     paused: bool,
+    /// Where the session is in its life (docs/online.md): `streaming`, `holding`, ...
+    phase: Phase,
     /// The job's log's first failed write, as soon as it failed (docs/logs.md); `null`
     /// while the log is sound.
     log_error: Option<crate::log::LogFailure>,
@@ -240,6 +245,42 @@ pub const JOB_REFUSED: &str = "job_refused";
 /// The event of a JointTrajectory refused (docs/ros2.md), logged rate-limited.
 pub const ROS2_REFUSED: &str = "ros2_trajectory_refused";
 
+/// The name of an online session (jog, goal) in the status, the report and the log.
+pub const ONLINE_SESSION: &str = "online";
+
+/// An online command in words, for the cell's events.
+fn describe(command: &OnlineCommand, rig: &crate::rig::Rig) -> String {
+    match command {
+        OnlineCommand::Goal(goal) => {
+            let shown: Vec<String> = rig
+                .joints
+                .iter()
+                .zip(goal.as_slice())
+                .map(|(joint, q)| format!("{:.3}", joint.kind.to_user(*q)))
+                .collect();
+            format!("goal [{}]", shown.join(", "))
+        }
+        OnlineCommand::Jog(Jog::Joint { axis, direction }) => {
+            let name = rig.joints.get(*axis).map_or("?", |j| j.name.as_str());
+            format!(
+                "joint jog {name} {}",
+                if *direction > 0.0 { "+" } else { "-" }
+            )
+        }
+        OnlineCommand::Jog(Jog::Cartesian { frame, direction }) => {
+            let frame = match frame {
+                Frame::Base => "base",
+                Frame::Tool => "tool",
+            };
+            format!(
+                "cartesian jog in the {frame} frame toward [{:.3}, {:.3}, {:.3}]",
+                direction.x, direction.y, direction.z
+            )
+        }
+        OnlineCommand::Release => "released".to_string(),
+    }
+}
+
 /// How many control events a cell keeps for its status.
 const KEPT_EVENTS: usize = 32;
 
@@ -273,6 +314,25 @@ pub struct Cell {
     /// The daemon's shared executor, if it has one: the cycles of jobs on the in-process
     /// twin run there (a remote link's cycle waits for its echo, so it keeps its thread).
     executor: Option<Arc<Executor>>,
+    /// The speed override of every session of the cell (`POST .../speed`).
+    speed: Arc<SpeedOverride>,
+}
+
+/// What a job's thread runs: a planned job, or an online session (jog, goal) from where
+/// the arm holds.
+pub enum Work {
+    Job(JobConfig),
+    Online,
+}
+
+/// Why an online command was not taken.
+#[derive(Debug)]
+pub enum OnlineRefused {
+    /// A planned job runs: it takes a new goal, not a jog.
+    JobRunning(u64),
+    /// A keep-alive or a release with no session to act on.
+    NoSession,
+    Start(StartRefused),
 }
 
 /// Why a cell did not reset its controller.
@@ -325,6 +385,7 @@ impl Cell {
             refusals: Mutex::new(Refusals::new()),
             latched: Mutex::new(None),
             executor,
+            speed: Arc::default(),
         })
     }
 
@@ -554,6 +615,7 @@ impl Cell {
             last: self.last().clone(),
             actual,
             link_counters: self.link_counters(),
+            speed_percent: 100.0 * self.speed.fraction(),
         }
     }
 
@@ -707,6 +769,18 @@ impl Cell {
         job: JobConfig,
         options: &ServeOptions,
     ) -> Result<StartedJob, StartRefused> {
+        self.start_work(id, Work::Job(job), None, options)
+    }
+
+    /// Starts `work` as number `id` (an online session with its `first` command), unless a
+    /// job is running here.
+    fn start_work(
+        self: &Arc<Self>,
+        id: u64,
+        work: Work,
+        first: Option<OnlineCommand>,
+        options: &ServeOptions,
+    ) -> Result<StartedJob, StartRefused> {
         // Asked before the job slot is taken: for a remote link `controller` reads the slot
         // itself, and a second lock of it on this thread would never return.
         let fault = self.controller().fault;
@@ -719,8 +793,15 @@ impl Cell {
         if let Some(fault) = fault {
             return Err(StartRefused::Faulted(fault));
         }
-        let name = job.kind().to_string();
-        let control = Arc::new(StreamControl::default());
+        let name = match &work {
+            Work::Job(job) => job.kind().to_string(),
+            Work::Online => ONLINE_SESSION.to_string(),
+        };
+        let control = Arc::new(StreamControl::with_speed(self.speed.clone()));
+        if let Some(command) = first {
+            control.online().open_session();
+            control.online().give(command);
+        }
         let actions = Arc::new(ActionLog::default());
         let (planned_tx, planned) = oneshot::channel();
         let job_io = JobIo {
@@ -729,7 +810,7 @@ impl Cell {
             planned: planned_tx,
         };
         let handle = self
-            .spawn_job(id, job, job_io, options)
+            .spawn_job(id, work, job_io, options)
             .map_err(StartRefused::Spawn)?;
         *slot = Some(ActiveJob {
             id,
@@ -746,7 +827,7 @@ impl Cell {
     fn spawn_job(
         self: &Arc<Self>,
         id: u64,
-        job: JobConfig,
+        job: Work,
         io: JobIo,
         options: &ServeOptions,
     ) -> std::io::Result<std::thread::JoinHandle<()>> {
@@ -812,7 +893,7 @@ impl Cell {
 
     fn run_job(
         &self,
-        job: &JobConfig,
+        work: &Work,
         io: JobIo,
         clock: &dyn Clock,
         log: &std::path::Path,
@@ -845,6 +926,13 @@ impl Cell {
         // A device-paced link (EGM) brings the clock the cycle must follow, as in `run`.
         let pacing = link.pacing();
         let clock: &dyn Clock = pacing.as_deref().unwrap_or(clock);
+        let job = match work {
+            Work::Job(job) => job,
+            Work::Online => {
+                let _ = planned.send(Ok(()));
+                return self.run_online(link, clock, control, &actions, executor, log);
+            }
+        };
         let plan = plan_for(&self.settings, job, link, clock, control);
         let _ = planned.send(match &plan {
             // The job was taken; a stop ended it before any motion (its report says so).
@@ -882,6 +970,99 @@ impl Cell {
             control,
             sinks,
         )
+    }
+
+    /// An online session: from where the arm holds, its motion is the online commands'
+    /// (docs/online.md); it ends stopped, or once it has been at rest with nothing to do
+    /// for [`crate::stream::IDLE_END`].
+    fn run_online(
+        &self,
+        link: &mut dyn Link,
+        clock: &dyn Clock,
+        control: &StreamControl,
+        actions: &ActionLog,
+        executor: Option<&Executor>,
+        log: &std::path::Path,
+    ) -> Result<RunReport, DaemonError> {
+        let start = match held_position(&self.settings, link, clock, control) {
+            Err(DaemonError::Halted(halted)) => {
+                return Ok(halted.report(&self.settings, ONLINE_SESSION, link, clock));
+            }
+            start => start?,
+        };
+        let trajectory = crate::daemon::hold_at(&self.settings, &start)?;
+        let rate = self.settings.config.stream.rate_hz.round() as u64;
+        let mut live = LiveSink::new(self.hub.slot(), rate);
+        let job = JobToStream {
+            name: ONLINE_SESSION.to_string(),
+            description: serde_json::json!({ "kind": ONLINE_SESSION }),
+            start: &start,
+            trajectory: &trajectory,
+            job: None,
+        };
+        let sinks = Sinks {
+            live: &mut live,
+            actions: Some(actions),
+            executor: executor.filter(|_| link.pacing().is_none()),
+        };
+        stream_job_with(&self.settings, &job, link, clock, Some(log), control, sinks)
+    }
+
+    /// Sets the speed override of every motion of the cell (0..=1), logged with the job it
+    /// acted on; false when `fraction` is outside 0..=1.
+    pub fn set_speed(&self, fraction: f64) -> bool {
+        if !self.speed.set(fraction) {
+            return false;
+        }
+        let job = self.job.lock().unwrap_or_else(PoisonError::into_inner);
+        let running = job.as_ref().filter(|j| !j.handle.is_finished());
+        let held = running.map(|j| (j.actions.hold_open(), &*j.control));
+        let on_job = held.as_ref().map(|(actions, control)| (actions, *control));
+        let result = Some(format!("{:.1} %", 100.0 * fraction));
+        self.log_event("speed", running.map(|j| j.id), result, on_job);
+        true
+    }
+
+    /// Hands an online command to the running session, or starts a session for it (a jog
+    /// or a goal, numbered by `next_id`); a planned job takes a goal (it blends from where
+    /// the arm is) but not a jog. `log`: the action to log it as (keep-alives are not).
+    pub fn online(
+        self: &Arc<Self>,
+        command: Option<OnlineCommand>,
+        log: Option<&'static str>,
+        next_id: impl FnOnce() -> u64,
+        options: &ServeOptions,
+    ) -> Result<u64, OnlineRefused> {
+        let job = self.job.lock().unwrap_or_else(PoisonError::into_inner);
+        let running = job.as_ref().filter(|j| !j.handle.is_finished());
+        if let Some(running) = running {
+            let online = running.control.online();
+            match command {
+                Some(OnlineCommand::Jog(_)) if !online.given() => {
+                    return Err(OnlineRefused::JobRunning(running.id));
+                }
+                Some(command) => online.give(command),
+                None => online.keep_alive(),
+            }
+            if let Some(action) = log {
+                let held = (running.actions.hold_open(), &*running.control);
+                let result = command.map(|c| describe(&c, &self.settings.rig));
+                self.log_event(action, Some(running.id), result, Some((&held.0, held.1)));
+            }
+            return Ok(running.id);
+        }
+        drop(job);
+        let Some(command @ (OnlineCommand::Jog(_) | OnlineCommand::Goal(_))) = command else {
+            return Err(OnlineRefused::NoSession);
+        };
+        let id = next_id();
+        self.start_work(id, Work::Online, Some(command), options)
+            .map_err(OnlineRefused::Start)?;
+        if let Some(action) = log {
+            let result = Some(describe(&command, &self.settings.rig));
+            self.log_event(action, Some(id), result, None);
+        }
+        Ok(id)
     }
 
     /// Moves the job's thread, planning done, to the cycles' priority, for the cycles of a

@@ -672,6 +672,76 @@ for (const [id, path] of Object.entries(CONTROLS)) {
   document.getElementById(id).addEventListener('click', () => control(path));
 }
 
+// ---------------------------------------------------------------- speed and jog --
+// The override slider posts on release; a jog button posts its jog on press, a keep-alive
+// every KEEP_ALIVE_MS while held (the bridge stops the arm 200 ms after the last one) and
+// a release when let go, lost or left.
+const KEEP_ALIVE_MS = 50;
+async function post(action, body) {
+  const headers = Object.assign({ 'Content-Type': 'application/json' }, authHeaders());
+  const response = await fetch(cellPrefix + action, { method: 'POST', headers, body: JSON.stringify(body) });
+  if (response.status === 401) askForToken('token needed');
+  if (!response.ok) {
+    const answer = await response.json().catch(() => ({}));
+    document.getElementById('control-result').textContent =
+      cellPrefix + action + ': ' + response.status + (answer.error ? ' ' + answer.error : '');
+  }
+  return response.ok;
+}
+const speedInput = document.getElementById('speed');
+speedInput.addEventListener('input', () => {
+  document.getElementById('speed-value').textContent = speedInput.value + ' %';
+});
+speedInput.addEventListener('change', () => post('/speed', { percent: Number(speedInput.value) }));
+
+let jogTimer = null;
+function jogStart(body) {
+  jogStop(false);
+  post('/jog', body);
+  jogTimer = setInterval(() => post('/jog', { keep_alive: true }), KEEP_ALIVE_MS);
+}
+function jogStop(release) {
+  if (jogTimer === null) return;
+  clearInterval(jogTimer);
+  jogTimer = null;
+  if (release) post('/jog', { release: true });
+}
+const jogFrame = document.getElementById('jog-frame');
+const AXES = [[1, 0, 0], [0, 1, 0], [0, 0, 1]];
+function jogBody(index, sign) {
+  if (jogFrame.value === 'joint') return { axis: index + 1, direction: sign };
+  return { frame: jogFrame.value, direction: AXES[index].map((c) => c * sign) };
+}
+function jogButtons() {
+  const box = document.getElementById('jog-buttons');
+  box.textContent = '';
+  const count = jogFrame.value === 'joint' ? 6 : 3;
+  for (let index = 0; index < count; index++) {
+    for (const sign of [-1, 1]) {
+      const button = document.createElement('button');
+      button.type = 'button';
+      const name = jogFrame.value === 'joint' ? 'J' + (index + 1) : 'XYZ'[index];
+      button.textContent = name + (sign > 0 ? '+' : '-');
+      button.addEventListener('pointerdown', () => jogStart(jogBody(index, sign)));
+      for (const end of ['pointerup', 'pointerleave', 'pointercancel']) {
+        button.addEventListener(end, () => jogStop(true));
+      }
+      box.appendChild(button);
+    }
+  }
+}
+jogFrame.addEventListener('change', jogButtons);
+jogButtons();
+const JOG_KEYS = { '1': 0, '2': 1, '3': 2, '4': 3, '5': 4, '6': 5, x: 0, y: 1, z: 2 };
+window.addEventListener('keydown', (event) => {
+  if (event.repeat || event.target instanceof HTMLInputElement) return;
+  const index = JOG_KEYS[event.key.toLowerCase()] ?? JOG_KEYS[event.code.replace('Digit', '')];
+  if (index === undefined) return;
+  jogStart(jogBody(index, event.shiftKey ? -1 : 1));
+});
+window.addEventListener('keyup', () => jogStop(true));
+window.addEventListener('blur', () => jogStop(true));
+
 resize();
 connect();
 loadCells();

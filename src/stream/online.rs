@@ -1,0 +1,662 @@
+//! Online motion: targets generated cycle by cycle from the arm's current state, toward a
+//! goal that may change at any cycle (a retarget), or along a jog's direction while its
+//! keep-alives arrive. rsruckig's online update (its `Ruckig::update` from the last state)
+//! keeps position, velocity and acceleration continuous and within the limits it is given:
+//! each axis' speed and acceleration times the plan's shares, times the speed override.
+//!
+//! Braking is this module's own: on a stop, a deadman (no keep-alive for `deadman`), a jog
+//! key released, an override of 0 % or a joint limit ahead, every axis' velocity is scaled
+//! down together by the same share each cycle, at the brake's acceleration, so the arm
+//! comes to rest along the line it moved on, never faster than the cycle before.
+//!
+//! A Cartesian jog moves the tool at the jog speed (ISO 10218-1's reduced speed, 250 mm/s,
+//! by default) along a direction of the base or the tool frame, its orientation held, by a
+//! damped least-squares solve of the rig's Jacobian each cycle; a joint jog moves one axis
+//! no faster than puts the tool at that speed. Owns the generation only: the cycle gates
+//! and sends each target ([`super::gate`], and [`CellCheck`], the workcell's hook), and
+//! the HTTP API validates a goal before it reaches [`OnlineCommands`]. The cycle allocates
+//! nothing here: the generator's buffers are made when the stream is prepared.
+
+use super::gate::Sent;
+use crate::protocol::AxisValues;
+use crate::rig::{JointAxis, JointKind, Rig};
+use glam::DVec3;
+use rsruckig::prelude::{
+    ControlInterface, DataArrayOrVec, InputParameter, OutputParameter, Ruckig, RuckigResult,
+    Synchronization, ThrowErrorHandler,
+};
+use serde::{Deserialize, Serialize};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Mutex, PoisonError};
+use std::time::Duration;
+
+/// ISO 10218-1 (5.6) limits the tool's speed in reduced-speed (manual) mode to 250 mm/s.
+pub const REDUCED_SPEED_M_S: f64 = 0.25;
+/// The deadman: a jog whose keep-alives stop for this long brings the arm to rest.
+pub const DEADMAN: Duration = Duration::from_millis(200);
+/// An online session with nothing to do (at rest, no command) ends after this long.
+pub const IDLE_END: Duration = Duration::from_secs(5);
+/// The share of each axis' acceleration the brake uses: the rest keeps the braking
+/// targets clear of the gate's own check by more than rounding (as `brake.rs`).
+const BRAKE_SHARE: f64 = 0.95;
+/// A jog stops this far (rad, or m for a prismatic axis) before a joint limit, beyond what
+/// braking needs: the gate refuses a target past the limit, and the next cycle's motion
+/// must fit too.
+const LIMIT_MARGIN_RAD: f64 = 0.01;
+const LIMIT_MARGIN_M: f64 = 0.0005;
+/// Damping of the least-squares solve (m): near a singularity the joint speeds stay
+/// bounded and the tool slows down instead.
+const DLS_DAMPING: f64 = 0.01;
+/// The share of the jog speed a jog aims at: rsruckig follows a target velocity that
+/// changes each cycle (a Cartesian jog's joints) with limited jerk, so it may overshoot it by
+/// a little; the tool stays under the jog speed.
+const TRACKING_SHARE: f64 = 0.95;
+/// A velocity below this (rad/s or m/s) on every axis is at rest.
+const REST_SPEED: f64 = 1e-9;
+
+/// A frame a Cartesian jog's direction is given in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Frame {
+    Base,
+    Tool,
+}
+
+/// What a jog moves: one joint (`direction` +1 or -1), or the tool along a unit
+/// `direction` of `frame`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Jog {
+    Joint { axis: usize, direction: f64 },
+    Cartesian { frame: Frame, direction: DVec3 },
+}
+
+/// An online command, as the API hands it to the cycle.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum OnlineCommand {
+    /// Move to these joint positions (validated within the limits), from wherever the arm
+    /// is and however it moves.
+    Goal(AxisValues),
+    /// Jog, while keep-alives arrive.
+    Jog(Jog),
+    /// The jog key was released: to rest along the path now.
+    Release,
+}
+
+/// The commands waiting for the cycle, and the jog's keep-alives. The API writes here; the
+/// cycle takes a command with `try_lock`, never waiting for a writer.
+#[derive(Debug, Default)]
+pub struct OnlineCommands {
+    pending: Mutex<Option<OnlineCommand>>,
+    /// Set once a command was given: the session's motion is online from then on.
+    given: AtomicBool,
+    keepalives: AtomicU64,
+    /// The goal the session moves to, kept for a resume after a link loss.
+    goal: Mutex<Option<AxisValues>>,
+    /// An online session holds at a goal it reached, waiting for more; a planned job whose
+    /// goal was changed ends there.
+    session: AtomicBool,
+}
+
+impl OnlineCommands {
+    /// Hands `command` to the next cycle (a newer one replaces one not yet taken); a jog
+    /// counts as a keep-alive.
+    pub fn give(&self, command: OnlineCommand) {
+        let mut pending = self.pending.lock().unwrap_or_else(PoisonError::into_inner);
+        *pending = Some(command);
+        let mut goal = self.goal.lock().unwrap_or_else(PoisonError::into_inner);
+        *goal = match command {
+            OnlineCommand::Goal(target) => Some(target),
+            _ => None,
+        };
+        self.given.store(true, Ordering::SeqCst);
+        self.keep_alive();
+    }
+
+    /// The jog goes on for another [`DEADMAN`].
+    pub fn keep_alive(&self) {
+        self.keepalives.fetch_add(1, Ordering::SeqCst);
+    }
+
+    /// Marks an online session: a goal reached is held, not the end (see [`IDLE_END`]).
+    pub fn open_session(&self) {
+        self.session.store(true, Ordering::SeqCst);
+    }
+
+    /// Whether the session moves online (a command was given).
+    pub fn given(&self) -> bool {
+        self.given.load(Ordering::SeqCst)
+    }
+
+    /// The goal the session was moving to, if it was (a jog has none).
+    pub fn goal(&self) -> Option<AxisValues> {
+        *self.goal.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    fn take(&self) -> Option<OnlineCommand> {
+        self.pending.try_lock().ok()?.take()
+    }
+
+    fn keepalive_count(&self) -> u64 {
+        self.keepalives.load(Ordering::SeqCst)
+    }
+}
+
+/// The workcell's hook: every online target (jog, retarget) passes it after the gate's
+/// limits; the workcell's collision model (src/cell/, issue 27) implements it. A refusal
+/// brings the arm to rest along its path instead of the target.
+pub trait CellCheck: Send + Sync + std::fmt::Debug {
+    /// Whether the arm may be at `positions`; the reason in words when not.
+    fn admits(&self, positions: &[f64]) -> Result<(), String>;
+}
+
+/// No workcell model: every target within the limits is admitted.
+#[derive(Debug)]
+pub struct NoCell;
+
+impl CellCheck for NoCell {
+    fn admits(&self, _: &[f64]) -> Result<(), String> {
+        Ok(())
+    }
+}
+
+/// How online motion may use the rig.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OnlineSettings {
+    /// The tool's jog speed (m/s).
+    pub jog_speed_m_s: f64,
+    pub deadman: Duration,
+    /// An online session at rest with nothing to do ends after this long.
+    pub idle_end: Duration,
+    /// Shares of each axis' speed and acceleration a goal or a jog may use (the plan's).
+    pub speed_scale: f64,
+    pub accel_scale: f64,
+    /// Max jerk = max acceleration x this (1/s), as the planner's.
+    pub jerk_per_accel_s: f64,
+}
+
+impl Default for OnlineSettings {
+    fn default() -> Self {
+        Self {
+            jog_speed_m_s: REDUCED_SPEED_M_S,
+            deadman: DEADMAN,
+            idle_end: IDLE_END,
+            speed_scale: 0.9,
+            accel_scale: 0.8,
+            jerk_per_accel_s: 10.0,
+        }
+    }
+}
+
+/// What the generator does this cycle.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Intent {
+    Idle,
+    Goal(AxisValues),
+    Jog(Jog),
+}
+
+/// The brake's progress: the velocity it started from and the share of it left.
+#[derive(Debug, Clone, Copy)]
+struct Brake {
+    from: AxisValues,
+    share: f64,
+    step: f64,
+}
+
+/// One cycle's result.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Step {
+    pub positions: AxisValues,
+    pub velocities: AxisValues,
+    /// The arm moves (or will: the target differs from the last).
+    pub moving: bool,
+    /// A goal was reached, or an idle session's time is up: the stream may end.
+    pub finished: bool,
+}
+
+/// The generator (see the module doc), made when the stream is prepared.
+pub(super) struct Online {
+    dof: usize,
+    dt: f64,
+    settings: OnlineSettings,
+    otg: Ruckig<0, ThrowErrorHandler>,
+    input: InputParameter<0>,
+    output: OutputParameter<0>,
+    engaged: bool,
+    intent: Intent,
+    brake: Option<Brake>,
+    position: AxisValues,
+    velocity: AxisValues,
+    acceleration: AxisValues,
+    /// Cycles so far, the stream's own time.
+    cycle: u64,
+    keepalives: u64,
+    keepalive_cycle: u64,
+    rest_since: Option<u64>,
+    /// Where the joint axes are this cycle (kept: no allocation in the cycle).
+    axes: Vec<JointAxis>,
+}
+
+impl Online {
+    pub(super) fn new(rig: &Rig, period: Duration, settings: OnlineSettings) -> Self {
+        let dof = rig.dof();
+        let dt = period.as_secs_f64();
+        let mut input = InputParameter::new(Some(dof));
+        input.synchronization = Synchronization::Time;
+        let mut lower = DataArrayOrVec::new(Some(dof), 0.0);
+        let mut upper = DataArrayOrVec::new(Some(dof), 0.0);
+        for (axis, joint) in rig.joints.iter().enumerate() {
+            let limits = joint.limits;
+            let acceleration = settings.accel_scale * limits.max_acceleration;
+            input.max_acceleration[axis] = acceleration;
+            input.max_jerk[axis] = settings.jerk_per_accel_s * acceleration;
+            lower[axis] = limits.lower;
+            upper[axis] = limits.upper;
+        }
+        input.min_position = Some(lower);
+        input.max_position = Some(upper);
+        Self {
+            dof,
+            dt,
+            settings,
+            otg: Ruckig::new(Some(dof), dt),
+            input,
+            output: OutputParameter::new(Some(dof)),
+            engaged: false,
+            intent: Intent::Idle,
+            brake: None,
+            position: AxisValues::zeros(dof),
+            velocity: AxisValues::zeros(dof),
+            acceleration: AxisValues::zeros(dof),
+            cycle: 0,
+            keepalives: 0,
+            keepalive_cycle: 0,
+            rest_since: None,
+            axes: Vec::with_capacity(dof),
+        }
+    }
+
+    pub(super) fn engaged(&self) -> bool {
+        self.engaged
+    }
+
+    /// Takes over from the last target sent (its acceleration from the two before): the
+    /// online motion starts from the state the arm is commanded in.
+    pub(super) fn engage(&mut self, sent: &Sent, previous_velocity: Option<AxisValues>) {
+        self.engaged = true;
+        if let Some((positions, velocities)) = sent.previous {
+            self.position = positions;
+            self.velocity = velocities;
+            if let Some(before) = previous_velocity {
+                for axis in 0..self.dof {
+                    self.acceleration.as_mut_slice()[axis] =
+                        (velocities.as_slice()[axis] - before.as_slice()[axis]) / self.dt;
+                }
+            }
+        }
+    }
+
+    /// Starts from rest at `positions` (nothing sent yet in this stream).
+    pub(super) fn start_at(&mut self, positions: &[f64]) {
+        self.position.as_mut_slice().copy_from_slice(positions);
+    }
+
+    /// The next target: from the commands, the stop and the override (0..=1).
+    pub(super) fn step(
+        &mut self,
+        rig: &Rig,
+        commands: &OnlineCommands,
+        stopping: bool,
+        speed: f64,
+        cell: &dyn CellCheck,
+    ) -> Step {
+        self.cycle += 1;
+        self.take(commands);
+        let deadman = matches!(self.intent, Intent::Jog(_))
+            && (self.cycle - self.keepalive_cycle) as f64 * self.dt
+                > self.settings.deadman.as_secs_f64();
+        if deadman {
+            self.intent = Intent::Idle;
+        }
+        let brake = stopping || speed <= 0.0 || self.intent == Intent::Idle;
+        let braked = brake || !self.generate(rig, speed, cell);
+        if braked {
+            self.brake_step(rig);
+        }
+        let moving = !self.at_rest();
+        if moving || !matches!(self.intent, Intent::Idle) {
+            self.rest_since = None;
+        } else {
+            self.rest_since.get_or_insert(self.cycle);
+        }
+        let reached = match self.intent {
+            Intent::Goal(goal) => !braked && !moving && self.at(&goal),
+            _ => false,
+        };
+        if reached && commands.session.load(Ordering::SeqCst) {
+            self.intent = Intent::Idle;
+        }
+        let finished = match self.intent {
+            Intent::Goal(_) => reached,
+            Intent::Idle => self.rest_since.is_some_and(|since| {
+                (self.cycle - since) as f64 * self.dt >= self.settings.idle_end.as_secs_f64()
+            }),
+            Intent::Jog(_) => false,
+        };
+        Step {
+            positions: self.position,
+            velocities: self.velocity,
+            moving,
+            finished,
+        }
+    }
+
+    fn take(&mut self, commands: &OnlineCommands) {
+        let count = commands.keepalive_count();
+        if count != self.keepalives {
+            self.keepalives = count;
+            self.keepalive_cycle = self.cycle;
+        }
+        match commands.take() {
+            Some(OnlineCommand::Goal(goal)) => self.intent = Intent::Goal(goal),
+            Some(OnlineCommand::Jog(jog)) => self.intent = Intent::Jog(jog),
+            Some(OnlineCommand::Release) => self.intent = Intent::Idle,
+            None => {}
+        }
+    }
+
+    fn at(&self, goal: &AxisValues) -> bool {
+        self.position
+            .as_slice()
+            .iter()
+            .zip(goal.as_slice())
+            .all(|(p, g)| (p - g).abs() <= 1e-9)
+    }
+
+    fn at_rest(&self) -> bool {
+        self.velocity
+            .as_slice()
+            .iter()
+            .all(|v| v.abs() <= REST_SPEED)
+    }
+
+    /// One cycle of rsruckig toward the intent; false when it must brake instead (a limit
+    /// ahead of a jog, the cell's refusal, or no profile within the limits).
+    fn generate(&mut self, rig: &Rig, speed: f64, cell: &dyn CellCheck) -> bool {
+        self.brake = None;
+        for (axis, joint) in rig.joints.iter().enumerate() {
+            self.input.max_velocity[axis] =
+                speed * self.settings.speed_scale * joint.limits.max_speed;
+            self.input.current_position[axis] = self.position.as_slice()[axis];
+            self.input.current_velocity[axis] = self.velocity.as_slice()[axis];
+            self.input.current_acceleration[axis] = self.acceleration.as_slice()[axis];
+            self.input.target_acceleration[axis] = 0.0;
+        }
+        match self.intent {
+            Intent::Goal(goal) => {
+                self.input.control_interface = ControlInterface::Position;
+                for axis in 0..self.dof {
+                    self.input.target_position[axis] = goal.as_slice()[axis];
+                    self.input.target_velocity[axis] = 0.0;
+                }
+            }
+            Intent::Jog(jog) => {
+                let Some(velocity) = self.jog_velocity(rig, jog, speed) else {
+                    return false;
+                };
+                self.input.control_interface = ControlInterface::Velocity;
+                for axis in 0..self.dof {
+                    self.input.target_velocity[axis] = velocity.as_slice()[axis];
+                }
+            }
+            Intent::Idle => return false,
+        }
+        match self.otg.update(&self.input, &mut self.output) {
+            Ok(RuckigResult::Working | RuckigResult::Finished) => {}
+            _ => return false,
+        }
+        if cell.admits(&self.output.new_position).is_err() {
+            return false;
+        }
+        if let Intent::Jog(_) = self.intent
+            && self.tool_too_fast(rig, speed)
+        {
+            return false;
+        }
+        for axis in 0..self.dof {
+            self.position.as_mut_slice()[axis] = self.output.new_position[axis];
+            self.velocity.as_mut_slice()[axis] = self.output.new_velocity[axis];
+            self.acceleration.as_mut_slice()[axis] = self.output.new_acceleration[axis];
+        }
+        true
+    }
+
+    /// The joint velocity a jog asks for at `speed` of its own, or None when an axis would
+    /// not stop before its limit (the arm brakes).
+    fn jog_velocity(&mut self, rig: &Rig, jog: Jog, speed: f64) -> Option<AxisValues> {
+        let positions = self.position;
+        let tool = rig
+            .forward_with_axes(positions.as_slice(), &mut self.axes)
+            .ok()?;
+        let tcp = tool.translation;
+        let jog_speed = speed * self.settings.jog_speed_m_s * TRACKING_SHARE;
+        let mut velocity = AxisValues::zeros(self.dof);
+        match jog {
+            Jog::Joint { axis, direction } => {
+                let joint = rig.joints.get(axis)?;
+                let lever = match joint.kind {
+                    JointKind::Revolute => {
+                        let a = self.axes[axis];
+                        a.direction.cross(tcp - a.point).length()
+                    }
+                    JointKind::Prismatic => 1.0,
+                };
+                let fastest = speed * self.settings.speed_scale * joint.limits.max_speed;
+                let along = if lever > 0.0 {
+                    (jog_speed / lever).min(fastest)
+                } else {
+                    fastest
+                };
+                velocity.as_mut_slice()[axis] = direction.signum() * along;
+            }
+            Jog::Cartesian { frame, direction } => {
+                let direction = match frame {
+                    Frame::Base => direction,
+                    Frame::Tool => tool.matrix3 * direction,
+                };
+                self.cartesian(
+                    rig,
+                    tcp,
+                    direction.normalize_or_zero() * jog_speed,
+                    &mut velocity,
+                );
+                let linear = self.tool_speed(rig, tcp, &velocity);
+                let share = rig
+                    .joints
+                    .iter()
+                    .zip(velocity.as_slice())
+                    .map(|(joint, v)| {
+                        v.abs() / (speed * self.settings.speed_scale * joint.limits.max_speed)
+                    })
+                    .fold(1.0, f64::max)
+                    .max(linear / jog_speed);
+                for v in velocity.as_mut_slice() {
+                    *v /= share;
+                }
+            }
+        }
+        self.clear_of_limits(rig, &velocity).then_some(velocity)
+    }
+
+    /// The joint velocities moving the tool at `linear` (m/s, base frame) without turning
+    /// it: damped least squares on the geometric Jacobian, `J^T (J J^T + l^2 I)^-1 x`.
+    fn cartesian(&self, rig: &Rig, tcp: DVec3, linear: DVec3, out: &mut AxisValues) {
+        let column = |axis: usize| -> [f64; 6] {
+            let a = self.axes[axis];
+            match rig.joints[axis].kind {
+                JointKind::Revolute => {
+                    let v = a.direction.cross(tcp - a.point);
+                    let w = a.direction;
+                    [v.x, v.y, v.z, w.x, w.y, w.z]
+                }
+                JointKind::Prismatic => {
+                    let v = a.direction;
+                    [v.x, v.y, v.z, 0.0, 0.0, 0.0]
+                }
+            }
+        };
+        let mut m = [[0.0; 7]; 6];
+        for axis in 0..self.dof {
+            let c = column(axis);
+            for (i, row) in m.iter_mut().enumerate() {
+                for j in 0..6 {
+                    row[j] += c[i] * c[j];
+                }
+            }
+        }
+        let twist = [linear.x, linear.y, linear.z, 0.0, 0.0, 0.0];
+        for (i, row) in m.iter_mut().enumerate() {
+            row[i] += DLS_DAMPING * DLS_DAMPING;
+            row[6] = twist[i];
+        }
+        let y = solve6(&mut m);
+        for axis in 0..self.dof {
+            let c = column(axis);
+            out.as_mut_slice()[axis] = (0..6).map(|i| c[i] * y[i]).sum();
+        }
+    }
+
+    /// Whether rsruckig's next state moves the tool faster than the jog speed (it follows a
+    /// Cartesian jog's joint velocities, which change each cycle, with limited jerk): the
+    /// arm brakes from the present state instead, and the jog goes on from there.
+    fn tool_too_fast(&mut self, rig: &Rig, speed: f64) -> bool {
+        let mut next = AxisValues::zeros(self.dof);
+        for axis in 0..self.dof {
+            next.as_mut_slice()[axis] = self.output.new_velocity[axis];
+        }
+        let new_position: &[f64] = &self.output.new_position;
+        let Ok(tool) = rig.forward_with_axes(new_position, &mut self.axes) else {
+            return true;
+        };
+        self.tool_speed(rig, tool.translation, &next) > speed * self.settings.jog_speed_m_s
+    }
+
+    /// The tool's linear speed (m/s) at joint velocities `velocity`.
+    fn tool_speed(&self, rig: &Rig, tcp: DVec3, velocity: &AxisValues) -> f64 {
+        let mut linear = DVec3::ZERO;
+        for (axis, joint) in rig.joints.iter().enumerate() {
+            let a = self.axes[axis];
+            let v = velocity.as_slice()[axis];
+            linear += match joint.kind {
+                JointKind::Revolute => a.direction.cross(tcp - a.point) * v,
+                JointKind::Prismatic => a.direction * v,
+            };
+        }
+        linear.length()
+    }
+
+    /// Whether every axis can still stop before its limit (less the margin), moving at its
+    /// present velocity or at `wanted`, whichever is faster, with the brake: all axes slow
+    /// down together, so each takes as long as the slowest to stop.
+    fn clear_of_limits(&self, rig: &Rig, wanted: &AxisValues) -> bool {
+        let fastest = |axis: usize| {
+            self.velocity.as_slice()[axis]
+                .abs()
+                .max(wanted.as_slice()[axis].abs())
+        };
+        let braking = rig
+            .joints
+            .iter()
+            .enumerate()
+            .map(|(axis, joint)| fastest(axis) / (BRAKE_SHARE * joint.limits.max_acceleration))
+            .fold(0.0, f64::max);
+        rig.joints.iter().enumerate().all(|(axis, joint)| {
+            let limits = joint.limits;
+            let v = self.velocity.as_slice()[axis];
+            let toward = if v != 0.0 { v } else { wanted.as_slice()[axis] };
+            if toward == 0.0 {
+                return true;
+            }
+            let margin = match joint.kind {
+                JointKind::Revolute => LIMIT_MARGIN_RAD,
+                JointKind::Prismatic => LIMIT_MARGIN_M,
+            };
+            // Braking (half the speed over the brake's time), two more cycles at this
+            // speed, and what a cycle's acceleration adds before the brake takes over.
+            let needed = fastest(axis) * (0.5 * braking + 2.0 * self.dt)
+                + limits.max_acceleration * self.dt * self.dt
+                + margin;
+            let p = self.position.as_slice()[axis];
+            let room = if toward > 0.0 {
+                limits.upper - p
+            } else {
+                p - limits.lower
+            };
+            room > needed
+        })
+    }
+
+    /// One braking cycle (see the module doc): every axis' velocity down by the same share.
+    fn brake_step(&mut self, rig: &Rig) {
+        if self.at_rest() {
+            self.brake = None;
+            self.velocity = AxisValues::zeros(self.dof);
+            self.acceleration = AxisValues::zeros(self.dof);
+            return;
+        }
+        let dt = self.dt;
+        let velocity = self.velocity;
+        let brake = self.brake.get_or_insert_with(|| {
+            let step = rig
+                .joints
+                .iter()
+                .zip(velocity.as_slice())
+                .filter(|(_, v)| v.abs() > REST_SPEED)
+                .map(|(joint, v)| BRAKE_SHARE * joint.limits.max_acceleration * dt / v.abs())
+                .fold(f64::INFINITY, f64::min);
+            Brake {
+                from: velocity,
+                share: 1.0,
+                step,
+            }
+        });
+        let before = brake.share;
+        brake.share = (brake.share - brake.step).max(0.0);
+        let (from, share) = (brake.from, brake.share);
+        for axis in 0..self.dof {
+            let v0 = from.as_slice()[axis];
+            let (was, now) = (before * v0, share * v0);
+            // The mean of the two velocities over the cycle: the second difference of the
+            // positions is then half the change over two cycles, within the acceleration.
+            self.position.as_mut_slice()[axis] += 0.5 * (was + now) * dt;
+            self.velocity.as_mut_slice()[axis] = now;
+            self.acceleration.as_mut_slice()[axis] = (now - was) / dt;
+        }
+        if share == 0.0 {
+            self.brake = None;
+        }
+    }
+}
+
+/// Solves the 6x6 system in `m` (its 7th column the right-hand side), with partial
+/// pivoting; `m` is positive definite here (damped), so no pivot is zero.
+fn solve6(m: &mut [[f64; 7]; 6]) -> [f64; 6] {
+    for col in 0..6 {
+        let pivot = (col..6)
+            .max_by(|a, b| m[*a][col].abs().total_cmp(&m[*b][col].abs()))
+            .unwrap_or(col);
+        m.swap(col, pivot);
+        for row in col + 1..6 {
+            let factor = m[row][col] / m[col][col];
+            for k in col..7 {
+                m[row][k] -= factor * m[col][k];
+            }
+        }
+    }
+    let mut x = [0.0; 6];
+    for row in (0..6).rev() {
+        let tail: f64 = (row + 1..6).map(|k| m[row][k] * x[k]).sum();
+        x[row] = (m[row][6] - tail) / m[row][row];
+    }
+    x
+}

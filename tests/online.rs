@@ -1,0 +1,532 @@
+//! Online motion against the in-process twin (issue 28, docs/online.md): a speed override
+//! from 100 % to 10 % in the middle of a job, the jog's deadman, and seeded random goals,
+//! jogs, releases and override changes. A link between the bridge and the twin records every
+//! target the twin receives and plays the case's commands at the chosen targets, from the
+//! bridge's own thread outside its cycle's send (as an operator's request arrives between
+//! cycles). Every target is checked from the twin's side against the rig's limits here,
+//! independently of the bridge's gate: position, commanded speed, the step's speed, the
+//! commanded velocity's change and the positions' second difference.
+//!
+//! The suite runs 200 random commands; `RIGBRIDGE_ONLINE_COMMANDS=1000` runs the full
+//! figure (docs/online.md has its numbers), and `RIGBRIDGE_DEADMAN_CASES` the deadman's.
+
+mod common;
+
+use rand::{Rng, RngExt};
+use rigbridge::clock::VirtualClock;
+use rigbridge::daemon::config::RunSettings;
+use rigbridge::daemon::{held_position, hold_at, loopback_twin, plan_for, stream_settings};
+use rigbridge::link::{Link, LinkCounters, LinkError, LinkEvent, LoopbackLink};
+use rigbridge::protocol::{AxisValues, Command, Feedback, Hello};
+use rigbridge::stream::{
+    Frame, Jog, OnlineCommand, Outcome, SpeedOverride, StreamControl, StreamReport, stream,
+};
+use std::sync::Arc;
+use std::time::Duration;
+
+/// Relative slack of the limit checks: one rounding of the maths.
+const SLACK: f64 = 1e-6;
+
+/// A target as the twin received it.
+#[derive(Clone)]
+struct Received {
+    positions: Vec<f64>,
+    velocities: Vec<f64>,
+}
+
+type Script = Box<dyn FnMut(usize, &StreamControl) + Send>;
+
+/// The link between the bridge and the twin (see the module doc).
+struct Scripted {
+    inner: LoopbackLink,
+    control: Arc<StreamControl>,
+    targets: Vec<Received>,
+    script: Script,
+}
+
+impl Link for Scripted {
+    fn send(&mut self, command: &Command) -> Result<(), LinkError> {
+        if let Command::Target(target) = command {
+            self.targets.push(Received {
+                positions: target.positions.as_slice().to_vec(),
+                velocities: target.velocities.as_slice().to_vec(),
+            });
+        }
+        self.inner.send(command)
+    }
+
+    fn receive(&mut self, timeout: Duration) -> Result<Option<Feedback>, LinkError> {
+        (self.script)(self.targets.len(), &self.control);
+        self.inner.receive(timeout)
+    }
+
+    fn counters(&self) -> LinkCounters {
+        self.inner.counters()
+    }
+
+    fn describe(&self) -> String {
+        "scripted loopback".into()
+    }
+
+    fn is_up(&self) -> bool {
+        self.inner.is_up()
+    }
+
+    fn next_event(&mut self) -> Option<LinkEvent> {
+        self.inner.next_event()
+    }
+
+    fn controller_hello(&self) -> Option<Hello> {
+        self.inner.controller_hello()
+    }
+}
+
+fn scripted(settings: &RunSettings, control: &Arc<StreamControl>, script: Script) -> Scripted {
+    Scripted {
+        inner: loopback_twin(settings).unwrap(),
+        control: control.clone(),
+        targets: Vec::new(),
+        script,
+    }
+}
+
+/// The first limit a target broke, in words, checked from what the twin received.
+fn over_a_limit(settings: &RunSettings, targets: &[Received]) -> Option<String> {
+    let dt = settings.period().as_secs_f64();
+    for (k, target) in targets.iter().enumerate() {
+        for (axis, joint) in settings.rig.joints.iter().enumerate() {
+            let l = joint.limits;
+            let (p, v) = (target.positions[axis], target.velocities[axis]);
+            let speed = l.max_speed * (1.0 + SLACK);
+            let accel = l.max_acceleration * (1.0 + SLACK);
+            let name = &joint.name;
+            if p < l.lower || p > l.upper {
+                return Some(format!("target {k}: {name} at {p} outside its limits"));
+            }
+            if v.abs() > speed {
+                return Some(format!("target {k}: {name} commanded at {v} /s"));
+            }
+            let Some(before) = k.checked_sub(1).map(|i| &targets[i]) else {
+                continue;
+            };
+            let step = (p - before.positions[axis]) / dt;
+            if step.abs() > speed {
+                return Some(format!("target {k}: {name} steps at {step} /s"));
+            }
+            let change = (v - before.velocities[axis]) / dt;
+            if change.abs() > accel {
+                return Some(format!(
+                    "target {k}: {name} velocity changes at {change} /s^2"
+                ));
+            }
+            if let Some(older) = k.checked_sub(2).map(|i| &targets[i]) {
+                let second = (p - 2.0 * before.positions[axis] + older.positions[axis]) / (dt * dt);
+                if second.abs() > accel {
+                    return Some(format!(
+                        "target {k}: {name} second difference {second} /s^2"
+                    ));
+                }
+            }
+        }
+    }
+    None
+}
+
+/// The tool's position at a target.
+fn tcp(settings: &RunSettings, positions: &[f64]) -> glam::DVec3 {
+    settings.rig.forward(positions).unwrap().translation
+}
+
+/// The fastest axis' share of its speed limit over the step into target `k`.
+fn speed_share(settings: &RunSettings, targets: &[Received], k: usize) -> f64 {
+    let dt = settings.period().as_secs_f64();
+    settings
+        .rig
+        .joints
+        .iter()
+        .enumerate()
+        .map(|(axis, j)| {
+            (targets[k].positions[axis] - targets[k - 1].positions[axis]).abs()
+                / dt
+                / j.limits.max_speed
+        })
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn an_override_from_100_to_10_percent_mid_job_ramps_within_acceleration_and_completes() {
+    let settings = common::shipped_run_settings();
+    let speed = Arc::new(SpeedOverride::default());
+    let control = Arc::new(StreamControl::with_speed(speed.clone()));
+    let clock = VirtualClock::new();
+    let mut probe = loopback_twin(&settings).unwrap();
+    let planned = plan_for(
+        &settings,
+        &settings.config.job,
+        &mut probe,
+        &clock,
+        &StreamControl::default(),
+    )
+    .unwrap();
+    let samples = planned.trajectory.len();
+    let middle = samples / 2;
+    let set = speed.clone();
+    let script: Script = Box::new(move |sent, _| {
+        if sent == middle {
+            set.set(0.1);
+        }
+    });
+    let mut link = scripted(&settings, &control, script);
+    let report = rigbridge::daemon::stream_planned(
+        &settings,
+        &planned,
+        &mut link,
+        &VirtualClock::new(),
+        None,
+        &control,
+    )
+    .unwrap();
+    assert_eq!(
+        report.stream.outcome,
+        Outcome::Completed,
+        "{:?}",
+        report.stream.fault
+    );
+    let targets = &link.targets;
+    assert_eq!(over_a_limit(&settings, targets), None);
+    // The second half at a tenth of the pace: about ten times the cycles.
+    let after = targets.len() - middle;
+    assert!(
+        after as f64 > 8.0 * (samples - middle) as f64,
+        "{after} cycles after the override for {} samples",
+        samples - middle
+    );
+    // The ramp: the time scale falls by the slowdown rate, within the acceleration left.
+    let rate = rigbridge::stream::slowdown_rate(
+        &settings.rig,
+        settings.config.plan.speed_scale,
+        settings.config.plan.accel_scale,
+    );
+    let ramp_cycles = (0.9 / (rate * settings.period().as_secs_f64())).ceil() as usize;
+    let worst_accel = worst_acceleration_share(&settings, targets);
+    println!(
+        "override 100 % -> 10 % at sample {middle} of {samples}: ramp {ramp_cycles} cycles \
+         ({:.3} s), {after} cycles after, worst acceleration {worst_accel:.3} of the limit, \
+         completed",
+        ramp_cycles as f64 * settings.period().as_secs_f64()
+    );
+    // Before the override the plan ran at its pace; well after the ramp, at most a tenth.
+    let later = middle + 2 * ramp_cycles;
+    let fastest_after = (later..targets.len())
+        .map(|k| speed_share(&settings, targets, k))
+        .fold(0.0, f64::max);
+    let fastest_before = (1..middle)
+        .map(|k| speed_share(&settings, targets, k))
+        .fold(0.0, f64::max);
+    assert!(
+        fastest_after <= 0.1 * fastest_before.max(settings.config.plan.speed_scale) + 1e-9,
+        "after the ramp {fastest_after:.4}, before {fastest_before:.4} of the speed limit"
+    );
+}
+
+/// The largest second difference of any axis over its acceleration limit.
+fn worst_acceleration_share(settings: &RunSettings, targets: &[Received]) -> f64 {
+    let dt = settings.period().as_secs_f64();
+    (2..targets.len())
+        .flat_map(|k| {
+            settings
+                .rig
+                .joints
+                .iter()
+                .enumerate()
+                .map(move |(axis, j)| {
+                    let (a, b, c) = (
+                        targets[k - 2].positions[axis],
+                        targets[k - 1].positions[axis],
+                        targets[k].positions[axis],
+                    );
+                    (c - 2.0 * b + a).abs() / (dt * dt) / j.limits.max_acceleration
+                })
+        })
+        .fold(0.0, f64::max)
+}
+
+/// An online session from where the twin holds, its commands played by `script`; the
+/// report and what the twin received.
+fn online_session(
+    settings: &RunSettings,
+    control: &Arc<StreamControl>,
+    first: Option<OnlineCommand>,
+    idle_end: Duration,
+    script: Script,
+) -> (StreamReport, Vec<Received>) {
+    let mut link = scripted(settings, control, script);
+    let clock = VirtualClock::new();
+    let start = held_position(settings, &mut link, &clock, control).unwrap();
+    let hold = hold_at(settings, &start).unwrap();
+    control.online().open_session();
+    if let Some(command) = first {
+        control.online().give(command);
+    }
+    let mut streaming = stream_settings(settings);
+    streaming.online.idle_end = idle_end;
+    let report = stream(
+        &hold,
+        &settings.rig,
+        &mut link,
+        &clock,
+        &mut (),
+        control,
+        &streaming,
+    )
+    .unwrap();
+    (report, link.targets)
+}
+
+fn random_jog(rng: &mut impl Rng, dof: usize) -> Jog {
+    match rng.random_range(0..3) {
+        0 => Jog::Joint {
+            axis: rng.random_range(0..dof),
+            direction: if rng.random_bool(0.5) { 1.0 } else { -1.0 },
+        },
+        which => {
+            let direction = glam::DVec3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+            )
+            .normalize_or(glam::DVec3::X);
+            Jog::Cartesian {
+                frame: if which == 1 { Frame::Base } else { Frame::Tool },
+                direction,
+            }
+        }
+    }
+}
+
+fn cases(variable: &str, default: usize) -> usize {
+    std::env::var(variable)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
+fn percentile(mut values: Vec<f64>, q: f64) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[((values.len() - 1) as f64 * q).round() as usize]
+}
+
+#[test]
+fn the_deadman_brings_a_jog_to_rest_within_the_stated_distance() {
+    let settings = common::shipped_run_settings();
+    let dt = settings.period().as_secs_f64();
+    let mut rng = common::rng(28);
+    let (mut times, mut distances, mut speeds) = (Vec::new(), Vec::new(), Vec::new());
+    for case in 0..cases("RIGBRIDGE_DEADMAN_CASES", 30) {
+        let jog = random_jog(&mut rng, settings.rig.dof());
+        // Long enough to reach the jog's speed (tenths of a second), short of the limits.
+        let held = rng.random_range(100..200);
+        let control = Arc::new(StreamControl::default());
+        let script: Script = Box::new(move |sent, control| {
+            if sent < held {
+                control.online().keep_alive();
+            }
+        });
+        let (report, targets) = online_session(
+            &settings,
+            &control,
+            Some(OnlineCommand::Jog(jog)),
+            Duration::from_millis(400),
+            script,
+        );
+        assert_eq!(
+            report.outcome,
+            Outcome::Completed,
+            "case {case}: {:?}",
+            report.fault
+        );
+        assert_eq!(over_a_limit(&settings, &targets), None, "case {case}");
+        // The last keep-alive went out before target `held`; rest: velocities all zero.
+        let rest = (held..targets.len())
+            .find(|k| targets[*k].velocities.iter().all(|v| *v == 0.0))
+            .unwrap_or_else(|| panic!("case {case}: never at rest"));
+        let speed = (tcp(&settings, &targets[held - 1].positions)
+            - tcp(&settings, &targets[held - 2].positions))
+        .length()
+            / dt;
+        assert!(
+            speed <= rigbridge::stream::REDUCED_SPEED_M_S * (1.0 + 1e-3),
+            "case {case}: the tool jogged at {speed:.4} m/s"
+        );
+        let travelled: f64 = (held..=rest)
+            .map(|k| {
+                (tcp(&settings, &targets[k].positions) - tcp(&settings, &targets[k - 1].positions))
+                    .length()
+            })
+            .sum();
+        let time = (rest + 1 - held) as f64 * dt;
+        // Stated in docs/online.md: the deadman's 200 ms and two cycles at the jog's speed,
+        // then the brake: each axis from its fastest jog speed at 95 % of its acceleration,
+        // the tool slowing in proportion (half the jog speed over the braking time).
+        let braking = settings
+            .rig
+            .joints
+            .iter()
+            .map(|j| {
+                settings.config.plan.speed_scale * j.limits.max_speed
+                    / (0.95 * j.limits.max_acceleration)
+            })
+            .fold(0.0, f64::max);
+        let jog_speed = rigbridge::stream::REDUCED_SPEED_M_S;
+        let stated_time = 0.2 + 2.0 * dt + braking;
+        let stated_distance = jog_speed * (0.2 + 2.0 * dt) + 0.5 * jog_speed * braking;
+        assert!(
+            time <= stated_time,
+            "case {case}: at rest {time:.3} s after release"
+        );
+        assert!(
+            travelled <= stated_distance,
+            "case {case}: the tool went {travelled:.4} m after the last keep-alive"
+        );
+        if case == 0 {
+            println!(
+                "stated: at rest within {stated_time:.3} s, the tool within {:.1} mm",
+                1e3 * stated_distance
+            );
+        }
+        times.push(time);
+        distances.push(travelled);
+        speeds.push(speed);
+    }
+    println!(
+        "deadman, {} jogs: time to rest after the last keep-alive p50 {:.3} s p99 {:.3} s max \
+         {:.3} s; tool travel p99 {:.1} mm max {:.1} mm; jog speed max {:.1} mm/s",
+        times.len(),
+        percentile(times.clone(), 0.5),
+        percentile(times.clone(), 0.99),
+        percentile(times, 1.0),
+        1e3 * percentile(distances.clone(), 0.99),
+        1e3 * percentile(distances, 1.0),
+        1e3 * percentile(speeds, 1.0),
+    );
+}
+
+/// One random command of the long run, and how long until the next.
+fn random_command(
+    rng: &mut impl Rng,
+    settings: &RunSettings,
+) -> (Option<OnlineCommand>, Option<f64>) {
+    let rig = &settings.rig;
+    match rng.random_range(0..10) {
+        0..=2 => {
+            let mut goal = AxisValues::zeros(rig.dof());
+            for (joint, q) in rig.joints.iter().zip(goal.as_mut_slice()) {
+                let (lo, hi) = (joint.limits.lower, joint.limits.upper);
+                let inset = 0.05 * (hi - lo);
+                *q = rng.random_range(lo + inset..hi - inset);
+            }
+            (Some(OnlineCommand::Goal(goal)), None)
+        }
+        3..=5 => (Some(OnlineCommand::Jog(random_jog(rng, rig.dof()))), None),
+        6 => (Some(OnlineCommand::Release), None),
+        _ => {
+            // Now and then 0 % (a hold), otherwise anywhere up to 100 %.
+            let speed = if rng.random_bool(0.1) {
+                0.0
+            } else {
+                rng.random_range(0.05..=1.0)
+            };
+            (None, Some(speed))
+        }
+    }
+}
+
+#[test]
+fn random_goals_jogs_and_overrides_stay_within_every_limit_and_react_in_a_cycle() {
+    let settings = common::shipped_run_settings();
+    let commands = cases("RIGBRIDGE_ONLINE_COMMANDS", 200);
+    let mut rng = common::rng(2028);
+    // The whole schedule first: at which target each command is given.
+    let mut schedule = Vec::new();
+    let mut at = 10;
+    for _ in 0..commands {
+        // 1,000 commands over about 10 minutes: 150 cycles (0.6 s) apart on average.
+        at += rng.random_range(5..295);
+        let (command, speed) = random_command(&mut rng, &settings);
+        schedule.push((at, command, speed));
+    }
+    let end = at + 50;
+    let speed = Arc::new(SpeedOverride::default());
+    let control = Arc::new(StreamControl::with_speed(speed.clone()));
+    let given: Arc<std::sync::Mutex<Vec<usize>>> = Arc::default();
+    let log = given.clone();
+    let mut next = 0;
+    let mut jogging = false;
+    let script: Script = Box::new(move |sent, control| {
+        while next < schedule.len() && schedule[next].0 <= sent {
+            let (_, command, set) = schedule[next];
+            if let Some(command) = command {
+                jogging = matches!(command, OnlineCommand::Jog(_));
+                control.online().give(command);
+            }
+            if let Some(fraction) = set {
+                speed.set(fraction);
+            }
+            if matches!(
+                command,
+                Some(OnlineCommand::Goal(_) | OnlineCommand::Jog(_))
+            ) {
+                log.lock().unwrap().push(sent);
+            }
+            next += 1;
+        }
+        if jogging {
+            control.online().keep_alive();
+        }
+        if sent >= end {
+            control.stop();
+        }
+    });
+    let (report, targets) = online_session(
+        &settings,
+        &control,
+        Some(OnlineCommand::Release),
+        // The session lasts until the stop at the end.
+        Duration::from_secs(3600),
+        script,
+    );
+    assert_eq!(report.outcome, Outcome::Stopped, "{:?}", report.fault);
+    assert_eq!(report.limit_violations, 0);
+    assert_eq!(over_a_limit(&settings, &targets), None);
+    // Reaction: a goal or a jog given after target `k` is read by the cycle of target
+    // `k + 1`. Within a profile's segment the jerk is constant (a brake's is zero); a new
+    // profile changes it: the first target whose velocities' third difference is not zero
+    // counts as the first changed target.
+    let given = given.lock().unwrap().clone();
+    let mut reactions = Vec::new();
+    for &k in &given {
+        let changed = (k.max(3)..targets.len().min(k + 50)).find(|&i| {
+            (0..settings.rig.dof()).any(|axis| {
+                let v = |j: usize| targets[j].velocities[axis];
+                (v(i) - 3.0 * v(i - 1) + 3.0 * v(i - 2) - v(i - 3)).abs() > 1e-9
+            })
+        });
+        if let Some(i) = changed {
+            reactions.push((i + 1 - k) as f64);
+        }
+    }
+    let p99 = percentile(reactions.clone(), 0.99);
+    let dt_ms = settings.period().as_secs_f64() * 1e3;
+    println!(
+        "{} random commands over {:.0} s of twin time: {} targets, 0 over a limit; reaction \
+         (command to first changed target) p50 {:.0} p99 {:.0} max {:.0} cycles ({:.0} ms at p99)",
+        given.len(),
+        targets.len() as f64 * settings.period().as_secs_f64(),
+        targets.len(),
+        percentile(reactions.clone(), 0.5),
+        p99,
+        percentile(reactions, 1.0),
+        p99 * dt_ms
+    );
+    assert!(p99 <= 1.0, "reaction p99 {p99} cycles");
+}
