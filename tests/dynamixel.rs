@@ -161,8 +161,7 @@ fn an_absent_servo_id_is_named_by_its_ping() {
     println!("{reason}");
     assert!(!link.is_up());
     assert!(
-        reason.contains(&format!("id 6 (axis 6) did not answer its ping"))
-            && reason.contains(&twin.path),
+        reason.contains("id 6 (axis 6) did not answer its ping") && reason.contains(&twin.path),
         "{reason}"
     );
     drop(link);

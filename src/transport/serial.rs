@@ -54,6 +54,9 @@ impl SerialSettings {
     }
 }
 
+/// How long a read waits before the reader checks whether the link was closed.
+const READ_TIMEOUT: Duration = Duration::from_millis(20);
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -80,6 +83,3 @@ mod tests {
         );
     }
 }
-
-/// How long a read waits before the reader checks whether the link was closed.
-const READ_TIMEOUT: Duration = Duration::from_millis(20);
