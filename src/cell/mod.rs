@@ -7,11 +7,17 @@
 //! [`crate::rig`] and nothing above it: jobs, the streamer, the twin and the views call it,
 //! it never calls them.
 
+mod allowed;
 mod file;
 mod model;
 mod parry;
 mod path;
 
+pub use allowed::{
+    AllowedPair, DEFAULT_SAMPLES, NEVER_CLEARANCE_M, Reason, allowed_pairs_toml,
+    find_allowed_pairs, replace_allowed_pairs,
+};
+pub(crate) use file::{RawCell, cell_from_raw};
 pub use file::{cell_from_toml, load_cell};
 pub use model::{BodyId, Clearance, CollisionModel, NO_BODY, PlacedShape, Scratch, Status};
 pub use path::{PathClearance, PathCollision};

@@ -100,7 +100,8 @@ fn capsule_over_the_floor() {
     let model = CollisionModel::new(&rig, &Cell::builtin()).unwrap();
     assert!((distance(&model, 0.2) - 0.15).abs() < TOL);
     // At q = 0.02 it reaches 0.03 m below the floor.
-    assert!((distance(&model, 0.02) + 0.03).abs() < TOL);
+    let d = distance(&model, 0.02);
+    assert!((d + 0.03).abs() < TOL, "{d}");
     let c = model.clearance(&[0.02], &mut model.scratch());
     assert_eq!(model.body_name(c.b), FLOOR);
 }
@@ -231,7 +232,9 @@ origin_xyz_m = [0.0, 0.0, 0.04]
     CollisionModel::new(&rig, &cell).unwrap();
 
     let bad = text.replace("radius_m = 0.01", "radius_m = -0.01");
-    let err = cell_from_toml(&bad, Path::new("cell.toml")).unwrap_err().to_string();
+    let err = cell_from_toml(&bad, Path::new("cell.toml"))
+        .unwrap_err()
+        .to_string();
     assert_eq!(
         err,
         "cell.toml: key `tool.body[0].radius_m` = -0.01: must be a positive number"
