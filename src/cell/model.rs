@@ -265,7 +265,22 @@ impl CollisionModel {
     /// trajectories of the rig).
     pub fn clearance(&self, positions: &[f64], scratch: &mut Scratch) -> Clearance {
         self.place(positions, scratch);
+        // Seed the best with the pair whose bound is lowest (most likely the closest), so
+        // the bound prunes the exact queries of every other pair from the start.
         let mut best = Clearance::NONE;
+        let likeliest = self.pairs.iter().min_by(|p, q| {
+            let bound = |&(a, b): &(BodyId, BodyId)| self.pair_bound(a, b, scratch);
+            bound(p).total_cmp(&bound(q))
+        });
+        if let Some(&(a, b)) = likeliest
+            && let Some(d) = self.pair_distance(a, b, f64::INFINITY, scratch)
+        {
+            best = Clearance {
+                distance_m: d,
+                a,
+                b,
+            };
+        }
         for &(a, b) in &self.pairs {
             if let Some(d) = self.pair_distance(a, b, best.distance_m, scratch) {
                 best = Clearance {
@@ -347,6 +362,17 @@ impl CollisionModel {
             }
         }
         found.then_some(best)
+    }
+
+    /// The lowest bound over the solid pairs of bodies `a` and `b`.
+    fn pair_bound(&self, a: BodyId, b: BodyId, scratch: &Scratch) -> f64 {
+        let mut low = f64::INFINITY;
+        for i in self.bodies[a].shapes.clone() {
+            for j in self.bodies[b].shapes.clone() {
+                low = low.min(self.lower_bound(i, j, scratch));
+            }
+        }
+        low
     }
 
     /// A lower bound on the distance between solids `i` and `j` from their bounding

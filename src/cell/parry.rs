@@ -15,7 +15,7 @@ fn vector(v: DVec3) -> Vector {
 
 /// `frame` (a rigid transform) as parry's pose.
 pub(super) fn pose(frame: &DAffine3) -> Pose {
-    let rotation = DQuat::from_mat3(&frame.matrix3.into()).normalize();
+    let rotation = DQuat::from_mat3(&frame.matrix3).normalize();
     Pose::from_parts(
         vector(frame.translation),
         Rotation::from_array(rotation.to_array()),

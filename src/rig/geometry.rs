@@ -423,11 +423,11 @@ pub(crate) fn bodies_from_raw(
 }
 
 /// Checks `pairs` (at `key`) name two different bodies among `names`.
-pub(crate) fn check_pairs<'a>(
+pub(crate) fn check_pairs(
     file: &Path,
     key: &str,
     pairs: &[(String, String)],
-    names: impl Fn(&str) -> bool + 'a,
+    names: impl Fn(&str) -> bool,
 ) -> Result<(), ConfigError> {
     for (i, (a, b)) in pairs.iter().enumerate() {
         for name in [a, b] {
