@@ -167,3 +167,94 @@ fn the_shipped_periods_are_the_same_seconds_as_durations() {
         );
     }
 }
+
+#[test]
+fn every_shipped_cell_loads_and_fits_the_irb120() {
+    let rig = load_rig(&repo_path("config/irb120.toml")).unwrap();
+    let mut loaded = 0;
+    for entry in std::fs::read_dir(repo_path("config")).unwrap() {
+        let path = entry.unwrap().path();
+        let name = path.file_name().unwrap().to_string_lossy().to_string();
+        if name.starts_with("cell-") && name.ends_with(".toml") {
+            let cell = rigbridge::cell::load_cell(&path).unwrap_or_else(|e| panic!("{e}"));
+            rigbridge::cell::CollisionModel::new(&rig, &cell).unwrap_or_else(|e| panic!("{e}"));
+            loaded += 1;
+        }
+    }
+    assert!(loaded >= 4, "{loaded}");
+}
+
+/// The demo run settings with `cell = ...` replaced by `cell_text`, the rig named by its
+/// absolute path so the copy loads from a temporary directory.
+fn settings_with_cell(name: &str, cell_text: &str) -> std::path::PathBuf {
+    let original = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    let rig = repo_path("config/irb120.toml");
+    let text = original
+        .replacen(
+            "rig = \"irb120.toml\"",
+            &format!("rig = {:?}", rig.display().to_string()),
+            1,
+        )
+        .replacen("cell = \"cell-star.toml\"\n", "", 1);
+    // A top-level key goes before the first table; a section at the end.
+    let text = if cell_text.starts_with("cell = ") {
+        text.replacen("[stream]", &format!("{cell_text}\n\n[stream]"), 1)
+    } else {
+        text + cell_text
+    };
+    let dir = std::env::temp_dir().join(format!("rigbridge-cell-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(name);
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+#[test]
+fn the_cell_setting_is_a_file_or_a_section_and_errors_name_key_and_value() {
+    use rigbridge::daemon::config::load_run_settings;
+    // No cell key: the built-in floor.
+    let none = load_run_settings(&settings_with_cell("none.toml", "")).unwrap();
+    assert_eq!(none.cell, rigbridge::cell::Cell::builtin());
+    // A [cell] section.
+    let section = "\n[cell]\nmargin_m = 0.02\n[[cell.object]]\nname = \"table\"\nshape = \"box\"\nsize_m = [1.0, 1.0, 0.1]\norigin_xyz_m = [0.5, 0.0, -0.05]\n";
+    let loaded = load_run_settings(&settings_with_cell("section.toml", section)).unwrap();
+    assert_eq!(loaded.cell.margin_m, 0.02);
+    assert_eq!(loaded.collision.margin(), 0.02);
+    assert!(loaded.collision.body_id("table").is_some());
+    // A margin out of range, in the section: file, key and value.
+    let bad = section.replace("margin_m = 0.02", "margin_m = 5.0");
+    let path = settings_with_cell("bad-margin.toml", &bad);
+    let message = load_run_settings(&path).unwrap_err().to_string();
+    assert!(
+        message.contains("bad-margin.toml: key `cell.margin_m` = 5.0: must lie in [0.001, 1]"),
+        "{message}"
+    );
+    // Neither a file name nor a section.
+    let path = settings_with_cell("number.toml", "cell = 42");
+    let message = load_run_settings(&path).unwrap_err().to_string();
+    assert!(message.contains("key `cell` = 42"), "{message}");
+    // A file that is not there: named with where it was looked for.
+    let path = settings_with_cell("missing.toml", "cell = \"no-such-cell.toml\"");
+    let message = load_run_settings(&path).unwrap_err().to_string();
+    assert!(message.contains("no-such-cell.toml"), "{message}");
+}
+
+#[test]
+fn a_bad_body_names_its_key_and_value() {
+    let path = write_variant("bad-body.toml", |t| {
+        t.replacen("radius_m = 0.07", "radius_m = -0.07", 1)
+    });
+    let message = load_rig(&path).unwrap_err().to_string();
+    assert!(
+        message.contains("key `body[1].collision[0].radius_m` = -0.07: must be a positive number"),
+        "{message}"
+    );
+    let path = write_variant("bad-pair.toml", |t| {
+        t.replacen("[\"link_5\", \"link_6\"]", "[\"link_5\", \"link_7\"]", 1)
+    });
+    let message = load_rig(&path).unwrap_err().to_string();
+    assert!(
+        message.contains("key `allowed_pairs[5]` = \"link_7\": names no body"),
+        "{message}"
+    );
+}
