@@ -6,6 +6,7 @@
 //! `path`) or talk to links or controllers.
 
 mod budget;
+mod origins;
 mod path;
 mod plan;
 mod recorded;
@@ -18,7 +19,8 @@ pub use budget::{
 };
 pub(crate) use path::{JointPath, PathNode, PathTiming};
 pub(crate) use plan::{AxisLimits, Samples, check_start};
-pub use plan::{InvalidValue, PlanError, PlanSettings, plan_joint_moves};
+pub use origins::Origins;
+pub use plan::{InvalidValue, PlanError, PlanSettings, plan_joint_moves, plan_joint_moves_marked};
 pub use recorded::{RecordedError, TIME_TOLERANCE_S};
 pub use resample::{ramp_to_rest, resample};
 pub use retime::{RetimeError, Retimed, retime};
