@@ -6,6 +6,7 @@
 //! `path`) or talk to links or controllers.
 
 mod budget;
+mod clearance;
 mod origins;
 mod path;
 mod plan;
@@ -19,6 +20,7 @@ pub use budget::{
 };
 pub(crate) use path::{JointPath, PathNode, PathTiming};
 pub(crate) use plan::{AxisLimits, Samples, check_start};
+pub use clearance::{CollisionRefusal, JointValue, check_clear, joint_values};
 pub use origins::Origins;
 pub use plan::{InvalidValue, PlanError, PlanSettings, plan_joint_moves, plan_joint_moves_marked};
 pub use recorded::{RecordedError, TIME_TOLERANCE_S};
