@@ -100,11 +100,16 @@ impl<'a> CellGate<'a> {
         }
     }
 
-    /// The motion from the last target sent (the first target: the target alone) to
-    /// `positions`, continuously: the closest pair when it comes closer than the margin.
-    pub fn check(&mut self, sent: &Sent, positions: &AxisValues) -> Result<(), Clearance> {
+    /// The motion from `previous`, the last target sent (none: the first target, checked
+    /// alone), to `positions`, continuously: the closest pair when it comes closer than the
+    /// margin.
+    pub fn check(
+        &mut self,
+        previous: Option<&AxisValues>,
+        positions: &AxisValues,
+    ) -> Result<(), Clearance> {
         let to = positions.as_slice();
-        let from = sent.previous.as_ref().map_or(to, |(p, _)| p.as_slice());
+        let from = previous.map_or(to, AxisValues::as_slice);
         self.model
             .check_step(from, to, &mut self.scratch)
             .map(|_| ())

@@ -1,0 +1,283 @@
+//! Every trajectory is checked against the cell before any motion (issue 27): each job
+//! kind through `run`, the issue's two jobs through `run` and HTTP, a ROS 2 trajectory's
+//! job (inline rows, no approach) through HTTP, `replay` (also with `--link`), and the
+//! streaming gate's own check of a trajectory handed over unchecked. Each refusal must
+//! name the two bodies, the time, where the stretch came from as the user wrote it, the
+//! joints in degrees and the clearance against the margin; nothing moves.
+
+mod common;
+#[path = "common/in_process.rs"]
+mod in_process;
+
+use common::repo_path;
+use common::serve::request_json;
+use rigbridge::cell::CollisionModel;
+use rigbridge::clock::VirtualClock;
+use rigbridge::daemon::config::{RunSettings, load_run_settings};
+use rigbridge::daemon::{collision_model, loopback_twin, plan_settings, stream_settings};
+use rigbridge::stream::{CycleRecord, CycleSink, Outcome, StreamControl, stream_in_cell};
+use rigbridge::trajectory::plan_joint_moves;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// The issue's first job: the wrist folded into the arm's own base.
+const WRIST_INTO_BASE_DEG: [f64; 6] = [0.0, 100.0, 60.0, 0.0, 90.0, 0.0];
+/// The twin's start in every settings file here: the demo's.
+const INITIAL: &str = "[twin]\ninitial_deg = [0.0, 0.0, 0.0, 0.0, 30.0, 0.0]\n";
+/// The issue's second job as a line: from above the floor to 0.10 m below it, tool down.
+const LINE_BELOW_THE_FLOOR: &str = r#"[job]
+kind = "move_linear"
+poses = [
+  { xyz_m = [0.40, 0.0, 0.30], quat_wxyz = [0.0, 0.0, 1.0, 0.0] },
+  { xyz_m = [0.40, 0.0, -0.10], quat_wxyz = [0.0, 0.0, 1.0, 0.0] },
+]
+"#;
+
+/// A fresh directory holding a copy of the IRB 120 rig file.
+fn dir(name: &str) -> PathBuf {
+    let dir = common::scratch_dir("collisions", name);
+    std::fs::copy(repo_path("config/irb120.toml"), dir.join("irb120.toml")).unwrap();
+    dir
+}
+
+/// `dir/job.toml`: the IRB 120 on its built-in cell (the floor), the demo's start, `job`.
+fn settings_file(dir: &Path, job: &str) -> PathBuf {
+    let file = dir.join("job.toml");
+    std::fs::write(&file, format!("rig = \"irb120.toml\"\n{INITIAL}\n{job}")).unwrap();
+    file
+}
+
+fn move_joints(target: [f64; 6]) -> String {
+    format!("[job]\nkind = \"move_joints\"\ntargets_deg = [{target:?}]\n")
+}
+
+/// `rigbridge run` of `dir/job.toml` that must be refused: its stderr and its report.
+fn run_refused(dir: &Path) -> (String, serde_json::Value) {
+    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args(["run", "--config", "job.toml", "--clock", "virtual"])
+        .args(["--report", "report.json", "--log", "run.mcap"])
+        .current_dir(dir)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr).to_string();
+    assert!(!output.status.success(), "not refused: {stderr}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
+    assert_eq!(report["outcome"], "refused", "{report}");
+    assert_eq!(report["cycles"], 0, "{report}");
+    assert!(!dir.join("run.mcap").exists(), "a refused job has no log");
+    (stderr, report)
+}
+
+/// The body names of `settings`' cell closest at `deg` (the pair the refusal must name).
+fn closest_pair(settings: &RunSettings, deg: &[f64]) -> (String, String, f64) {
+    let model = collision_model(settings).unwrap();
+    let si: Vec<f64> = deg.iter().map(|d| d.to_radians()).collect();
+    let clearance = model.clearance(&si, &mut model.scratch());
+    (
+        model.body_name(clearance.a).to_string(),
+        model.body_name(clearance.b).to_string(),
+        clearance.distance_m,
+    )
+}
+
+/// What every refusal says: both bodies, the time in the job, the origin, the clearance
+/// against the margin.
+fn assert_names(text: &str, bodies: (&str, &str), origin: &str) {
+    for needle in [bodies.0, bodies.1, origin, "t = ", " s of the job", "margin"] {
+        assert!(text.contains(needle), "`{needle}` missing from: {text}");
+    }
+    assert!(
+        text.contains("collision") || text.contains("within the margin"),
+        "{text}"
+    );
+    assert!(!text.contains("Some(") && !text.contains("[\""), "{text}");
+}
+
+#[test]
+fn run_refuses_the_wrist_folded_into_the_base_naming_the_bodies_and_the_joints() {
+    let dir = dir("wrist");
+    let file = settings_file(&dir, &move_joints(WRIST_INTO_BASE_DEG));
+    let settings = load_run_settings(&file).unwrap();
+    let (a, b, distance) = closest_pair(&settings, &WRIST_INTO_BASE_DEG);
+    // The issue's figure: tool0 at x = -0.02 m, z = 0.14 m, inside the base.
+    assert!(distance <= 0.0, "{a} and {b} are {distance} m apart");
+    let (stderr, report) = run_refused(&dir);
+    let fault = report["fault"].as_str().unwrap();
+    assert_names(fault, (&a, &b), "the joint move to job.targets_deg[0]");
+    assert!(stderr.contains(&a) && stderr.contains(&b), "{stderr}");
+    // The joints where it was refused, in degrees: on the way, so below the target's.
+    assert!(fault.contains(" deg"), "{fault}");
+}
+
+#[test]
+fn run_refuses_the_line_below_the_floor_naming_the_line() {
+    let dir = dir("floor");
+    settings_file(&dir, LINE_BELOW_THE_FLOOR);
+    let (_, report) = run_refused(&dir);
+    let fault = report["fault"].as_str().unwrap();
+    assert!(fault.contains("the line to job.poses[1]"), "{fault}");
+    assert!(fault.contains("floor"), "{fault}");
+}
+
+#[test]
+fn http_refuses_both_of_the_issues_jobs_and_a_ros2_trajectory_with_422() {
+    let dir = dir("http");
+    let file = settings_file(&dir, &move_joints([0.0, 10.0, 10.0, 0.0, 30.0, 0.0]));
+    let settings = load_run_settings(&file).unwrap();
+    let (a, b, _) = closest_pair(&settings, &WRIST_INTO_BASE_DEG);
+    let server = in_process::start(vec![settings], in_process::options(dir.join("runs")));
+    let address = server.address.to_string();
+    let post = |job: &str| request_json(&address, "POST", "/api/jobs", "", job);
+
+    let (code, answer) = post(&format!(
+        r#"{{"job": {{"kind": "move_joints", "targets_deg": [{WRIST_INTO_BASE_DEG:?}]}}}}"#
+    ));
+    assert_eq!(code, 422, "{answer}");
+    let error = answer["error"].as_str().unwrap();
+    assert_names(error, (&a, &b), "job.targets_deg[0]");
+
+    let below = r#"{"job": {"kind": "move_linear", "poses": [
+        {"xyz_m": [0.40, 0.0, 0.30], "quat_wxyz": [0.0, 0.0, 1.0, 0.0]},
+        {"xyz_m": [0.40, 0.0, -0.10], "quat_wxyz": [0.0, 0.0, 1.0, 0.0]}]}}"#;
+    let (code, answer) = post(below);
+    assert_eq!(code, 422, "{answer}");
+    let error = answer["error"].as_str().unwrap();
+    assert!(
+        error.contains("floor") && error.contains("the line to job.poses[1]"),
+        "{error}"
+    );
+
+    // A ROS 2 JointTrajectory becomes this job (docs/ros2.md): rows, no approach.
+    let ros2 = format!(
+        r#"{{"job": {{"kind": "follow_trajectory", "approach": false,
+            "rows": [[0.0, 0.0, 0.0, 0.0, 0.0, 30.0, 0.0], [4.0, {}]]}}}}"#,
+        WRIST_INTO_BASE_DEG.map(|d| d.to_string()).join(", ")
+    );
+    let (code, answer) = post(&ros2);
+    assert_eq!(code, 422, "{answer}");
+    let error = answer["error"].as_str().unwrap();
+    assert_names(error, (&a, &b), "job.rows[0] (t = 0.000 s) to job.rows[1]");
+
+    let (_, status) = request_json(&address, "GET", "/api/status", "", "");
+    assert_eq!(status["state"], "idle", "{status}");
+    server.stop().unwrap().unwrap();
+    // Nothing moved: no job log holds a command.
+    let logs = std::fs::read_dir(dir.join("runs")).map_or(0, |d| {
+        d.filter(|e| {
+            e.as_ref()
+                .is_ok_and(|e| e.file_name().to_string_lossy().starts_with("job-"))
+        })
+        .count()
+    });
+    assert_eq!(logs, 0, "a refused job left a log");
+}
+
+#[test]
+fn each_job_kind_is_refused_before_motion_naming_where_it_came_from() {
+    let bad = WRIST_INTO_BASE_DEG.map(|d| d.to_string()).join(", ");
+    let cases = [
+        (
+            "joint_waypoints".to_string(),
+            format!("[job]\nkind = \"joint_waypoints\"\nwaypoints_deg = [[0.0, 10.0, 0.0, 0.0, 30.0, 0.0], [{bad}]]\n"),
+            "the joint move to job.waypoints_deg[1]".to_string(),
+        ),
+        (
+            "move_poses".to_string(),
+            "[job]\nkind = \"move_poses\"\nposes = [{ xyz_m = [0.40, 0.0, 0.30], quat_wxyz = [0.0, 0.0, 1.0, 0.0] }, \
+             { xyz_m = [0.40, 0.0, -0.10], quat_wxyz = [0.0, 0.0, 1.0, 0.0] }]\n"
+                .to_string(),
+            "the joint move to job.poses[1]".to_string(),
+        ),
+        (
+            "wall_figure".to_string(),
+            "[job]\nkind = \"wall_figure\"\nwall_x_m = 0.45\ncentre_yz_m = [0.0, 0.02]\nradius_m = 0.1\nlaps = 1\n"
+                .to_string(),
+            "the star's corner".to_string(),
+        ),
+        (
+            "follow_trajectory".to_string(),
+            "[job]\nkind = \"follow_trajectory\"\nfile = \"t.csv\"\n".to_string(),
+            // Line 1 the header, line 2 a comment: the rows are lines 3 and 4.
+            "the piece from row 3 of t.csv (t = 0.000 s) to row 4 of t.csv".to_string(),
+        ),
+    ];
+    for (kind, job, origin) in cases {
+        let dir = dir(&kind);
+        std::fs::write(
+            dir.join("t.csv"),
+            format!("t,j1,j2,j3,j4,j5,j6\n# into the base\n0,0,0,0,0,30,0\n4,{bad}\n"),
+        )
+        .unwrap();
+        settings_file(&dir, &job);
+        let (_, report) = run_refused(&dir);
+        let fault = report["fault"].as_str().unwrap();
+        assert!(fault.contains(&origin), "{kind}: {fault}");
+        assert!(fault.contains(" and ") && fault.contains("margin"), "{fault}");
+    }
+}
+
+/// Records every target the stream sent.
+#[derive(Default)]
+struct Sent(Vec<Vec<f64>>);
+
+impl CycleSink for Sent {
+    fn record(&mut self, cycle: &CycleRecord) {
+        self.0.push(cycle.target.positions.as_slice().to_vec());
+    }
+}
+
+fn streamed_in_cell(
+    settings: &RunSettings,
+    model: &CollisionModel,
+    target_deg: [f64; 6],
+) -> (rigbridge::stream::StreamReport, Sent) {
+    let target: Vec<f64> = target_deg.iter().map(|d| d.to_radians()).collect();
+    let trajectory = plan_joint_moves(
+        &settings.rig,
+        &settings.initial(),
+        &[target],
+        &plan_settings(settings),
+    )
+    .unwrap();
+    let mut link = loopback_twin(settings).unwrap();
+    let mut sent = Sent::default();
+    let report = stream_in_cell(
+        &trajectory,
+        &settings.rig,
+        model,
+        &mut link,
+        &VirtualClock::new(),
+        &mut sent,
+        &StreamControl::default(),
+        &stream_settings(settings),
+    )
+    .unwrap();
+    (report, sent)
+}
+
+#[test]
+fn the_gate_checks_each_target_of_a_trajectory_handed_over_unchecked() {
+    let dir = dir("gate");
+    let settings = load_run_settings(&settings_file(&dir, &move_joints(WRIST_INTO_BASE_DEG))).unwrap();
+    let model = collision_model(&settings).unwrap();
+    let (report, sent) = streamed_in_cell(&settings, &model, WRIST_INTO_BASE_DEG);
+    assert_eq!(report.outcome, Outcome::GateRefused, "{report:?}");
+    let fault = report.fault.clone().unwrap();
+    assert!(fault.contains("the safety gate refused a target"), "{fault}");
+    assert!(fault.contains("margin") && fault.contains(" deg"), "{fault}");
+    // It moved up to the margin and no further: every target it sent is clear of it.
+    assert!(sent.0.len() > 10, "{} targets", sent.0.len());
+    let mut scratch = model.scratch();
+    for target in &sent.0 {
+        let clearance = model.clearance(target, &mut scratch);
+        assert!(
+            clearance.distance_m >= model.margin(),
+            "a target {} m from the next body went out",
+            clearance.distance_m
+        );
+    }
+    // A clear move through the same gate completes.
+    let (report, _) = streamed_in_cell(&settings, &model, [30.0, 20.0, 10.0, 0.0, 30.0, 0.0]);
+    assert_eq!(report.outcome, Outcome::Completed, "{report:?}");
+}
