@@ -84,7 +84,14 @@ fn closest_pair(settings: &RunSettings, deg: &[f64]) -> (String, String, f64) {
 /// What every refusal says: both bodies, the time in the job, the origin, the clearance
 /// against the margin.
 fn assert_names(text: &str, bodies: (&str, &str), origin: &str) {
-    for needle in [bodies.0, bodies.1, origin, "t = ", " s of the job", "margin"] {
+    for needle in [
+        bodies.0,
+        bodies.1,
+        origin,
+        "t = ",
+        " s of the job",
+        "margin",
+    ] {
         assert!(text.contains(needle), "`{needle}` missing from: {text}");
     }
     assert!(
@@ -213,7 +220,10 @@ fn each_job_kind_is_refused_before_motion_naming_where_it_came_from() {
         let (_, report) = run_refused(&dir);
         let fault = report["fault"].as_str().unwrap();
         assert!(fault.contains(&origin), "{kind}: {fault}");
-        assert!(fault.contains(" and ") && fault.contains("margin"), "{fault}");
+        assert!(
+            fault.contains(" and ") && fault.contains("margin"),
+            "{fault}"
+        );
     }
 }
 
@@ -259,13 +269,20 @@ fn streamed_in_cell(
 #[test]
 fn the_gate_checks_each_target_of_a_trajectory_handed_over_unchecked() {
     let dir = dir("gate");
-    let settings = load_run_settings(&settings_file(&dir, &move_joints(WRIST_INTO_BASE_DEG))).unwrap();
+    let settings =
+        load_run_settings(&settings_file(&dir, &move_joints(WRIST_INTO_BASE_DEG))).unwrap();
     let model = collision_model(&settings).unwrap();
     let (report, sent) = streamed_in_cell(&settings, &model, WRIST_INTO_BASE_DEG);
     assert_eq!(report.outcome, Outcome::GateRefused, "{report:?}");
     let fault = report.fault.clone().unwrap();
-    assert!(fault.contains("the safety gate refused a target"), "{fault}");
-    assert!(fault.contains("margin") && fault.contains(" deg"), "{fault}");
+    assert!(
+        fault.contains("the safety gate refused a target"),
+        "{fault}"
+    );
+    assert!(
+        fault.contains("margin") && fault.contains(" deg"),
+        "{fault}"
+    );
     // It moved up to the margin and no further: every target it sent is clear of it.
     assert!(sent.0.len() > 10, "{} targets", sent.0.len());
     let mut scratch = model.scratch();
@@ -280,4 +297,62 @@ fn the_gate_checks_each_target_of_a_trajectory_handed_over_unchecked() {
     // A clear move through the same gate completes.
     let (report, _) = streamed_in_cell(&settings, &model, [30.0, 20.0, 10.0, 0.0, 30.0, 0.0]);
     assert_eq!(report.outcome, Outcome::Completed, "{report:?}");
+}
+
+/// `rigbridge` with `args` in `dir`: its exit status and stderr.
+fn rigbridge_in(dir: &Path, args: &[&str]) -> (bool, String) {
+    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .unwrap();
+    (
+        output.status.success(),
+        String::from_utf8_lossy(&output.stderr).to_string(),
+    )
+}
+
+#[test]
+fn replay_refuses_a_log_whose_path_now_hits_the_cell() {
+    let dir = dir("replay");
+    // Joint 1 sweeps the forearm (0.63 m up) through 60 deg; recorded in the built-in cell.
+    settings_file(&dir, &move_joints([60.0, 0.0, 0.0, 0.0, 30.0, 0.0]));
+    let (ok, stderr) = rigbridge_in(
+        &dir,
+        &[
+            "run", "--config", "job.toml", "--clock", "virtual", "--log", "run.mcap",
+        ],
+    );
+    assert!(ok, "{stderr}");
+    // The same rig with a box on the forearm's arc, at 30 deg, 0.26 m out.
+    std::fs::write(
+        dir.join("boxed.toml"),
+        format!(
+            "rig = \"irb120.toml\"\n{INITIAL}\n[cell]\n[[cell.object]]\nname = \"obstacle\"\n\
+             shape = \"box\"\nsize_m = [0.1, 0.1, 0.1]\norigin_xyz_m = [0.225, 0.13, 0.63]\n\n{}",
+            move_joints([0.0, 10.0, 0.0, 0.0, 30.0, 0.0])
+        ),
+    )
+    .unwrap();
+    let replay = ["replay", "run.mcap", "--config", "boxed.toml"];
+    for link in [None, Some("tcp://127.0.0.1:9")] {
+        let mut args = replay.to_vec();
+        match link {
+            Some(link) => args.extend(["--link", link]),
+            None => args.extend(["--clock", "virtual"]),
+        }
+        let (ok, stderr) = rigbridge_in(&dir, &args);
+        assert!(!ok, "replayed into the box: {stderr}");
+        for needle in [
+            "obstacle",
+            "the log's command seq",
+            "t = ",
+            " deg",
+            "margin",
+        ] {
+            assert!(stderr.contains(needle), "`{needle}` missing: {stderr}");
+        }
+        // Refused before any link was opened: nothing listens on port 9.
+        assert!(!stderr.contains("connect"), "{stderr}");
+    }
 }

@@ -16,8 +16,8 @@ use crate::link::Link;
 use crate::log::RunLog;
 use crate::stream::{CycleRecord, CycleSink, StreamControl};
 use crate::trajectory::{
-    Origins, PlanError, RecordedError, Trajectory, TrajectoryError, check_clear,
-    plan_joint_moves, ramp_to_rest, resample, validate, validate_motion,
+    Origins, PlanError, RecordedError, Trajectory, TrajectoryError, check_clear, plan_joint_moves,
+    ramp_to_rest, resample, validate, validate_motion,
 };
 use serde::Serialize;
 use std::collections::HashMap;

@@ -60,7 +60,10 @@ impl WallFigure {
         let mut trajectory =
             plan_joint_moves(rig, start, std::slice::from_ref(&first.joints), settings)?;
         let mut origins = Origins::default();
-        origins.push(trajectory.len() - 1, "the joint move to the star's corner 0");
+        origins.push(
+            trajectory.len() - 1,
+            "the joint move to the star's corner 0",
+        );
         let (figure, marks) = plan_cartesian_marked(
             &solver,
             &first.joints,

@@ -899,7 +899,8 @@ impl Cycle {
             return None;
         }
         if let Some(cell) = cell
-            && let Err(clearance) = cell.check(self.sent.previous.as_ref().map(|(p, _)| p), &positions)
+            && let Err(clearance) =
+                cell.check(self.sent.previous.as_ref().map(|(p, _)| p), &positions)
         {
             self.violations += 1;
             let words = cell.refusal(rig, &clearance, &positions).to_string();

@@ -18,10 +18,10 @@ pub use budget::{
     BYTES_PER_AXIS_SAMPLE, BYTES_PER_MB, DEFAULT_MAX_DURATION_S, DEFAULT_MAX_PLAN_MB, OverBudget,
     SampleBudget, plan_mb,
 };
-pub(crate) use path::{JointPath, PathNode, PathTiming};
-pub(crate) use plan::{AxisLimits, Samples, check_start};
 pub use clearance::{CollisionRefusal, JointValue, check_clear, joint_values};
 pub use origins::Origins;
+pub(crate) use path::{JointPath, PathNode, PathTiming};
+pub(crate) use plan::{AxisLimits, Samples, check_start};
 pub use plan::{InvalidValue, PlanError, PlanSettings, plan_joint_moves, plan_joint_moves_marked};
 pub use recorded::{RecordedError, TIME_TOLERANCE_S};
 pub use resample::{ramp_to_rest, resample};
