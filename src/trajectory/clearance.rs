@@ -63,8 +63,8 @@ fn joint_words(joints: &[JointValue]) -> String {
 }
 
 impl CollisionRefusal {
-    /// The refusal of `positions` (SI units, sample `sample` at `t_s`) for the pair
-    /// `a`-`b` of `model` at `distance_m`, on `origin`.
+    /// The refusal of the path where `model` found `at` (its sample, time, joints and
+    /// closest pair), on the stretch that came from `origin`.
     pub fn of(
         model: &CollisionModel,
         rig: &Rig,
