@@ -1,5 +1,6 @@
-//! `rigbridge config dump DIR`: the built-in configuration files written out for editing.
-//! Owns only the command; the files and the writing are `rigbridge::rig::shipped`'s.
+//! `rigbridge config dump DIR`: the built-in configuration files written out for editing;
+//! `rigbridge config allowed-pairs`: a rig's allowed pairs found by sampling. Owns only the
+//! commands; the files, the writing and the sampling are the library's.
 
 use anyhow::Context;
 use clap::{Args, Subcommand};
@@ -13,6 +14,26 @@ pub enum ConfigCommand {
     /// name) into DIR, then run with `--config DIR/rigbridge.toml`. Existing files are kept
     /// unless --force.
     Dump(DumpArgs),
+    /// Find the rig's allowed pairs by sampling (adjacent links, pairs always or never in
+    /// collision, as MoveIt's setup assistant) and print them as the rig file's
+    /// `allowed_pairs`, or write them into the file (--write).
+    AllowedPairs(AllowedPairsArgs),
+}
+
+#[derive(Args)]
+pub struct AllowedPairsArgs {
+    /// The rig file (TOML); default the built-in IRB 120.
+    #[arg(long, default_value = shipped::DEFAULT_RIG)]
+    rig: PathBuf,
+    /// Configurations to sample, uniform within the joint limits.
+    #[arg(long, default_value_t = rigbridge::cell::DEFAULT_SAMPLES)]
+    samples: usize,
+    /// The sampler's seed (the same seed gives the same pairs).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Rewrite the rig file's `allowed_pairs` instead of printing it.
+    #[arg(long)]
+    write: bool,
 }
 
 #[derive(Args)]
@@ -25,7 +46,42 @@ pub struct DumpArgs {
 }
 
 pub fn config_command(command: ConfigCommand) -> anyhow::Result<ExitCode> {
-    let ConfigCommand::Dump(args) = command;
+    match command {
+        ConfigCommand::Dump(args) => dump(args),
+        ConfigCommand::AllowedPairs(args) => allowed_pairs(args),
+    }
+}
+
+fn allowed_pairs(args: AllowedPairsArgs) -> anyhow::Result<ExitCode> {
+    let rig = rigbridge::rig::load_rig(&args.rig)?;
+    let pairs = rigbridge::cell::find_allowed_pairs(&rig, args.samples, args.seed)?;
+    let key = rigbridge::cell::allowed_pairs_toml(&pairs);
+    if !args.write {
+        say!("{key}");
+        return Ok(ExitCode::SUCCESS);
+    }
+    if shipped::is_shipped(&args.rig) {
+        anyhow::bail!(super::Usage(format!(
+            "{} is built in and cannot be rewritten: `rigbridge config dump DIR` writes it out",
+            args.rig.display()
+        )));
+    }
+    let text = std::fs::read_to_string(&args.rig)
+        .with_context(|| format!("cannot read {}", args.rig.display()))?;
+    std::fs::write(
+        &args.rig,
+        rigbridge::cell::replace_allowed_pairs(&text, &key),
+    )
+    .with_context(|| format!("cannot write {}", args.rig.display()))?;
+    say!(
+        "wrote {} allowed pairs into {}",
+        pairs.len(),
+        args.rig.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+fn dump(args: DumpArgs) -> anyhow::Result<ExitCode> {
     let done = shipped::dump(&args.dir, args.force)
         .with_context(|| format!("cannot write the built-in files to {}", args.dir.display()))?;
     let mut kept = 0;

@@ -2,9 +2,10 @@
 //! the plan's speed shares and the job. Validated on load; every error names the file,
 //! the key and the value.
 
+use crate::cell::{Cell, CellError, CollisionModel, RawCell, cell_from_raw, load_cell};
 use crate::protocol::can::{CAN_ID_BLOCK, CanMappingError, MAX_CAN_BASE_ID};
 use crate::protocol::{CanMapping, CanSender};
-use crate::rig::{ConfigError, Rig, check_range, load_rig};
+use crate::rig::{ConfigError, Rig, Shown, Verbatim, check_range, load_rig};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -14,6 +15,11 @@ use std::time::Duration;
 pub struct RunConfig {
     /// Rig description, relative to the config file.
     pub rig: PathBuf,
+    /// The workcell (docs/cell.md): `cell = "cell.toml"`, a cell file relative to this file,
+    /// or a `[cell]` section of this file. Optional: none is [`Cell::builtin`], the floor
+    /// the robot stands on.
+    #[serde(default)]
+    pub cell: Option<toml::Value>,
     /// `[stream]`: optional, every key has a default (250 Hz to the in-process twin).
     #[serde(default = "default_stream")]
     pub stream: StreamConfig,
@@ -964,6 +970,10 @@ pub struct RunSettings {
     pub rig: Rig,
     /// The sloth behind `rig` when the job is a gait (`rig` is then its streamed axes).
     pub sloth: Option<std::sync::Arc<crate::task::gait::SlothRig>>,
+    /// The workcell `cell` names (the built-in floor when it names none).
+    pub cell: Cell,
+    /// `rig`'s bodies, the cell's tool and objects: the one collision model of the run.
+    pub collision: std::sync::Arc<CollisionModel>,
 }
 
 impl RunSettings {
@@ -1040,12 +1050,62 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     config.ros2.check(file)?;
     config.ros2.check_namespace(file, &rig)?;
     config.serve.check(file)?;
+    let cell = load_cell_setting(file, &base_dir, config.cell.as_ref())?;
+    let collision = CollisionModel::new(&rig, &cell).map_err(|e| cell_refused(file, &config, e))?;
     Ok(RunSettings {
         file: file.to_path_buf(),
         config,
         rig,
         sloth,
+        cell,
+        collision: std::sync::Arc::new(collision),
     })
+}
+
+/// The cell of the `cell` key: a file (relative to the settings' directory), a `[cell]`
+/// section, or the built-in floor when absent.
+fn load_cell_setting(
+    file: &Path,
+    base_dir: &Path,
+    setting: Option<&toml::Value>,
+) -> Result<Cell, ConfigError> {
+    match setting {
+        None => Ok(Cell::builtin()),
+        Some(toml::Value::String(name)) => load_cell(&base_dir.join(name)).map_err(|e| match e {
+            CellError::Config(e) => e,
+            other => ConfigError::invalid(file, "cell", name, &other.to_string()),
+        }),
+        Some(toml::Value::Table(table)) => {
+            let raw: RawCell =
+                toml::Value::Table(table.clone())
+                    .try_into()
+                    .map_err(|e: toml::de::Error| ConfigError::Parse {
+                        file: file.to_path_buf(),
+                        message: format!("[cell]: {}", e.message()),
+                    })?;
+            cell_from_raw(&raw, file, "cell.")
+        }
+        Some(other) => Err(ConfigError::invalid(
+            file,
+            "cell",
+            Verbatim(other.to_string()),
+            "a cell file's name (\"cell.toml\") or a [cell] section",
+        )),
+    }
+}
+
+/// A cell that loaded but does not fit the rig (a pair naming no body, a half-space on a
+/// link), as the settings' error naming the `cell` key.
+fn cell_refused(file: &Path, config: &RunConfig, e: CellError) -> ConfigError {
+    let value = match &config.cell {
+        Some(toml::Value::String(name)) => name.shown(),
+        Some(_) => "[cell]".to_string(),
+        None => "(built in)".to_string(),
+    };
+    match e {
+        CellError::Config(e) => e,
+        other => ConfigError::invalid(file, "cell", Verbatim(value), &other.to_string()),
+    }
 }
 
 /// `file` read (a shipped config by its name too) and parsed, not yet checked.

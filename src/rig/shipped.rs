@@ -28,9 +28,9 @@ macro_rules! shipped {
 }
 
 /// Every shipped file: the IRB 120 rig and the demo run settings, and the files they name
-/// (rigs, the sloth, the painter's room, the forest), so relative names inside them resolve
+/// (rigs, the sloth, the painter's room, the forest, the cells), so relative names inside them resolve
 /// among the shipped files as they do on disk.
-pub const FILES: [ShippedFile; 8] = shipped!(
+pub const FILES: [ShippedFile; 11] = shipped!(
     "rigbridge.toml",
     "irb120.toml",
     "gait-run.toml",
@@ -39,6 +39,9 @@ pub const FILES: [ShippedFile; 8] = shipped!(
     "paint-run.toml",
     "painter.toml",
     "paint.toml",
+    "cell-floor.toml",
+    "cell-star.toml",
+    "cell-painter.toml",
 );
 
 /// The path of the shipped file `name` (it may not exist: [`read`] says so).

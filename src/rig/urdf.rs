@@ -5,7 +5,10 @@
 //! speed in [`DEFAULT_TIME_TO_FULL_SPEED_S`].
 
 use super::config::origin_from_xyz_rpy;
-use super::{ConfigError, Joint, JointKind, JointLimits, Rig, Verbatim};
+use super::geometry::{hull, read_hull_points};
+use super::{
+    Collision, ConfigError, Joint, JointKind, JointLimits, LinkBody, Rig, Shape, Verbatim,
+};
 use glam::{DAffine3, DVec3};
 use std::collections::{HashMap, HashSet};
 use std::path::Path;
@@ -47,6 +50,8 @@ pub fn rig_from_urdf_to(
 
     let mut joints = Vec::new();
     let mut pending = DAffine3::IDENTITY;
+    // Each link of the chain with the frame it rides on and its place in that frame.
+    let mut chain_links = vec![(tree.root().to_string(), 0, DAffine3::IDENTITY)];
     for urdf_joint in path {
         let origin = pending
             * origin_from_xyz_rpy(
@@ -61,7 +66,9 @@ pub fn rig_from_urdf_to(
                 pending = DAffine3::IDENTITY;
             }
         }
+        chain_links.push((urdf_joint.child.link.clone(), joints.len(), pending));
     }
+    let (bodies, allowed_pairs) = collision_bodies(&robot, &chain_links, file)?;
     if joints.is_empty() {
         return Err(ConfigError::invalid(
             file,
@@ -76,6 +83,104 @@ pub fn rig_from_urdf_to(
         tool_frame: tip,
         joints,
         tool: pending,
+        bodies,
+        allowed_pairs,
+    })
+}
+
+/// The `<collision>` elements of the chain's links as bodies (a link without any is no
+/// body; links off the chain are not read), and each pair of neighbouring links that both
+/// have a body as an allowed pair: they meet at their joint, as MoveIt's adjacent pairs.
+fn collision_bodies(
+    robot: &urdf_rs::Robot,
+    chain_links: &[(String, usize, DAffine3)],
+    file: &Path,
+) -> Result<(Vec<LinkBody>, Vec<(String, String)>), ConfigError> {
+    let mut bodies: Vec<LinkBody> = Vec::new();
+    for (name, frame, place) in chain_links {
+        let Some(link) = robot.links.iter().find(|l| &l.name == name) else {
+            continue;
+        };
+        let mut collisions = Vec::with_capacity(link.collision.len());
+        for (i, element) in link.collision.iter().enumerate() {
+            let key = format!("link[name={name}].collision[{i}]");
+            let origin = origin_from_xyz_rpy(
+                DVec3::from_array(*element.origin.xyz),
+                DVec3::from_array(*element.origin.rpy),
+            );
+            let shape = urdf_shape(&element.geometry, &key, file)?;
+            collisions.push(Collision {
+                origin: *place * origin,
+                shape,
+            });
+        }
+        if !collisions.is_empty() {
+            bodies.push(LinkBody {
+                name: name.clone(),
+                frame: *frame,
+                collisions,
+            });
+        }
+    }
+    let has_body = |name: &str| bodies.iter().any(|b| b.name == name);
+    let allowed = chain_links
+        .windows(2)
+        .filter(|w| has_body(&w[0].0) && has_body(&w[1].0))
+        .map(|w| (w[0].0.clone(), w[1].0.clone()))
+        .collect();
+    Ok((bodies, allowed))
+}
+
+/// A URDF geometry as a solid: box, cylinder, sphere and capsule as they are, a mesh as the
+/// convex hull of its (scaled) vertices.
+fn urdf_shape(geometry: &urdf_rs::Geometry, key: &str, file: &Path) -> Result<Shape, ConfigError> {
+    let positive = |field: &str, value: f64| {
+        if value.is_finite() && value > 0.0 {
+            Ok(value)
+        } else {
+            Err(ConfigError::invalid(
+                file,
+                &format!("{key}.{field}"),
+                value,
+                "must be a positive number",
+            ))
+        }
+    };
+    Ok(match geometry {
+        urdf_rs::Geometry::Box { size } => {
+            let size = [
+                positive("box.size", size[0])?,
+                positive("box.size", size[1])?,
+                positive("box.size", size[2])?,
+            ];
+            Shape::Box {
+                half_extents: DVec3::from_array(size) / 2.0,
+            }
+        }
+        urdf_rs::Geometry::Cylinder { radius, length } => Shape::Cylinder {
+            radius: positive("cylinder.radius", *radius)?,
+            half_length: positive("cylinder.length", *length)? / 2.0,
+        },
+        urdf_rs::Geometry::Capsule { radius, length } => {
+            let half = positive("capsule.length", *length)? / 2.0;
+            Shape::Capsule {
+                a: DVec3::new(0.0, 0.0, -half),
+                b: DVec3::new(0.0, 0.0, half),
+                radius: positive("capsule.radius", *radius)?,
+            }
+        }
+        urdf_rs::Geometry::Sphere { radius } => Shape::Sphere {
+            radius: positive("sphere.radius", *radius)?,
+        },
+        urdf_rs::Geometry::Mesh { filename, scale } => {
+            let mesh_key = format!("{key}.mesh.filename");
+            let scale = scale.map_or(DVec3::ONE, |s| DVec3::from_array(*s));
+            let points = read_hull_points(file, &mesh_key, filename)?
+                .into_iter()
+                .map(|p| p * scale)
+                .collect();
+            hull(file, &mesh_key, points)?
+        }
     })
 }
 
