@@ -33,7 +33,7 @@ fn main_bench(c: &mut Criterion) {
             settings: &rigbridge::daemon::plan_settings(&settings),
         })
         .expect("the demo plans");
-    let model = collision_model(&settings).expect("the demo's cell");
+    let model = collision_model(&settings);
     let targets: Vec<AxisValues> = (0..trajectory.len())
         .map(|k| AxisValues::from_slice(trajectory.position(k)).expect("six axes"))
         .collect();

@@ -71,7 +71,7 @@ fn run_refused(dir: &Path) -> (String, serde_json::Value) {
 
 /// How far apart `settings`' cell's closest pair is at `deg`.
 fn clearance_at(settings: &RunSettings, deg: &[f64]) -> f64 {
-    let model = collision_model(settings).unwrap();
+    let model = collision_model(settings);
     let si: Vec<f64> = deg.iter().map(|d| d.to_radians()).collect();
     model.clearance(&si, &mut model.scratch()).distance_m
 }
@@ -284,7 +284,7 @@ fn the_gate_checks_each_target_of_a_trajectory_handed_over_unchecked() {
     let dir = dir("gate");
     let settings =
         load_run_settings(&settings_file(&dir, &move_joints(WRIST_INTO_BASE_DEG))).unwrap();
-    let model = collision_model(&settings).unwrap();
+    let model = collision_model(&settings);
     let (report, sent) = streamed_in_cell(&settings, &model, WRIST_INTO_BASE_DEG);
     assert_eq!(report.outcome, Outcome::GateRefused, "{report:?}");
     let fault = report.fault.clone().unwrap();

@@ -57,8 +57,6 @@ pub enum DaemonError {
     /// The trajectory comes closer to something in the cell than its margin.
     #[error("refused before motion")]
     Collision(#[from] CollisionRefusal),
-    #[error("the cell's collision model")]
-    CollisionModel(#[from] crate::cell::CellError),
     /// A stop or e-stop ended the job before any motion.
     #[error("{0}")]
     Halted(Halted),
@@ -466,12 +464,10 @@ pub struct PlannedJob {
     pub cleared: bool,
 }
 
-/// The cell's collision model for `settings`: its rig's bodies, the tool and the objects.
-pub fn collision_model(settings: &RunSettings) -> Result<crate::cell::CollisionModel, DaemonError> {
-    Ok(crate::cell::CollisionModel::new(
-        &settings.rig,
-        &crate::cell::Cell::builtin(),
-    )?)
+/// The cell's collision model for `settings` (built when they loaded): the rig's bodies,
+/// the tool and the objects.
+pub fn collision_model(settings: &RunSettings) -> std::sync::Arc<crate::cell::CollisionModel> {
+    settings.collision.clone()
 }
 
 /// Checks `trajectory` whole against the cell before any motion: every sample and the
@@ -482,8 +478,7 @@ pub fn clear(
     trajectory: &crate::trajectory::Trajectory,
     origins: &Origins,
 ) -> Result<(), DaemonError> {
-    let model = collision_model(settings)?;
-    check_clear(trajectory, &settings.rig, &model, origins)?;
+    check_clear(trajectory, &settings.rig, &settings.collision, origins)?;
     Ok(())
 }
 

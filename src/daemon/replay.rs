@@ -7,8 +7,7 @@
 //! cycle `stream`'s, the limits `trajectory::validate`'s.
 
 use super::{
-    DaemonError, JobToStream, RunReport, clear, collision_model, held_position, plan_settings,
-    stream_job_with,
+    DaemonError, JobToStream, RunReport, clear, held_position, plan_settings, stream_job_with,
 };
 use crate::clock::Clock;
 use crate::daemon::config::RunSettings;
@@ -202,8 +201,12 @@ fn check_log_path(
     origins.push(0, "the log's start position");
     origins.push(resampled_len - 1, "the log's commands");
     origins.push(usize::MAX, "the stop ramp after the log's last command");
-    let model = collision_model(settings)?;
-    let refused = check_clear(&replayed.trajectory, &settings.rig, &model, &origins);
+    let refused = check_clear(
+        &replayed.trajectory,
+        &settings.rig,
+        &settings.collision,
+        &origins,
+    );
     let Err(mut refusal) = refused else {
         return Ok(());
     };
