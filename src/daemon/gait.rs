@@ -56,6 +56,8 @@ pub fn run_gait(
         }),
         start,
         trajectory,
+        origins: crate::trajectory::Origins::whole("the gait's plan"),
+        cleared: false,
     };
     let run = stream_planned(settings, &planned, &mut link, clock, log, control)?;
     let world = world.lock().unwrap_or_else(PoisonError::into_inner);

@@ -21,7 +21,7 @@ use crate::log::{LogError, Recorder, RecorderStats};
 use crate::stream::{
     Outcome, Phase, StreamControl, StreamError, StreamReport, StreamSettings, slowdown_rate,
 };
-use crate::trajectory::PlanSettings;
+use crate::trajectory::{CollisionRefusal, Origins, PlanSettings, check_clear};
 use crate::twin::{Twin, TwinError, TwinSettings};
 use config::RunSettings;
 use serde::Serialize;
@@ -54,6 +54,9 @@ pub enum DaemonError {
     Unavailable(String),
     #[error(transparent)]
     Cells(#[from] server::CellError),
+    /// The trajectory comes closer to something in the cell than its margin.
+    #[error("refused before motion")]
+    Collision(#[from] CollisionRefusal),
     /// A stop or e-stop ended the job before any motion.
     #[error("{0}")]
     Halted(Halted),
@@ -479,6 +482,29 @@ pub struct PlannedJob {
     pub job: config::JobConfig,
     pub start: Vec<f64>,
     pub trajectory: crate::trajectory::Trajectory,
+    /// Where each stretch of the trajectory came from, for a refusal to name.
+    pub origins: Origins,
+    /// Whether the trajectory was checked against the cell already ([`clear`]); if not,
+    /// streaming it checks it first.
+    pub cleared: bool,
+}
+
+/// The cell's collision model for `settings` (built when they loaded): the rig's bodies,
+/// the tool and the objects.
+pub fn collision_model(settings: &RunSettings) -> std::sync::Arc<crate::cell::CollisionModel> {
+    settings.collision.clone()
+}
+
+/// Checks `trajectory` whole against the cell before any motion: every sample and the
+/// motion between them (docs/faults.md, "Collisions"). A refusal names the two bodies, the
+/// time, where the stretch came from (`origins`), the joints and the clearance.
+pub fn clear(
+    settings: &RunSettings,
+    trajectory: &crate::trajectory::Trajectory,
+    origins: &Origins,
+) -> Result<(), DaemonError> {
+    check_clear(trajectory, &settings.rig, &settings.collision, origins)?;
+    Ok(())
 }
 
 pub fn plan_for(
@@ -492,7 +518,7 @@ pub fn plan_for(
     if control.enter(Phase::Planning) {
         return Err(Halted::of(control).told(link));
     }
-    let trajectory = job.plan(&crate::job::PlanContext {
+    let (trajectory, origins) = job.plan_traced(&crate::job::PlanContext {
         rig: &settings.rig,
         sloth: settings.sloth.as_deref(),
         start: &start,
@@ -502,10 +528,15 @@ pub fn plan_for(
     if control.is_halted() {
         return Err(Halted::of(control).told(link));
     }
+    // Checked here, not only when streamed: `serve` answers a job refused here in the
+    // request that asked for it.
+    clear(settings, &trajectory, &origins)?;
     Ok(PlannedJob {
         job: job.clone(),
         start,
         trajectory,
+        origins,
+        cleared: true,
     })
 }
 
@@ -565,6 +596,8 @@ pub fn stream_planned_with(
         start: &planned.start,
         trajectory: &planned.trajectory,
         job: Some(&planned.job),
+        origins: &planned.origins,
+        cleared: planned.cleared,
     };
     stream_job_with(settings, &job, link, clock, log, control, sinks)
 }
@@ -580,6 +613,10 @@ pub struct JobToStream<'a> {
     /// The job's config, when it has one (a replayed log has not): its world (paint room,
     /// branches) goes in the log as `/scene`.
     pub job: Option<&'a config::JobConfig>,
+    /// Where each stretch of the trajectory came from, for a refusal to name.
+    pub origins: &'a Origins,
+    /// Whether the trajectory was checked against the cell already ([`clear`]).
+    pub cleared: bool,
 }
 
 /// Streams `job` through [`resume::stream_resuming`] (link loss and stalls resume from the
@@ -599,6 +636,10 @@ pub fn stream_job_with(
         actions,
         executor,
     } = sinks;
+    // Every trajectory the daemon streams passes here: one not checked yet is, now.
+    if !job.cleared {
+        clear(settings, job.trajectory, job.origins)?;
+    }
     let metadata = job_metadata(settings, job, link.describe());
     let recorder = log
         .map(|path| create_recorder(settings, job.job, path, &metadata, clock.is_virtual()))

@@ -52,6 +52,8 @@ pub fn run_paint(
         }),
         start,
         trajectory: plan.trajectory.clone(),
+        origins: crate::trajectory::Origins::whole("the painting plan"),
+        cleared: false,
     };
     let run = super::stream_planned(settings, &job, &mut link, clock, log, control)?;
     let report = {

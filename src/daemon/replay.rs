@@ -6,15 +6,17 @@
 //! the controller does now with what it did then; reading the log is `log`'s job, the
 //! cycle `stream`'s, the limits `trajectory::validate`'s.
 
-use super::{DaemonError, JobToStream, RunReport, held_position, plan_settings, stream_job_with};
+use super::{
+    DaemonError, JobToStream, RunReport, clear, held_position, plan_settings, stream_job_with,
+};
 use crate::clock::Clock;
 use crate::daemon::config::RunSettings;
 use crate::link::Link;
 use crate::log::RunLog;
 use crate::stream::{CycleRecord, CycleSink, StreamControl};
 use crate::trajectory::{
-    PlanError, RecordedError, Trajectory, TrajectoryError, plan_joint_moves, ramp_to_rest,
-    resample, validate, validate_motion,
+    Origins, PlanError, RecordedError, Trajectory, TrajectoryError, check_clear, plan_joint_moves,
+    ramp_to_rest, resample, validate, validate_motion,
 };
 use serde::Serialize;
 use std::collections::HashMap;
@@ -26,6 +28,8 @@ use thiserror::Error;
 /// `a_max T^2` from it: the first step then stays within the axis' acceleration from rest
 /// (docs/protocol.md 6.6), so no approach is needed. Farther, an approach is planned.
 const SAME_START_SHARE: f64 = 0.01;
+/// What a refusal of the move to the log's first command calls it.
+const APPROACH: &str = "the approach from where the controller holds to the log's start";
 
 #[derive(Debug, Error)]
 pub enum ReplayError {
@@ -173,13 +177,54 @@ pub fn replay_trajectory(
     validate(&trajectory, &settings.rig).map_err(ReplayError::Ramp)?;
     let verbatim = resampled.len() == recorded.len()
         && (0..recorded.len()).all(|k| resampled.position(k) == recorded.position(k));
-    Ok(Replayed {
+    let replayed = Replayed {
         trajectory,
         recorded_period,
         resampled: !verbatim,
         stop_ramp_samples: ramp,
         recorded_first_seq: log.commands.first().map_or(0, |c| c.seq.wrapping_sub(1)),
-    })
+    };
+    check_log_path(settings, &replayed, resampled.len(), speed)?;
+    Ok(replayed)
+}
+
+/// The replayed path checked against the cell before any motion; a refusal names the log's
+/// command (its seq) when the path is the log's commands one for one, else the time in the
+/// recording (`resampled_len`: samples before the stop ramp).
+fn check_log_path(
+    settings: &RunSettings,
+    replayed: &Replayed,
+    resampled_len: usize,
+    speed: f64,
+) -> Result<(), DaemonError> {
+    let mut origins = Origins::default();
+    origins.push(0, "the log's start position");
+    origins.push(resampled_len - 1, "the log's commands");
+    origins.push(usize::MAX, "the stop ramp after the log's last command");
+    let refused = check_clear(
+        &replayed.trajectory,
+        &settings.rig,
+        &settings.collision,
+        &origins,
+    );
+    let Err(mut refusal) = refused else {
+        return Ok(());
+    };
+    let sample = refusal.sample;
+    if (1..resampled_len).contains(&sample) {
+        refusal.origin = if replayed.resampled {
+            format!(
+                "the log's commands at t = {:.3} s of the recording",
+                sample as f64 * settings.period().as_secs_f64() * speed
+            )
+        } else {
+            format!(
+                "the log's command seq {}",
+                replayed.recorded_first_seq.wrapping_add(sample as u32)
+            )
+        };
+    }
+    Err(refusal.into())
 }
 
 /// The move from `held` to the replay's first sample, when they differ (else `None`).
@@ -264,6 +309,7 @@ pub fn replay(
     let held = held_position(settings, link, clock, control)?;
     let trajectory = match approach(settings, &held, replayed.trajectory.position(0))? {
         Some(mut moved) => {
+            clear(settings, &moved, &Origins::whole(APPROACH))?;
             moved.append(&replayed.trajectory);
             moved
         }
@@ -299,6 +345,9 @@ pub fn replay(
         start: &held,
         trajectory: &trajectory,
         job: None,
+        // Both parts were checked: the log's path with its commands' seqs, the approach.
+        origins: &Origins::whole("the replay"),
+        cleared: true,
     };
     let run = stream_job_with(
         settings,

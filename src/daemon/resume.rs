@@ -426,6 +426,13 @@ fn resume_once(
             return Resumed::Ended(ended);
         }
     };
+    let back = crate::trajectory::Origins::whole("the way back to the path after the interruption");
+    if let Err(error) = super::clear(io.settings, &approach, &back) {
+        let mut ended = report.clone();
+        ended.outcome = Outcome::Refused;
+        ended.fault = Some(super::error_chain(&error));
+        return Resumed::Ended(ended);
+    }
     let part = io.run(&approach, streaming);
     let approached = part.outcome == Outcome::Completed;
     Resumed::Approach(report.clone().merge(part), approached)

@@ -70,6 +70,17 @@ pub fn plan_cartesian(
     waypoints: &[Pose],
     settings: &PlanSettings,
 ) -> Result<Trajectory, CartesianError> {
+    plan_cartesian_marked(solver, start, waypoints, settings).map(|(trajectory, _)| trajectory)
+}
+
+/// [`plan_cartesian`], with the sample each line ends at (one per waypoint, in order): what
+/// a refusal of the planned motion names as its source.
+pub fn plan_cartesian_marked(
+    solver: &dyn IkSolver,
+    start: &[f64],
+    waypoints: &[Pose],
+    settings: &PlanSettings,
+) -> Result<(Trajectory, Vec<usize>), CartesianError> {
     settings.check()?;
     let rig = solver.rig();
     let limits = AxisLimits::new(rig, settings)?;
@@ -85,6 +96,7 @@ pub fn plan_cartesian(
     let mut from = start_pose(rig, start)?;
     let mut joints = start.to_vec();
     let mut samples = Samples::at_rest(start, settings.budget, settings.period);
+    let mut marks = Vec::with_capacity(targets.len());
     for (waypoint, to) in targets.into_iter().enumerate() {
         let line = Line { from, to };
         let mov = LinearMove {
@@ -104,9 +116,10 @@ pub fn plan_cartesian(
             timing.append(&path, |u, seed| mov.solve_on_line(u, seed), &mut samples)?;
             joints = path.end().to_vec();
         }
+        marks.push(samples.last_index());
         from = to;
     }
-    Ok(samples.finish(rig, settings.period)?)
+    Ok((samples.finish(rig, settings.period)?, marks))
 }
 
 /// The tool pose at `start` (whose axis count `check_start` has already confirmed).

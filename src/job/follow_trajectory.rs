@@ -13,7 +13,7 @@ use super::limits::{CEILING_DURATION_S, CEILING_POINTS, JobLimits};
 use super::{JobContext, JobError, JobInvalid, PlanContext, resolve_file, to_si};
 use crate::rig::Rig;
 use crate::trajectory::{
-    OverBudget, SampleBudget, Trajectory, TrajectoryError, plan_joint_moves, validate,
+    Origins, OverBudget, SampleBudget, Trajectory, TrajectoryError, plan_joint_moves, validate,
 };
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -181,19 +181,29 @@ impl FollowTrajectory {
         }
     }
 
-    /// The rows in SI units, from the file or inline.
-    fn rows(&self, rig: &Rig) -> Result<Vec<Row>, TrajectoryFileError> {
+    /// The rows in SI units, from the file or inline, each with its name as the user finds
+    /// it: the file's line number, or the index in `job.rows`.
+    fn rows(&self, rig: &Rig) -> Result<(Vec<Row>, Vec<String>), TrajectoryFileError> {
         match (&self.file, &self.rows) {
-            (Some(file), _) => read_trajectory_csv(file, rig, RowCaps::CEILING),
-            (None, Some(rows)) => inline_rows(rows, rig, RowCaps::CEILING),
+            (Some(file), _) => {
+                let (rows, lines) = read_numbered_rows(file, rig, RowCaps::CEILING)?;
+                let name = file.file_name().unwrap_or(file.as_os_str()).display();
+                let names = lines.iter().map(|l| format!("row {l} of {name}")).collect();
+                Ok((rows, names))
+            }
+            (None, Some(rows)) => {
+                let names = (0..rows.len()).map(|k| format!("job.rows[{k}]")).collect();
+                Ok((inline_rows(rows, rig, RowCaps::CEILING)?, names))
+            }
             (None, None) => Err(TrajectoryFileError::InlineShape {
                 reason: ShapeProblem::NoRows,
             }),
         }
     }
 
-    pub fn plan(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
-        let rows = self.rows(context.rig)?;
+    /// The approach and the rows; each stretch named by the rows it joins (see [`Origins`]).
+    pub fn plan(&self, context: &PlanContext) -> Result<(Trajectory, Origins), JobError> {
+        let (rows, names) = self.rows(context.rig)?;
         let (rig, settings) = (context.rig, context.settings);
         if !self.approach {
             starts_where_held(rig, &rows[0].1, context.start, settings.period)?;
@@ -209,8 +219,12 @@ impl FollowTrajectory {
             sample_rows(rig, &rows, settings.period, budget).map_err(|e| self.shape(e))?;
         validate(&followed, rig).map_err(|e| self.shape(ShapeProblem::Refused(Box::new(e))))?;
         check_acceleration(rig, &followed).map_err(|reason| self.shape(reason))?;
+        let mut origins = Origins::default();
+        let joined = trajectory.len() - 1;
+        origins.push(joined, format!("the approach to {}", names[0]));
+        push_pieces(&mut origins, &rows, &names, settings.period, joined);
         trajectory.append(&followed);
-        Ok(trajectory)
+        Ok((trajectory, origins))
     }
 
     fn shape(&self, reason: ShapeProblem) -> JobError {
@@ -222,6 +236,34 @@ impl FollowTrajectory {
             None => TrajectoryFileError::InlineShape { reason },
         }
         .into()
+    }
+}
+
+/// The stretches of the sampled rows (from sample `offset` of the job on): the piece from
+/// row `r - 1` to row `r` ends at the last sample not after row `r`'s time. Named with
+/// both rows and the file's time of the first, as the user wrote them.
+fn push_pieces(
+    origins: &mut Origins,
+    rows: &[Row],
+    names: &[String],
+    period: Duration,
+    offset: usize,
+) {
+    let period_s = period.as_secs_f64();
+    for r in 1..rows.len() {
+        let last = (rows[r].0 / period_s).floor() as usize;
+        origins.push(
+            offset + last,
+            format!(
+                "the piece from {} (t = {:.3} s) to {}",
+                names[r - 1],
+                rows[r - 1].0,
+                names[r]
+            ),
+        );
+    }
+    if rows.len() == 1 {
+        origins.push(offset, names[0].clone());
     }
 }
 
@@ -306,6 +348,16 @@ pub fn read_trajectory_csv(
     rig: &Rig,
     caps: RowCaps,
 ) -> Result<Vec<Row>, TrajectoryFileError> {
+    read_numbered_rows(file, rig, caps).map(|(rows, _)| rows)
+}
+
+/// [`read_trajectory_csv`], with each row's line number in the file (from 1, the header's
+/// line counted): how errors and refusals name a row.
+fn read_numbered_rows(
+    file: &Path,
+    rig: &Rig,
+    caps: RowCaps,
+) -> Result<(Vec<Row>, Vec<usize>), TrajectoryFileError> {
     let io = |source| TrajectoryFileError::Io {
         file: file.to_path_buf(),
         source,
@@ -322,6 +374,7 @@ pub fn read_trajectory_csv(
         .filter(|(_, l)| !l.trim().is_empty() && !l.trim_start().starts_with('#'));
     check_header(file, rig, lines.next().map(|(_, l)| l))?;
     let mut rows: Vec<Row> = Vec::new();
+    let mut numbers = Vec::new();
     for (index, line) in lines {
         let row = index + 1;
         let bad = |reason: RowProblem| TrajectoryFileError::Row {
@@ -334,6 +387,7 @@ pub fn read_trajectory_csv(
         }
         let parsed = parse_row(line, rig, rows.last().map(|r| r.0), caps.max_t_s).map_err(bad)?;
         rows.push(parsed);
+        numbers.push(row);
     }
     if rows.is_empty() {
         return Err(TrajectoryFileError::Shape {
@@ -341,7 +395,7 @@ pub fn read_trajectory_csv(
             reason: ShapeProblem::NoRows,
         });
     }
-    Ok(rows)
+    Ok((rows, numbers))
 }
 
 fn check_header(file: &Path, rig: &Rig, header: Option<&str>) -> Result<(), TrajectoryFileError> {

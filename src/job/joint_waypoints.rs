@@ -3,7 +3,7 @@
 //! the return.
 
 use super::{JobContext, JobError, JobInvalid, PlanContext, check_targets, to_si};
-use crate::trajectory::{Trajectory, plan_joint_moves};
+use crate::trajectory::{Origins, Trajectory, plan_joint_moves_marked};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -21,18 +21,25 @@ impl JointWaypoints {
         Ok(self)
     }
 
-    pub fn plan(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
+    /// The moves, each named by its waypoint (`job.waypoints_deg[k]`), and the way back.
+    pub fn plan(&self, context: &PlanContext) -> Result<(Trajectory, Origins), JobError> {
         let mut waypoints: Vec<Vec<f64>> = self
             .waypoints_deg
             .iter()
             .map(|w| to_si(w, context.rig))
             .collect();
         waypoints.push(context.start.to_vec());
-        Ok(plan_joint_moves(
-            context.rig,
-            context.start,
-            &waypoints,
-            context.settings,
-        )?)
+        let (trajectory, marks) =
+            plan_joint_moves_marked(context.rig, context.start, &waypoints, context.settings)?;
+        let given = self.waypoints_deg.len();
+        let mut origins = Origins::default();
+        origins.push_marks(&marks, 0, |k| {
+            if k < given {
+                format!("the joint move to job.waypoints_deg[{k}]")
+            } else {
+                "the joint move back to where the job started".to_string()
+            }
+        });
+        Ok((trajectory, origins))
     }
 }

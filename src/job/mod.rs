@@ -39,7 +39,7 @@ pub use wall_figure::{WallFigure, star_poses};
 use crate::ik::{CartesianError, IkError, StructureError};
 use crate::rig::Rig;
 use crate::task::gait::SlothRig;
-use crate::trajectory::{PlanError, PlanSettings, Trajectory};
+use crate::trajectory::{Origins, PlanError, PlanSettings, Trajectory};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -191,16 +191,22 @@ impl Job {
     /// the planners check it before each piece they sample; a gait's or a room's plan is
     /// checked whole, once planned (their sizes are bounded by their keys' ranges).
     pub fn plan(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
-        let trajectory = self.plan_unchecked(context)?;
+        self.plan_traced(context).map(|(trajectory, _)| trajectory)
+    }
+
+    /// [`Job::plan`], with where each stretch of the trajectory came from in the job's own
+    /// words (`job.targets_deg[2]`, a row of its file): what a refusal of the motion names.
+    pub fn plan_traced(&self, context: &PlanContext) -> Result<(Trajectory, Origins), JobError> {
+        let (trajectory, origins) = self.plan_unchecked(context)?;
         let settings = context.settings;
         settings
             .budget
             .check(trajectory.len() as u64, settings.period, trajectory.dof())
             .map_err(PlanError::from)?;
-        Ok(trajectory)
+        Ok((trajectory, origins))
     }
 
-    fn plan_unchecked(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
+    fn plan_unchecked(&self, context: &PlanContext) -> Result<(Trajectory, Origins), JobError> {
         match self {
             Job::WallFigure(job) => job.plan(context),
             Job::JointWaypoints(job) => job.plan(context),
@@ -208,8 +214,8 @@ impl Job {
             Job::MoveLinear(job) => job.plan(context),
             Job::MovePoses(job) => job.plan(context),
             Job::FollowTrajectory(job) => job.plan(context),
-            Job::Gait(job) => job.plan(context),
-            Job::Paint(job) => job.plan(context),
+            Job::Gait(job) => Ok((job.plan(context)?, Origins::whole("the gait's plan"))),
+            Job::Paint(job) => Ok((job.plan(context)?, Origins::whole("the painting plan"))),
         }
     }
 

@@ -3,7 +3,7 @@
 //! all axes arriving together, at rest at every target.
 
 use super::{JobContext, JobError, JobInvalid, PlanContext, check_targets, to_si};
-use crate::trajectory::{Trajectory, plan_joint_moves};
+use crate::trajectory::{Origins, Trajectory, plan_joint_moves_marked};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -21,17 +21,19 @@ impl MoveJoints {
         Ok(self)
     }
 
-    pub fn plan(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
+    /// The moves, and each named by its target (`job.targets_deg[k]`).
+    pub fn plan(&self, context: &PlanContext) -> Result<(Trajectory, Origins), JobError> {
         let targets: Vec<Vec<f64>> = self
             .targets_deg
             .iter()
             .map(|t| to_si(t, context.rig))
             .collect();
-        Ok(plan_joint_moves(
-            context.rig,
-            context.start,
-            &targets,
-            context.settings,
-        )?)
+        let (trajectory, marks) =
+            plan_joint_moves_marked(context.rig, context.start, &targets, context.settings)?;
+        let mut origins = Origins::default();
+        origins.push_marks(&marks, 0, |k| {
+            format!("the joint move to job.targets_deg[{k}]")
+        });
+        Ok((trajectory, origins))
     }
 }

@@ -6,9 +6,9 @@
 
 use super::poses::{PoseSpec, check_poses, show_xyz};
 use super::{JobContext, JobError, JobInvalid, PlanContext, in_range};
-use crate::ik::{FabrikSolver, IkSolver, plan_cartesian};
+use crate::ik::{FabrikSolver, IkSolver, plan_cartesian_marked};
 use crate::rig::Rig;
-use crate::trajectory::{PlanSettings, Trajectory, plan_joint_moves};
+use crate::trajectory::{Origins, PlanSettings, Trajectory, plan_joint_moves};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -50,7 +50,8 @@ impl MoveLinear {
         Ok(self)
     }
 
-    pub fn plan(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
+    /// The approach and the lines, each named by the pose it goes to (`job.poses[k]`).
+    pub fn plan(&self, context: &PlanContext) -> Result<(Trajectory, Origins), JobError> {
         let poses = check_poses("job.poses", &self.poses)?;
         let solver = FabrikSolver::new(context.rig.clone())?;
         let first =
@@ -71,12 +72,19 @@ impl MoveLinear {
         let mut attempt = 0;
         loop {
             let mut trajectory = approach.clone();
-            let lines = plan_cartesian(&solver, &first.joints, &poses[1..], &settings)?;
+            let (lines, marks) =
+                plan_cartesian_marked(&solver, &first.joints, &poses[1..], &settings)?;
             let ratio = top_tool_speed(context.rig, &lines) / self.speed_m_s;
             trajectory.append(&lines);
             attempt += 1;
             if ratio <= 1.0 {
-                return Ok(trajectory);
+                let mut origins = Origins::default();
+                let joined = approach.len() - 1;
+                origins.push(joined, "the joint move to job.poses[0]");
+                origins.push_marks(&marks, joined, |k| {
+                    format!("the line to job.poses[{}]", k + 1)
+                });
+                return Ok((trajectory, origins));
             }
             if attempt > MAX_SLOWDOWNS {
                 return Err(JobInvalid::new(

@@ -6,7 +6,7 @@
 use super::poses::{PoseSpec, check_poses, show_xyz};
 use super::{JobContext, JobError, JobInvalid, PlanContext};
 use crate::ik::{FabrikSolver, IkSolver};
-use crate::trajectory::{Trajectory, plan_joint_moves};
+use crate::trajectory::{Origins, Trajectory, plan_joint_moves_marked};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -23,7 +23,8 @@ impl MovePoses {
         Ok(self)
     }
 
-    pub fn plan(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
+    /// The moves, each named by its pose (`job.poses[k]`).
+    pub fn plan(&self, context: &PlanContext) -> Result<(Trajectory, Origins), JobError> {
         let poses = check_poses("job.poses", &self.poses)?;
         let solver = FabrikSolver::new(context.rig.clone())?;
         let mut seed = context.start.to_vec();
@@ -39,11 +40,10 @@ impl MovePoses {
             seed.clone_from(&solution.joints);
             targets.push(solution.joints);
         }
-        Ok(plan_joint_moves(
-            context.rig,
-            context.start,
-            &targets,
-            context.settings,
-        )?)
+        let (trajectory, marks) =
+            plan_joint_moves_marked(context.rig, context.start, &targets, context.settings)?;
+        let mut origins = Origins::default();
+        origins.push_marks(&marks, 0, |k| format!("the joint move to job.poses[{k}]"));
+        Ok((trajectory, origins))
     }
 }

@@ -3,9 +3,9 @@
 //! star's geometry and its keys; the straight strokes are the Cartesian planner's.
 
 use super::{JobContext, JobError, JobInvalid, PlanContext, in_range};
-use crate::ik::{FabrikSolver, IkSolver, plan_cartesian};
+use crate::ik::{FabrikSolver, IkSolver, plan_cartesian_marked};
 use crate::rig::Pose;
-use crate::trajectory::plan_joint_moves;
+use crate::trajectory::{Origins, Trajectory, plan_joint_moves};
 use glam::{DQuat, DVec3};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -42,7 +42,8 @@ impl WallFigure {
         Ok(self)
     }
 
-    pub fn plan(&self, context: &PlanContext) -> Result<crate::trajectory::Trajectory, JobError> {
+    /// The star, each stroke named by its corner (five a lap, from 0), and the way back.
+    pub fn plan(&self, context: &PlanContext) -> Result<(Trajectory, Origins), JobError> {
         let (rig, start, settings) = (context.rig, context.start, context.settings);
         let solver = FabrikSolver::new(rig.clone())?;
         let poses = star_poses(self.wall_x_m, self.centre_yz_m, self.radius_m, self.laps);
@@ -58,17 +59,29 @@ impl WallFigure {
             })?;
         let mut trajectory =
             plan_joint_moves(rig, start, std::slice::from_ref(&first.joints), settings)?;
-        let figure = plan_cartesian(
+        let mut origins = Origins::default();
+        origins.push(
+            trajectory.len() - 1,
+            "the joint move to the star's corner 0",
+        );
+        let (figure, marks) = plan_cartesian_marked(
             &solver,
             &first.joints,
             &poses[1..],
             &settings.after(&trajectory),
         )?;
+        origins.push_marks(&marks, trajectory.len() - 1, |k| {
+            format!("the stroke to the star's corner {}", k + 1)
+        });
         trajectory.append(&figure);
         let end = figure.position(figure.len() - 1).to_vec();
         let back = plan_joint_moves(rig, &end, &[start.to_vec()], &settings.after(&trajectory))?;
         trajectory.append(&back);
-        Ok(trajectory)
+        origins.push(
+            trajectory.len() - 1,
+            "the joint move back to where the job started",
+        );
+        Ok((trajectory, origins))
     }
 }
 

@@ -1,9 +1,16 @@
 //! The last line of defence before a target leaves: inside the joint's limits, no velocity,
 //! position step, velocity change or position second difference beyond the axis's speed
 //! and acceleration. A refusal names the joint, what it broke, by how much and the limit,
-//! for the stream's report. Owns only the check; what happens on a refusal (nothing of the
-//! target is sent, the controller is told to stop) is the cycle's.
+//! for the stream's report. For a trajectory that was not checked whole against the cell
+//! before it was handed over, [`CellGate`] also checks each target's step from the one
+//! before against the cell's collision model, within the cycle (no allocation; a refusal
+//! names the two bodies, the clearance and the joints). Owns only the checks; what happens
+//! on a refusal (nothing of the target is sent, the controller is told to stop) is the
+//! cycle's.
 
+use super::online::CellCheck;
+use crate::cell::{Clearance, CollisionModel, Scratch};
+use std::sync::{Arc, Mutex};
 use crate::protocol::AxisValues;
 use crate::rig::{Joint, JointKind, Rig};
 
@@ -54,6 +61,116 @@ impl GateCheck {
             GateCheck::Speed | GateCheck::Step => "/s",
             GateCheck::VelocityChange | GateCheck::SecondDifference => "/s^2",
         }
+    }
+}
+
+/// A target refused by the cell's collision model: the two bodies, their distance against
+/// the margin, and the target's joints in the user's units.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error(
+    "the safety gate refused a target: {}: {body_a} and {body_b} {} on the step to the joints at \
+     [{joints}]",
+    if *distance_m <= 0.0 { "collision" } else { "within the margin" },
+    if *distance_m <= 0.0 {
+        format!("overlap by {:.4} m (margin {margin_m:.4} m)", -distance_m)
+    } else {
+        format!("are {distance_m:.4} m apart, less than the margin of {margin_m:.4} m")
+    }
+)]
+pub struct CellRefusal {
+    pub body_a: String,
+    pub body_b: String,
+    /// Negative: how deep the bodies overlap (m).
+    pub distance_m: f64,
+    pub margin_m: f64,
+    /// `joint value unit`, comma separated.
+    pub joints: String,
+}
+
+/// The cell's collision model at the gate, with its own buffers (made before the cycle, so
+/// a check allocates nothing).
+pub struct CellGate<'a> {
+    model: &'a CollisionModel,
+    scratch: Scratch,
+}
+
+impl<'a> CellGate<'a> {
+    pub fn new(model: &'a CollisionModel) -> Self {
+        CellGate {
+            model,
+            scratch: model.scratch(),
+        }
+    }
+
+    /// The motion from `previous`, the last target sent (none: the first target, checked
+    /// alone), to `positions`, continuously: the closest pair when it comes closer than the
+    /// margin.
+    pub fn check(
+        &mut self,
+        previous: Option<&AxisValues>,
+        positions: &AxisValues,
+    ) -> Result<(), Clearance> {
+        let to = positions.as_slice();
+        let from = previous.map_or(to, AxisValues::as_slice);
+        self.model
+            .check_step(from, to, &mut self.scratch)
+            .map(|_| ())
+    }
+
+    /// `clearance`, refused at `positions` (SI units), in words. Allocates: the stream ends.
+    pub fn refusal(&self, rig: &Rig, clearance: &Clearance, positions: &AxisValues) -> CellRefusal {
+        let joints: Vec<String> = rig
+            .joints
+            .iter()
+            .zip(positions.as_slice())
+            .map(|(joint, value)| {
+                format!(
+                    "{} {:.3} {}",
+                    joint.name,
+                    joint.kind.to_user(*value),
+                    joint.kind.unit()
+                )
+            })
+            .collect();
+        CellRefusal {
+            body_a: self.model.body_name(clearance.a).to_string(),
+            body_b: self.model.body_name(clearance.b).to_string(),
+            distance_m: clearance.distance_m,
+            margin_m: self.model.margin(),
+            joints: joints.join(", "),
+        }
+    }
+}
+
+/// The cell's collision model as the online motion's [`CellCheck`] (jog, goals): each
+/// step a cycle generates is checked continuously before it is sent. Only the cycle's
+/// thread checks, so the lock is never contended; it is there because a session's control
+/// is shared with the API that sets it.
+pub struct ModelCheck {
+    model: Arc<CollisionModel>,
+    scratch: Mutex<Scratch>,
+}
+
+impl ModelCheck {
+    pub fn new(model: Arc<CollisionModel>) -> Self {
+        let scratch = Mutex::new(model.scratch());
+        ModelCheck { model, scratch }
+    }
+}
+
+impl std::fmt::Debug for ModelCheck {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ModelCheck")
+    }
+}
+
+impl CellCheck for ModelCheck {
+    fn admits(&self, from: &[f64], to: &[f64]) -> bool {
+        // A poisoned lock means a cycle panicked mid-check: refuse, the arm brakes.
+        let Ok(mut scratch) = self.scratch.lock() else {
+            return false;
+        };
+        self.model.check_step(from, to, &mut scratch).is_ok()
     }
 }
 

@@ -28,7 +28,7 @@ pub use crate::realtime::raise_priority;
 pub use controller::{Incompatible, check_controller};
 pub use executor::{CycleTask, Executor, ExecutorSettings, Handback};
 pub use follow::Tolerances;
-pub use gate::{GateCheck, GateRefusal};
+pub use gate::{CellGate, CellRefusal, GateCheck, GateRefusal, ModelCheck};
 pub use metrics::MicrosHistogram;
 pub use online::{
     CellCheck, DEADMAN, Frame, IDLE_END, Jog, NoCell, OnlineCommand, OnlineCommands,
@@ -416,6 +416,28 @@ pub fn stream(
     run.finish()
 }
 
+/// [`stream`] for a trajectory that was not checked whole against the cell before it was
+/// handed over: the gate also checks each target's step from the one before against
+/// `model` ([`CellGate`]), and refuses (outcome `gate_refused`, nothing of it sent) a target
+/// that comes closer to anything than the margin.
+#[allow(clippy::too_many_arguments)]
+pub fn stream_in_cell(
+    trajectory: &Trajectory,
+    rig: &Rig,
+    model: &crate::cell::CollisionModel,
+    link: &mut dyn Link,
+    clock: &dyn Clock,
+    sink: &mut dyn CycleSink,
+    control: &StreamControl,
+    settings: &StreamSettings,
+) -> Result<StreamReport, StreamError> {
+    let mut run = Run::prepare(trajectory, rig, link, clock, sink, control, settings)?;
+    run.cell = Some(CellGate::new(model));
+    let start = clock.now();
+    run.on_own_thread(clock, start);
+    run.finish()
+}
+
 /// [`stream`] with its cycles run by `executor` beside other streams' (the calling thread
 /// waits meanwhile). A stream whose cycle work overruns its budget is handed back and goes
 /// on on the calling thread, on the executor's clock, so it delays no other stream again.
@@ -456,6 +478,8 @@ struct Run<'a, S: CycleSink + ?Sized> {
     sent: Option<Sent>,
     /// How the stream ended, once it has.
     end: Option<Result<Outcome, StreamError>>,
+    /// The cell's collision model, for a trajectory not checked whole before streaming.
+    cell: Option<CellGate<'a>>,
 }
 
 #[derive(Clone, Copy)]
@@ -502,6 +526,7 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
             stall_after: period * settings.stall_cycles,
             sent: None,
             end: None,
+            cell: None,
         })
     }
 
@@ -598,8 +623,13 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
         self.control
             .halting
             .streaming(&_acknowledging, cycle.scale > 0.0);
-        let Some(target) = cycle.target(positions, velocities, self.trajectory.period, self.rig)
-        else {
+        let Some(target) = cycle.target(
+            positions,
+            velocities,
+            self.trajectory.period,
+            self.rig,
+            self.cell.as_mut(),
+        ) else {
             link.send(&Command::Stop)?;
             return Ok(Some(Outcome::GateRefused));
         };
@@ -996,13 +1026,15 @@ impl Cycle {
         }
     }
 
-    /// The target of these positions and velocities, if it passes the gate.
+    /// The target of these positions and velocities, if it passes the gate (and `cell`'s
+    /// collision check, when the trajectory was not checked whole).
     fn target(
         &mut self,
         positions: AxisValues,
         velocities: AxisValues,
         period: Duration,
         rig: &Rig,
+        cell: Option<&mut CellGate<'_>>,
     ) -> Option<JointTarget> {
         // The gate's maths and the target's `t` (a log record) are in seconds.
         let dt = period.as_secs_f64();
@@ -1010,6 +1042,15 @@ impl Cycle {
             self.violations += 1;
             // The stream ends here: the words may allocate.
             self.fault.get_or_insert_with(|| refusal.to_string());
+            return None;
+        }
+        if let Some(cell) = cell
+            && let Err(clearance) =
+                cell.check(self.sent.previous.as_ref().map(|(p, _)| p), &positions)
+        {
+            self.violations += 1;
+            let words = cell.refusal(rig, &clearance, &positions).to_string();
+            self.fault.get_or_insert(words);
             return None;
         }
         self.sent.before_previous = self.sent.previous.map(|(p, _)| p);

@@ -145,8 +145,9 @@ impl OnlineCommands {
 /// limits; the workcell's collision model (src/cell/, issue 27) implements it. A refusal
 /// brings the arm to rest along its path instead of the target.
 pub trait CellCheck: Send + Sync + std::fmt::Debug {
-    /// Whether the arm may be at `positions`; the reason in words when not.
-    fn admits(&self, positions: &[f64]) -> Result<(), String>;
+    /// Whether the arm may move from `from` to `to` (one cycle's step, checked
+    /// continuously) without coming closer to anything than the cell's margin.
+    fn admits(&self, from: &[f64], to: &[f64]) -> bool;
 }
 
 /// No workcell model: every target within the limits is admitted.
@@ -154,8 +155,8 @@ pub trait CellCheck: Send + Sync + std::fmt::Debug {
 pub struct NoCell;
 
 impl CellCheck for NoCell {
-    fn admits(&self, _: &[f64]) -> Result<(), String> {
-        Ok(())
+    fn admits(&self, _: &[f64], _: &[f64]) -> bool {
+        true
     }
 }
 
@@ -415,7 +416,7 @@ impl Online {
             Ok(RuckigResult::Working | RuckigResult::Finished) => {}
             _ => return false,
         }
-        if cell.admits(&self.output.new_position).is_err() {
+        if !cell.admits(self.position.as_slice(), &self.output.new_position) {
             return false;
         }
         if let Intent::Jog(_) = self.intent

@@ -6,6 +6,8 @@
 //! `path`) or talk to links or controllers.
 
 mod budget;
+mod clearance;
+mod origins;
 mod path;
 mod plan;
 mod recorded;
@@ -16,9 +18,11 @@ pub use budget::{
     BYTES_PER_AXIS_SAMPLE, BYTES_PER_MB, DEFAULT_MAX_DURATION_S, DEFAULT_MAX_PLAN_MB, OverBudget,
     SampleBudget, plan_mb,
 };
+pub use clearance::{CollisionRefusal, JointValue, check_clear, joint_values};
+pub use origins::Origins;
 pub(crate) use path::{JointPath, PathNode, PathTiming};
 pub(crate) use plan::{AxisLimits, Samples, check_start};
-pub use plan::{InvalidValue, PlanError, PlanSettings, plan_joint_moves};
+pub use plan::{InvalidValue, PlanError, PlanSettings, plan_joint_moves, plan_joint_moves_marked};
 pub use recorded::{RecordedError, TIME_TOLERANCE_S};
 pub use resample::{ramp_to_rest, resample};
 pub use retime::{RetimeError, Retimed, retime};

@@ -339,6 +339,11 @@ impl Samples {
         self.velocities.extend_from_slice(velocities);
     }
 
+    /// The index of the last sample held: where a waypoint just sampled sits.
+    pub fn last_index(&self) -> usize {
+        (self.positions.len() / self.dof.max(1)).saturating_sub(1)
+    }
+
     /// The trajectory, after the same check every streamed trajectory gets.
     pub fn finish(self, rig: &Rig, period: Duration) -> Result<Trajectory, PlanError> {
         let trajectory = Trajectory::new(
@@ -380,6 +385,17 @@ pub fn plan_joint_moves(
     waypoints: &[Vec<f64>],
     settings: &PlanSettings,
 ) -> Result<Trajectory, PlanError> {
+    plan_joint_moves_marked(rig, start, waypoints, settings).map(|(trajectory, _)| trajectory)
+}
+
+/// [`plan_joint_moves`], with the sample each waypoint sits at (one per waypoint, in
+/// order): what a refusal of the planned motion names as its source.
+pub fn plan_joint_moves_marked(
+    rig: &Rig,
+    start: &[f64],
+    waypoints: &[Vec<f64>],
+    settings: &PlanSettings,
+) -> Result<(Trajectory, Vec<usize>), PlanError> {
     settings.check()?;
     let limits = AxisLimits::new(rig, settings)?;
     check_start(rig, start)?;
@@ -388,6 +404,7 @@ pub fn plan_joint_moves(
     }
     let mut samples = Samples::at_rest(start, settings.budget, settings.period);
     let mut from = start;
+    let mut marks = Vec::with_capacity(waypoints.len());
     for (waypoint, to) in waypoints.iter().enumerate() {
         let mov = JointMove {
             rig,
@@ -396,9 +413,10 @@ pub fn plan_joint_moves(
             waypoint,
         };
         mov.sample(from, to, &mut samples)?;
+        marks.push(samples.last_index());
         from = to;
     }
-    samples.finish(rig, settings.period)
+    Ok((samples.finish(rig, settings.period)?, marks))
 }
 
 /// One rest-to-rest move to waypoint `waypoint`.

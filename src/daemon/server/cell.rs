@@ -20,7 +20,9 @@ use crate::log::Recorder;
 use crate::protocol::ControllerStatus;
 use crate::rig::JointKind;
 use crate::stream::Phase;
-use crate::stream::{Executor, Frame, Jog, OnlineCommand, Outcome, SpeedOverride, StreamControl};
+use crate::stream::{
+    Executor, Frame, Jog, ModelCheck, OnlineCommand, Outcome, SpeedOverride, StreamControl,
+};
 use crate::twin::{SharedWorld, Twin};
 use crate::view::{JobView, LiveHub, LiveSample, LiveSink, LiveSlot};
 use serde::Serialize;
@@ -798,6 +800,9 @@ impl Cell {
             Work::Online => ONLINE_SESSION.to_string(),
         };
         let control = Arc::new(StreamControl::with_speed(self.speed.clone()));
+        // Jog and goal targets are made in the cycle, never checked as a whole trajectory:
+        // the cell's model checks each step before it is sent.
+        control.set_cell_check(Arc::new(ModelCheck::new(self.settings.collision.clone())));
         if let Some(command) = first {
             control.online().open_session();
             control.online().give(command);
