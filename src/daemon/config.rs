@@ -1032,6 +1032,10 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     let mut config = parse_run_config(file)?;
     let base_dir = config_dir(file);
     let (rig, sloth) = load_rigs(&base_dir.join(&config.rig), &config.job)?;
+    let cell = load_cell_setting(file, &base_dir, config.cell.as_ref())?;
+    // Every Cartesian job, the IK and the live view work at the cell tool's TCP (the pen's
+    // tip), not at tool0: a pose in a job is where the tool does its work.
+    let rig = cell.rig_at_tcp(&rig);
     check_links(file, &config, &rig)?;
     config.twin.check(file, &rig)?;
     config.plan.check(file)?;
@@ -1050,7 +1054,6 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     config.ros2.check(file)?;
     config.ros2.check_namespace(file, &rig)?;
     config.serve.check(file)?;
-    let cell = load_cell_setting(file, &base_dir, config.cell.as_ref())?;
     let collision = CollisionModel::new(&rig, &cell).map_err(|e| cell_refused(file, &config, e))?;
     Ok(RunSettings {
         file: file.to_path_buf(),
