@@ -490,8 +490,94 @@ mod tests {
     #[test]
     fn link_names_avoid_the_base_and_tool_frames() {
         let mut rig = load_rig(&config("irb120.toml")).expect("the IRB 120 rig loads");
+        rig.bodies.clear();
         rig.joints[0].name = rig.base_frame.clone();
         assert_eq!(generated_link_names(&rig)[0], "base_link_link");
         assert_eq!(generated_link_names(&rig)[1], "joint_2");
+    }
+
+    #[test]
+    fn links_are_named_after_the_bodies_riding_them() {
+        let rig = load_rig(&config("irb120.toml")).expect("the IRB 120 rig loads");
+        let names = generated_link_names(&rig);
+        for (k, name) in names.iter().enumerate() {
+            if let Some(body) = rig.bodies.iter().find(|b| b.frame == k + 1) {
+                assert_eq!(name, &body.name);
+            }
+        }
+    }
+
+    /// The rig's solids as urdf-rs reads them back: (link, placement, geometry).
+    fn solids_of(text: &str) -> Vec<(String, DAffine3, urdf_rs::Geometry)> {
+        let robot = urdf_rs::read_from_string(text).expect("urdf-rs reads the export");
+        robot
+            .links
+            .iter()
+            .flat_map(|l| {
+                l.collision.iter().map(|c| {
+                    let origin = crate::rig::origin_from_xyz_rpy(
+                        DVec3::from_array(*c.origin.xyz),
+                        DVec3::from_array(*c.origin.rpy),
+                    );
+                    (l.name.clone(), origin, c.geometry.clone())
+                })
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_capsule_is_a_cylinder_between_two_spheres() {
+        let mut rig = load_rig(&config("irb120.toml")).expect("the IRB 120 rig loads");
+        let (a, b) = (DVec3::new(0.1, 0.0, 0.0), DVec3::new(0.1, 0.0, 0.3));
+        rig.bodies = vec![super::super::LinkBody {
+            name: "upper".into(),
+            frame: 2,
+            collisions: vec![Collision {
+                origin: DAffine3::from_translation(DVec3::new(0.0, 0.05, 0.0)),
+                shape: Shape::Capsule { a, b, radius: 0.04 },
+            }],
+        }];
+        let solids = solids_of(&rig_to_urdf(&rig));
+        assert_eq!(solids.len(), 3);
+        assert!(solids.iter().all(|(link, ..)| link == "upper"));
+        let mut spheres = Vec::new();
+        for (_, origin, geometry) in &solids {
+            match geometry {
+                urdf_rs::Geometry::Cylinder { radius, length } => {
+                    assert_eq!((*radius, *length), (0.04, 0.3));
+                    let centre = origin.translation;
+                    assert!((centre - DVec3::new(0.1, 0.05, 0.15)).length() < 1e-12);
+                    let axis = origin.transform_vector3(DVec3::Z);
+                    assert!((axis - DVec3::Z).length() < 1e-12);
+                }
+                urdf_rs::Geometry::Sphere { radius } => {
+                    assert_eq!(*radius, 0.04);
+                    spheres.push(origin.translation);
+                }
+                _ => panic!("a capsule writes a cylinder and two spheres"),
+            }
+        }
+        let expected = [a, b].map(|p| p + DVec3::new(0.0, 0.05, 0.0));
+        assert!(spheres.iter().zip(expected).all(|(s, e)| (*s - e).length() < 1e-12));
+    }
+
+    #[test]
+    fn a_half_space_is_a_cube_whose_top_face_is_its_plane_below_the_reach() {
+        let normal = DVec3::new(0.0, 0.6, 0.8);
+        // The plane 0.2 m below the base along its normal.
+        let origin = DAffine3::from_translation(-normal * 0.2);
+        let reach = 0.7;
+        let cube = half_space_as_box(DAffine3::IDENTITY, origin, normal, reach);
+        let Shape::Box { half_extents } = cube.shape else {
+            panic!("a half-space is written as a box");
+        };
+        let half = half_extents.x;
+        assert_eq!(half_extents, DVec3::splat(half));
+        assert!(half >= 2.0 * (reach + 0.2));
+        // Its top face lies on the plane, facing out along the normal, under the base.
+        let top = cube.origin.transform_point3(DVec3::Z * half);
+        let up = cube.origin.transform_vector3(DVec3::Z);
+        assert!((up - normal).length() < 1e-12);
+        assert!((top - (-normal * 0.2)).length() < 1e-12, "{top}");
     }
 }
