@@ -11,6 +11,7 @@ mod file;
 mod model;
 mod parry;
 mod path;
+pub mod urdf;
 
 pub use file::{cell_from_toml, load_cell};
 pub use model::{BodyId, Clearance, CollisionModel, NO_BODY, PlacedShape, Scratch, Status};

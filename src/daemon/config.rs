@@ -14,6 +14,10 @@ use std::time::Duration;
 pub struct RunConfig {
     /// Rig description, relative to the config file.
     pub rig: PathBuf,
+    /// The cell file, relative to the config file (docs/cell.md); none: the built-in floor.
+    /// Until cell-core's `cell` key (file or `[cell]` section) lands, this takes a file only.
+    #[serde(default)]
+    pub cell: Option<PathBuf>,
     /// `[stream]`: optional, every key has a default (250 Hz to the in-process twin).
     #[serde(default = "default_stream")]
     pub stream: StreamConfig,
@@ -962,6 +966,7 @@ pub struct RunSettings {
     pub file: PathBuf,
     pub config: RunConfig,
     pub rig: Rig,
+    pub cell: crate::cell::Cell,
     /// The sloth behind `rig` when the job is a gait (`rig` is then its streamed axes).
     pub sloth: Option<std::sync::Arc<crate::task::gait::SlothRig>>,
 }
@@ -1040,10 +1045,20 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     config.ros2.check(file)?;
     config.ros2.check_namespace(file, &rig)?;
     config.serve.check(file)?;
+    let cell = match &config.cell {
+        Some(path) => crate::cell::load_cell(&base_dir.join(path)).map_err(|e| {
+            ConfigError::Parse {
+                file: file.to_path_buf(),
+                message: format!("key cell = {}: {e}", path.display()),
+            }
+        })?,
+        None => crate::cell::Cell::builtin(),
+    };
     Ok(RunSettings {
         file: file.to_path_buf(),
         config,
         rig,
+        cell,
         sloth,
     })
 }

@@ -587,7 +587,7 @@ fn quaternion(q: DQuat) -> Quaternion {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::rig::load_rig;
+    use crate::rig::{load_rig, rig_to_urdf};
     use std::path::Path;
 
     fn irb120() -> Rig {
@@ -600,16 +600,19 @@ mod tests {
         let rig = irb120();
         let robot = RobotDescription::generated(&rig, &Cell::builtin());
         let q = [0.3, -0.4, 0.5, -1.1, 0.7, 2.0];
+        // The chain's seven links, base to tool0; the floor hangs on the base after them.
         let tool = robot
             .link_transforms(&q)
             .expect("the IRB 120 takes six positions")
+            .take(7)
             .fold(DAffine3::IDENTITY, |a, b| a * b);
         let expected = rig.forward(&q).expect("the IRB 120 takes six positions");
         assert!((tool.translation - expected.translation).length() < 1e-12);
         let frames: Vec<_> = robot.frames().collect();
-        assert_eq!(frames.len(), 7);
-        assert_eq!(frames[0], ("base_link", "joint_1"));
-        assert_eq!(frames[6], ("joint_6", "tool0"));
+        assert_eq!(frames.len(), 8);
+        assert_eq!(frames[0], ("base_link", "link_1"));
+        assert_eq!(frames[6], ("link_6", "tool0"));
+        assert_eq!(frames[7], ("base_link", "floor"));
     }
 
     #[test]
@@ -618,13 +621,21 @@ mod tests {
         let text = rig_to_urdf(&rig);
         let robot = RobotDescription::from_urdf(&rig, text.clone())
             .expect("the generated URDF matches the rig");
+        // The chain's links; the generated description adds the floor after them.
         assert_eq!(
             robot.frames().collect::<Vec<_>>(),
             RobotDescription::generated(&rig, &Cell::builtin())
                 .frames()
+                .take(7)
                 .collect::<Vec<_>>()
         );
-        let moved = text.replacen("xyz=\"0 0 0.29\"", "xyz=\"0 0 0.3\"", 1);
+        // Joint 2's origin moved (the bodies' solids carry the same numbers before it).
+        let at = text.find("<joint name=\"joint_2\"").expect("joint 2 is written");
+        let (head, tail) = text.split_at(at);
+        let moved = format!(
+            "{head}{}",
+            tail.replacen("xyz=\"0 0 0.29\"", "xyz=\"0 0 0.3\"", 1)
+        );
         assert_ne!(moved, text);
         assert!(RobotDescription::from_urdf(&rig, moved).is_err());
     }
