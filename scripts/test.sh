@@ -149,6 +149,27 @@ if "$ros2_venv/bin/python" -c "$ros2_probe" 2>/dev/null; then
 fi
 # ---------------------------------------------------------------------- end ROS 2 peer --
 
+# -------------------------- collision peer: coal + numpy (tests/cell_agreement.rs) --
+# A venv with PyPI's coal (the successor of FCL), which tests/peers/coal_distance.py uses to
+# measure the URDF `rigbridge config urdf` writes, row by row against `rigbridge check`
+# (numpy comes with coal). If it cannot be installed, the test prints why it skips; on CI a
+# missing peer is a failure.
+coal_venv=${CARGO_TARGET_DIR:-target}/coal-peer-venv
+coal_probe='import coal, numpy'
+if [ ! -x "$coal_venv/bin/python" ] || ! "$coal_venv/bin/python" -c "$coal_probe" 2>/dev/null; then
+  python3 -m venv "$coal_venv" && "$coal_venv/bin/pip" install -q coal \
+    || echo "test.sh: cannot install coal; the collision agreement test will skip" >&2
+fi
+if [ "${CI:-}" = true ] && ! "$coal_venv/bin/python" -c "$coal_probe" 2>/dev/null; then
+  echo "test.sh: CI must test the collision model against PyPI's coal, and it could not be installed" >&2
+  exit 1
+fi
+if "$coal_venv/bin/python" -c "$coal_probe" 2>/dev/null; then
+  export RIGBRIDGE_COAL_PYTHON="$PWD/$coal_venv/bin/python"
+  [[ $coal_venv = /* ]] && export RIGBRIDGE_COAL_PYTHON="$coal_venv/bin/python"
+fi
+# ----------------------------------------------------------------- end collision peer --
+
 # ------------------- CANopen peers: python-can + canopen, for the VM (tests/canopen.rs) --
 # Pure-Python packages installed into a folder (pip install --target) that the VM gets with
 # Debian's python3.11 and its standard library (../shared/tools/README.md). Without them

@@ -7,6 +7,9 @@
 //! [`crate::rig::UNIT_QUATERNION_TOLERANCE`], then normalised), tool frame in base frame.
 //! Columns are found by name; extra columns are ignored. A bad row never stops a batch: it
 //! gets an error status and the batch goes on. Opening files is the binary's business.
+//! `rigbridge check`'s rows are [`check`]'s.
+
+pub mod check;
 
 use crate::ik::{IkError, IkSolver};
 use crate::rig::{Pose, PoseError, Rig, UNIT_QUATERNION_TOLERANCE};

@@ -12,6 +12,7 @@ mod file;
 mod model;
 mod parry;
 mod path;
+pub mod urdf;
 
 pub use allowed::{
     AllowedPair, DEFAULT_SAMPLES, NEVER_CLEARANCE_M, Reason, allowed_pairs_toml,

@@ -1,4 +1,4 @@
-//! `rigbridge fk` and `rigbridge ik`: files or stdin/stdout, a progress bar on long batches,
+//! `rigbridge fk`, `rigbridge ik` and `rigbridge check`: files or stdin/stdout, a progress bar on long batches,
 //! and a closing summary on stderr. An output file is written beside itself under a
 //! temporary name and renamed over the target only once the batch ended, so a failed batch
 //! leaves the old file whole; an input that is also the output is refused before anything
@@ -8,7 +8,10 @@ use super::Usage;
 use anyhow::Context;
 use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
+use rigbridge::batch::check::{CheckSummary, check_batch};
 use rigbridge::batch::{BatchSummary, fk_batch, ik_batch};
+use rigbridge::cell::{Cell, CollisionModel};
+use rigbridge::daemon::config::load_run_settings;
 use rigbridge::ik::{CcdSolver, FabrikSolver, GradientDescentSolver, IkSolver};
 use rigbridge::rig::{Rig, load_rig_with_tool, shipped};
 use std::fs::File;
@@ -22,12 +25,20 @@ use std::time::Instant;
 struct RigArgs {
     /// Rig description: a TOML or URDF file (recognised by its content); the default is the
     /// built-in IRB 120.
-    #[arg(long, default_value = shipped::DEFAULT_RIG)]
+    #[arg(long, default_value = shipped::DEFAULT_RIG, conflicts_with = "config")]
     rig: PathBuf,
     /// The tool frame of a URDF rig: the link its chain ends at [default: the only leaf
     /// link a moving joint leads to; with several, the error lists them].
-    #[arg(long, value_name = "NAME")]
+    #[arg(long, value_name = "NAME", conflicts_with = "config")]
     tool_frame: Option<String>,
+    /// Run settings: their rig, and their cell's tool (instead of --rig).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// The frame poses are of: the cell's tool (its name: poses at its TCP) or the rig's
+    /// tool frame (tool0 for the IRB 120) [default: the cell's tool when --config names a
+    /// cell with one, as jobs do; else the rig's tool frame].
+    #[arg(long, value_name = "NAME", requires = "config")]
+    tool: Option<String>,
 }
 
 #[derive(Args)]
@@ -38,6 +49,20 @@ pub struct FkArgs {
     #[arg(long, default_value = "-")]
     input: PathBuf,
     /// Where the poses go (x,y,z,qw,qx,qy,qz,status); `-` writes stdout.
+    #[arg(long, default_value = "-")]
+    output: PathBuf,
+}
+
+#[derive(Args)]
+pub struct CheckArgs {
+    /// Run settings naming the rig and its cell [default: the built-in IRB 120 on its
+    /// floor].
+    #[arg(long, env = super::CONFIG_VAR)]
+    config: Option<PathBuf>,
+    /// Joint rows, header j1..jN in degrees (metres for prismatic axes); `-` reads stdin.
+    #[arg(long, default_value = "-")]
+    input: PathBuf,
+    /// Where the rows go (min_clearance_m,body_a,body_b,status); `-` writes stdout.
     #[arg(long, default_value = "-")]
     output: PathBuf,
 }
@@ -170,7 +195,26 @@ fn show_rows(bar: &ProgressBar, rows: usize) {
 }
 
 fn load(args: &RigArgs) -> anyhow::Result<Rig> {
-    load_rig_with_tool(&args.rig, args.tool_frame.as_deref()).context("cannot load the rig")
+    let Some(config) = &args.config else {
+        return load_rig_with_tool(&args.rig, args.tool_frame.as_deref())
+            .context("cannot load the rig");
+    };
+    let (rig, cell) = rig_and_cell(Some(config))?;
+    let tcp = cell.tool.as_ref().map(|tool| tool.name.as_str());
+    match args.tool.as_deref() {
+        None if tcp.is_some() => Ok(cell.rig_at_tcp(&rig)),
+        None => Ok(rig),
+        Some(name) if Some(name) == tcp => Ok(cell.rig_at_tcp(&rig)),
+        Some(name) if name == rig.tool_frame => Ok(rig),
+        Some(name) => anyhow::bail!(Usage(format!(
+            "--tool {name}: {} has {}",
+            config.display(),
+            match tcp {
+                Some(tool) => format!("the tool {tool} and the tool frame {}", rig.tool_frame),
+                None => format!("no tool, only the tool frame {}", rig.tool_frame),
+            }
+        ))),
+    }
 }
 
 fn report(summary: &BatchSummary, elapsed: std::time::Duration, with_errors: bool) {
@@ -264,4 +308,67 @@ pub fn ik(args: IkArgs) -> anyhow::Result<ExitCode> {
     bar.finish_and_clear();
     report(&summary, start.elapsed(), true);
     Ok(exit_code(&summary))
+}
+
+/// The rig and cell of `config` (run settings), or the built-in IRB 120 on its floor.
+pub fn rig_and_cell(config: Option<&Path>) -> anyhow::Result<(Rig, Cell)> {
+    match config {
+        Some(path) => {
+            let settings =
+                load_run_settings(path).with_context(|| super::settings_context(path))?;
+            Ok((settings.rig, settings.cell))
+        }
+        None => {
+            let rig = load_rig_with_tool(Path::new(shipped::DEFAULT_RIG), None)
+                .context("cannot load the built-in IRB 120")?;
+            Ok((rig, Cell::builtin()))
+        }
+    }
+}
+
+fn report_check(summary: &CheckSummary, elapsed: std::time::Duration) {
+    let per_row = if summary.rows > 0 {
+        elapsed.as_secs_f64() * 1e6 / summary.rows as f64
+    } else {
+        0.0
+    };
+    let counts = summary
+        .counts
+        .iter()
+        .map(|(k, n)| format!("{n} {k}"))
+        .collect::<Vec<_>>()
+        .join(", ");
+    let closest = summary.closest.as_ref().map_or(String::new(), |c| {
+        format!(
+            "; smallest clearance {:.4} m ({} - {}) at row {}",
+            c.distance_m, c.body_a, c.body_b, c.row
+        )
+    });
+    eprintln!(
+        "{} rows: {}{closest}; {:.3} s, {per_row:.2} us per row",
+        summary.rows,
+        if counts.is_empty() { "none".to_string() } else { counts },
+        elapsed.as_secs_f64(),
+    );
+    if let Some(problem) = &summary.first_problem {
+        eprintln!("first row not checked as given: {problem}");
+    }
+}
+
+pub fn check(args: CheckArgs) -> anyhow::Result<ExitCode> {
+    let (rig, cell) = rig_and_cell(args.config.as_deref())?;
+    let model = CollisionModel::new(&rig, &cell).context("cannot build the collision model")?;
+    let (input, bar) = open_input(&args.input)?;
+    let (output, writer) = Output::open(&args.input, &args.output)?;
+    let start = Instant::now();
+    let summary = check_batch(&model, &rig, input, writer, |n| show_rows(&bar, n))
+        .with_context(|| format!("check batch on {}", args.input.display()))?;
+    output.finish()?;
+    bar.finish_and_clear();
+    report_check(&summary, start.elapsed());
+    Ok(if summary.all_free() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(super::EXIT_FAILED_ROWS)
+    })
 }

@@ -40,7 +40,7 @@ pub const EXIT_FAILED_ROWS: u8 = 3;
 /// The variable naming the run settings when `--config` does not.
 pub const CONFIG_VAR: &str = "RIGBRIDGE_CONFIG";
 
-const EXIT_CODES_HELP: &str = "Exit codes: 0 done; 1 could not run (a file, the rig, a link, a job that failed); 2 usage error (a bad argument or combination of arguments); 3 a batch (fk, ik) ran but some rows failed, their status column says why.";
+const EXIT_CODES_HELP: &str = "Exit codes: 0 done; 1 could not run (a file, the rig, a link, a job that failed); 2 usage error (a bad argument or combination of arguments); 3 a batch (fk, ik) ran but some rows failed, or a check found a row that is not free, their status column says why.";
 
 /// A command used wrongly: exit code [`EXIT_USAGE`], whatever the context added to it.
 #[derive(Debug, thiserror::Error)]
@@ -121,6 +121,9 @@ enum Command {
     Fk(batch::FkArgs),
     /// Inverse kinematics over a CSV of tool poses (x,y,z,qw,qx,qy,qz) -> joint rows.
     Ik(batch::IkArgs),
+    /// Collision check over a CSV of joint rows (j1..jN, degrees) -> the closest pair of
+    /// bodies per row: min_clearance_m,body_a,body_b,status (free, within_margin, collision).
+    Check(batch::CheckArgs),
     /// Run a job against the twin and exit: plan, stream, record (MCAP), report.
     Run(run::RunArgs),
     /// Stay up with a control API on 127.0.0.1: submit jobs, status, pause/resume, stop, e-stop.
@@ -150,6 +153,7 @@ pub fn run() -> anyhow::Result<ExitCode> {
     match cli.command {
         Command::Fk(args) => batch::fk(args),
         Command::Ik(args) => batch::ik(args),
+        Command::Check(args) => batch::check(args),
         Command::Run(args) => run::run(args),
         Command::Serve(args) => serve::serve(args),
         Command::Replay(args) => replay::replay_command(args),

@@ -781,7 +781,8 @@ fn create_recorder(
 }
 
 /// The rig's links and URDF behind `/tf` (logs and the live Foxglove server): its URDF file
-/// when it was loaded from one, else generated from the model.
+/// when it was loaded from one, else the rig in its cell as `rigbridge config urdf` writes it
+/// (collision geometry, tool, cell objects).
 pub fn robot_description(
     settings: &RunSettings,
 ) -> Result<Option<std::sync::Arc<crate::log::RobotDescription>>, DaemonError> {
@@ -792,7 +793,7 @@ pub fn robot_description(
     }
     let robot = match rig_urdf(settings)? {
         Some(urdf) => crate::log::RobotDescription::from_urdf(&settings.rig, urdf)?,
-        None => crate::log::RobotDescription::generated(&settings.rig),
+        None => crate::log::RobotDescription::generated(&settings.rig, &settings.cell),
     };
     Ok(Some(std::sync::Arc::new(robot)))
 }

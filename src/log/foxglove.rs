@@ -8,7 +8,9 @@
 //! per-link transforms; it must not touch the JSON channels replay reads, nor the rig.
 
 use super::LogError;
-use crate::rig::{Joint, Rig, UrdfTree, generated_link_names, origin_from_xyz_rpy, rig_to_urdf};
+use crate::cell::Cell;
+use crate::cell::urdf::cell_to_urdf;
+use crate::rig::{Joint, Rig, UrdfTree, generated_link_names, origin_from_xyz_rpy};
 use crate::scene::foxglove::{full_update, paint_update, vector};
 use crate::scene::{PaintQuad, SceneView};
 use foxglove::Encode;
@@ -64,18 +66,23 @@ struct Segment {
     motion: Motion,
 }
 
-/// A rig's URDF and its chain of links, base frame to tool frame: what `/tf` is computed from.
+/// A rig's URDF and its chain of links, base frame to tool frame, then the fixed links hung
+/// on it (tool, cell objects): what `/tf` is computed from.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RobotDescription {
     urdf: String,
     joint_names: Vec<String>,
     segments: Vec<Segment>,
+    /// How many of `segments` are the chain, base frame to tool frame.
+    chain: usize,
 }
 
 impl RobotDescription {
-    /// The URDF generated from the rig ([`rig_to_urdf`]): links named by
-    /// [`generated_link_names`], the rig's own joint transforms, then its tool transform.
-    pub fn generated(rig: &Rig) -> Self {
+    /// The URDF of the rig in its cell ([`cell_to_urdf`], what `rigbridge config urdf`
+    /// writes): links named by [`generated_link_names`], the rig's own joint transforms, then
+    /// its tool transform; then every fixed link besides (the tool at its TCP, the cell's
+    /// objects, extra bodies), each with a frame of its own in `/tf`.
+    pub fn generated(rig: &Rig, cell: &Cell) -> Self {
         let links = generated_link_names(rig);
         let parents = std::iter::once(&rig.base_frame).chain(links.iter());
         let mut segments: Vec<Segment> = rig
@@ -97,10 +104,18 @@ impl RobotDescription {
             child: rig.tool_frame.clone(),
             motion: Motion::Fixed(rig.tool),
         });
+        let chain = segments.len();
+        let export = cell_to_urdf(rig, cell);
+        segments.extend(export.fixed.into_iter().map(|link| Segment {
+            parent: link.parent,
+            child: link.name,
+            motion: Motion::Fixed(link.origin),
+        }));
         Self {
-            urdf: rig_to_urdf(rig),
+            urdf: export.text,
             joint_names: rig.joint_names().map(str::to_owned).collect(),
             segments,
+            chain,
         }
     }
 
@@ -150,6 +165,7 @@ impl RobotDescription {
         let description = Self {
             urdf,
             joint_names: rig.joint_names().map(str::to_owned).collect(),
+            chain: segments.len(),
             segments,
         };
         description
@@ -163,7 +179,8 @@ impl RobotDescription {
         &self.urdf
     }
 
-    /// `(parent, child)` frame ids, base frame first, tool frame last.
+    /// `(parent, child)` frame ids, base frame first, tool frame at the chain's end, then
+    /// the fixed links hung on it.
     pub fn frames(&self) -> impl Iterator<Item = (&str, &str)> {
         self.segments
             .iter()
@@ -171,7 +188,7 @@ impl RobotDescription {
     }
 
     /// Each link's transform from its parent at `positions`, in [`Self::frames`] order
-    /// (composed, they give the rig's tool frame). `None` when the count is wrong.
+    /// (the chain's, composed, give the rig's tool frame). `None` when the count is wrong.
     pub fn link_transforms<'a>(
         &'a self,
         positions: &'a [f64],
@@ -185,7 +202,8 @@ impl RobotDescription {
     }
 
     fn check_against(&self, rig: &Rig) -> Result<(), DescriptionMismatch> {
-        if self.segments.last().map(|s| s.child.as_str()) != Some(rig.tool_frame.as_str()) {
+        let chain = &self.segments[..self.chain];
+        if chain.last().map(|s| s.child.as_str()) != Some(rig.tool_frame.as_str()) {
             return Err(DescriptionMismatch::End(rig.tool_frame.clone()));
         }
         let used = self
@@ -207,7 +225,11 @@ impl RobotDescription {
             .collect();
         let composed = self
             .link_transforms(&probe)
-            .map(|links| links.fold(DAffine3::IDENTITY, |frame, link| frame * link));
+            .map(|links| {
+                links
+                    .take(self.chain)
+                    .fold(DAffine3::IDENTITY, |frame, link| frame * link)
+            });
         let expected = rig.forward(&probe)?;
         match composed {
             Some(tool)
@@ -565,7 +587,7 @@ fn quaternion(q: DQuat) -> Quaternion {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::rig::load_rig;
+    use crate::rig::{load_rig, rig_to_urdf};
     use std::path::Path;
 
     fn irb120() -> Rig {
@@ -576,18 +598,21 @@ mod tests {
     #[test]
     fn generated_links_compose_to_the_tool_pose() {
         let rig = irb120();
-        let robot = RobotDescription::generated(&rig);
+        let robot = RobotDescription::generated(&rig, &Cell::builtin());
         let q = [0.3, -0.4, 0.5, -1.1, 0.7, 2.0];
+        // The chain's seven links, base to tool0; the floor hangs on the base after them.
         let tool = robot
             .link_transforms(&q)
             .expect("the IRB 120 takes six positions")
+            .take(7)
             .fold(DAffine3::IDENTITY, |a, b| a * b);
         let expected = rig.forward(&q).expect("the IRB 120 takes six positions");
         assert!((tool.translation - expected.translation).length() < 1e-12);
         let frames: Vec<_> = robot.frames().collect();
-        assert_eq!(frames.len(), 7);
-        assert_eq!(frames[0], ("base_link", "joint_1"));
-        assert_eq!(frames[6], ("joint_6", "tool0"));
+        assert_eq!(frames.len(), 8);
+        assert_eq!(frames[0], ("base_link", "link_1"));
+        assert_eq!(frames[6], ("link_6", "tool0"));
+        assert_eq!(frames[7], ("base_link", "floor"));
     }
 
     #[test]
@@ -596,13 +621,21 @@ mod tests {
         let text = rig_to_urdf(&rig);
         let robot = RobotDescription::from_urdf(&rig, text.clone())
             .expect("the generated URDF matches the rig");
+        // The chain's links; the generated description adds the floor after them.
         assert_eq!(
             robot.frames().collect::<Vec<_>>(),
-            RobotDescription::generated(&rig)
+            RobotDescription::generated(&rig, &Cell::builtin())
                 .frames()
+                .take(7)
                 .collect::<Vec<_>>()
         );
-        let moved = text.replacen("xyz=\"0 0 0.29\"", "xyz=\"0 0 0.3\"", 1);
+        // Joint 2's origin moved (the bodies' solids carry the same numbers before it).
+        let at = text.find("<joint name=\"joint_2\"").expect("joint 2 is written");
+        let (head, tail) = text.split_at(at);
+        let moved = format!(
+            "{head}{}",
+            tail.replacen("xyz=\"0 0 0.29\"", "xyz=\"0 0 0.3\"", 1)
+        );
         assert_ne!(moved, text);
         assert!(RobotDescription::from_urdf(&rig, moved).is_err());
     }

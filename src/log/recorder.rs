@@ -210,7 +210,10 @@ impl RecorderOptions {
     pub fn for_rig(rig: &Rig) -> Self {
         Self {
             joint_kinds: Some(rig.joints.iter().map(|j| j.kind).collect()),
-            robot: Some(Arc::new(RobotDescription::generated(rig))),
+            robot: Some(Arc::new(RobotDescription::generated(
+                rig,
+                &crate::cell::Cell::builtin(),
+            ))),
             ..Self::default()
         }
     }

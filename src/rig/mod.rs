@@ -22,7 +22,10 @@ pub use geometry::{Collision, LinkBody, Shape};
 pub use pose::{Pose, PoseError, UNIT_QUATERNION_TOLERANCE, rotation_angle_between};
 pub use urdf::{MAX_URDF_BYTES, MAX_URDF_JOINTS, rig_from_urdf};
 pub(crate) use urdf::{UrdfTree, check_size as check_urdf_size};
-pub use urdf_out::{generated_link_names, rig_to_urdf};
+pub use urdf_out::{
+    FixedLink, HullMesh, UrdfExport, export, export_with_reach, generated_link_names,
+    half_space_as_box, reach_bound_m, rig_to_urdf,
+};
 
 use glam::{DAffine3, DQuat, DVec3};
 

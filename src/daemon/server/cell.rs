@@ -1289,6 +1289,11 @@ impl JournalSetup {
             // A handful of events: compressing them saves nothing and would keep a zstd
             // context per cell for the daemon's lifetime.
             compressed: false,
+            // The rig in its cell, as every log attaches it (`rigbridge config urdf`).
+            robot: Some(std::sync::Arc::new(crate::log::RobotDescription::generated(
+                &settings.rig,
+                &settings.cell,
+            ))),
             ..crate::log::RecorderOptions::for_rig(&settings.rig)
         };
         JournalSetup {
