@@ -161,4 +161,10 @@ pub trait Link: Send {
     fn pacing(&self) -> Option<std::sync::Arc<dyn crate::clock::Clock>> {
         None
     }
+    /// What the controller measured of the cell's clearances since the last call, measuring
+    /// afresh from now: the in-process twin's collision watch; `None` for a controller that
+    /// does not tell (every remote one).
+    fn take_contacts(&mut self) -> Option<crate::twin::ContactReport> {
+        None
+    }
 }

@@ -21,7 +21,7 @@ use crate::protocol::ControllerStatus;
 use crate::rig::JointKind;
 use crate::stream::Phase;
 use crate::stream::{Executor, Outcome, StreamControl};
-use crate::twin::{SharedWorld, Twin};
+use crate::twin::SharedWorld;
 use crate::view::{JobView, LiveHub, LiveSample, LiveSink, LiveSlot};
 use serde::Serialize;
 use std::path::PathBuf;
@@ -150,6 +150,10 @@ pub struct Status {
     /// The link's counters (as in the run report): the link's own while it is free, as of
     /// the last streamed cycle while a job holds it.
     link_counters: LinkCounters,
+    /// What the in-process twin has measured of the cell since the running job started (or
+    /// the last one ended): collision episodes, the closest pair within the cutoff. `null`
+    /// for a remote controller; the last job's whole measurement is `last.report.contacts`.
+    contacts: Option<crate::twin::contact::ContactStatus>,
 }
 
 /// The controller's state: `status` is `ok`, `holding`, `fault` or `unknown` (a remote
@@ -273,6 +277,15 @@ pub struct Cell {
     /// The daemon's shared executor, if it has one: the cycles of jobs on the in-process
     /// twin run there (a remote link's cycle waits for its echo, so it keeps its thread).
     executor: Option<Arc<Executor>>,
+    /// The in-process twin's collision watch, as its status reads it.
+    contacts: Option<LiveContacts>,
+}
+
+/// What a cell's status reads of its twin's collision watch while the twin runs.
+struct LiveContacts {
+    model: Arc<crate::cell::CollisionModel>,
+    snapshot: Arc<Mutex<crate::twin::contact::ContactSnapshot>>,
+    period_s: f64,
 }
 
 /// Why a cell did not reset its controller.
@@ -293,12 +306,12 @@ impl Cell {
     ) -> Result<Cell, DaemonError> {
         let (scene, job_world) = scene_for_job(&settings, &settings.config.job);
         let world = Arc::new(Mutex::new(JobWorld(job_world)));
-        let twin = Twin::new(
-            &settings.rig,
-            crate::daemon::twin_settings(&settings),
-            &settings.initial(),
-        )?
-        .with_world(Box::new(world.clone()));
+        let twin = crate::daemon::settings_twin(&settings)?.with_world(Box::new(world.clone()));
+        let contacts = twin.contacts().map(|watch| LiveContacts {
+            model: watch.model().clone(),
+            snapshot: watch.shared(),
+            period_s: settings.period().as_secs_f64(),
+        });
         let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&settings.initial())));
         let hub = LiveHub::new(
             settings.rig.clone(),
@@ -307,11 +320,17 @@ impl Cell {
             slot,
             scene,
         );
+        let hub = match crate::daemon::cell_drawing(&settings)? {
+            Some(cell) => hub.with_cell(cell),
+            None => hub,
+        };
         let link_name = settings.config.stream.link.clone();
         let link = match link_name.parse::<LinkSpec>() {
             Ok(LinkSpec::Loopback) | Err(_) => CellLink::Twin(Box::new(LoopbackLink::new(twin))),
             Ok(_) => CellLink::Remote(None),
         };
+        // A remote controller's clearances are its own: the in-process twin is not used.
+        let contacts = contacts.filter(|_| matches!(link, CellLink::Twin(_)));
         Ok(Cell {
             settings,
             link: Arc::new(Mutex::new(link)),
@@ -325,6 +344,7 @@ impl Cell {
             refusals: Mutex::new(Refusals::new()),
             latched: Mutex::new(None),
             executor,
+            contacts,
         })
     }
 
@@ -554,6 +574,10 @@ impl Cell {
             last: self.last().clone(),
             actual,
             link_counters: self.link_counters(),
+            contacts: self.contacts.as_ref().map(|live| {
+                let snapshot = crate::twin::ContactReport::read(&live.snapshot);
+                crate::twin::ContactWatch::describe(&live.model, &snapshot, live.period_s)
+            }),
         }
     }
 
