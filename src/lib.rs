@@ -19,7 +19,8 @@
 //! - [`ros2`]: each rig as a ROS 2 node over Zenoh (joint states out, trajectories in);
 //! - [`daemon`]: the wiring of the stages for `run`, `serve` and `replay`, and resuming;
 //!
-//! and beside the chain: [`motion`] (the `Trajectory` type and `validate`, which the
+//! and beside the chain: [`cell`] (the workcell: the robot's body, its tool, the objects
+//! around it, and the one collision model every check uses), [`motion`] (the `Trajectory` type and `validate`, which the
 //! planners build and the streamer runs), [`scene`] (a world's geometry, drawn by the view
 //! and written by the log), [`rig`] (rig models, TOML/URDF descriptions, forward kinematics),
 //! [`clock`] (wall and virtual clocks), [`realtime`] (thread scheduling) and
@@ -31,6 +32,7 @@
 //! - [`transport`]: the SocketCAN socket and the serial line's settings.
 
 pub mod batch;
+pub mod cell;
 pub mod clock;
 pub mod daemon;
 pub mod ik;

@@ -29,6 +29,7 @@ const LAYERS: &[&str] = &[
     "scene",
     "transport",
     "protocol",
+    "cell",
     "rig",
     "clock",
     "realtime",

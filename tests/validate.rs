@@ -121,6 +121,8 @@ fn slide() -> Rig {
             },
         }],
         tool: DAffine3::IDENTITY,
+        bodies: Vec::new(),
+        allowed_pairs: Vec::new(),
     }
 }
 

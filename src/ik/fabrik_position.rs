@@ -472,6 +472,8 @@ mod tests {
                 ),
             ],
             tool: DAffine3::from_translation(DVec3::new(0.05, 0.0, 0.0)),
+            bodies: Vec::new(),
+            allowed_pairs: Vec::new(),
         }
     }
 

@@ -2,6 +2,7 @@
 //! the key and the bad value) and URDF files. Owns the file formats only; the model itself
 //! lives in the parent module.
 
+use super::geometry::{RawBody, bodies_from_raw, check_pairs};
 use super::{Joint, JointKind, JointLimits, Rig};
 use glam::{DAffine3, DQuat, DVec3, EulerRot};
 use serde::Deserialize;
@@ -210,6 +211,12 @@ struct RawRig {
     joint: Vec<RawJoint>,
     #[serde(default)]
     tool: RawOrigin,
+    /// Pairs of bodies never checked (adjacent links; `rigbridge config allowed-pairs`).
+    #[serde(default)]
+    allowed_pairs: Vec<(String, String)>,
+    /// Per-link collision geometry (docs/cell.md, "The rig's body").
+    #[serde(default)]
+    body: Vec<RawBody>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -253,10 +260,10 @@ enum RawKind {
 /// acceleration the protocol sends (docs/protocol.md 1).
 const WIRE_LIMIT: f64 = i32::MAX as f64 / 1e6;
 
-struct Checker<'a> {
-    file: &'a Path,
+pub(crate) struct Checker<'a> {
+    pub(crate) file: &'a Path,
     /// Where the joint tables sit in the file (`""` for a rig, `limb[2].` for a sloth limb).
-    prefix: &'a str,
+    pub(crate) prefix: &'a str,
 }
 
 impl Checker<'_> {
@@ -264,7 +271,7 @@ impl Checker<'_> {
         ConfigError::invalid(self.file, &key, value, reason)
     }
 
-    fn finite3(&self, key: String, v: [f64; 3]) -> Result<DVec3, ConfigError> {
+    pub(crate) fn finite3(&self, key: String, v: [f64; 3]) -> Result<DVec3, ConfigError> {
         if v.iter().all(|x| x.is_finite()) {
             Ok(DVec3::from_array(v))
         } else {
@@ -468,12 +475,19 @@ impl RawRig {
         }
         let joints = joints_from_raw(file, "", &self.joint)?;
         let tool = origin_from_raw(file, "tool.", &self.tool)?;
+        let read_mesh = |key: &str, name: &str| super::mesh::read_hull_points(file, key, name);
+        let bodies = bodies_from_raw(file, &self.body, joints.len(), &read_mesh)?;
+        check_pairs(file, "allowed_pairs", &self.allowed_pairs, |name| {
+            bodies.iter().any(|b| b.name == name)
+        })?;
         Ok(Rig {
             name: self.name,
             base_frame: self.base_frame,
             tool_frame: self.tool_frame,
             joints,
             tool,
+            bodies,
+            allowed_pairs: self.allowed_pairs,
         })
     }
 }

@@ -6,6 +6,8 @@
 
 mod config;
 mod fk;
+pub mod geometry;
+mod mesh;
 mod pose;
 pub mod shipped;
 mod urdf;
@@ -16,6 +18,7 @@ pub(crate) use config::{
     RawJoint, RawOrigin, joints_from_raw, origin_from_raw, origin_from_xyz_rpy,
 };
 pub use fk::{DofMismatch, JointAxis};
+pub use geometry::{Collision, LinkBody, Shape};
 pub use pose::{Pose, PoseError, UNIT_QUATERNION_TOLERANCE, rotation_angle_between};
 pub use urdf::{MAX_URDF_BYTES, MAX_URDF_JOINTS, rig_from_urdf};
 pub(crate) use urdf::{UrdfTree, check_size as check_urdf_size};
@@ -150,6 +153,11 @@ pub struct Rig {
     pub joints: Vec<Joint>,
     /// Fixed transform from the last joint's frame to the tool frame.
     pub tool: DAffine3,
+    /// Collision geometry of the links (empty: the rig has no body to check).
+    pub bodies: Vec<LinkBody>,
+    /// Pairs of body names never checked against each other (adjacent links, pairs found
+    /// by sampling never or always to touch).
+    pub allowed_pairs: Vec<(String, String)>,
 }
 
 impl Rig {
@@ -173,7 +181,33 @@ impl Rig {
             tool_frame: self.tool_frame.clone(),
             joints: self.joints[first..].to_vec(),
             tool: self.tool,
+            bodies: self.sub_chain_bodies(first),
+            allowed_pairs: self
+                .allowed_pairs
+                .iter()
+                .filter(|(a, b)| [a, b].iter().all(|name| self.body_on_or_after(name, first)))
+                .cloned()
+                .collect(),
         })
+    }
+
+    /// The bodies riding on joint `first` + 1 or later, with frames counted from there (the
+    /// frame after joint `first` is the sub-chain's base, frame 0).
+    fn sub_chain_bodies(&self, first: usize) -> Vec<LinkBody> {
+        self.bodies
+            .iter()
+            .filter(|body| body.frame >= first)
+            .map(|body| LinkBody {
+                frame: body.frame - first,
+                ..body.clone()
+            })
+            .collect()
+    }
+
+    fn body_on_or_after(&self, name: &str, first: usize) -> bool {
+        self.bodies
+            .iter()
+            .any(|body| body.name == name && body.frame >= first)
     }
 
     /// The frame the first `leading.len()` joints place at `leading`: where a sub-chain

@@ -76,6 +76,8 @@ pub fn rig_from_urdf_to(
         tool_frame: tip,
         joints,
         tool: pending,
+        bodies: Vec::new(),
+        allowed_pairs: Vec::new(),
     })
 }
 

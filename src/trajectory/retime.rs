@@ -514,6 +514,8 @@ mod tests {
                 })
                 .collect(),
             tool: DAffine3::IDENTITY,
+            bodies: Vec::new(),
+            allowed_pairs: Vec::new(),
         }
     }
 

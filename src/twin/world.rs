@@ -74,6 +74,8 @@ mod tests {
                 },
             }],
             tool: DAffine3::IDENTITY,
+            bodies: Vec::new(),
+            allowed_pairs: Vec::new(),
         }
     }
 

@@ -153,6 +153,8 @@ mod tests {
                 },
             }],
             tool: DAffine3::from_translation(DVec3::new(0.5, 0.0, 0.3)),
+            bodies: Vec::new(),
+            allowed_pairs: Vec::new(),
         }
     }
 

@@ -177,6 +177,8 @@ impl SlothRig {
             tool_frame: "body".into(),
             joints: body_joints,
             tool: DAffine3::IDENTITY,
+            bodies: Vec::new(),
+            allowed_pairs: Vec::new(),
         };
         let streamed = Rig {
             name: raw.name,
@@ -184,6 +186,8 @@ impl SlothRig {
             tool_frame: "body".into(),
             joints: streamed_joints,
             tool: DAffine3::IDENTITY,
+            bodies: Vec::new(),
+            allowed_pairs: Vec::new(),
         };
         Ok(Self {
             body,
@@ -339,6 +343,8 @@ fn limb_from_raw(
             tool_frame: format!("{}_tip", raw.name),
             joints,
             tool,
+            bodies: Vec::new(),
+            allowed_pairs: Vec::new(),
         },
         first_axis,
         reach_m,

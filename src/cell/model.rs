@@ -1,0 +1,537 @@
+//! The collision model: the rig's link bodies, the tool and the cell's objects, the pairs
+//! that are checked, and the queries at one configuration (the closest pair, every pair
+//! within a distance, the bodies' poses for drawing). Owns the placing of bodies and the
+//! broad phase; exact distances come from [`super::parry`].
+//!
+//! Broad phase: every solid carries a bounding sphere (a half-space its plane), which gives
+//! a lower bound on its distance to any other; an exact query runs only for a pair of
+//! solids whose bound can beat the best distance found so far.
+
+use super::parry::{pose, signed_distance, solid};
+use super::{Cell, CellError};
+use crate::rig::{JointKind, Rig, Shape};
+use glam::{DAffine3, DVec3};
+use parry3d_f64::math::Pose;
+use parry3d_f64::shape::SharedShape;
+use std::collections::HashSet;
+
+/// A body of the model: a rig link, the tool, or a cell object, by its index.
+pub type BodyId = usize;
+
+/// The body of a [`Clearance`] when no pair is checked at all (its distance is infinite).
+pub const NO_BODY: BodyId = usize::MAX;
+
+/// How a clearance compares with the cell's margin.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Status {
+    /// At least the margin away.
+    Free,
+    /// Apart, but closer than the margin.
+    WithinMargin,
+    /// Touching or overlapping.
+    Collision,
+}
+
+impl std::fmt::Display for Status {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Status::Free => "free",
+            Status::WithinMargin => "within_margin",
+            Status::Collision => "collision",
+        })
+    }
+}
+
+/// The distance between two bodies: the gap, or (negative) the penetration depth.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Clearance {
+    pub distance_m: f64,
+    pub a: BodyId,
+    pub b: BodyId,
+}
+
+impl Clearance {
+    /// Nothing checked: infinitely far.
+    pub const NONE: Clearance = Clearance {
+        distance_m: f64::INFINITY,
+        a: NO_BODY,
+        b: NO_BODY,
+    };
+}
+
+/// One solid of the model placed at a configuration (cell frame).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlacedShape {
+    pub body: BodyId,
+    /// Index of the solid: [`CollisionModel::shape`] gives its geometry.
+    pub shape: usize,
+    /// The solid's own frame in the cell frame.
+    pub pose: DAffine3,
+}
+
+/// Per-caller buffers, so a query allocates nothing.
+#[derive(Debug, Clone)]
+pub struct Scratch {
+    /// Cell-frame pose of frame k of the rig (0: the base, as mounted).
+    frames: Vec<DAffine3>,
+    placed: Vec<PlacedShape>,
+    /// parry's pose of each solid, computed when an exact query first needs it.
+    solid_poses: Vec<Option<Pose>>,
+    /// Bounding-sphere centre of each solid, in the cell frame.
+    centres: Vec<DVec3>,
+}
+
+/// Where a body's solids hang: fixed in the cell, or on a frame of the rig that moves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Attach {
+    Fixed,
+    Frame(usize),
+}
+
+#[derive(Debug, Clone)]
+pub(super) struct Body {
+    pub(super) name: String,
+    pub(super) attach: Attach,
+    pub(super) shapes: std::ops::Range<usize>,
+}
+
+#[derive(Clone)]
+pub(super) struct ModelShape {
+    pub(super) body: BodyId,
+    /// The solid's frame in its body's frame (the cell frame for a fixed body).
+    pub(super) local: DAffine3,
+    pub(super) shape: Shape,
+    solid: SharedShape,
+    /// parry's solid frame within ours (the cylinder's axis turn).
+    solid_frame: DAffine3,
+    /// Bounding sphere in the solid's frame; a half-space has none.
+    pub(super) centre: DVec3,
+    pub(super) radius: f64,
+    /// A fixed half-space's plane in the cell frame: unit outward normal and offset, the
+    /// solid being `{ p : normal . p <= offset }`.
+    plane: Option<(DVec3, f64)>,
+}
+
+/// The rig's bodies, the tool and the cell's objects, with the pairs that are checked.
+#[derive(Clone)]
+pub struct CollisionModel {
+    pub(super) dof: usize,
+    pub(super) mount: DAffine3,
+    pub(super) joints: Vec<crate::rig::Joint>,
+    pub(super) bodies: Vec<Body>,
+    pub(super) shapes: Vec<ModelShape>,
+    /// Checked pairs of bodies, `a < b`.
+    pub(super) pairs: Vec<(BodyId, BodyId)>,
+    pub(super) margin: f64,
+    /// Per joint, how far a point of any body can move per unit of that joint's motion
+    /// (m/rad or m/m): the continuous check's bound.
+    pub(super) reach: Vec<f64>,
+}
+
+impl std::fmt::Debug for CollisionModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CollisionModel")
+            .field("bodies", &self.bodies.len())
+            .field("shapes", &self.shapes.len())
+            .field("pairs", &self.pairs.len())
+            .field("margin", &self.margin)
+            .finish()
+    }
+}
+
+/// What kind of body a name belongs to, for the duplicate-name message.
+const RIG: &str = "a rig link";
+const TOOL: &str = "the tool";
+const OBJECT: &str = "a cell object";
+
+impl CollisionModel {
+    /// The model of `rig` (as loaded, ending at its flange frame such as tool0; a rig from
+    /// [`Cell::rig_at_tcp`] is taken back to it) in `cell`. Checked pairs: every pair of
+    /// bodies except those on one rigid frame (two static bodies; the tool and the link of
+    /// the last frame, its flange, which it always touches) and the rig's and the cell's
+    /// allowed pairs.
+    pub fn new(rig: &Rig, cell: &Cell) -> Result<Self, CellError> {
+        let dof = rig.dof();
+        let flange_to_tool0 = match &cell.tool {
+            Some(tool) if rig.tool_frame == tool.name => rig.tool * tool.tcp.inverse(),
+            _ => rig.tool,
+        };
+        let mut builder = Builder::default();
+        for body in &rig.bodies {
+            let attach = match body.frame {
+                0 => Attach::Fixed,
+                k => Attach::Frame(k),
+            };
+            let base = match attach {
+                Attach::Fixed => cell.mount,
+                Attach::Frame(_) => DAffine3::IDENTITY,
+            };
+            let solids = body.collisions.iter().map(|c| (base * c.origin, &c.shape));
+            builder.add(&body.name, RIG, attach, solids)?;
+        }
+        if let Some(tool) = cell.tool.as_ref().filter(|t| !t.bodies.is_empty()) {
+            let solids = tool
+                .bodies
+                .iter()
+                .map(|c| (flange_to_tool0 * c.origin, &c.shape));
+            builder.add(&tool.name, TOOL, Attach::Frame(dof), solids)?;
+        }
+        for object in &cell.objects {
+            let solids = std::iter::once((object.pose, &object.shape));
+            builder.add(&object.name, OBJECT, Attach::Fixed, solids)?;
+        }
+        let allowed = allowed_ids(&builder.bodies, rig, cell)?;
+        let pairs = checked_pairs(&builder.bodies, &allowed);
+        let reach = reach_per_joint(rig, &builder.bodies, &builder.shapes);
+        Ok(CollisionModel {
+            dof,
+            mount: cell.mount,
+            joints: rig.joints.clone(),
+            bodies: builder.bodies,
+            shapes: builder.shapes,
+            pairs,
+            margin: cell.margin_m,
+            reach,
+        })
+    }
+
+    pub fn scratch(&self) -> Scratch {
+        Scratch {
+            frames: vec![self.mount; self.dof + 1],
+            placed: self
+                .shapes
+                .iter()
+                .enumerate()
+                .map(|(index, s)| PlacedShape {
+                    body: s.body,
+                    shape: index,
+                    pose: s.local,
+                })
+                .collect(),
+            solid_poses: vec![None; self.shapes.len()],
+            centres: vec![DVec3::ZERO; self.shapes.len()],
+        }
+    }
+
+    pub fn margin(&self) -> f64 {
+        self.margin
+    }
+
+    /// The name of body `id` (empty for [`NO_BODY`]).
+    pub fn body_name(&self, id: BodyId) -> &str {
+        self.bodies.get(id).map_or("", |b| b.name.as_str())
+    }
+
+    /// The body named `name`.
+    pub fn body_id(&self, name: &str) -> Option<BodyId> {
+        self.bodies.iter().position(|b| b.name == name)
+    }
+
+    pub fn body_count(&self) -> usize {
+        self.bodies.len()
+    }
+
+    /// True for a body that never moves (a cell object, a link on the rig's base).
+    pub fn is_static(&self, id: BodyId) -> bool {
+        self.bodies.get(id).is_some_and(|b| b.attach == Attach::Fixed)
+    }
+
+    /// The geometry of solid `index` (of [`PlacedShape::shape`]), in its own frame.
+    pub fn shape(&self, index: usize) -> &Shape {
+        &self.shapes[index].shape
+    }
+
+    /// The pairs of bodies that are checked.
+    pub fn checked_pairs(&self) -> &[(BodyId, BodyId)] {
+        &self.pairs
+    }
+
+    pub fn status(&self, distance_m: f64) -> Status {
+        if distance_m <= 0.0 {
+            Status::Collision
+        } else if distance_m < self.margin {
+            Status::WithinMargin
+        } else {
+            Status::Free
+        }
+    }
+
+    /// The closest checked pair at `positions` (joint positions of the rig, SI units).
+    ///
+    /// # Panics
+    /// When `positions` does not hold one value per joint (callers hold validated
+    /// trajectories of the rig).
+    pub fn clearance(&self, positions: &[f64], scratch: &mut Scratch) -> Clearance {
+        self.place(positions, scratch);
+        let mut best = Clearance::NONE;
+        for &(a, b) in &self.pairs {
+            if let Some(d) = self.pair_distance(a, b, best.distance_m, scratch) {
+                best = Clearance {
+                    distance_m: d,
+                    a,
+                    b,
+                };
+            }
+        }
+        best
+    }
+
+    /// Every checked pair closer than `cutoff_m` at `positions`, into `out` (cleared first).
+    pub fn pairs_within(
+        &self,
+        positions: &[f64],
+        cutoff_m: f64,
+        scratch: &mut Scratch,
+        out: &mut Vec<Clearance>,
+    ) {
+        out.clear();
+        self.place(positions, scratch);
+        for &(a, b) in &self.pairs {
+            if let Some(d) = self.pair_distance(a, b, cutoff_m, scratch) {
+                out.push(Clearance {
+                    distance_m: d,
+                    a,
+                    b,
+                });
+            }
+        }
+    }
+
+    /// Every solid placed at `positions`, in the cell frame (for drawing).
+    pub fn body_poses<'s>(&self, positions: &[f64], scratch: &'s mut Scratch) -> &'s [PlacedShape] {
+        self.place(positions, scratch);
+        &scratch.placed
+    }
+
+    /// Places every solid at `positions`: frames, poses, bounding-sphere centres; parry's
+    /// poses are left to be computed on demand.
+    fn place(&self, positions: &[f64], scratch: &mut Scratch) {
+        assert_eq!(
+            positions.len(),
+            self.dof,
+            "the collision model's rig has {} joints",
+            self.dof
+        );
+        let mut frame = self.mount;
+        for (k, (joint, q)) in self.joints.iter().zip(positions).enumerate() {
+            frame *= joint.transform(*q);
+            scratch.frames[k + 1] = frame;
+        }
+        for (index, shape) in self.shapes.iter().enumerate() {
+            let pose = match self.bodies[shape.body].attach {
+                Attach::Fixed => shape.local,
+                Attach::Frame(k) => scratch.frames[k] * shape.local,
+            };
+            scratch.placed[index].pose = pose;
+            scratch.centres[index] = pose.transform_point3(shape.centre);
+            scratch.solid_poses[index] = None;
+        }
+    }
+
+    /// The smallest signed distance between the solids of `a` and `b`, when below `beat`.
+    fn pair_distance(&self, a: BodyId, b: BodyId, beat: f64, scratch: &mut Scratch) -> Option<f64> {
+        let mut best = beat;
+        let mut found = false;
+        for i in self.bodies[a].shapes.clone() {
+            for j in self.bodies[b].shapes.clone() {
+                if self.lower_bound(i, j, scratch) >= best {
+                    continue;
+                }
+                let d = self.exact(i, j, scratch);
+                if d < best {
+                    best = d;
+                    found = true;
+                }
+            }
+        }
+        found.then_some(best)
+    }
+
+    /// A lower bound on the distance between solids `i` and `j` from their bounding
+    /// spheres (or a half-space's plane).
+    fn lower_bound(&self, i: usize, j: usize, scratch: &Scratch) -> f64 {
+        let (si, sj) = (&self.shapes[i], &self.shapes[j]);
+        match (si.plane, sj.plane) {
+            (Some((n, offset)), None) => n.dot(scratch.centres[j]) - offset - sj.radius,
+            (None, Some((n, offset))) => n.dot(scratch.centres[i]) - offset - si.radius,
+            (None, None) => {
+                scratch.centres[i].distance(scratch.centres[j]) - si.radius - sj.radius
+            }
+            (Some(_), Some(_)) => f64::NEG_INFINITY,
+        }
+    }
+
+    fn exact(&self, i: usize, j: usize, scratch: &mut Scratch) -> f64 {
+        let pi = self.solid_pose(i, scratch);
+        let pj = self.solid_pose(j, scratch);
+        signed_distance(&pi, &self.shapes[i].solid, &pj, &self.shapes[j].solid)
+    }
+
+    fn solid_pose(&self, index: usize, scratch: &mut Scratch) -> Pose {
+        *scratch.solid_poses[index].get_or_insert_with(|| {
+            pose(&(scratch.placed[index].pose * self.shapes[index].solid_frame))
+        })
+    }
+}
+
+#[derive(Default)]
+struct Builder {
+    bodies: Vec<Body>,
+    kinds: Vec<&'static str>,
+    shapes: Vec<ModelShape>,
+}
+
+impl Builder {
+    fn add<'a>(
+        &mut self,
+        name: &str,
+        kind: &'static str,
+        attach: Attach,
+        solids: impl Iterator<Item = (DAffine3, &'a Shape)>,
+    ) -> Result<BodyId, CellError> {
+        if let Some(i) = self.bodies.iter().position(|b| b.name == name) {
+            return Err(CellError::DuplicateName {
+                name: name.to_string(),
+                first: self.kinds[i],
+                second: kind,
+            });
+        }
+        let id = self.bodies.len();
+        let start = self.shapes.len();
+        for (local, shape) in solids {
+            let Some((solid_shape, solid_frame)) = solid(shape) else {
+                return Err(CellError::DegenerateHull {
+                    body: name.to_string(),
+                });
+            };
+            let (centre, radius) = bounding_sphere(shape);
+            let plane = match shape {
+                Shape::HalfSpace { normal } if attach == Attach::Fixed => {
+                    let n = local.transform_vector3(*normal).normalize();
+                    Some((n, n.dot(local.translation)))
+                }
+                Shape::HalfSpace { .. } => {
+                    return Err(CellError::UnboundedMovingBody {
+                        body: name.to_string(),
+                    });
+                }
+                _ => None,
+            };
+            self.shapes.push(ModelShape {
+                body: id,
+                local,
+                shape: shape.clone(),
+                solid: solid_shape,
+                solid_frame,
+                centre,
+                radius,
+                plane,
+            });
+        }
+        self.bodies.push(Body {
+            name: name.to_string(),
+            attach,
+            shapes: start..self.shapes.len(),
+        });
+        self.kinds.push(kind);
+        Ok(id)
+    }
+}
+
+/// A sphere around `shape` in its own frame, as (centre, radius); a half-space gets an
+/// infinite one (its plane bounds it instead).
+fn bounding_sphere(shape: &Shape) -> (DVec3, f64) {
+    match shape {
+        Shape::Capsule { a, b, radius } => ((*a + *b) / 2.0, a.distance(*b) / 2.0 + radius),
+        Shape::ConvexHull { points } => {
+            let (low, high) = points.iter().fold(
+                (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+                |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+            );
+            let centre = (low + high) / 2.0;
+            let radius = points.iter().map(|p| p.distance(centre)).fold(0.0, f64::max);
+            (centre, radius)
+        }
+        other => (DVec3::ZERO, other.bounding_radius().unwrap_or(f64::INFINITY)),
+    }
+}
+
+/// The allowed pairs of the rig and the cell, as body ids; a name that is no body is an
+/// error (a typo would otherwise silently check a pair the user meant to allow, or the
+/// reverse).
+fn allowed_ids(
+    bodies: &[Body],
+    rig: &Rig,
+    cell: &Cell,
+) -> Result<HashSet<(BodyId, BodyId)>, CellError> {
+    let find = |source_name: &'static str, index: usize, name: &str| {
+        bodies
+            .iter()
+            .position(|b| b.name == name)
+            .ok_or_else(|| CellError::UnknownPairBody {
+                source_name,
+                index,
+                name: name.to_string(),
+                known: bodies
+                    .iter()
+                    .map(|b| b.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", "),
+            })
+    };
+    let mut allowed = HashSet::new();
+    for (source_name, pairs) in [("rig", &rig.allowed_pairs), ("cell", &cell.allowed_pairs)] {
+        for (index, (a, b)) in pairs.iter().enumerate() {
+            let (a, b) = (find(source_name, index, a)?, find(source_name, index, b)?);
+            allowed.insert((a.min(b), a.max(b)));
+        }
+    }
+    Ok(allowed)
+}
+
+fn checked_pairs(bodies: &[Body], allowed: &HashSet<(BodyId, BodyId)>) -> Vec<(BodyId, BodyId)> {
+    let mut pairs = Vec::new();
+    for a in 0..bodies.len() {
+        for b in a + 1..bodies.len() {
+            // One rigid frame: two static bodies, or the tool and the flange's link.
+            let same_frame = bodies[a].attach == bodies[b].attach;
+            if !same_frame && !allowed.contains(&(a, b)) {
+                pairs.push((a, b));
+            }
+        }
+    }
+    pairs
+}
+
+/// Per joint j, a bound on how far any point of a body moved by it travels per unit of
+/// its motion: for a revolute joint the largest distance of such a point from the joint's
+/// origin (it moves on a circle about an axis through that origin, so its arc is at most
+/// that radius times the angle), for a prismatic joint 1 (everything after it translates
+/// with it). The distance sums the lengths of the links between (a prismatic joint's
+/// farthest extension added) and the solid's bounding sphere.
+fn reach_per_joint(rig: &Rig, bodies: &[Body], shapes: &[ModelShape]) -> Vec<f64> {
+    let joints = &rig.joints;
+    let link_length = |i: usize| {
+        let joint = &joints[i];
+        let extension = match joint.kind {
+            JointKind::Revolute => 0.0,
+            JointKind::Prismatic => joint.limits.lower.abs().max(joint.limits.upper.abs()),
+        };
+        joint.origin.translation.length() + extension
+    };
+    (0..joints.len())
+        .map(|j| match joints[j].kind {
+            JointKind::Prismatic => 1.0,
+            JointKind::Revolute => shapes
+                .iter()
+                .filter_map(|s| match bodies[s.body].attach {
+                    Attach::Frame(k) if k > j => {
+                        let between: f64 = (j + 1..k).map(link_length).sum();
+                        Some(between + s.local.transform_point3(s.centre).length() + s.radius)
+                    }
+                    _ => None,
+                })
+                .fold(0.0, f64::max),
+        })
+        .collect()
+}

@@ -1,0 +1,79 @@
+//! The one adapter between our geometry (glam 0.34) and parry3d-f64 (glamx, on glam 0.33):
+//! every vector, rotation and shape crosses here, through plain arrays, so the two glam
+//! versions never meet anywhere else. Owns the conversion and the signed distance; it
+//! knows nothing of rigs or cells.
+
+use crate::rig::Shape;
+use glam::{DAffine3, DQuat, DVec3};
+use parry3d_f64::math::{Pose, Rotation, Vector};
+use parry3d_f64::query;
+use parry3d_f64::shape::SharedShape;
+
+fn vector(v: DVec3) -> Vector {
+    Vector::from_array(v.to_array())
+}
+
+/// `frame` (a rigid transform) as parry's pose.
+pub(super) fn pose(frame: &DAffine3) -> Pose {
+    let rotation = DQuat::from_mat3(&frame.matrix3.into()).normalize();
+    Pose::from_parts(
+        vector(frame.translation),
+        Rotation::from_array(rotation.to_array()),
+    )
+}
+
+/// A rotation of +90 deg about x, which takes y to z: parry's cylinder stands on its y
+/// axis, ours on its z axis.
+fn y_to_z() -> DAffine3 {
+    DAffine3::from_rotation_x(std::f64::consts::FRAC_PI_2)
+}
+
+/// A parry solid for `shape`, and the frame it must be placed in within the shape's own
+/// frame (identity but for the cylinder). `None` when a hull's points span no volume.
+pub(super) fn solid(shape: &Shape) -> Option<(SharedShape, DAffine3)> {
+    let placed = match shape {
+        Shape::Box { half_extents } => (
+            SharedShape::cuboid(half_extents.x, half_extents.y, half_extents.z),
+            DAffine3::IDENTITY,
+        ),
+        Shape::Cylinder {
+            radius,
+            half_length,
+        } => (SharedShape::cylinder(*half_length, *radius), y_to_z()),
+        Shape::Sphere { radius } => (SharedShape::ball(*radius), DAffine3::IDENTITY),
+        Shape::Capsule { a, b, radius } => (
+            SharedShape::capsule(vector(*a), vector(*b), *radius),
+            DAffine3::IDENTITY,
+        ),
+        Shape::HalfSpace { normal } => (SharedShape::halfspace(vector(*normal)), DAffine3::IDENTITY),
+        Shape::ConvexHull { points } => {
+            let points: Vec<Vector> = points.iter().map(|p| vector(*p)).collect();
+            (SharedShape::convex_hull(&points)?, DAffine3::IDENTITY)
+        }
+    };
+    Some(placed)
+}
+
+/// The signed distance between two placed solids: the gap when apart, minus the
+/// penetration depth when they overlap.
+pub(super) fn signed_distance(
+    pose1: &Pose,
+    solid1: &SharedShape,
+    pose2: &Pose,
+    solid2: &SharedShape,
+) -> f64 {
+    // Every pair we query is supported: each solid is a support map or a half-space, and
+    // two half-spaces are never a checked pair (both static). Should parry ever refuse a
+    // pair, the answer is "collision" (fail closed), not "free".
+    let Ok(gap) = query::distance(pose1, solid1.as_ref(), pose2, solid2.as_ref()) else {
+        return f64::NEG_INFINITY;
+    };
+    if gap.distance > 0.0 {
+        return gap.distance;
+    }
+    match query::contact(pose1, solid1.as_ref(), pose2, solid2.as_ref(), 0.0) {
+        Ok(Some(contact)) => contact.dist.min(0.0),
+        Ok(None) => 0.0,
+        Err(_) => f64::NEG_INFINITY,
+    }
+}
