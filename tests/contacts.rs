@@ -114,7 +114,11 @@ fn run(twin: &mut Twin, to: f64, speed: f64) {
             let wanted = brake.copysign(left);
             v += (wanted - v).clamp(-5.0 * PERIOD_S, 5.0 * PERIOD_S);
             let next = q + v * PERIOD_S;
-            q = if (goal - next) * left <= 0.0 { goal } else { next };
+            q = if (goal - next) * left <= 0.0 {
+                goal
+            } else {
+                next
+            };
             if q == goal {
                 v = 0.0;
             }

@@ -382,9 +382,8 @@ fn the_cell_and_the_arms_bodies_are_in_the_scene_for_a_reader_we_did_not_write()
     record_run(&config, &log);
     let peer = scene_peer(&python, &log);
     let entities = &peer["entities"];
-    let triangles_of = |shape: &rigbridge::rig::Shape| {
-        rigbridge::view::solid::shape_triangles(shape).len() as u64
-    };
+    let triangles_of =
+        |shape: &rigbridge::rig::Shape| rigbridge::view::solid::shape_triangles(shape).len() as u64;
     if !settings.cell.objects.is_empty() {
         let cell = &entities["cell"];
         assert_eq!(cell["frame_id"], settings.rig.base_frame.as_str(), "{cell}");

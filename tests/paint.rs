@@ -827,9 +827,9 @@ fn floor_points(body: &Body, rig: &Rig, positions: &[f64]) -> Vec<DVec2> {
     let mut points = Vec::new();
     for placed in model.body_poses(positions, &mut scratch) {
         match model.shape(placed.shape) {
-            Shape::Capsule { a, b, .. } => points.extend(
-                [a, b].map(|p| placed.pose.transform_point3(*p).truncate()),
-            ),
+            Shape::Capsule { a, b, .. } => {
+                points.extend([a, b].map(|p| placed.pose.transform_point3(*p).truncate()))
+            }
             Shape::Cylinder { .. } => points.push(placed.pose.translation.truncate()),
             _ => {}
         }

@@ -65,10 +65,15 @@ pub fn cell_from_toml(text: &str, file: &Path) -> Result<Cell, CellError> {
 /// settings' section).
 pub(crate) fn cell_from_raw(raw: &RawCell, file: &Path, prefix: &str) -> Result<Cell, ConfigError> {
     let key = |field: &str| format!("{prefix}{field}");
-    let read_mesh =
-        |key: &str, name: &str| crate::rig::geometry::read_hull_points(file, key, name);
+    let read_mesh = |key: &str, name: &str| crate::rig::geometry::read_hull_points(file, key, name);
     let margin_m = match raw.margin_m {
-        Some(m) => check_range(file, &key("margin_m"), m, MARGIN_RANGE_M.0, MARGIN_RANGE_M.1)?,
+        Some(m) => check_range(
+            file,
+            &key("margin_m"),
+            m,
+            MARGIN_RANGE_M.0,
+            MARGIN_RANGE_M.1,
+        )?,
         None => DEFAULT_MARGIN_M,
     };
     let mount = match &raw.mount {
@@ -134,7 +139,10 @@ fn frame_of(file: &Path, prefix: &str, frame: &RawFrame) -> Result<DAffine3, Con
     };
     let xyz = finite("origin_xyz_m", frame.origin_xyz_m)?;
     let rpy = finite("origin_rpy_deg", frame.origin_rpy_deg)?;
-    Ok(origin_from_xyz_rpy(xyz, rpy * (std::f64::consts::PI / 180.0)))
+    Ok(origin_from_xyz_rpy(
+        xyz,
+        rpy * (std::f64::consts::PI / 180.0),
+    ))
 }
 
 fn tool_of(

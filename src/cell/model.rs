@@ -233,7 +233,9 @@ impl CollisionModel {
 
     /// True for a body that never moves (a cell object, a link on the rig's base).
     pub fn is_static(&self, id: BodyId) -> bool {
-        self.bodies.get(id).is_some_and(|b| b.attach == Attach::Fixed)
+        self.bodies
+            .get(id)
+            .is_some_and(|b| b.attach == Attach::Fixed)
     }
 
     /// The geometry of solid `index` (of [`PlacedShape::shape`]), in its own frame.
@@ -354,9 +356,7 @@ impl CollisionModel {
         match (si.plane, sj.plane) {
             (Some((n, offset)), None) => n.dot(scratch.centres[j]) - offset - sj.radius,
             (None, Some((n, offset))) => n.dot(scratch.centres[i]) - offset - si.radius,
-            (None, None) => {
-                scratch.centres[i].distance(scratch.centres[j]) - si.radius - sj.radius
-            }
+            (None, None) => scratch.centres[i].distance(scratch.centres[j]) - si.radius - sj.radius,
             (Some(_), Some(_)) => f64::NEG_INFINITY,
         }
     }
@@ -449,10 +449,16 @@ fn bounding_sphere(shape: &Shape) -> (DVec3, f64) {
                 |(lo, hi), p| (lo.min(*p), hi.max(*p)),
             );
             let centre = (low + high) / 2.0;
-            let radius = points.iter().map(|p| p.distance(centre)).fold(0.0, f64::max);
+            let radius = points
+                .iter()
+                .map(|p| p.distance(centre))
+                .fold(0.0, f64::max);
             (centre, radius)
         }
-        other => (DVec3::ZERO, other.bounding_radius().unwrap_or(f64::INFINITY)),
+        other => (
+            DVec3::ZERO,
+            other.bounding_radius().unwrap_or(f64::INFINITY),
+        ),
     }
 }
 

@@ -45,7 +45,9 @@ pub(super) fn solid(shape: &Shape) -> Option<(SharedShape, DAffine3)> {
             SharedShape::capsule(vector(*a), vector(*b), *radius),
             DAffine3::IDENTITY,
         ),
-        Shape::HalfSpace { normal } => (SharedShape::halfspace(vector(*normal)), DAffine3::IDENTITY),
+        Shape::HalfSpace { normal } => {
+            (SharedShape::halfspace(vector(*normal)), DAffine3::IDENTITY)
+        }
         Shape::ConvexHull { points } => {
             let points: Vec<Vector> = points.iter().map(|p| vector(*p)).collect();
             (SharedShape::convex_hull(&points)?, DAffine3::IDENTITY)

@@ -178,13 +178,25 @@ impl CollisionModel {
         self.bisect(stretch, (s, c.distance_m), (s1, c1), scratch)
     }
 
-    fn measure(&self, q: &[f64], t: f64, best: &mut PathClearance, scratch: &mut Scratch) -> Clearance {
+    fn measure(
+        &self,
+        q: &[f64],
+        t: f64,
+        best: &mut PathClearance,
+        scratch: &mut Scratch,
+    ) -> Clearance {
         let c = self.clearance(q, scratch);
         best_of(best, c, t);
         c
     }
 
-    fn collision(&self, index: usize, t: f64, positions: Vec<f64>, clearance: Clearance) -> PathCollision {
+    fn collision(
+        &self,
+        index: usize,
+        t: f64,
+        positions: Vec<f64>,
+        clearance: Clearance,
+    ) -> PathCollision {
         PathCollision {
             index,
             t,

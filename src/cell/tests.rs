@@ -231,7 +231,9 @@ origin_xyz_m = [0.0, 0.0, 0.04]
     CollisionModel::new(&rig, &cell).unwrap();
 
     let bad = text.replace("radius_m = 0.01", "radius_m = -0.01");
-    let err = cell_from_toml(&bad, Path::new("cell.toml")).unwrap_err().to_string();
+    let err = cell_from_toml(&bad, Path::new("cell.toml"))
+        .unwrap_err()
+        .to_string();
     assert_eq!(
         err,
         "cell.toml: key `tool.body[0].radius_m` = -0.01: must be a positive number"

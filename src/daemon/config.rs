@@ -964,6 +964,9 @@ pub struct RunSettings {
     pub rig: Rig,
     /// The sloth behind `rig` when the job is a gait (`rig` is then its streamed axes).
     pub sloth: Option<std::sync::Arc<crate::task::gait::SlothRig>>,
+    /// The rig's cell (issue 27): its mount, objects, tool and margin. The built-in one
+    /// (the rig on its floor) until the run settings' `cell` key names another.
+    pub cell: crate::cell::Cell,
 }
 
 impl RunSettings {
@@ -1045,6 +1048,7 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         config,
         rig,
         sloth,
+        cell: crate::cell::Cell::builtin(),
     })
 }
 

@@ -268,7 +268,9 @@ pub fn settings_twin(settings: &RunSettings) -> Result<Twin, DaemonError> {
 
 /// What the live page, the live Foxglove server and the log draw of the rig's cell. A
 /// gait's streamed axes pose no body (see [`contact_watch`]).
-pub fn cell_drawing(settings: &RunSettings) -> Result<Option<crate::view::CellDrawing>, DaemonError> {
+pub fn cell_drawing(
+    settings: &RunSettings,
+) -> Result<Option<crate::view::CellDrawing>, DaemonError> {
     if settings.sloth.is_some() {
         return Ok(None);
     }
@@ -286,7 +288,9 @@ pub fn cell_drawing(settings: &RunSettings) -> Result<Option<crate::view::CellDr
 /// that transform less the TCP (as the collision model takes it back).
 fn tool0_of(settings: &RunSettings) -> glam::DAffine3 {
     match &settings.cell.tool {
-        Some(tool) if settings.rig.tool_frame == tool.name => settings.rig.tool * tool.tcp.inverse(),
+        Some(tool) if settings.rig.tool_frame == tool.name => {
+            settings.rig.tool * tool.tcp.inverse()
+        }
         _ => settings.rig.tool,
     }
 }

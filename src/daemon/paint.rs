@@ -8,10 +8,10 @@ use crate::clock::Clock;
 use crate::job::JobError;
 use crate::link::LoopbackLink;
 use crate::stream::StreamControl;
-use crate::twin::Twin;
 use crate::task::paint::{
     PaintPlanError, PaintReport, PaintSettings, PaintWorld, build_report, plan_room, world_for,
 };
+use crate::twin::Twin;
 use std::sync::{Arc, Mutex, PoisonError};
 
 /// Everything a paint run produced.

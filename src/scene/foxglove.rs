@@ -5,7 +5,9 @@
 //! the run log's writer thread and the live Foxglove server, never by the streaming cycle.
 //! Owns only the translation; it must not build, measure or change a scene.
 
-use super::{ClosestView, CylinderView, PaintQuad, Point, PoseView, SceneView, SolidView, WallView};
+use super::{
+    ClosestView, CylinderView, PaintQuad, Point, PoseView, SceneView, SolidView, WallView,
+};
 use foxglove::messages::{
     Color, CylinderPrimitive, LinePrimitive, Point3, Pose, Quaternion, SceneEntity,
     SceneEntityDeletion, SceneUpdate, Timestamp, TriangleListPrimitive, Vector3, line_primitive,
@@ -501,7 +503,10 @@ mod tests {
         );
         assert_eq!(full.entities[0].triangles[0].points.len(), 3);
         // Without frames (a rig without /tf) the bodies are left out, the cell is not.
-        assert_eq!(full_update(&view, "base_link", &[], stamp).entities.len(), 1);
+        assert_eq!(
+            full_update(&view, "base_link", &[], stamp).entities.len(),
+            1
+        );
         let near = ClosestView {
             a: "link_2".into(),
             b: "table".into(),

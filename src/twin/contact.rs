@@ -243,11 +243,7 @@ impl ContactWatch {
             return self.cutoff_m;
         }
         let cycle = self.cycle;
-        match self
-            .minima
-            .iter_mut()
-            .find(|m| (m.a, m.b) == (c.a, c.b))
-        {
+        match self.minima.iter_mut().find(|m| (m.a, m.b) == (c.a, c.b)) {
             Some(m) => {
                 if c.distance_m < m.distance_m {
                     m.distance_m = c.distance_m;
@@ -402,7 +398,11 @@ impl ContactWatch {
     }
 
     /// The live summary for a status: the snapshot with body names.
-    pub fn describe(model: &CollisionModel, snapshot: &ContactSnapshot, period_s: f64) -> ContactStatus {
+    pub fn describe(
+        model: &CollisionModel,
+        snapshot: &ContactSnapshot,
+        period_s: f64,
+    ) -> ContactStatus {
         ContactStatus {
             cycles: snapshot.cycles,
             collisions: snapshot.episodes,

@@ -466,14 +466,19 @@ mod tests {
         let frame: serde_json::Value =
             serde_json::from_str(&hub.tick(Duration::from_millis(20), JobView::default()))
                 .expect("the frame is JSON");
-        let z = frame["bodies"][0]["position"][2].as_f64().expect("a position");
+        let z = frame["bodies"][0]["position"][2]
+            .as_f64()
+            .expect("a position");
         assert!((z - 0.055).abs() < 1e-12, "{frame}");
         assert_eq!(frame["closest"]["a"], "ball");
         assert_eq!(frame["closest"]["b"], "floor");
         assert_eq!(frame["closest"]["status"], "within_margin");
         let d = frame["closest"]["distance_m"].as_f64().expect("a distance");
         assert!((d - 0.005).abs() < 1e-9, "{d}");
-        assert_eq!(hub.closest().map(|c| c.status), Some("within_margin".into()));
+        assert_eq!(
+            hub.closest().map(|c| c.status),
+            Some("within_margin".into())
+        );
         // 0.25 m over it: clear, no mark.
         let hub = hub_at(0.3);
         let frame: serde_json::Value =

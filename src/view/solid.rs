@@ -236,7 +236,10 @@ fn half_space(normal: DVec3) -> Vec<Triangle> {
         corner(1.0, 1.0),
         corner(-1.0, 1.0),
     ];
-    vec![tri(quad[0], quad[1], quad[2]), tri(quad[0], quad[2], quad[3])]
+    vec![
+        tri(quad[0], quad[1], quad[2]),
+        tri(quad[0], quad[2], quad[3]),
+    ]
 }
 
 /// The hull's faces (parry's convex hull of the points); none for a degenerate set.
@@ -279,14 +282,19 @@ mod tests {
         assert_eq!(cube.len(), 12);
         assert!((volume(&cube) - 0.2 * 0.4 * 0.6).abs() < 1e-12);
         // A polygon of 12 sides holds cos(15 deg) x sin(15 deg) x 12 / pi of its circle.
-        let polygon = 12.0 * (std::f64::consts::PI / 12.0).sin() * (std::f64::consts::PI / 12.0).cos()
-            / std::f64::consts::PI;
+        let polygon =
+            12.0 * (std::f64::consts::PI / 12.0).sin() * (std::f64::consts::PI / 12.0).cos()
+                / std::f64::consts::PI;
         let cylinder = shape_triangles(&Shape::Cylinder {
             radius: 0.1,
             half_length: 0.5,
         });
         let exact = std::f64::consts::PI * 0.01 * 1.0;
-        assert!((volume(&cylinder) - exact * polygon).abs() < 1e-9, "{}", volume(&cylinder));
+        assert!(
+            (volume(&cylinder) - exact * polygon).abs() < 1e-9,
+            "{}",
+            volume(&cylinder)
+        );
         let capsule = shape_triangles(&Shape::Capsule {
             a: DVec3::ZERO,
             b: DVec3::new(0.0, 0.0, 1.0),
@@ -296,13 +304,7 @@ mod tests {
         let v = volume(&capsule);
         assert!(v > 0.8 * round && v < round, "capsule {v} of {round}");
         let hull = shape_triangles(&Shape::ConvexHull {
-            points: vec![
-                DVec3::ZERO,
-                DVec3::X,
-                DVec3::Y,
-                DVec3::Z,
-                DVec3::splat(0.1),
-            ],
+            points: vec![DVec3::ZERO, DVec3::X, DVec3::Y, DVec3::Z, DVec3::splat(0.1)],
         });
         assert_eq!(hull.len(), 4, "the inner point is no vertex");
         assert!((volume(&hull) - 1.0 / 6.0).abs() < 1e-12);

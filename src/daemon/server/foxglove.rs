@@ -256,7 +256,8 @@ impl FoxgloveFeed {
         // The mark changes with the pair or its status only (not with every distance).
         let closest = hub.closest();
         let marked = |c: &Option<crate::scene::ClosestView>| {
-            c.as_ref().map(|c| (c.a.clone(), c.b.clone(), c.status.clone()))
+            c.as_ref()
+                .map(|c| (c.a.clone(), c.b.clone(), c.status.clone()))
         };
         let mark = (marked(&closest) != marked(&feed.closest)).then(|| {
             feed.closest = closest;
@@ -281,14 +282,12 @@ impl FoxgloveFeed {
             self.send(feed.joints, now, feed.messages.joint_states());
         }
         let update = match change {
-            Some(SceneChange::New(view)) => {
-                Some(full_update(
-                    &view,
-                    &feed.frame_id,
-                    &feed.body_frames,
-                    timestamp(now),
-                ))
-            }
+            Some(SceneChange::New(view)) => Some(full_update(
+                &view,
+                &feed.frame_id,
+                &feed.body_frames,
+                timestamp(now),
+            )),
             Some(SceneChange::Paint(fresh)) => {
                 feed.batches += 1;
                 paint_update(

@@ -422,8 +422,9 @@ impl<'a> Planner<'a> {
             .chain([last])
             .map(|i| trajectory.position(i));
         let (body, scratch) = (&self.body, &mut self.scratch);
-        self.travel
-            .lowest(samples, needed, |positions| body.clearance(positions, scratch).0)
+        self.travel.lowest(samples, needed, |positions| {
+            body.clearance(positions, scratch).0
+        })
     }
 
     /// How far the brush stays from painting over `trajectory`: for each sample, the
