@@ -171,11 +171,12 @@ fn the_twin_measures_each_pairs_least_clearance_from_the_positions_it_reached() 
         .iter()
         .find(|p| [p.a.as_str(), p.b.as_str()].contains(&"floor"))
         .expect("the floor came within the cutoff");
-    assert_eq!(
-        pair.min_clearance_m, floor,
-        "the least clearance of every cycle"
+    assert!(
+        (pair.min_clearance_m - floor).abs() <= rigbridge::twin::contact::RESOLUTION_M,
+        "the least clearance of every cycle: {} and {floor}",
+        pair.min_clearance_m
     );
-    assert!((floor - 0.03).abs() < 1e-3, "{floor}");
+    assert!((floor - 0.03).abs() < 0.005, "{floor}");
     assert_eq!(pair.status, "free");
     // The post's face stays 0.12 - 0.05 = 0.07 m away: beyond the cutoff, not listed.
     assert!(post > report.cutoff_m, "{post}");
@@ -231,7 +232,12 @@ fn a_twin_that_runs_into_its_floor_faults_with_the_bodies_named() {
         ("ball", "floor"),
         "{report:?}"
     );
-    assert_eq!(episode.depth_m, -floor, "the deepest of every cycle");
+    assert!(
+        (episode.depth_m + floor).abs() <= rigbridge::twin::contact::RESOLUTION_M,
+        "the deepest of every cycle: {} and {}",
+        episode.depth_m,
+        -floor
+    );
     assert!(report.pairs[0].status == "collision", "{report:?}");
     // Targets after the fault are dropped without motion.
     assert!(twin.counters().faulted_targets > 0);

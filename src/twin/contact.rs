@@ -31,6 +31,10 @@ pub const KEPT_EPISODES: usize = 64;
 /// Rounding allowance (m) on the skip bound: clearances and bounds are sums of a few
 /// products of metres, off by about 1e-15 m each.
 const BOUND_ROUNDING_M: f64 = 1e-9;
+/// What the reported minima and depths may be off by: motion below this since the last
+/// measured cycle is not measured again (an arm settling on its goal creeps by nanometres
+/// every cycle, each a possible new minimum of the pair it rests nearest).
+pub const RESOLUTION_M: f64 = 1e-6;
 
 /// How far (at most) any point of any body of a rig moves between two joint positions:
 /// per joint, its lever (every body after a revolute joint lies within it of the joint's
@@ -201,7 +205,7 @@ impl ContactWatch {
         } else {
             f64::INFINITY
         };
-        if moved + BOUND_ROUNDING_M < self.slack_m {
+        if moved + BOUND_ROUNDING_M < self.slack_m.max(RESOLUTION_M) {
             return None;
         }
         let first = !self.started;
