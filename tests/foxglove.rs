@@ -365,3 +365,65 @@ fn the_sloths_branches_are_cylinders_for_a_reader_we_did_not_write() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// An arm's log draws its cell (issue 27): the cell's objects in the base frame, and each
+/// frame's collision bodies (the tool's on the last) in that frame's `/tf` id, as a reader
+/// we did not write replays `/scene`; triangles as many as the solids' meshes have.
+#[test]
+fn the_cell_and_the_arms_bodies_are_in_the_scene_for_a_reader_we_did_not_write() {
+    let Ok(python) = peer_python() else {
+        println!("skipping the SceneUpdate peer test: no peer (see the test above)");
+        return;
+    };
+    let config = repo_path("config/rigbridge.toml");
+    let settings = rigbridge::daemon::config::load_run_settings(&config).unwrap();
+    let dir = scratch("cell-scene");
+    let log = dir.join("star.mcap");
+    record_run(&config, &log);
+    let peer = scene_peer(&python, &log);
+    let entities = &peer["entities"];
+    let triangles_of =
+        |shape: &rigbridge::rig::Shape| rigbridge::view::solid::shape_triangles(shape).len() as u64;
+    if !settings.cell.objects.is_empty() {
+        let cell = &entities["cell"];
+        assert_eq!(cell["frame_id"], settings.rig.base_frame.as_str(), "{cell}");
+        let expected: u64 = settings
+            .cell
+            .objects
+            .iter()
+            .map(|o| triangles_of(&o.shape))
+            .sum();
+        assert_eq!(cell["triangles"], expected, "{cell}");
+    }
+    let robot = rigbridge::log::RobotDescription::generated(&settings.rig);
+    let frames = robot.rig_frames();
+    let mut per_frame = std::collections::BTreeMap::<usize, u64>::new();
+    for body in &settings.rig.bodies {
+        for c in &body.collisions {
+            *per_frame.entry(body.frame).or_default() += triangles_of(&c.shape);
+        }
+    }
+    if let Some(tool) = &settings.cell.tool {
+        for c in &tool.bodies {
+            *per_frame.entry(settings.rig.dof()).or_default() += triangles_of(&c.shape);
+        }
+    }
+    assert!(!per_frame.is_empty(), "the IRB 120 has collision bodies");
+    for (frame, triangles) in &per_frame {
+        let entity = &entities[format!("bodies-{frame}")];
+        assert_eq!(entity["frame_id"], frames[*frame].as_str(), "{entity}");
+        assert_eq!(entity["triangles"], *triangles, "{entity}");
+        assert!(entity["area"].as_f64().unwrap() > 0.0);
+    }
+    println!(
+        "/scene of the star job: {} messages; entities {:?}",
+        peer["messages"],
+        entities
+            .as_object()
+            .unwrap()
+            .iter()
+            .map(|(id, e)| format!("{id} on {} ({} triangles)", e["frame_id"], e["triangles"]))
+            .collect::<Vec<_>>()
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -11,7 +11,7 @@ use rigbridge::daemon::config::load_run_settings;
 use rigbridge::daemon::paint::{PaintRun, run_paint};
 use rigbridge::ik::{BaseHeldSolver, IkSolver};
 use rigbridge::link::LoopbackLink;
-use rigbridge::rig::{ConfigError, Rig, load_rig};
+use rigbridge::rig::{ConfigError, Rig, Shape, load_rig};
 use rigbridge::stream::{Outcome, StreamControl, StreamSettings, slowdown_rate, stream};
 use rigbridge::task::paint::body::{Body, Scratch, Travel};
 use rigbridge::task::paint::planner::Planner;
@@ -367,7 +367,7 @@ fn stroke_edges_are_straight_within_5_mm() {
     let (room, planned) = plan_room(&settings, 5, 1, &start, &plan).unwrap();
     // The second and third strokes: ordinary columns, one up, one down.
     for stroke in &planned.strokes[1..3] {
-        let world = Arc::new(Mutex::new(world_for(&settings, &room)));
+        let world = Arc::new(Mutex::new(world_for(&settings, &room).unwrap()));
         stream_into(
             &head(&planned.trajectory, stroke.samples[1]),
             &settings,
@@ -424,7 +424,7 @@ fn the_brush_is_where_the_streamed_joints_put_it() {
     let first = &planned.strokes[1];
     let trajectory = head(&planned.trajectory, first.samples[1]);
     let paint_with = |trajectory: &Trajectory| {
-        let world = Arc::new(Mutex::new(world_for(&settings, &room)));
+        let world = Arc::new(Mutex::new(world_for(&settings, &room).unwrap()));
         stream_into(trajectory, &settings, world.clone(), &start);
         let world = world.lock().unwrap();
         world.grids()[first.wall].painted.clone()
@@ -685,7 +685,7 @@ fn paint_does_not_depend_on_how_often_the_brush_is_seen() {
     let (room, planned) = plan_room(&settings, 4, 1, &start, &plan).unwrap();
     let last = planned.strokes[3].samples[1];
     let seen_every = |step: usize| {
-        let mut world = world_for(&settings, &room);
+        let mut world = world_for(&settings, &room).unwrap();
         let samples: Vec<usize> = (0..=last).step_by(step).chain([last]).collect();
         for &i in &samples {
             rigbridge::twin::TwinWorld::observe(&mut world, planned.trajectory.position(i));
@@ -819,16 +819,22 @@ fn uniform(seed: u64) -> impl FnMut() -> f64 {
 }
 
 /// Every point whose distance from a wall the planner measures, in the floor plan: the
-/// base's axis, the capsules' ends and the brush's contact ends.
+/// ends of the capsules' segments and the axes of the vertical cylinders of the collision
+/// model (the painter's bodies and the brush's handle), and the brush's contact ends.
 fn floor_points(body: &Body, rig: &Rig, positions: &[f64]) -> Vec<DVec2> {
-    let (mut axes, mut capsules) = (Vec::new(), Vec::new());
-    let tool0 = body.capsules(rig, positions, &mut axes, &mut capsules);
-    let mut points = vec![DVec2::new(positions[0], positions[1])];
-    points.extend(
-        capsules
-            .iter()
-            .flat_map(|c| [c.a.truncate(), c.b.truncate()]),
-    );
+    let model = body.model();
+    let mut scratch = model.scratch();
+    let mut points = Vec::new();
+    for placed in model.body_poses(positions, &mut scratch) {
+        match model.shape(placed.shape) {
+            Shape::Capsule { a, b, .. } => {
+                points.extend([a, b].map(|p| placed.pose.transform_point3(*p).truncate()))
+            }
+            Shape::Cylinder { .. } => points.push(placed.pose.translation.truncate()),
+            _ => {}
+        }
+    }
+    let tool0 = rig.forward(positions).unwrap();
     points.extend(body.brush.contact(&tool0).map(|p| p.truncate()));
     points
 }
@@ -839,7 +845,8 @@ fn the_travel_bound_covers_every_point_the_planner_measures() {
     // any two in-limit positions: far apart, a plan's step apart, or one joint moved.
     let settings = paint_settings();
     let rig = &settings.rig;
-    let body = Body::from_config(&settings.config);
+    let room = room_for(&settings, 3, 0).unwrap();
+    let body = Body::new(rig, &room, &settings.config).unwrap();
     let travel = Travel::new(rig, &body.brush);
     let mut next = uniform(0x2545_f491_4f6c_dd1d);
     let mut tightest = 0.0f64;
@@ -888,9 +895,9 @@ fn sweeps_skipping_samples_give_the_same_answers_as_measuring_all() {
     let settings = paint_settings();
     let rig = &settings.rig;
     let room = room_for(&settings, 3, 0).unwrap();
-    let body = Body::from_config(&settings.config);
+    let body = Body::new(rig, &room, &settings.config).unwrap();
     let travel = Travel::new(rig, &body.brush);
-    let mut scratch = Scratch::new(rig);
+    let mut scratch = Scratch::new(rig, &body);
     let mut next = uniform(0x9e37_79b9_7f4a_7c15);
     let mut walk = vec![start_position()];
     for _ in 0..4000 {
@@ -902,11 +909,11 @@ fn sweeps_skipping_samples_give_the_same_answers_as_measuring_all() {
     }
     let measured: Vec<f64> = walk
         .iter()
-        .map(|q| body.clearance(&room, q, &mut scratch).0)
+        .map(|q| body.clearance(q, &mut scratch).0)
         .collect();
     let least = measured.iter().copied().fold(f64::INFINITY, f64::min);
     assert!(least < 0.0, "the walk must leave the room: {least}");
-    let mut measure = |q: &[f64]| body.clearance(&room, q, &mut scratch).0;
+    let mut measure = |q: &[f64]| body.clearance(q, &mut scratch).0;
     for needed in [least - 0.1, least, 0.0, 0.01, 0.5, 10.0] {
         let lowest = travel.lowest(walk.iter().map(Vec::as_slice), needed, &mut measure);
         if least <= needed {

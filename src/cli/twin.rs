@@ -186,6 +186,9 @@ fn protocol_twin(
         twin_config.watchdog_cycles = cycles;
     }
     let mut twin = Twin::new(&settings.rig, twin_config, &settings.initial())?;
+    if let Some(watch) = rigbridge::daemon::contact_watch(settings)? {
+        twin = twin.with_contacts(watch);
+    }
     let (mut port, can_stats) = open_port(args, settings)?;
     let stop = stop_on_signals()?;
     raise_twin_priority();
@@ -207,6 +210,9 @@ fn protocol_twin(
         counters.hellos,
         counters.unbound_targets
     );
+    if let Some(contacts) = twin.take_contacts() {
+        eprintln!("contacts: {}", serde_json::to_string(&contacts)?);
+    }
     if let Some(stats) = can_stats {
         eprintln!("{}", stats.summary());
     }

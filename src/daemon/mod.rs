@@ -57,6 +57,8 @@ pub enum DaemonError {
     /// The trajectory comes closer to something in the cell than its margin.
     #[error("refused before motion")]
     Collision(#[from] CollisionRefusal),
+    #[error("the cell's collision model")]
+    CollisionModel(#[from] crate::cell::CellError),
     /// A stop or e-stop ended the job before any motion.
     #[error("{0}")]
     Halted(Halted),
@@ -131,6 +133,7 @@ impl Halted {
             },
             log: None,
             log_error: None,
+            contacts: None,
         }
     }
 }
@@ -162,6 +165,9 @@ pub struct RunReport {
     /// Why the log ended early, when it did (docs/logs.md, "When the log cannot be
     /// written"); `null` otherwise. The outcome and cycles beside it stay what the arm did.
     pub log_error: Option<LogErrorReport>,
+    /// What the in-process twin measured of the cell's clearances over the job (closest
+    /// pairs, collision episodes); `null` for a remote controller.
+    pub contacts: Option<crate::twin::ContactReport>,
 }
 
 /// A log that failed during a run: what failed, from when, and what the job did about it.
@@ -251,8 +257,62 @@ pub fn bridge_hello(settings: &RunSettings) -> crate::protocol::Hello {
 
 /// The in-process twin at the configured initial position, behind a loopback link.
 pub fn loopback_twin(settings: &RunSettings) -> Result<LoopbackLink, DaemonError> {
+    Ok(LoopbackLink::new(settings_twin(settings)?))
+}
+
+/// The twin of `settings` at its initial position, watching its cell's clearances.
+pub fn settings_twin(settings: &RunSettings) -> Result<Twin, DaemonError> {
     let twin = Twin::new(&settings.rig, twin_settings(settings), &settings.initial())?;
-    Ok(LoopbackLink::new(twin))
+    Ok(match contact_watch(settings)? {
+        Some(watch) => twin.with_contacts(watch),
+        None => twin,
+    })
+}
+
+/// What the live page, the live Foxglove server and the log draw of the rig's cell. A
+/// gait's streamed axes pose no body (see [`contact_watch`]).
+pub fn cell_drawing(
+    settings: &RunSettings,
+) -> Result<Option<crate::view::CellDrawing>, DaemonError> {
+    if settings.sloth.is_some() {
+        return Ok(None);
+    }
+    let model = crate::cell::CollisionModel::new(&settings.rig, &settings.cell)?;
+    Ok(Some(crate::view::CellDrawing::new(
+        &settings.rig,
+        &settings.cell,
+        std::sync::Arc::new(model),
+        tool0_of(settings),
+    )))
+}
+
+/// tool0 in the last joint's frame, where the tool's bodies are given from: the rig's own
+/// tool transform, or, for a rig ending at the tool's TCP ([`crate::cell::Cell::rig_at_tcp`]),
+/// that transform less the TCP (as the collision model takes it back).
+fn tool0_of(settings: &RunSettings) -> glam::DAffine3 {
+    match &settings.cell.tool {
+        Some(tool) if settings.rig.tool_frame == tool.name => {
+            settings.rig.tool * tool.tcp.inverse()
+        }
+        _ => settings.rig.tool,
+    }
+}
+
+/// The twin's collision watch over the rig in its cell. A gait's streamed axes are the
+/// sloth's body and limbs side by side, not one chain: no collision model poses them.
+pub fn contact_watch(
+    settings: &RunSettings,
+) -> Result<Option<crate::twin::ContactWatch>, DaemonError> {
+    if settings.sloth.is_some() {
+        return Ok(None);
+    }
+    let model = crate::cell::CollisionModel::new(&settings.rig, &settings.cell)?;
+    Ok(Some(crate::twin::ContactWatch::new(
+        std::sync::Arc::new(model),
+        &settings.rig,
+        &settings.cell,
+        settings.period().as_secs_f64(),
+    )))
 }
 
 /// Opens the link `spec` names: the in-process twin for `loopback`, a real transport
@@ -644,9 +704,11 @@ pub fn stream_job_with(
     let recorder = log
         .map(|path| create_recorder(settings, job.job, path, &metadata, clock.is_virtual()))
         .transpose()?;
+    // The twin measures the job from its first cycle on.
+    let _ = link.take_contacts();
     let io = resume::Streaming {
         settings,
-        link,
+        link: &mut *link,
         clock,
         sink: live,
         control,
@@ -662,9 +724,10 @@ pub fn stream_job_with(
     };
     report.stopped_in = control.halted_in();
     control.end();
+    let contacts = link.take_contacts();
     let (log_report, log_error) = match (recorder, log) {
         (Some(recorder), Some(path)) => {
-            let (written, failure) = close_log(recorder, actions, &report, path);
+            let (written, failure) = close_log(recorder, actions, &report, contacts.as_ref(), path);
             let log_error = failure.map(|failure| LogErrorReport {
                 error: failure.error,
                 at_s: failure.at_s,
@@ -684,6 +747,7 @@ pub fn stream_job_with(
         stream: report,
         log: log_report,
         log_error,
+        contacts,
     })
 }
 
@@ -733,17 +797,26 @@ fn stream_recorded(
     (report, recording.stopped_job())
 }
 
-/// Closes `actions`, ends the log with `job_ended` and the report, and says what the
+/// The log's event with the twin's collision measurements of the job (`contacts` of the
+/// run report), written just before `job_ended`.
+pub const CONTACTS_EVENT: &str = "contacts";
+
+/// Closes `actions`, writes the twin's collision measurements, ends the log with `job_ended` and the report, and says what the
 /// recorder wrote to `path`, and the log's first failure, if it failed (while the job
 /// streamed or as it closed): a failed log never takes the run's report with it.
 fn close_log(
     recorder: Recorder,
     actions: Option<&ActionLog>,
     report: &StreamReport,
+    contacts: Option<&crate::twin::ContactReport>,
     path: &std::path::Path,
 ) -> (LogReport, Option<crate::log::LogFailure>) {
     if let Some(actions) = actions {
         actions.close();
+    }
+    if let Some(contacts) = contacts {
+        let measured = serde_json::to_value(contacts).unwrap_or_default();
+        recorder.event(report.duration_s, CONTACTS_EVENT, measured);
     }
     let ended = serde_json::to_value(report).unwrap_or_default();
     recorder.event(report.duration_s, "job_ended", ended);

@@ -1,5 +1,5 @@
 //! The painting job end to end: generate the room, plan it, put the in-process twin in a
-//! [`PaintWorld`], stream through the normal pipeline (validate, stream, record), then build
+//! [`PaintWorld`] and its room's cell (the twin's collision watch), stream through the normal pipeline (validate, stream, record), then build
 //! the paint report from what the twin's world measured. Owns the wiring only.
 
 use super::config::{JobConfig, RunSettings};
@@ -9,7 +9,7 @@ use crate::job::JobError;
 use crate::link::LoopbackLink;
 use crate::stream::StreamControl;
 use crate::task::paint::{
-    PaintReport, PaintSettings, PaintWorld, build_report, plan_room, world_for,
+    PaintPlanError, PaintReport, PaintSettings, PaintWorld, build_report, plan_room, world_for,
 };
 use crate::twin::Twin;
 use std::sync::{Arc, Mutex, PoisonError};
@@ -36,8 +36,20 @@ pub fn run_paint(
 ) -> Result<PaintRun, DaemonError> {
     let room =
         crate::task::paint::room_for(paint, walls, seed).map_err(|e| JobError::Paint(e.into()))?;
-    let world = Arc::new(Mutex::new(world_for(paint, &room)));
+    let world = Arc::new(Mutex::new(
+        world_for(paint, &room).map_err(|e| JobError::Paint(PaintPlanError::Cell(e).into()))?,
+    ));
+    // The twin measures the painter against the room it paints: the room's cell.
+    let cell = crate::task::paint::body::room_cell(&settings.rig, &room, &paint.config);
+    let model = crate::cell::CollisionModel::new(&settings.rig, &cell)?;
+    let watch = crate::twin::ContactWatch::new(
+        Arc::new(model),
+        &settings.rig,
+        &cell,
+        settings.period().as_secs_f64(),
+    );
     let twin = Twin::new(&settings.rig, twin_settings(settings), &settings.initial())?
+        .with_contacts(watch)
         .with_world(Box::new(world.clone()));
     let mut link = LoopbackLink::new(twin);
     let start = held_position(settings, &mut link, clock, control)?;

@@ -35,6 +35,10 @@ impl LoopbackLink {
 }
 
 impl Link for LoopbackLink {
+    fn take_contacts(&mut self) -> Option<crate::twin::ContactReport> {
+        self.twin.take_contacts()
+    }
+
     fn send(&mut self, command: &Command) -> Result<(), LinkError> {
         self.counters.frames_sent += 1;
         self.twin.handle(command);

@@ -175,4 +175,10 @@ pub trait Link: Send {
     fn measured_cycles_behind(&self) -> u32 {
         0
     }
+    /// What the controller measured of the cell's clearances since the last call, measuring
+    /// afresh from now: the in-process twin's collision watch; `None` for a controller that
+    /// does not tell (every remote one).
+    fn take_contacts(&mut self) -> Option<crate::twin::ContactReport> {
+        None
+    }
 }

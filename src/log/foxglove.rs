@@ -11,8 +11,8 @@ use super::LogError;
 use crate::cell::Cell;
 use crate::cell::urdf::cell_to_urdf;
 use crate::rig::{Joint, Rig, UrdfTree, generated_link_names, origin_from_xyz_rpy};
-use crate::scene::foxglove::{full_update, paint_update, vector};
-use crate::scene::{PaintQuad, SceneView};
+use crate::scene::foxglove::{closest_update, full_update, paint_update, vector};
+use crate::scene::{ClosestView, PaintQuad, SceneView};
 use foxglove::Encode;
 use foxglove::messages::{
     FrameTransform, FrameTransforms, JointState, JointStates, Quaternion, SceneUpdate, Timestamp,
@@ -187,6 +187,18 @@ impl RobotDescription {
             .map(|s| (s.parent.as_str(), s.child.as_str()))
     }
 
+    /// The tf frame id of each frame of the rig: its base (before joint 1), then the frame
+    /// after each joint (the child link of that joint): where its collision bodies ride.
+    pub fn rig_frames(&self) -> Vec<String> {
+        let base = self.segments.first().map(|s| s.parent.clone());
+        base.into_iter()
+            .chain(self.segments.iter().filter_map(|s| match s.motion {
+                Motion::Joint { .. } => Some(s.child.clone()),
+                Motion::Fixed(_) => None,
+            }))
+            .collect()
+    }
+
     /// Each link's transform from its parent at `positions`, in [`Self::frames`] order
     /// (the chain's, composed, give the rig's tool frame). `None` when the count is wrong.
     pub fn link_transforms<'a>(
@@ -342,6 +354,10 @@ pub trait LoggedScene: Send {
     fn scene(&self) -> SceneView;
     /// Paint added since the previous call.
     fn drain_paint(&mut self) -> Vec<PaintQuad>;
+    /// The cell's closest pair at the last observed state, when within the margin.
+    fn closest(&mut self) -> Option<ClosestView> {
+        None
+    }
 }
 
 /// The recorder's handle on a [`LoggedScene`] (the writer thread takes it), and the frame
@@ -389,6 +405,10 @@ struct SceneLog {
     scene: Box<dyn LoggedScene>,
     view: SceneView,
     frame_id: String,
+    /// The tf frame id of each frame of the rig, where its collision bodies ride.
+    body_frames: Vec<String>,
+    /// The closest pair marked last (pair and status).
+    marked: Option<(String, String, String)>,
     /// When the static scene was last written (job time), and paint batches so far.
     last_full_t: Option<f64>,
     batches: u64,
@@ -411,6 +431,10 @@ impl FoxgloveLog {
         robot: Option<Arc<RobotDescription>>,
         scene: Option<&SceneSource>,
     ) -> Result<Option<Self>, LogError> {
+        let body_frames = robot
+            .as_ref()
+            .map(|robot| robot.rig_frames())
+            .unwrap_or_default();
         let robot = match robot {
             Some(robot) => {
                 let tf_channel = add_channel::<FrameTransforms, W>(writer, TF_TOPIC)?;
@@ -434,6 +458,8 @@ impl FoxgloveLog {
                 view: scene.scene(),
                 scene,
                 frame_id,
+                body_frames,
+                marked: None,
                 last_full_t: None,
                 batches: 0,
             }),
@@ -503,12 +529,32 @@ impl FoxgloveLog {
             let update = if repeat {
                 scene.last_full_t = Some(t);
                 scene.batches = 0;
-                Some(full_update(&scene.view, &scene.frame_id, stamp))
+                Some(full_update(
+                    &scene.view,
+                    &scene.frame_id,
+                    &scene.body_frames,
+                    stamp,
+                ))
             } else {
                 scene.batches += 1;
                 paint_update(&scene.view, &fresh, scene.batches, &scene.frame_id, stamp)
             };
-            if let Some(update) = update {
+            let closest = scene.scene.closest();
+            let marked = closest
+                .as_ref()
+                .map(|c| (c.a.clone(), c.b.clone(), c.status.clone()));
+            // Marked again after a full update (which deleted every entity) or on a change.
+            let mark = (repeat || marked != scene.marked).then(|| {
+                scene.marked = marked;
+                closest_update(
+                    &scene.view,
+                    closest.as_ref(),
+                    &scene.frame_id,
+                    &scene.body_frames,
+                    stamp,
+                )
+            });
+            for update in update.into_iter().chain(mark) {
                 bytes += write(
                     writer,
                     &mut self.buffer,

@@ -537,6 +537,7 @@ const FAULT_ESTOP: u8 = 4;
 const FAULT_OVER_ACCELERATION: u8 = 5;
 const FAULT_BUSY: u8 = 6;
 const FAULT_DRIVE: u8 = 7;
+const FAULT_COLLISION: u8 = 8;
 
 /// code, a, b: a is the axis (or the expected axis count), b the axis count received.
 fn fault_to_wire(fault: Fault) -> [u8; 3] {
@@ -548,6 +549,7 @@ fn fault_to_wire(fault: Fault) -> [u8; 3] {
         Fault::OverAcceleration { axis } => [FAULT_OVER_ACCELERATION, axis, 0],
         Fault::Busy => [FAULT_BUSY, 0, 0],
         Fault::Drive { axis } => [FAULT_DRIVE, axis, 0],
+        Fault::Collision => [FAULT_COLLISION, 0, 0],
     }
 }
 
@@ -561,6 +563,7 @@ fn fault_from_wire([code, a, b]: [u8; 3]) -> Option<Fault> {
         (FAULT_OVER_ACCELERATION, 0) => Some(Fault::OverAcceleration { axis: a }),
         (FAULT_BUSY, 0) if a == 0 => Some(Fault::Busy),
         (FAULT_DRIVE, 0) => Some(Fault::Drive { axis: a }),
+        (FAULT_COLLISION, 0) if a == 0 => Some(Fault::Collision),
         _ => None,
     }
 }

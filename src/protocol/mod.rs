@@ -120,6 +120,9 @@ pub enum Fault {
     Drive {
         axis: u8,
     },
+    /// Two bodies of the cell touched (the twin's collision detection, as a controller's
+    /// stops the arm): which, and how deep, are in the Fault notice's text.
+    Collision,
 }
 
 impl std::fmt::Display for Fault {
@@ -141,6 +144,7 @@ impl std::fmt::Display for Fault {
             }
             Fault::Busy => write!(f, "busy with another bridge"),
             Fault::Drive { axis } => write!(f, "drive error (axis {})", u32::from(*axis) + 1),
+            Fault::Collision => write!(f, "collision"),
         }
     }
 }

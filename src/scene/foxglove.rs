@@ -1,10 +1,13 @@
 //! A live scene as Foxglove draws it: [`SceneView`] (walls with their openings, cylinders,
-//! paint) and paint added since, as `foxglove.SceneUpdate` messages of the `foxglove`
+//! paint, the cell's solids, the rig's collision bodies on their frames) and paint added
+//! since, and the closest pair of bodies marked, as `foxglove.SceneUpdate` messages of the `foxglove`
 //! crate (<https://docs.foxglove.dev/docs/visualization/message-schemas/scene-update>). Used by
 //! the run log's writer thread and the live Foxglove server, never by the streaming cycle.
 //! Owns only the translation; it must not build, measure or change a scene.
 
-use super::{CylinderView, PaintQuad, Point, SceneView, WallView};
+use super::{
+    ClosestView, CylinderView, PaintQuad, Point, PoseView, SceneView, SolidView, WallView,
+};
 use foxglove::messages::{
     Color, CylinderPrimitive, LinePrimitive, Point3, Pose, Quaternion, SceneEntity,
     SceneEntityDeletion, SceneUpdate, Timestamp, TriangleListPrimitive, Vector3, line_primitive,
@@ -15,12 +18,25 @@ use glam::{DQuat, DVec2, DVec3};
 /// Entity ids: the static scene, and one entity per batch of paint (`paint-<n>`).
 pub const WALLS_ENTITY: &str = "walls";
 pub const CYLINDERS_ENTITY: &str = "cylinders";
+/// The cell's static objects, in the scene's frame.
+pub const CELL_ENTITY: &str = "cell";
+/// The rig's collision bodies on frame k of the rig: `bodies-<k>`, in that frame's tf id.
+pub const BODIES_PREFIX: &str = "bodies-";
+/// The closest pair when within the margin: its two solids again, marked, as `closest-0`
+/// and `closest-1` (each in its own frame).
+pub const CLOSEST_PREFIX: &str = "closest-";
 const PAINT_PREFIX: &str = "paint-";
 /// The colours of the page (`src/view/page`): pale walls, bark brown, the paint's blue.
 const WALL: Color = rgba(0.85, 0.85, 0.8, 0.6);
 const EDGE: Color = rgba(0.3, 0.3, 0.3, 1.0);
 const BARK: Color = rgba(0.45, 0.32, 0.2, 1.0);
 const PAINT: Color = rgba(0.15, 0.35, 0.85, 1.0);
+/// The page's colours for the cell's objects, the rig's bodies, a pair within the margin
+/// and a pair in collision.
+const OBJECT: Color = rgba(0.55, 0.6, 0.65, 0.35);
+const BODY: Color = rgba(0.95, 0.6, 0.2, 0.35);
+const NEAR: Color = rgba(0.95, 0.75, 0.1, 0.85);
+const HIT: Color = rgba(0.85, 0.1, 0.1, 0.9);
 /// Outline width in pixels (scale invariant), like the page's.
 const EDGE_PX: f64 = 2.0;
 /// Paint sits this far in front of its wall, so it is not hidden in the wall's surface.
@@ -31,8 +47,15 @@ const fn rgba(r: f64, g: f64, b: f64, a: f64) -> Color {
 }
 
 /// The whole scene in frame `frame_id`: every earlier entity deleted, then the walls, the
-/// cylinders and all paint so far (as entity `paint-0`, so later batches start at 1).
-pub fn full_update(view: &SceneView, frame_id: &str, stamp: Timestamp) -> SceneUpdate {
+/// cylinders, the cell's solids, the rig's bodies on their frames (`body_frames[k]`: the tf
+/// frame id of the rig's frame k; bodies on frames it lacks are left out) and all paint so
+/// far (as entity `paint-0`, so later batches start at 1).
+pub fn full_update(
+    view: &SceneView,
+    frame_id: &str,
+    body_frames: &[String],
+    stamp: Timestamp,
+) -> SceneUpdate {
     let entity = |id: &str| SceneEntity {
         timestamp: Some(stamp),
         frame_id: frame_id.to_owned(),
@@ -54,6 +77,25 @@ pub fn full_update(view: &SceneView, frame_id: &str, stamp: Timestamp) -> SceneU
             .cylinders
             .extend(view.cylinders.iter().map(cylinder));
         entities.push(cylinders);
+    }
+    if !view.solids.is_empty() {
+        let mut cell = entity(CELL_ENTITY);
+        cell.triangles
+            .extend(view.solids.iter().map(|solid| triangles(solid, OBJECT)));
+        entities.push(cell);
+    }
+    for (frame, frame_name) in body_frames.iter().enumerate() {
+        let mut bodies = entity(&format!("{BODIES_PREFIX}{frame}"));
+        bodies.frame_id = frame_name.clone();
+        bodies.triangles.extend(
+            view.bodies
+                .iter()
+                .filter(|body| body.frame == frame)
+                .map(|body| triangles(&body.solid, BODY)),
+        );
+        if !bodies.triangles.is_empty() {
+            entities.push(bodies);
+        }
     }
     entities.extend(paint_entity(view, &view.paint, 0, frame_id, stamp));
     SceneUpdate {
@@ -79,6 +121,75 @@ pub fn paint_update(
         deletions: Vec::new(),
         entities: vec![entity],
     })
+}
+
+/// The closest pair marked (`closest`, `None` when no pair is within the margin): the
+/// earlier mark deleted, then each of its two solids again in the mark's colour, in its own
+/// frame (a body on its rig frame's tf id, a cell object in `frame_id`).
+pub fn closest_update(
+    view: &SceneView,
+    closest: Option<&ClosestView>,
+    frame_id: &str,
+    body_frames: &[String],
+    stamp: Timestamp,
+) -> SceneUpdate {
+    let deletions = (0..2)
+        .map(|i| SceneEntityDeletion {
+            timestamp: Some(stamp),
+            r#type: scene_entity_deletion::Type::MatchingId as i32,
+            id: format!("{CLOSEST_PREFIX}{i}"),
+        })
+        .collect();
+    let mut entities = Vec::new();
+    if let Some(closest) = closest {
+        let colour = if closest.distance_m <= 0.0 { HIT } else { NEAR };
+        for (i, name) in [&closest.a, &closest.b].into_iter().enumerate() {
+            let mut mark = SceneEntity {
+                timestamp: Some(stamp),
+                frame_id: frame_id.to_owned(),
+                id: format!("{CLOSEST_PREFIX}{i}"),
+                ..SceneEntity::default()
+            };
+            for solid in view.solids.iter().filter(|s| &s.name == name) {
+                mark.triangles.push(triangles(solid, colour));
+            }
+            for body in view.bodies.iter().filter(|b| &b.solid.name == name) {
+                if let Some(frame) = body_frames.get(body.frame) {
+                    mark.frame_id = frame.clone();
+                    mark.triangles.push(triangles(&body.solid, colour));
+                }
+            }
+            if !mark.triangles.is_empty() {
+                entities.push(mark);
+            }
+        }
+    }
+    SceneUpdate {
+        deletions,
+        entities,
+    }
+}
+
+/// A solid's triangles at its pose, in `colour`.
+fn triangles(solid: &SolidView, colour: Color) -> TriangleListPrimitive {
+    TriangleListPrimitive {
+        pose: Some(pose(&solid.pose)),
+        points: solid
+            .triangles
+            .iter()
+            .map(|p| point(DVec3::from_array(*p)))
+            .collect(),
+        color: Some(colour),
+        ..TriangleListPrimitive::default()
+    }
+}
+
+fn pose(p: &PoseView) -> Pose {
+    let [x, y, z, w] = p.orientation;
+    Pose {
+        position: Some(vector(DVec3::from_array(p.position))),
+        orientation: Some(Quaternion { x, y, z, w }),
+    }
 }
 
 fn paint_entity(
@@ -316,9 +427,10 @@ mod tests {
                     [3.0, 0.0, 1.5],
                 ],
             }],
+            ..SceneView::default()
         };
         let stamp = Timestamp::new(1, 0);
-        let full = full_update(&view, "world", stamp);
+        let full = full_update(&view, "world", &[], stamp);
         assert_eq!(full.deletions.len(), 1);
         let ids: Vec<&str> = full.entities.iter().map(|e| e.id.as_str()).collect();
         assert_eq!(ids, ["walls", "cylinders", "paint-0"]);
@@ -346,5 +458,72 @@ mod tests {
             paint_update(&view, &view.paint, 1, "world", stamp).expect("new paint gives an update");
         assert_eq!(more.entities[0].id, "paint-1");
         assert!(more.deletions.is_empty());
+    }
+
+    #[test]
+    fn the_cells_solids_and_bodies_ride_on_their_frames_and_the_mark_follows_the_pair() {
+        use crate::scene::{BodyView, ClosestView, PoseView, SolidView};
+        let triangle = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+        let solid = |name: &str| SolidView {
+            name: name.into(),
+            pose: PoseView::IDENTITY,
+            triangles: triangle.clone(),
+        };
+        let view = SceneView {
+            solids: vec![solid("table")],
+            bodies: vec![
+                BodyView {
+                    frame: 2,
+                    solid: solid("link_2"),
+                },
+                BodyView {
+                    frame: 6,
+                    solid: solid("gripper"),
+                },
+            ],
+            ..SceneView::default()
+        };
+        let frames: Vec<String> = ["base_link", "l1", "l2", "l3", "l4", "l5", "l6"]
+            .map(String::from)
+            .to_vec();
+        let stamp = Timestamp::new(1, 0);
+        let full = full_update(&view, "base_link", &frames, stamp);
+        let ids: Vec<(&str, &str)> = full
+            .entities
+            .iter()
+            .map(|e| (e.id.as_str(), e.frame_id.as_str()))
+            .collect();
+        assert_eq!(
+            ids,
+            [
+                ("cell", "base_link"),
+                ("bodies-2", "l2"),
+                ("bodies-6", "l6")
+            ]
+        );
+        assert_eq!(full.entities[0].triangles[0].points.len(), 3);
+        // Without frames (a rig without /tf) the bodies are left out, the cell is not.
+        assert_eq!(
+            full_update(&view, "base_link", &[], stamp).entities.len(),
+            1
+        );
+        let near = ClosestView {
+            a: "link_2".into(),
+            b: "table".into(),
+            distance_m: 0.004,
+            status: "within_margin".into(),
+        };
+        let mark = closest_update(&view, Some(&near), "base_link", &frames, stamp);
+        assert_eq!(mark.deletions.len(), 2);
+        let marked: Vec<(&str, &str)> = mark
+            .entities
+            .iter()
+            .map(|e| (e.id.as_str(), e.frame_id.as_str()))
+            .collect();
+        assert_eq!(marked, [("closest-0", "l2"), ("closest-1", "base_link")]);
+        assert_eq!(mark.entities[0].triangles[0].color, Some(NEAR));
+        let cleared = closest_update(&view, None, "base_link", &frames, stamp);
+        assert!(cleared.entities.is_empty());
+        assert_eq!(cleared.deletions.len(), 2);
     }
 }

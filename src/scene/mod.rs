@@ -1,6 +1,7 @@
 //! A rig's world as data: walls with their openings, cylinders (branches, trunks, a lift's
-//! column) and paint ([`SceneView`], [`PaintQuad`]), and its translation into Foxglove's
-//! `SceneUpdate` ([`foxglove`]).
+//! column), paint ([`SceneView`], [`PaintQuad`]), the cell's solids and the rig's collision
+//! bodies as triangle meshes ([`SolidView`], [`BodyView`]), and its translation into
+//! Foxglove's `SceneUpdate` ([`foxglove`]).
 //!
 //! A leaf beside the chain: the live view (`view`) builds these for the page, the run log
 //! (`log`) writes them on `/scene`, the daemon's live Foxglove server sends them, so the
@@ -22,6 +23,54 @@ pub struct SceneView {
     pub cylinders: Vec<CylinderView>,
     /// Paint already on the walls when the scene is (re)sent.
     pub paint: Vec<PaintQuad>,
+    /// The cell's static objects, in the scene's frame.
+    pub solids: Vec<SolidView>,
+    /// The rig's collision bodies (its links' and its tool's), each in a frame of the rig:
+    /// they move with it.
+    pub bodies: Vec<BodyView>,
+}
+
+/// A convex solid as triangles: `triangles` holds three points a triangle, counter-
+/// clockwise seen from outside, in the solid's frame, which `pose` places.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SolidView {
+    /// The name the collision model gives it (a cell object's, a body's, the tool's).
+    pub name: String,
+    pub pose: PoseView,
+    pub triangles: Vec<Point>,
+}
+
+/// A rigid placement: position (m) and unit quaternion `[x, y, z, w]`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PoseView {
+    pub position: Point,
+    pub orientation: [f64; 4],
+}
+
+impl PoseView {
+    pub const IDENTITY: PoseView = PoseView {
+        position: [0.0; 3],
+        orientation: [0.0, 0.0, 0.0, 1.0],
+    };
+}
+
+/// A solid riding on the rig: `frame` 0 is the rig's base, k the frame after joint k; its
+/// `solid.pose` is in that frame.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct BodyView {
+    pub frame: usize,
+    pub solid: SolidView,
+}
+
+/// The closest checked pair of the cell at an instant, when it is within the margin.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ClosestView {
+    pub a: String,
+    pub b: String,
+    /// Negative: penetration depth.
+    pub distance_m: f64,
+    /// `within_margin` or `collision`.
+    pub status: String,
 }
 
 /// A flat wall: four corners around its outline, counter-clockwise seen from its front (the

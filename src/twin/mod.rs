@@ -7,17 +7,21 @@
 //! velocity faster than an axis allows, a velocity change or position second difference
 //! above its acceleration, or a wrong axis count with a latched fault, no motion and one
 //! Fault notice. Without targets for `watchdog_cycles` it decelerates within the limits
-//! and holds. It owns the simulated arm state only; it must not know about trajectories,
+//! and holds. Given the cell's collision model, it measures clearances from the positions
+//! it reaches and stops with a latched collision fault when a contact begins (`contact`).
+//! It owns the simulated arm state only; it must not know about trajectories,
 //! jobs, logs or bytes (the session over a transport is `server`'s).
 
 pub mod can_port;
 pub mod canopen;
+pub mod contact;
 pub mod dynamixel;
 pub mod egm;
 pub mod serial_port;
 pub mod server;
 mod world;
 
+pub use contact::{ContactReport, ContactWatch};
 pub use world::{SharedWorld, TwinWorld, ViewOnly};
 
 use crate::protocol::{
@@ -116,6 +120,8 @@ pub struct Twin {
     /// A fault that latched and has not been announced yet.
     notice: Option<FaultReport>,
     world: Option<Box<dyn TwinWorld>>,
+    /// The cell's collision model watching the actual positions (none: no cell given).
+    contacts: Option<ContactWatch>,
 }
 
 impl Twin {
@@ -169,6 +175,7 @@ impl Twin {
             counters: TwinCounters::default(),
             notice: None,
             world: None,
+            contacts: None,
             smoothing: 1.0 - (-std::f64::consts::TAU * settings.bandwidth_hz * dt).exp(),
         })
     }
@@ -177,6 +184,23 @@ impl Twin {
     pub fn with_world(mut self, world: Box<dyn TwinWorld>) -> Self {
         self.world = Some(world);
         self
+    }
+
+    /// Measures the cell's clearances from every cycle's actual positions, and stops the
+    /// arm with a latched collision fault when a contact begins (`contact`).
+    pub fn with_contacts(mut self, watch: ContactWatch) -> Self {
+        self.contacts = Some(watch);
+        self
+    }
+
+    /// The collision watch, when the twin has a cell.
+    pub fn contacts(&self) -> Option<&ContactWatch> {
+        self.contacts.as_ref()
+    }
+
+    /// What the collision watch measured since the last call, and a fresh start.
+    pub fn take_contacts(&mut self) -> Option<ContactReport> {
+        self.contacts.as_mut().map(ContactWatch::take_report)
     }
 
     /// Targets dropped because their seq was not newer than the last accepted one.
@@ -451,6 +475,7 @@ impl Twin {
         {
             *actual += smoothing * (setpoint - *actual);
         }
+        self.watch_contacts();
         if let Some(world) = self.world.as_mut() {
             world.observe(self.actual.as_slice());
         }
@@ -459,6 +484,24 @@ impl Twin {
             positions: self.actual,
             status: self.status,
         }
+    }
+
+    /// Measures this cycle's clearances; a contact that begins stops the arm where it is, as
+    /// an e-stop does, with a latched collision fault (one Fault notice naming the bodies).
+    fn watch_contacts(&mut self) {
+        let Some(watch) = self.contacts.as_mut() else {
+            return;
+        };
+        let Some(contact) = watch.observe(self.actual.as_slice()) else {
+            return;
+        };
+        if matches!(self.status, ControllerStatus::Fault(_)) {
+            return;
+        }
+        self.setpoint = self.actual;
+        self.setpoint_velocity = AxisValues::zeros(self.actual.len());
+        self.in_transit.clear();
+        self.latch(Fault::Collision, &contact.text);
     }
 
     /// Brings the setpoint to rest from its last velocity at each axis' max deceleration,

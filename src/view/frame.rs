@@ -4,7 +4,7 @@
 
 use super::JointLabel;
 use crate::link::LinkCounters;
-use crate::scene::{PaintQuad, Point, SceneView};
+use crate::scene::{ClosestView, PaintQuad, Point, PoseView, SceneView};
 use serde::Serialize;
 
 #[derive(Debug, Serialize)]
@@ -39,6 +39,10 @@ pub struct Frame {
     pub chains: Vec<Vec<Point>>,
     /// Paint added since the previous frame.
     pub paint: Vec<PaintQuad>,
+    /// Each of the scene's `bodies` at its pose now, in its order (empty without a cell).
+    pub bodies: Vec<PoseView>,
+    /// The cell's closest pair when within the margin (or touching), else `null`.
+    pub closest: Option<ClosestView>,
     pub link: LinkView,
     pub job: super::JobView,
 }

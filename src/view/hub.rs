@@ -4,10 +4,11 @@
 //! outside the streaming cycle and must not touch the link or the job.
 
 use super::frame::{Frame, LinkView, Message, SceneMessage};
+use super::solid::CellDrawing;
 use super::{JointLabel, LiveScene, LiveSlot};
 use crate::protocol::{AxisValues, ControllerStatus};
 use crate::rig::{JointKind, Rig};
-use crate::scene::{PaintQuad, SceneView};
+use crate::scene::{ClosestView, PaintQuad, SceneView};
 use serde::Serialize;
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex, PoisonError};
@@ -56,6 +57,10 @@ pub enum SceneChange {
 
 struct HubState {
     scene: Box<dyn LiveScene>,
+    /// The cell's objects, tool and collision bodies, drawn over every job's scene.
+    cell: Option<CellDrawing>,
+    /// The closest pair within the margin as of the last frame.
+    closest: Option<ClosestView>,
     /// Counts [`LiveHub::set_scene`] calls: a follower's cursor from an older scene is stale.
     generation: u64,
     /// The scene with every paint quad drained since it was set.
@@ -93,12 +98,30 @@ impl LiveHub {
             state: Mutex::new(HubState {
                 view: scene.scene(),
                 scene,
+                cell: None,
+                closest: None,
                 generation: 0,
                 frames: 0,
                 recent: VecDeque::new(),
             }),
             sender,
         }
+    }
+
+    /// Draws `cell` (its objects, the tool, the rig's collision bodies) in every scene, and
+    /// marks its closest pair in each frame when it is within the margin.
+    pub fn with_cell(self, cell: CellDrawing) -> Self {
+        {
+            let mut state = self.state();
+            with_cell_solids(&mut state.view, &cell);
+            state.cell = Some(cell);
+        }
+        self
+    }
+
+    /// The closest pair within the margin as of the last frame.
+    pub fn closest(&self) -> Option<ClosestView> {
+        self.state().closest.clone()
     }
 
     pub fn slot(&self) -> &Arc<LiveSlot> {
@@ -137,7 +160,11 @@ impl LiveHub {
     pub fn set_scene(&self, scene: Box<dyn LiveScene>) {
         let message = {
             let mut state = self.state();
-            state.view = scene.scene();
+            let mut view = scene.scene();
+            if let Some(cell) = &state.cell {
+                with_cell_solids(&mut view, cell);
+            }
+            state.view = view;
             state.scene = scene;
             state.generation += 1;
             self.scene_message(&state.view)
@@ -166,6 +193,14 @@ impl LiveHub {
         let mut state = self.state();
         let chains = state.scene.chains(sample.actual.as_slice());
         let paint = state.scene.drain_paint();
+        let (bodies, closest) = match state.cell.as_mut() {
+            Some(cell) => (
+                cell.body_poses(sample.actual.as_slice()),
+                cell.closest(sample.actual.as_slice()),
+            ),
+            None => (Vec::new(), None),
+        };
+        state.closest.clone_from(&closest);
         state.view.paint.extend_from_slice(&paint);
         state.frames += 1;
         state.recent.push_back((now, sample.cycles));
@@ -190,6 +225,8 @@ impl LiveHub {
             commanded: self.display(&sample.commanded),
             chains,
             paint,
+            bodies,
+            closest,
             link: LinkView {
                 status: status_text(sample.status),
                 rate_hz: self.rate_hz,
@@ -233,6 +270,12 @@ impl LiveHub {
             .map(|(_, (c, a))| (c - a).abs().to_degrees())
             .fold(0.0, f64::max)
     }
+}
+
+/// The cell's objects and bodies added to a job's scene.
+fn with_cell_solids(view: &mut SceneView, cell: &CellDrawing) {
+    view.solids.extend(cell.solids.iter().cloned());
+    view.bodies.extend(cell.bodies.iter().cloned());
 }
 
 fn status_text(status: Option<ControllerStatus>) -> String {
@@ -356,5 +399,92 @@ mod tests {
             hub.scene_since(&mut cursor),
             Some(SceneChange::New(_))
         ));
+    }
+
+    /// A vertical slide carrying a ball of 0.05 m: the cell's bodies in their simplest.
+    fn slide() -> Rig {
+        use crate::rig::{Collision, Joint, JointLimits, LinkBody, Shape};
+        use glam::{DAffine3, DVec3};
+        Rig {
+            name: "slide".into(),
+            base_frame: "base".into(),
+            tool_frame: "tool".into(),
+            joints: vec![Joint {
+                name: "z".into(),
+                kind: JointKind::Prismatic,
+                origin: DAffine3::IDENTITY,
+                axis: DVec3::Z,
+                limits: JointLimits {
+                    lower: -1.0,
+                    upper: 1.0,
+                    max_speed: 1.0,
+                    max_acceleration: 10.0,
+                },
+            }],
+            tool: DAffine3::IDENTITY,
+            bodies: vec![LinkBody {
+                name: "ball".into(),
+                frame: 1,
+                collisions: vec![Collision {
+                    origin: DAffine3::IDENTITY,
+                    shape: Shape::Sphere { radius: 0.05 },
+                }],
+            }],
+            allowed_pairs: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn frames_pose_the_cells_bodies_and_mark_the_closest_pair_within_the_margin() {
+        use crate::cell::{Cell, CollisionModel};
+        let rig = slide();
+        let cell = Cell::builtin();
+        let model = Arc::new(CollisionModel::new(&rig, &cell).expect("the slide's model builds"));
+        let drawing = super::CellDrawing::new(&rig, &cell, model, rig.tool);
+        let hub_at = |z: f64| {
+            let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&[z])));
+            let painter = Painter {
+                rig: rig.clone(),
+                pending: Vec::new(),
+            };
+            let drawing = super::CellDrawing::new(
+                &rig,
+                &cell,
+                Arc::new(CollisionModel::new(&rig, &cell).expect("the model builds")),
+                rig.tool,
+            );
+            LiveHub::new(rig.clone(), 250.0, 50.0, slot, Box::new(painter)).with_cell(drawing)
+        };
+        assert_eq!(drawing.bodies.len(), 1);
+        // 5 mm over the floor: within the 10 mm margin.
+        let hub = hub_at(0.055);
+        let (scene, _) = hub.subscribe();
+        let scene: serde_json::Value = serde_json::from_str(&scene).expect("the scene is JSON");
+        assert_eq!(scene["scene"]["solids"][0]["name"], "floor");
+        assert_eq!(scene["scene"]["bodies"][0]["frame"], 1);
+        assert_eq!(scene["scene"]["bodies"][0]["solid"]["name"], "ball");
+        let frame: serde_json::Value =
+            serde_json::from_str(&hub.tick(Duration::from_millis(20), JobView::default()))
+                .expect("the frame is JSON");
+        let z = frame["bodies"][0]["position"][2]
+            .as_f64()
+            .expect("a position");
+        assert!((z - 0.055).abs() < 1e-12, "{frame}");
+        assert_eq!(frame["closest"]["a"], "ball");
+        assert_eq!(frame["closest"]["b"], "floor");
+        assert_eq!(frame["closest"]["status"], "within_margin");
+        let d = frame["closest"]["distance_m"].as_f64().expect("a distance");
+        assert!((d - 0.005).abs() < 1e-9, "{d}");
+        assert_eq!(
+            hub.closest().map(|c| c.status),
+            Some("within_margin".into())
+        );
+        // 0.25 m over it: clear, no mark.
+        let hub = hub_at(0.3);
+        let frame: serde_json::Value =
+            serde_json::from_str(&hub.tick(Duration::from_millis(20), JobView::default()))
+                .expect("the frame is JSON");
+        assert!(frame["closest"].is_null(), "{frame}");
+        assert_eq!(frame["bodies"].as_array().map(Vec::len), Some(1));
     }
 }

@@ -19,6 +19,7 @@ mod live;
 pub mod page;
 mod paint;
 mod sloth;
+pub mod solid;
 mod trace;
 
 pub use arm::{ArmScene, joint_origins, joint_origins_from};
@@ -26,6 +27,7 @@ pub use hub::{JobView, LiveHub, SceneChange, SceneCursor};
 pub use live::{LiveSample, LiveSink, LiveSlot};
 pub use paint::PaintScene;
 pub use sloth::SlothScene;
+pub use solid::CellDrawing;
 pub use trace::ToolTrace;
 
 use crate::scene::{PaintQuad, Point, SceneView};

@@ -110,8 +110,8 @@ impl LiveScene for PaintScene {
             walls: (0..self.room.walls.len())
                 .map(|wall| wall_view(&self.room, wall))
                 .collect(),
-            cylinders: Vec::new(),
             paint: self.painted.clone(),
+            ..SceneView::default()
         }
     }
 
@@ -192,7 +192,9 @@ mod tests {
             ..PlanSettings::default()
         };
         let (room, plan) = plan_room(&paint, 3, 0, &start, &settings).expect("room plans");
-        let world = Arc::new(Mutex::new(world_for(&paint, &room)));
+        let world = Arc::new(Mutex::new(
+            world_for(&paint, &room).expect("the painter's model builds"),
+        ));
         let mut scene = PaintScene::new(paint.rig.clone(), world.clone());
         assert_eq!(scene.scene().walls.len(), 3);
         let mut quads = Vec::new();

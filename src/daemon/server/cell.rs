@@ -155,6 +155,10 @@ pub struct Status {
     link_counters: LinkCounters,
     /// The speed override every motion of the cell runs under, 0..=100 %.
     speed_percent: f64,
+    /// What the in-process twin has measured of the cell since the running job started (or
+    /// the last one ended): collision episodes, the closest pair within the cutoff. `null`
+    /// for a remote controller; the last job's whole measurement is `last.report.contacts`.
+    contacts: Option<crate::twin::contact::ContactStatus>,
 }
 
 /// The controller's state: `status` is `ok`, `holding`, `fault` or `unknown` (a remote
@@ -318,6 +322,15 @@ pub struct Cell {
     executor: Option<Arc<Executor>>,
     /// The speed override of every session of the cell (`POST .../speed`).
     speed: Arc<SpeedOverride>,
+    /// The in-process twin's collision watch, as its status reads it.
+    contacts: Option<LiveContacts>,
+}
+
+/// What a cell's status reads of its twin's collision watch while the twin runs.
+struct LiveContacts {
+    model: Arc<crate::cell::CollisionModel>,
+    snapshot: Arc<Mutex<crate::twin::contact::ContactSnapshot>>,
+    period_s: f64,
 }
 
 /// What a job's thread runs: a planned job, or an online session (jog, goal) from where
@@ -355,12 +368,12 @@ impl Cell {
     ) -> Result<Cell, DaemonError> {
         let (scene, job_world) = scene_for_job(&settings, &settings.config.job);
         let world = Arc::new(Mutex::new(JobWorld(job_world)));
-        let twin = Twin::new(
-            &settings.rig,
-            crate::daemon::twin_settings(&settings),
-            &settings.initial(),
-        )?
-        .with_world(Box::new(world.clone()));
+        let twin = crate::daemon::settings_twin(&settings)?.with_world(Box::new(world.clone()));
+        let contacts = twin.contacts().map(|watch| LiveContacts {
+            model: watch.model().clone(),
+            snapshot: watch.shared(),
+            period_s: settings.period().as_secs_f64(),
+        });
         let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&settings.initial())));
         let hub = LiveHub::new(
             settings.rig.clone(),
@@ -369,11 +382,17 @@ impl Cell {
             slot,
             scene,
         );
+        let hub = match crate::daemon::cell_drawing(&settings)? {
+            Some(cell) => hub.with_cell(cell),
+            None => hub,
+        };
         let link_name = settings.config.stream.link.clone();
         let link = match link_name.parse::<LinkSpec>() {
             Ok(LinkSpec::Loopback) | Err(_) => CellLink::Twin(Box::new(LoopbackLink::new(twin))),
             Ok(_) => CellLink::Remote(None),
         };
+        // A remote controller's clearances are its own: the in-process twin is not used.
+        let contacts = contacts.filter(|_| matches!(link, CellLink::Twin(_)));
         Ok(Cell {
             settings,
             link: Arc::new(Mutex::new(link)),
@@ -388,6 +407,7 @@ impl Cell {
             latched: Mutex::new(None),
             executor,
             speed: Arc::default(),
+            contacts,
         })
     }
 
@@ -618,6 +638,10 @@ impl Cell {
             actual,
             link_counters: self.link_counters(),
             speed_percent: 100.0 * self.speed.fraction(),
+            contacts: self.contacts.as_ref().map(|live| {
+                let snapshot = crate::twin::ContactReport::read(&live.snapshot);
+                crate::twin::ContactWatch::describe(&live.model, &snapshot, live.period_s)
+            }),
         }
     }
 

@@ -14,7 +14,7 @@ use super::guard::{HostCheck, origin_allowed, require_known_host, shorten};
 use super::{Daemon, connections};
 use crate::log::{RobotDescription, RobotMessages, timestamp};
 use crate::scene::SceneView;
-use crate::scene::foxglove::{full_update, paint_update};
+use crate::scene::foxglove::{closest_update, full_update, paint_update};
 use crate::view::{LiveHub, SceneChange, SceneCursor};
 use axum::extract::ws::{CloseFrame, Message as WsMessage, WebSocket, WebSocketUpgrade};
 use axum::extract::{Request, State};
@@ -105,9 +105,15 @@ struct CellFeed {
     joints: u32,
     scene: u32,
     frame_id: String,
+    /// The tf frame id of each frame of the rig (its collision bodies ride on them); empty
+    /// for a rig without `/tf`.
+    body_frames: Vec<String>,
     cursor: SceneCursor,
-    /// The scene's walls (paint sits in front of them), as of its last change.
+    /// The scene as of its last change: its walls (paint sits in front of them), its solids
+    /// and bodies (the closest pair's mark redraws two of them).
     walls: SceneView,
+    /// The closest pair last marked.
+    closest: Option<crate::scene::ClosestView>,
     batches: u64,
     /// Calls of [`FoxgloveFeed::publish`].
     ticks: u64,
@@ -204,8 +210,14 @@ impl FoxgloveFeed {
                 joints,
                 scene,
                 frame_id: cell.rig.base_frame.clone(),
+                body_frames: cell
+                    .robot
+                    .as_ref()
+                    .map(|robot| robot.rig_frames())
+                    .unwrap_or_default(),
                 cursor: SceneCursor::default(),
                 walls: SceneView::default(),
+                closest: None,
                 batches: 0,
                 ticks: 0,
                 urdf: cell.robot.as_ref().map(|r| r.urdf().to_owned()),
@@ -236,8 +248,27 @@ impl FoxgloveFeed {
             .then(|| hub.scene_since(&mut feed.cursor))
             .flatten();
         if let Some(SceneChange::New(view)) = &change {
-            feed.walls.walls.clone_from(&view.walls);
+            feed.walls.clone_from(view);
+            feed.walls.paint.clear();
+            // A new scene has no mark: the closest pair is marked again if it still is.
+            feed.closest = None;
         }
+        // The mark changes with the pair or its status only (not with every distance).
+        let closest = hub.closest();
+        let marked = |c: &Option<crate::scene::ClosestView>| {
+            c.as_ref()
+                .map(|c| (c.a.clone(), c.b.clone(), c.status.clone()))
+        };
+        let mark = (marked(&closest) != marked(&feed.closest)).then(|| {
+            feed.closest = closest;
+            closest_update(
+                &feed.walls,
+                feed.closest.as_ref(),
+                &feed.frame_id,
+                &feed.body_frames,
+                timestamp(unix_ns()),
+            )
+        });
         if self.sender.receiver_count() == 0 {
             return;
         }
@@ -251,9 +282,12 @@ impl FoxgloveFeed {
             self.send(feed.joints, now, feed.messages.joint_states());
         }
         let update = match change {
-            Some(SceneChange::New(view)) => {
-                Some(full_update(&view, &feed.frame_id, timestamp(now)))
-            }
+            Some(SceneChange::New(view)) => Some(full_update(
+                &view,
+                &feed.frame_id,
+                &feed.body_frames,
+                timestamp(now),
+            )),
             Some(SceneChange::Paint(fresh)) => {
                 feed.batches += 1;
                 paint_update(
@@ -268,6 +302,9 @@ impl FoxgloveFeed {
         };
         if let Some(update) = update {
             self.send(feed.scene, now, &update);
+        }
+        if let Some(mark) = mark {
+            self.send(feed.scene, now, &mark);
         }
     }
 
@@ -343,7 +380,21 @@ impl FoxgloveFeed {
         let feed = self.cells[channel.cell]
             .lock()
             .unwrap_or_else(PoisonError::into_inner);
-        let update = full_update(&view, &feed.frame_id, timestamp(unix_ns()));
+        let mut update = full_update(
+            &view,
+            &feed.frame_id,
+            &feed.body_frames,
+            timestamp(unix_ns()),
+        );
+        // The mark of the closest pair, as the others have it.
+        let mark = closest_update(
+            &view,
+            feed.closest.as_ref(),
+            &feed.frame_id,
+            &feed.body_frames,
+            timestamp(unix_ns()),
+        );
+        update.entities.extend(mark.entities);
         let mut payload = Vec::new();
         update.encode(&mut payload).ok()?;
         Some(payload)

@@ -6,11 +6,11 @@
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::job::Scene;
 use crate::log::{LoggedScene, SceneSource};
-use crate::scene::{PaintQuad, SceneView};
+use crate::scene::{ClosestView, PaintQuad, SceneView};
 use crate::task::gait::forest::scenario_named;
 use crate::task::paint::{load_paint_settings, room_for, world_for};
 use crate::twin::{TwinWorld, ViewOnly};
-use crate::view::{ArmScene, LiveScene, PaintScene, SlothScene, ToolTrace};
+use crate::view::{ArmScene, CellDrawing, LiveScene, PaintScene, SlothScene, ToolTrace};
 use std::sync::{Arc, Mutex};
 
 /// A job's live scene and the twin world (if any) that measures what the scene shows.
@@ -52,33 +52,57 @@ pub fn scene_for_job(settings: &RunSettings, job: &JobConfig) -> JobScene {
     }
 }
 
-/// The world of `job` for its run log's `/scene`: the paint room or the sloth's branches
-/// (an arm's job has none), over a world of its own that the log's writer thread feeds the
-/// logged states, so the paint in the log is the paint at each logged state.
+/// The world of `job` for its run log's `/scene`: the paint room or the sloth's branches,
+/// and the cell (its objects, the tool, the rig's collision bodies, the closest pair within
+/// the margin), over a world of its own that the log's writer thread feeds the logged
+/// states, so the paint in the log is the paint at each logged state. An arm's job without
+/// a cell has none.
 pub fn log_scene_for_job(settings: &RunSettings, job: &JobConfig) -> Option<SceneSource> {
-    if !matches!(job.scene(), Scene::PaintRoom(_) | Scene::Sloth(_)) {
+    // A cell whose model cannot be built is refused when the job plans; the log goes without.
+    let cell = crate::daemon::cell_drawing(settings).ok().flatten();
+    if cell.is_none() && !matches!(job.scene(), Scene::PaintRoom(_) | Scene::Sloth(_)) {
         return None;
     }
-    let scene = SceneForLog(scene_for_job(settings, job));
+    let scene = SceneForLog {
+        job: scene_for_job(settings, job),
+        cell,
+        last: Vec::with_capacity(settings.rig.dof()),
+    };
     Some(SceneSource::new(Box::new(scene), &settings.rig.base_frame))
 }
 
-/// A job's live scene and its world, as a [`LoggedScene`].
-struct SceneForLog(JobScene);
+/// A job's live scene and its world, and the cell's drawing, as a [`LoggedScene`].
+struct SceneForLog {
+    job: JobScene,
+    cell: Option<CellDrawing>,
+    /// The last observed positions: the closest pair is found only when the log asks.
+    last: Vec<f64>,
+}
 
 impl LoggedScene for SceneForLog {
     fn observe(&mut self, actual: &[f64]) {
-        if let Some(world) = self.0.1.as_mut() {
+        if let Some(world) = self.job.1.as_mut() {
             world.observe(actual);
         }
+        self.last.clear();
+        self.last.extend_from_slice(actual);
     }
 
     fn scene(&self) -> SceneView {
-        self.0.0.scene()
+        let mut view = self.job.0.scene();
+        if let Some(cell) = &self.cell {
+            view.solids.extend(cell.solids.iter().cloned());
+            view.bodies.extend(cell.bodies.iter().cloned());
+        }
+        view
     }
 
     fn drain_paint(&mut self) -> Vec<PaintQuad> {
-        self.0.0.drain_paint()
+        self.job.0.drain_paint()
+    }
+
+    fn closest(&mut self) -> Option<ClosestView> {
+        self.cell.as_mut()?.closest(&self.last)
     }
 }
 
@@ -91,7 +115,7 @@ fn painting_room(
 ) -> Option<JobScene> {
     let paint = load_paint_settings(paint_config).ok()?;
     let room = room_for(&paint, walls, seed).ok()?;
-    let world = Arc::new(Mutex::new(world_for(&paint, &room)));
+    let world = Arc::new(Mutex::new(world_for(&paint, &room).ok()?));
     let scene = PaintScene::new(settings.rig.clone(), world.clone());
     Some((Box::new(scene), Some(Box::new(world))))
 }

@@ -1,15 +1,18 @@
-//! The painter's body and brush from its joint positions: the brush's contact line, and
-//! capsules for the arm's links, the handle and a cylinder for the base, with their
-//! clearance from the walls.
+//! The painter's body and brush from its joint positions: the brush's contact line (the
+//! geometry of coverage, the task's own), and its collision envelope on the project's one
+//! collision model (issue 27): the painter rig's link bodies and the brush's handle, as
+//! tool, against the room's walls as cell objects ([`room_cell`]), with their clearance.
 //!
-//! Owns the geometry both the planner and the twin's world use, so the planner checks
+//! Owns the envelope both the planner and the twin's world use, so the planner checks
 //! exactly what the twin measures. Must not decide what is acceptable: callers compare the
 //! clearance with zero (the twin) or a margin (the planner).
 
 use super::config::{EXTRA_AXES, PaintConfig};
 use super::room::Room;
-use crate::rig::{JointAxis, JointKind, Rig};
-use glam::{DAffine3, DVec2, DVec3};
+use crate::cell::{Cell, CellError, CellObject, Clearance, CollisionModel, Tool};
+use crate::rig::{Collision, JointAxis, JointKind, Rig, Shape};
+use glam::{DAffine3, DVec3};
+use std::sync::Arc;
 
 /// Rounding allowance (m) when a bound rules a sample out: clearances are sums of a few
 /// products of numbers of metres, off by about 1e-15 m each, so 1e-9 m covers them many
@@ -51,87 +54,140 @@ impl Brush {
     }
 }
 
-/// A segment with a radius.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Capsule {
-    pub a: DVec3,
-    pub b: DVec3,
-    pub radius: f64,
+/// The name of wall `index` as a body of the paint task's cell.
+pub fn wall_name(index: usize) -> String {
+    format!("wall_{index}")
 }
 
-/// The painter's collision envelope.
+/// The name of the brush's handle, the tool of the paint task's cell.
+pub const BRUSH: &str = "brush";
+
+/// The paint task's cell for `room`: its walls as half-spaces (the solid outside the room),
+/// the brush's handle as the tool (its bristles, which touch the walls on purpose, left
+/// out), the planning clearance as the margin, and every pair of the painter's own bodies
+/// (the brush's included) allowed: the task checks its body against its walls, and its
+/// travel bound ([`Travel`]) counts motion in the floor plan only, which is all a vertical
+/// wall's distance depends on.
+pub fn room_cell(rig: &Rig, room: &Room, config: &PaintConfig) -> Cell {
+    let handle_end = config.brush.handle_m - config.brush.bristle_m;
+    let objects = room
+        .walls
+        .iter()
+        .map(|wall| {
+            let out = wall.normal().extend(0.0);
+            CellObject {
+                name: wall_name(wall.index),
+                pose: DAffine3::from_translation(out * room.apothem_m),
+                // Solid where `p . normal <= 0`: beyond the wall's plane, outside the room.
+                shape: Shape::HalfSpace { normal: -out },
+            }
+        })
+        .collect();
+    let own: Vec<&str> = rig
+        .bodies
+        .iter()
+        .map(|b| b.name.as_str())
+        .chain([BRUSH])
+        .collect();
+    let allowed_pairs = own
+        .iter()
+        .enumerate()
+        .flat_map(|(i, a)| own[i + 1..].iter().map(|b| (a.to_string(), b.to_string())))
+        .collect();
+    Cell {
+        mount: DAffine3::IDENTITY,
+        objects,
+        tool: Some(Tool {
+            name: BRUSH.to_string(),
+            bodies: vec![Collision {
+                origin: DAffine3::IDENTITY,
+                shape: Shape::Capsule {
+                    a: DVec3::ZERO,
+                    b: DVec3::Z * handle_end,
+                    radius: config.brush.handle_radius_m,
+                },
+            }],
+            tcp: DAffine3::IDENTITY,
+        }),
+        margin_m: config.body.planning_clearance_m,
+        allowed_pairs,
+    }
+}
+
+/// The painter's collision envelope in one room: the one collision model (issue 27) of the
+/// rig's link bodies (`config/painter.toml`) and the brush's handle against the room's
+/// walls, and the brush's contact line.
 #[derive(Debug, Clone)]
 pub struct Body {
     pub brush: Brush,
-    pub base_radius: f64,
-    pub link_radii: [f64; 5],
+    model: Arc<CollisionModel>,
+    /// The wall each body of the model is, by body id (`None`: the painter's own).
+    walls: Vec<Option<usize>>,
+    /// How far the base's bodies reach from its vertical axis in the floor plan.
+    base_radius: f64,
 }
 
 impl Body {
-    pub fn from_config(config: &PaintConfig) -> Self {
-        Self {
+    pub fn new(rig: &Rig, room: &Room, config: &PaintConfig) -> Result<Self, CellError> {
+        let model = CollisionModel::new(rig, &room_cell(rig, room, config))?;
+        let walls = (0..model.body_count())
+            .map(|id| {
+                room.walls
+                    .iter()
+                    .find(|w| model.body_name(id) == wall_name(w.index))
+                    .map(|w| w.index)
+            })
+            .collect();
+        // The base's bodies ride on the frames before the lift (base x, y and heading).
+        let base_radius = rig
+            .bodies
+            .iter()
+            .filter(|body| body.frame >= 1 && body.frame < EXTRA_AXES)
+            .flat_map(|body| &body.collisions)
+            .map(|c| {
+                c.origin.translation.truncate().length()
+                    + match c.shape {
+                        Shape::Cylinder { radius, .. } | Shape::Sphere { radius } => radius,
+                        ref other => other.bounding_radius().unwrap_or(0.0),
+                    }
+            })
+            .fold(0.0, f64::max);
+        Ok(Self {
             brush: Brush::from_config(config),
-            base_radius: config.body.base_radius_m,
-            link_radii: config.body.link_radii_m,
-        }
+            model: Arc::new(model),
+            walls,
+            base_radius,
+        })
     }
 
-    /// Capsules of the arm's links and the handle (bristles excluded) at `positions`;
-    /// `axes` is scratch space. Returns tool0 too.
-    pub fn capsules(
-        &self,
-        rig: &Rig,
-        positions: &[f64],
-        axes: &mut Vec<JointAxis>,
-        out: &mut Vec<Capsule>,
-    ) -> DAffine3 {
-        out.clear();
-        let tool0 = rig
-            .forward_with_axes(positions, axes)
+    pub fn model(&self) -> &CollisionModel {
+        &self.model
+    }
+
+    /// How far the base reaches from its vertical axis in the floor plan (m): where it may
+    /// stand is planned with it.
+    pub fn base_radius(&self) -> f64 {
+        self.base_radius
+    }
+
+    /// The closest pair of the painter and a wall (negative when it pierces one), and
+    /// tool0. The room is convex, so inside every wall's plane is inside the room.
+    pub fn clearance(&self, positions: &[f64], scratch: &mut Scratch) -> (f64, DAffine3) {
+        let tool0 = scratch
+            .rig
+            .forward_with_axes(positions, &mut scratch.axes)
             .unwrap_or(DAffine3::IDENTITY);
-        for (link, radius) in self.link_radii.iter().enumerate() {
-            let first = EXTRA_AXES + link;
-            if let (Some(a), Some(b)) = (axes.get(first), axes.get(first + 1)) {
-                out.push(Capsule {
-                    a: a.point,
-                    b: b.point,
-                    radius: *radius,
-                });
-            }
-        }
-        let handle_end = self.brush.handle - self.brush.bristle;
-        out.push(Capsule {
-            a: tool0.translation,
-            b: tool0.transform_point3(DVec3::Z * handle_end),
-            radius: self.brush.handle_radius,
-        });
-        tool0
+        scratch.last = self.model.clearance(positions, &mut scratch.model);
+        (scratch.last.distance_m, tool0)
     }
 
-    /// The smallest distance between the body's surface and any wall (negative when it
-    /// pierces one), and tool0. The room is convex, so inside every wall's plane is inside
-    /// the room.
-    pub fn clearance(
-        &self,
-        room: &Room,
-        positions: &[f64],
-        scratch: &mut Scratch,
-    ) -> (f64, DAffine3) {
-        let base = DVec2::new(positions[0], positions[1]);
-        let mut worst = room.clearance(base) - self.base_radius;
-        let Scratch {
-            rig,
-            axes,
-            capsules,
-        } = scratch;
-        let tool0 = self.capsules(rig, positions, axes, capsules);
-        for capsule in capsules.iter() {
-            let ends = room
-                .clearance(capsule.a.truncate())
-                .min(room.clearance(capsule.b.truncate()));
-            worst = worst.min(ends - capsule.radius);
-        }
-        (worst, tool0)
+    /// The wall of the closest pair of the last [`Body::clearance`] call.
+    pub fn nearest_wall(&self, scratch: &Scratch) -> usize {
+        let last = scratch.last;
+        [last.a, last.b]
+            .iter()
+            .find_map(|id| self.walls.get(*id).copied().flatten())
+            .unwrap_or(0)
     }
 }
 
@@ -139,37 +195,18 @@ impl Body {
 pub struct Scratch {
     pub rig: Rig,
     pub axes: Vec<JointAxis>,
-    pub capsules: Vec<Capsule>,
+    model: crate::cell::Scratch,
+    last: Clearance,
 }
 
 impl Scratch {
-    pub fn new(rig: &Rig) -> Self {
+    pub fn new(rig: &Rig, body: &Body) -> Self {
         Self {
             rig: rig.clone(),
             axes: Vec::with_capacity(rig.dof()),
-            capsules: Vec::with_capacity(8),
+            model: body.model.scratch(),
+            last: Clearance::NONE,
         }
-    }
-}
-
-impl Body {
-    /// The wall nearest the capsules (and base) left in `scratch` by the last
-    /// [`Body::clearance`] call at base position `base`.
-    pub fn nearest_wall(&self, room: &Room, scratch: &Scratch) -> usize {
-        scratch
-            .capsules
-            .iter()
-            .flat_map(|c| {
-                [
-                    room.nearest_wall(c.a.truncate()),
-                    room.nearest_wall(c.b.truncate()),
-                ]
-                .map(|(wall, d)| (wall, d - c.radius))
-            })
-            .fold((0, f64::INFINITY), |best, next| {
-                if next.1 < best.1 { next } else { best }
-            })
-            .0
     }
 }
 
@@ -194,6 +231,15 @@ impl Travel {
         let vertical = vertical_axes(rig);
         let brush_reach = brush.handle.hypot(brush.width / 2.0);
         let tool_reach = rig.tool.translation.length() + brush_reach;
+        // Each frame's bodies reach this far from its origin (a link's, a base's).
+        let mut body_reach = vec![0.0f64; rig.dof() + 1];
+        for body in &rig.bodies {
+            for c in &body.collisions {
+                let reach =
+                    c.origin.translation.length() + c.shape.bounding_radius().unwrap_or(0.0);
+                body_reach[body.frame] = body_reach[body.frame].max(reach);
+            }
+        }
         let levers = (0..rig.dof())
             .map(|j| {
                 let joint = &rig.joints[j];
@@ -204,11 +250,29 @@ impl Travel {
                         joint.axis.length()
                     };
                 }
-                let after: f64 = (j + 1..rig.dof())
+                // From joint j's axis to frame k's origin (k > j), at most the links between.
+                let mut along = 0.0;
+                let mut farthest = 0.0f64;
+                for k in j + 1..=rig.dof() {
+                    let link = &rig.joints[k - 1];
+                    if k > j + 1 {
+                        let stroke = match link.kind {
+                            // Along a vertical axis it never leaves a vertical one.
+                            JointKind::Prismatic if !(vertical[j] && vertical[k - 1]) => {
+                                link.limits.lower.abs().max(link.limits.upper.abs())
+                                    * link.axis.length()
+                            }
+                            _ => 0.0,
+                        };
+                        along += link.origin.translation.length() + stroke;
+                    }
+                    farthest = farthest.max(along + body_reach[k]);
+                }
+                // Frame dof's origin is the last joint's: the tool hangs from it.
+                let links: f64 = (j + 1..rig.dof())
                     .map(|k| {
                         let link = &rig.joints[k];
                         let stroke = match link.kind {
-                            // Along a vertical axis it never leaves a vertical one.
                             JointKind::Prismatic if !(vertical[j] && vertical[k]) => {
                                 link.limits.lower.abs().max(link.limits.upper.abs())
                                     * link.axis.length()
@@ -218,7 +282,7 @@ impl Travel {
                         link.origin.translation.length() + stroke
                     })
                     .sum();
-                after + tool_reach
+                farthest.max(links + tool_reach)
             })
             .collect();
         Self { levers }

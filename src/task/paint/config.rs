@@ -45,8 +45,8 @@ pub struct BrushConfig {
 #[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct BodyConfig {
-    pub base_radius_m: f64,
-    pub link_radii_m: [f64; 5],
+    /// The clearance the planner keeps between the painter's bodies (its rig's, and the
+    /// brush's handle) and the walls.
     pub planning_clearance_m: f64,
 }
 
@@ -196,19 +196,9 @@ fn check_brush(file: &Path, c: &PaintConfig) -> Result<(), ConfigError> {
     Ok(())
 }
 
-/// The collision body's radii and the planning clearance.
+/// The planning clearance (the envelope itself is the rig's bodies, checked with the rig).
 fn check_body(file: &Path, c: &PaintConfig) -> Result<(), ConfigError> {
     let body = &c.body;
-    check_range(file, "body.base_radius_m", body.base_radius_m, 0.05, 1.0)?;
-    for (i, radius) in body.link_radii_m.iter().enumerate() {
-        check_range(
-            file,
-            &format!("body.link_radii_m[{i}]"),
-            *radius,
-            0.005,
-            0.3,
-        )?;
-    }
     check_range(
         file,
         "body.planning_clearance_m",

@@ -53,12 +53,15 @@ pub fn plan_room(
 }
 
 /// The twin's world for `room`, ready to be shared with the twin.
-pub fn world_for(settings: &PaintSettings, room: &Room) -> PaintWorld {
-    PaintWorld::new(
+pub fn world_for(
+    settings: &PaintSettings,
+    room: &Room,
+) -> Result<PaintWorld, crate::cell::CellError> {
+    Ok(PaintWorld::new(
         &settings.rig,
         room,
-        &body::Body::from_config(&settings.config),
+        &body::Body::new(&settings.rig, room, &settings.config)?,
         settings.config.brush.contact_tolerance_m,
         settings.config.coverage.cell_m,
-    )
+    ))
 }

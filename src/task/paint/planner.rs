@@ -56,6 +56,8 @@ pub enum PaintPlanError {
         "plan check: sample {sample} comes {clearance_m:.4} m from a wall (body must stay clear)"
     )]
     Collides { sample: usize, clearance_m: f64 },
+    #[error("the painter's collision model")]
+    Cell(#[from] crate::cell::CellError),
 }
 
 /// Why a column, a stroke or a move between strokes is refused.
@@ -251,7 +253,7 @@ impl<'a> Planner<'a> {
         plan: PlanSettings,
     ) -> Result<Self, PaintPlanError> {
         let rig = &settings.rig;
-        let body = Body::from_config(&settings.config);
+        let body = Body::new(rig, room, &settings.config)?;
         Ok(Self {
             settings,
             room,
@@ -259,8 +261,8 @@ impl<'a> Planner<'a> {
             rig,
             solver: BaseHeldSolver::new(rig.clone(), EXTRA_AXES)?,
             travel: Travel::new(rig, &body.brush),
+            scratch: Scratch::new(rig, &body),
             body,
-            scratch: Scratch::new(rig),
             travel_arm: settings
                 .config
                 .strokes
@@ -419,9 +421,9 @@ impl<'a> Planner<'a> {
             .step_by(stride.max(1))
             .chain([last])
             .map(|i| trajectory.position(i));
-        let (body, room, scratch) = (&self.body, self.room, &mut self.scratch);
+        let (body, scratch) = (&self.body, &mut self.scratch);
         self.travel.lowest(samples, needed, |positions| {
-            body.clearance(room, positions, scratch).0
+            body.clearance(positions, scratch).0
         })
     }
 
@@ -433,7 +435,11 @@ impl<'a> Planner<'a> {
         let samples = (0..trajectory.len()).map(|i| trajectory.position(i));
         let (body, room, scratch) = (&self.body, self.room, &mut self.scratch);
         self.travel.lowest(samples, needed, |positions| {
-            let (_, tool0) = body.clearance(room, positions, scratch);
+            // The brush's contact line only: tool0 from the kinematics.
+            let tool0 = scratch
+                .rig
+                .forward_with_axes(positions, &mut scratch.axes)
+                .unwrap_or(glam::DAffine3::IDENTITY);
             let ends = body.brush.contact(&tool0);
             room.walls
                 .iter()
@@ -454,7 +460,7 @@ impl<'a> Planner<'a> {
     }
 
     fn search_base_range(&self, wall: &Wall, standoff: f64) -> Option<(f64, f64)> {
-        let need = self.body.base_radius + self.margin();
+        let need = self.body.base_radius() + self.margin();
         let width = self.room.wall_width_m;
         let ok = |s: f64| self.room.clearance(wall.point(s, 0.0, standoff).truncate()) >= need;
         let steps = (width / 0.005) as usize;
@@ -1082,11 +1088,11 @@ impl<'a> Planner<'a> {
         let first_collisions = self.share(helpers, runs, |planner, run| {
             let samples = (run * run_length..((run + 1) * run_length).min(trajectory.len()))
                 .map(|sample| (sample, trajectory.position(sample)));
-            let (body, room, scratch) = (&planner.body, planner.room, &mut planner.scratch);
+            let (body, scratch) = (&planner.body, &mut planner.scratch);
             planner
                 .travel
                 .first_below(samples, 0.0, |positions| {
-                    body.clearance(room, positions, scratch).0
+                    body.clearance(positions, scratch).0
                 })
                 .map(|(sample, clearance_m)| PaintPlanError::Collides {
                     sample,

@@ -1,8 +1,8 @@
 //! The twin paints: a [`TwinWorld`] that, every controller cycle, takes the twin's actual
 //! joint positions (base, lift and arm), finds where the brush's contact line touches a
 //! wall, and marks the coverage grid swept since the previous cycle. It also checks the
-//! body against the walls (collisions, counted as episodes) and the positions against the
-//! axis limits.
+//! body against the walls on the one collision model (collisions, counted as episodes;
+//! `body.rs`) and the positions against the axis limits.
 //!
 //! Sweeping, not point sampling: each cycle marks every cell whose centre lies in the area
 //! the contact line swept since the last cycle, so the result does not depend on the
@@ -185,7 +185,7 @@ impl PaintWorld {
             rig: rig.clone(),
             room: room.clone(),
             body: body.clone(),
-            scratch: Scratch::new(rig),
+            scratch: Scratch::new(rig, body),
             tolerance,
             grids: (0..room.walls.len())
                 .map(|w| WallGrid::new(room, w, cell))
@@ -253,14 +253,14 @@ impl TwinWorld for PaintWorld {
             let facing = self.room.facing_wall(actual[2]);
             self.measured.limit_violations_by_wall[facing] += 1;
         }
-        let (clearance, tool0) = self.body.clearance(&self.room, actual, &mut self.scratch);
+        let (clearance, tool0) = self.body.clearance(actual, &mut self.scratch);
         self.measured.min_clearance_m = self.measured.min_clearance_m.min(clearance);
         let colliding = clearance < 0.0;
         if colliding {
             self.measured.collision_cycles += 1;
             if !self.in_collision {
                 self.measured.collisions += 1;
-                let pierced = self.body.nearest_wall(&self.room, &self.scratch);
+                let pierced = self.body.nearest_wall(&self.scratch);
                 self.measured.collisions_by_wall[pierced] += 1;
             }
         }

@@ -15,6 +15,8 @@ const health = {
   paintQuads: 0,
   sceneWalls: 0,
   sceneCylinders: 0,
+  sceneSolids: 0,
+  sceneBodies: 0,
   errors: [],
 };
 window.rigbridgeView = health;
@@ -201,7 +203,9 @@ function resize() {
 window.addEventListener('resize', resize);
 
 // ---------------------------------------------------------------------- scene --
-let scene = { walls: [], cylinders: [], paint: [] };
+let scene = { walls: [], cylinders: [], paint: [], solids: [], bodies: [] };
+// The cell's static objects' triangles in world coordinates, computed once per scene.
+let solidTriangles = [];
 let paintByWall = [];
 let latest = null;
 // Links and joints are drawn in proportion to the rig: the IRB 120's 0.27-0.3 m links get
@@ -239,6 +243,11 @@ function setScene(message) {
   health.sceneWalls = scene.walls.length;
   health.sceneCylinders = scene.cylinders.length;
   paintByWall = scene.walls.map(() => []);
+  scene.solids = scene.solids || [];
+  scene.bodies = scene.bodies || [];
+  solidTriangles = scene.solids.map((s) => ({ name: s.name, triangles: posed(s.triangles, s.pose) }));
+  health.sceneSolids = scene.solids.length;
+  health.sceneBodies = scene.bodies.length;
   health.paintQuads = 0;
   addPaint(scene.paint);
   document.getElementById('rig-name').textContent =
@@ -353,6 +362,78 @@ function cylinderDrawable(v, cylinder) {
   };
 }
 
+// A point rotated by the unit quaternion q = [x, y, z, w] and moved by t.
+function transform(p, q, t) {
+  const [x, y, z, w] = q;
+  const u = [x, y, z];
+  const c = cross(u, p);
+  const cc = cross(u, c);
+  return [
+    p[0] + 2 * (w * c[0] + cc[0]) + t[0],
+    p[1] + 2 * (w * c[1] + cc[1]) + t[1],
+    p[2] + 2 * (w * c[2] + cc[2]) + t[2],
+  ];
+}
+
+// A solid's triangles (three points each, flat) at a pose, as [a, b, c] world triangles.
+function posed(points, pose) {
+  const out = [];
+  for (let i = 0; i + 2 < points.length; i += 3) {
+    out.push([0, 1, 2].map((k) => transform(points[i + k], pose.orientation, pose.position)));
+  }
+  return out;
+}
+
+// The colours of the cell's objects, the rig's collision bodies, and the closest pair
+// within the margin (amber) or touching (red): RGB and opacity.
+const OBJECT_COLOUR = [[140, 150, 160], 0.35];
+const BODY_COLOUR = [[240, 150, 50], 0.3];
+const NEAR_COLOUR = [[240, 190, 25], 0.85];
+const HIT_COLOUR = [[215, 25, 25], 0.9];
+
+// Each triangle facing the camera, as its own drawable (depth sorts it among the rest).
+function solidDrawables(v, triangles, colour, out) {
+  const [rgb, alpha] = colour;
+  for (const t of triangles) {
+    const normal = cross(sub(t[1], t[0]), sub(t[2], t[0]));
+    if (dot(normal, sub(v.eye, t[0])) <= 0) continue;
+    const points = projectAll(v, t);
+    if (!points) continue;
+    const fill = shade(rgb, normal, v);
+    out.push({
+      depth: meanDepth(points),
+      draw() {
+        ctx.globalAlpha = alpha;
+        ctx.fillStyle = fill;
+        ctx.beginPath();
+        polygonPath(points);
+        ctx.fill();
+        ctx.globalAlpha = 1;
+      },
+    });
+  }
+}
+
+// The closest pair's names when it is marked, and its colour.
+function closestMark(frame) {
+  const closest = frame && frame.closest;
+  if (!closest) return null;
+  return { names: [closest.a, closest.b], colour: closest.distance_m <= 0 ? HIT_COLOUR : NEAR_COLOUR };
+}
+
+function cellDrawables(v, frame, out) {
+  const mark = closestMark(frame);
+  const colourOf = (name, normal) => (mark && mark.names.includes(name) ? mark.colour : normal);
+  for (const s of solidTriangles) solidDrawables(v, s.triangles, colourOf(s.name, OBJECT_COLOUR), out);
+  if (!frame || !frame.bodies) return;
+  scene.bodies.forEach((body, i) => {
+    const pose = frame.bodies[i];
+    if (!pose) return;
+    const triangles = posed(body.solid.triangles, pose);
+    solidDrawables(v, triangles, colourOf(body.solid.name, BODY_COLOUR), out);
+  });
+}
+
 // A disc on the floor around the chain's first point: the rig's base.
 function baseDrawable(v, origin) {
   const rim = [];
@@ -440,6 +521,7 @@ function draw() {
   const drawables = [];
   scene.walls.forEach((wall, i) => drawables.push(wallDrawable(v, wall, i)));
   scene.cylinders.forEach((c) => drawables.push(cylinderDrawable(v, c)));
+  cellDrawables(v, latest, drawables);
   if (latest) {
     latest.chains.forEach((chain, i) => {
       if (chain.length === 0) return;
@@ -533,6 +615,11 @@ function showStatus(frame) {
   document.getElementById('job-progress').value = job.progress;
   document.getElementById('job-percent').textContent = (100 * job.progress).toFixed(1) + ' %';
   document.getElementById('job-last').textContent = job.last ? 'last job: ' + job.last : '';
+  // The cell's closest pair, while it is within the margin (or touching).
+  const closest = frame.closest;
+  document.getElementById('closest').textContent = closest
+    ? closest.a + ' \u2013 ' + closest.b + ': ' + closest.distance_m.toFixed(4) + ' m (' + closest.status + ')'
+    : '';
   // A failed log is said as soon as the writer meets it, and stays until the next job.
   document.getElementById('job-log-error').textContent = job.log_error ? 'log failed: ' + job.log_error : '';
 }
