@@ -71,6 +71,8 @@ pub enum Jog {
 }
 
 /// An online command, as the API hands it to the cycle.
+// Boxing the goal would allocate in the cycle; a command is small enough to copy.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum OnlineCommand {
     /// Move to these joint positions (validated within the limits), from wherever the arm
@@ -189,6 +191,8 @@ impl Default for OnlineSettings {
 }
 
 /// What the generator does this cycle.
+// As `OnlineCommand`: no allocation in the cycle.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Intent {
     Idle,
@@ -649,8 +653,9 @@ fn solve6(m: &mut [[f64; 7]; 6]) -> [f64; 6] {
         m.swap(col, pivot);
         for row in col + 1..6 {
             let factor = m[row][col] / m[col][col];
-            for k in col..7 {
-                m[row][k] -= factor * m[col][k];
+            let pivot_row = m[col];
+            for (value, pivot) in m[row].iter_mut().zip(pivot_row).skip(col) {
+                *value -= factor * pivot;
             }
         }
     }

@@ -90,10 +90,7 @@ pub async fn jog(
         Ok(command) => command,
         Err(why) => return error(StatusCode::UNPROCESSABLE_ENTITY, why),
     };
-    let log = match command {
-        Some(_) => Some("jog"),
-        None => None,
-    };
+    let log = command.map(|_| "jog");
     act(&daemon, &cell, command, log)
 }
 
