@@ -395,7 +395,7 @@ fn the_cell_and_the_arms_bodies_are_in_the_scene_for_a_reader_we_did_not_write()
             .sum();
         assert_eq!(cell["triangles"], expected, "{cell}");
     }
-    let robot = rigbridge::log::RobotDescription::generated(&settings.rig);
+    let robot = rigbridge::log::RobotDescription::generated(&settings.rig, &settings.cell);
     let frames = robot.rig_frames();
     let mut per_frame = std::collections::BTreeMap::<usize, u64>::new();
     for body in &settings.rig.bodies {

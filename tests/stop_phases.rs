@@ -413,6 +413,10 @@ fn case_for(rng: &mut impl Rng, job: &Job, phase: Phase, request: Request, wall:
                 case.loss_calls = rng.random_range(3..30);
             }
         }
+        // A case is drawn from PHASES: these three are passed through, never stopped in.
+        Phase::Holding | Phase::Stopping | Phase::Ended => {
+            unreachable!("{phase} is not among the phases a case is drawn from")
+        }
     }
     case
 }

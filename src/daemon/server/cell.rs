@@ -23,7 +23,8 @@ use crate::stream::Phase;
 use crate::stream::{
     Executor, Frame, Jog, ModelCheck, OnlineCommand, Outcome, SpeedOverride, StreamControl,
 };
-use crate::twin::{SharedWorld, Twin};
+use crate::trajectory::Origins;
+use crate::twin::SharedWorld;
 use crate::view::{JobView, LiveHub, LiveSample, LiveSink, LiveSlot};
 use serde::Serialize;
 use std::path::PathBuf;
@@ -1022,12 +1023,18 @@ impl Cell {
         let trajectory = crate::daemon::hold_at(&self.settings, &start)?;
         let rate = self.settings.config.stream.rate_hz.round() as u64;
         let mut live = LiveSink::new(self.hub.slot(), rate);
+        let origins = Origins::whole("the online session's hold");
         let job = JobToStream {
             name: ONLINE_SESSION.to_string(),
             description: serde_json::json!({ "kind": ONLINE_SESSION }),
             start: &start,
             trajectory: &trajectory,
             job: None,
+            origins: &origins,
+            // The hold is where the arm already is (checking it could only keep an arm
+            // that stopped within the margin from being jogged out); every step the
+            // session then makes is checked by the cell's ModelCheck before it is sent.
+            cleared: true,
         };
         let sinks = Sinks {
             live: &mut live,
