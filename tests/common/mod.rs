@@ -69,14 +69,20 @@ pub fn wait_for_logged_event(path: &Path, kind: &str, within: Duration) {
     );
 }
 
-/// The text of the shipped run settings, `config/rigbridge.toml`, with its rig named by
-/// absolute path: a copy anywhere loads the shipped IRB 120.
+/// The text of the shipped run settings, `config/rigbridge.toml`, with its rig and its cell
+/// named by absolute path: a copy anywhere loads the shipped IRB 120 in the star's cell.
 pub fn shipped_settings_text() -> String {
     let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
     let rig = repo_path("config/irb120.toml");
+    let cell = repo_path("config/cell-star.toml");
     text.replacen(
         "rig = \"irb120.toml\"",
         &format!("rig = {:?}", rig.display().to_string()),
+        1,
+    )
+    .replacen(
+        "cell = \"cell-star.toml\"",
+        &format!("cell = {:?}", cell.display().to_string()),
         1,
     )
 }
