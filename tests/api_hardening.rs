@@ -35,6 +35,11 @@ fn start() -> Server {
     std::fs::create_dir_all(&dir).unwrap();
     std::fs::copy(repo_path("config/irb120.toml"), dir.join("irb120.toml")).unwrap();
     std::fs::copy(
+        repo_path("config/cell-star.toml"),
+        dir.join("cell-star.toml"),
+    )
+    .unwrap();
+    std::fs::copy(
         repo_path("config/rigbridge.toml"),
         dir.join("rigbridge.toml"),
     )

@@ -49,7 +49,9 @@ fn rows(text: &str, header: bool) -> Vec<Row> {
             assert_eq!(f.len(), 4, "a row of four fields: {line}");
             let (a, b) = (f[1].to_string(), f[2].to_string());
             Row {
-                distance_m: f[0].parse().unwrap_or_else(|_| panic!("a clearance: {line}")),
+                distance_m: f[0]
+                    .parse()
+                    .unwrap_or_else(|_| panic!("a clearance: {line}")),
                 pair: if a <= b { (a, b) } else { (b, a) },
                 status: f[3].to_string(),
             }
@@ -93,19 +95,39 @@ fn check_agrees_with_coal_on_100000_random_configurations_of_the_table_cell() {
     );
     let settings_arg = path_str(&settings_path);
     let written = rigbridge(&[
-        "config", "urdf", "--config", settings_arg, "--output", path_str(&urdf), "--srdf",
+        "config",
+        "urdf",
+        "--config",
+        settings_arg,
+        "--output",
+        path_str(&urdf),
+        "--srdf",
         path_str(&srdf),
     ]);
-    assert!(written.status.success(), "{}", String::from_utf8_lossy(&written.stderr));
+    assert!(
+        written.status.success(),
+        "{}",
+        String::from_utf8_lossy(&written.stderr)
+    );
 
     let start = Instant::now();
     let checked = rigbridge(&[
-        "check", "--config", settings_arg, "--input", path_str(&input), "--output",
+        "check",
+        "--config",
+        settings_arg,
+        "--input",
+        path_str(&input),
+        "--output",
         path_str(&ours),
     ]);
     let ours_s = start.elapsed().as_secs_f64();
     // Some rows collide, so the batch exits 3 (not every row free).
-    assert_eq!(checked.status.code(), Some(3), "{}", String::from_utf8_lossy(&checked.stderr));
+    assert_eq!(
+        checked.status.code(),
+        Some(3),
+        "{}",
+        String::from_utf8_lossy(&checked.stderr)
+    );
 
     let start = Instant::now();
     let peer = Command::new(&python)
@@ -115,7 +137,11 @@ fn check_agrees_with_coal_on_100000_random_configurations_of_the_table_cell() {
         .output()
         .expect("the coal peer runs");
     let peer_s = start.elapsed().as_secs_f64();
-    assert!(peer.status.success(), "coal peer: {}", String::from_utf8_lossy(&peer.stderr));
+    assert!(
+        peer.status.success(),
+        "coal peer: {}",
+        String::from_utf8_lossy(&peer.stderr)
+    );
 
     let ours = rows(&std::fs::read_to_string(&ours).unwrap(), true);
     let theirs = rows(&String::from_utf8_lossy(&peer.stdout), false);
@@ -149,11 +175,19 @@ fn check_agrees_with_coal_on_100000_random_configurations_of_the_table_cell() {
         mismatches.is_empty(),
         "{} rows disagree; the first: {}",
         mismatches.len(),
-        mismatches.iter().take(10).cloned().collect::<Vec<_>>().join("\n")
+        mismatches
+            .iter()
+            .take(10)
+            .cloned()
+            .collect::<Vec<_>>()
+            .join("\n")
     );
     // Every status is exercised, or the agreement would prove less than it says.
     for status in ["free", "within_margin", "collision"] {
-        assert!(counts.get(status).copied().unwrap_or(0) >= 100, "{status}: {counts:?}");
+        assert!(
+            counts.get(status).copied().unwrap_or(0) >= 100,
+            "{status}: {counts:?}"
+        );
     }
     let _ = std::fs::remove_dir_all(&dir);
 }

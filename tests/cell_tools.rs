@@ -50,7 +50,10 @@ fn check_passes_home_and_names_the_bodies_of_the_issues_folded_wrist() {
     assert!(folded[0].parse::<f64>().unwrap() < 0.0, "{out}");
     assert!(!folded[1].is_empty() && !folded[2].is_empty() && folded[1] != folded[2]);
     let summary = text(&output.stderr);
-    assert!(summary.contains("1 free") && summary.contains("1 collision"), "{summary}");
+    assert!(
+        summary.contains("1 free") && summary.contains("1 collision"),
+        "{summary}"
+    );
 }
 
 #[test]
@@ -62,7 +65,10 @@ fn check_rows_name_the_column_and_the_value_that_is_wrong() {
     assert_eq!(output.status.code(), Some(3));
     let out = text(&output.stdout);
     let lines: Vec<&str> = out.lines().collect();
-    assert_eq!(lines[1], ",,,invalid_input: j3 = abc is not a number", "{out}");
+    assert_eq!(
+        lines[1], ",,,invalid_input: j3 = abc is not a number",
+        "{out}"
+    );
     let outside = fields(lines[2]);
     assert_eq!(
         outside[3], "outside_limits: j2 = 130 deg outside [-110 110] deg",
@@ -99,7 +105,10 @@ fn all_free_rows_exit_zero_and_a_file_output_is_written() {
     assert!(run.status.success(), "{}", text(&run.stderr));
     let written = std::fs::read_to_string(&output).unwrap();
     assert_eq!(written.lines().count(), 3);
-    assert!(written.lines().skip(1).all(|l| l.ends_with(",free")), "{written}");
+    assert!(
+        written.lines().skip(1).all(|l| l.ends_with(",free")),
+        "{written}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -146,7 +155,11 @@ fn config_urdf_writes_the_rig_its_tool_and_its_cell_for_a_urdf_reader() {
     // The objects and the tool, each a link of its own with its solids.
     assert_eq!(collision_kinds(&robot, "table"), ["box"]);
     assert_eq!(collision_kinds(&robot, "fixture"), ["box"]);
-    assert_eq!(collision_kinds(&robot, "floor"), ["box"], "the floor's cube");
+    assert_eq!(
+        collision_kinds(&robot, "floor"),
+        ["box"],
+        "the floor's cube"
+    );
     let tool = settings.cell.tool.as_ref().unwrap();
     assert_eq!(collision_kinds(&robot, &tool.name).len(), tool.bodies.len());
     // Every rig body is a link; a capsule is a cylinder and two spheres.
@@ -169,7 +182,12 @@ fn config_urdf_writes_the_rig_its_tool_and_its_cell_for_a_urdf_reader() {
     assert!((a.translation - b.translation).length() < 1e-12);
     assert!(a.matrix3.abs_diff_eq(b.matrix3, 1e-12));
     let pairs = std::fs::read_to_string(&srdf).unwrap();
-    for (a, b) in settings.rig.allowed_pairs.iter().chain(&settings.cell.allowed_pairs) {
+    for (a, b) in settings
+        .rig
+        .allowed_pairs
+        .iter()
+        .chain(&settings.cell.allowed_pairs)
+    {
         assert!(
             pairs.contains(&format!("link1=\"{a}\" link2=\"{b}\"")),
             "{a} - {b} in {pairs}"
@@ -195,7 +213,11 @@ fn the_worked_example_loads_and_its_job_keeps_clear_of_the_table() {
         panic!("the example's job is move_joints");
     };
     let mut rows = String::from("j1,j2,j3,j4,j5,j6\n");
-    for target in job.targets_deg.iter().chain([&settings.config.twin.initial_deg]) {
+    for target in job
+        .targets_deg
+        .iter()
+        .chain([&settings.config.twin.initial_deg])
+    {
         let line: Vec<String> = target.iter().map(f64::to_string).collect();
         rows.push_str(&line.join(","));
         rows.push('\n');
@@ -223,10 +245,19 @@ fn fk_with_a_cell_tool_works_at_its_tcp_and_tool0_stays_available() {
     let named = position(&["fk", "--config", TABLE_CELL, "--tool", "gripper"]);
     let flange = position(&["fk", "--config", TABLE_CELL, "--tool", "tool0"]);
     assert_eq!(tcp, named);
-    let apart = (0..3).map(|i| (tcp[i] - flange[i]).powi(2)).sum::<f64>().sqrt();
-    assert!((apart - 0.15).abs() < 1e-9, "the TCP is 0.15 m out: {apart}");
+    let apart = (0..3)
+        .map(|i| (tcp[i] - flange[i]).powi(2))
+        .sum::<f64>()
+        .sqrt();
+    assert!(
+        (apart - 0.15).abs() < 1e-9,
+        "the TCP is 0.15 m out: {apart}"
+    );
     let wrong = rigbridge(&["fk", "--config", TABLE_CELL, "--tool", "pen"], rows);
     assert_eq!(wrong.status.code(), Some(2));
     let message = text(&wrong.stderr);
-    assert!(message.contains("gripper") && message.contains("tool0"), "{message}");
+    assert!(
+        message.contains("gripper") && message.contains("tool0"),
+        "{message}"
+    );
 }

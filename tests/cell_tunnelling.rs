@@ -97,7 +97,10 @@ fn a_full_speed_sweep_whose_samples_straddle_a_5_mm_plate_is_refused() {
         );
     }
     let refused = model
-        .check_path(samples.iter().map(|(t, q)| (*t, q.as_slice())), &mut scratch)
+        .check_path(
+            samples.iter().map(|(t, q)| (*t, q.as_slice())),
+            &mut scratch,
+        )
         .expect_err("the path passes through the plate");
     let mut pair = [
         model.body_name(refused.clearance.a),
@@ -126,7 +129,10 @@ fn the_same_sweep_with_the_plate_out_of_its_way_passes() {
     let mut scratch = model.scratch();
     let samples = sweep(&rig);
     let clear = model
-        .check_path(samples.iter().map(|(t, q)| (*t, q.as_slice())), &mut scratch)
+        .check_path(
+            samples.iter().map(|(t, q)| (*t, q.as_slice())),
+            &mut scratch,
+        )
         .unwrap_or_else(|c| {
             panic!(
                 "refused at {} s: {} - {}",
@@ -136,7 +142,9 @@ fn the_same_sweep_with_the_plate_out_of_its_way_passes() {
             )
         });
     assert!(clear.min.distance_m >= model.margin());
-    assert!(model
-        .check_step(&samples[4].1, &samples[5].1, &mut scratch)
-        .is_ok());
+    assert!(
+        model
+            .check_step(&samples[4].1, &samples[5].1, &mut scratch)
+            .is_ok()
+    );
 }

@@ -603,6 +603,17 @@ fn a_50_ms_servo_lag_refuses_no_first_target_after_a_resume() {
                 &format!("rig = {:?}", rig.display().to_string()),
                 1,
             )
+            .replacen(
+                "cell = \"cell-star.toml\"",
+                &format!(
+                    "cell = {:?}",
+                    manifest_dir()
+                        .join("config/cell-star.toml")
+                        .display()
+                        .to_string()
+                ),
+                1,
+            )
             .replacen("[stream]\n", "[stream]\npath_tolerance_deg = 20.0\n", 1),
     )
     .unwrap();

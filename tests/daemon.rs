@@ -165,7 +165,9 @@ fn replay_refuses_a_speed_that_breaks_a_limit() {
 }
 
 fn write_config(name: &str, edit: impl Fn(String) -> String) -> PathBuf {
-    let original = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    let original = common::with_absolute_cell(
+        &std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap(),
+    );
     let path = repo_path("config").join(format!(".test-{}-{name}", std::process::id()));
     std::fs::write(&path, edit(original)).unwrap();
     path

@@ -46,7 +46,9 @@ fn record_run(config: &Path, log: &Path) {
 
 /// The default run settings with `rig` pointing at the reference URDF.
 fn urdf_run_settings(dir: &Path) -> PathBuf {
-    let text = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    let text = common::with_absolute_cell(
+        &std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap(),
+    );
     let urdf = reference_path("irb120_3_58.urdf");
     let replaced = text.replacen(
         "rig = \"irb120.toml\"",

@@ -69,7 +69,7 @@ fn painting_cell(dir: &Path) -> PathBuf {
         shipped.contains("rate_hz = 100.0"),
         "config/paint-run.toml streams at 100 Hz"
     );
-    for name in ["painter.toml", "paint.toml"] {
+    for name in ["painter.toml", "paint.toml", "cell-painter.toml"] {
         std::fs::copy(repo_path(&format!("config/{name}")), dir.join(name)).unwrap();
     }
     let file = dir.join("paint-250hz.toml");

@@ -190,7 +190,7 @@ fn bad_rooms_are_refused_with_the_value() {
 fn write_paint_variant(name: &str, edit: impl Fn(String) -> String) -> std::path::PathBuf {
     let dir = std::env::temp_dir().join(format!("rigbridge-paint-test-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    for file in ["painter.toml", "paint.toml"] {
+    for file in ["painter.toml", "paint.toml", "cell-painter.toml"] {
         std::fs::copy(repo_path(&format!("config/{file}")), dir.join(file)).unwrap();
     }
     let text = std::fs::read_to_string(repo_path("config/paint.toml")).unwrap();

@@ -39,7 +39,9 @@ fn succeeded(output: &Output) {
 /// A copy of the default run settings with `edit` applied, next to it (the rig path is
 /// relative to the file).
 fn write_config(name: &str, edit: impl Fn(String) -> String) -> ConfigFile {
-    let original = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    let original = common::with_absolute_cell(
+        &std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap(),
+    );
     let path = repo_path("config").join(format!(".test-replay-{}-{name}", std::process::id()));
     std::fs::write(&path, edit(original)).unwrap();
     ConfigFile(path)

@@ -48,7 +48,9 @@ fn estop(address: &str) {
 }
 
 fn short_job_config() -> std::path::PathBuf {
-    let original = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    let original = common::with_absolute_cell(
+        &std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap(),
+    );
     let job = original.find("[job]").unwrap();
     let edited = format!(
         "{}[job]\nkind = \"move_joints\"\ntargets_deg = [[10.0, 0.0, 0.0, 0.0, 30.0, 0.0]]\n",

@@ -511,14 +511,14 @@ fn cell_settings(dir: &Path, name: &str, ros2: &str) -> PathBuf {
         .replacen("name = \"irb120\"", &format!("name = \"{name}\""), 1);
     let rig_file = dir.join(format!("{name}.toml"));
     std::fs::write(&rig_file, rig).unwrap();
-    let settings = std::fs::read_to_string(repo_path("config/rigbridge.toml"))
-        .unwrap()
-        .replacen(
-            "rig = \"irb120.toml\"",
-            &format!("rig = \"{name}.toml\""),
-            1,
-        )
-        + &format!("\n[ros2]\n{ros2}");
+    let settings = common::with_absolute_cell(
+        &std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap(),
+    )
+    .replacen(
+        "rig = \"irb120.toml\"",
+        &format!("rig = \"{name}.toml\""),
+        1,
+    ) + &format!("\n[ros2]\n{ros2}");
     let file = dir.join(format!("{name}-run.toml"));
     std::fs::write(&file, settings).unwrap();
     file

@@ -85,7 +85,9 @@ fn scratch(name: &str) -> PathBuf {
 /// The shipped arm cell, copied to `dir`, streaming over `link`.
 fn arm_cell(dir: &Path, link: &str) -> PathBuf {
     std::fs::copy(repo_path("config/irb120.toml"), dir.join("irb120.toml")).unwrap();
-    let shipped = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    let shipped = common::with_absolute_cell(
+        &std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap(),
+    );
     assert!(shipped.contains("link = \"loopback\""));
     let settings = shipped.replace("link = \"loopback\"", &format!("link = \"{link}\""));
     let file = dir.join("rigbridge.toml");

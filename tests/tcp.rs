@@ -292,7 +292,9 @@ fn a_controller_sending_garbage_gets_no_motion_and_no_crash() {
 #[test]
 fn a_twin_that_never_comes_back_aborts_the_job_with_a_message() {
     let config = repo_path("config").join(format!(".test-{}-reconnect.toml", std::process::id()));
-    let original = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    let original = common::with_absolute_cell(
+        &std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap(),
+    );
     std::fs::write(
         &config,
         original.replace(

@@ -59,7 +59,11 @@ impl CheckSummary {
     }
 
     fn note_clearance(&mut self, row: usize, model: &CollisionModel, c: &Clearance) {
-        if self.closest.as_ref().is_none_or(|best| c.distance_m < best.distance_m) {
+        if self
+            .closest
+            .as_ref()
+            .is_none_or(|best| c.distance_m < best.distance_m)
+        {
             self.closest = Some(ClosestRow {
                 row,
                 distance_m: c.distance_m,

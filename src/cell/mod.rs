@@ -89,7 +89,12 @@ impl Cell {
     /// as it is.
     pub fn rig_at_tcp(&self, rig: &Rig) -> Rig {
         let mut at_tcp = rig.clone();
-        if let Some(tool) = &self.tool {
+        // A rig already at the TCP stays there: applying the TCP twice would move it.
+        if let Some(tool) = self
+            .tool
+            .as_ref()
+            .filter(|tool| rig.tool_frame != tool.name)
+        {
             at_tcp.tool = rig.tool * tool.tcp;
             at_tcp.tool_frame = tool.name.clone();
         }

@@ -347,7 +347,11 @@ fn report_check(summary: &CheckSummary, elapsed: std::time::Duration) {
     eprintln!(
         "{} rows: {}{closest}; {:.3} s, {per_row:.2} us per row",
         summary.rows,
-        if counts.is_empty() { "none".to_string() } else { counts },
+        if counts.is_empty() {
+            "none".to_string()
+        } else {
+            counts
+        },
         elapsed.as_secs_f64(),
     );
     if let Some(problem) = &summary.first_problem {

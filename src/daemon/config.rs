@@ -968,6 +968,10 @@ pub struct RunSettings {
     pub file: PathBuf,
     pub config: RunConfig,
     pub rig: Rig,
+    /// `rig` ending at the cell tool's TCP ([`Cell::rig_at_tcp`]; `rig` itself without a
+    /// tool): what every job is validated and planned with. `rig` keeps its own tool frame
+    /// (tool0) for the URDF, the logs, the view and the batch tools.
+    pub tcp_rig: Rig,
     /// The sloth behind `rig` when the job is a gait (`rig` is then its streamed axes).
     pub sloth: Option<std::sync::Arc<crate::task::gait::SlothRig>>,
     /// The workcell `cell` names (the built-in floor when it names none).
@@ -1033,15 +1037,15 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     let base_dir = config_dir(file);
     let (rig, sloth) = load_rigs(&base_dir.join(&config.rig), &config.job)?;
     let cell = load_cell_setting(file, &base_dir, config.cell.as_ref())?;
-    // Every Cartesian job, the IK and the live view work at the cell tool's TCP (the pen's
-    // tip), not at tool0: a pose in a job is where the tool does its work.
-    let rig = cell.rig_at_tcp(&rig);
+    // Every job is validated and planned at the cell tool's TCP (the pen's tip), not at
+    // tool0: a pose in a job is where the tool does its work.
+    let tcp_rig = cell.rig_at_tcp(&rig);
     check_links(file, &config, &rig)?;
     config.twin.check(file, &rig)?;
     config.plan.check(file)?;
     check_limits(file, &config.limits)?;
     let context = crate::job::JobContext {
-        rig: &rig,
+        rig: &tcp_rig,
         sloth: sloth.as_deref(),
         base_dir: &base_dir,
         limits: &config.limits,
@@ -1059,6 +1063,7 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         file: file.to_path_buf(),
         config,
         rig,
+        tcp_rig,
         sloth,
         cell,
         collision: std::sync::Arc::new(collision),

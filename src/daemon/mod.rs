@@ -579,7 +579,7 @@ pub fn plan_for(
         return Err(Halted::of(control).told(link));
     }
     let (trajectory, origins) = job.plan_traced(&crate::job::PlanContext {
-        rig: &settings.rig,
+        rig: &settings.tcp_rig,
         sloth: settings.sloth.as_deref(),
         start: &start,
         settings: &plan_settings(settings),

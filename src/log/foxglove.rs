@@ -235,13 +235,11 @@ impl RobotDescription {
             .iter()
             .map(|j| 0.37 * j.limits.lower + 0.63 * j.limits.upper)
             .collect();
-        let composed = self
-            .link_transforms(&probe)
-            .map(|links| {
-                links
-                    .take(self.chain)
-                    .fold(DAffine3::IDENTITY, |frame, link| frame * link)
-            });
+        let composed = self.link_transforms(&probe).map(|links| {
+            links
+                .take(self.chain)
+                .fold(DAffine3::IDENTITY, |frame, link| frame * link)
+        });
         let expected = rig.forward(&probe)?;
         match composed {
             Some(tool)
@@ -676,7 +674,9 @@ mod tests {
                 .collect::<Vec<_>>()
         );
         // Joint 2's origin moved (the bodies' solids carry the same numbers before it).
-        let at = text.find("<joint name=\"joint_2\"").expect("joint 2 is written");
+        let at = text
+            .find("<joint name=\"joint_2\"")
+            .expect("joint 2 is written");
         let (head, tail) = text.split_at(at);
         let moved = format!(
             "{head}{}",

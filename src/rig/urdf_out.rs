@@ -135,7 +135,9 @@ pub fn half_space_as_box(
     normal: DVec3,
     reach_m: f64,
 ) -> Collision {
-    let base_in_shape = (owner_in_base * origin).inverse().transform_point3(DVec3::ZERO);
+    let base_in_shape = (owner_in_base * origin)
+        .inverse()
+        .transform_point3(DVec3::ZERO);
     let height = base_in_shape.dot(normal);
     let foot = base_in_shape - normal * height;
     let half = HALF_SPACE_CUBE_PER_REACH * (reach_m + height.abs());
@@ -258,7 +260,11 @@ impl Writer {
         for ((name, next), collisions) in links.iter().zip(next_origins).zip(&on_chain[1..]) {
             self.link(name, next, collisions);
         }
-        let _ = writeln!(self.out, "  <link name=\"{}\"/>", xml_escape(&rig.tool_frame));
+        let _ = writeln!(
+            self.out,
+            "  <link name=\"{}\"/>",
+            xml_escape(&rig.tool_frame)
+        );
         for link in extra {
             self.link(&link.name, DVec3::ZERO, &link.collisions);
         }
@@ -558,7 +564,12 @@ mod tests {
             }
         }
         let expected = [a, b].map(|p| p + DVec3::new(0.0, 0.05, 0.0));
-        assert!(spheres.iter().zip(expected).all(|(s, e)| (*s - e).length() < 1e-12));
+        assert!(
+            spheres
+                .iter()
+                .zip(expected)
+                .all(|(s, e)| (*s - e).length() < 1e-12)
+        );
     }
 
     #[test]

@@ -10,9 +10,9 @@
 
 use super::online::CellCheck;
 use crate::cell::{Clearance, CollisionModel, Scratch};
-use std::sync::{Arc, Mutex};
 use crate::protocol::AxisValues;
 use crate::rig::{Joint, JointKind, Rig};
+use std::sync::{Arc, Mutex};
 
 /// What a target broke.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -87,6 +87,17 @@ pub fn shipped_settings_text() -> String {
     )
 }
 
+/// `text` (run settings copied from `config/`) with its cell named by absolute path, so the
+/// copy loads from any directory.
+pub fn with_absolute_cell(text: &str) -> String {
+    let cell = repo_path("config/cell-star.toml");
+    text.replacen(
+        "cell = \"cell-star.toml\"",
+        &format!("cell = {:?}", cell.display().to_string()),
+        1,
+    )
+}
+
 /// [`shipped_settings_text`] with `serve` appended as its `[serve]` table, written to `path`.
 pub fn write_settings_with_serve(path: &Path, serve: &str) {
     let text = shipped_settings_text();

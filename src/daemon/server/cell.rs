@@ -469,7 +469,7 @@ impl Cell {
     pub fn validate(&self, job: JobConfig) -> Result<JobConfig, crate::job::JobInvalid> {
         let base_dir = crate::daemon::config::config_dir(&self.settings.file);
         let context = crate::job::JobContext {
-            rig: &self.settings.rig,
+            rig: &self.settings.tcp_rig,
             sloth: self.settings.sloth.as_deref(),
             base_dir: &base_dir,
             limits: &self.settings.config.limits,
@@ -1321,10 +1321,9 @@ impl JournalSetup {
             // context per cell for the daemon's lifetime.
             compressed: false,
             // The rig in its cell, as every log attaches it (`rigbridge config urdf`).
-            robot: Some(std::sync::Arc::new(crate::log::RobotDescription::generated(
-                &settings.rig,
-                &settings.cell,
-            ))),
+            robot: Some(std::sync::Arc::new(
+                crate::log::RobotDescription::generated(&settings.rig, &settings.cell),
+            )),
             ..crate::log::RecorderOptions::for_rig(&settings.rig)
         };
         JournalSetup {
