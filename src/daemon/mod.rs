@@ -56,7 +56,7 @@ pub enum DaemonError {
     Cells(#[from] server::CellError),
     /// The trajectory comes closer to something in the cell than its margin.
     #[error("refused before motion")]
-    Collision(#[from] CollisionRefusal),
+    Collision(#[from] Box<CollisionRefusal>),
     #[error("the cell's collision model")]
     CollisionModel(#[from] crate::cell::CellError),
     /// A stop or e-stop ended the job before any motion.

@@ -88,6 +88,9 @@ pub fn rig_from_urdf_to(
     })
 }
 
+/// A URDF chain's collision bodies and the pairs of neighbours never checked.
+type BodiesAndPairs = (Vec<LinkBody>, Vec<(String, String)>);
+
 /// The `<collision>` elements of the chain's links as bodies (a link without any is no
 /// body; links off the chain are not read), and each pair of neighbouring links that both
 /// have a body as an allowed pair: they meet at their joint, as MoveIt's adjacent pairs.
@@ -95,7 +98,7 @@ fn collision_bodies(
     robot: &urdf_rs::Robot,
     chain_links: &[(String, usize, DAffine3)],
     file: &Path,
-) -> Result<(Vec<LinkBody>, Vec<(String, String)>), ConfigError> {
+) -> Result<BodiesAndPairs, ConfigError> {
     let mut bodies: Vec<LinkBody> = Vec::new();
     for (name, frame, place) in chain_links {
         let Some(link) = robot.links.iter().find(|l| &l.name == name) else {

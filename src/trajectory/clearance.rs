@@ -101,17 +101,18 @@ pub fn joint_values(rig: &Rig, positions: &[f64]) -> Vec<JointValue> {
 
 /// Checks every sample of `trajectory` and the motion between them against `model`: the
 /// path's smallest clearance, or the refusal at the first sample below the margin, named
-/// by `origins`. Its times count from the trajectory's first sample.
+/// by `origins` (boxed: a refusal carries its words, and errors travel up by value). Its
+/// times count from the trajectory's first sample.
 pub fn check_clear(
     trajectory: &Trajectory,
     rig: &Rig,
     model: &CollisionModel,
     origins: &Origins,
-) -> Result<PathClearance, CollisionRefusal> {
+) -> Result<PathClearance, Box<CollisionRefusal>> {
     let mut scratch = model.scratch();
     let period_s = trajectory.period.as_secs_f64();
     let samples = (0..trajectory.len()).map(|k| (k as f64 * period_s, trajectory.position(k)));
     model
         .check_path(samples, &mut scratch)
-        .map_err(|at| CollisionRefusal::of(model, rig, &at, origins.at(at.index)))
+        .map_err(|at| Box::new(CollisionRefusal::of(model, rig, &at, origins.at(at.index))))
 }
