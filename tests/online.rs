@@ -19,7 +19,8 @@ use rigbridge::daemon::{held_position, hold_at, loopback_twin, plan_for, stream_
 use rigbridge::link::{Link, LinkCounters, LinkError, LinkEvent, LoopbackLink};
 use rigbridge::protocol::{AxisValues, Command, Feedback, Hello};
 use rigbridge::stream::{
-    Frame, Jog, OnlineCommand, Outcome, SpeedOverride, StreamControl, StreamReport, stream,
+    Frame, Jog, ModelCheck, OnlineCommand, Outcome, SpeedOverride, StreamControl, StreamReport,
+    stream,
 };
 use std::sync::Arc;
 use std::time::Duration;
@@ -327,6 +328,8 @@ fn the_deadman_brings_a_jog_to_rest_within_the_stated_distance() {
         // Long enough to reach the jog's speed (tenths of a second), short of the limits.
         let held = rng.random_range(100..200);
         let control = Arc::new(StreamControl::default());
+        // As serve does: each jog step is checked against the cell before it is sent.
+        control.set_cell_check(Arc::new(ModelCheck::new(settings.collision.clone())));
         let script: Script = Box::new(move |sent, control| {
             if sent < held {
                 control.online().keep_alive();
@@ -458,6 +461,8 @@ fn random_goals_jogs_and_overrides_stay_within_every_limit_and_react_in_a_cycle(
     let end = at + 50;
     let speed = Arc::new(SpeedOverride::default());
     let control = Arc::new(StreamControl::with_speed(speed.clone()));
+    // As serve does: each online step is checked against the cell before it is sent.
+    control.set_cell_check(Arc::new(ModelCheck::new(settings.collision.clone())));
     let given: Arc<std::sync::Mutex<Vec<usize>>> = Arc::default();
     let log = given.clone();
     let mut next = 0;
