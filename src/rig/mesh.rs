@@ -34,7 +34,7 @@ pub fn read_hull_points(file: &Path, key: &str, name: &str) -> Result<Vec<DVec3>
     let points = match extension.as_deref() {
         Some("stl") => read_stl(&path),
         Some("obj") => read_obj(&path),
-        _ => Err("only STL (.stl) and OBJ (.obj) meshes are read".to_string()),
+        _ => Err(MeshReadError::Format),
     }
     .map_err(|reason| invalid(format!("{}: {reason}", path.display())))?;
     if points.iter().any(|p| !p.is_finite()) {
@@ -56,9 +56,20 @@ fn resolve(file: &Path, name: &str) -> PathBuf {
     dir.join(bare)
 }
 
-fn read_stl(path: &Path) -> Result<Vec<DVec3>, String> {
-    let mut reader = std::fs::File::open(path).map_err(|e| e.to_string())?;
-    let mesh = stl_io::read_stl(&mut reader).map_err(|e| e.to_string())?;
+/// Why a mesh file gave no vertices (said after its path).
+#[derive(Debug, thiserror::Error)]
+enum MeshReadError {
+    #[error("only STL (.stl) and OBJ (.obj) meshes are read")]
+    Format,
+    #[error("{0}")]
+    Stl(#[from] std::io::Error),
+    #[error("{0}")]
+    Obj(#[from] tobj::LoadError),
+}
+
+fn read_stl(path: &Path) -> Result<Vec<DVec3>, MeshReadError> {
+    let mut reader = std::fs::File::open(path)?;
+    let mesh = stl_io::read_stl(&mut reader)?;
     Ok(mesh
         .vertices
         .iter()
@@ -66,9 +77,9 @@ fn read_stl(path: &Path) -> Result<Vec<DVec3>, String> {
         .collect())
 }
 
-fn read_obj(path: &Path) -> Result<Vec<DVec3>, String> {
+fn read_obj(path: &Path) -> Result<Vec<DVec3>, MeshReadError> {
     let options = tobj::LoadOptions::default();
-    let (models, _materials) = tobj::load_obj(path, &options).map_err(|e| e.to_string())?;
+    let (models, _materials) = tobj::load_obj(path, &options)?;
     Ok(models
         .iter()
         .flat_map(|model| model.mesh.positions.chunks_exact(3))
