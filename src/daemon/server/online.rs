@@ -107,7 +107,7 @@ pub async fn goal(
     };
     let goal = match goal_within_limits(&request.joints, &cell.settings().rig) {
         Ok(goal) => goal,
-        Err(why) => return error(StatusCode::UNPROCESSABLE_ENTITY, why),
+        Err(why) => return error(StatusCode::UNPROCESSABLE_ENTITY, why.to_string()),
     };
     act(
         &daemon,
@@ -194,28 +194,47 @@ fn jog_command(request: &JogRequest, rig: &Rig) -> Result<Option<OnlineCommand>,
     }
 }
 
-/// The goal in SI units, each joint within its limits; the first that is not, in words.
-fn goal_within_limits(joints: &[f64], rig: &Rig) -> Result<AxisValues, String> {
+/// Why a goal is refused: it names the joint, the value and the limits in the user's unit.
+#[derive(Debug, thiserror::Error)]
+enum GoalRefused {
+    #[error("goal: {given} values given, the rig {rig} has {dof} joints")]
+    Count {
+        given: usize,
+        rig: String,
+        dof: usize,
+    },
+    #[error(
+        "goal: {joint} at {value} {unit} is outside its limits [{lower:.4}, {upper:.4}] {unit}"
+    )]
+    Outside {
+        joint: String,
+        value: f64,
+        unit: &'static str,
+        lower: f64,
+        upper: f64,
+    },
+}
+
+/// The goal in SI units, each joint within its limits; the first that is not, named.
+fn goal_within_limits(joints: &[f64], rig: &Rig) -> Result<AxisValues, GoalRefused> {
     if joints.len() != rig.dof() {
-        return Err(format!(
-            "goal: {} values given, the rig {} has {} joints",
-            joints.len(),
-            rig.name,
-            rig.dof()
-        ));
+        return Err(GoalRefused::Count {
+            given: joints.len(),
+            rig: rig.name.clone(),
+            dof: rig.dof(),
+        });
     }
     let mut goal = AxisValues::zeros(rig.dof());
     for ((joint, value), out) in rig.joints.iter().zip(joints).zip(goal.as_mut_slice()) {
         let si = joint.kind.from_user(*value);
         if !value.is_finite() || !joint.limits.contains(si) {
-            return Err(format!(
-                "goal: {} at {value} {} is outside its limits [{:.4}, {:.4}] {}",
-                joint.name,
-                joint.kind.unit(),
-                joint.kind.to_user(joint.limits.lower),
-                joint.kind.to_user(joint.limits.upper),
-                joint.kind.unit()
-            ));
+            return Err(GoalRefused::Outside {
+                joint: joint.name.clone(),
+                value: *value,
+                unit: joint.kind.unit(),
+                lower: joint.kind.to_user(joint.limits.lower),
+                upper: joint.kind.to_user(joint.limits.upper),
+            });
         }
         *out = si;
     }
