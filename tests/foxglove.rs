@@ -10,7 +10,7 @@ mod common;
 use common::cli::{assert_succeeded_as, numbers};
 use common::{reference_path, repo_path};
 use rigbridge::log::{TF_TOPIC, URDF_ATTACHMENT, read_log};
-use rigbridge::rig::{Rig, load_rig, rig_from_urdf};
+use rigbridge::rig::{Rig, load_rig, rig_from_urdf_to};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -179,7 +179,9 @@ fn check_attachment(name: &str, log: &Path, rig: &Rig, peer: &Peer) {
     assert_eq!(summary.attachment_indexes.len(), 1);
     let attachment = mcap::read::attachment(&bytes, &summary.attachment_indexes[0]).unwrap();
     let text = std::str::from_utf8(&attachment.data).unwrap();
-    let back = rig_from_urdf(text, Path::new(URDF_ATTACHMENT)).unwrap();
+    // The attachment carries the cell (a tool, if any, past tool0): the chain to the rig's
+    // tool frame is the rig's.
+    let back = rig_from_urdf_to(text, Path::new(URDF_ATTACHMENT), Some(&rig.tool_frame)).unwrap();
     let q = [0.4, -0.3, 0.2, 1.0, -0.8, 2.5];
     let (a, b) = (back.forward(&q).unwrap(), rig.forward(&q).unwrap());
     assert!(

@@ -12,7 +12,7 @@ use common::serve::{Served, request_json, serve_args, start_serve};
 use common::{irb120, repo_path};
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::daemon::server::{FOXGLOVE_BACKLOG, FOXGLOVE_IDLE_TIMEOUT};
-use rigbridge::rig::rig_from_urdf;
+use rigbridge::rig::{rig_from_urdf, rig_from_urdf_to};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -227,10 +227,28 @@ fn the_urdf_asset_is_the_rig() {
     };
     assert_eq!(&data[1..6], &[5, 0, 0, 0, 0], "request 5, success");
     let text = std::str::from_utf8(&data[10..]).unwrap();
-    let back = rig_from_urdf(text, Path::new("irb120.urdf")).unwrap();
+    // The chain to tool0 is the rig's; the URDF's one moving leaf is the cell tool's TCP
+    // (serve runs config/rigbridge.toml: the pen), the frame jobs are planned for.
+    let rig = irb120();
+    let to_flange = rig_from_urdf_to(text, Path::new("irb120.urdf"), Some(&rig.tool_frame));
+    let at_tcp = rig_from_urdf(text, Path::new("irb120.urdf")).unwrap();
+    let settings = load_run_settings(&repo_path("config/rigbridge.toml")).unwrap();
     let q = [0.4, -0.3, 0.2, 1.0, -0.8, 2.5];
-    let (a, b) = (back.forward(&q).unwrap(), irb120().forward(&q).unwrap());
-    assert!((a.translation - b.translation).length() <= 1e-12);
+    let pairs = [(to_flange.unwrap(), &rig), (at_tcp, &settings.tcp_rig)];
+    for (back, ours) in pairs {
+        let (a, b) = (back.forward(&q).unwrap(), ours.forward(&q).unwrap());
+        assert!(
+            (a.translation - b.translation).length() <= 1e-12,
+            "{}: URDF {} vs ours {}",
+            back.tool_frame,
+            a.translation,
+            b.translation
+        );
+    }
+    assert_ne!(
+        settings.tcp_rig.tool, rig.tool,
+        "the shipped settings carry a tool"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -205,7 +205,7 @@ fn a_serve_job_on_the_twin_with_a_thread_per_cell_stays_at_normal_priority() {
     let runs = scratch_dir("realtime", "per-cell-runs");
     let served = in_process::start(vec![settings], in_process::options(runs));
     let before = tasks_named("rigbridge-job");
-    start_move(served.address, [-40.0, 20.0, -20.0, 0.0, 40.0, 40.0]);
+    start_move(served.address, [-40.0, -20.0, 20.0, 0.0, 40.0, 40.0]);
     // Well into its cycles (as the cell's status counts them), its thread is still at
     // normal priority.
     let streaming = wait_until("the job streaming", Duration::from_secs(20), || {

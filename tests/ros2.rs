@@ -220,10 +220,12 @@ fn run_publishes_joint_states_that_rosbags_decodes_with_rmw_zenohs_tokens() {
 
 /// Where the twin rests ([0, 0, 0, 0, 30 deg, 0]), rad.
 const TWIN_REST: &str = "0,0,0,0,0.5235987755982988,0";
-/// A valid trajectory from where the twin rests, and its last point (rad).
+/// A valid trajectory from where the twin rests, and its last point (rad). It leans the arm
+/// back (joint_2 negative): the shipped cell's wall stands 28 mm from the pen at rest, and
+/// leaning towards it is refused within the margin.
 const GOOD_TRAJECTORY: &str =
-    "0:0,0,0,0,0.5235987755982988,0;1.5:0.3,0.2,-0.1,0.2,0.6,0.1;3:0.4,0.1,0,0,0.5,0";
-const GOOD_LAST_POINT: [f64; 6] = [0.4, 0.1, 0.0, 0.0, 0.5, 0.0];
+    "0:0,0,0,0,0.5235987755982988,0;1.5:0.3,-0.2,0.1,0.2,0.6,0.1;3:0.4,-0.1,0,0,0.5,0";
+const GOOD_LAST_POINT: [f64; 6] = [0.4, -0.1, 0.0, 0.0, 0.5, 0.0];
 /// The Zenoh users of the authenticated tests: the daemon's and an operator's.
 const DAEMON_USER: &str = "rigbridge";
 const OPERATOR_USER: &str = "operator";

@@ -132,6 +132,11 @@ fn jobs_can_be_submitted_paused_resumed_and_stopped() {
     );
     assert_eq!(request(&server, "POST", "/api/resume", None).0, 200);
     wait_for(&server, "resume", |s| s["state"] == "running");
+    // Moving again (a resumed job's first cycles may still hold the arm): the stop below
+    // meets targets that move it.
+    wait_for(&server, "moving after the resume", |s| {
+        progress(s) > progress(&later) + 0.01
+    });
 
     let (code, stopped) = request(&server, "POST", "/api/stop", None);
     assert_eq!(code, 200, "{stopped}");

@@ -103,15 +103,29 @@ fn a_job_over_tcp_loses_no_frame_and_stays_within_limits() {
 
 #[test]
 fn a_restarted_twin_is_rejoined_from_its_actual_position() {
-    let first = start_twin("tcp://127.0.0.1:0");
+    // The restarted twin comes back at its initial position, and the way back to the path
+    // is a joint move from there: in the shipped cell it may pass the star's wall within the
+    // margin, and is then refused before motion like any path that does. This test
+    // is about the link, so the bridge's and both twins' cell is the floor alone.
+    let config = settings_on_the_floor();
+    let twin_on_the_floor = |listen: &str| {
+        let mut command = listen_command(listen);
+        command.arg("--config").arg(&config).env_remove("RUST_LOG");
+        start_listening(&mut command)
+    };
+    let first = twin_on_the_floor("tcp://127.0.0.1:0");
     let address = first.address.clone();
     let (log, json) = (scratch("restart.mcap"), scratch("restart.json"));
-    let daemon = spawn_run(&address, &log, &json);
+    let daemon = common::cli::spawn_run(
+        &["--link", &address, "--config", config.to_str().unwrap()],
+        &log,
+        &json,
+    );
     wait_for_logged_commands(&log, MID_JOB_COMMANDS, WAIT);
     drop(first);
     // Back only once the daemon has seen it go.
     wait_for_logged_event(&log, "link_lost", WAIT);
-    let _second = start_twin(address.trim_start_matches("tcp://"));
+    let _second = twin_on_the_floor(address.trim_start_matches("tcp://"));
     assert_succeeded(&daemon.wait_with_output().unwrap());
     let report = read_json(&json);
     assert_eq!(report["outcome"], "completed", "{report}");
@@ -124,6 +138,22 @@ fn a_restarted_twin_is_rejoined_from_its_actual_position() {
         "one unbroken sequence across the restart"
     );
     assert_resumes_in_step_after_link_loss(&run, &irb120(), PERIOD);
+}
+
+/// config/rigbridge.toml (the star job) with the floor alone for its cell.
+fn settings_on_the_floor() -> PathBuf {
+    let shipped = std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap();
+    let absolute = |name: &str| format!("\"{}\"", repo_path(&format!("config/{name}")).display());
+    let text = shipped
+        .replace("\"irb120.toml\"", &absolute("irb120.toml"))
+        .replace("\"cell-star.toml\"", &absolute("cell-floor.toml"));
+    assert!(
+        text.contains("cell-floor.toml"),
+        "the shipped settings name their cell"
+    );
+    let path = scratch("floor-only.toml");
+    std::fs::write(&path, text).unwrap();
+    path
 }
 
 #[test]

@@ -52,7 +52,7 @@ impl CheckSummary {
         *self.counts.entry(kind.to_string()).or_default() += 1;
     }
 
-    fn note_problem(&mut self, row: usize, line: u64, problem: &str) {
+    fn note_problem(&mut self, row: usize, line: u64, problem: impl std::fmt::Display) {
         if self.first_problem.is_none() {
             self.first_problem = Some(format!("row {row} (line {line}): {problem}"));
         }
@@ -88,22 +88,38 @@ fn quoted(text: &str) -> String {
     out
 }
 
+/// Why a row's joints cannot be read: the column's name and what it holds.
+#[derive(Debug, thiserror::Error)]
+enum RowProblem {
+    #[error("{column} is missing")]
+    Missing { column: String },
+    #[error("{column} = {quoted} is not a number")]
+    NotANumber { column: String, quoted: String },
+}
+
 /// One row's joints in SI units, or why not: the column and what it holds.
 fn row_joints(
     rig: &Rig,
     record: &csv::StringRecord,
     columns: &[usize],
     names: &[String],
-) -> Result<Vec<f64>, String> {
+) -> Result<Vec<f64>, RowProblem> {
     let mut joints = Vec::with_capacity(columns.len());
     for ((&c, joint), name) in columns.iter().zip(&rig.joints).zip(names) {
         let text = record.get(c).unwrap_or("").trim();
         if text.is_empty() {
-            return Err(format!("{name} is missing"));
+            return Err(RowProblem::Missing {
+                column: name.clone(),
+            });
         }
         match text.parse::<f64>() {
             Ok(v) if v.is_finite() => joints.push(joint.kind.from_user(v)),
-            _ => return Err(format!("{name} = {} is not a number", quoted(text))),
+            _ => {
+                return Err(RowProblem::NotANumber {
+                    column: name.clone(),
+                    quoted: quoted(text),
+                });
+            }
         }
     }
     Ok(joints)

@@ -567,6 +567,22 @@ pub fn clear(
     Ok(())
 }
 
+/// [`clear`] for `job`'s trajectory, against the cell of the job: a paint job's is the
+/// run's cell with the walls of the room it generates ([`paint::gate_settings`]).
+fn clear_job(
+    settings: &RunSettings,
+    job: Option<&config::JobConfig>,
+    trajectory: &crate::trajectory::Trajectory,
+    origins: &Origins,
+) -> Result<(), DaemonError> {
+    match job {
+        Some(config::JobConfig::Paint(job)) => {
+            clear(&paint::gate_settings(settings, job)?, trajectory, origins)
+        }
+        _ => clear(settings, trajectory, origins),
+    }
+}
+
 pub fn plan_for(
     settings: &RunSettings,
     job: &config::JobConfig,
@@ -590,7 +606,7 @@ pub fn plan_for(
     }
     // Checked here, not only when streamed: `serve` answers a job refused here in the
     // request that asked for it.
-    clear(settings, &trajectory, &origins)?;
+    clear_job(settings, Some(job), &trajectory, &origins)?;
     Ok(PlannedJob {
         job: job.clone(),
         start,
@@ -698,7 +714,7 @@ pub fn stream_job_with(
     } = sinks;
     // Every trajectory the daemon streams passes here: one not checked yet is, now.
     if !job.cleared {
-        clear(settings, job.trajectory, job.origins)?;
+        clear_job(settings, job.job, job.trajectory, job.origins)?;
     }
     let metadata = job_metadata(settings, job, link.describe());
     let recorder = log

@@ -67,6 +67,7 @@ pub fn run_paint(
         origins: crate::trajectory::Origins::whole("the painting plan"),
         cleared: false,
     };
+    // Not checked yet: streaming checks it against the run's cell and this room's walls.
     let run = super::stream_planned(settings, &job, &mut link, clock, log, control)?;
     let report = {
         let measured = world.lock().unwrap_or_else(PoisonError::into_inner);
@@ -76,5 +77,46 @@ pub fn run_paint(
         run,
         paint: report,
         world,
+    })
+}
+
+/// `settings` with the cell a paint job's plan is checked against before motion: the run's
+/// own cell objects and pairs, plus the walls and brush of the room the job generates (a
+/// cell file cannot know a generated room's walls), at the run cell's margin. That margin
+/// must lie below the planner's clearance, which the planner keeps at its samples only.
+pub fn gate_settings(
+    settings: &RunSettings,
+    job: &crate::job::Paint,
+) -> Result<RunSettings, DaemonError> {
+    let paint =
+        crate::task::paint::load_paint_settings(&job.paint_config).map_err(JobError::from)?;
+    let (margin_m, clearance_m) = (
+        settings.cell.margin_m,
+        paint.config.body.planning_clearance_m,
+    );
+    if margin_m >= clearance_m {
+        let refused = PaintPlanError::MarginNotBelowClearance {
+            margin_m,
+            clearance_m,
+        };
+        return Err(JobError::Paint(refused.into()).into());
+    }
+    let room = crate::task::paint::room_for(&paint, job.walls, job.seed)
+        .map_err(|e| JobError::Paint(e.into()))?;
+    let room = crate::task::paint::body::room_cell(&settings.rig, &room, &paint.config);
+    let mut cell = settings.cell.clone();
+    // The room's walls are placed in the painter's base frame; the cell's objects in its own.
+    cell.objects
+        .extend(room.objects.iter().map(|object| crate::cell::CellObject {
+            pose: settings.cell.mount * object.pose,
+            ..object.clone()
+        }));
+    cell.allowed_pairs.extend(room.allowed_pairs);
+    cell.tool = room.tool;
+    let collision = crate::cell::CollisionModel::new(&settings.rig, &cell)?;
+    Ok(RunSettings {
+        cell,
+        collision: Arc::new(collision),
+        ..settings.clone()
     })
 }

@@ -50,6 +50,10 @@ pub fn connect_tcp(settings: TcpSettings, hello: Hello) -> std::io::Result<Chann
 async fn keep_connected(settings: TcpSettings, mut ends: IoEnds, mut bridge: BridgeSession) {
     let mut backoff = Backoff::between(settings.backoff_initial, settings.backoff_max);
     let mut sessions = 0u64;
+    // Whether a connection opened and closed while no controller had ever answered the
+    // Hello on this link: a later refusal then says so too, since that is the first fault
+    // (a controller that did answer once and went away is plainly refused).
+    let mut unanswered = false;
     while !ends.shared.closed.load(Ordering::SeqCst) {
         match TcpStream::connect(&settings.address).await {
             Ok(stream) => {
@@ -63,6 +67,7 @@ async fn keep_connected(settings: TcpSettings, mut ends: IoEnds, mut bridge: Bri
                 while ends.commands.try_recv().is_ok() {}
                 ends.shared.connected.store(true, Ordering::SeqCst);
                 let ended_by_bridge = session(stream, &mut ends, &mut bridge).await;
+                unanswered = ends.shared.sessions.load(Ordering::SeqCst) == 0;
                 bridge.closed(&ends.shared);
                 ends.shared.connected.store(false, Ordering::SeqCst);
                 if ended_by_bridge {
@@ -70,8 +75,17 @@ async fn keep_connected(settings: TcpSettings, mut ends: IoEnds, mut bridge: Bri
                 }
             }
             Err(e) => {
-                ends.shared
-                    .set_problem(Some(connect_failure(&settings.address, &e)));
+                let failure = connect_failure(&settings.address, &e);
+                let problem = if unanswered {
+                    format!(
+                        "the controller at {} did not answer the bridge's Hello before the \
+                         connection closed; reconnecting: {failure}",
+                        settings.address
+                    )
+                } else {
+                    failure
+                };
+                ends.shared.set_problem(Some(problem));
                 tokio::time::sleep(backoff.next_wait()).await;
             }
         }

@@ -20,7 +20,7 @@ pub(crate) use config::{
 pub use fk::{DofMismatch, JointAxis};
 pub use geometry::{Collision, LinkBody, Shape};
 pub use pose::{Pose, PoseError, UNIT_QUATERNION_TOLERANCE, rotation_angle_between};
-pub use urdf::{MAX_URDF_BYTES, MAX_URDF_JOINTS, rig_from_urdf};
+pub use urdf::{MAX_URDF_BYTES, MAX_URDF_JOINTS, rig_from_urdf, rig_from_urdf_to};
 pub(crate) use urdf::{UrdfTree, check_size as check_urdf_size};
 pub use urdf_out::{
     FixedLink, HullMesh, UrdfExport, export, export_with_reach, generated_link_names,

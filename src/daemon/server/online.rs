@@ -141,32 +141,54 @@ fn act(
     }
 }
 
+/// Why a jog body is refused: it names the joint, axis or direction it could not take.
+#[derive(Debug, thiserror::Error)]
+enum JogRefused {
+    #[error("jog: the rig {rig} has no joint `{joint}`")]
+    NoSuchJoint { rig: String, joint: String },
+    #[error("jog: axis {axis} is not one of the rig's axes 1..={dof}")]
+    NoSuchAxis { axis: usize, dof: usize },
+    #[error("jog: give `joint` or `axis`, not both")]
+    JointAndAxis,
+    #[error("jog: a joint's direction is 1 or -1")]
+    JointDirection,
+    #[error("jog: a Cartesian direction is [x, y, z]")]
+    CartesianDirection,
+    #[error("jog: the direction [0, 0, 0] points nowhere")]
+    ZeroDirection,
+    #[error(
+        "jog: send a joint (or axis) and a direction, a frame and a direction, keep_alive or \
+         release"
+    )]
+    Incomplete,
+}
+
 /// The command a jog body asks for; `None` for a keep-alive.
-fn jog_command(request: &JogRequest, rig: &Rig) -> Result<Option<OnlineCommand>, String> {
+fn jog_command(request: &JogRequest, rig: &Rig) -> Result<Option<OnlineCommand>, JogRefused> {
     if request.release {
         return Ok(Some(OnlineCommand::Release));
     }
     let axis = match (&request.joint, request.axis) {
-        (Some(name), None) => Some(
-            rig.joints
-                .iter()
-                .position(|j| &j.name == name)
-                .ok_or_else(|| format!("jog: the rig {} has no joint `{name}`", rig.name))?,
-        ),
+        (Some(name), None) => Some(rig.joints.iter().position(|j| &j.name == name).ok_or_else(
+            || JogRefused::NoSuchJoint {
+                rig: rig.name.clone(),
+                joint: name.clone(),
+            },
+        )?),
         (None, Some(axis)) if (1..=rig.dof()).contains(&axis) => Some(axis - 1),
         (None, Some(axis)) => {
-            return Err(format!(
-                "jog: axis {axis} is not one of the rig's axes 1..={}",
-                rig.dof()
-            ));
+            return Err(JogRefused::NoSuchAxis {
+                axis,
+                dof: rig.dof(),
+            });
         }
-        (Some(_), Some(_)) => return Err("jog: give `joint` or `axis`, not both".into()),
+        (Some(_), Some(_)) => return Err(JogRefused::JointAndAxis),
         (None, None) => None,
     };
     match (axis, request.frame, &request.direction) {
         (Some(axis), None, Some(direction)) => {
             let direction = direction.as_f64().filter(|d| *d == 1.0 || *d == -1.0);
-            let direction = direction.ok_or("jog: a joint's direction is 1 or -1")?;
+            let direction = direction.ok_or(JogRefused::JointDirection)?;
             Ok(Some(OnlineCommand::Jog(Jog::Joint { axis, direction })))
         }
         (None, Some(frame), Some(direction)) => {
@@ -175,22 +197,16 @@ fn jog_command(request: &JogRequest, rig: &Rig) -> Result<Option<OnlineCommand>,
                 .map(|values| values.iter().filter_map(|v| v.as_f64()).collect());
             let xyz = xyz
                 .filter(|v| v.len() == 3 && v.iter().all(|c| c.is_finite()))
-                .ok_or("jog: a Cartesian direction is [x, y, z]")?;
+                .ok_or(JogRefused::CartesianDirection)?;
             let direction = glam::DVec3::new(xyz[0], xyz[1], xyz[2]);
-            let unit = direction
-                .try_normalize()
-                .ok_or("jog: the direction [0, 0, 0] points nowhere")?;
+            let unit = direction.try_normalize().ok_or(JogRefused::ZeroDirection)?;
             Ok(Some(OnlineCommand::Jog(Jog::Cartesian {
                 frame,
                 direction: unit,
             })))
         }
         (None, None, None) if request.keep_alive => Ok(None),
-        _ => Err(
-            "jog: send a joint (or axis) and a direction, a frame and a direction, \
-             keep_alive or release"
-                .into(),
-        ),
+        _ => Err(JogRefused::Incomplete),
     }
 }
 

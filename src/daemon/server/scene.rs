@@ -44,7 +44,7 @@ pub fn scene_for_job(settings: &RunSettings, job: &JobConfig) -> JobScene {
             (scene, None)
         }
         Scene::Wall(_) | Scene::Arm => {
-            let trace = Arc::new(Mutex::new(ToolTrace::new(settings.rig.clone())));
+            let trace = Arc::new(Mutex::new(ToolTrace::new(settings.tcp_rig.clone())));
             let scene = ArmScene::for_job(settings.rig.clone(), job, Some(trace.clone()));
             // The trace is drawn, not measured: a cycle skips it rather than wait for the view.
             (Box::new(scene), Some(Box::new(ViewOnly(trace))))

@@ -58,6 +58,12 @@ pub enum PaintPlanError {
     Collides { sample: usize, clearance_m: f64 },
     #[error("the painter's collision model")]
     Cell(#[from] crate::cell::CellError),
+    #[error(
+        "the cell's margin_m = {margin_m} m is not below the paint config's \
+         body.planning_clearance_m = {clearance_m} m: the planner keeps its clearance at its \
+         samples, and the check before motion, continuous between them, would refuse the plan"
+    )]
+    MarginNotBelowClearance { margin_m: f64, clearance_m: f64 },
 }
 
 /// Why a column, a stroke or a move between strokes is refused.
