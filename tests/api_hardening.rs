@@ -259,7 +259,8 @@ fn rebinding_hosts_plain_text_and_unwrapped_bodies_are_refused_and_the_schema_is
     let plain = format!("Host: {}\r\nContent-Type: text/plain\r\n", server.address);
     assert_eq!(send(&server, "POST", "/api/jobs", &plain, valid).0, 415);
     assert_eq!(send(&server, "POST", "/api/pause", &plain, b"").0, 415);
-    // A reset re-arms a controller: it takes JSON only, like every control that enables motion.
+    // A reset re-arms a controller: it takes JSON or no content type at all (it has no
+    // body), never a form or text a page of another site could send without asking.
     assert_eq!(send(&server, "POST", "/api/reset", &plain, b"").0, 415);
     let cross = format!(
         "Host: {}\r\nOrigin: http://evil.example\r\nContent-Type: application/json\r\n",

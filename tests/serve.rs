@@ -317,8 +317,10 @@ fn a_token_guards_the_control_routes_on_loopback() {
     );
     assert_ne!(code, 401, "{response}");
     assert_eq!(code, 409, "no job to stop: {response}");
-    // Status stays open on loopback.
+    // Status and the job history stay open on loopback.
     assert_eq!(request_with(&server, "GET", "/api/status", "").0, 200);
+    assert_eq!(request_with(&server, "GET", "/api/jobs", "").0, 200);
+    assert_eq!(request_with(&server, "GET", "/api/jobs/1", "").0, 404);
     assert_eq!(request_with(&server, "GET", "/", "").0, 200);
 }
 
@@ -390,6 +392,8 @@ fn a_non_loopback_bind_with_a_token_guards_status_too() {
     );
     // Only ever connect to 127.0.0.1.
     assert_unauthorized(request_with(&server, "GET", "/api/status", ""));
+    assert_unauthorized(request_with(&server, "GET", "/api/jobs", ""));
+    assert_unauthorized(request_with(&server, "GET", "/api/cells/irb120/jobs/1", ""));
     assert_unauthorized(request_with(&server, "POST", "/api/stop", ""));
     assert_unauthorized(request_with(&server, "GET", "/api/live", ""));
     // The page is static code without state: a browser must be able to load it.
@@ -404,6 +408,13 @@ fn a_non_loopback_bind_with_a_token_guards_status_too() {
     ));
     let (code, status) = request(&server, "GET", "/api/status", None);
     assert_eq!((code, status["state"].as_str()), (200, Some("idle")));
+    let (code, jobs) = request(&server, "GET", "/api/jobs", None);
+    assert_eq!(
+        (code, &jobs["jobs"]),
+        (200, &serde_json::json!([])),
+        "{jobs}"
+    );
+    assert_eq!(request(&server, "GET", "/api/jobs/1", None).0, 404);
     assert_eq!(request(&server, "POST", "/api/stop", None).0, 409);
 }
 

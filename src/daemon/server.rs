@@ -1,7 +1,8 @@
 //! `rigbridge serve`: the daemon that stays up. A control API over HTTP + JSON on
 //! 127.0.0.1 for one or more cells ([`cell`]: one run settings file each, so one rig with
-//! its own twin, job slot and live view): submit a job, status, pause/resume, stop
-//! (decelerate to standstill), e-stop and reset (clear a latched fault), per cell under `/api/cells/{cell}/`, and for the
+//! its own twin, job slot and live view): submit a job, status, the cell's latest jobs (a
+//! lookup may wait for a job's end), pause/resume, stop (decelerate to standstill), e-stop
+//! and reset (clear a latched fault), per cell under `/api/cells/{cell}/`, and for the
 //! first cell also without the prefix. One job streams at a time per cell; jobs in
 //! different cells run side by side. A cell's twin persists between jobs, so each job starts
 //! where the last one left the rig. Like mini-redis, the binary only binds the listener
@@ -43,7 +44,7 @@ use crate::stream::{Executor, ExecutorSettings, StreamControl};
 use crate::twin::TwinWorld;
 use crate::view::page;
 use axum::extract::ws::{CloseFrame, Message as WsMessage, WebSocket, WebSocketUpgrade};
-use axum::extract::{FromRequestParts, RawPathParams, Request, State};
+use axum::extract::{FromRequestParts, RawPathParams, RawQuery, Request, State};
 use axum::http::request::Parts;
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::middleware::Next;
@@ -659,11 +660,17 @@ fn routes(daemon: &Arc<Daemon>, exposed: bool) -> Router<Arc<Daemon>> {
         .route("/api/cells/{cell}/live", get(live))
         .route_layer(live_auth)
         .route_layer(same_origin);
-    let status = Router::new()
-        .route("/api/status", get(status))
-        .route("/api/cells/{cell}/status", get(status))
+    // Reading a cell's state moves nothing. `GET .../jobs` shares its path with `POST`
+    // above: axum merges the two, each method behind its own group's checks.
+    let mut status = Router::new()
         .route("/api/cells", get(list_cells))
         .route("/api/schema", get(schema));
+    for prefix in ["/api", "/api/cells/{cell}"] {
+        status = status
+            .route(&format!("{prefix}/status"), get(status_of))
+            .route(&format!("{prefix}/jobs"), get(list_jobs))
+            .route(&format!("{prefix}/jobs/{{id}}"), get(job));
+    }
     // Off loopback the rigs' state is sensitive too.
     let status = if exposed {
         status.route_layer(auth)
@@ -825,8 +832,135 @@ async fn list_cells(State(daemon): State<Arc<Daemon>>) -> Response {
     Json(serde_json::json!({ "cells": cells })).into_response()
 }
 
-async fn status(CellRef(cell): CellRef) -> Response {
+async fn status_of(CellRef(cell): CellRef) -> Response {
     Json(cell.status()).into_response()
+}
+
+/// The longest `wait_s` of `GET .../jobs/{id}`: half of nginx's default
+/// `proxy_read_timeout` of 60 s (<https://nginx.org/en/docs/http/ngx_http_proxy_module.html#proxy_read_timeout>),
+/// so a wait behind a reverse proxy left at its defaults is answered before the proxy gives
+/// up on it.
+pub const MAX_JOB_WAIT_S: f64 = 30.0;
+
+/// `GET .../jobs`: the cell's remembered jobs (at most [`cell::KEPT_JOBS`]), newest first.
+async fn list_jobs(CellRef(cell): CellRef) -> Response {
+    let jobs = match settled(&cell, |cell| cell.jobs()).await {
+        Ok(Ok(jobs)) => jobs,
+        Ok(Err(e)) => return job_unshown(&cell, e),
+        Err(refusal) => return refusal,
+    };
+    Json(serde_json::json!({ "cell": cell.name(), "jobs": jobs })).into_response()
+}
+
+/// `GET .../jobs/{id}[?wait_s=S]`: one job of the cell, 404 naming the id when the cell
+/// never ran it or forgot it. With `wait_s` the answer waits, up to S seconds (at most
+/// [`MAX_JOB_WAIT_S`]), for a running job to end: a client chaining jobs learns of each
+/// end as it happens, without polling. A job answered as ended has freed its cell.
+async fn job(CellRef(cell): CellRef, params: RawPathParams, query: RawQuery) -> Response {
+    let id = params
+        .iter()
+        .find(|(key, _)| *key == "id")
+        .map_or("", |(_, id)| id);
+    let Ok(number) = id.parse::<u64>() else {
+        return error(
+            StatusCode::NOT_FOUND,
+            format!(
+                "no job `{}` in cell `{}`: a job's id is the number `POST .../jobs` answered",
+                guard::shorten(id),
+                cell.name()
+            ),
+        );
+    };
+    let wait = match wait_of(query.0.as_deref()) {
+        Ok(wait) => wait,
+        Err(refused) => return error(StatusCode::BAD_REQUEST, refused),
+    };
+    // Subscribed before the first look: an end between the look and the wait still wakes.
+    let mut ends = cell.job_ends();
+    let deadline = tokio::time::Instant::now() + wait;
+    loop {
+        let entry = match settled(&cell, move |cell| cell.job_entry(number)).await {
+            Ok(entry) => entry,
+            Err(refusal) => return refusal,
+        };
+        let entry = match entry {
+            None => {
+                return error(
+                    StatusCode::NOT_FOUND,
+                    format!(
+                        "no job {number} in cell `{}`: it never ran there, or it is older than \
+                         the {} jobs a cell remembers",
+                        cell.name(),
+                        cell::KEPT_JOBS
+                    ),
+                );
+            }
+            Some(Err(e)) => return job_unshown(&cell, e),
+            Some(Ok(entry)) => entry,
+        };
+        if !entry.running {
+            return Json(entry.json).into_response();
+        }
+        match tokio::time::timeout_at(deadline, ends.changed()).await {
+            Ok(Ok(())) => {}
+            // The wait is over (or the cell is gone): the job as it stands.
+            Ok(Err(_)) | Err(_) => return Json(entry.json).into_response(),
+        }
+    }
+}
+
+/// `what` of `cell`, asked once the cell's slot is free of a job whose end is recorded
+/// ([`Cell::settle`]: a join, so off the async threads).
+async fn settled<T: Send + 'static>(
+    cell: &Arc<Cell>,
+    what: impl FnOnce(&Cell) -> T + Send + 'static,
+) -> Result<T, Response> {
+    let cell = cell.clone();
+    tokio::task::spawn_blocking(move || {
+        cell.settle();
+        what(&cell)
+    })
+    .await
+    .map_err(|_| {
+        error(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "reading the cell's jobs failed unexpectedly",
+        )
+    })
+}
+
+/// A job record that would not turn into JSON.
+fn job_unshown(cell: &Cell, e: serde_json::Error) -> Response {
+    error(
+        StatusCode::INTERNAL_SERVER_ERROR,
+        format!("cannot show the jobs of cell `{}`: {e}", cell.name()),
+    )
+}
+
+/// The wait a job lookup's query asks for: `wait_s`, seconds in 0..=[`MAX_JOB_WAIT_S`];
+/// none without it. Anything else in the query is refused, naming it.
+fn wait_of(query: Option<&str>) -> Result<Duration, String> {
+    let mut wait = Duration::ZERO;
+    for (key, value) in form_urlencoded::parse(query.unwrap_or("").as_bytes()) {
+        if key != "wait_s" {
+            return Err(format!(
+                "unknown query parameter `{}`: a job lookup takes only `wait_s`",
+                guard::shorten(&key)
+            ));
+        }
+        wait = value
+            .parse::<f64>()
+            .ok()
+            .filter(|s| (0.0..=MAX_JOB_WAIT_S).contains(s))
+            .map(Duration::from_secs_f64)
+            .ok_or_else(|| {
+                format!(
+                    "wait_s = `{}` is not a number of seconds in 0..={MAX_JOB_WAIT_S}",
+                    guard::shorten(&value)
+                )
+            })?;
+    }
+    Ok(wait)
 }
 
 /// `GET /api/schema`: the JSON Schema of `POST .../jobs`'s body.

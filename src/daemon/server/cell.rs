@@ -1,8 +1,8 @@
 //! One cell of `rigbridge serve`: one run settings file, so one rig with its own twin behind
 //! its own loopback link, its own job slot (one job at a time, on its own thread with its
-//! own clock), the last job's result, and its own live hub and twin world. Cells share
-//! nothing but the daemon's options and its job numbering; jobs in different cells run
-//! concurrently. This file owns a cell's state and its job lifecycle and the startup check
+//! own clock), its latest jobs and how they ended, and its own live hub and twin world.
+//! Cells share nothing but the daemon's options and its job numbering; jobs in different
+//! cells run concurrently. This file owns a cell's state and its job lifecycle and the startup check
 //! that cells do not clash; HTTP routing and access control stay in `server.rs`, the choice
 //! of a job's live scene in `scene.rs`.
 
@@ -18,7 +18,6 @@ use crate::daemon::{
 use crate::link::{Link, LinkCounters, LinkSpec, LoopbackLink};
 use crate::log::Recorder;
 use crate::protocol::ControllerStatus;
-use crate::rig::JointKind;
 use crate::stream::Phase;
 use crate::stream::{
     Executor, Frame, Jog, ModelCheck, OnlineCommand, Outcome, SpeedOverride, StreamControl,
@@ -28,9 +27,9 @@ use crate::twin::SharedWorld;
 use crate::view::{JobView, LiveHub, LiveSample, LiveSink, LiveSlot};
 use serde::Serialize;
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use thiserror::Error;
-use tokio::sync::oneshot;
+use tokio::sync::{oneshot, watch};
 
 /// Why a set of run settings files cannot be served together.
 #[derive(Debug, Error)]
@@ -109,21 +108,63 @@ struct ActiveJob {
     control: Arc<StreamControl>,
     /// The job's log while it streams, for the actions taken on it.
     actions: Arc<ActionLog>,
+    /// Where its cycles count from and its planned duration, for its status.
+    figures: Arc<JobFigures>,
     handle: std::thread::JoinHandle<()>,
 }
 
 impl ActiveJob {
-    fn status(&self) -> JobStatus {
+    /// The job's status as of `latest`, the cell's latest streamed cycle; `period_s` the
+    /// cell's cycle period.
+    fn status(&self, latest: &LiveSample, period_s: f64) -> JobStatus {
+        let cycles = self.figures.cycles_in(latest);
+        let progress = self.control.progress();
         JobStatus {
             id: self.id,
             name: self.name.clone(),
-            progress: self.control.progress(),
-            cycles: self.control.cycles(),
+            progress,
+            cycles,
+            elapsed_s: cycles as f64 * period_s,
+            remaining_s: self.figures.remaining_s(progress),
             overruns: self.control.overruns(),
             paused: self.control.is_paused(),
             phase: self.control.phase(),
             log_error: self.actions.log_failure(),
         }
+    }
+}
+
+/// What a job's status needs besides its controls: the cell's live slot's cycle count
+/// when the job started (the slot counts every job's cycles; the job's own are those
+/// since), and the planned duration of its path, set by the job's thread once planned
+/// (never for an online session, which has no planned end). The cycle writes nothing here.
+#[derive(Debug)]
+struct JobFigures {
+    first_cycle: u64,
+    planned_s: OnceLock<f64>,
+}
+
+impl From<u64> for JobFigures {
+    /// A job starting when the cell's slot has counted `first_cycle` cycles.
+    fn from(first_cycle: u64) -> Self {
+        JobFigures {
+            first_cycle,
+            planned_s: OnceLock::new(),
+        }
+    }
+}
+
+impl JobFigures {
+    /// The cycles this job has streamed as of `latest`: 0 until its first.
+    fn cycles_in(&self, latest: &LiveSample) -> u64 {
+        latest.cycles.saturating_sub(self.first_cycle)
+    }
+
+    /// The planned duration less where the job is on its path (`progress` of it, 0..=1),
+    /// at full speed: neither a pause nor the speed override is counted in.
+    fn remaining_s(&self, progress: f64) -> Option<f64> {
+        let planned = self.planned_s.get()?;
+        Some((planned * (1.0 - progress.clamp(0.0, 1.0))).max(0.0))
     }
 }
 
@@ -148,9 +189,13 @@ pub struct Status {
     controller: ControllerView,
     job: Option<JobStatus>,
     last: Option<JobResult>,
-    /// The twin's actual position per axis, in the axis' unit; empty while a job streams
-    /// (the live view has it then).
+    /// The rig's actual position per axis, in the axis' unit: while a job streams, as of
+    /// its latest cycle; otherwise the in-process twin's own when the link is free (empty
+    /// for a remote controller, and while a job holds the link before its first cycle).
     actual: Vec<AxisValue>,
+    /// The position commanded in the running job's latest streamed cycle, per axis like
+    /// `actual`; empty between jobs and until a job's first cycle.
+    commanded: Vec<AxisValue>,
     /// The link's counters (as in the run report): the link's own while it is free, as of
     /// the last streamed cycle while a job holds it.
     link_counters: LinkCounters,
@@ -193,8 +238,18 @@ pub struct CellSummary {
 pub struct JobStatus {
     id: u64,
     name: String,
+    /// The share of the path done, 0..=1; after a resume (a link loss, a stall), of the
+    /// part being streamed: the way back to the path, then the rest of it.
     progress: f64,
+    /// Cycles this job has streamed (from 0 for each job; none while it plans or waits for
+    /// the controller).
     cycles: u64,
+    /// `cycles` in seconds of the job's clock: how long it has streamed, pauses included.
+    elapsed_s: f64,
+    /// The planned duration less where the job is on its path (`progress` of it), at full
+    /// speed; `null` for an online session (no planned end) and until the job is planned.
+    /// After a resume it counts from the part being streamed, so it overstates what is left.
+    remaining_s: Option<f64>,
     /// Cycles that overran their budget on the shared executor (the job then went on on
     /// its own thread).
     overruns: u64,
@@ -291,6 +346,55 @@ fn describe(command: &OnlineCommand, rig: &crate::rig::Rig) -> String {
 /// How many control events a cell keeps for its status.
 const KEPT_EVENTS: usize = 32;
 
+/// How many jobs a cell remembers for `GET .../jobs`: enough for a client chaining a batch
+/// of jobs to read each one's result well after it ended, while a daemon up for months
+/// keeps a bounded memory (a finished job's report is a few kilobytes of JSON).
+pub const KEPT_JOBS: usize = 64;
+
+/// One job of a cell's history: running until its thread records how it ended.
+struct JobRecord {
+    id: u64,
+    name: String,
+    ended: Option<JobResult>,
+}
+
+impl JobRecord {
+    fn view(&self) -> RecordView<'_> {
+        let (result, report, error) = match &self.ended {
+            None => ("running", None, None),
+            Some(JobResult::Finished { report, .. }) => ("finished", Some(&**report), None),
+            Some(JobResult::Failed { error, .. }) => ("failed", None, Some(error.as_str())),
+        };
+        RecordView {
+            id: self.id,
+            name: &self.name,
+            result,
+            report,
+            error,
+        }
+    }
+}
+
+/// A job as `GET .../jobs` and `GET .../jobs/{id}` show it: its number and name, `result`
+/// (`running`, `finished`, `failed`) and, once it ended, its `report` or `error` as the
+/// status' `last` has them.
+#[derive(Serialize)]
+struct RecordView<'a> {
+    id: u64,
+    name: &'a str,
+    result: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    report: Option<&'a RunReport>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    error: Option<&'a str>,
+}
+
+/// A job of a cell's history as JSON ([`RecordView`]), and whether it still runs.
+pub struct JobEntry {
+    pub running: bool,
+    pub json: serde_json::Value,
+}
+
 /// Where a cell's jobs stream: its own in-process twin, or a real link (`[stream] link`),
 /// opened at the first job and kept (it reconnects by itself after a loss).
 enum CellLink {
@@ -325,6 +429,10 @@ pub struct Cell {
     speed: Arc<SpeedOverride>,
     /// The in-process twin's collision watch, as its status reads it.
     contacts: Option<LiveContacts>,
+    /// The latest jobs, newest first, at most [`KEPT_JOBS`].
+    history: Mutex<std::collections::VecDeque<JobRecord>>,
+    /// How many jobs have ended: a lookup that waits for a job's end wakes on its change.
+    ended: watch::Sender<u64>,
 }
 
 /// What a cell's status reads of its twin's collision watch while the twin runs.
@@ -409,6 +517,8 @@ impl Cell {
             executor,
             speed: Arc::default(),
             contacts,
+            history: Mutex::default(),
+            ended: watch::Sender::new(0),
         })
     }
 
@@ -590,38 +700,63 @@ impl Cell {
     }
 
     fn running(&self) -> Option<JobStatus> {
+        self.running_as_of(&self.hub.slot().latest())
+    }
+
+    /// The running job's status, its cycles counted as of `latest` (the cell's latest
+    /// streamed cycle, read before the job slot is locked: the slot's lock is never held
+    /// inside the job's).
+    fn running_as_of(&self, latest: &LiveSample) -> Option<JobStatus> {
+        let period_s = self.settings.period().as_secs_f64();
         let job = self.job.lock().unwrap_or_else(PoisonError::into_inner);
         job.as_ref()
             .filter(|j| !j.handle.is_finished())
-            .map(ActiveJob::status)
+            .map(|j| j.status(latest, period_s))
+    }
+
+    /// `values` (rad or m, in the rig's joint order) per axis in the axis' unit.
+    fn axis_values(&self, values: &[f64]) -> Vec<AxisValue> {
+        self.settings
+            .rig
+            .joints
+            .iter()
+            .zip(values)
+            .map(|(joint, q)| AxisValue {
+                joint: joint.name.clone(),
+                value: joint.kind.to_user(*q),
+                unit: joint.kind.unit(),
+            })
+            .collect()
+    }
+
+    /// The actual and the commanded position: a running job's from its latest streamed
+    /// cycle (the live view's slot: the cycle only ever `try_lock`s it, so this read never
+    /// holds a cycle up); between jobs the in-process twin's actual position.
+    fn positions(
+        &self,
+        job: Option<&JobStatus>,
+        latest: &LiveSample,
+    ) -> (Vec<AxisValue>, Vec<AxisValue>) {
+        if job.is_some_and(|job| job.cycles > 0) {
+            return (
+                self.axis_values(latest.actual.as_slice()),
+                self.axis_values(latest.commanded.as_slice()),
+            );
+        }
+        // A job holds the link from its start until it ends: before its first cycle its
+        // position is not known here.
+        match self.link.try_lock().as_deref() {
+            Ok(CellLink::Twin(link)) => (self.axis_values(link.twin().actual()), Vec::new()),
+            _ => (Vec::new(), Vec::new()),
+        }
     }
 
     pub fn status(&self) -> Status {
         self.flush_refusals();
-        let job = self.running();
+        let latest = self.hub.slot().latest();
+        let job = self.running_as_of(&latest);
         let controller = self.controller();
-        // A streaming job holds the link: the live view has the position then.
-        let actual = match self.link.try_lock().as_deref() {
-            Ok(CellLink::Twin(link)) => self
-                .settings
-                .rig
-                .joints
-                .iter()
-                .zip(link.twin().actual())
-                .map(|(joint, q)| {
-                    let (value, unit) = match joint.kind {
-                        JointKind::Revolute => (q.to_degrees(), "deg"),
-                        JointKind::Prismatic => (*q, "m"),
-                    };
-                    AxisValue {
-                        joint: joint.name.clone(),
-                        value,
-                        unit,
-                    }
-                })
-                .collect(),
-            _ => Vec::new(),
-        };
+        let (actual, commanded) = self.positions(job.as_ref(), &latest);
         Status {
             cell: self.name().to_string(),
             link: self.link_name.clone(),
@@ -637,6 +772,7 @@ impl Cell {
             job,
             last: self.last().clone(),
             actual,
+            commanded,
             link_counters: self.link_counters(),
             speed_percent: 100.0 * self.speed.fraction(),
             contacts: self.contacts.as_ref().map(|live| {
@@ -833,23 +969,106 @@ impl Cell {
             control.online().give(command);
         }
         let actions = Arc::new(ActionLog::default());
+        // No job streams now (the last one's thread is done): the slot's count is final.
+        let figures = Arc::new(JobFigures::from(self.hub.slot().latest().cycles));
         let (planned_tx, planned) = oneshot::channel();
         let job_io = JobIo {
             control: control.clone(),
             actions: actions.clone(),
+            figures: figures.clone(),
             planned: planned_tx,
         };
-        let handle = self
-            .spawn_job(id, work, job_io, options)
-            .map_err(StartRefused::Spawn)?;
+        // In the history before the thread starts, so its end always finds it there.
+        self.remember(id, &name);
+        let handle = match self.spawn_job(id, work, job_io, options) {
+            Ok(handle) => handle,
+            Err(e) => {
+                self.forget(id);
+                return Err(StartRefused::Spawn(e));
+            }
+        };
         *slot = Some(ActiveJob {
             id,
             name: name.clone(),
             control,
             actions,
+            figures,
             handle,
         });
         Ok(StartedJob { id, name, planned })
+    }
+
+    fn history(&self) -> std::sync::MutexGuard<'_, std::collections::VecDeque<JobRecord>> {
+        self.history.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Job `id` starts: the newest of the history, which forgets its oldest beyond
+    /// [`KEPT_JOBS`].
+    fn remember(&self, id: u64, name: &str) {
+        let mut history = self.history();
+        history.push_front(JobRecord {
+            id,
+            name: name.to_string(),
+            ended: None,
+        });
+        history.truncate(KEPT_JOBS);
+    }
+
+    /// Job `id` never started (its thread did not).
+    fn forget(&self, id: u64) {
+        self.history().retain(|record| record.id != id);
+    }
+
+    /// How job `id` ended: in its history record and as the cell's last result, then told
+    /// to whoever waits for a job's end.
+    fn record_end(&self, id: u64, result: JobResult) {
+        if let Some(record) = self.history().iter_mut().find(|r| r.id == id) {
+            record.ended = Some(result.clone());
+        }
+        *self.last() = Some(result);
+        self.ended
+            .send_modify(|ended| *ended = ended.wrapping_add(1));
+    }
+
+    /// A receiver whose value changes whenever a job of the cell ends.
+    pub fn job_ends(&self) -> watch::Receiver<u64> {
+        self.ended.subscribe()
+    }
+
+    /// The cell's remembered jobs, newest first, as JSON ([`RecordView`]).
+    pub fn jobs(&self) -> Result<Vec<serde_json::Value>, serde_json::Error> {
+        self.history()
+            .iter()
+            .map(|record| serde_json::to_value(record.view()))
+            .collect()
+    }
+
+    /// Job `id` as JSON ([`RecordView`]); `None` when it never ran in this cell or is
+    /// older than the [`KEPT_JOBS`] the cell remembers.
+    pub fn job_entry(&self, id: u64) -> Option<Result<JobEntry, serde_json::Error>> {
+        let history = self.history();
+        let record = history.iter().find(|record| record.id == id)?;
+        Some(serde_json::to_value(record.view()).map(|json| JobEntry {
+            running: record.ended.is_none(),
+            json,
+        }))
+    }
+
+    /// Frees the job slot once the running job's end is recorded: its thread is then
+    /// returning, so the join is short. A client told that a job ended can start the next
+    /// at once, never to be answered "busy" by a thread still on its way out.
+    pub fn settle(&self) {
+        let mut slot = self.job.lock().unwrap_or_else(PoisonError::into_inner);
+        let Some(id) = slot.as_ref().map(|job| job.id) else {
+            return;
+        };
+        let ended = self
+            .history()
+            .iter()
+            .any(|record| record.id == id && record.ended.is_some());
+        if ended && let Some(job) = slot.take() {
+            let _ = job.handle.join();
+        }
     }
 
     /// Plans and streams one job on its own thread, reporting through `last`. A panic in
@@ -881,7 +1100,7 @@ impl Cell {
                     cell.run_job(&job, io, clock.as_ref(), &log)
                 });
                 let outcome = cell.job_result(id, result);
-                *cell.last() = Some(outcome);
+                cell.record_end(id, outcome);
             })
     }
 
@@ -931,6 +1150,7 @@ impl Cell {
         let JobIo {
             control,
             actions,
+            figures,
             planned,
         } = io;
         let control = &*control;
@@ -975,6 +1195,7 @@ impl Cell {
             }
             plan => plan?,
         };
+        let _ = figures.planned_s.set(plan.trajectory.duration_s());
         let (scene, world) = scene_for_job(&self.settings, job);
         // Nothing streams yet: the twin is not observing.
         self.world.lock().unwrap_or_else(PoisonError::into_inner).0 = world;
@@ -1226,6 +1447,7 @@ impl Cell {
 struct JobIo {
     control: Arc<StreamControl>,
     actions: Arc<ActionLog>,
+    figures: Arc<JobFigures>,
     planned: oneshot::Sender<Result<(), NotPlanned>>,
 }
 
@@ -1677,6 +1899,68 @@ mod tests {
             pending.len(),
             1,
             "the ROS 2 window counted none beyond its first"
+        );
+    }
+
+    #[test]
+    fn a_cell_remembers_its_latest_jobs_newest_first_and_forgets_the_oldest() {
+        let settings = crate::daemon::config::load_run_settings(std::path::Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/config/rigbridge.toml"
+        )))
+        .expect("the shipped settings load");
+        let cell = Cell::new(settings, None).expect("the shipped cell starts");
+        let mut ends = cell.job_ends();
+        let newest = KEPT_JOBS as u64 + 1;
+        for id in 1..=newest {
+            cell.remember(id, "move_joints");
+        }
+        assert!(
+            !ends.has_changed().expect("the cell is alive"),
+            "none ended"
+        );
+        let error = "refused: out of reach".to_string();
+        cell.record_end(2, JobResult::Failed { id: 2, error });
+        assert!(
+            ends.has_changed().expect("the cell is alive"),
+            "an end is told"
+        );
+        assert!(cell.job_entry(1).is_none(), "the oldest is forgotten");
+        let jobs = cell.jobs().expect("the jobs show");
+        assert_eq!(jobs.len(), KEPT_JOBS);
+        assert_eq!(jobs[0]["id"], newest);
+        assert_eq!(jobs[KEPT_JOBS - 1]["id"], 2);
+        let failed = cell
+            .job_entry(2)
+            .expect("job 2 is remembered")
+            .expect("it shows");
+        assert!(!failed.running);
+        assert_eq!(
+            failed.json,
+            serde_json::json!({
+                "id": 2,
+                "name": "move_joints",
+                "result": "failed",
+                "error": "refused: out of reach",
+            })
+        );
+        let running = cell
+            .job_entry(3)
+            .expect("job 3 is remembered")
+            .expect("it shows");
+        assert!(running.running);
+        assert_eq!(
+            running.json,
+            serde_json::json!({ "id": 3, "name": "move_joints", "result": "running" })
+        );
+        assert!(matches!(
+            *cell.last(),
+            Some(JobResult::Failed { id: 2, .. })
+        ));
+        cell.forget(3);
+        assert!(
+            cell.job_entry(3).is_none(),
+            "a job whose thread never started"
         );
     }
 

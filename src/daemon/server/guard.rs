@@ -6,7 +6,7 @@
 
 use super::error;
 use axum::extract::{Request, State};
-use axum::http::{StatusCode, header};
+use axum::http::{Method, StatusCode, header};
 use axum::middleware::Next;
 use axum::response::Response;
 use std::net::SocketAddr;
@@ -106,19 +106,26 @@ pub fn origin_allowed(headers: &axum::http::HeaderMap, also: &[String]) -> bool 
 /// Refuses a control request that is not `Content-Type: application/json` with 415: a
 /// page on another site can send a "simple" cross-site POST (`text/plain`, a form) without
 /// asking, but not JSON. `stop` and `estop` are exempt: they only ever bring a rig to rest,
-/// and an operator's bare `curl -X POST .../estop` must work.
+/// and an operator's bare `curl -X POST .../estop` must work. `reset` has no body and may
+/// come without a content type, but not with another one (a form or `text/plain`): it
+/// clears a latched fault and moves nothing, and a page of another site is refused by the
+/// `Origin` check whatever it sends. A method other than POST reaches no control handler:
+/// it passes on to the router's 405.
 pub async fn require_json(request: Request, next: Next) -> Response {
+    if request.method() != Method::POST {
+        return next.run(request).await;
+    }
     let path = request.uri().path();
     if path.ends_with("/stop") || path.ends_with("/estop") {
         return next.run(request).await;
     }
-    let json = request
-        .headers()
-        .get(header::CONTENT_TYPE)
+    let content_type = request.headers().get(header::CONTENT_TYPE);
+    let bare_reset = path.ends_with("/reset") && content_type.is_none();
+    let json = content_type
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.split(';').next())
         .is_some_and(|v| v.trim().eq_ignore_ascii_case("application/json"));
-    if json {
+    if json || bare_reset {
         next.run(request).await
     } else {
         error(
