@@ -1910,7 +1910,7 @@ mod tests {
         )))
         .expect("the shipped settings load");
         let cell = Cell::new(settings, None).expect("the shipped cell starts");
-        let mut ends = cell.job_ends();
+        let ends = cell.job_ends();
         let newest = KEPT_JOBS as u64 + 1;
         for id in 1..=newest {
             cell.remember(id, "move_joints");
