@@ -138,19 +138,25 @@ pub enum ShapeProblem {
     OverBudget(OverBudget),
     #[error("the sampled trajectory is refused: {0}")]
     Refused(Box<TrajectoryError>),
-    #[error(
-        "at t = {t:.3} s, on the curve from {from} (t = {from_t:.3} s) to {to} (t = {to_t:.3} s): {problem}; hint: {hint}"
-    )]
-    Between {
-        problem: CurveProblem,
-        /// The file's time of the refused sample (s), and of the rows either side of it.
-        t: f64,
-        from: String,
-        from_t: f64,
-        to: String,
-        to_t: f64,
-        hint: Hint,
-    },
+    /// Boxed to keep every `Result<_, JobError>` small.
+    #[error(transparent)]
+    Between(Box<BetweenRows>),
+}
+
+/// A sample of the curve through the rows refused, named by the rows either side of it.
+#[derive(Debug, Error)]
+#[error(
+    "at t = {t:.3} s, on the curve from {from} (t = {from_t:.3} s) to {to} (t = {to_t:.3} s): {problem}; hint: {hint}"
+)]
+pub struct BetweenRows {
+    pub problem: CurveProblem,
+    /// The file's time of the refused sample (s), and of the rows either side of it.
+    pub t: f64,
+    pub from: String,
+    pub from_t: f64,
+    pub to: String,
+    pub to_t: f64,
+    pub hint: Hint,
 }
 
 /// What a sample of the curve through the rows breaks, in the rows' units (degrees, metres
@@ -341,7 +347,7 @@ fn between_rows(
         CurveProblem::Acceleration { .. } if to == last => Hint::EndsAtRest,
         CurveProblem::Acceleration { .. } => Hint::SpaceOut,
     };
-    ShapeProblem::Between {
+    ShapeProblem::Between(Box::new(BetweenRows {
         problem,
         t,
         from: names[from].clone(),
@@ -349,7 +355,7 @@ fn between_rows(
         to: names[to].clone(),
         to_t: rows[to].0,
         hint,
-    }
+    }))
 }
 
 /// `error` of [`validate`] as the sample it refused and what that sample breaks, when it is

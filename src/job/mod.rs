@@ -155,8 +155,9 @@ pub enum JobError {
     Plan(#[from] PlanError),
     #[error(transparent)]
     Cartesian(#[from] CartesianError),
+    /// Boxed to keep every `Result<_, JobError>` small.
     #[error(transparent)]
-    Line(#[from] LineRefused),
+    Line(Box<LineRefused>),
     #[error(transparent)]
     Structure(#[from] StructureError),
     #[error("a gait job needs the sloth rig: run it with a sloth file as the rig")]

@@ -167,7 +167,7 @@ impl MoveLinear {
         poses: &[Pose],
         seed: &[f64],
     ) -> JobError {
-        match error {
+        let refused = match error {
             CartesianError::Unreachable {
                 waypoint,
                 sample_pose,
@@ -192,7 +192,6 @@ impl MoveLinear {
                         point,
                     },
                 }
-                .into()
             }
             CartesianError::Discontinuity {
                 waypoint,
@@ -209,10 +208,10 @@ impl MoveLinear {
                 max_jump,
                 kind,
                 fraction: u,
-            }
-            .into(),
-            other => other.into(),
-        }
+            },
+            other => return other.into(),
+        };
+        JobError::Line(Box::new(refused))
     }
 }
 

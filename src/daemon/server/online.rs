@@ -250,9 +250,8 @@ mod tests {
     fn a_goal_outside_a_limit_names_the_value_and_the_limits_in_degrees() {
         let rig = crate::rig::load_rig(&crate::rig::shipped::path("irb120.toml")).unwrap();
         // joint_3 of the IRB 120 is +70 / -110 deg (ABB's product manual).
-        let refused = goal_within_limits(&[0.0, 0.0, 80.0, 0.0, 30.0, 0.0], &rig)
-            .err()
-            .expect("refused");
+        let refused =
+            goal_within_limits(&[0.0, 0.0, 80.0, 0.0, 30.0, 0.0], &rig).expect_err("refused");
         assert_eq!(
             refused.to_string(),
             "goal: joint_3 = 80.000 deg is outside its limits [-110.000, 70.000] deg"
