@@ -388,7 +388,7 @@ fn curve_problem(
                 *sample,
                 CurveProblem::Speed {
                     joint: joint.name.clone(),
-                    speed: *velocity,
+                    speed: velocity.abs(),
                     max_speed: *max_speed,
                     kind: joint.kind,
                 },

@@ -141,6 +141,17 @@ pub struct OutsideLimits {
     pub kind: JointKind,
 }
 
+/// One actuated joint: a fixed origin relative to its parent, then motion along `axis`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Joint {
+    pub name: String,
+    pub kind: JointKind,
+    pub origin: DAffine3,
+    /// Unit vector in the joint's own frame (after `origin`).
+    pub axis: DVec3,
+    pub limits: JointLimits,
+}
+
 impl Joint {
     /// `value` (SI units) refused when it is outside this joint's limits.
     pub fn check_limits(&self, value: f64) -> Result<(), OutsideLimits> {
@@ -155,20 +166,7 @@ impl Joint {
             kind: self.kind,
         })
     }
-}
 
-/// One actuated joint: a fixed origin relative to its parent, then motion along `axis`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Joint {
-    pub name: String,
-    pub kind: JointKind,
-    pub origin: DAffine3,
-    /// Unit vector in the joint's own frame (after `origin`).
-    pub axis: DVec3,
-    pub limits: JointLimits,
-}
-
-impl Joint {
     /// The transform this joint adds at `position` (origin, then motion).
     pub fn transform(&self, position: f64) -> DAffine3 {
         match self.kind {
