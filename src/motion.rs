@@ -46,7 +46,7 @@ pub enum TrajectoryError {
         value: f64,
     },
     #[error(
-        "sample {sample}: {joint} = {:.4} {unit} is outside its limits [{:.4}, {:.4}] {unit}",
+        "sample {sample}: {joint} = {:.3} {unit} is outside its limits [{:.3}, {:.3}] {unit}",
         kind.to_user(*value), kind.to_user(*lower), kind.to_user(*upper), unit = kind.unit()
     )]
     OutsideLimits {

@@ -352,7 +352,7 @@ fn a_waypoint_beyond_a_limit_is_reported_in_degrees() {
         .unwrap_err()
         .to_string();
     assert!(
-        error.contains("joint_3 = 80.0000 deg") && error.contains("70.0000] deg"),
+        error.contains("joint_3 = 80.000 deg is outside its limits [-110.000, 70.000] deg"),
         "{error}"
     );
 }

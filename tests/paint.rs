@@ -222,6 +222,26 @@ fn bad_paint_config_names_file_key_and_value() {
 }
 
 #[test]
+fn a_travel_pose_outside_the_arms_limits_names_the_value_and_the_limits() {
+    // joint_3 of the IRB 120 is +70 / -110 deg (config/painter.toml, as irb120.toml).
+    let path = write_paint_variant("travel.toml", |t| {
+        t.replacen(
+            "travel_arm_deg = [0.0, 0.0, 0.0, 0.0, 30.0, 0.0]",
+            "travel_arm_deg = [0.0, 0.0, 80.0, 0.0, 30.0, 0.0]",
+            1,
+        )
+    });
+    let message = load_paint_settings(&path).unwrap_err().to_string();
+    assert!(
+        message.contains(
+            "key `strokes.travel_arm_deg[2]` = 80.0: \
+             joint_3 = 80.000 deg is outside its limits [-110.000, 70.000] deg"
+        ),
+        "{message}"
+    );
+}
+
+#[test]
 fn the_painters_arm_is_the_irb120() {
     let painter = load_rig(&repo_path("config/painter.toml")).unwrap();
     let irb120 = load_rig(&repo_path("config/irb120.toml")).unwrap();

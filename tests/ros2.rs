@@ -382,7 +382,11 @@ fn serve_takes_motion_only_from_a_logged_in_zenoh_session_and_from_where_the_arm
     let motion = status["events"][0]["result"].as_str().unwrap();
     assert!(motion.starts_with("on: "), "{motion}");
     let limits = status["events"][1]["result"].as_str().unwrap();
-    assert!(limits.contains("outside the limits of joint_1"), "{limits}");
+    // 3.5 rad is 200.535 deg; joint_1's limits are +-165 deg (config/irb120.toml).
+    assert!(
+        limits.contains("joint_1 = 200.535 deg is outside its limits [-165.000, 165.000] deg"),
+        "{limits}"
+    );
     assert!(limits.contains("(refusal 1 from ROS 2"), "{limits}");
     let far = status["events"][2]["result"].as_str().unwrap();
     assert!(
@@ -392,7 +396,7 @@ fn serve_takes_motion_only_from_a_logged_in_zenoh_session_and_from_where_the_arm
     assert!(far.contains("(refusal 2 from ROS 2"), "{far}");
     let stderr = serve.stderr.lock().unwrap().clone();
     assert!(
-        stderr.contains("ros2_trajectory_refused") && stderr.contains("outside the limits"),
+        stderr.contains("ros2_trajectory_refused") && stderr.contains("outside its limits"),
         "{stderr}"
     );
     assert!(

@@ -243,6 +243,7 @@ fn an_unreachable_waypoint_fails_the_whole_plan_naming_it() {
     let Err(CartesianError::Unreachable {
         waypoint,
         sample_pose,
+        u,
         error,
     }) = result
     else {
@@ -255,6 +256,12 @@ fn an_unreachable_waypoint_fails_the_whole_plan_naming_it() {
     let off_line = distance_to_segment(sample_pose.position, corners[1].position, far.position);
     assert!(off_line < 1e-9, "{sample_pose:?}");
     assert!(sample_pose.position.x < 1.0, "{sample_pose:?}");
+    // `u` says how far along the line it lies.
+    let along = corners[1].position.lerp(far.position, u);
+    assert!(
+        (sample_pose.position - along).length() < 1e-9,
+        "{u} {sample_pose:?}"
+    );
 }
 
 #[test]

@@ -46,6 +46,20 @@ fn target(seq: u32, positions: &[f64], velocities: &[f64]) -> Command {
 }
 
 #[test]
+fn an_initial_position_outside_the_limits_names_the_value_and_the_limits_in_degrees() {
+    // joint_3 of the IRB 120 is +70 / -110 deg (config/irb120.toml).
+    let initial = [0.0, 0.0, 80.0_f64.to_radians(), 0.0, 0.5, 0.0];
+    let refused = Twin::new(&irb120(), TwinSettings::default(), &initial)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert_eq!(
+        refused,
+        "initial position: joint_3 = 80.000 deg is outside its limits [-110.000, 70.000] deg"
+    );
+}
+
+#[test]
 fn tracks_a_slow_ramp_with_lag_and_reports_ok() {
     let mut twin = twin();
     let mut last = None;

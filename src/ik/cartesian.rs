@@ -9,7 +9,7 @@
 //! unreachable sample or a branch switch fails the whole plan.
 
 use super::{IkError, IkSolver};
-use crate::rig::{Pose, PoseError, Rig, rotation_angle_between};
+use crate::rig::{JointKind, Pose, PoseError, Rig, rotation_angle_between};
 use crate::trajectory::{
     AxisLimits, JointPath, PathNode, PathTiming, PlanError, PlanSettings, Samples, Trajectory,
     check_start,
@@ -31,21 +31,31 @@ pub enum CartesianError {
     Plan(#[from] PlanError),
     #[error("waypoint {waypoint}: {error}")]
     InvalidPose { waypoint: usize, error: PoseError },
-    #[error("move to waypoint {waypoint}: target {sample_pose} is unreachable: {error}")]
+    #[error(
+        "move to waypoint {waypoint}: target {sample_pose} ({:.1}% of the way) is unreachable: {error}",
+        u * 100.0
+    )]
     Unreachable {
         waypoint: usize,
         /// Boxed to keep every `Result<_, CartesianError>` small.
         sample_pose: Box<Pose>,
+        /// Where on the line the sample lies: 0 at its start, 1 at the waypoint.
+        u: f64,
         error: IkError,
     },
     #[error(
-        "move to waypoint {waypoint}: {joint} jumps {jump:.6} between two samples (at most {max_jump:.6}): branch switch or singularity"
+        "move to waypoint {waypoint}: {joint} jumps {:.3} {unit} between two samples (at most {:.3} {unit}) {:.1}% of the way: branch switch or singularity",
+        kind.to_user(*jump), kind.to_user(*max_jump), u * 100.0, unit = kind.unit()
     )]
     Discontinuity {
         waypoint: usize,
         joint: String,
+        /// SI units (radians or metres); the message shows them in the user's unit.
         jump: f64,
         max_jump: f64,
+        kind: JointKind,
+        /// Where on the line the later sample lies: 0 at its start, 1 at the waypoint.
+        u: f64,
     },
 }
 
@@ -178,6 +188,7 @@ impl LinearMove<'_> {
             .map_err(|error| CartesianError::Unreachable {
                 waypoint: self.waypoint,
                 sample_pose: Box::new(pose),
+                u,
                 error,
             })
     }
@@ -186,11 +197,12 @@ impl LinearMove<'_> {
     /// profile was planned on), refused if the solver jumped away from it.
     fn solve_on_line(&self, u: f64, seed: &[f64]) -> Result<Vec<f64>, CartesianError> {
         let joints = self.solve(u, seed)?;
-        self.check_jump(seed, &joints)?;
+        self.check_jump(u, seed, &joints)?;
         Ok(joints)
     }
 
-    fn check_jump(&self, from: &[f64], to: &[f64]) -> Result<(), CartesianError> {
+    /// The step from `from` to `to`, the joints at `u`, refused if an axis jumps.
+    fn check_jump(&self, u: f64, from: &[f64], to: &[f64]) -> Result<(), CartesianError> {
         let max_jump = self.settings.max_joint_jump;
         let rig = self.solver.rig();
         match from
@@ -203,6 +215,8 @@ impl LinearMove<'_> {
                 joint: rig.joints[axis].name.clone(),
                 jump: to[axis] - from[axis],
                 max_jump,
+                kind: rig.joints[axis].kind,
+                u,
             }),
             None => Ok(()),
         }
@@ -235,7 +249,7 @@ impl LinearMove<'_> {
             let u = step as f64 / steps as f64;
             let previous = &nodes[nodes.len() - 1].joints;
             let joints = self.solve(u, previous)?;
-            if let Err(jump) = self.check_jump(previous, &joints) {
+            if let Err(jump) = self.check_jump(u, previous, &joints) {
                 first_jump.get_or_insert(jump);
             }
             nodes.push(PathNode { u, joints });
@@ -265,7 +279,7 @@ impl LinearMove<'_> {
                 .map(|(p, q)| (p + q) / 2.0)
                 .collect();
             let joints = self.solve(u, &chord)?;
-            self.check_jump(&chord, &joints)?;
+            self.check_jump(u, &chord, &joints)?;
             let stray = joints
                 .iter()
                 .zip(&chord)

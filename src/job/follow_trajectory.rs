@@ -5,13 +5,15 @@
 //! trajectory at the stream's period: a joint move from where the rig is to the first row,
 //! then the rows, joined by cubic Hermite pieces (tangents from the neighbouring rows, at
 //! rest at both ends), checked like every trajectory and for acceleration too. It stays at
-//! the last row. No error quotes the file's content: they name the row and column. The rows'
-//! count and duration, and the memory their plan takes, are held to `[limits]`
-//! (`super::limits`) while they are read, before anything is sampled.
+//! the last row. No error quotes the file's text: they name the row and column, and the
+//! numbers read there; a refused curve is named by the rows either side and their times,
+//! in the rows' units, with what to change. The rows' count and duration, and the memory
+//! their plan takes, are held to `[limits]` (`super::limits`) while they are read, before
+//! anything is sampled.
 
 use super::limits::{CEILING_DURATION_S, CEILING_POINTS, JobLimits};
 use super::{JobContext, JobError, JobInvalid, PlanContext, resolve_file, to_si};
-use crate::rig::Rig;
+use crate::rig::{JointKind, OutsideLimits, Rig};
 use crate::trajectory::{
     Origins, OverBudget, SampleBudget, Trajectory, TrajectoryError, plan_joint_moves, validate,
 };
@@ -118,8 +120,11 @@ pub enum RowProblem {
         "t = {t} s is beyond the cap of {max_s} s on a job's duration (`[limits] max_job_duration_s`)"
     )]
     TooLong { t: f64, max_s: f64 },
-    #[error("column {column} is outside the limits of {joint}")]
-    OutsideLimits { column: usize, joint: String },
+    #[error("column {column}: {outside}")]
+    OutsideLimits {
+        column: usize,
+        outside: OutsideLimits,
+    },
 }
 
 /// What is wrong with the trajectory a file's rows make.
@@ -133,8 +138,74 @@ pub enum ShapeProblem {
     OverBudget(OverBudget),
     #[error("the sampled trajectory is refused: {0}")]
     Refused(Box<TrajectoryError>),
-    #[error("{joint} accelerates beyond its limit at t = {:.3} s", at.as_secs_f64())]
-    Accelerates { joint: String, at: Duration },
+    /// Boxed to keep every `Result<_, JobError>` small.
+    #[error(transparent)]
+    Between(Box<BetweenRows>),
+}
+
+/// A sample of the curve through the rows refused, named by the rows either side of it.
+#[derive(Debug, Error)]
+#[error(
+    "at t = {t:.3} s, on the curve from {from} (t = {from_t:.3} s) to {to} (t = {to_t:.3} s): {problem}; hint: {hint}"
+)]
+pub struct BetweenRows {
+    pub problem: CurveProblem,
+    /// The file's time of the refused sample (s), and of the rows either side of it.
+    pub t: f64,
+    pub from: String,
+    pub from_t: f64,
+    pub to: String,
+    pub to_t: f64,
+    pub hint: Hint,
+}
+
+/// What a sample of the curve through the rows breaks, in the rows' units (degrees, metres
+/// for prismatic axes) though the values are kept in SI units.
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum CurveProblem {
+    #[error("{0}")]
+    Outside(OutsideLimits),
+    #[error(
+        "{joint} moves at {:.3} {unit}/s, above its max speed {:.3} {unit}/s",
+        kind.to_user(*speed), kind.to_user(*max_speed), unit = kind.unit()
+    )]
+    Speed {
+        joint: String,
+        speed: f64,
+        max_speed: f64,
+        kind: JointKind,
+    },
+    #[error(
+        "{joint} accelerates at {:.3} {unit}/s^2, above its max acceleration {:.3} {unit}/s^2",
+        kind.to_user(*acceleration), kind.to_user(*max_acceleration), unit = kind.unit()
+    )]
+    Acceleration {
+        joint: String,
+        acceleration: f64,
+        max_acceleration: f64,
+        kind: JointKind,
+    },
+}
+
+/// What to change in the rows so that the curve through them keeps within the limits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
+pub enum Hint {
+    #[error(
+        "the curve starts at rest at the first row: put the next row later, or add rows that speed up gradually"
+    )]
+    StartsAtRest,
+    #[error(
+        "the curve comes to rest at the last row: put the row before it earlier, or add rows that slow down gradually"
+    )]
+    EndsAtRest,
+    #[error("space the rows further apart in time, or change speed less between them")]
+    SpaceOut,
+    #[error("slow down: space the rows further apart in time")]
+    SlowDown,
+    #[error(
+        "the curve swings past the rows between them: keep the rows further inside the limits, or add rows near the limit"
+    )]
+    Overshoots,
 }
 
 /// One row: its time (s) and its joint values in SI units (rad, m).
@@ -217,8 +288,20 @@ impl FollowTrajectory {
         let budget = settings.budget.after(trajectory.len());
         let followed =
             sample_rows(rig, &rows, settings.period, budget).map_err(|e| self.shape(e))?;
-        validate(&followed, rig).map_err(|e| self.shape(ShapeProblem::Refused(Box::new(e))))?;
-        check_acceleration(rig, &followed).map_err(|reason| self.shape(reason))?;
+        let on_rows = |(sample, problem): (usize, CurveProblem)| {
+            self.shape(between_rows(
+                &rows,
+                &names,
+                settings.period,
+                sample,
+                problem,
+            ))
+        };
+        validate(&followed, rig).map_err(|e| match curve_problem(rig, &followed, &e) {
+            Some(located) => on_rows(located),
+            None => self.shape(ShapeProblem::Refused(Box::new(e))),
+        })?;
+        check_acceleration(rig, &followed).map_err(on_rows)?;
         let mut origins = Origins::default();
         let joined = trajectory.len() - 1;
         origins.push(joined, format!("the approach to {}", names[0]));
@@ -236,6 +319,124 @@ impl FollowTrajectory {
             None => TrajectoryFileError::InlineShape { reason },
         }
         .into()
+    }
+}
+
+/// A refusal of sample `sample` of the curve through `rows` (as [`sample_rows`] made it,
+/// every `period`) told in the rows' words: the file's time of the sample, the rows either
+/// side (named by `names`) and what to change.
+fn between_rows(
+    rows: &[Row],
+    names: &[String],
+    period: Duration,
+    sample: usize,
+    problem: CurveProblem,
+) -> ShapeProblem {
+    let last = rows.len() - 1;
+    let t = (sample as f64 * period.as_secs_f64()).min(rows[last].0);
+    // The piece ending at the first row not before `t` (a sample on a row ends its piece);
+    // a single row is its own piece.
+    let to = rows
+        .partition_point(|row| row.0 < t)
+        .clamp(1.min(last), last);
+    let from = to.saturating_sub(1);
+    let hint = match problem {
+        CurveProblem::Outside(_) => Hint::Overshoots,
+        CurveProblem::Speed { .. } => Hint::SlowDown,
+        CurveProblem::Acceleration { .. } if from == 0 => Hint::StartsAtRest,
+        CurveProblem::Acceleration { .. } if to == last => Hint::EndsAtRest,
+        CurveProblem::Acceleration { .. } => Hint::SpaceOut,
+    };
+    ShapeProblem::Between(Box::new(BetweenRows {
+        problem,
+        t,
+        from: names[from].clone(),
+        from_t: rows[from].0,
+        to: names[to].clone(),
+        to_t: rows[to].0,
+        hint,
+    }))
+}
+
+/// `error` of [`validate`] as the sample it refused and what that sample breaks, when it is
+/// about one sample's motion (the others stay as they are).
+fn curve_problem(
+    rig: &Rig,
+    followed: &Trajectory,
+    error: &TrajectoryError,
+) -> Option<(usize, CurveProblem)> {
+    let joint_named = |name: &str| rig.joints.iter().find(|joint| joint.name == name);
+    let dt = followed.period.as_secs_f64();
+    match error {
+        TrajectoryError::OutsideLimits {
+            sample,
+            joint,
+            value,
+            ..
+        } => {
+            let outside = joint_named(joint)?.check_limits(*value).err()?;
+            Some((*sample, CurveProblem::Outside(outside)))
+        }
+        TrajectoryError::VelocityOverSpeed {
+            sample,
+            joint,
+            velocity,
+            max_speed,
+        } => {
+            let joint = joint_named(joint)?;
+            Some((
+                *sample,
+                CurveProblem::Speed {
+                    joint: joint.name.clone(),
+                    speed: velocity.abs(),
+                    max_speed: *max_speed,
+                    kind: joint.kind,
+                },
+            ))
+        }
+        TrajectoryError::OverSpeed {
+            sample,
+            joint,
+            step,
+            max_step,
+        } => {
+            let joint = joint_named(joint)?;
+            Some((
+                *sample,
+                CurveProblem::Speed {
+                    joint: joint.name.clone(),
+                    speed: step / dt,
+                    max_speed: max_step / dt,
+                    kind: joint.kind,
+                },
+            ))
+        }
+        TrajectoryError::OverAcceleration {
+            sample,
+            joint,
+            acceleration,
+            max_acceleration,
+            ..
+        }
+        | TrajectoryError::VelocityOverAcceleration {
+            sample,
+            joint,
+            acceleration,
+            max_acceleration,
+            ..
+        } => {
+            let joint = joint_named(joint)?;
+            Some((
+                *sample,
+                CurveProblem::Acceleration {
+                    joint: joint.name.clone(),
+                    acceleration: *acceleration,
+                    max_acceleration: *max_acceleration,
+                    kind: joint.kind,
+                },
+            ))
+        }
+        _ => None,
     }
 }
 
@@ -465,12 +666,11 @@ fn check_row(
         _ => {}
     }
     let si = to_si(&values[1..], rig);
-    if let Some((axis, _)) = rig.first_limit_violation(&si) {
-        return Err(RowProblem::OutsideLimits {
+    rig.check_limits(&si)
+        .map_err(|(axis, outside)| RowProblem::OutsideLimits {
             column: axis + 2,
-            joint: rig.joints[axis].name.clone(),
-        });
-    }
+            outside,
+        })?;
     Ok((t, si))
 }
 
@@ -545,8 +745,9 @@ fn hermite(p0: f64, p1: f64, m0: f64, m1: f64, s: f64) -> (f64, f64) {
 }
 
 /// Every second difference of the samples (at rest before the first and after the last)
-/// within the axis' max acceleration.
-fn check_acceleration(rig: &Rig, trajectory: &Trajectory) -> Result<(), ShapeProblem> {
+/// within the axis' max acceleration; the first that is not, as its sample and what it
+/// breaks.
+fn check_acceleration(rig: &Rig, trajectory: &Trajectory) -> Result<(), (usize, CurveProblem)> {
     let n = trajectory.len();
     let at = |k: isize| trajectory.position(k.clamp(0, n as isize - 1) as usize);
     let dt = trajectory.period.as_secs_f64();
@@ -554,10 +755,13 @@ fn check_acceleration(rig: &Rig, trajectory: &Trajectory) -> Result<(), ShapePro
         for (axis, joint) in rig.joints.iter().enumerate() {
             let second = at(k + 1)[axis] - 2.0 * at(k)[axis] + at(k - 1)[axis];
             if !joint.limits.second_difference_ok(second, dt) {
-                return Err(ShapeProblem::Accelerates {
+                let problem = CurveProblem::Acceleration {
                     joint: joint.name.clone(),
-                    at: trajectory.period.mul_f64(k as f64),
-                });
+                    acceleration: second / (dt * dt),
+                    max_acceleration: joint.limits.max_acceleration,
+                    kind: joint.kind,
+                };
+                return Err((k as usize, problem));
             }
         }
     }

@@ -30,7 +30,7 @@ pub use limits::{
     planned_mb,
 };
 pub use move_joints::MoveJoints;
-pub use move_linear::{MoveLinear, top_tool_speed};
+pub use move_linear::{LineRefused, MoveLinear, top_tool_speed};
 pub use move_poses::MovePoses;
 pub use paint::Paint;
 pub use poses::PoseSpec;
@@ -155,6 +155,9 @@ pub enum JobError {
     Plan(#[from] PlanError),
     #[error(transparent)]
     Cartesian(#[from] CartesianError),
+    /// Boxed to keep every `Result<_, JobError>` small.
+    #[error(transparent)]
+    Line(Box<LineRefused>),
     #[error(transparent)]
     Structure(#[from] StructureError),
     #[error("a gait job needs the sloth rig: run it with a sloth file as the rig")]
@@ -317,14 +320,14 @@ pub fn check_joints(key: &str, values: &[f64], rig: &Rig) -> Result<(), JobInval
     if values.iter().any(|d| !d.is_finite()) {
         return Err(JobInvalid::new(key, values, "values must be finite"));
     }
-    if let Some((index, _)) = rig.first_limit_violation(&to_si(values, rig)) {
-        return Err(JobInvalid::new(
-            format!("{key}[{index}]"),
-            values[index],
-            format!("outside the limits of {}", rig.joints[index].name),
-        ));
-    }
-    Ok(())
+    rig.check_limits(&to_si(values, rig))
+        .map_err(|(index, outside)| {
+            JobInvalid::new(
+                format!("{key}[{index}]"),
+                values[index],
+                outside.to_string(),
+            )
+        })
 }
 
 /// A list of configurations: at least one, at most [`MAX_TARGETS`], each checked.

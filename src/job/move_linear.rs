@@ -6,11 +6,13 @@
 
 use super::poses::{PoseSpec, check_poses, show_xyz};
 use super::{JobContext, JobError, JobInvalid, PlanContext, in_range};
-use crate::ik::{FabrikSolver, IkSolver, plan_cartesian_marked};
-use crate::rig::Rig;
+use crate::ik::{CartesianError, FabrikSolver, IkError, IkSolver, plan_cartesian_marked};
+use crate::rig::{JointKind, Pose, Rig};
 use crate::trajectory::{Origins, PlanSettings, Trajectory, plan_joint_moves};
+use glam::DVec3;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
+use thiserror::Error;
 
 /// The fastest tool speed a job may ask for (m/s): above the IRB 120's 6.2 m/s TCP speed
 /// (ABB, IRB 120 product specification, 3HAC035960-001, "Performance") nothing is gained.
@@ -21,6 +23,53 @@ const MIN_TOOL_SPEED_M_S: f64 = 0.001;
 /// that the sampled speed, a hair above after rounding, does not need another round.
 const MAX_SLOWDOWNS: u32 = 6;
 const SLOWDOWN_MARGIN: f64 = 1.01;
+
+/// A line of a `move_linear` job refused, in the job's own words: the pose it goes to by its
+/// index in `job.poses` and as written, and where along the line from the pose before it
+/// failed (the point, and the fraction of the line).
+#[derive(Debug, Error)]
+pub enum LineRefused {
+    /// The pose the line goes to is out of the arm's reach itself.
+    #[error(
+        "job.poses[{index}] = {written} cannot be reached: {error}; the line to it from job.poses[{}] first fails {:.1}% of the way along, at {}",
+        index - 1, fraction * 100.0, show_xyz(*point)
+    )]
+    PoseUnreachable {
+        index: usize,
+        written: PoseSpec,
+        error: IkError,
+        fraction: f64,
+        point: DVec3,
+    },
+    /// Both poses are reachable, a point of the line between them is not.
+    #[error(
+        "the line from job.poses[{}] to job.poses[{index}] = {written} first fails {:.1}% of the way along, at {}: {error}; both poses are reachable, the straight line between them is not: add a pose between them, or use move_poses",
+        index - 1, fraction * 100.0, show_xyz(*point)
+    )]
+    LineUnreachable {
+        index: usize,
+        written: PoseSpec,
+        error: IkError,
+        fraction: f64,
+        point: DVec3,
+    },
+    /// The joints solved along the line jump: the arm would switch branch or pass a
+    /// singularity there.
+    #[error(
+        "the line from job.poses[{}] to job.poses[{index}] = {written}: {joint} jumps {:.3} {unit} between two samples {:.1}% of the way (at most {:.3} {unit}): a branch switch or a singularity; add a pose between them, or use move_poses",
+        index - 1, kind.to_user(*jump), fraction * 100.0, kind.to_user(*max_jump), unit = kind.unit()
+    )]
+    Jumps {
+        index: usize,
+        written: PoseSpec,
+        joint: String,
+        /// SI units (radians or metres).
+        jump: f64,
+        max_jump: f64,
+        kind: JointKind,
+        fraction: f64,
+    },
+}
 
 /// The default tool speed (m/s): a careful 0.1 m/s, the speed of a hand-guided move.
 fn default_speed() -> f64 {
@@ -73,7 +122,8 @@ impl MoveLinear {
         loop {
             let mut trajectory = approach.clone();
             let (lines, marks) =
-                plan_cartesian_marked(&solver, &first.joints, &poses[1..], &settings)?;
+                plan_cartesian_marked(&solver, &first.joints, &poses[1..], &settings)
+                    .map_err(|error| self.line_refused(error, &solver, &poses, &first.joints))?;
             let ratio = top_tool_speed(context.rig, &lines) / self.speed_m_s;
             trajectory.append(&lines);
             attempt += 1;
@@ -104,6 +154,64 @@ impl MoveLinear {
                 ..settings
             };
         }
+    }
+
+    /// `error` of the lines (planned from `job.poses[0]` on, so their waypoint `w` is
+    /// `job.poses[w + 1]`) in the job's words; other errors as they are. An unreachable
+    /// point of a line is told with whether the pose it goes to is reachable itself
+    /// (solved from `seed`), since that decides what the user should change.
+    fn line_refused(
+        &self,
+        error: CartesianError,
+        solver: &FabrikSolver,
+        poses: &[Pose],
+        seed: &[f64],
+    ) -> JobError {
+        let refused = match error {
+            CartesianError::Unreachable {
+                waypoint,
+                sample_pose,
+                u,
+                error,
+            } => {
+                let index = waypoint + 1;
+                let (written, point) = (self.poses[index], sample_pose.position);
+                match solver.solve(&poses[index], seed) {
+                    Err(error) => LineRefused::PoseUnreachable {
+                        index,
+                        written,
+                        error,
+                        fraction: u,
+                        point,
+                    },
+                    Ok(_) => LineRefused::LineUnreachable {
+                        index,
+                        written,
+                        error,
+                        fraction: u,
+                        point,
+                    },
+                }
+            }
+            CartesianError::Discontinuity {
+                waypoint,
+                joint,
+                jump,
+                max_jump,
+                kind,
+                u,
+            } => LineRefused::Jumps {
+                index: waypoint + 1,
+                written: self.poses[waypoint + 1],
+                joint,
+                jump,
+                max_jump,
+                kind,
+                fraction: u,
+            },
+            other => return other.into(),
+        };
+        JobError::Line(Box::new(refused))
     }
 }
 

@@ -4,7 +4,7 @@
 //! written with a few decimals, is normalised).
 
 use super::{JobInvalid, check_count};
-use crate::rig::Pose;
+use crate::rig::{Pose, Shown};
 use glam::{DQuat, DVec3};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -49,6 +49,19 @@ impl PoseSpec {
             ));
         }
         Ok(Pose::new(DVec3::from_array(self.xyz_m), q / norm))
+    }
+}
+
+/// The pose as a job writes it, every number as given (as TOML writes it):
+/// `{ xyz_m = [0.9, 0.0, 0.45], quat_wxyz = [0.7071, 0.0, 0.7071, 0.0] }`.
+impl std::fmt::Display for PoseSpec {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{{ xyz_m = {}, quat_wxyz = {} }}",
+            self.xyz_m.shown(),
+            self.quat_wxyz.shown()
+        )
     }
 }
 

@@ -124,6 +124,23 @@ impl JointLimits {
     }
 }
 
+/// A joint value outside its position limits, as every refusal of one says it: the joint,
+/// the value and the limits in the unit the user writes ([`JointKind::unit`]), e.g.
+/// `joint_3 = 80.000 deg is outside its limits [-110.000, 70.000] deg`.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error(
+    "{joint} = {:.3} {unit} is outside its limits [{:.3}, {:.3}] {unit}",
+    kind.to_user(*value), kind.to_user(*lower), kind.to_user(*upper), unit = kind.unit()
+)]
+pub struct OutsideLimits {
+    pub joint: String,
+    /// SI units (radians or metres), as are the limits.
+    pub value: f64,
+    pub lower: f64,
+    pub upper: f64,
+    pub kind: JointKind,
+}
+
 /// One actuated joint: a fixed origin relative to its parent, then motion along `axis`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Joint {
@@ -136,6 +153,20 @@ pub struct Joint {
 }
 
 impl Joint {
+    /// `value` (SI units) refused when it is outside this joint's limits.
+    pub fn check_limits(&self, value: f64) -> Result<(), OutsideLimits> {
+        if self.limits.contains(value) {
+            return Ok(());
+        }
+        Err(OutsideLimits {
+            joint: self.name.clone(),
+            value,
+            lower: self.limits.lower,
+            upper: self.limits.upper,
+            kind: self.kind,
+        })
+    }
+
     /// The transform this joint adds at `position` (origin, then motion).
     pub fn transform(&self, position: f64) -> DAffine3 {
         match self.kind {
@@ -222,6 +253,16 @@ impl Rig {
             .fold(DAffine3::IDENTITY, |frame, (joint, q)| {
                 frame * joint.transform(*q)
             })
+    }
+
+    /// The first joint whose limit `positions` (SI units) breaks, as (index, the refusal).
+    pub fn check_limits(&self, positions: &[f64]) -> Result<(), (usize, OutsideLimits)> {
+        match self.first_limit_violation(positions) {
+            Some((index, value)) => self.joints[index]
+                .check_limits(value)
+                .map_err(|outside| (index, outside)),
+            None => Ok(()),
+        }
     }
 
     /// The first joint whose limit `positions` breaks, as (index, position).

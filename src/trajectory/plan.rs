@@ -125,7 +125,7 @@ impl InvalidValue {
         match self {
             InvalidValue::NotFinite => value.to_string(),
             InvalidValue::OutsideLimits { kind, .. } => {
-                format!("{:.4} {}", kind.to_user(value), kind.unit())
+                format!("{:.3} {}", kind.to_user(value), kind.unit())
             }
         }
     }
@@ -137,7 +137,7 @@ impl fmt::Display for InvalidValue {
             InvalidValue::NotFinite => write!(f, "is not finite"),
             InvalidValue::OutsideLimits { lower, upper, kind } => write!(
                 f,
-                "is outside its limits [{:.4}, {:.4}] {}",
+                "is outside its limits [{:.3}, {:.3}] {}",
                 kind.to_user(*lower),
                 kind.to_user(*upper),
                 kind.unit()

@@ -56,8 +56,8 @@ pub enum CanopenTwinError {
     NodeCount { nodes: usize, axes: usize },
     #[error("node id {0} is not a CANopen node id (1 to 127) or appears twice")]
     BadNode(u8),
-    #[error("initial position of {joint} is outside its limits")]
-    InitialOutsideLimits { joint: String },
+    #[error("initial position: {0}")]
+    InitialOutsideLimits(crate::rig::OutsideLimits),
 }
 
 /// What the drives saw, for summaries and tests.
@@ -234,11 +234,9 @@ impl CanopenBus {
         }
         let mut drives = Vec::with_capacity(nodes.len());
         for (axis, joint) in rig.joints.iter().enumerate() {
-            if !joint.limits.contains(initial[axis]) {
-                return Err(CanopenTwinError::InitialOutsideLimits {
-                    joint: joint.name.clone(),
-                });
-            }
+            joint
+                .check_limits(initial[axis])
+                .map_err(CanopenTwinError::InitialOutsideLimits)?;
             let actual = counts[axis].tick(initial[axis]);
             let node = nodes[axis];
             drives.push(Drive {

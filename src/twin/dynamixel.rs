@@ -56,8 +56,8 @@ pub enum DynamixelTwinError {
     IdCount { ids: usize, axes: usize },
     #[error("servo id {0} is not a servo id (0 to 252) or appears twice")]
     BadId(u8),
-    #[error("initial position of {joint} is outside its limits")]
-    InitialOutsideLimits { joint: String },
+    #[error("initial position: {0}")]
+    InitialOutsideLimits(crate::rig::OutsideLimits),
     #[error("Dynamixel twin setting {0} must be finite and positive")]
     BadSetting(&'static str),
 }
@@ -205,11 +205,8 @@ impl DynamixelBus {
                 return Err(DynamixelTwinError::BadId(*id));
             }
         }
-        if let Some((index, _)) = rig.first_limit_violation(initial) {
-            return Err(DynamixelTwinError::InitialOutsideLimits {
-                joint: rig.joints[index].name.clone(),
-            });
-        }
+        rig.check_limits(initial)
+            .map_err(|(_, outside)| DynamixelTwinError::InitialOutsideLimits(outside))?;
         for (name, value) in [
             ("period", settings.period.as_secs_f64()),
             ("bandwidth_hz", settings.bandwidth_hz),

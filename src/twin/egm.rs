@@ -100,8 +100,8 @@ pub enum EgmTwinError {
     InitialLength { expected: usize, got: usize },
     #[error("the EGM axis layout has {got} axes, the rig has {expected}")]
     AxisLayout { expected: usize, got: usize },
-    #[error("initial position of {joint} is outside its limits")]
-    InitialOutsideLimits { joint: String },
+    #[error("initial position: {0}")]
+    InitialOutsideLimits(crate::rig::OutsideLimits),
     #[error("EGM twin setting {name} is {value}: it must be finite and {rule}")]
     BadSetting {
         name: &'static str,
@@ -250,11 +250,8 @@ impl EgmRobotModel {
                 got: initial.len(),
             });
         }
-        if let Some((index, _)) = rig.first_limit_violation(initial) {
-            return Err(EgmTwinError::InitialOutsideLimits {
-                joint: rig.joints[index].name.clone(),
-            });
-        }
+        rig.check_limits(initial)
+            .map_err(|(_, outside)| EgmTwinError::InitialOutsideLimits(outside))?;
         check_settings(&settings)?;
         let external = axes.external_indices();
         if settings.mode == EgmMode::Pose && !external.is_empty() {

@@ -68,8 +68,8 @@ pub enum TwinError {
     TooManyAxes { rig: String, dof: usize, max: usize },
     #[error("initial position has {got} values, rig has {expected} axes")]
     InitialLength { expected: usize, got: usize },
-    #[error("initial position of {joint} = {value} is outside its limits")]
-    InitialOutsideLimits { joint: String, value: f64 },
+    #[error("initial position: {0}")]
+    InitialOutsideLimits(crate::rig::OutsideLimits),
     #[error("twin setting {name} = {value} is invalid: {reason}")]
     BadSetting {
         name: &'static str,
@@ -139,12 +139,8 @@ impl Twin {
                 got: initial.len(),
             });
         }
-        if let Some((index, value)) = rig.first_limit_violation(initial) {
-            return Err(TwinError::InitialOutsideLimits {
-                joint: rig.joints[index].name.clone(),
-                value,
-            });
-        }
+        rig.check_limits(initial)
+            .map_err(|(_, outside)| TwinError::InitialOutsideLimits(outside))?;
         let dt = settings.period.as_secs_f64();
         check_setting("period_s", dt, !settings.period.is_zero())?;
         check_setting(

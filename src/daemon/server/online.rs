@@ -219,16 +219,8 @@ enum GoalRefused {
         rig: String,
         dof: usize,
     },
-    #[error(
-        "goal: {joint} at {value} {unit} is outside its limits [{lower:.4}, {upper:.4}] {unit}"
-    )]
-    Outside {
-        joint: String,
-        value: f64,
-        unit: &'static str,
-        lower: f64,
-        upper: f64,
-    },
+    #[error("goal: {0}")]
+    Outside(crate::rig::OutsideLimits),
 }
 
 /// The goal in SI units, each joint within its limits; the first that is not, named.
@@ -242,17 +234,27 @@ fn goal_within_limits(joints: &[f64], rig: &Rig) -> Result<AxisValues, GoalRefus
     }
     let mut goal = AxisValues::zeros(rig.dof());
     for ((joint, value), out) in rig.joints.iter().zip(joints).zip(goal.as_mut_slice()) {
+        // A value that is not finite is outside every limit too.
         let si = joint.kind.from_user(*value);
-        if !value.is_finite() || !joint.limits.contains(si) {
-            return Err(GoalRefused::Outside {
-                joint: joint.name.clone(),
-                value: *value,
-                unit: joint.kind.unit(),
-                lower: joint.kind.to_user(joint.limits.lower),
-                upper: joint.kind.to_user(joint.limits.upper),
-            });
-        }
+        joint.check_limits(si).map_err(GoalRefused::Outside)?;
         *out = si;
     }
     Ok(goal)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_goal_outside_a_limit_names_the_value_and_the_limits_in_degrees() {
+        let rig = crate::rig::load_rig(&crate::rig::shipped::path("irb120.toml")).unwrap();
+        // joint_3 of the IRB 120 is +70 / -110 deg (ABB's product manual).
+        let refused =
+            goal_within_limits(&[0.0, 0.0, 80.0, 0.0, 30.0, 0.0], &rig).expect_err("refused");
+        assert_eq!(
+            refused.to_string(),
+            "goal: joint_3 = 80.000 deg is outside its limits [-110.000, 70.000] deg"
+        );
+    }
 }

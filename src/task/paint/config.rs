@@ -253,12 +253,12 @@ fn check_strokes(file: &Path, c: &PaintConfig, rig: &Rig) -> Result<(), ConfigEr
     }
     let travel: Vec<f64> = s.travel_arm_deg.iter().map(|d| d.to_radians()).collect();
     for (i, (q, joint)) in travel.iter().zip(&rig.joints[EXTRA_AXES..]).enumerate() {
-        if !joint.limits.contains(*q) {
+        if let Err(outside) = joint.check_limits(*q) {
             return Err(ConfigError::invalid(
                 file,
                 &format!("strokes.travel_arm_deg[{i}]"),
                 s.travel_arm_deg[i],
-                &format!("outside the limits of {}", joint.name),
+                &outside.to_string(),
             ));
         }
     }
