@@ -1,9 +1,10 @@
 //! The broad phase's lower bounds on the signed distance of two placed solids (negative: a
 //! bound on how deep they can overlap), so that parry's exact query runs only for pairs
 //! that may be the closest. Two grades: a quick one for every checked pair (bounding
-//! spheres, or a half-space's plane against the other solid's exact extent along its
-//! normal), and a tight one for the pairs the quick one cannot rule out (the solids'
-//! bounding capsules, and a box's own three slabs).
+//! spheres, or a half-space's plane against the other's sphere: one dot product or one
+//! square root), and a tight one for the pairs the quick one cannot rule out (a plane
+//! against the other solid's exact extent along its normal; the solids' bounding capsules,
+//! and a box's own three slabs).
 //!
 //! Written here rather than taken from parry's bounding volumes: parry's `BoundingSphere`
 //! and `Aabb` answer overlap, not distance; an axis-aligned box around a long link turned
@@ -85,12 +86,11 @@ impl Volumes {
     }
 }
 
-/// The quick bound: a plane against the other solid's exact extent along its normal, or
-/// the two bounding spheres.
+/// The quick bound: the two bounding spheres, or a plane against the other's sphere.
 pub(super) fn quick(i: &Solid<'_>, j: &Solid<'_>) -> f64 {
     let bound = match (i.volumes.plane, j.volumes.plane) {
-        (Some(plane), None) => plane_distance(plane, j),
-        (None, Some(plane)) => plane_distance(plane, i),
+        (Some((normal, offset)), None) => normal.dot(j.placed.centre) - offset - j.volumes.radius,
+        (None, Some((normal, offset))) => normal.dot(i.placed.centre) - offset - i.volumes.radius,
         (None, None) => {
             i.placed.centre.distance(j.placed.centre) - i.volumes.radius - j.volumes.radius
         }
@@ -100,13 +100,16 @@ pub(super) fn quick(i: &Solid<'_>, j: &Solid<'_>) -> f64 {
     bound - ROUNDING_M
 }
 
-/// The tight bound: the quick one, the bounding capsules' distance, and for a box its
-/// three slabs, whichever is highest. Costs a few times the quick one.
+/// The tight bound: against a plane the other solid's exact extent along its normal;
+/// otherwise the highest of the quick one, the bounding capsules' distance, and for a box
+/// its three slabs. Costs a few times the quick one.
 pub(super) fn tight(i: &Solid<'_>, j: &Solid<'_>) -> f64 {
     let quick = quick(i, j);
-    if i.volumes.plane.is_some() || j.volumes.plane.is_some() {
-        // Against a plane the quick bound is already the exact distance (or all there is).
-        return quick;
+    match (i.volumes.plane, j.volumes.plane) {
+        (Some(plane), None) => return quick.max(plane_distance(plane, j) - ROUNDING_M),
+        (None, Some(plane)) => return quick.max(plane_distance(plane, i) - ROUNDING_M),
+        (Some(_), Some(_)) => return quick,
+        (None, None) => {}
     }
     let capsules = segment_distance(i.placed.a, i.placed.b, j.placed.a, j.placed.b)
         - i.volumes.capsule_radius
