@@ -8,6 +8,7 @@
 //! it never calls them.
 
 mod allowed;
+mod bound;
 mod file;
 mod model;
 mod parry;
@@ -133,5 +134,7 @@ pub enum CellError {
     DegenerateHull { body: String },
 }
 
+#[cfg(test)]
+mod broad_tests;
 #[cfg(test)]
 mod tests;

@@ -3,14 +3,17 @@
 //! within a distance, the bodies' poses for drawing). Owns the placing of bodies and the
 //! broad phase; exact distances come from [`super::parry`].
 //!
-//! Broad phase: every solid carries a bounding sphere (a half-space its plane), which gives
-//! a lower bound on its distance to any other; an exact query runs only for a pair of
-//! solids whose bound can beat the best distance found so far.
+//! Broad phase ([`super::bound`]): every checked pair gets a quick lower bound on its
+//! distance; the lowest is measured exactly first, the pairs whose quick bound is below
+//! that get a tight bound, and those still below are measured in the order of their bounds
+//! until the next bound cannot beat the best. Static solids are placed once, when the
+//! scratch is made.
 
+use super::bound::{self, Placed, Volumes};
 use super::parry::{pose, signed_distance, solid};
 use super::{Cell, CellError};
 use crate::rig::{JointKind, Rig, Shape};
-use glam::{DAffine3, DVec3};
+use glam::DAffine3;
 use parry3d_f64::math::Pose;
 use parry3d_f64::shape::SharedShape;
 use std::collections::HashSet;
@@ -75,10 +78,15 @@ pub struct Scratch {
     /// Cell-frame pose of frame k of the rig (0: the base, as mounted).
     frames: Vec<DAffine3>,
     placed: Vec<PlacedShape>,
-    /// parry's pose of each solid, computed when an exact query first needs it.
+    /// parry's pose of each solid, computed when an exact query first needs it (a static
+    /// solid's once, with the scratch).
     solid_poses: Vec<Option<Pose>>,
-    /// Bounding-sphere centre of each solid, in the cell frame.
-    centres: Vec<DVec3>,
+    /// Each solid's bounding volumes in the cell frame.
+    volumes: Vec<Placed>,
+    /// Per checked pair, its quick bound.
+    quick: Vec<f64>,
+    /// The pairs still to measure exactly, with their tight bounds, lowest first.
+    candidates: Vec<(f64, usize)>,
 }
 
 /// Where a body's solids hang: fixed in the cell, or on a frame of the rig that moves.
@@ -104,12 +112,8 @@ pub(super) struct ModelShape {
     solid: SharedShape,
     /// parry's solid frame within ours (the cylinder's axis turn).
     solid_frame: DAffine3,
-    /// Bounding sphere in the solid's frame; a half-space has none.
-    pub(super) centre: DVec3,
-    pub(super) radius: f64,
-    /// A fixed half-space's plane in the cell frame: unit outward normal and offset, the
-    /// solid being `{ p : normal . p <= offset }`.
-    plane: Option<(DVec3, f64)>,
+    /// The broad phase's bounding volumes, in the solid's frame.
+    volumes: Volumes,
 }
 
 /// The rig's bodies, the tool and the cell's objects, with the pairs that are checked.
@@ -195,21 +199,38 @@ impl CollisionModel {
         })
     }
 
+    /// Buffers for queries on this model, with its static solids placed (a moving solid's
+    /// place is its body frame's until the first query).
     pub fn scratch(&self) -> Scratch {
+        let placed: Vec<PlacedShape> = self
+            .shapes
+            .iter()
+            .enumerate()
+            .map(|(index, s)| PlacedShape {
+                body: s.body,
+                shape: index,
+                pose: s.local,
+            })
+            .collect();
+        let solid_poses = self
+            .shapes
+            .iter()
+            .map(|s| {
+                (self.bodies[s.body].attach == Attach::Fixed)
+                    .then(|| pose(&(s.local * s.solid_frame)))
+            })
+            .collect();
         Scratch {
             frames: vec![self.mount; self.dof + 1],
-            placed: self
+            volumes: self
                 .shapes
                 .iter()
-                .enumerate()
-                .map(|(index, s)| PlacedShape {
-                    body: s.body,
-                    shape: index,
-                    pose: s.local,
-                })
+                .map(|s| s.volumes.place(&s.local))
                 .collect(),
-            solid_poses: vec![None; self.shapes.len()],
-            centres: vec![DVec3::ZERO; self.shapes.len()],
+            placed,
+            solid_poses,
+            quick: vec![0.0; self.pairs.len()],
+            candidates: Vec::with_capacity(self.pairs.len()),
         }
     }
 
@@ -265,32 +286,68 @@ impl CollisionModel {
     /// trajectories of the rig).
     pub fn clearance(&self, positions: &[f64], scratch: &mut Scratch) -> Clearance {
         self.place(positions, scratch);
-        // Seed the best with the pair whose bound is lowest (most likely the closest), so
-        // the bound prunes the exact queries of every other pair from the start.
         let mut best = Clearance::NONE;
-        let likeliest = self.pairs.iter().min_by(|p, q| {
-            let bound = |&(a, b): &(BodyId, BodyId)| self.pair_bound(a, b, scratch);
-            bound(p).total_cmp(&bound(q))
-        });
-        if let Some(&(a, b)) = likeliest
-            && let Some(d) = self.pair_distance(a, b, f64::INFINITY, scratch)
-        {
-            best = Clearance {
+        // The pair whose quick bound is lowest is most likely the closest: measured first,
+        // its distance rules out most other pairs on their quick bound alone.
+        let Some(likeliest) = self.quick_bounds(scratch) else {
+            return best;
+        };
+        self.measure_pair(likeliest, &mut best, scratch);
+        self.gather_candidates(likeliest, best.distance_m, scratch);
+        let candidates = std::mem::take(&mut scratch.candidates);
+        for &(bound, index) in &candidates {
+            if bound >= best.distance_m {
+                break;
+            }
+            self.measure_pair(index, &mut best, scratch);
+        }
+        scratch.candidates = candidates;
+        best
+    }
+
+    /// Fills the scratch's quick bound of every checked pair; the index of the lowest.
+    fn quick_bounds(&self, scratch: &mut Scratch) -> Option<usize> {
+        let mut lowest: Option<(f64, usize)> = None;
+        for (index, &(a, b)) in self.pairs.iter().enumerate() {
+            let bound = self.pair_bound(a, b, scratch, bound::quick);
+            scratch.quick[index] = bound;
+            if lowest.is_none_or(|(low, _)| bound < low) {
+                lowest = Some((bound, index));
+            }
+        }
+        lowest.map(|(_, index)| index)
+    }
+
+    /// The pairs besides `measured` that may still beat `best`: every pair that neither its
+    /// quick nor its tight bound rules out (a bound that is not a number rules out nothing),
+    /// sorted by tight bound (ties by pair, so the answer does not depend on the sort).
+    fn gather_candidates(&self, measured: usize, best: f64, scratch: &mut Scratch) {
+        let mut candidates = std::mem::take(&mut scratch.candidates);
+        candidates.clear();
+        for (index, &(a, b)) in self.pairs.iter().enumerate() {
+            if index == measured || scratch.quick[index] >= best {
+                continue;
+            }
+            let bound = self.pair_bound(a, b, scratch, bound::tight);
+            if bound >= best {
+                continue;
+            }
+            candidates.push((bound, index));
+        }
+        candidates.sort_unstable_by(|p, q| p.0.total_cmp(&q.0).then(p.1.cmp(&q.1)));
+        scratch.candidates = candidates;
+    }
+
+    /// Measures checked pair `index` exactly, and makes it `best` when it is closer.
+    fn measure_pair(&self, index: usize, best: &mut Clearance, scratch: &mut Scratch) {
+        let (a, b) = self.pairs[index];
+        if let Some(d) = self.pair_distance(a, b, best.distance_m, scratch) {
+            *best = Clearance {
                 distance_m: d,
                 a,
                 b,
             };
         }
-        for &(a, b) in &self.pairs {
-            if let Some(d) = self.pair_distance(a, b, best.distance_m, scratch) {
-                best = Clearance {
-                    distance_m: d,
-                    a,
-                    b,
-                };
-            }
-        }
-        best
     }
 
     /// Every checked pair closer than `cutoff_m` at `positions`, into `out` (cleared first).
@@ -320,8 +377,9 @@ impl CollisionModel {
         &scratch.placed
     }
 
-    /// Places every solid at `positions`: frames, poses, bounding-sphere centres; parry's
-    /// poses are left to be computed on demand.
+    /// Places every moving solid at `positions`: frames, poses, bounding volumes; parry's
+    /// poses are left to be computed on demand. Static solids stay where the scratch put
+    /// them.
     fn place(&self, positions: &[f64], scratch: &mut Scratch) {
         assert_eq!(
             positions.len(),
@@ -335,12 +393,12 @@ impl CollisionModel {
             scratch.frames[k + 1] = frame;
         }
         for (index, shape) in self.shapes.iter().enumerate() {
-            let pose = match self.bodies[shape.body].attach {
-                Attach::Fixed => shape.local,
-                Attach::Frame(k) => scratch.frames[k] * shape.local,
+            let Attach::Frame(k) = self.bodies[shape.body].attach else {
+                continue;
             };
+            let pose = scratch.frames[k] * shape.local;
             scratch.placed[index].pose = pose;
-            scratch.centres[index] = pose.transform_point3(shape.centre);
+            scratch.volumes[index] = shape.volumes.place(&pose);
             scratch.solid_poses[index] = None;
         }
     }
@@ -351,7 +409,8 @@ impl CollisionModel {
         let mut found = false;
         for i in self.bodies[a].shapes.clone() {
             for j in self.bodies[b].shapes.clone() {
-                if self.lower_bound(i, j, scratch) >= best {
+                let (si, sj) = (self.solid(i, scratch), self.solid(j, scratch));
+                if bound::quick(&si, &sj) >= best || bound::tight(&si, &sj) >= best {
                     continue;
                 }
                 let d = self.exact(i, j, scratch);
@@ -364,26 +423,31 @@ impl CollisionModel {
         found.then_some(best)
     }
 
-    /// The lowest bound over the solid pairs of bodies `a` and `b`.
-    fn pair_bound(&self, a: BodyId, b: BodyId, scratch: &Scratch) -> f64 {
+    /// The lowest of `bound` over the solid pairs of bodies `a` and `b`.
+    fn pair_bound(
+        &self,
+        a: BodyId,
+        b: BodyId,
+        scratch: &Scratch,
+        bound: impl Fn(&bound::Solid<'_>, &bound::Solid<'_>) -> f64,
+    ) -> f64 {
         let mut low = f64::INFINITY;
         for i in self.bodies[a].shapes.clone() {
             for j in self.bodies[b].shapes.clone() {
-                low = low.min(self.lower_bound(i, j, scratch));
+                low = low.min(bound(&self.solid(i, scratch), &self.solid(j, scratch)));
             }
         }
         low
     }
 
-    /// A lower bound on the distance between solids `i` and `j` from their bounding
-    /// spheres (or a half-space's plane).
-    fn lower_bound(&self, i: usize, j: usize, scratch: &Scratch) -> f64 {
-        let (si, sj) = (&self.shapes[i], &self.shapes[j]);
-        match (si.plane, sj.plane) {
-            (Some((n, offset)), None) => n.dot(scratch.centres[j]) - offset - sj.radius,
-            (None, Some((n, offset))) => n.dot(scratch.centres[i]) - offset - si.radius,
-            (None, None) => scratch.centres[i].distance(scratch.centres[j]) - si.radius - sj.radius,
-            (Some(_), Some(_)) => f64::NEG_INFINITY,
+    /// Solid `index` as placed in `scratch`, for the bounds.
+    fn solid<'s>(&'s self, index: usize, scratch: &'s Scratch) -> bound::Solid<'s> {
+        let shape = &self.shapes[index];
+        bound::Solid {
+            shape: &shape.shape,
+            volumes: &shape.volumes,
+            pose: &scratch.placed[index].pose,
+            placed: &scratch.volumes[index],
         }
     }
 
@@ -430,7 +494,6 @@ impl Builder {
                     body: name.to_string(),
                 });
             };
-            let (centre, radius) = bounding_sphere(shape);
             let plane = match shape {
                 Shape::HalfSpace { normal } if attach == Attach::Fixed => {
                     let n = local.transform_vector3(*normal).normalize();
@@ -449,9 +512,7 @@ impl Builder {
                 shape: shape.clone(),
                 solid: solid_shape,
                 solid_frame,
-                centre,
-                radius,
-                plane,
+                volumes: Volumes::new(shape, plane),
             });
         }
         self.bodies.push(Body {
@@ -461,30 +522,6 @@ impl Builder {
         });
         self.kinds.push(kind);
         Ok(id)
-    }
-}
-
-/// A sphere around `shape` in its own frame, as (centre, radius); a half-space gets an
-/// infinite one (its plane bounds it instead).
-fn bounding_sphere(shape: &Shape) -> (DVec3, f64) {
-    match shape {
-        Shape::Capsule { a, b, radius } => ((*a + *b) / 2.0, a.distance(*b) / 2.0 + radius),
-        Shape::ConvexHull { points } => {
-            let (low, high) = points.iter().fold(
-                (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
-                |(lo, hi), p| (lo.min(*p), hi.max(*p)),
-            );
-            let centre = (low + high) / 2.0;
-            let radius = points
-                .iter()
-                .map(|p| p.distance(centre))
-                .fold(0.0, f64::max);
-            (centre, radius)
-        }
-        other => (
-            DVec3::ZERO,
-            other.bounding_radius().unwrap_or(f64::INFINITY),
-        ),
     }
 }
 
@@ -559,7 +596,12 @@ fn reach_per_joint(rig: &Rig, bodies: &[Body], shapes: &[ModelShape]) -> Vec<f64
                 .filter_map(|s| match bodies[s.body].attach {
                     Attach::Frame(k) if k > j => {
                         let between: f64 = (j + 1..k).map(link_length).sum();
-                        Some(between + s.local.transform_point3(s.centre).length() + s.radius)
+                        let sphere = &s.volumes;
+                        Some(
+                            between
+                                + s.local.transform_point3(sphere.centre).length()
+                                + sphere.radius,
+                        )
                     }
                     _ => None,
                 })

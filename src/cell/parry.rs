@@ -1,13 +1,14 @@
 //! The one adapter between our geometry (glam 0.34) and parry3d-f64 (glamx, on glam 0.33):
 //! every vector, rotation and shape crosses here, through plain arrays, so the two glam
-//! versions never meet anywhere else. Owns the conversion and the signed distance; it
-//! knows nothing of rigs or cells.
+//! versions never meet anywhere else. Owns the conversion, the signed distance and the
+//! distance of two segments (the broad phase's bounding capsules); it knows nothing of rigs
+//! or cells.
 
 use crate::rig::Shape;
 use glam::{DAffine3, DQuat, DVec3};
 use parry3d_f64::math::{Pose, Rotation, Vector};
 use parry3d_f64::query;
-use parry3d_f64::shape::{Capsule, HalfSpace, SharedShape};
+use parry3d_f64::shape::{Capsule, HalfSpace, Segment, Shape as ParryShape, SharedShape};
 
 fn vector(v: DVec3) -> Vector {
     Vector::from_array(v.to_array())
@@ -77,16 +78,37 @@ pub(super) fn signed_distance(
     // Every pair we query is supported: each solid is a support map or a half-space, and
     // two half-spaces are never a checked pair (both static). Should parry ever refuse a
     // pair, the answer is "collision" (fail closed), not "free".
-    let Ok(gap) = query::distance(pose1, solid1.as_ref(), pose2, solid2.as_ref()) else {
+    let ((core1, radius1), (core2, radius2)) = (core(solid1), core(solid2));
+    let Ok(gap) = query::distance(pose1, core1, pose2, core2) else {
         return f64::NEG_INFINITY;
     };
     if gap.distance > 0.0 {
-        return gap.distance;
+        return gap.distance - radius1 - radius2;
     }
+    // The cores touch: the depth is the solids' own. Not the cores' depth less the radii:
+    // parry's EPA is not reliable on a bare segment (one into a cylinder came back 0.19 m
+    // deep where their bounding spheres allow 0.16 m at most).
     match query::contact(pose1, solid1.as_ref(), pose2, solid2.as_ref(), 0.0) {
         Ok(Some(contact)) => contact.dist.min(0.0),
         Ok(None) => 0.0,
         Err(_) => f64::NEG_INFINITY,
+    }
+}
+
+/// The solid a shape is measured from, and the radius it is grown by: a capsule's segment
+/// and radius (a capsule is its segment grown by its radius, and so is its distance from
+/// anything: the segment's less the radius); any other shape itself, grown by nothing.
+///
+/// Against a box or a hull the segment's distance is exact (GJK on two polytopes ends on
+/// their closest features) where the capsule's stopped up to 13 um above it; against a
+/// ball or a half-space parry's query is a closed form either way; against a cylinder GJK
+/// keeps its tolerance on the round solid, about 10 um either way (src/cell/broad_tests.rs
+/// measures it against the closed form). And a capsule that overlaps a solid less deeply
+/// than its radius needs no penetration query (EPA) at all.
+fn core(solid: &SharedShape) -> (&dyn ParryShape, f64) {
+    match solid.as_capsule() {
+        Some(capsule) => (&capsule.segment, capsule.radius),
+        None => (solid.as_ref(), 0.0),
     }
 }
 
@@ -100,4 +122,18 @@ fn capsule_capsule(pose1: &Pose, c1: &Capsule, pose2: &Pose, c2: &Capsule) -> f6
     query::details::distance_segment_segment(&pos12, &c1.segment, &c2.segment)
         - c1.radius
         - c2.radius
+}
+
+/// The distance between the segments `a1`-`b1` and `a2`-`b2` (the broad phase's bounding
+/// capsules), from parry's closest points of two segments.
+pub(super) fn segment_distance(a1: DVec3, b1: DVec3, a2: DVec3, b2: DVec3) -> f64 {
+    let (s1, s2) = (
+        Segment::new(vector(a1), vector(b1)),
+        Segment::new(vector(a2), vector(b2)),
+    );
+    let (at1, at2) = query::details::closest_points_segment_segment_with_locations_nD(
+        (&s1.a, &s1.b),
+        (&s2.a, &s2.b),
+    );
+    s1.point_at(&at1).distance(s2.point_at(&at2))
 }
