@@ -4,7 +4,7 @@
 mod common;
 
 use common::repo_path;
-use common::serve::{Served, request_json, start_serve, write_pan_tilt_rig};
+use common::serve::{Served, request_bare, request_json, start_serve, write_pan_tilt_rig};
 use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::process::{Command, Stdio};
@@ -232,20 +232,13 @@ fn after_an_estop_jobs_are_refused_until_a_reset_then_a_job_completes() {
 /// One request with exactly these extra header lines (no token of the server's own).
 fn request_with(server: &Server, method: &str, path: &str, headers: &str) -> (u16, String) {
     assert!(server.address.starts_with("127.0.0.1:"));
-    let mut stream = TcpStream::connect(&server.address).unwrap();
-    stream
-        .set_read_timeout(Some(Duration::from_secs(30)))
-        .unwrap();
-    write!(
-        stream,
-        "{method} {path} HTTP/1.1\r\nHost: {}\r\n{headers}Content-Length: 0\r\nConnection: close\r\n\r\n",
-        server.address
+    request_bare(
+        &server.address,
+        method,
+        path,
+        headers,
+        Duration::from_secs(30),
     )
-    .unwrap();
-    let mut response = String::new();
-    stream.read_to_string(&mut response).unwrap();
-    let status = response[9..12].parse().unwrap();
-    (status, response)
 }
 
 fn assert_unauthorized((code, response): (u16, String)) {

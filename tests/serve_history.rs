@@ -6,9 +6,7 @@
 
 mod common;
 
-use common::serve::{Served, request_json, serve_command, start_serve};
-use std::io::{Read, Write};
-use std::net::TcpStream;
+use common::serve::{Served, request_bare, request_json, serve_command, start_serve};
 use std::process::Stdio;
 use std::time::{Duration, Instant};
 
@@ -67,17 +65,7 @@ fn post(server: &Server, path: &str, body: &str) -> (u16, serde_json::Value) {
 
 /// One request with exactly these header lines and no body: the status code and the body.
 fn bare(server: &Server, method: &str, path: &str, headers: &str) -> (u16, String) {
-    let mut stream = TcpStream::connect(&server.address).unwrap();
-    stream.set_read_timeout(Some(WITHIN)).unwrap();
-    write!(
-        stream,
-        "{method} {path} HTTP/1.1\r\nHost: {}\r\n{headers}Content-Length: 0\r\nConnection: close\r\n\r\n",
-        server.address
-    )
-    .unwrap();
-    let mut response = String::new();
-    stream.read_to_string(&mut response).unwrap();
-    let code = response[9..12].parse().unwrap();
+    let (code, response) = request_bare(&server.address, method, path, headers, WITHIN);
     let body = response.split("\r\n\r\n").nth(1).unwrap_or("").to_string();
     (code, body)
 }

@@ -91,6 +91,29 @@ pub fn request_json(
     (status, serde_json::from_str(json).unwrap_or_default())
 }
 
+/// One HTTP/1.1 request with no body to the daemon at `address`, `Connection: close`, with
+/// exactly the header lines `headers` (each ending in `\r\n`) besides Host and
+/// Content-Length: the status code and the whole response, headers included.
+pub fn request_bare(
+    address: &str,
+    method: &str,
+    path: &str,
+    headers: &str,
+    within: Duration,
+) -> (u16, String) {
+    let mut stream = TcpStream::connect(address).unwrap();
+    stream.set_read_timeout(Some(within)).unwrap();
+    write!(
+        stream,
+        "{method} {path} HTTP/1.1\r\nHost: {address}\r\n{headers}Content-Length: 0\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut response = String::new();
+    stream.read_to_string(&mut response).unwrap();
+    let status = response[9..12].parse().unwrap();
+    (status, response)
+}
+
 /// `dir/pan_tilt.toml`: a three-axis rig named `name` (joints `pan`, `tilt`, `elbow`,
 /// revolute, +-90 deg), slow enough (60 deg/s) that a job of a few moves lasts seconds.
 pub fn write_pan_tilt_rig(dir: &Path, name: &str) {
