@@ -937,28 +937,29 @@ fn job_unshown(cell: &Cell, e: serde_json::Error) -> Response {
     )
 }
 
+/// Why a job lookup's query is refused: the parameter or the value, shortened.
+#[derive(Debug, thiserror::Error)]
+enum WaitRefused {
+    #[error("unknown query parameter `{0}`: a job lookup takes only `wait_s`")]
+    UnknownParameter(String),
+    #[error("wait_s = `{0}` is not a number of seconds in 0..={MAX_JOB_WAIT_S}")]
+    BadSeconds(String),
+}
+
 /// The wait a job lookup's query asks for: `wait_s`, seconds in 0..=[`MAX_JOB_WAIT_S`];
 /// none without it. Anything else in the query is refused, naming it.
-fn wait_of(query: Option<&str>) -> Result<Duration, String> {
+fn wait_of(query: Option<&str>) -> Result<Duration, WaitRefused> {
     let mut wait = Duration::ZERO;
     for (key, value) in form_urlencoded::parse(query.unwrap_or("").as_bytes()) {
         if key != "wait_s" {
-            return Err(format!(
-                "unknown query parameter `{}`: a job lookup takes only `wait_s`",
-                guard::shorten(&key)
-            ));
+            return Err(WaitRefused::UnknownParameter(guard::shorten(&key)));
         }
         wait = value
             .parse::<f64>()
             .ok()
             .filter(|s| (0.0..=MAX_JOB_WAIT_S).contains(s))
             .map(Duration::from_secs_f64)
-            .ok_or_else(|| {
-                format!(
-                    "wait_s = `{}` is not a number of seconds in 0..={MAX_JOB_WAIT_S}",
-                    guard::shorten(&value)
-                )
-            })?;
+            .ok_or_else(|| WaitRefused::BadSeconds(guard::shorten(&value)))?;
     }
     Ok(wait)
 }
