@@ -6,7 +6,7 @@
 //! / `invalid_input: ...` naming the column and the value. A bad row never stops the batch.
 //! Owns the format only; the geometry is [`crate::cell::CollisionModel`]'s.
 
-use super::{BatchError, joint_columns, locate, reader};
+use super::{BatchError, joint_columns, joint_positions, reader};
 use crate::cell::{Clearance, CollisionModel};
 use crate::rig::Rig;
 use std::collections::BTreeMap;
@@ -151,11 +151,7 @@ pub fn check_batch(
 ) -> Result<CheckSummary, BatchError> {
     let mut reader = reader(input);
     let names = joint_columns(rig.dof());
-    let header = reader.headers()?.clone();
-    let columns: Vec<usize> = names
-        .iter()
-        .map(|n| locate(&header, [n.as_str()]).map(|[c]| c))
-        .collect::<Result<_, _>>()?;
+    let columns = joint_positions(&mut reader, &names)?;
     let mut out = std::io::BufWriter::new(output);
     writeln!(out, "{CHECK_COLUMNS}")?;
     let mut scratch = model.scratch();

@@ -85,6 +85,18 @@ pub fn joint_columns(dof: usize) -> Vec<String> {
     (1..=dof).map(|i| format!("j{i}")).collect()
 }
 
+/// Where the joint columns `names` ([`joint_columns`]) are in `reader`'s header.
+fn joint_positions(
+    reader: &mut csv::Reader<impl Read>,
+    names: &[String],
+) -> Result<Vec<usize>, BatchError> {
+    let header = reader.headers()?;
+    names
+        .iter()
+        .map(|n| locate(header, [n.as_str()]).map(|[c]| c))
+        .collect()
+}
+
 /// Parses one joint row into SI units (radians, metres for prismatic axes).
 fn joints_from(rig: &Rig, record: &csv::StringRecord, columns: &[usize]) -> Option<Vec<f64>> {
     columns
@@ -128,11 +140,7 @@ pub fn fk_batch(
 ) -> Result<BatchSummary, BatchError> {
     let mut reader = reader(input);
     let names = joint_columns(rig.dof());
-    let header = reader.headers()?.clone();
-    let columns: Vec<usize> = names
-        .iter()
-        .map(|n| locate(&header, [n.as_str()]).map(|[c]| c))
-        .collect::<Result<_, _>>()?;
+    let columns = joint_positions(&mut reader, &names)?;
     let mut out = std::io::BufWriter::new(output);
     writeln!(out, "{},status", POSE_COLUMNS.join(","))?;
     let mut summary = BatchSummary::default();
