@@ -950,3 +950,40 @@ fn sweeps_skipping_samples_give_the_same_answers_as_measuring_all() {
         }
     }
 }
+
+/// A paint job is checked before motion against its own room's walls at the run cell's
+/// margin, which must lie below the planner's clearance (kept at the planner's samples
+/// only): a cell whose margin is not below it is refused before motion, naming both values.
+#[test]
+fn a_cell_margin_not_below_the_planners_clearance_is_refused_naming_both() {
+    let dir = std::env::temp_dir().join(format!("rigbridge-paint-margin-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    for file in ["painter.toml", "paint.toml", "paint-run.toml"] {
+        std::fs::copy(repo_path(&format!("config/{file}")), dir.join(file)).unwrap();
+    }
+    let cell = std::fs::read_to_string(repo_path("config/cell-painter.toml")).unwrap();
+    assert!(cell.contains("margin_m = 0.005"), "the shipped painter cell's margin");
+    std::fs::write(
+        dir.join("cell-painter.toml"),
+        cell.replace("margin_m = 0.005", "margin_m = 0.01"),
+    )
+    .unwrap();
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args(["paint", "--walls", "3", "--seed", "2", "--clock", "virtual"])
+        .arg("--config")
+        .arg(dir.join("paint-run.toml"))
+        .current_dir(&dir)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("margin_m = 0.01 m is not below")
+            && stderr.contains("body.planning_clearance_m = 0.01 m"),
+        "{stderr}"
+    );
+    let logged = std::fs::read_dir(dir.join("runs")).map_or(0, |entries| entries.count());
+    assert_eq!(logged, 0, "refused before its log opened: nothing moved");
+    let _ = std::fs::remove_dir_all(&dir);
+}
