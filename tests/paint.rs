@@ -963,7 +963,10 @@ fn a_cell_margin_not_below_the_planners_clearance_is_refused_naming_both() {
         std::fs::copy(repo_path(&format!("config/{file}")), dir.join(file)).unwrap();
     }
     let cell = std::fs::read_to_string(repo_path("config/cell-painter.toml")).unwrap();
-    assert!(cell.contains("margin_m = 0.005"), "the shipped painter cell's margin");
+    assert!(
+        cell.contains("margin_m = 0.005"),
+        "the shipped painter cell's margin"
+    );
     std::fs::write(
         dir.join("cell-painter.toml"),
         cell.replace("margin_m = 0.005", "margin_m = 0.01"),
