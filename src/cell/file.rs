@@ -2,6 +2,7 @@
 //! on load, every error naming the file, the key and the bad value. Owns the format only;
 //! whether the named bodies exist is the collision model's question (it knows the rig).
 
+use super::targets::{RawGrid, RawTarget, targets_from_raw};
 use super::{Cell, CellError, CellObject, DEFAULT_MARGIN_M, Tool};
 use crate::rig::geometry::{RawSolid, check_pairs};
 use crate::rig::{ConfigError, check_range, origin_from_xyz_rpy, shipped};
@@ -25,6 +26,10 @@ pub(crate) struct RawCell {
     #[serde(default)]
     object: Vec<RawSolid>,
     tool: Option<RawTool>,
+    #[serde(default)]
+    target: Vec<RawTarget>,
+    #[serde(default)]
+    target_grid: Vec<RawGrid>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -115,12 +120,14 @@ pub(crate) fn cell_from_raw(raw: &RawCell, file: &Path, prefix: &str) -> Result<
     check_pairs(file, &key("allowed_pairs"), &raw.allowed_pairs, |name| {
         !name.trim().is_empty()
     })?;
+    let targets = targets_from_raw(file, prefix, &raw.target, &raw.target_grid)?;
     Ok(Cell {
         mount,
         objects,
         tool,
         margin_m,
         allowed_pairs: raw.allowed_pairs.clone(),
+        targets,
     })
 }
 

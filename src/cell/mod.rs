@@ -13,6 +13,7 @@ mod file;
 mod model;
 mod parry;
 mod path;
+mod targets;
 pub mod urdf;
 
 pub use allowed::{
@@ -23,6 +24,7 @@ pub(crate) use file::{RawCell, cell_from_raw};
 pub use file::{cell_from_toml, load_cell};
 pub use model::{BodyId, Clearance, CollisionModel, NO_BODY, PlacedShape, Scratch, Status};
 pub use path::{PathClearance, PathCollision};
+pub use targets::{GridNames, NamedTarget, Spot, Targets};
 
 use crate::rig::{Collision, ConfigError, Rig, Shape};
 use glam::{DAffine3, DVec3};
@@ -47,6 +49,8 @@ pub struct Cell {
     pub margin_m: f64,
     /// Pairs of body names never checked, besides the rig's own.
     pub allowed_pairs: Vec<(String, String)>,
+    /// Named targets and grids of them, for programs (`[[target]]`, `[[target_grid]]`).
+    pub targets: Targets,
 }
 
 /// A named static solid of the cell.
@@ -82,6 +86,7 @@ impl Cell {
             tool: None,
             margin_m: DEFAULT_MARGIN_M,
             allowed_pairs: Vec::new(),
+            targets: Targets::default(),
         }
     }
 

@@ -111,6 +111,7 @@ pub fn room_cell(rig: &Rig, room: &Room, config: &PaintConfig) -> Cell {
         }),
         margin_m: config.body.planning_clearance_m,
         allowed_pairs,
+        targets: crate::cell::Targets::default(),
     }
 }
 
