@@ -123,6 +123,7 @@ fn toml_and_json_refuse_the_same_jobs_with_the_same_text() {
     let dir = settings.file.parent().unwrap().to_path_buf();
     let context = JobContext {
         rig: &settings.rig,
+        cell: &settings.cell,
         sloth: None,
         base_dir: &dir,
         limits: &settings.config.limits,

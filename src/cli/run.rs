@@ -352,7 +352,29 @@ fn print_summary(report: &RunReport) -> anyhow::Result<()> {
         report.rate_hz,
         report.clock,
         &report.stream,
-    )
+    )?;
+    if let Some(times) = &report.cycle_times {
+        print_cycle_times(times)?;
+    }
+    Ok(())
+}
+
+/// A program's planned cycle time per step, then per pass of each repeat.
+fn print_cycle_times(times: &rigbridge::job::CycleTimes) -> anyhow::Result<()> {
+    say!("  cycle times (planned):");
+    for step in &times.steps {
+        say!("    {} {}: {:.3} s", step.step, step.what, step.duration_s);
+    }
+    for lap in &times.laps {
+        say!(
+            "    {} pass {} ({}): {:.3} s",
+            lap.repeat,
+            lap.index,
+            lap.target,
+            lap.duration_s
+        );
+    }
+    Ok(())
 }
 
 pub fn print_stream_summary(

@@ -1046,6 +1046,7 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     check_limits(file, &config.limits)?;
     let context = crate::job::JobContext {
         rig: &tcp_rig,
+        cell: &cell,
         sloth: sloth.as_deref(),
         base_dir: &base_dir,
         limits: &config.limits,

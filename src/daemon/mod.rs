@@ -62,6 +62,15 @@ pub enum DaemonError {
     /// A stop or e-stop ended the job before any motion.
     #[error("{0}")]
     Halted(Halted),
+    /// A program needs I/O the link does not carry: refused before motion.
+    #[error(
+        "refused before motion: {step} needs I/O, and the link {link} carries none: {why}"
+    )]
+    NoIo {
+        step: String,
+        link: String,
+        why: &'static str,
+    },
 }
 
 /// A job a stop or e-stop ended before any motion: how, and in which phase.
@@ -134,6 +143,7 @@ impl Halted {
             log: None,
             log_error: None,
             contacts: None,
+            cycle_times: None,
         }
     }
 }
@@ -168,6 +178,10 @@ pub struct RunReport {
     /// What the in-process twin measured of the cell's clearances over the job (closest
     /// pairs, collision episodes); `null` for a remote controller.
     pub contacts: Option<crate::twin::ContactReport>,
+    /// A program's planned cycle time per step and per pass of each repeat
+    /// (docs/programs.md); absent for other jobs.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cycle_times: Option<crate::job::CycleTimes>,
 }
 
 /// A log that failed during a run: what failed, from when, and what the job did about it.
@@ -583,6 +597,19 @@ fn clear_job(
     }
 }
 
+/// Refuses `job` before anything else when it needs I/O that `link` does not carry,
+/// naming its first such step, the link and why.
+fn check_io(job: &config::JobConfig, link: &dyn Link) -> Result<(), DaemonError> {
+    let (Some(step), crate::link::Io::NotCarried(why)) = (job.first_io_step(), link.io()) else {
+        return Ok(());
+    };
+    Err(DaemonError::NoIo {
+        step,
+        link: link.describe(),
+        why,
+    })
+}
+
 pub fn plan_for(
     settings: &RunSettings,
     job: &config::JobConfig,
@@ -590,6 +617,7 @@ pub fn plan_for(
     clock: &dyn Clock,
     control: &StreamControl,
 ) -> Result<PlannedJob, DaemonError> {
+    check_io(job, link)?;
     let start = held_position(settings, link, clock, control)?;
     if control.enter(Phase::Planning) {
         return Err(Halted::of(control).told(link));
@@ -764,6 +792,9 @@ pub fn stream_job_with(
         log: log_report,
         log_error,
         contacts,
+        cycle_times: job
+            .job
+            .and_then(|j| j.cycle_times(job.origins, job.trajectory.period)),
     })
 }
 

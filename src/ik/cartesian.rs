@@ -132,6 +132,34 @@ pub fn plan_cartesian_marked(
     Ok((samples.finish(rig, settings.period)?, marks))
 }
 
+/// The joints along the straight tool line from `from` to `to`, from `start` (the joints
+/// at `from`), untimed: the line solved sample by sample and refined where it bends, as
+/// [`plan_cartesian`] solves it; the first entry is `start`. `waypoint` names the line in
+/// an error. A program (`job/program/`) joins such paths with others and times them
+/// together, so that it can pass a point without stopping.
+pub fn line_joint_path(
+    solver: &dyn IkSolver,
+    start: &[f64],
+    from: Pose,
+    to: Pose,
+    settings: &PlanSettings,
+    waypoint: usize,
+) -> Result<Vec<Vec<f64>>, CartesianError> {
+    settings.check()?;
+    check_start(solver.rig(), start)?;
+    let to = to
+        .validated()
+        .map_err(|error| CartesianError::InvalidPose { waypoint, error })?;
+    let mov = LinearMove {
+        solver,
+        settings,
+        waypoint,
+        line: Line { from, to },
+    };
+    let path = mov.dense_path(start)?;
+    Ok(path.nodes().iter().map(|node| node.joints.clone()).collect())
+}
+
 /// The tool pose at `start` (whose axis count `check_start` has already confirmed).
 fn start_pose(rig: &Rig, start: &[f64]) -> Result<Pose, PlanError> {
     rig.tool_pose(start).map_err(|e| PlanError::StartAxisCount {

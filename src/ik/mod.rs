@@ -16,7 +16,7 @@ mod gradient;
 mod wrist;
 
 pub use base_held::BaseHeldSolver;
-pub use cartesian::{CartesianError, plan_cartesian, plan_cartesian_marked};
+pub use cartesian::{CartesianError, line_joint_path, plan_cartesian, plan_cartesian_marked};
 pub use ccd::CcdSolver;
 pub use fabrik::{FabrikSolver, StructureError, StructureProblem};
 pub use fabrik_position::PositionFabrikSolver;

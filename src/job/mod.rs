@@ -19,6 +19,7 @@ mod move_linear;
 mod move_poses;
 mod paint;
 mod poses;
+mod program;
 mod wall_figure;
 
 pub use files::resolve_file;
@@ -34,6 +35,10 @@ pub use move_linear::{LineRefused, MoveLinear, top_tool_speed};
 pub use move_poses::MovePoses;
 pub use paint::Paint;
 pub use poses::PoseSpec;
+pub use program::{
+    CycleTimes, LapTime, Move as ProgramMove, NoKeys, Over, Program, ProgramError, Repeat,
+    SetOutput, Step, StepTime, Wait, WaitInput, free_move_path,
+};
 pub use wall_figure::{WallFigure, star_poses};
 
 use crate::ik::{CartesianError, IkError, StructureError};
@@ -71,14 +76,18 @@ pub enum Job {
     Gait(Gait),
     /// Paint a generated room with the painter rig.
     Paint(Paint),
+    /// Steps over the cell's named targets: moves with zones, dwells, I/O, repeats
+    /// (docs/programs.md).
+    Program(Program),
 }
 
 /// What validating a job needs: the rig it runs on, the sloth behind it for a gait, the
-/// directory files are named relative to, and the caps on its cost (`[limits]`) with the
-/// stream period its plan will be sampled at.
+/// cell (a program's named targets), the directory files are named relative to, and the
+/// caps on its cost (`[limits]`) with the stream period its plan will be sampled at.
 #[derive(Clone, Copy)]
 pub struct JobContext<'a> {
     pub rig: &'a Rig,
+    pub cell: &'a crate::cell::Cell,
     pub sloth: Option<&'a SlothRig>,
     pub base_dir: &'a Path,
     pub limits: &'a JobLimits,
@@ -172,6 +181,9 @@ pub enum JobError {
     TrajectoryFile(#[from] TrajectoryFileError),
     #[error("{0}")]
     Invalid(#[from] JobInvalid),
+    /// Boxed to keep every `Result<_, JobError>` small.
+    #[error(transparent)]
+    Program(Box<ProgramError>),
 }
 
 impl Job {
@@ -187,6 +199,7 @@ impl Job {
             Job::FollowTrajectory(job) => Job::FollowTrajectory(job.validate(context)?),
             Job::Gait(job) => Job::Gait(job.validate(context)?),
             Job::Paint(job) => Job::Paint(job.validate(context)?),
+            Job::Program(job) => Job::Program(job.validate(context)?),
         })
     }
 
@@ -219,6 +232,7 @@ impl Job {
             Job::FollowTrajectory(job) => job.plan(context),
             Job::Gait(job) => Ok((job.plan(context)?, Origins::whole("the gait's plan"))),
             Job::Paint(job) => Ok((job.plan(context)?, Origins::whole("the painting plan"))),
+            Job::Program(job) => job.plan(context),
         }
     }
 
@@ -233,6 +247,25 @@ impl Job {
             Job::FollowTrajectory(_) => "follow_trajectory",
             Job::Gait(_) => "gait",
             Job::Paint(_) => "paint",
+            Job::Program(_) => "program",
+        }
+    }
+
+    /// The first step that needs I/O (`job.steps[4]: grip`), for a link that carries none
+    /// to refuse the job before motion.
+    pub fn first_io_step(&self) -> Option<String> {
+        match self {
+            Job::Program(program) => program.first_io_step(),
+            _ => None,
+        }
+    }
+
+    /// A program's planned cycle time per step and per pass of each repeat, from its
+    /// trajectory's stretches; `None` for other kinds.
+    pub fn cycle_times(&self, origins: &Origins, period: Duration) -> Option<CycleTimes> {
+        match self {
+            Job::Program(program) => program.cycle_times(origins, period),
+            _ => None,
         }
     }
 

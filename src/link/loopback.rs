@@ -69,6 +69,12 @@ impl Link for LoopbackLink {
         "loopback".to_string()
     }
 
+    fn io(&self) -> super::Io {
+        super::Io::NotCarried(
+            "the loopback twin carries no I/O yet (protocol v2 has no I/O messages; a later version adds them, with the twin's gripper); EGM, CiA 402 and Dynamixel carry none",
+        )
+    }
+
     fn next_event(&mut self) -> Option<LinkEvent> {
         self.events.pop_front()
     }

@@ -125,6 +125,21 @@ pub struct LinkCounters {
     pub second_robots: u64,
 }
 
+/// Whether a link carries digital I/O beside motion (a program's `set_output`,
+/// `wait_input`, `grip`, `release`), and if not, why: what a program that needs I/O is told
+/// before any motion (docs/programs.md). No link carries any yet; one that does answers
+/// [`Io::Carried`] from [`Link::io`] and nothing else changes for it to be let through.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Io {
+    Carried,
+    NotCarried(&'static str),
+}
+
+/// Why no link carries I/O today, told with every refusal: protocol v2's messages are
+/// joint targets, feedback and session control only; EGM's joint references, Dynamixel's
+/// goal positions and CiA 402's cyclic positions as rigbridge drives them carry none.
+pub const NO_IO_ANYWHERE: &str = "protocol v2 (the twin, TCP, serial, CAN) has no I/O messages yet (a later version adds them); EGM, CiA 402 and Dynamixel carry none";
+
 pub trait Link: Send {
     fn send(&mut self, command: &Command) -> Result<(), LinkError>;
     /// The next feedback, waiting at most `timeout`; `Ok(None)` when none came in time.
@@ -132,6 +147,10 @@ pub trait Link: Send {
     fn counters(&self) -> LinkCounters;
     /// A short description for summaries, such as `loopback` or `tcp://127.0.0.1:7000`.
     fn describe(&self) -> String;
+    /// Whether this link carries digital I/O ([`Io`]); none does yet.
+    fn io(&self) -> Io {
+        Io::NotCarried(NO_IO_ANYWHERE)
+    }
     /// True while a session is established: the transport is up and the controller has
     /// answered the bridge's Hello (a link that reconnects is false between attempts).
     fn is_up(&self) -> bool {

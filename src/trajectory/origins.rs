@@ -33,6 +33,11 @@ impl Origins {
         }
     }
 
+    /// The last sample of each stretch, in order.
+    pub fn ends(&self) -> impl Iterator<Item = usize> + '_ {
+        self.stretches.iter().map(|(last, _)| *last)
+    }
+
     /// What sample `sample` came from: the first stretch that reaches it (a sample past the
     /// last stretch, the last one; none given, the whole job).
     pub fn at(&self, sample: usize) -> &str {

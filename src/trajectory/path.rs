@@ -35,19 +35,32 @@ pub(crate) struct PathNode {
 #[derive(Debug, Clone)]
 pub(crate) struct JointPath {
     nodes: Vec<PathNode>,
+    /// Per node, the share of the scaled speed limits the piece ending at it may use (a
+    /// program step's `speed`); 1 for a path that asks for no less. The first is unused.
+    shares: Vec<f64>,
 }
 
 impl JointPath {
     /// The path of its first node alone.
     pub fn starting_at(first: PathNode) -> Self {
-        Self { nodes: vec![first] }
+        Self {
+            nodes: vec![first],
+            shares: vec![1.0],
+        }
     }
 
     pub fn push(&mut self, u: f64, joints: Vec<f64>) {
+        self.push_at_share(u, joints, 1.0);
+    }
+
+    /// [`JointPath::push`], the piece to the new node at `share` (in (0, 1]) of the scaled
+    /// speed limits.
+    pub fn push_at_share(&mut self, u: f64, joints: Vec<f64>, share: f64) {
         let count = self.nodes.len();
         let last = &mut self.nodes[count - 1];
         if last.joints != joints {
             self.nodes.push(PathNode { u, joints });
+            self.shares.push(share);
         } else if count > 1 {
             last.u = u;
         }
@@ -81,8 +94,9 @@ pub(crate) struct PathTiming<'a> {
     pub waypoint: usize,
 }
 
-/// Samples of one move after its first (which is the previous move's last).
-type Rows = Vec<(Vec<f64>, Vec<f64>)>;
+/// Samples of one move after its first (which is the previous move's last): each its path
+/// parameter, positions and velocities.
+type Rows = Vec<(f64, Vec<f64>, Vec<f64>)>;
 
 impl PathTiming<'_> {
     /// Appends samples every period along the fastest profile of `path` (at rest at both
@@ -97,6 +111,18 @@ impl PathTiming<'_> {
         solve_at: impl Fn(f64, &[f64]) -> Result<Vec<f64>, E>,
         samples: &mut Samples,
     ) -> Result<(), E> {
+        self.append_traced(path, solve_at, samples).map(|_| ())
+    }
+
+    /// [`PathTiming::append`], returning the path parameter `u` of each sample it appended
+    /// (in order): where along the path each sample lies, for a caller to find the sample
+    /// where a point of its path is passed.
+    pub fn append_traced<E: From<PlanError>>(
+        &self,
+        path: &JointPath,
+        solve_at: impl Fn(f64, &[f64]) -> Result<Vec<f64>, E>,
+        samples: &mut Samples,
+    ) -> Result<Vec<f64>, E> {
         let profile = SpeedProfile::new(path, self.limits);
         let mut slowdown = 1.0;
         let mut attempts = 0;
@@ -118,10 +144,12 @@ impl PathTiming<'_> {
             // Slowing a path down by s divides speeds by s and accelerations by s^2.
             slowdown *= excess.ratio * SLOWDOWN_MARGIN;
         };
-        for (positions, velocities) in &rows {
+        let mut along = Vec::with_capacity(rows.len());
+        for (u, positions, velocities) in &rows {
             samples.push(positions, velocities);
+            along.push(*u);
         }
-        Ok(())
+        Ok(along)
     }
 
     /// One sampling of the profile, `slowdown` times slower.
@@ -163,9 +191,10 @@ impl PathTiming<'_> {
             let mut joints = solve_at(node.u + along, &seed)?;
             snap_to_limits(self.rig, &mut joints);
             let velocity = direction.iter().map(|d| d * speed / stretch).collect();
-            rows.push((joints, velocity));
+            rows.push((node.u + along, joints, velocity));
         }
-        rows.push((path.end().to_vec(), vec![0.0; path.end().len()]));
+        let end = path.nodes[path.nodes.len() - 1].u;
+        rows.push((end, path.end().to_vec(), vec![0.0; path.end().len()]));
         Ok(rows)
     }
 
@@ -176,7 +205,7 @@ impl PathTiming<'_> {
     fn excess(&self, start: &[f64], rows: &Rows) -> Excess {
         let period_s = self.settings.period.as_secs_f64();
         let mut positions: Vec<&[f64]> = vec![start, start];
-        positions.extend(rows.iter().map(|(p, _)| p.as_slice()));
+        positions.extend(rows.iter().map(|(_, p, _)| p.as_slice()));
         let end = positions[positions.len() - 1];
         positions.push(end);
         let mut worst = Excess {
@@ -307,7 +336,8 @@ impl SpeedProfile {
         };
         let caps: Vec<f64> = directions
             .iter()
-            .map(|d| allowed(d, &limits.speed))
+            .zip(&path.shares[1..])
+            .map(|(d, share)| allowed(d, &limits.speed) * share)
             .collect();
         let accels: Vec<f64> = directions
             .iter()

@@ -581,6 +581,7 @@ impl Cell {
         let base_dir = crate::daemon::config::config_dir(&self.settings.file);
         let context = crate::job::JobContext {
             rig: &self.settings.tcp_rig,
+            cell: &self.settings.cell,
             sloth: self.settings.sloth.as_deref(),
             base_dir: &base_dir,
             limits: &self.settings.config.limits,
