@@ -111,27 +111,63 @@ impl PathTiming<'_> {
         solve_at: impl Fn(f64, &[f64]) -> Result<Vec<f64>, E>,
         samples: &mut Samples,
     ) -> Result<(), E> {
-        self.append_traced(path, solve_at, samples).map(|_| ())
+        for (_, positions, velocities) in &self.timed_rows(path, solve_at, samples)? {
+            samples.push(positions, velocities);
+        }
+        Ok(())
     }
 
-    /// [`PathTiming::append`], returning the path parameter `u` of each sample it appended
-    /// (in order): where along the path each sample lies, for a caller to find the sample
-    /// where a point of its path is passed.
+    /// [`PathTiming::append`] for a path whose pieces turn at speed (a program's blended
+    /// corners): each sample's velocity is the central difference of the positions either
+    /// side of it (0 at the end), not its piece's direction, so it changes from sample to
+    /// sample no faster than the positions' second differences, which the timing holds
+    /// within the limits, however sharply the pieces meet. Returns the path parameter `u`
+    /// of each sample appended (in order), for a caller to find where a point is passed.
     pub fn append_traced<E: From<PlanError>>(
         &self,
         path: &JointPath,
         solve_at: impl Fn(f64, &[f64]) -> Result<Vec<f64>, E>,
         samples: &mut Samples,
     ) -> Result<Vec<f64>, E> {
+        let rows = self.timed_rows(path, solve_at, samples)?;
+        let dt = self.settings.period.as_secs_f64();
+        let start = &path.nodes[0].joints;
+        let last = rows.len() - 1;
+        let mut along = Vec::with_capacity(rows.len());
+        for (k, (u, positions, _)) in rows.iter().enumerate() {
+            let before = if k == 0 { start } else { &rows[k - 1].1 };
+            let velocities: Vec<f64> = if k == last {
+                vec![0.0; positions.len()]
+            } else {
+                let after = &rows[k + 1].1;
+                after
+                    .iter()
+                    .zip(before)
+                    .map(|(a, b)| (a - b) / (2.0 * dt))
+                    .collect()
+            };
+            samples.push(positions, &velocities);
+            along.push(*u);
+        }
+        Ok(along)
+    }
+
+    /// The samples of the fastest profile of `path` that keeps within the limits.
+    fn timed_rows<E: From<PlanError>>(
+        &self,
+        path: &JointPath,
+        solve_at: impl Fn(f64, &[f64]) -> Result<Vec<f64>, E>,
+        samples: &Samples,
+    ) -> Result<Rows, E> {
         let profile = SpeedProfile::new(path, self.limits);
         let mut slowdown = 1.0;
         let mut attempts = 0;
-        let rows = loop {
+        loop {
             let rows = self.sample(path, &profile, slowdown, &solve_at, samples)?;
             let excess = self.excess(&path.nodes[0].joints, &rows);
             attempts += 1;
             if excess.ratio <= 1.0 {
-                break rows;
+                return Ok(rows);
             }
             if attempts == MAX_SLOWDOWNS {
                 return Err(PlanError::OverLimits {
@@ -143,13 +179,7 @@ impl PathTiming<'_> {
             }
             // Slowing a path down by s divides speeds by s and accelerations by s^2.
             slowdown *= excess.ratio * SLOWDOWN_MARGIN;
-        };
-        let mut along = Vec::with_capacity(rows.len());
-        for (u, positions, velocities) in &rows {
-            samples.push(positions, velocities);
-            along.push(*u);
         }
-        Ok(along)
     }
 
     /// One sampling of the profile, `slowdown` times slower.
