@@ -117,43 +117,10 @@ impl PathTiming<'_> {
         Ok(())
     }
 
-    /// [`PathTiming::append`] for a path whose pieces turn at speed (a program's blended
-    /// corners): each sample's velocity is the central difference of the positions either
-    /// side of it (0 at the end), not its piece's direction, so it changes from sample to
-    /// sample no faster than the positions' second differences, which the timing holds
-    /// within the limits, however sharply the pieces meet. Returns the path parameter `u`
-    /// of each sample appended (in order), for a caller to find where a point is passed.
-    pub fn append_traced<E: From<PlanError>>(
-        &self,
-        path: &JointPath,
-        solve_at: impl Fn(f64, &[f64]) -> Result<Vec<f64>, E>,
-        samples: &mut Samples,
-    ) -> Result<Vec<f64>, E> {
-        let rows = self.timed_rows(path, solve_at, samples)?;
-        let dt = self.settings.period.as_secs_f64();
-        let start = &path.nodes[0].joints;
-        let last = rows.len() - 1;
-        let mut along = Vec::with_capacity(rows.len());
-        for (k, (u, positions, _)) in rows.iter().enumerate() {
-            let before = if k == 0 { start } else { &rows[k - 1].1 };
-            let velocities: Vec<f64> = if k == last {
-                vec![0.0; positions.len()]
-            } else {
-                let after = &rows[k + 1].1;
-                after
-                    .iter()
-                    .zip(before)
-                    .map(|(a, b)| (a - b) / (2.0 * dt))
-                    .collect()
-            };
-            samples.push(positions, &velocities);
-            along.push(*u);
-        }
-        Ok(along)
-    }
-
-    /// The samples of the fastest profile of `path` that keeps within the limits.
-    fn timed_rows<E: From<PlanError>>(
+    /// The samples of the fastest profile of `path` that keeps within the limits (after
+    /// its first node, the last at its end, at rest), not yet appended: a caller that
+    /// combines moves (a program's zones) takes them from here.
+    pub(crate) fn timed_rows<E: From<PlanError>>(
         &self,
         path: &JointPath,
         solve_at: impl Fn(f64, &[f64]) -> Result<Vec<f64>, E>,

@@ -1,15 +1,16 @@
-//! A program's ops timed into one trajectory. Moves join into runs: a run ends at a fine
-//! point (or before a dwell), and within it each zoned point's corner is blended: from
-//! where the tool enters the point's zone on the way in to where it leaves it on the way
-//! out, the path is a parabola in joint space (a quadratic Bézier through the point's
-//! configuration as its control point), as RAPID's corner path is a parabola begun at the
-//! edge of the zone (ABB, RAPID Reference Manual, "zonedata"). Each run is timed as one
-//! path, at rest at both ends, by the path timing of `trajectory/path.rs`: the fastest speed
-//! along it within every axis' scaled speed (times the step's `speed`) and acceleration,
-//! the corners' bends included; acceleration-limited, not jerk-limited, as the Cartesian
-//! lines are. Every sample passes `validate` before the program is handed on.
+//! A program's ops timed into one trajectory. Each move is timed alone, at rest at both
+//! ends, by the path timing of `trajectory/path.rs` (the fastest speed along its joint path
+//! within every axis' scaled speed, times the step's `speed`, and acceleration;
+//! acceleration-limited, not jerk-limited, as the Cartesian lines are). A fine point is
+//! reached at rest. At a zoned point the next move starts before this one has ended: from
+//! the sample where the tool enters the point's zone, the two moves' displacements are
+//! added, so the arm turns the corner without stopping, as RAPID starts its corner path
+//! where the tool enters the zone (ABB, RAPID Reference Manual, "zonedata"). The overlap
+//! is shortened (the corner starts nearer the point) until the sum keeps within every
+//! axis' speed and acceleration; each sample's velocity is the central difference of the
+//! positions either side. Every sample passes `validate` before the program is handed on.
 //!
-//! Owns the joining, the corners and the marks that name each step's stretch. Must not
+//! Owns the joining, the overlaps and the marks that name each step's stretch. Must not
 //! change a point a step names (a fine point is reached exactly, a zoned one passed within
 //! its zone) nor clamp anything: what does not fit is refused.
 
@@ -22,19 +23,13 @@ use crate::trajectory::{
     AxisLimits, JointPath, Origins, PathNode, PathTiming, PlanError, Samples, Trajectory,
     check_start,
 };
-use glam::{DAffine3, DVec3};
+use glam::DAffine3;
 use std::time::Duration;
 use thiserror::Error;
 
-/// Pieces a corner's parabola is drawn with: the path timing reads a bend from the
-/// direction change between pieces, so each piece turns by 1/32 of the corner.
-const CORNER_PIECES: usize = 32;
-
-/// Bisection steps for where the tool crosses a zone's edge: 2^-40 of a path piece.
-const EDGE_STEPS: usize = 40;
-
-/// A sample's path parameter within this of a mark's counts as passing it (rounding).
-const PASS_TOLERANCE: f64 = 1e-12;
+/// How much an overlap shrinks each time the sum of two moves breaks a limit: a tenth, so
+/// that the corner starts as far out in the zone as the limits allow, within ten percent.
+const OVERLAP_SHRINK: f64 = 0.9;
 
 /// A program refused while it is planned, naming the step as written.
 #[derive(Debug, Error)]
@@ -89,33 +84,6 @@ struct Piece {
     share: f64,
     zone_m: Option<f64>,
     tool: DAffine3,
-}
-
-/// A configuration of a run's path and the speed share of the piece that ends at it.
-#[derive(Clone)]
-struct Point {
-    joints: Vec<f64>,
-    share: f64,
-}
-
-/// Where along a run's polyline: piece `segment` (point `segment` to `segment + 1`),
-/// `fraction` of the way.
-#[derive(Clone, Copy)]
-struct At {
-    segment: usize,
-    fraction: f64,
-}
-
-impl At {
-    fn along(&self) -> f64 {
-        self.segment as f64 + self.fraction
-    }
-}
-
-/// A corner's parabola: where it leaves the path in (entry) and joins the path out (exit).
-struct Blend {
-    entry: At,
-    exit: At,
 }
 
 /// `ops` timed from `context.start` into one trajectory, each op's stretch named.
@@ -269,49 +237,143 @@ impl Planner<'_> {
         Ok(())
     }
 
-    /// Times the run `pieces` from `start` (at rest at both ends), its zoned corners
-    /// blended, and marks where each of its ops ends.
+    /// Times the run `pieces` from `start` (at rest at both ends): each move alone, the
+    /// next starting where the tool enters a zoned point's zone, and marks where each of
+    /// its ops ends.
     fn flush(&mut self, start: &[f64], pieces: Vec<Piece>) -> Result<(), JobError> {
         if pieces.is_empty() {
             return Ok(());
         }
-        let mut points = vec![Point {
-            joints: start.to_vec(),
-            share: pieces[0].share,
-        }];
-        let mut corners = Vec::with_capacity(pieces.len());
-        for piece in &pieces {
-            for node in &piece.nodes {
-                points.push(Point {
-                    joints: node.clone(),
-                    share: piece.share,
-                });
-            }
-            corners.push(points.len() - 1);
-        }
         self.check_first_zone(start, &pieces)?;
-        let mut blends: Vec<Option<Blend>> = Vec::with_capacity(pieces.len());
-        for k in 0..pieces.len() {
-            let blend = match (pieces[k].zone_m, k + 1 < pieces.len()) {
-                (Some(zone), true) => {
-                    let low = if k == 0 { 0 } else { corners[k - 1] };
-                    let blend = self.blend(&points, corners[k], low, corners[k + 1], zone, &pieces[k])?;
-                    let previous_exit = blends.iter().rev().flatten().next().map(|b| b.exit.along());
-                    if previous_exit.is_some_and(|exit| exit > blend.entry.along()) {
-                        return Err(self.zone_refused(
-                            &pieces[k],
-                            zone,
-                            "it overlaps the zone of the point before along the tool's path: make one of them smaller",
-                        ));
-                    }
-                    Some(blend)
-                }
-                _ => None,
-            };
-            blends.push(blend);
+        let mut from = start.to_vec();
+        let mut moves = Vec::with_capacity(pieces.len());
+        for piece in &pieces {
+            let rows = self.time_move(&from, piece)?;
+            moves.push(Displacement::of(&from, &rows));
+            if let Some(last) = rows.last() {
+                from.clone_from(last);
+            }
         }
-        let (path_points, mark_points) = rounded(&points, &corners, &pieces, &blends);
-        self.time_run(&path_points, &mark_points, &pieces)
+        let mut starts = vec![0usize];
+        let mut overlaps = vec![0usize];
+        for k in 0..pieces.len() - 1 {
+            let entered = match pieces[k].zone_m {
+                Some(zone) => self.inside_zone(&moves[k], zone, &pieces[k]),
+                None => 0,
+            };
+            // A move's head and tail overlaps stay apart.
+            let room = moves[k].len().saturating_sub(overlaps[k]);
+            let mut overlap = entered.min(room).min(moves[k + 1].len());
+            let next_start = |overlap: usize| starts[k] + moves[k].len() - overlap;
+            while overlap > 0 && !self.within_limits(start, &moves[..k + 2], &starts, next_start(overlap), next_start(overlap) + overlap) {
+                overlap = (overlap as f64 * OVERLAP_SHRINK) as usize;
+            }
+            starts.push(next_start(overlap));
+            overlaps.push(overlap);
+        }
+        overlaps.push(0);
+        let positions = sum_of(start, &moves, &starts);
+        let before = self.samples.last_index();
+        let dt = self.context.settings.period.as_secs_f64();
+        self.samples.ensure_room(positions.len()).map_err(PlanError::from)?;
+        for k in 0..positions.len() {
+            let previous = if k == 0 { start } else { &positions[k - 1] };
+            let velocity: Vec<f64> = match positions.get(k + 1) {
+                Some(next) => next.iter().zip(previous).map(|(n, p)| (n - p) / (2.0 * dt)).collect(),
+                None => vec![0.0; start.len()],
+            };
+            self.samples.push(&positions[k], &velocity);
+        }
+        for (k, moved) in moves.iter().enumerate() {
+            // A fine point's op ends where its move does; a zoned one's in the middle of
+            // the overlap, where the arm passes nearest the point.
+            let end = (starts[k] + moved.len()).saturating_sub(overlaps[k + 1] / 2);
+            self.marks.push(before + end);
+        }
+        Ok(())
+    }
+
+    /// The samples of one move from `from` alone, at rest at both ends (none when it does
+    /// not move).
+    fn time_move(&self, from: &[f64], piece: &Piece) -> Result<Vec<Vec<f64>>, JobError> {
+        let mut path = JointPath::starting_at(PathNode {
+            u: 0.0,
+            joints: from.to_vec(),
+        });
+        let mut u = 0.0;
+        let mut previous = from.to_vec();
+        for node in &piece.nodes {
+            u += distance(&previous, node);
+            path.push_at_share(u, node.clone(), piece.share);
+            previous.clone_from(node);
+        }
+        if path.nodes().len() < 2 {
+            return Ok(Vec::new());
+        }
+        let op = &self.ops[piece.op];
+        let timing = PathTiming {
+            rig: self.context.rig,
+            settings: self.context.settings,
+            limits: &self.limits,
+            waypoint: piece.op,
+        };
+        let rows = timing
+            .timed_rows(
+                &path,
+                |_, seed| Ok::<_, PlanError>(seed.to_vec()),
+                &self.samples,
+            )
+            .map_err(|error| ProgramError::Timing {
+                key: op.key.clone(),
+                what: op.what.clone(),
+                error,
+            })?;
+        Ok(rows.into_iter().map(|(_, positions, _)| positions).collect())
+    }
+
+    /// How many of `moved`'s last samples have the tool within `zone` of where the move
+    /// ends (its end included): the overlap a zone asks for.
+    fn inside_zone(&self, moved: &Displacement, zone: f64, piece: &Piece) -> usize {
+        let rig = self.rig_with(piece.tool);
+        let tcp = |q: &[f64]| rig.tool_pose(q).map(|p| p.position).ok();
+        let Some(end) = moved.end().and_then(|q| tcp(&q)) else {
+            return 0;
+        };
+        (0..moved.len())
+            .rev()
+            .take_while(|&j| tcp(&moved.absolute(j)).is_some_and(|p| (p - end).length() < zone))
+            .count()
+    }
+
+    /// Whether the sum of `moves` (each from its start in `starts`, the last from
+    /// `last_start`) keeps within every axis' scaled speed and acceleration over samples
+    /// `last_start - 1 ..= until + 1`.
+    fn within_limits(
+        &self,
+        start: &[f64],
+        moves: &[Displacement],
+        starts: &[usize],
+        last_start: usize,
+        until: usize,
+    ) -> bool {
+        let mut all_starts = starts[..moves.len() - 1].to_vec();
+        all_starts.push(last_start);
+        let at = |t: isize| -> Vec<f64> {
+            let mut q = start.to_vec();
+            for (moved, &begin) in moves.iter().zip(&all_starts) {
+                moved.add_at(t - begin as isize, &mut q);
+            }
+            q
+        };
+        let dt = self.context.settings.period.as_secs_f64();
+        let window: Vec<Vec<f64>> = (last_start as isize - 2..=until as isize + 2).map(at).collect();
+        window.windows(3).all(|w| {
+            (0..start.len()).all(|axis| {
+                let speed = (w[2][axis] - w[1][axis]).abs() / dt;
+                let accel = (w[2][axis] - 2.0 * w[1][axis] + w[0][axis]).abs() / (dt * dt);
+                speed <= self.limits.speed[axis] && accel <= self.limits.acceleration[axis]
+            })
+        })
     }
 
     /// The first move's zone against where the job starts (validation could not know it).
@@ -348,183 +410,73 @@ impl Planner<'_> {
         Ok(())
     }
 
-    fn zone_refused(&self, piece: &Piece, zone: f64, reason: &str) -> JobError {
-        let op = &self.ops[piece.op];
-        JobInvalid::new(format!("{}.zone_m", op.key), zone, reason).into()
+
+}
+
+/// One move of a run as displacements from where it starts: sample `j` of the move is
+/// its start plus `steps[j]`; before its first sample it adds nothing, after its last the
+/// whole move.
+struct Displacement {
+    from: Vec<f64>,
+    steps: Vec<Vec<f64>>,
+}
+
+impl Displacement {
+    fn of(from: &[f64], rows: &[Vec<f64>]) -> Displacement {
+        let steps = rows
+            .iter()
+            .map(|q| q.iter().zip(from).map(|(a, b)| a - b).collect())
+            .collect();
+        Displacement {
+            from: from.to_vec(),
+            steps,
+        }
     }
 
-    /// The corner at `points[corner]` blended within `zone` of the tool's position there:
-    /// the path in is left where the tool enters the zone (searched back to `low`), the
-    /// path out joined where it leaves it (searched on to `high`).
-    fn blend(
-        &self,
-        points: &[Point],
-        corner: usize,
-        low: usize,
-        high: usize,
-        zone: f64,
-        piece: &Piece,
-    ) -> Result<Blend, JobError> {
-        let rig = self.rig_with(piece.tool);
-        let tcp = |q: &[f64]| rig.tool_pose(q).map(|p| p.position).unwrap_or(DVec3::NAN);
-        let centre = tcp(&points[corner].joints);
-        // NaN (no position) counts as outside, so a blend never starts from one.
-        let outside = |q: &[f64]| !((tcp(q) - centre).length() < zone);
-        let lerp_outside = |segment: usize, f: f64| {
-            outside(&lerp(&points[segment].joints, &points[segment + 1].joints, f))
-        };
-        let never_leaves = "the tool's path from the point before never leaves this zone (the points' straight distance allows it, the path bends back): make the zone smaller";
-        let entry = (low..corner)
-            .rev()
-            .find(|&i| outside(&points[i].joints))
-            .map(|segment| At {
-                segment,
-                fraction: edge(|f| lerp_outside(segment, f), true),
-            })
-            .ok_or_else(|| self.zone_refused(piece, zone, never_leaves))?;
-        let exit = (corner + 1..=high)
-            .find(|&i| outside(&points[i].joints))
-            .map(|i| At {
-                segment: i - 1,
-                fraction: edge(|f| lerp_outside(i - 1, f), false),
-            })
-            .ok_or_else(|| {
-                self.zone_refused(
-                    piece,
-                    zone,
-                    "the tool's path to the point after never leaves this zone (the points' straight distance allows it, the path bends back): make the zone smaller",
-                )
-            })?;
-        Ok(Blend { entry, exit })
+    fn len(&self) -> usize {
+        self.steps.len()
     }
 
-    /// Times the path through `points` and marks, for each piece's op, the sample where
-    /// the path passes `points[marks[k]]`.
-    fn time_run(
-        &mut self,
-        points: &[Point],
-        marks: &[usize],
-        pieces: &[Piece],
-    ) -> Result<(), JobError> {
-        let mut path = JointPath::starting_at(PathNode {
-            u: 0.0,
-            joints: points[0].joints.clone(),
-        });
-        let mut along = vec![0.0; points.len()];
-        for k in 1..points.len() {
-            along[k] = along[k - 1] + distance(&points[k - 1].joints, &points[k].joints);
-            path.push_at_share(along[k], points[k].joints.clone(), points[k].share);
-        }
-        if path.nodes().len() < 2 {
-            let here = self.samples.last_index();
-            self.marks.extend(pieces.iter().map(|_| here));
-            return Ok(());
-        }
-        let first = &self.ops[pieces[0].op];
-        let timing = PathTiming {
-            rig: self.context.rig,
-            settings: self.context.settings,
-            limits: &self.limits,
-            waypoint: pieces[0].op,
+    /// The configuration of sample `j` of the move alone.
+    fn absolute(&self, j: usize) -> Vec<f64> {
+        self.from.iter().zip(&self.steps[j]).map(|(a, d)| a + d).collect()
+    }
+
+    fn end(&self) -> Option<Vec<f64>> {
+        self.steps.last().map(|_| self.absolute(self.len() - 1))
+    }
+
+    /// Adds the move's displacement at its own sample `j` (0 is its first) to `q`.
+    fn add_at(&self, j: isize, q: &mut [f64]) {
+        let Some(last) = self.steps.len().checked_sub(1) else {
+            return;
         };
-        let before = self.samples.last_index();
-        let passed = timing
-            .append_traced(
-                &path,
-                |_, seed| Ok::<_, PlanError>(seed.to_vec()),
-                &mut self.samples,
-            )
-            .map_err(|error| ProgramError::Timing {
-                key: first.key.clone(),
-                what: first.what.clone(),
-                error,
-            })?;
-        for &mark in marks {
-            let u = along[mark] - PASS_TOLERANCE;
-            let k = passed
-                .iter()
-                .position(|&p| p >= u)
-                .unwrap_or(passed.len() - 1);
-            self.marks.push(before + 1 + k);
+        if j < 0 {
+            return;
         }
-        Ok(())
+        let step = &self.steps[(j as usize).min(last)];
+        q.iter_mut().zip(step).for_each(|(q, d)| *q += d);
     }
 }
 
-/// The run's points with each blended corner's stretch replaced by its parabola, and per
-/// piece the point that marks its end: the corner for a fine point, the parabola's middle
-/// (where it passes nearest the point) for a zoned one.
-fn rounded(
-    points: &[Point],
-    corners: &[usize],
-    pieces: &[Piece],
-    blends: &[Option<Blend>],
-) -> (Vec<Point>, Vec<usize>) {
-    let mut out = vec![points[0].clone()];
-    let mut marks = Vec::with_capacity(pieces.len());
-    let mut next = 1;
-    for (k, blend) in blends.iter().enumerate() {
-        let Some(blend) = blend else {
-            out.extend_from_slice(&points[next..=corners[k]]);
-            next = corners[k] + 1;
-            marks.push(out.len() - 1);
-            continue;
-        };
-        let (entry, exit) = (blend.entry, blend.exit);
-        if next <= entry.segment {
-            out.extend_from_slice(&points[next..=entry.segment]);
-        }
-        let a = lerp(
-            &points[entry.segment].joints,
-            &points[entry.segment + 1].joints,
-            entry.fraction,
-        );
-        let b = lerp(
-            &points[exit.segment].joints,
-            &points[exit.segment + 1].joints,
-            exit.fraction,
-        );
-        let control = &points[corners[k]].joints;
-        let share = pieces[k].share.min(pieces[k + 1].share);
-        for s in 0..=CORNER_PIECES {
-            let t = s as f64 / CORNER_PIECES as f64;
-            let joints = a
-                .iter()
-                .zip(control)
-                .zip(&b)
-                .map(|((a, c), b)| (1.0 - t) * (1.0 - t) * a + 2.0 * t * (1.0 - t) * c + t * t * b)
-                .collect();
-            out.push(Point {
-                joints,
-                share: if s == 0 { pieces[k].share } else { share },
-            });
-            if s == CORNER_PIECES / 2 {
-                marks.push(out.len() - 1);
+/// The run's samples (after its start): the sum of every move's displacement, each from its
+/// start sample (sample 1 of the run is each move's sample 0 when it starts at 0).
+fn sum_of(start: &[f64], moves: &[Displacement], starts: &[usize]) -> Vec<Vec<f64>> {
+    let length = moves
+        .iter()
+        .zip(starts)
+        .map(|(m, s)| s + m.len())
+        .max()
+        .unwrap_or(0);
+    (0..length)
+        .map(|t| {
+            let mut q = start.to_vec();
+            for (moved, &begin) in moves.iter().zip(starts) {
+                moved.add_at(t as isize - begin as isize, &mut q);
             }
-        }
-        next = exit.segment + 1;
-    }
-    (out, marks)
-}
-
-/// Where along `[0, 1]` `outside(f)` changes: from outside to inside (`leaving_outside`,
-/// the entry: the last fraction still outside) or from inside to outside (the exit: the
-/// first fraction outside), by bisection.
-fn edge(outside: impl Fn(f64) -> bool, leaving_outside: bool) -> f64 {
-    let (mut low, mut high) = (0.0, 1.0);
-    for _ in 0..EDGE_STEPS {
-        let middle = (low + high) / 2.0;
-        if outside(middle) == leaving_outside {
-            low = middle;
-        } else {
-            high = middle;
-        }
-    }
-    if leaving_outside { low } else { high }
-}
-
-fn lerp(a: &[f64], b: &[f64], f: f64) -> Vec<f64> {
-    a.iter().zip(b).map(|(a, b)| a + (b - a) * f).collect()
+            q
+        })
+        .collect()
 }
 
 fn distance(a: &[f64], b: &[f64]) -> f64 {

@@ -1,0 +1,383 @@
+//! The `program` job kind (issue 29, docs/programs.md): TOML and HTTP refuse the same bad
+//! programs with the same text; the pick-and-place demo's motion runs to `completed`
+//! against the twin with its cycle times per step and per pass in the report and the
+//! summary; the full demo, with its grip and release, is refused before motion with no log
+//! opened, by `run` and over HTTP; a collision names the step as written; and zones make
+//! the demo at least 20 % faster than fine points, both within every limit.
+
+mod common;
+#[path = "common/in_process.rs"]
+mod in_process;
+
+use common::repo_path;
+use common::serve::request_json;
+use rigbridge::cell::Spot;
+use rigbridge::daemon::config::{RunSettings, load_run_settings};
+use rigbridge::daemon::plan_settings;
+use rigbridge::job::{Job, JobContext, PlanContext};
+use rigbridge::trajectory::{Origins, Trajectory, validate};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// A fresh directory with the demo's rig and cell, as `config/` holds them.
+fn demo_dir(name: &str) -> PathBuf {
+    let dir = common::scratch_dir("program", name);
+    std::fs::create_dir_all(dir.join("cells")).unwrap();
+    std::fs::copy(repo_path("config/irb120.toml"), dir.join("irb120.toml")).unwrap();
+    std::fs::copy(
+        repo_path("config/cells/pick-place.toml"),
+        dir.join("cells/pick-place.toml"),
+    )
+    .unwrap();
+    dir
+}
+
+/// Run settings for the demo's cell with the program `steps` (JSON), written as TOML.
+fn settings_text(steps: &serde_json::Value) -> String {
+    let job = serde_json::json!({ "job": { "kind": "program", "steps": steps } });
+    let table: toml::Value = serde_json::from_value(job).unwrap();
+    format!(
+        "rig = \"irb120.toml\"\ncell = \"cells/pick-place.toml\"\n\
+         [twin]\ninitial_deg = [90.0, -30.0, 30.0, 0.0, 90.0, 0.0]\n\n{}",
+        toml::to_string(&table).unwrap()
+    )
+}
+
+fn good_steps() -> serde_json::Value {
+    serde_json::json!([{ "kind": "move_joints", "to": "home" }])
+}
+
+#[test]
+fn toml_and_http_refuse_the_same_bad_programs_with_the_same_text() {
+    let dir = demo_dir("same-text");
+    std::fs::write(dir.join("good.toml"), settings_text(&good_steps())).unwrap();
+    let settings = load_run_settings(&dir.join("good.toml")).unwrap();
+    let server = in_process::start(vec![settings], in_process::options(dir.join("runs")));
+    let address = server.address.to_string();
+    let above = |zone: f64| {
+        serde_json::json!({ "kind": "move_poses", "to": "slot[0]", "offset_m": [0.0, 0.0, -0.08], "zone_m": zone })
+    };
+    let down = serde_json::json!({ "kind": "move_linear", "to": "slot[0]" });
+    let cases = [
+        (
+            serde_json::json!([{ "kind": "move_poses", "to": "slot[12]" }]),
+            "key `job.steps[0].to` = \"slot[12]\": no target of this name in the cell (targets: home, over_pillar, place, slot[0..11])",
+        ),
+        (
+            serde_json::json!([{ "kind": "move_joints", "to": "home", "offset_m": [0.0, 0.0, 0.1] }]),
+            "key `job.steps[0].offset_m` = [0.0,0.0,0.1]: an offset needs a pose: use move_poses or move_linear",
+        ),
+        (
+            serde_json::json!([{ "kind": "move_linear", "to": "place", "offset_m": [0.0, 0.0, 5.0] }]),
+            "key `job.steps[0].offset_m` = [0.0,0.0,5.0]: every component must lie in [-2, 2] m",
+        ),
+        (
+            serde_json::json!([{ "kind": "move_joints", "to": "place" }]),
+            "key `job.steps[0].to` = \"place\": `place` is a pose: move_joints goes to joint targets; use move_poses",
+        ),
+        (
+            // 80 mm down to the slot: a 50 mm zone is more than half of it.
+            serde_json::json!([{ "kind": "move_joints", "to": "home" }, above(0.05), down]),
+            "key `job.steps[1].zone_m` = 0.05: larger than half a neighbouring segment: 0.353 m from job.steps[0] (move_joints to home) to this point, 0.080 m from it to job.steps[2] (move_linear to slot[0]); at most 0.040 m fits (RAPID would shrink the zone, rigbridge refuses to move otherwise than written)",
+        ),
+        (
+            serde_json::json!([above(0.03), { "kind": "wait", "duration_s": 1.0 }, down]),
+            "key `job.steps[0].zone_m` = 0.03: the arm stops at rest for job.steps[1] (wait 1 s): a point before it must be fine (leave zone_m out)",
+        ),
+        (
+            serde_json::json!([down, above(0.03)]),
+            "key `job.steps[1].zone_m` = 0.03: a program ends at rest: its last move must be fine (leave zone_m out)",
+        ),
+        (
+            serde_json::json!([{ "kind": "repeat", "over": [], "as": "s", "steps": [{ "kind": "move_poses", "to": "$s" }] }]),
+            "key `job.steps[0].over` = \"[]\": a repeat needs at least one target to go over",
+        ),
+        (
+            serde_json::json!([{ "kind": "repeat", "over": "tray", "as": "s", "steps": [{ "kind": "move_poses", "to": "$s" }] }]),
+            "key `job.steps[0].over` = \"tray\": no grid of this name in the cell (targets: home, over_pillar, place, slot[0..11])",
+        ),
+        (
+            serde_json::json!([{ "kind": "repeat", "over": "slot", "as": "s", "steps": [{ "kind": "move_poses", "to": "$t" }] }]),
+            "key `job.steps[0].steps[0].to` = \"$t\": the repeat's variable is `$s`",
+        ),
+        (
+            serde_json::json!([{ "kind": "wait_input", "input": "part_held", "value": true }]),
+            "key `job.steps[0].timeout_s` = \"missing\": a wait_input needs a timeout_s: a program never waits forever",
+        ),
+        (
+            serde_json::json!([{ "kind": "move_poses", "to": "place", "speed": 0.0 }]),
+            "key `job.steps[0].speed` = 0.0: must lie in [0.01, 1]",
+        ),
+        (
+            serde_json::json!([{ "kind": "move_poses", "to": "place", "tool": "brush" }]),
+            "key `job.steps[0].tool` = \"brush\": no such tool (tools: gripper, tool0)",
+        ),
+    ];
+    for (steps, expected) in cases {
+        std::fs::write(dir.join("bad.toml"), settings_text(&steps)).unwrap();
+        let from_toml = load_run_settings(&dir.join("bad.toml"))
+            .unwrap_err()
+            .to_string();
+        let body = serde_json::json!({ "job": { "kind": "program", "steps": steps } });
+        let (code, answer) = request_json(&address, "POST", "/api/jobs", "", &body.to_string());
+        let from_http = answer["error"].as_str().unwrap_or_default().to_string();
+        assert_eq!(code, 422, "{steps}: {answer}");
+        assert_eq!(from_http, expected, "{steps}");
+        assert!(
+            from_toml.ends_with(&from_http) && from_toml.contains("bad.toml"),
+            "TOML: {from_toml}\nHTTP: {from_http}"
+        );
+    }
+    server.stop().unwrap().unwrap();
+}
+
+/// `rigbridge run` of `config` with a virtual clock, its log and report in `dir`: the
+/// process' output and the report.
+fn run(dir: &Path, config: &Path) -> (std::process::Output, serde_json::Value) {
+    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .arg("run")
+        .arg("--config")
+        .arg(config)
+        .args(["--clock", "virtual", "--report", "report.json", "--log", "run.mcap"])
+        .current_dir(dir)
+        .output()
+        .unwrap();
+    let report = std::fs::read_to_string(dir.join("report.json")).unwrap();
+    (output, serde_json::from_str(&report).unwrap())
+}
+
+#[test]
+fn the_motion_demo_completes_against_the_twin_with_cycle_times_per_step_and_pass() {
+    let dir = common::scratch_dir("program", "motion-demo");
+    let (output, report) = run(&dir, &repo_path("config/pick-place-motion.toml"));
+    assert!(output.status.success(), "{report}");
+    assert_eq!(report["outcome"], "completed", "{report}");
+    assert_eq!(report["contacts"]["collisions"], 0, "{}", report["contacts"]);
+    let times = &report["cycle_times"];
+    let laps = times["laps"].as_array().unwrap();
+    assert_eq!(laps.len(), 12);
+    for (k, lap) in laps.iter().enumerate() {
+        assert_eq!(lap["target"], format!("slot[{k}]"));
+        assert_eq!(lap["steps"].as_array().unwrap().len(), 8, "{lap}");
+        let steps_sum: f64 = lap["steps"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|s| s["duration_s"].as_f64().unwrap())
+            .sum();
+        let duration = lap["duration_s"].as_f64().unwrap();
+        assert!(duration > 1.0, "{lap}");
+        assert!((steps_sum - duration).abs() < 1e-9, "{lap}");
+    }
+    let steps = times["steps"].as_array().unwrap();
+    assert_eq!(steps.len(), 3, "{times}");
+    assert_eq!(steps[1]["step"], "job.steps[1]");
+    // The steps together are the planned trajectory, which the twin then took.
+    let total: f64 = steps.iter().map(|s| s["duration_s"].as_f64().unwrap()).sum();
+    let planned = report["planned_duration_s"].as_f64().unwrap();
+    assert!((total - planned).abs() < 0.005, "{total} vs {planned}");
+    let summary = String::from_utf8_lossy(&output.stdout);
+    assert!(summary.contains("cycle times (planned):"), "{summary}");
+    assert!(
+        summary.contains("job.steps[1] pass 11 (slot[11]): "),
+        "{summary}"
+    );
+}
+
+const IO_REFUSAL: &str = "refused before motion: job.steps[1]: release needs I/O, and the link loopback carries none: the loopback twin carries no I/O yet (protocol v2 has no I/O messages; a later version adds them, with the twin's gripper); EGM, CiA 402 and Dynamixel carry none";
+
+#[test]
+fn the_full_demo_needs_io_and_is_refused_before_motion_with_no_log_opened() {
+    let dir = common::scratch_dir("program", "io-demo");
+    let (output, report) = run(&dir, &repo_path("config/pick-place.toml"));
+    assert!(!output.status.success());
+    assert_eq!(report["outcome"], "refused", "{report}");
+    assert_eq!(report["cycles"], 0);
+    assert_eq!(report["fault"], IO_REFUSAL);
+    assert!(!dir.join("run.mcap").exists(), "a refused program opened a log");
+
+    // Over HTTP: the cell's configured job, refused with the same words, nothing logged.
+    let settings = load_run_settings(&repo_path("config/pick-place.toml")).unwrap();
+    let runs = dir.join("runs");
+    let server = in_process::start(vec![settings], in_process::options(runs.clone()));
+    let (code, answer) = request_json(&server.address.to_string(), "POST", "/api/jobs", "", "");
+    assert_eq!(code, 422, "{answer}");
+    assert_eq!(answer["error"], IO_REFUSAL);
+    server.stop().unwrap().unwrap();
+    let logs = std::fs::read_dir(&runs).map_or(0, |d| {
+        d.filter(|e| {
+            e.as_ref()
+                .is_ok_and(|e| e.file_name().to_string_lossy().starts_with("job-"))
+        })
+        .count()
+    });
+    assert_eq!(logs, 0, "a refused program left a job log");
+}
+
+#[test]
+fn a_collision_is_refused_naming_the_step_as_written() {
+    let dir = demo_dir("collision");
+    // 30 mm below the slot: the fingers go into the tray.
+    let steps = serde_json::json!([
+        { "kind": "move_joints", "to": "home" },
+        { "kind": "repeat", "over": ["slot[5]"], "as": "s", "steps": [
+            { "kind": "move_poses", "to": "$s", "offset_m": [0.0, 0.0, -0.08], "zone_m": 0.03 },
+            { "kind": "move_linear", "to": "$s", "offset_m": [0.0, 0.0, 0.03] },
+        ] },
+    ]);
+    std::fs::write(dir.join("job.toml"), settings_text(&steps)).unwrap();
+    let (output, report) = run(&dir, &dir.join("job.toml"));
+    assert!(!output.status.success());
+    let fault = report["fault"].as_str().unwrap();
+    assert!(
+        fault.contains("on job.steps[1].steps[1] (move_linear to slot[5] + [0, 0, 0.03] m)"),
+        "{fault}"
+    );
+    assert!(fault.contains("tray"), "{fault}");
+    assert!(!dir.join("run.mcap").exists());
+}
+
+/// The demo's program planned from the twin's start, as `run` plans it, and its stretches.
+fn plan(settings: &RunSettings, job: &Job) -> (Trajectory, Origins) {
+    let start = settings.initial();
+    job.plan_traced(&PlanContext {
+        rig: &settings.tcp_rig,
+        sloth: None,
+        start: &start,
+        settings: &plan_settings(settings),
+    })
+    .unwrap()
+}
+
+/// `job` with every `zone_m` taken out: every point fine.
+fn all_fine(job: &Job, settings: &RunSettings) -> Job {
+    fn strip(value: &mut serde_json::Value) {
+        match value {
+            serde_json::Value::Object(map) => {
+                map.remove("zone_m");
+                map.values_mut().for_each(strip);
+            }
+            serde_json::Value::Array(items) => items.iter_mut().for_each(strip),
+            _ => {}
+        }
+    }
+    let mut value = serde_json::to_value(job).unwrap();
+    strip(&mut value);
+    let dir = repo_path("config");
+    let context = JobContext {
+        rig: &settings.tcp_rig,
+        cell: &settings.cell,
+        sloth: None,
+        base_dir: &dir,
+        limits: &settings.config.limits,
+        period: settings.period(),
+    };
+    serde_json::from_value::<Job>(value)
+        .unwrap()
+        .validate(&context)
+        .unwrap()
+}
+
+/// The tool's closest approach (m) over `trajectory` to `point` (base frame).
+fn closest(settings: &RunSettings, trajectory: &Trajectory, point: glam::DVec3) -> f64 {
+    (0..trajectory.len())
+        .map(|k| {
+            let at = settings.tcp_rig.tool_pose(trajectory.position(k)).unwrap();
+            (at.position - point).length()
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// `settings`' program planned with its zones and with every point fine: both pass
+/// `validate` and the cell's check; the durations (s), zoned then fine, and the zoned plan.
+fn zoned_and_fine(settings: &RunSettings) -> (f64, f64, Trajectory, Trajectory) {
+    let zoned_job = settings.config.job.clone();
+    let fine_job = all_fine(&zoned_job, settings);
+    assert_ne!(zoned_job, fine_job);
+    let (zoned, zoned_origins) = plan(settings, &zoned_job);
+    let (fine, fine_origins) = plan(settings, &fine_job);
+    for (trajectory, origins) in [(&zoned, &zoned_origins), (&fine, &fine_origins)] {
+        validate(trajectory, &settings.rig).unwrap();
+        rigbridge::daemon::clear(settings, trajectory, origins).unwrap();
+    }
+    (zoned.duration_s(), fine.duration_s(), zoned, fine)
+}
+
+/// A tour of four points 100 mm above the tray's corners, back to the first, then home:
+/// through each corner without stopping (zones of 45 mm), or stopping at each.
+const TOUR: &str = r#"
+[[job.steps]]
+kind = "repeat"
+over = ["slot[0]", "slot[3]", "slot[11]", "slot[8]", "slot[0]"]
+as = "s"
+
+[[job.steps.steps]]
+kind = "move_poses"
+to = "$s"
+offset_m = [0.0, 0.0, -0.1]
+zone_m = 0.045
+
+[[job.steps]]
+kind = "move_joints"
+to = "home"
+"#;
+
+#[test]
+fn zones_make_a_tour_of_points_at_least_20_percent_faster_both_within_every_limit() {
+    let dir = demo_dir("tour");
+    let text = settings_text(&serde_json::json!([{ "kind": "move_joints", "to": "home" }]));
+    let text = text.replace("[job]\nkind = \"program\"\n", "");
+    let header = text.split("[[job.steps]]").next().unwrap().to_string();
+    std::fs::write(dir.join("tour.toml"), format!("{header}[job]\nkind = \"program\"\n{TOUR}")).unwrap();
+    let settings = load_run_settings(&dir.join("tour.toml")).unwrap();
+    let (zoned_s, fine_s, zoned, _) = zoned_and_fine(&settings);
+    println!(
+        "tour: fine {fine_s:.3} s, zones {zoned_s:.3} s ({:.1} % faster)",
+        100.0 * (1.0 - zoned_s / fine_s)
+    );
+    assert!(zoned_s <= 0.8 * fine_s, "zones {zoned_s} s, fine {fine_s} s");
+    // Each corner is passed within its zone; where the axes' limits leave room, not
+    // through its point (where they leave none, the arm stops there, as at a fine point).
+    let passed: Vec<f64> = [3, 11, 8]
+        .iter()
+        .map(|&k| closest(&settings, &zoned, above_slot(&settings, k)))
+        .collect();
+    assert!(passed.iter().all(|&d| d <= 0.045), "{passed:?}");
+    assert!(passed.iter().filter(|&&d| d > 1e-3).count() >= 2, "{passed:?}");
+}
+
+/// The point 100 mm above slot `k` (base frame).
+fn above_slot(settings: &RunSettings, k: usize) -> glam::DVec3 {
+    let Spot::Pose(slot) = &settings.cell.targets.get(&format!("slot[{k}]")).unwrap().spot else {
+        panic!("slot[{k}] is a pose");
+    };
+    let slot = settings.cell.mount.inverse() * *slot;
+    (slot * glam::DAffine3::from_translation(glam::DVec3::new(0.0, 0.0, -0.1))).translation
+}
+
+#[test]
+fn zones_make_the_pick_and_place_demo_faster_both_within_every_limit() {
+    let settings = load_run_settings(&repo_path("config/pick-place-motion.toml")).unwrap();
+    let (zoned_s, fine_s, zoned, fine) = zoned_and_fine(&settings);
+    println!(
+        "pick-and-place demo: fine {fine_s:.3} s, zones {zoned_s:.3} s ({:.1} % faster)",
+        100.0 * (1.0 - zoned_s / fine_s)
+    );
+    assert!(zoned_s <= 0.85 * fine_s, "zones {zoned_s} s, fine {fine_s} s");
+    // The tool passes within 45 mm of each point above a slot without stopping there, and
+    // reaches each slot itself (a fine point) exactly.
+    let mount = settings.cell.mount.inverse();
+    for k in 0..12 {
+        let Spot::Pose(slot) = &settings.cell.targets.get(&format!("slot[{k}]")).unwrap().spot
+        else {
+            panic!("slot[{k}] is a pose");
+        };
+        let slot = mount * *slot;
+        let above = above_slot(&settings, k);
+        let passed = closest(&settings, &zoned, above);
+        assert!(passed <= 0.045, "slot[{k}]: passed {passed} m from above it");
+        assert!(passed > 1e-3, "slot[{k}]: stopped above it ({passed} m)");
+        assert!(closest(&settings, &zoned, slot.translation) < 1e-4);
+        assert!(closest(&settings, &fine, above) < 1e-4);
+    }
+}
