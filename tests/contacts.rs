@@ -68,6 +68,7 @@ fn cell() -> Cell {
         tool: None,
         margin_m: 0.01,
         allowed_pairs: Vec::new(),
+        targets: Default::default(),
     }
 }
 

@@ -54,9 +54,7 @@ fn toml_and_http_refuse_the_same_bad_programs_with_the_same_text() {
     let settings = load_run_settings(&dir.join("good.toml")).unwrap();
     let server = in_process::start(vec![settings], in_process::options(dir.join("runs")));
     let address = server.address.to_string();
-    let above = |zone: f64| {
-        serde_json::json!({ "kind": "move_poses", "to": "slot[0]", "offset_m": [0.0, 0.0, -0.08], "zone_m": zone })
-    };
+    let above = |zone: f64| serde_json::json!({ "kind": "move_poses", "to": "slot[0]", "offset_m": [0.0, 0.0, -0.08], "zone_m": zone });
     let down = serde_json::json!({ "kind": "move_linear", "to": "slot[0]" });
     let cases = [
         (
@@ -138,7 +136,14 @@ fn run(dir: &Path, config: &Path) -> (std::process::Output, serde_json::Value) {
         .arg("run")
         .arg("--config")
         .arg(config)
-        .args(["--clock", "virtual", "--report", "report.json", "--log", "run.mcap"])
+        .args([
+            "--clock",
+            "virtual",
+            "--report",
+            "report.json",
+            "--log",
+            "run.mcap",
+        ])
         .current_dir(dir)
         .output()
         .unwrap();
@@ -152,7 +157,11 @@ fn the_motion_demo_completes_against_the_twin_with_cycle_times_per_step_and_pass
     let (output, report) = run(&dir, &repo_path("config/pick-place-motion.toml"));
     assert!(output.status.success(), "{report}");
     assert_eq!(report["outcome"], "completed", "{report}");
-    assert_eq!(report["contacts"]["collisions"], 0, "{}", report["contacts"]);
+    assert_eq!(
+        report["contacts"]["collisions"], 0,
+        "{}",
+        report["contacts"]
+    );
     let times = &report["cycle_times"];
     let laps = times["laps"].as_array().unwrap();
     assert_eq!(laps.len(), 12);
@@ -173,7 +182,10 @@ fn the_motion_demo_completes_against_the_twin_with_cycle_times_per_step_and_pass
     assert_eq!(steps.len(), 3, "{times}");
     assert_eq!(steps[1]["step"], "job.steps[1]");
     // The steps together are the planned trajectory, which the twin then took.
-    let total: f64 = steps.iter().map(|s| s["duration_s"].as_f64().unwrap()).sum();
+    let total: f64 = steps
+        .iter()
+        .map(|s| s["duration_s"].as_f64().unwrap())
+        .sum();
     let planned = report["planned_duration_s"].as_f64().unwrap();
     assert!((total - planned).abs() < 0.005, "{total} vs {planned}");
     let summary = String::from_utf8_lossy(&output.stdout);
@@ -194,7 +206,10 @@ fn the_full_demo_needs_io_and_is_refused_before_motion_with_no_log_opened() {
     assert_eq!(report["outcome"], "refused", "{report}");
     assert_eq!(report["cycles"], 0);
     assert_eq!(report["fault"], IO_REFUSAL);
-    assert!(!dir.join("run.mcap").exists(), "a refused program opened a log");
+    assert!(
+        !dir.join("run.mcap").exists(),
+        "a refused program opened a log"
+    );
 
     // Over HTTP: the cell's configured job, refused with the same words, nothing logged.
     let settings = load_run_settings(&repo_path("config/pick-place.toml")).unwrap();
@@ -328,14 +343,21 @@ fn zones_make_a_tour_of_points_at_least_20_percent_faster_both_within_every_limi
     let text = settings_text(&serde_json::json!([{ "kind": "move_joints", "to": "home" }]));
     let text = text.replace("[job]\nkind = \"program\"\n", "");
     let header = text.split("[[job.steps]]").next().unwrap().to_string();
-    std::fs::write(dir.join("tour.toml"), format!("{header}[job]\nkind = \"program\"\n{TOUR}")).unwrap();
+    std::fs::write(
+        dir.join("tour.toml"),
+        format!("{header}[job]\nkind = \"program\"\n{TOUR}"),
+    )
+    .unwrap();
     let settings = load_run_settings(&dir.join("tour.toml")).unwrap();
     let (zoned_s, fine_s, zoned, _) = zoned_and_fine(&settings);
     println!(
         "tour: fine {fine_s:.3} s, zones {zoned_s:.3} s ({:.1} % faster)",
         100.0 * (1.0 - zoned_s / fine_s)
     );
-    assert!(zoned_s <= 0.8 * fine_s, "zones {zoned_s} s, fine {fine_s} s");
+    assert!(
+        zoned_s <= 0.8 * fine_s,
+        "zones {zoned_s} s, fine {fine_s} s"
+    );
     // Each corner is passed within its zone; where the axes' limits leave room, not
     // through its point (where they leave none, the arm stops there, as at a fine point).
     let passed: Vec<f64> = [3, 11, 8]
@@ -343,12 +365,21 @@ fn zones_make_a_tour_of_points_at_least_20_percent_faster_both_within_every_limi
         .map(|&k| closest(&settings, &zoned, above_slot(&settings, k)))
         .collect();
     assert!(passed.iter().all(|&d| d <= 0.045), "{passed:?}");
-    assert!(passed.iter().filter(|&&d| d > 1e-3).count() >= 2, "{passed:?}");
+    assert!(
+        passed.iter().filter(|&&d| d > 1e-3).count() >= 2,
+        "{passed:?}"
+    );
 }
 
 /// The point 100 mm above slot `k` (base frame).
 fn above_slot(settings: &RunSettings, k: usize) -> glam::DVec3 {
-    let Spot::Pose(slot) = &settings.cell.targets.get(&format!("slot[{k}]")).unwrap().spot else {
+    let Spot::Pose(slot) = &settings
+        .cell
+        .targets
+        .get(&format!("slot[{k}]"))
+        .unwrap()
+        .spot
+    else {
         panic!("slot[{k}] is a pose");
     };
     let slot = settings.cell.mount.inverse() * *slot;
@@ -363,19 +394,30 @@ fn zones_make_the_pick_and_place_demo_faster_both_within_every_limit() {
         "pick-and-place demo: fine {fine_s:.3} s, zones {zoned_s:.3} s ({:.1} % faster)",
         100.0 * (1.0 - zoned_s / fine_s)
     );
-    assert!(zoned_s <= 0.85 * fine_s, "zones {zoned_s} s, fine {fine_s} s");
+    assert!(
+        zoned_s <= 0.85 * fine_s,
+        "zones {zoned_s} s, fine {fine_s} s"
+    );
     // The tool passes within 45 mm of each point above a slot without stopping there, and
     // reaches each slot itself (a fine point) exactly.
     let mount = settings.cell.mount.inverse();
     for k in 0..12 {
-        let Spot::Pose(slot) = &settings.cell.targets.get(&format!("slot[{k}]")).unwrap().spot
+        let Spot::Pose(slot) = &settings
+            .cell
+            .targets
+            .get(&format!("slot[{k}]"))
+            .unwrap()
+            .spot
         else {
             panic!("slot[{k}] is a pose");
         };
         let slot = mount * *slot;
         let above = above_slot(&settings, k);
         let passed = closest(&settings, &zoned, above);
-        assert!(passed <= 0.045, "slot[{k}]: passed {passed} m from above it");
+        assert!(
+            passed <= 0.045,
+            "slot[{k}]: passed {passed} m from above it"
+        );
         assert!(passed > 1e-3, "slot[{k}]: stopped above it ({passed} m)");
         assert!(closest(&settings, &zoned, slot.translation) < 1e-4);
         assert!(closest(&settings, &fine, above) < 1e-4);

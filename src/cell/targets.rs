@@ -217,7 +217,9 @@ fn check_joints(file: &Path, key: &str, joints: &[f64]) -> Result<Vec<f64>, Conf
 
 /// A finite vector within [`MAX_COORDINATE_M`] (a position or a step).
 fn coordinates(file: &Path, key: &str, v: [f64; 3]) -> Result<DVec3, ConfigError> {
-    if v.iter().all(|x| x.is_finite() && x.abs() <= MAX_COORDINATE_M) {
+    if v.iter()
+        .all(|x| x.is_finite() && x.abs() <= MAX_COORDINATE_M)
+    {
         Ok(DVec3::from_array(v))
     } else {
         Err(ConfigError::invalid(

@@ -63,9 +63,7 @@ pub enum DaemonError {
     #[error("{0}")]
     Halted(Halted),
     /// A program needs I/O the link does not carry: refused before motion.
-    #[error(
-        "refused before motion: {step} needs I/O, and the link {link} carries none: {why}"
-    )]
+    #[error("refused before motion: {step} needs I/O, and the link {link} carries none: {why}")]
     NoIo {
         step: String,
         link: String,

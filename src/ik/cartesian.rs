@@ -157,7 +157,11 @@ pub fn line_joint_path(
         line: Line { from, to },
     };
     let path = mov.dense_path(start)?;
-    Ok(path.nodes().iter().map(|node| node.joints.clone()).collect())
+    Ok(path
+        .nodes()
+        .iter()
+        .map(|node| node.joints.clone())
+        .collect())
 }
 
 /// The tool pose at `start` (whose axis count `check_start` has already confirmed).

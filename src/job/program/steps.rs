@@ -4,7 +4,7 @@
 //! their neighbours. Owns every key of a step and its refusal text; plans nothing.
 
 use super::super::{JobContext, JobInvalid, check_joints, in_range, to_si};
-use crate::cell::{Cell, Spot};
+use crate::cell::{Cell, NamedTarget, Spot};
 use crate::rig::{Pose, Rig};
 use glam::{DAffine3, DVec3};
 use schemars::JsonSchema;
@@ -468,7 +468,7 @@ fn move_op(
     let target_key = format!("{key}.to");
     let goal = match (&target.spot, offset, how) {
         (Spot::Joints(joints), None, How::Joints | How::Poses) => {
-            Goal::Joints(joint_target(&target_key, &name, joints, scope.rig)?)
+            Goal::Joints(joint_target(&target_key, target, joints, scope.rig)?)
         }
         (Spot::Pose(_), _, How::Joints) => {
             return Err(JobInvalid::new(
@@ -478,10 +478,11 @@ fn move_op(
             ));
         }
         (Spot::Joints(joints), _, _) => {
-            let joints = joint_target(&target_key, &name, joints, scope.rig)?;
-            let at = scope.rig_with(tool).forward(&joints).map_err(|e| {
-                JobInvalid::new(target_key.clone(), &step.to, e.to_string())
-            })?;
+            let joints = joint_target(&target_key, target, joints, scope.rig)?;
+            let at = scope
+                .rig_with(tool)
+                .forward(&joints)
+                .map_err(|e| JobInvalid::new(target_key.clone(), &step.to, e.to_string()))?;
             Goal::Pose(offset_pose(at, offset))
         }
         (Spot::Pose(in_cell), _, _) => {
@@ -531,7 +532,10 @@ fn check_offset(key: &str, how: How, offset: [f64; 3]) -> Result<DVec3, JobInval
             "an offset needs a pose: use move_poses or move_linear",
         ));
     }
-    if !offset.iter().all(|v| v.is_finite() && v.abs() <= MAX_OFFSET_M) {
+    if !offset
+        .iter()
+        .all(|v| v.is_finite() && v.abs() <= MAX_OFFSET_M)
+    {
         return Err(JobInvalid::new(
             key,
             offset,
@@ -541,9 +545,21 @@ fn check_offset(key: &str, how: How, offset: [f64; 3]) -> Result<DVec3, JobInval
     Ok(DVec3::from_array(offset))
 }
 
-/// A joint target checked against the rig's axes and limits, in SI units.
-fn joint_target(key: &str, name: &str, joints: &[f64], rig: &Rig) -> Result<Vec<f64>, JobInvalid> {
-    check_joints(&format!("{key} (`{name}`: joints_deg)"), joints, rig)?;
+/// A joint target checked against the rig's axes and limits, in SI units; a refusal names
+/// the step's key, the target and the cell's key that holds the bad value.
+fn joint_target(
+    key: &str,
+    target: &NamedTarget,
+    joints: &[f64],
+    rig: &Rig,
+) -> Result<Vec<f64>, JobInvalid> {
+    check_joints(&format!("{}.joints_deg", target.key), joints, rig).map_err(|bad| {
+        JobInvalid::new(
+            key,
+            &target.name,
+            format!("the cell's {} = {}: {}", bad.key, bad.value, bad.reason),
+        )
+    })?;
     Ok(to_si(joints, rig))
 }
 

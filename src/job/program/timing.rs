@@ -200,25 +200,25 @@ impl Planner<'_> {
                     Goal::Pose(pose) => *pose,
                     Goal::Joints(joints) => pose_at(joints)?,
                 };
-                let nodes = line_joint_path(solver, q, from, to, settings, index).map_err(
-                    |error| ProgramError::Line {
-                        key: op.key.clone(),
-                        what: op.what.clone(),
-                        error,
-                    },
-                )?;
+                let nodes =
+                    line_joint_path(solver, q, from, to, settings, index).map_err(|error| {
+                        ProgramError::Line {
+                            key: op.key.clone(),
+                            what: op.what.clone(),
+                            error,
+                        }
+                    })?;
                 Ok(nodes.into_iter().skip(1).collect())
             }
             (_, Goal::Joints(joints)) => free_move_path(context, q, joints),
             (_, Goal::Pose(pose)) => {
-                let solution =
-                    self.solver(m.tool)?
-                        .solve(pose, q)
-                        .map_err(|error| ProgramError::Unreachable {
-                            key: op.key.clone(),
-                            what: op.what.clone(),
-                            error,
-                        })?;
+                let solution = self.solver(m.tool)?.solve(pose, q).map_err(|error| {
+                    ProgramError::Unreachable {
+                        key: op.key.clone(),
+                        what: op.what.clone(),
+                        error,
+                    }
+                })?;
                 free_move_path(context, q, &solution.joints)
             }
         }
@@ -265,7 +265,15 @@ impl Planner<'_> {
             let room = moves[k].len().saturating_sub(overlaps[k]);
             let mut overlap = entered.min(room).min(moves[k + 1].len());
             let next_start = |overlap: usize| starts[k] + moves[k].len() - overlap;
-            while overlap > 0 && !self.within_limits(start, &moves[..k + 2], &starts, next_start(overlap), next_start(overlap) + overlap) {
+            while overlap > 0
+                && !self.within_limits(
+                    start,
+                    &moves[..k + 2],
+                    &starts,
+                    next_start(overlap),
+                    next_start(overlap) + overlap,
+                )
+            {
                 overlap = (overlap as f64 * OVERLAP_SHRINK) as usize;
             }
             starts.push(next_start(overlap));
@@ -275,11 +283,17 @@ impl Planner<'_> {
         let positions = sum_of(start, &moves, &starts);
         let before = self.samples.last_index();
         let dt = self.context.settings.period.as_secs_f64();
-        self.samples.ensure_room(positions.len()).map_err(PlanError::from)?;
+        self.samples
+            .ensure_room(positions.len())
+            .map_err(PlanError::from)?;
         for k in 0..positions.len() {
             let previous = if k == 0 { start } else { &positions[k - 1] };
             let velocity: Vec<f64> = match positions.get(k + 1) {
-                Some(next) => next.iter().zip(previous).map(|(n, p)| (n - p) / (2.0 * dt)).collect(),
+                Some(next) => next
+                    .iter()
+                    .zip(previous)
+                    .map(|(n, p)| (n - p) / (2.0 * dt))
+                    .collect(),
                 None => vec![0.0; start.len()],
             };
             self.samples.push(&positions[k], &velocity);
@@ -328,7 +342,10 @@ impl Planner<'_> {
                 what: op.what.clone(),
                 error,
             })?;
-        Ok(rows.into_iter().map(|(_, positions, _)| positions).collect())
+        Ok(rows
+            .into_iter()
+            .map(|(_, positions, _)| positions)
+            .collect())
     }
 
     /// How many of `moved`'s last samples have the tool within `zone` of where the move
@@ -366,7 +383,9 @@ impl Planner<'_> {
             q
         };
         let dt = self.context.settings.period.as_secs_f64();
-        let window: Vec<Vec<f64>> = (last_start as isize - 2..=until as isize + 2).map(at).collect();
+        let window: Vec<Vec<f64>> = (last_start as isize - 2..=until as isize + 2)
+            .map(at)
+            .collect();
         window.windows(3).all(|w| {
             (0..start.len()).all(|axis| {
                 let speed = (w[2][axis] - w[1][axis]).abs() / dt;
@@ -409,8 +428,6 @@ impl Planner<'_> {
         )?;
         Ok(())
     }
-
-
 }
 
 /// One move of a run as displacements from where it starts: sample `j` of the move is
@@ -439,7 +456,11 @@ impl Displacement {
 
     /// The configuration of sample `j` of the move alone.
     fn absolute(&self, j: usize) -> Vec<f64> {
-        self.from.iter().zip(&self.steps[j]).map(|(a, d)| a + d).collect()
+        self.from
+            .iter()
+            .zip(&self.steps[j])
+            .map(|(a, d)| a + d)
+            .collect()
     }
 
     fn end(&self) -> Option<Vec<f64>> {
