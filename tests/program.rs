@@ -129,6 +129,22 @@ fn toml_and_http_refuse_the_same_bad_programs_with_the_same_text() {
     server.stop().unwrap().unwrap();
 }
 
+#[test]
+fn the_schema_describes_a_program_and_its_steps() {
+    let schema = rigbridge::job::request_schema().to_string();
+    for word in [
+        "program",
+        "move_linear",
+        "zone_m",
+        "offset_m",
+        "timeout_s",
+        "repeat",
+        "grip",
+    ] {
+        assert!(schema.contains(word), "{word} missing from the schema");
+    }
+}
+
 /// `rigbridge run` of `config` with a virtual clock, its log and report in `dir`: the
 /// process' output and the report.
 fn run(dir: &Path, config: &Path) -> (std::process::Output, serde_json::Value) {
