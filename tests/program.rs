@@ -268,6 +268,27 @@ fn a_collision_is_refused_naming_the_step_as_written() {
     assert!(!dir.join("run.mcap").exists());
 }
 
+#[test]
+fn a_first_zone_too_large_for_where_the_arm_starts_is_refused_when_planned() {
+    let dir = demo_dir("first-zone");
+    // The twin starts at home: the first point is where it holds, no room for a zone.
+    let steps = serde_json::json!([
+        { "kind": "move_joints", "to": "home", "zone_m": 0.01 },
+        { "kind": "move_poses", "to": "place" },
+    ]);
+    std::fs::write(dir.join("job.toml"), settings_text(&steps)).unwrap();
+    let (output, report) = run(&dir, &dir.join("job.toml"));
+    assert!(!output.status.success());
+    let fault = report["fault"].as_str().unwrap();
+    assert!(
+        fault.contains(
+            "key `job.steps[0].zone_m` = 0.01: larger than half a neighbouring segment: 0.000 m from the start (where the arm holds) to this point"
+        ),
+        "{fault}"
+    );
+    assert!(!dir.join("run.mcap").exists());
+}
+
 /// The demo's program planned from the twin's start, as `run` plans it, and its stretches.
 fn plan(settings: &RunSettings, job: &Job) -> (Trajectory, Origins) {
     let start = settings.initial();
