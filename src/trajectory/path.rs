@@ -94,9 +94,8 @@ pub(crate) struct PathTiming<'a> {
     pub waypoint: usize,
 }
 
-/// Samples of one move after its first (which is the previous move's last): each its path
-/// parameter, positions and velocities.
-type Rows = Vec<(f64, Vec<f64>, Vec<f64>)>;
+/// Samples of one move after its first (which is the previous move's last).
+type Rows = Vec<(Vec<f64>, Vec<f64>)>;
 
 impl PathTiming<'_> {
     /// Appends samples every period along the fastest profile of `path` (at rest at both
@@ -111,7 +110,7 @@ impl PathTiming<'_> {
         solve_at: impl Fn(f64, &[f64]) -> Result<Vec<f64>, E>,
         samples: &mut Samples,
     ) -> Result<(), E> {
-        for (_, positions, velocities) in &self.timed_rows(path, solve_at, samples)? {
+        for (positions, velocities) in &self.timed_rows(path, solve_at, samples)? {
             samples.push(positions, velocities);
         }
         Ok(())
@@ -188,10 +187,9 @@ impl PathTiming<'_> {
             let mut joints = solve_at(node.u + along, &seed)?;
             snap_to_limits(self.rig, &mut joints);
             let velocity = direction.iter().map(|d| d * speed / stretch).collect();
-            rows.push((node.u + along, joints, velocity));
+            rows.push((joints, velocity));
         }
-        let end = path.nodes[path.nodes.len() - 1].u;
-        rows.push((end, path.end().to_vec(), vec![0.0; path.end().len()]));
+        rows.push((path.end().to_vec(), vec![0.0; path.end().len()]));
         Ok(rows)
     }
 
@@ -202,7 +200,7 @@ impl PathTiming<'_> {
     fn excess(&self, start: &[f64], rows: &Rows) -> Excess {
         let period_s = self.settings.period.as_secs_f64();
         let mut positions: Vec<&[f64]> = vec![start, start];
-        positions.extend(rows.iter().map(|(_, p, _)| p.as_slice()));
+        positions.extend(rows.iter().map(|(p, _)| p.as_slice()));
         let end = positions[positions.len() - 1];
         positions.push(end);
         let mut worst = Excess {

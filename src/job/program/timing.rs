@@ -342,10 +342,7 @@ impl Planner<'_> {
                 what: op.what.clone(),
                 error,
             })?;
-        Ok(rows
-            .into_iter()
-            .map(|(_, positions, _)| positions)
-            .collect())
+        Ok(rows.into_iter().map(|(positions, _)| positions).collect())
     }
 
     /// How many of `moved`'s last samples have the tool within `zone` of where the move
