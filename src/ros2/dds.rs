@@ -407,3 +407,76 @@ fn publish_states(declared: &Declared, rig: &PublishedRig, io: &Publishing) {
         next = super::node::pace(next, io.period);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cell::Cell;
+    use crate::rig::load_rig;
+    use glam::DVec3;
+    use std::collections::HashMap;
+    use std::path::Path;
+
+    fn irb120() -> crate::rig::Rig {
+        load_rig(&Path::new(env!("CARGO_MANIFEST_DIR")).join("config/irb120.toml"))
+            .expect("the IRB 120 rig loads")
+    }
+
+    fn published(rig: &crate::rig::Rig) -> PublishedRig {
+        let cell = Cell::builtin();
+        PublishedRig {
+            name: rig.name.clone(),
+            joints: rig.joint_names().map(String::from).collect(),
+            robot: Arc::new(RobotDescription::generated(rig, &cell)),
+            mount: cell.mount,
+        }
+    }
+
+    fn affine(t: &Transform) -> DAffine3 {
+        let r = t.rotation;
+        DAffine3::from_rotation_translation(
+            DQuat::from_xyzw(r.x, r.y, r.z, r.w),
+            DVec3::new(t.translation.x, t.translation.y, t.translation.z),
+        )
+    }
+
+    /// tf2's lookup: `tip` in `base`, walking up the parents the messages name.
+    fn lookup(messages: &[&TfMessage], base: &str, tip: &str) -> DAffine3 {
+        let links: HashMap<&str, (&str, DAffine3)> = messages
+            .iter()
+            .flat_map(|m| &m.transforms)
+            .map(|t| {
+                let parent = t.header.frame_id.as_str();
+                (t.child_frame_id.as_str(), (parent, affine(&t.transform)))
+            })
+            .collect();
+        let (mut pose, mut frame) = (DAffine3::IDENTITY, tip);
+        while frame != base {
+            let (parent, link) = links[frame];
+            (pose, frame) = (link * pose, parent);
+        }
+        pose
+    }
+
+    #[test]
+    fn tf_and_tf_static_compose_to_the_rigs_forward_kinematics() {
+        let rig = irb120();
+        let published = published(&rig);
+        let q = [0.3, -0.4, 0.5, -1.1, 0.7, 2.0];
+        let stamp = Time { sec: 7, nanosec: 9 };
+        let fixed = static_transforms(&published, stamp);
+        let mut moving = TfMessage::default();
+        moving_transforms(&published.robot, &q, stamp, &mut moving);
+        // Each frame has one parent, in one of the two topics.
+        assert_eq!(moving.transforms.len(), 6, "one per joint");
+        assert_eq!(fixed.transforms[0].header.frame_id, WORLD_FRAME);
+        let tool = lookup(&[&fixed, &moving], "base_link", "tool0");
+        let expected = rig.forward(&q).expect("six positions");
+        assert!((tool.translation - expected.translation).length() < 1e-12);
+        assert!(tool.matrix3.abs_diff_eq(expected.matrix3, 1e-12));
+        let base = lookup(&[&fixed, &moving], WORLD_FRAME, "base_link");
+        assert!(base.abs_diff_eq(published.mount, 1e-12));
+        let stamps = fixed.transforms.iter().chain(&moving.transforms);
+        assert!(stamps.map(|t| t.header.stamp).all(|s| s == stamp));
+    }
+}
