@@ -302,7 +302,7 @@ fn now() -> Time {
 
 fn transform(parent: &str, child: &str, at: DAffine3, stamp: Time) -> TransformStamped {
     let t = at.translation;
-    let q = DQuat::from_mat3(&at.matrix3.into()).normalize();
+    let q = DQuat::from_mat3(&at.matrix3).normalize();
     TransformStamped {
         header: Header {
             stamp,
