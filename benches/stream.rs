@@ -22,7 +22,7 @@
 use rigbridge::clock::WallClock;
 use rigbridge::link::LoopbackLink;
 use rigbridge::rig::{Rig, load_rig};
-use rigbridge::ros2::{DEFAULT_JOINT_STATES_HZ, Ros2Node, Ros2Settings};
+use rigbridge::ros2::{DEFAULT_JOINT_STATES_HZ, Middleware, Ros2Node, Ros2Settings};
 use rigbridge::stream::{
     CycleRecord, CycleSink, StreamControl, StreamReport, StreamSettings, slowdown_rate, stream,
 };
@@ -235,7 +235,9 @@ fn stream_once(rig: &Rig, rate_hz: f64, seconds: f64, ros2: Option<&Subscriber>)
     let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&START)));
     let node = ros2.map(|subscriber| {
         let settings = Ros2Settings {
-            zenoh_connect: subscriber.endpoint.clone(),
+            middleware: Middleware::Zenoh {
+                connect: subscriber.endpoint.clone(),
+            },
             domain_id: 0,
             joint_states_hz: DEFAULT_JOINT_STATES_HZ,
             login: None,

@@ -149,6 +149,28 @@ if "$ros2_venv/bin/python" -c "$ros2_probe" 2>/dev/null; then
 fi
 # ---------------------------------------------------------------------- end ROS 2 peer --
 
+# ------------- ROS 2 over DDS peer: ros-jazzy-rclpy on Fast DDS (tests/ros2_dds.rs) --
+# A venv with a real ROS 2 Jazzy client library from PyPI: rclpy, its default middleware
+# (rmw_fastrtps_cpp, Fast DDS; not a dependency of rclpy's wheel, so named here) and the
+# message packages tests/peers/ros2_dds_peer.py subscribes with. If they cannot be
+# installed, the test prints why it skips; on CI a missing peer is a failure.
+rclpy_venv=${CARGO_TARGET_DIR:-target}/rclpy-venv
+rclpy_probe='import rclpy, sensor_msgs.msg, std_msgs.msg, rmw_fastrtps_cpp'
+if [ ! -x "$rclpy_venv/bin/python" ] || ! "$rclpy_venv/bin/python" -c "$rclpy_probe" 2>/dev/null; then
+  python3 -m venv "$rclpy_venv" && "$rclpy_venv/bin/pip" install -q ros-jazzy-rclpy \
+    ros-jazzy-rmw-fastrtps-cpp ros-jazzy-sensor-msgs ros-jazzy-std-msgs \
+    || echo "test.sh: cannot install ros-jazzy-rclpy; the ROS 2 DDS peer tests will skip" >&2
+fi
+if [ "${CI:-}" = true ] && ! "$rclpy_venv/bin/python" -c "$rclpy_probe" 2>/dev/null; then
+  echo "test.sh: CI must test ROS 2 over DDS against PyPI's rclpy, and it could not be installed" >&2
+  exit 1
+fi
+if "$rclpy_venv/bin/python" -c "$rclpy_probe" 2>/dev/null; then
+  export RIGBRIDGE_RCLPY_PYTHON="$PWD/$rclpy_venv/bin/python"
+  [[ $rclpy_venv = /* ]] && export RIGBRIDGE_RCLPY_PYTHON="$rclpy_venv/bin/python"
+fi
+# ------------------------------------------------------------ end ROS 2 over DDS peer --
+
 # -------------------------- collision peer: coal + numpy (tests/cell_agreement.rs) --
 # A venv with PyPI's coal (the successor of FCL), which tests/peers/coal_distance.py uses to
 # measure the URDF `rigbridge config urdf` writes, row by row against `rigbridge check`

@@ -11,7 +11,7 @@ use rigbridge::clock::{Clock, VirtualClock, WallClock};
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::{DaemonError, RunReport, open_link, plan_for, stream_planned_with};
 use rigbridge::link::LinkSpec;
-use rigbridge::ros2::Ros2Node;
+use rigbridge::ros2::{PublishedRig, RigNode};
 use rigbridge::stream::{Outcome, StreamControl};
 use rigbridge::view::{LiveSample, LiveSink, LiveSlot};
 use std::path::PathBuf;
@@ -133,6 +133,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&settings.initial())));
     // Asked before any thread is pinned: the process's CPUs are remembered then.
     let streaming_cpu = rigbridge::realtime::streaming_cpu();
+    let rig_name = settings.rig.name.clone();
     let ros2 = ros2_node(
         &settings,
         args.zenoh_connect.as_deref(),
@@ -179,7 +180,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         say!(
             "  ros2: {} joint states published on {}",
             node.published(),
-            node.joint_states_key()
+            node.joint_states_at(&rig_name)
         );
     }
     finish(report, &args, &log)
@@ -250,32 +251,34 @@ pub fn run_exit_code(report: &RunReport) -> ExitCode {
     }
 }
 
-/// The rig's ROS 2 node when `[ros2]` or `--zenoh-connect` says where to connect.
+/// The rig's ROS 2 node when the settings have `[ros2]` or `--zenoh-connect` says where to
+/// connect.
 fn ros2_node(
     settings: &RunSettings,
     endpoint: Option<&str>,
     slot: &Arc<LiveSlot>,
     known_at_rest: bool,
-) -> anyhow::Result<Option<Ros2Node>> {
+) -> anyhow::Result<Option<RigNode>> {
     let Some(ros2) = settings.config.ros2.settings(endpoint) else {
         return Ok(None);
     };
-    let joints = settings.rig.joint_names().map(String::from).collect();
-    let node = Ros2Node::start(
-        &ros2,
-        &settings.rig.name,
-        joints,
-        slot.clone(),
-        known_at_rest,
-        None,
-    )
-    .with_context(|| format!("cannot join ROS 2 through {}", ros2.zenoh_connect))?;
+    let rig = PublishedRig {
+        name: settings.rig.name.clone(),
+        joints: settings.rig.joint_names().map(String::from).collect(),
+        robot: Arc::new(rigbridge::log::RobotDescription::generated(
+            &settings.rig,
+            &settings.cell,
+        )),
+        mount: settings.cell.mount,
+    };
+    let node = rigbridge::ros2::start_node(&ros2, rig, slot.clone(), known_at_rest, None)
+        .with_context(|| format!("cannot join ROS 2 over {}", ros2.middleware))?;
     eprintln!(
-        "ros2: node /{}/{} publishing {} through {}",
+        "ros2: node /{}/{} publishing {} over {}",
         settings.rig.name,
         rigbridge::ros2::graph::NODE_NAME,
-        node.joint_states_key(),
-        ros2.zenoh_connect
+        node.joint_states_at(&settings.rig.name),
+        ros2.middleware
     );
     Ok(Some(node))
 }

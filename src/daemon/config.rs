@@ -37,9 +37,9 @@ pub struct RunConfig {
     /// twin's servos). Optional.
     #[serde(default)]
     pub dynamixel: DynamixelConfig,
-    /// `[ros2]`: the rig as a ROS 2 node over Zenoh (docs/ros2.md). Optional: off when
-    /// `zenoh_connect` is absent.
-    #[serde(default)]
+    /// `[ros2]`: the rig as a ROS 2 node, over DDS or Zenoh (docs/ros2.md). Optional: off
+    /// when the table is absent (and `--zenoh-connect` is not given).
+    #[serde(default, deserialize_with = "present_ros2")]
     pub ros2: Ros2Config,
     /// `[canopen]`: how axes map to drive counts on `canopen://` links (and in the twin's
     /// drives), and the drives' heartbeat. Optional.
@@ -121,13 +121,44 @@ impl EgmConfig {
     }
 }
 
-/// `[ros2]`: publish the rig's joint states (and, under `serve`, when `accept_motion` says
-/// so, take joint trajectories as jobs) over Zenoh the way rmw_zenoh does.
+/// `[ros2]` read from the settings: the table is there, so ROS 2 is on.
+fn present_ros2<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<Ros2Config, D::Error> {
+    let mut config = Ros2Config::deserialize(deserializer)?;
+    config.present = true;
+    Ok(config)
+}
+
+/// `[ros2] middleware`: what the rig's node speaks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MiddlewareName {
+    /// DDS, a stock ROS 2 install's default (Fast DDS): `ros2 topic echo` sees it as is.
+    Dds,
+    /// Zenoh as rmw_zenoh: needs `zenoh_connect`.
+    Zenoh,
+}
+
+/// `[ros2] discovery_range`: whom DDS discovery reaches (`ROS_AUTOMATIC_DISCOVERY_RANGE`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RangeName {
+    Localhost,
+    Subnet,
+}
+
+/// `[ros2]`: publish the rig's joint states, over DDS (with `/tf`, `/tf_static` and the
+/// robot description) or over Zenoh the way rmw_zenoh does (and there, under `serve`, when
+/// `accept_motion` says so, take joint trajectories as jobs).
 #[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Ros2Config {
+    /// `dds` or `zenoh`; absent: `zenoh` when `zenoh_connect` is given, else `dds`.
+    pub middleware: Option<MiddlewareName>,
+    /// DDS only: `localhost` (127.0.0.1 only, no multicast) or `subnet` (every interface,
+    /// multicast discovery); `localhost` when absent, so nothing leaves the machine unasked.
+    pub discovery_range: Option<RangeName>,
     /// The Zenoh router or peer to connect to, `tcp/HOST:PORT` (rmw_zenohd listens on
-    /// `tcp/localhost:7447`). Absent: no ROS 2 (unless `--zenoh-connect` says where).
+    /// `tcp/localhost:7447`). `--zenoh-connect` overrides it (and means Zenoh).
     pub zenoh_connect: Option<String>,
     /// The ROS 2 domain (`ROS_DOMAIN_ID`), 0 when absent; 0..=232.
     #[serde(default)]
@@ -152,6 +183,9 @@ pub struct Ros2Config {
     /// The login read from `user` and `password_file` on load.
     #[serde(skip)]
     login: Option<crate::ros2::Login>,
+    /// Whether the settings hold a `[ros2]` table (ROS 2 is then on).
+    #[serde(skip)]
+    present: bool,
 }
 
 /// Largest password file read (bytes): a password is a line, and the file is read whole.
@@ -161,11 +195,25 @@ const MAX_USER_CHARS: usize = 256;
 
 impl Ros2Config {
     /// The ROS 2 settings of `file`, with `endpoint` (`--zenoh-connect`, already checked)
-    /// in place of `zenoh_connect` when given; `None` when neither says where to connect.
+    /// in place of `zenoh_connect` when given (Zenoh then, whatever `middleware` says);
+    /// `None` when the settings have no `[ros2]` and no endpoint is given.
     pub fn settings(&self, endpoint: Option<&str>) -> Option<crate::ros2::Ros2Settings> {
-        let zenoh_connect = endpoint.or(self.zenoh_connect.as_deref())?.to_string();
+        if !self.present && endpoint.is_none() {
+            return None;
+        }
+        let middleware = match endpoint.or(self.zenoh_connect.as_deref()) {
+            Some(connect) => crate::ros2::Middleware::Zenoh {
+                connect: connect.to_string(),
+            },
+            None => crate::ros2::Middleware::Dds {
+                range: match self.discovery_range {
+                    Some(RangeName::Subnet) => crate::ros2::DiscoveryRange::Subnet,
+                    Some(RangeName::Localhost) | None => crate::ros2::DiscoveryRange::Localhost,
+                },
+            },
+        };
         Some(crate::ros2::Ros2Settings {
-            zenoh_connect,
+            middleware,
             domain_id: self.domain_id,
             joint_states_hz: self
                 .joint_states_hz
@@ -177,6 +225,7 @@ impl Ros2Config {
 
     /// Checks the keys and reads the password file.
     fn check(&mut self, file: &Path) -> Result<(), ConfigError> {
+        self.check_middleware(file)?;
         if let Some(endpoint) = &self.zenoh_connect
             && let Some(reason) = crate::ros2::endpoint_problem(endpoint)
         {
@@ -210,6 +259,35 @@ impl Ros2Config {
             ));
         }
         Ok(())
+    }
+
+    /// `middleware` agrees with `zenoh_connect`; `discovery_range` is for DDS only.
+    fn check_middleware(&self, file: &Path) -> Result<(), ConfigError> {
+        match (self.middleware, &self.zenoh_connect) {
+            (Some(MiddlewareName::Dds), Some(endpoint)) => Err(ConfigError::invalid(
+                file,
+                "ros2.zenoh_connect",
+                endpoint,
+                "is for middleware = \"zenoh\"; ros2.middleware says \"dds\"",
+            )),
+            (Some(MiddlewareName::Zenoh), None) => Err(ConfigError::invalid(
+                file,
+                "ros2.middleware",
+                "zenoh",
+                "needs ros2.zenoh_connect = \"tcp/HOST:PORT\" (the router or peer to reach)",
+            )),
+            (_, Some(_)) if self.discovery_range.is_some() => Err(ConfigError::invalid(
+                file,
+                "ros2.discovery_range",
+                if self.discovery_range == Some(RangeName::Subnet) {
+                    "subnet"
+                } else {
+                    "localhost"
+                },
+                "is for middleware = \"dds\"; Zenoh reaches only ros2.zenoh_connect",
+            )),
+            _ => Ok(()),
+        }
     }
 
     /// The login of `user` and `password_file`: both or neither.
@@ -1251,6 +1329,17 @@ impl Ros2Config {
     /// The rig's name becomes the ROS 2 namespace when the rig joins a graph: it must be
     /// one.
     fn check_namespace(&self, file: &Path, rig: &Rig) -> Result<(), ConfigError> {
+        if self.present
+            && self.zenoh_connect.is_none()
+            && let Err(e) = crate::ros2::graph::check_namespace(&rig.name)
+        {
+            return Err(ConfigError::invalid(
+                file,
+                "ros2.middleware",
+                "dds",
+                &e.to_string(),
+            ));
+        }
         if self.zenoh_connect.is_some()
             && let Err(e) = crate::ros2::graph::check_namespace(&rig.name)
         {

@@ -441,7 +441,7 @@ fn foxglove_feed(
 }
 
 /// The cells' ROS 2 nodes, started off the async threads (they connect to Zenoh).
-async fn start_ros2(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::Ros2Node>, DaemonError> {
+async fn start_ros2(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::RigNode>, DaemonError> {
     let daemon = daemon.clone();
     tokio::task::spawn_blocking(move || ros2_nodes(&daemon))
         .await
@@ -449,7 +449,7 @@ async fn start_ros2(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::Ros2Node>, 
 }
 
 /// Takes the cells out of the ROS 2 graph, stops every job and closes the journals.
-async fn stop_cells(daemon: Arc<Daemon>, ros2: Vec<crate::ros2::Ros2Node>) {
+async fn stop_cells(daemon: Arc<Daemon>, ros2: Vec<crate::ros2::RigNode>) {
     let _ = tokio::task::spawn_blocking(move || {
         // Out of the graph first: no trajectory starts a job while the cells stop.
         drop(ros2);
@@ -517,9 +517,9 @@ fn shared_executor(
     Ok(Some(Arc::new(executor)))
 }
 
-/// The ROS 2 node of every cell whose settings (or `--zenoh-connect`) say where to
-/// connect: its joint states from the cell's live slot, its trajectories as jobs.
-fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::Ros2Node>, DaemonError> {
+/// The ROS 2 node of every cell whose settings have `[ros2]` (or with `--zenoh-connect`):
+/// its joint states from the cell's live slot, its trajectories as jobs (Zenoh only).
+fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::RigNode>, DaemonError> {
     let mut nodes = Vec::new();
     for cell in &daemon.cells {
         let settings = cell.settings();
@@ -534,31 +534,40 @@ fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::Ros2Node>, Daemon
             Box::new(move |message| take_trajectory(&daemon, &cell, &mut refusals, message))
                 as crate::ros2::TrajectoryHandler
         });
-        // Zenoh's own runtime must not be entered from the server's: a thread of its own.
-        let (joints, slot) = (
-            settings.rig.joint_names().map(String::from).collect(),
-            cell.hub().slot().clone(),
-        );
-        let (rig, known) = (cell.name().to_string(), cell.streams_to_twin());
-        let endpoint = ros2.zenoh_connect.clone();
+        // Zenoh's and RustDDS's own runtimes must not be entered from the server's: a
+        // thread of its own.
+        let rig = crate::ros2::PublishedRig {
+            name: cell.name().to_string(),
+            joints: settings.rig.joint_names().map(String::from).collect(),
+            robot: Arc::new(crate::log::RobotDescription::generated(
+                &settings.rig,
+                &settings.cell,
+            )),
+            mount: settings.cell.mount,
+        };
+        let (slot, known) = (cell.hub().slot().clone(), cell.streams_to_twin());
+        let middleware = ros2.middleware.to_string();
         let motion = motion_from_ros2(&ros2);
         let motion_unauthenticated = ros2.accept_motion && ros2.login.is_none();
-        let node = std::thread::spawn(move || {
-            crate::ros2::Ros2Node::start(&ros2, &rig, joints, slot, known, handler)
-        })
-        .join()
-        .map_err(|_| DaemonError::Unavailable("the ROS 2 node's start panicked".into()))?
-        .map_err(|e| {
-            DaemonError::Unavailable(format!("cell {}: ROS 2: {}", cell.name(), error_chain(&e)))
-        })?;
+        let node =
+            std::thread::spawn(move || crate::ros2::start_node(&ros2, rig, slot, known, handler))
+                .join()
+                .map_err(|_| DaemonError::Unavailable("the ROS 2 node's start panicked".into()))?
+                .map_err(|e| {
+                    DaemonError::Unavailable(format!(
+                        "cell {}: ROS 2: {}",
+                        cell.name(),
+                        error_chain(&e)
+                    ))
+                })?;
         tracing::info!(
             cell = %cell.name(),
             "cell {}: ROS 2 node /{}/{} on {} (joint states on {})",
             cell.name(),
             cell.name(),
             crate::ros2::graph::NODE_NAME,
-            endpoint,
-            node.joint_states_key()
+            middleware,
+            node.joint_states_at(cell.name())
         );
         if motion_unauthenticated {
             tracing::warn!(cell = %cell.name(), "cell {}: ROS 2: {motion}", cell.name());

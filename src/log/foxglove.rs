@@ -187,6 +187,14 @@ impl RobotDescription {
             .map(|s| (s.parent.as_str(), s.child.as_str()))
     }
 
+    /// Whether each link of [`Self::frames`] is fixed to its parent (a fixed joint, the tool
+    /// transform, a cell object): ROS 2 sends those once, on `/tf_static`.
+    pub fn fixed(&self) -> impl Iterator<Item = bool> + '_ {
+        self.segments
+            .iter()
+            .map(|s| matches!(s.motion, Motion::Fixed(_)))
+    }
+
     /// The tf frame id of each frame of the rig: its base (before joint 1), then the frame
     /// after each joint (the child link of that joint): where its collision bodies ride.
     pub fn rig_frames(&self) -> Vec<String> {

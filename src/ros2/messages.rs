@@ -1,5 +1,6 @@
-//! The ROS 2 messages rigbridge speaks, as CDR: `sensor_msgs/msg/JointState` out,
-//! `trajectory_msgs/msg/JointTrajectory` in. A CDR payload as rmw_zenoh carries it starts
+//! The ROS 2 messages rigbridge speaks, as CDR: `sensor_msgs/msg/JointState`,
+//! `tf2_msgs/msg/TFMessage` and `std_msgs/msg/String` out, `trajectory_msgs/msg/JointTrajectory`
+//! in. A CDR payload as rmw_zenoh carries it starts
 //! with the 4-byte encapsulation header (`00 01 00 00`: plain CDR, little-endian), then the
 //! fields in order, each aligned to its size from the end of that header (OMG CDR, the
 //! `cdr` crate). Decoding takes either byte order, as the header says.
@@ -36,6 +37,50 @@ pub struct JointState {
     pub position: Vec<f64>,
     pub velocity: Vec<f64>,
     pub effort: Vec<f64>,
+}
+
+/// `geometry_msgs/msg/Vector3` (m).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Vector3 {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+}
+
+/// `geometry_msgs/msg/Quaternion`, unit length.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Quaternion {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+    pub w: f64,
+}
+
+/// `geometry_msgs/msg/Transform`: the child frame in its parent.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Transform {
+    pub translation: Vector3,
+    pub rotation: Quaternion,
+}
+
+/// `geometry_msgs/msg/TransformStamped`: `header.frame_id` is the parent frame.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct TransformStamped {
+    pub header: Header,
+    pub child_frame_id: String,
+    pub transform: Transform,
+}
+
+/// `tf2_msgs/msg/TFMessage`, what `/tf` and `/tf_static` carry.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct TfMessage {
+    pub transforms: Vec<TransformStamped>,
+}
+
+/// `std_msgs/msg/String`, what `robot_description` carries.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct StringMessage {
+    pub data: String,
 }
 
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]

@@ -1,20 +1,26 @@
-//! ROS 2 over Zenoh, as rmw_zenoh speaks it (docs/ros2.md): each rig is a node in its own
+//! ROS 2, over DDS (a stock install's middleware, `dds`) or over Zenoh as rmw_zenoh speaks
+//! it (docs/ros2.md). Over Zenoh, each rig is a node in its own
 //! namespace (`/<rig>`) that publishes `sensor_msgs/msg/JointState` on `/<rig>/joint_states`
 //! and, under `serve` with `[ros2] accept_motion`, takes `trajectory_msgs/msg/JointTrajectory`
 //! on `/<rig>/joint_trajectory`. Any ROS 2 node on rmw_zenoh (or any Zenoh session) that
 //! reaches the same router or peer sees it, so several daemons form one fleet; with a
 //! [`Login`], only sessions the router admits by user and password reach it.
 //!
+//! Over DDS, the same node also publishes `/tf`, `/tf_static` and `/<rig>/robot_description`
+//! and takes no motion.
+//!
 //! `type_hash` computes the RIHS01 hashes, `messages` encodes CDR, `graph` names keys,
-//! tokens and attachments, `node` runs the Zenoh session. This module sits beside the live
+//! tokens and attachments, `node` runs the Zenoh session, `dds` the DDS participant. This module sits beside the live
 //! view after the stream: it reads the cycle's states through the view's latest-value slot
 //! and never touches the cycle; turning a received trajectory into a job is the daemon's.
 
+mod dds;
 pub mod graph;
 pub mod messages;
 mod node;
 pub mod type_hash;
 
+pub use dds::{DdsNode, PublishedRig, WORLD_FRAME};
 pub use node::{Ros2Node, TrajectoryHandler};
 
 use thiserror::Error;
@@ -28,8 +34,7 @@ pub const MAX_DOMAIN_ID: u32 = 232;
 /// Where and how a rig joins ROS 2.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Ros2Settings {
-    /// The Zenoh endpoint to connect to: `tcp/HOST:PORT`.
-    pub zenoh_connect: String,
+    pub middleware: Middleware,
     pub domain_id: u32,
     pub joint_states_hz: f64,
     /// The user and password the session logs in to its router with (Zenoh's `usrpwd`
@@ -37,6 +42,91 @@ pub struct Ros2Settings {
     pub login: Option<Login>,
     /// Whether `serve` subscribes to `/<rig>/joint_trajectory` and runs what comes as jobs.
     pub accept_motion: bool,
+}
+
+/// Which middleware a rig's node speaks.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Middleware {
+    /// DDS (RTPS), a stock ROS 2 install's default (Fast DDS), found within `range`.
+    Dds { range: DiscoveryRange },
+    /// Zenoh as rmw_zenoh: a peer session connected to `connect`, `tcp/HOST:PORT`.
+    Zenoh { connect: String },
+}
+
+/// Whom DDS discovery reaches, as ROS 2's `ROS_AUTOMATIC_DISCOVERY_RANGE` says it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DiscoveryRange {
+    /// Nodes on this machine only: everything on 127.0.0.1, no multicast.
+    Localhost,
+    /// Every interface, multicast discovery (the DDS default).
+    Subnet,
+}
+
+impl std::fmt::Display for Middleware {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Middleware::Dds {
+                range: DiscoveryRange::Localhost,
+            } => f.write_str("DDS on this machine (127.0.0.1)"),
+            Middleware::Dds {
+                range: DiscoveryRange::Subnet,
+            } => f.write_str("DDS on every interface"),
+            Middleware::Zenoh { connect } => write!(f, "Zenoh through {connect}"),
+        }
+    }
+}
+
+/// A rig's node on either middleware.
+pub enum RigNode {
+    Dds(DdsNode),
+    Zenoh(Ros2Node),
+}
+
+impl RigNode {
+    /// JointState messages published so far.
+    pub fn published(&self) -> u64 {
+        match self {
+            RigNode::Dds(node) => node.published(),
+            RigNode::Zenoh(node) => node.published(),
+        }
+    }
+
+    /// Where its joint states go, for a log line: the topic, or Zenoh's key expression.
+    pub fn joint_states_at(&self, rig: &str) -> String {
+        match self {
+            RigNode::Dds(_) => {
+                format!("/{rig}/joint_states, /tf, /tf_static, /{rig}/robot_description")
+            }
+            RigNode::Zenoh(node) => node.joint_states_key(),
+        }
+    }
+}
+
+/// Starts `rig`'s node on the middleware `settings` name, publishing from `slot`
+/// (`known_at_rest` as [`Ros2Node::start`]); `trajectories` only over Zenoh: a DDS node takes
+/// no motion, and asking it to is refused.
+pub fn start_node(
+    settings: &Ros2Settings,
+    rig: PublishedRig,
+    slot: std::sync::Arc<crate::view::LiveSlot>,
+    known_at_rest: bool,
+    trajectories: Option<TrajectoryHandler>,
+) -> Result<RigNode, Ros2Error> {
+    match &settings.middleware {
+        Middleware::Dds { range } => {
+            if settings.accept_motion {
+                return Err(Ros2Error::NoMotionOverDds);
+            }
+            let hz = settings.joint_states_hz;
+            let node = DdsNode::start(settings.domain_id, *range, hz, rig, slot, known_at_rest)?;
+            Ok(RigNode::Dds(node))
+        }
+        Middleware::Zenoh { .. } => {
+            let PublishedRig { name, joints, .. } = rig;
+            let node = Ros2Node::start(settings, &name, joints, slot, known_at_rest, trajectories)?;
+            Ok(RigNode::Zenoh(node))
+        }
+    }
 }
 
 /// A Zenoh user and password. The password is never shown: not by `Debug`, not in an
@@ -71,6 +161,15 @@ pub enum Ros2Error {
     Declare { what: String, cause: String },
     #[error("starting the ROS 2 node's thread")]
     Thread(#[source] std::io::Error),
+    #[error("creating {what} over DDS: {cause}")]
+    Dds { what: String, cause: String },
+    #[error(
+        "[ros2] accept_motion = true: JointTrajectory is taken over Zenoh only; over DDS the \
+         node publishes and takes no motion (set middleware = \"zenoh\", docs/ros2.md)"
+    )]
+    NoMotionOverDds,
+    #[error("this node speaks Zenoh, and the settings name no Zenoh endpoint")]
+    NoZenohEndpoint,
 }
 
 /// Why `text` is not a Zenoh endpoint rigbridge can connect to, if it is not: only

@@ -159,7 +159,9 @@ fn open_node(
 /// login it authenticates with Zenoh's `usrpwd` (a challenge: the password itself does not
 /// travel), and Zenoh then also refuses an endpoint that does not ask for one.
 fn open_session(settings: &Ros2Settings) -> Result<zenoh::Session, Ros2Error> {
-    let endpoint = &settings.zenoh_connect;
+    let super::Middleware::Zenoh { connect: endpoint } = &settings.middleware else {
+        return Err(Ros2Error::NoZenohEndpoint);
+    };
     let mut config = zenoh::Config::default();
     let entries = [
         ("mode", "\"peer\"".to_string()),
@@ -348,7 +350,7 @@ fn publish_states(publisher: &zenoh::pubsub::Publisher<'_>, gid: &[u8; 16], io: 
 
 /// Sleeps until `next` plus one period and returns that time; a late wake keeps the rate
 /// from now on.
-fn pace(next: Instant, period: Duration) -> Instant {
+pub(super) fn pace(next: Instant, period: Duration) -> Instant {
     let mut next = next + period;
     let now = Instant::now();
     if next <= now {

@@ -1,0 +1,279 @@
+//! ROS 2 over DDS against a peer we did not write: a real ROS 2 Jazzy node, PyPI's
+//! `ros-jazzy-rclpy` on Fast DDS (tests/peers/ros2_dds_peer.py). `run` streams joint states
+//! that rclpy receives at 100 Hz or more without a gap, and the ROS 2 graph shows the rig's
+//! node publishing `/tf`, `/tf_static` and its robot description with ROS 2's QoS; under
+//! `serve`, a subscriber that comes late still gets the robot description, the very URDF
+//! `rigbridge config urdf` writes. Also the `[ros2] middleware` settings.
+//!
+//! Loopback only: rigbridge's `discovery_range = "localhost"` (the default) keeps its DDS
+//! participant on 127.0.0.1, and Fast DDS is kept there by tests/peers/fastdds_loopback.xml
+//! (with `ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`, Jazzy's Fast DDS still advertises the
+//! host's other addresses, docs/ros2.md). Each test has a DDS domain of its own.
+
+mod common;
+
+use common::cli::{assert_succeeded, rigbridge};
+use common::repo_path;
+use common::serve::{serve_command, start_serve};
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdout, Command, Stdio};
+use std::time::Duration;
+
+/// JointState messages a second the issue asks for.
+const MIN_JOINT_STATE_HZ: f64 = 100.0;
+/// `[ros2] joint_states_hz` when absent (`rigbridge::ros2::DEFAULT_JOINT_STATES_HZ`): the
+/// rate the peer measures gaps against, written here as docs/ros2.md states it.
+const JOINT_STATES_HZ: f64 = 125.0;
+/// How long `serve` has published before the late subscriber comes: long past discovery,
+/// so the description it gets was kept for it, not sent while it joined.
+const LATE_BY: Duration = Duration::from_secs(3);
+
+/// The Python with rclpy (RIGBRIDGE_RCLPY_PYTHON, set by scripts/test.sh), or `None` with a
+/// note; on CI a missing peer fails.
+fn peer_python() -> Option<String> {
+    match common::peer_python(
+        "RIGBRIDGE_RCLPY_PYTHON",
+        "rclpy, sensor_msgs.msg, std_msgs.msg",
+        "ros-jazzy-rclpy, ros-jazzy-sensor-msgs and ros-jazzy-std-msgs",
+    ) {
+        Ok(python) => Some(python),
+        Err(reason) if std::env::var("CI").as_deref() == Ok("true") => {
+            panic!("CI must test ROS 2 over DDS against PyPI's rclpy: {reason}")
+        }
+        Err(reason) => {
+            println!("skipping the ROS 2 DDS peer test: {reason}");
+            None
+        }
+    }
+}
+
+fn scratch(name: &str) -> PathBuf {
+    common::scratch_dir("ros2-dds", name)
+}
+
+/// The shipped run settings (the IRB 120 tracing its star) with `ros2` as the body of a
+/// `[ros2]` table.
+fn settings(dir: &Path, ros2: &str) -> PathBuf {
+    let text = common::with_absolute_cell(
+        &std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap(),
+    )
+    .replacen(
+        "rig = \"irb120.toml\"",
+        &format!("rig = \"{}\"", repo_path("config/irb120.toml").display()),
+        1,
+    ) + &format!("\n[ros2]\n{ros2}");
+    let file = dir.join("run.toml");
+    std::fs::write(&file, text).unwrap();
+    file
+}
+
+/// The rclpy peer in DDS domain `domain`, on loopback, once its subscriptions exist.
+struct Peer {
+    child: Child,
+    stdout: BufReader<ChildStdout>,
+}
+
+impl Peer {
+    fn start(python: &str, domain: u32, dir: &Path, args: &[&str]) -> Peer {
+        let mut child = Command::new(python)
+            .arg(repo_path("tests/peers/ros2_dds_peer.py"))
+            .args(args)
+            .env("ROS_DOMAIN_ID", domain.to_string())
+            .env("ROS_AUTOMATIC_DISCOVERY_RANGE", "SYSTEM_DEFAULT")
+            .env(
+                "FASTRTPS_DEFAULT_PROFILES_FILE",
+                repo_path("tests/peers/fastdds_loopback.xml"),
+            )
+            .env("ROS_LOG_DIR", dir.join("ros-log"))
+            .stdout(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut stdout = BufReader::new(child.stdout.take().unwrap());
+        let mut line = String::new();
+        stdout.read_line(&mut line).unwrap();
+        assert_eq!(line.trim(), "ready", "the peer should subscribe first");
+        Peer { child, stdout }
+    }
+
+    /// Its one JSON line of results.
+    fn result(mut self) -> serde_json::Value {
+        let mut line = String::new();
+        self.stdout.read_line(&mut line).unwrap();
+        assert!(self.child.wait().unwrap().success(), "the peer failed");
+        serde_json::from_str(&line).unwrap_or_else(|e| panic!("peer said {line:?}: {e}"))
+    }
+}
+
+impl Drop for Peer {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The one publisher the graph shows on `topic`: the rig's node, with `type_name`.
+fn assert_published(graph: &serde_json::Value, topic: &str, type_name: &str, latched: bool) {
+    let publishers = graph[topic]
+        .as_array()
+        .unwrap_or_else(|| panic!("{topic}: {graph}"));
+    assert_eq!(publishers.len(), 1, "{topic}: {publishers:?}");
+    let publisher = &publishers[0];
+    assert_eq!(publisher["node"], "/irb120/rigbridge", "{topic}");
+    assert_eq!(publisher["type"], type_name, "{topic}");
+    assert_eq!(publisher["reliable"], true, "{topic}");
+    assert_eq!(publisher["transient_local"], latched, "{topic}");
+}
+
+#[test]
+fn rclpy_receives_runs_joint_states_over_dds_at_100_hz_without_a_gap() {
+    let Some(python) = peer_python() else { return };
+    const DOMAIN: u32 = 41;
+    let dir = scratch("run");
+    let config = settings(&dir, &format!("domain_id = {DOMAIN}\n"));
+    let hz = JOINT_STATES_HZ.to_string();
+    let peer = Peer::start(
+        &python,
+        DOMAIN,
+        &dir,
+        &["listen", "--rig", "irb120", "--hz", &hz],
+    );
+    let log = dir.join("run.mcap");
+    let output = rigbridge()
+        .args(["run", "--config"])
+        .arg(&config)
+        .arg("--log")
+        .arg(&log)
+        .output()
+        .unwrap();
+    assert_succeeded(&output);
+    let result = peer.result();
+    let rate = result["rate_hz"].as_f64().unwrap();
+    println!(
+        "JointState over DDS to rclpy: {rate:.2} Hz, {} messages, {} gaps, longest interval {} s",
+        result["count"], result["gaps"], result["max_interval_s"]
+    );
+    assert!(rate >= MIN_JOINT_STATE_HZ, "{rate} Hz");
+    assert_eq!(result["gaps"], 0, "{result}");
+    assert_eq!(result["increasing"], true, "stamps in order");
+    let names: Vec<String> = common::irb120().joint_names().map(String::from).collect();
+    assert_eq!(result["names"], serde_json::json!(names));
+    assert!(
+        result["distinct_positions"].as_u64().unwrap() > 100,
+        "the arm moved: {result}"
+    );
+    // The last message is where the run ended, as its log says.
+    let logged = rigbridge::log::read_log(&log).unwrap();
+    let last = &logged.states.last().unwrap().positions;
+    let published: Vec<f64> = serde_json::from_value(result["last_position"].clone()).unwrap();
+    assert_eq!(published.len(), last.len());
+    for (p, l) in published.iter().zip(last) {
+        assert!((p - l).abs() < 1e-12, "{published:?} vs {last:?}");
+    }
+    // The ROS 2 graph, as rclpy reads it: who publishes what, with which QoS.
+    let graph = &result["graph"];
+    assert_published(
+        graph,
+        "/irb120/joint_states",
+        "sensor_msgs/msg/JointState",
+        false,
+    );
+    assert_published(graph, "/tf", "tf2_msgs/msg/TFMessage", false);
+    assert_published(graph, "/tf_static", "tf2_msgs/msg/TFMessage", true);
+    assert_published(
+        graph,
+        "/irb120/robot_description",
+        "std_msgs/msg/String",
+        true,
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_late_rclpy_subscriber_gets_the_cells_urdf_as_robot_description() {
+    let Some(python) = peer_python() else { return };
+    const DOMAIN: u32 = 42;
+    let dir = scratch("late");
+    let config = settings(&dir, &format!("domain_id = {DOMAIN}\n"));
+    let mut command = serve_command(&dir.join("runs"));
+    let _daemon = start_serve(command.arg("--config").arg(&config).stderr(Stdio::null()));
+    std::thread::sleep(LATE_BY);
+    let peer = Peer::start(
+        &python,
+        DOMAIN,
+        &dir,
+        &["late", "--rig", "irb120", "--timeout-s", "20"],
+    );
+    let result = peer.result();
+    let urdf = rigbridge()
+        .args(["config", "urdf", "--config"])
+        .arg(&config)
+        .output()
+        .unwrap();
+    assert_succeeded(&urdf);
+    let expected = String::from_utf8(urdf.stdout).unwrap();
+    println!("robot_description after {} s", result["waited_s"]);
+    assert_eq!(
+        result["description"].as_str(),
+        Some(expected.as_str()),
+        "the description is `rigbridge config urdf`'s"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Loads `ros2` as the `[ros2]` table and returns the error's text.
+fn load_error(dir: &Path, ros2: &str) -> String {
+    let file = settings(dir, ros2);
+    match rigbridge::daemon::config::load_run_settings(&file) {
+        Ok(_) => panic!("[ros2] {ros2:?} should be refused"),
+        Err(e) => e.to_string(),
+    }
+}
+
+#[test]
+fn the_middleware_settings_are_checked_and_motion_stays_off_dds() {
+    let dir = scratch("settings");
+    let dds_with_zenoh = load_error(
+        &dir,
+        "middleware = \"dds\"\nzenoh_connect = \"tcp/127.0.0.1:7447\"\n",
+    );
+    assert!(
+        dds_with_zenoh.contains("ros2.zenoh_connect")
+            && dds_with_zenoh.contains("tcp/127.0.0.1:7447"),
+        "{dds_with_zenoh}"
+    );
+    let zenoh_without = load_error(&dir, "middleware = \"zenoh\"\n");
+    assert!(
+        zenoh_without.contains("ros2.middleware") && zenoh_without.contains("zenoh_connect"),
+        "{zenoh_without}"
+    );
+    let range_on_zenoh = load_error(
+        &dir,
+        "zenoh_connect = \"tcp/127.0.0.1:7447\"\ndiscovery_range = \"subnet\"\n",
+    );
+    assert!(
+        range_on_zenoh.contains("ros2.discovery_range") && range_on_zenoh.contains("subnet"),
+        "{range_on_zenoh}"
+    );
+    // A [ros2] table alone means DDS on this machine; asking it for motion is refused
+    // before anything streams.
+    let config = settings(
+        &dir,
+        "domain_id = 43\naccept_motion = true\nallow_unauthenticated_motion = true\n",
+    );
+    let output = rigbridge()
+        .args(["run", "--config"])
+        .arg(&config)
+        .arg("--log")
+        .arg(dir.join("refused.mcap"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("accept_motion") && stderr.contains("Zenoh only"),
+        "{stderr}"
+    );
+    assert!(!dir.join("refused.mcap").exists(), "nothing streamed");
+    let _ = std::fs::remove_dir_all(&dir);
+}
