@@ -334,6 +334,29 @@ fn a_goal_walled_off_from_the_start_is_refused_within_the_budget() {
     assert_eq!((*samples, *max_samples), (300, 300));
     assert!(blocked_b.starts_with("divider"), "{text}");
     assert!(blocked_a.starts_with("link_"), "{text}");
+    // As a job: refused when planned, naming the target.
+    let job: rigbridge::job::Job = serde_json::from_value(serde_json::json!({
+        "kind": "move_joints",
+        "targets_deg": [[-90.0, 60.0, -30.0, 0.0, 30.0, 0.0]],
+        "plan_around": true,
+    }))
+    .expect("the job parses");
+    let settings = PlanSettings {
+        free: options,
+        ..PlanSettings::default()
+    };
+    let refused = job
+        .plan(&rigbridge::job::PlanContext {
+            rig: &rig,
+            sloth: None,
+            start: &start,
+            settings: &settings,
+            model: Some(&model),
+        })
+        .expect_err("the job is refused before motion");
+    let job_text = refused.to_string();
+    assert!(job_text.starts_with("job.targets_deg[0]: "), "{job_text}");
+    assert!(job_text.ends_with(&text), "{job_text}");
     for needle in [
         "joint_1 90.000 deg",
         "joint_1 -90.000 deg",
@@ -388,6 +411,8 @@ fn a_move_joints_job_with_plan_around_runs_past_the_pillar_without_contact() {
                 .unwrap();
         (output.status.success(), stderr, report)
     };
+    // The key is in the jobs' JSON Schema (GET /api/schema).
+    assert!(rigbridge::job::request_schema().to_string().contains("plan_around"));
     // Without the key: refused before motion, with the hint.
     let (ok, stderr, report) = run(false);
     assert!(!ok, "{stderr}");
@@ -409,5 +434,24 @@ fn a_move_joints_job_with_plan_around_runs_past_the_pillar_without_contact() {
     assert!(
         contacts["measured_cycles"].as_u64().unwrap_or(0) > 0,
         "{report}"
+    );
+}
+
+#[test]
+fn plan_around_without_a_cell_to_plan_around_is_refused_naming_the_key() {
+    let job: rigbridge::job::Job = serde_json::from_value(serde_json::json!({
+        "kind": "move_joints",
+        "targets_deg": [OVER_FIXTURE_DEG],
+        "plan_around": true,
+    }))
+    .expect("the job parses");
+    let rig = common::irb120();
+    let start = OVER_TRAY_DEG.map(f64::to_radians);
+    // `plan_job` plans without a cell.
+    let refused = rigbridge::job::plan_job(&job, &rig, &start, &PlanSettings::default())
+        .expect_err("nothing to plan around");
+    assert_eq!(
+        refused.to_string(),
+        "job.plan_around = true needs the cell's collision model, and this plan was given none"
     );
 }
