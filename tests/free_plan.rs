@@ -377,8 +377,13 @@ fn a_move_joints_job_with_plan_around_runs_past_the_pillar_without_contact() {
     let start: Vec<f64> = OVER_TRAY_DEG.map(f64::to_radians).to_vec();
     let goal: Vec<f64> = OVER_FIXTURE_DEG.map(f64::to_radians).to_vec();
     // The premise: the joint move the user wrote runs into the pillar.
-    let direct = plan_joint_moves(rig, &start, &[goal.clone()], &PlanSettings::default())
-        .expect("the direct move plans");
+    let direct = plan_joint_moves(
+        rig,
+        &start,
+        std::slice::from_ref(&goal),
+        &PlanSettings::default(),
+    )
+    .expect("the direct move plans");
     let refusal = check_clear(&direct, rig, model, &Origins::default())
         .expect_err("the direct move hits the pillar");
     assert!(
@@ -412,7 +417,11 @@ fn a_move_joints_job_with_plan_around_runs_past_the_pillar_without_contact() {
         (output.status.success(), stderr, report)
     };
     // The key is in the jobs' JSON Schema (GET /api/schema).
-    assert!(rigbridge::job::request_schema().to_string().contains("plan_around"));
+    assert!(
+        rigbridge::job::request_schema()
+            .to_string()
+            .contains("plan_around")
+    );
     // Without the key: refused before motion, with the hint.
     let (ok, stderr, report) = run(false);
     assert!(!ok, "{stderr}");

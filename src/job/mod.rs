@@ -176,11 +176,11 @@ pub enum JobError {
     #[error("{0}")]
     Invalid(#[from] JobInvalid),
     /// A move asked to go around the cell (`plan_around = true`) that could not be
-    /// planned: its key and the free planner's reason.
+    /// planned: its key and the free planner's reason (boxed: it carries its words).
     #[error("{key}: {error}")]
     FreeMove {
         key: String,
-        error: crate::trajectory::free::FreePlanError,
+        error: Box<crate::trajectory::free::FreePlanError>,
     },
     /// `plan_around = true` where the planner was given no cell to plan around.
     #[error("{key} = true needs the cell's collision model, and this plan was given none")]

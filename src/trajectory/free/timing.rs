@@ -129,7 +129,8 @@ pub struct MovesAround {
 #[error("the move to target {target}: {error}")]
 pub struct MoveAroundRefused {
     pub target: usize,
-    pub error: FreePlanError,
+    /// Boxed: it carries its words, and errors travel up by value.
+    pub error: Box<FreePlanError>,
 }
 
 /// From `start` through each of `targets` in turn, at rest at each: the jerk-limited joint
@@ -146,7 +147,7 @@ pub fn plan_joint_moves_around(
     for (target, values) in targets.iter().enumerate() {
         check_waypoint(rig, target, values).map_err(|e| MoveAroundRefused {
             target,
-            error: e.into(),
+            error: Box::new(e.into()),
         })?;
     }
     let mut planned: Option<Trajectory> = None;
@@ -154,7 +155,10 @@ pub fn plan_joint_moves_around(
     let mut around = Vec::with_capacity(targets.len());
     let mut from = start.to_vec();
     for (target, to) in targets.iter().enumerate() {
-        let refused = |error: FreePlanError| MoveAroundRefused { target, error };
+        let refused = |error: FreePlanError| MoveAroundRefused {
+            target,
+            error: Box::new(error),
+        };
         let leg_settings = planned
             .as_ref()
             .map_or(*settings, |done| settings.after(done));
@@ -183,7 +187,7 @@ pub fn plan_joint_moves_around(
             .finish(rig, settings.period)
             .map_err(|e| MoveAroundRefused {
                 target: 0,
-                error: e.into(),
+                error: Box::new(e.into()),
             })?,
     };
     Ok(MovesAround {
