@@ -464,3 +464,33 @@ fn plan_around_without_a_cell_to_plan_around_is_refused_naming_the_key() {
         "job.plan_around = true needs the cell's collision model, and this plan was given none"
     );
 }
+
+#[test]
+fn a_free_budget_out_of_range_is_refused_on_load_naming_file_key_and_value() {
+    let dir = common::scratch_dir("free_plan", "budget");
+    std::fs::copy(repo_path("config/irb120.toml"), dir.join("irb120.toml")).unwrap();
+    for (value, loads) in [
+        ("0", false),
+        ("100001", false),
+        ("1", true),
+        ("100000", true),
+    ] {
+        let file = dir.join("job.toml");
+        std::fs::write(
+            &file,
+            format!(
+                "rig = \"irb120.toml\"\n\n[plan]\nfree_max_samples = {value}\n\n[job]\n\
+                 kind = \"move_joints\"\ntargets_deg = [[0.0, 0.0, 0.0, 0.0, 30.0, 0.0]]\n"
+            ),
+        )
+        .unwrap();
+        let loaded = rigbridge::daemon::config::load_run_settings(&file);
+        assert_eq!(loaded.is_ok(), loads, "free_max_samples = {value}");
+        if let Err(error) = loaded {
+            let text = error.to_string();
+            for needle in ["job.toml", "plan.free_max_samples", value, "[1, 100000]"] {
+                assert!(text.contains(needle), "`{needle}` missing from {text}");
+            }
+        }
+    }
+}

@@ -141,3 +141,34 @@ pub(super) fn cut_corners(
     }
     path
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Steps along one line become one stretch; a bend, and a point 1 mm off the line, stay.
+    #[test]
+    fn only_waypoints_on_the_line_through_their_neighbours_are_merged() {
+        let path = vec![
+            vec![0.0, 0.0],
+            vec![0.35, 0.0],
+            vec![0.7, 0.0],
+            vec![1.0, 0.0],
+            vec![1.0, 0.5],
+            vec![1.0, 1.0],
+            vec![1.001, 1.5],
+            vec![1.0, 2.0],
+        ];
+        let merged = merge_collinear(path);
+        assert_eq!(
+            merged,
+            vec![
+                vec![0.0, 0.0],
+                vec![1.0, 0.0],
+                vec![1.0, 1.0],
+                vec![1.001, 1.5],
+                vec![1.0, 2.0],
+            ]
+        );
+    }
+}
