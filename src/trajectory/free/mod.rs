@@ -3,7 +3,8 @@
 //! obstacles. RRT-Connect in joint space (`rrt.rs`), then shortcutting and corner cutting
 //! (`shorten.rs`), then timing along the polyline within every axis' speed and
 //! acceleration and the check of the timed result against the cell and the limits
-//! (`timing.rs`). The same seed, start, goal and cell give the same path.
+//! (`timing.rs`); every stretch is proven clear by `checker.rs`. The same seed, start,
+//! goal and cell give the same path.
 //!
 //! Owns the search, its budget, the shortening and the refusal when no path is found. The
 //! geometry and the continuous check between configurations are `cell`'s
