@@ -31,6 +31,7 @@ fn main_bench(c: &mut Criterion) {
             sloth: None,
             start: &settings.initial(),
             settings: &rigbridge::daemon::plan_settings(&settings),
+            model: Some(&settings.collision),
         })
         .expect("the demo plans");
     let model = collision_model(&settings);

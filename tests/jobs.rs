@@ -199,6 +199,7 @@ fn plan(settings: &rigbridge::daemon::config::RunSettings) -> Trajectory {
             sloth: None,
             start: &start,
             settings: &rigbridge::daemon::plan_settings(settings),
+            model: Some(&settings.collision),
         })
         .unwrap_or_else(|e| panic!("{}", rigbridge::daemon::error_chain(&e)))
 }
@@ -312,6 +313,7 @@ fn follow_trajectory_passes_every_row_and_refuses_a_bad_file_without_quoting_it(
         sloth: None,
         start: &settings.initial(),
         settings: &rigbridge::daemon::plan_settings(&settings),
+        model: Some(&settings.collision),
     });
     let message = rigbridge::daemon::error_chain(&too_fast.unwrap_err());
     assert!(
@@ -330,6 +332,7 @@ fn plan_refusal(name: &str, config: &str) -> String {
         sloth: None,
         start: &start,
         settings: &rigbridge::daemon::plan_settings(&settings),
+        model: Some(&settings.collision),
     });
     rigbridge::daemon::error_chain(&refused.expect_err("the job is refused"))
 }
@@ -475,6 +478,7 @@ fn follow_refusal(name: &str, csv: &str) -> String {
         sloth: None,
         start: &settings.initial(),
         settings: &rigbridge::daemon::plan_settings(&settings),
+        model: Some(&settings.collision),
     });
     rigbridge::daemon::error_chain(&refused.expect_err("the trajectory is refused"))
 }

@@ -297,6 +297,7 @@ fn plan(settings: &RunSettings, job: &Job) -> (Trajectory, Origins) {
         sloth: None,
         start: &start,
         settings: &plan_settings(settings),
+        model: Some(&rigbridge::daemon::collision_model(settings)),
     })
     .unwrap()
 }

@@ -238,6 +238,17 @@ impl CollisionModel {
         self.margin
     }
 
+    /// The same bodies and pairs, refusing below `margin_m` instead: a planner that must
+    /// leave room beyond the cell's margin (the free planner keeps an allowance, so that
+    /// a path proven at its margin is clear by the cell's at every point, not only at its
+    /// samples). The solids are shared, not copied.
+    pub fn with_margin(&self, margin_m: f64) -> CollisionModel {
+        CollisionModel {
+            margin: margin_m,
+            ..self.clone()
+        }
+    }
+
     /// The name of body `id` (empty for [`NO_BODY`]).
     pub fn body_name(&self, id: BodyId) -> &str {
         self.bodies.get(id).map_or("", |b| b.name.as_str())

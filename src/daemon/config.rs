@@ -1006,7 +1006,8 @@ impl Default for TwinConfig {
     }
 }
 
-/// `[plan]`: the shares of each axis' max speed and acceleration a plan may use. Optional.
+/// `[plan]`: the shares of each axis' max speed and acceleration a plan may use, and the
+/// free planner's seed and budget (moves around the cell, `plan_around`). Optional.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct PlanConfig {
@@ -1014,13 +1015,25 @@ pub struct PlanConfig {
     pub speed_scale: f64,
     /// 0.8 when absent.
     pub accel_scale: f64,
+    /// The free planner's seed, 0 when absent: the same seed plans the same path.
+    pub free_seed: u64,
+    /// The free planner's budget: random configurations drawn before a move around the
+    /// cell is refused (`FreePlanOptions::max_samples`' default when absent).
+    pub free_max_samples: usize,
 }
+
+/// The most random configurations `[plan] free_max_samples` may allow: 50 times the
+/// default, about a minute of searching on the demo cell before a refusal, so that one
+/// job cannot hold a cell's planner for longer.
+const CEILING_FREE_MAX_SAMPLES: usize = 100_000;
 
 impl Default for PlanConfig {
     fn default() -> Self {
         PlanConfig {
             speed_scale: 0.9,
             accel_scale: 0.8,
+            free_seed: 0,
+            free_max_samples: crate::trajectory::free::DEFAULT_MAX_SAMPLES,
         }
     }
 }
@@ -1291,6 +1304,14 @@ impl PlanConfig {
     fn check(&self, file: &Path) -> Result<(), ConfigError> {
         check_range(file, "plan.speed_scale", self.speed_scale, 0.01, 0.99)?;
         check_range(file, "plan.accel_scale", self.accel_scale, 0.01, 0.99)?;
+        if !(1..=CEILING_FREE_MAX_SAMPLES).contains(&self.free_max_samples) {
+            return Err(ConfigError::invalid(
+                file,
+                "plan.free_max_samples",
+                self.free_max_samples,
+                &format!("must lie in [1, {CEILING_FREE_MAX_SAMPLES}]"),
+            ));
+        }
         Ok(())
     }
 }

@@ -234,6 +234,11 @@ pub fn plan_settings(settings: &RunSettings) -> PlanSettings {
         speed_scale: settings.config.plan.speed_scale,
         accel_scale: settings.config.plan.accel_scale,
         budget: settings.config.limits.budget(),
+        free: crate::trajectory::free::FreePlanOptions {
+            seed: settings.config.plan.free_seed,
+            max_samples: settings.config.plan.free_max_samples,
+            ..Default::default()
+        },
         ..PlanSettings::default()
     }
 }
@@ -625,6 +630,7 @@ pub fn plan_for(
         sloth: settings.sloth.as_deref(),
         start: &start,
         settings: &plan_settings(settings),
+        model: Some(&settings.collision),
     })?;
     // A stop asked for while planning ends the job now, before any motion.
     if control.is_halted() {

@@ -41,6 +41,7 @@ pub use program::{
 };
 pub use wall_figure::{WallFigure, star_poses};
 
+use crate::cell::CollisionModel;
 use crate::ik::{CartesianError, IkError, StructureError};
 use crate::rig::Rig;
 use crate::task::gait::SlothRig;
@@ -95,13 +96,15 @@ pub struct JobContext<'a> {
 }
 
 /// What planning a job needs: the rig, the sloth behind it for a gait, where the rig is,
-/// and how the planner may use it.
+/// how the planner may use it, and the cell's collision model (what a move that goes
+/// around the cell plans around; `None` where no cell is known, as in [`plan_job`]).
 #[derive(Clone, Copy)]
 pub struct PlanContext<'a> {
     pub rig: &'a Rig,
     pub sloth: Option<&'a SlothRig>,
     pub start: &'a [f64],
     pub settings: &'a PlanSettings,
+    pub model: Option<&'a CollisionModel>,
 }
 
 /// How a job is shown in the live view: the bare rig, the rig before the wall it draws on,
@@ -184,6 +187,16 @@ pub enum JobError {
     /// Boxed to keep every `Result<_, JobError>` small.
     #[error(transparent)]
     Program(Box<ProgramError>),
+    /// A move asked to go around the cell (`plan_around = true`) that could not be
+    /// planned: its key and the free planner's reason (boxed: it carries its words).
+    #[error("{key}: {error}")]
+    FreeMove {
+        key: String,
+        error: Box<crate::trajectory::free::FreePlanError>,
+    },
+    /// `plan_around = true` where the planner was given no cell to plan around.
+    #[error("{key} = true needs the cell's collision model, and this plan was given none")]
+    NoCell { key: &'static str },
 }
 
 impl Job {
@@ -314,6 +327,7 @@ pub fn plan_job(
         sloth: None,
         start,
         settings,
+        model: None,
     })
 }
 

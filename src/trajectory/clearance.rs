@@ -46,7 +46,7 @@ pub struct JointValue {
     pub unit: &'static str,
 }
 
-fn distance_words(distance_m: f64, margin_m: f64) -> String {
+pub(super) fn distance_words(distance_m: f64, margin_m: f64) -> String {
     if distance_m <= 0.0 {
         format!("overlap by {:.4} m (margin {margin_m:.4} m)", -distance_m)
     } else {
@@ -54,7 +54,7 @@ fn distance_words(distance_m: f64, margin_m: f64) -> String {
     }
 }
 
-fn joint_words(joints: &[JointValue]) -> String {
+pub(super) fn joint_words(joints: &[JointValue]) -> String {
     let values: Vec<String> = joints
         .iter()
         .map(|j| format!("{} {:.3} {}", j.joint, j.value, j.unit))

@@ -1,12 +1,14 @@
 //! Building time-parameterised joint trajectories, generic over the rig: jerk-limited joint
-//! moves (`plan`), the timing of a joint path along a Cartesian line (`path`), resampling
-//! and retiming, and a run log's commands read back as a trajectory (`recorded`). The
+//! moves (`plan`), the timing of a joint path along a Cartesian line (`path`), free moves
+//! around the cell's obstacles (`free`), resampling and retiming, and a run log's commands
+//! read back as a trajectory (`recorded`). The
 //! [`Trajectory`] type and [`validate`] live in the leaf `motion` (re-exported here), so
 //! the streamer below can take them. Must not solve IK (the `ik` stage above calls into
 //! `path`) or talk to links or controllers.
 
 mod budget;
 mod clearance;
+pub mod free;
 mod origins;
 mod path;
 mod plan;

@@ -46,6 +46,9 @@ pub struct PlanSettings {
     /// How long the plan may last and how much memory its samples may take, checked
     /// before each piece is sampled (`[limits]`, docs/jobs.md).
     pub budget: SampleBudget,
+    /// How a move that goes around the cell is searched for (`free.rs`; `[plan]`'s
+    /// `free_*` keys, docs/jobs.md).
+    pub free: super::free::FreePlanOptions,
 }
 
 impl Default for PlanSettings {
@@ -59,6 +62,7 @@ impl Default for PlanSettings {
             cartesian_step_rad: 0.5_f64.to_radians(),
             max_joint_jump: 5.0_f64.to_radians(),
             budget: SampleBudget::default(),
+            free: super::free::FreePlanOptions::default(),
         }
     }
 }
@@ -103,7 +107,7 @@ impl PlanSettings {
                 });
             }
         }
-        Ok(())
+        self.free.check()
     }
 }
 
@@ -283,7 +287,7 @@ pub(crate) fn check_start(rig: &Rig, start: &[f64]) -> Result<(), PlanError> {
     }
 }
 
-fn check_waypoint(rig: &Rig, waypoint: usize, values: &[f64]) -> Result<(), PlanError> {
+pub(crate) fn check_waypoint(rig: &Rig, waypoint: usize, values: &[f64]) -> Result<(), PlanError> {
     if values.len() != rig.dof() {
         return Err(PlanError::WaypointAxisCount {
             waypoint,
@@ -342,6 +346,31 @@ impl Samples {
     /// The index of the last sample held: where a waypoint just sampled sits.
     pub fn last_index(&self) -> usize {
         (self.positions.len() / self.dof.max(1)).saturating_sub(1)
+    }
+
+    /// [`Samples::finish`] with each sample's velocity replaced by the central difference
+    /// of its neighbours' positions (at rest at both ends). For paths with corners (a free
+    /// move's polyline): the timing's velocities point along a piece and turn at once at
+    /// its end, while the positions bend within the accelerations; the differences keep the
+    /// velocities' changes within them too.
+    pub fn finish_differenced(
+        mut self,
+        rig: &Rig,
+        period: Duration,
+    ) -> Result<Trajectory, PlanError> {
+        let dof = self.dof.max(1);
+        let count = self.positions.len() / dof;
+        let two_periods = 2.0 * period.as_secs_f64();
+        for k in 1..count.saturating_sub(1) {
+            for axis in 0..dof {
+                let (before, after) = (
+                    self.positions[(k - 1) * dof + axis],
+                    self.positions[(k + 1) * dof + axis],
+                );
+                self.velocities[k * dof + axis] = (after - before) / two_periods;
+            }
+        }
+        self.finish(rig, period)
     }
 
     /// The trajectory, after the same check every streamed trajectory gets.
@@ -417,6 +446,31 @@ pub fn plan_joint_moves_marked(
         from = to;
     }
     Ok((samples.finish(rig, settings.period)?, marks))
+}
+
+/// One jerk-limited rest-to-rest move from `from` to `to` alone, as [`plan_joint_moves`]
+/// plans each, its errors naming `to` as waypoint `waypoint`: what a move that may go
+/// around the cell tries first (`free.rs`).
+pub(crate) fn plan_joint_move(
+    rig: &Rig,
+    from: &[f64],
+    to: &[f64],
+    waypoint: usize,
+    settings: &PlanSettings,
+) -> Result<Trajectory, PlanError> {
+    settings.check()?;
+    let limits = AxisLimits::new(rig, settings)?;
+    check_start(rig, from)?;
+    check_waypoint(rig, waypoint, to)?;
+    let mut samples = Samples::at_rest(from, settings.budget, settings.period);
+    let mov = JointMove {
+        rig,
+        limits: &limits,
+        period: settings.period,
+        waypoint,
+    };
+    mov.sample(from, to, &mut samples)?;
+    samples.finish(rig, settings.period)
 }
 
 /// One rest-to-rest move to waypoint `waypoint`.

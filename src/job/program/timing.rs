@@ -18,6 +18,7 @@ use super::steps::{Action, Goal, How, MoveOp, Op, goal_position};
 use super::{Neighbour, check_zone_room};
 use crate::ik::{CartesianError, FabrikSolver, IkError, IkSolver, line_joint_path};
 use crate::job::{JobError, JobInvalid, PlanContext};
+use crate::trajectory::free::plan_free;
 use crate::rig::{Pose, Rig};
 use crate::trajectory::{
     AxisLimits, JointPath, Origins, PathNode, PathTiming, PlanError, Samples, Trajectory,
@@ -65,16 +66,27 @@ impl From<ProgramError> for JobError {
 }
 
 /// The joint path of a free move (`move_joints`, `move_poses`) from `from` to `to`: the
-/// configurations it passes after `from`, the last `to`. Today the straight line in joint
-/// space, `[to]`: the one place a planner of free moves around the cell's objects plugs in
-/// (its via configurations are then joined, and blended where a step has a zone, like any
-/// other point).
+/// configurations it passes after `from`, the last `to`. The straight line in joint space
+/// when it is clear of the cell (or no cell was given: the gate before motion still checks
+/// the whole program); otherwise the free-move planner's way round the cell's objects
+/// (`trajectory::free`, issue 29), whose via configurations are then joined, and blended
+/// where a step has a zone, like any other point. `key` names the step in a refusal.
 pub fn free_move_path(
-    _context: &PlanContext,
-    _from: &[f64],
+    context: &PlanContext,
+    key: &str,
+    from: &[f64],
     to: &[f64],
 ) -> Result<Vec<Vec<f64>>, JobError> {
-    Ok(vec![to.to_vec()])
+    let Some(model) = context.model else {
+        return Ok(vec![to.to_vec()]);
+    };
+    let waypoints = plan_free(model, context.rig, from, to, &context.settings.free).map_err(
+        |error| JobError::FreeMove {
+            key: key.to_string(),
+            error: Box::new(error),
+        },
+    )?;
+    Ok(waypoints.into_iter().skip(1).collect())
 }
 
 /// One move of a run: its op, the configurations after the move's start, and how it may go.
@@ -210,7 +222,7 @@ impl Planner<'_> {
                     })?;
                 Ok(nodes.into_iter().skip(1).collect())
             }
-            (_, Goal::Joints(joints)) => free_move_path(context, q, joints),
+            (_, Goal::Joints(joints)) => free_move_path(context, &op.key, q, joints),
             (_, Goal::Pose(pose)) => {
                 let solution = self.solver(m.tool)?.solve(pose, q).map_err(|error| {
                     ProgramError::Unreachable {
@@ -219,7 +231,7 @@ impl Planner<'_> {
                         error,
                     }
                 })?;
-                free_move_path(context, q, &solution.joints)
+                free_move_path(context, &op.key, q, &solution.joints)
             }
         }
     }
