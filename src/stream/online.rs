@@ -9,6 +9,11 @@
 //! down together by the same share each cycle, at the brake's acceleration, so the arm
 //! comes to rest along the line it moved on, never faster than the cycle before.
 //!
+//! A servo stream (`OnlineCommand::Servo`) is a goal that moves: each target a client sends
+//! replaces the last, with the velocity of the last two targets as the target's velocity
+//! (so the arm follows a moving target instead of stopping at each one); when no target
+//! arrives for `servo_timeout` the arm comes to rest along its path with the brake.
+//!
 //! A Cartesian jog moves the tool at the jog speed (ISO 10218-1's reduced speed, 250 mm/s,
 //! by default) along a direction of the base or the tool frame, its orientation held, by a
 //! damped least-squares solve of the rig's Jacobian each cycle; a joint jog moves one axis
@@ -34,6 +39,10 @@ use std::time::Duration;
 pub const REDUCED_SPEED_M_S: f64 = 0.25;
 /// The deadman: a jog whose keep-alives stop for this long brings the arm to rest.
 pub const DEADMAN: Duration = Duration::from_millis(200);
+/// A servo stream whose targets stop for this long brings the arm to rest: ten periods of
+/// a 100 Hz client, so a target or two lost on a busy network does not stop the arm, while
+/// a client that went away holds it at rest within this plus the brake's ramp.
+pub const SERVO_TIMEOUT: Duration = Duration::from_millis(100);
 /// An online session with nothing to do (at rest, no command) ends after this long.
 pub const IDLE_END: Duration = Duration::from_secs(5);
 /// The share of each axis' acceleration the brake uses: the rest keeps the braking
@@ -53,6 +62,18 @@ const DLS_DAMPING: f64 = 0.01;
 const TRACKING_SHARE: f64 = 0.95;
 /// A velocity below this (rad/s or m/s) on every axis is at rest.
 const REST_SPEED: f64 = 1e-9;
+/// The weight of the newest interval in the servo targets' mean interval: a 100 Hz client
+/// lands 2 or 3 cycles of 250 Hz apart, so one interval alone would make its velocity 20 %
+/// off each time; the mean of about ten is within a few percent.
+const SERVO_INTERVAL_WEIGHT: f64 = 0.1;
+/// The share of each axis' velocity limit a servo target's velocity may use: rsruckig
+/// refuses a target velocity above its limit, and a target faster than the arm may move is
+/// followed at the arm's speed, its position never changed.
+const SERVO_VELOCITY_SHARE: f64 = 0.99;
+/// A servo target older than this many mean intervals is late: the next one did not come
+/// when due, so the arm stops at the last target (its velocity zero) rather than pass it at
+/// speed and turn back.
+const SERVO_LATE_INTERVALS: f64 = 2.0;
 
 /// A frame a Cartesian jog's direction is given in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -82,6 +103,9 @@ pub enum OnlineCommand {
     Jog(Jog),
     /// The jog key was released: to rest along the path now.
     Release,
+    /// A servo client's newest target (validated within the limits and the cell): follow
+    /// it, while targets keep arriving within [`SERVO_TIMEOUT`].
+    Servo(AxisValues),
 }
 
 /// The commands waiting for the cycle, and the jog's keep-alives. The API writes here; the
@@ -168,6 +192,8 @@ pub struct OnlineSettings {
     /// The tool's jog speed (m/s).
     pub jog_speed_m_s: f64,
     pub deadman: Duration,
+    /// A servo stream with no target for this long brings the arm to rest.
+    pub servo_timeout: Duration,
     /// An online session at rest with nothing to do ends after this long.
     pub idle_end: Duration,
     /// Shares of each axis' speed and acceleration a goal or a jog may use (the plan's).
@@ -182,6 +208,7 @@ impl Default for OnlineSettings {
         Self {
             jog_speed_m_s: REDUCED_SPEED_M_S,
             deadman: DEADMAN,
+            servo_timeout: SERVO_TIMEOUT,
             idle_end: IDLE_END,
             speed_scale: 0.9,
             accel_scale: 0.8,
@@ -198,6 +225,20 @@ enum Intent {
     Idle,
     Goal(AxisValues),
     Jog(Jog),
+    /// A servo target and its velocity (from the last two targets).
+    Servo {
+        target: AxisValues,
+        velocity: AxisValues,
+    },
+}
+
+/// Where the servo stream's targets arrived: the last one, its cycle, and the mean
+/// interval between targets (s) once there were two.
+#[derive(Debug, Clone, Copy)]
+struct ServoArrivals {
+    last: AxisValues,
+    cycle: u64,
+    interval: Option<f64>,
 }
 
 /// The brake's progress: the velocity it started from and the share of it left.
@@ -238,6 +279,7 @@ pub(super) struct Online {
     keepalives: u64,
     keepalive_cycle: u64,
     rest_since: Option<u64>,
+    servo: Option<ServoArrivals>,
     /// Where the joint axes are this cycle (kept: no allocation in the cycle).
     axes: Vec<JointAxis>,
 }
@@ -277,6 +319,7 @@ impl Online {
             keepalives: 0,
             keepalive_cycle: 0,
             rest_since: None,
+            servo: None,
             axes: Vec::with_capacity(dof),
         }
     }
@@ -320,9 +363,13 @@ impl Online {
         let deadman = matches!(self.intent, Intent::Jog(_))
             && (self.cycle - self.keepalive_cycle) as f64 * self.dt
                 > self.settings.deadman.as_secs_f64();
-        if deadman {
+        let servo_timeout = matches!(self.intent, Intent::Servo { .. })
+            && (self.cycle - self.keepalive_cycle) as f64 * self.dt
+                > self.settings.servo_timeout.as_secs_f64();
+        if deadman || servo_timeout {
             self.intent = Intent::Idle;
         }
+        self.stop_at_a_late_target();
         let brake = stopping || speed <= 0.0 || self.intent == Intent::Idle;
         let braked = brake || !self.generate(rig, speed, cell);
         if braked {
@@ -346,7 +393,7 @@ impl Online {
             Intent::Idle => self.rest_since.is_some_and(|since| {
                 (self.cycle - since) as f64 * self.dt >= self.settings.idle_end.as_secs_f64()
             }),
-            Intent::Jog(_) => false,
+            Intent::Jog(_) | Intent::Servo { .. } => false,
         };
         Step {
             positions: self.position,
@@ -366,8 +413,55 @@ impl Online {
             Some(OnlineCommand::Goal(goal)) => self.intent = Intent::Goal(goal),
             Some(OnlineCommand::Jog(jog)) => self.intent = Intent::Jog(jog),
             Some(OnlineCommand::Release) => self.intent = Intent::Idle,
+            Some(OnlineCommand::Servo(target)) => self.follow(target),
             None => {}
         }
+        if !matches!(self.intent, Intent::Servo { .. }) {
+            self.servo = None;
+        }
+    }
+
+    /// A late servo target (see [`SERVO_LATE_INTERVALS`]) becomes a target at rest.
+    fn stop_at_a_late_target(&mut self) {
+        let (Intent::Servo { velocity, .. }, Some(arrivals)) = (&mut self.intent, self.servo)
+        else {
+            return;
+        };
+        let age = (self.cycle - arrivals.cycle) as f64 * self.dt;
+        if arrivals
+            .interval
+            .is_some_and(|mean| age > SERVO_LATE_INTERVALS * mean)
+        {
+            *velocity = AxisValues::zeros(self.dof);
+        }
+    }
+
+    /// A servo target: its velocity from the last one over the mean interval between
+    /// targets; zero for the first of a stream (or after a pause longer than the timeout).
+    fn follow(&mut self, target: AxisValues) {
+        let timeout = self.settings.servo_timeout.as_secs_f64();
+        let continued = self.servo.filter(|_| matches!(self.intent, Intent::Servo { .. }));
+        let mut velocity = AxisValues::zeros(self.dof);
+        let mut interval = None;
+        if let Some(before) = continued {
+            let since = (self.cycle - before.cycle) as f64 * self.dt;
+            if since > 0.0 && since <= timeout {
+                let mean = before.interval.map_or(since, |mean| {
+                    mean + SERVO_INTERVAL_WEIGHT * (since - mean)
+                });
+                for axis in 0..self.dof {
+                    velocity.as_mut_slice()[axis] =
+                        (target.as_slice()[axis] - before.last.as_slice()[axis]) / mean;
+                }
+                interval = Some(mean);
+            }
+        }
+        self.servo = Some(ServoArrivals {
+            last: target,
+            cycle: self.cycle,
+            interval,
+        });
+        self.intent = Intent::Servo { target, velocity };
     }
 
     fn at(&self, goal: &AxisValues) -> bool {
@@ -403,6 +497,19 @@ impl Online {
                 for axis in 0..self.dof {
                     self.input.target_position[axis] = goal.as_slice()[axis];
                     self.input.target_velocity[axis] = 0.0;
+                }
+            }
+            Intent::Servo { target, velocity } => {
+                self.input.control_interface = ControlInterface::Position;
+                let share = (0..self.dof)
+                    .map(|axis| {
+                        velocity.as_slice()[axis].abs()
+                            / (SERVO_VELOCITY_SHARE * self.input.max_velocity[axis])
+                    })
+                    .fold(1.0, f64::max);
+                for axis in 0..self.dof {
+                    self.input.target_position[axis] = target.as_slice()[axis];
+                    self.input.target_velocity[axis] = velocity.as_slice()[axis] / share;
                 }
             }
             Intent::Jog(jog) => {
