@@ -66,13 +66,18 @@ const REST_SPEED: f64 = 1e-9;
 /// lands 2 or 3 cycles of 250 Hz apart, so one interval alone would make its velocity 20 %
 /// off each time; the mean of about ten is within a few percent.
 const SERVO_INTERVAL_WEIGHT: f64 = 0.1;
-/// The share of each axis' velocity limit a servo target's velocity may use: rsruckig
+/// The share of each axis' velocity limit a servo stream's velocity may use: rsruckig
 /// refuses a target velocity above its limit, and a target faster than the arm may move is
 /// followed at the arm's speed, its position never changed.
 const SERVO_VELOCITY_SHARE: f64 = 0.99;
+/// How fast (1/s) a servo stream closes the distance to its target, on top of the target's
+/// own velocity: the distance falls by this share a second. Tuned on the servo figure
+/// (docs/online.md): higher overshoots with rsruckig's jerk-limited response.
+const SERVO_GAIN: f64 = 6.0;
 /// A servo target older than this many mean intervals is late: the next one did not come
-/// when due, so the arm stops at the last target (its velocity zero) rather than pass it at
-/// speed and turn back.
+/// when due, so the arm brakes where it is, near the last target, rather than run on past
+/// it (rsruckig's jerk-limited stop from 0.2 m/s takes 16 mm); the next target moves it
+/// on from there.
 const SERVO_LATE_INTERVALS: f64 = 2.0;
 
 /// A frame a Cartesian jog's direction is given in.
@@ -369,8 +374,7 @@ impl Online {
         if deadman || servo_timeout {
             self.intent = Intent::Idle;
         }
-        self.stop_at_a_late_target();
-        let brake = stopping || speed <= 0.0 || self.intent == Intent::Idle;
+        let brake = stopping || speed <= 0.0 || self.intent == Intent::Idle || self.servo_late();
         let braked = brake || !self.generate(rig, speed, cell);
         if braked {
             self.brake_step(rig);
@@ -421,34 +425,35 @@ impl Online {
         }
     }
 
-    /// A late servo target (see [`SERVO_LATE_INTERVALS`]) becomes a target at rest.
-    fn stop_at_a_late_target(&mut self) {
-        let (Intent::Servo { velocity, .. }, Some(arrivals)) = (&mut self.intent, self.servo)
+    /// Whether the servo stream's next target is late (see [`SERVO_LATE_INTERVALS`]).
+    fn servo_late(&self) -> bool {
+        let Some(arrivals) = self
+            .servo
+            .filter(|_| matches!(self.intent, Intent::Servo { .. }))
         else {
-            return;
+            return false;
         };
         let age = (self.cycle - arrivals.cycle) as f64 * self.dt;
-        if arrivals
+        arrivals
             .interval
             .is_some_and(|mean| age > SERVO_LATE_INTERVALS * mean)
-        {
-            *velocity = AxisValues::zeros(self.dof);
-        }
     }
 
     /// A servo target: its velocity from the last one over the mean interval between
     /// targets; zero for the first of a stream (or after a pause longer than the timeout).
     fn follow(&mut self, target: AxisValues) {
         let timeout = self.settings.servo_timeout.as_secs_f64();
-        let continued = self.servo.filter(|_| matches!(self.intent, Intent::Servo { .. }));
+        let continued = self
+            .servo
+            .filter(|_| matches!(self.intent, Intent::Servo { .. }));
         let mut velocity = AxisValues::zeros(self.dof);
         let mut interval = None;
         if let Some(before) = continued {
             let since = (self.cycle - before.cycle) as f64 * self.dt;
             if since > 0.0 && since <= timeout {
-                let mean = before.interval.map_or(since, |mean| {
-                    mean + SERVO_INTERVAL_WEIGHT * (since - mean)
-                });
+                let mean = before
+                    .interval
+                    .map_or(since, |mean| mean + SERVO_INTERVAL_WEIGHT * (since - mean));
                 for axis in 0..self.dof {
                     velocity.as_mut_slice()[axis] =
                         (target.as_slice()[axis] - before.last.as_slice()[axis]) / mean;
@@ -491,6 +496,9 @@ impl Online {
             self.input.current_acceleration[axis] = self.acceleration.as_slice()[axis];
             self.input.target_acceleration[axis] = 0.0;
         }
+        // Goals and jogs move every axis in step (a line in joint space, a direction of the
+        // tool); a servo target's axes each follow their own target.
+        self.input.synchronization = Synchronization::Time;
         match self.intent {
             Intent::Goal(goal) => {
                 self.input.control_interface = ControlInterface::Position;
@@ -500,16 +508,14 @@ impl Online {
                 }
             }
             Intent::Servo { target, velocity } => {
-                self.input.control_interface = ControlInterface::Position;
-                let share = (0..self.dof)
-                    .map(|axis| {
-                        velocity.as_slice()[axis].abs()
-                            / (SERVO_VELOCITY_SHARE * self.input.max_velocity[axis])
-                    })
-                    .fold(1.0, f64::max);
+                let wanted = self.servo_velocity(&target, &velocity);
+                if !self.clear_of_limits(rig, &wanted) {
+                    return false;
+                }
+                self.input.control_interface = ControlInterface::Velocity;
+                self.input.synchronization = Synchronization::None;
                 for axis in 0..self.dof {
-                    self.input.target_position[axis] = target.as_slice()[axis];
-                    self.input.target_velocity[axis] = velocity.as_slice()[axis] / share;
+                    self.input.target_velocity[axis] = wanted.as_slice()[axis];
                 }
             }
             Intent::Jog(jog) => {
@@ -541,6 +547,31 @@ impl Online {
             self.acceleration.as_mut_slice()[axis] = self.output.new_acceleration[axis];
         }
         true
+    }
+
+    /// The velocity that follows a servo target: its own velocity, plus [`SERVO_GAIN`] times
+    /// the distance to where it is now (moved on by its velocity since it arrived), each
+    /// axis within [`SERVO_VELOCITY_SHARE`] of its limit (all scaled down together).
+    fn servo_velocity(&self, target: &AxisValues, velocity: &AxisValues) -> AxisValues {
+        let age = self.servo.map_or(0.0, |arrivals| {
+            (self.cycle - arrivals.cycle) as f64 * self.dt
+        });
+        let mut wanted = AxisValues::zeros(self.dof);
+        for axis in 0..self.dof {
+            let v = velocity.as_slice()[axis];
+            let now = target.as_slice()[axis] + v * age;
+            wanted.as_mut_slice()[axis] = v + SERVO_GAIN * (now - self.position.as_slice()[axis]);
+        }
+        let share = (0..self.dof)
+            .map(|axis| {
+                wanted.as_slice()[axis].abs()
+                    / (SERVO_VELOCITY_SHARE * self.input.max_velocity[axis])
+            })
+            .fold(1.0, f64::max);
+        for v in wanted.as_mut_slice() {
+            *v /= share;
+        }
+        wanted
     }
 
     /// The joint velocity a jog asks for at `speed` of its own, or None when an axis would

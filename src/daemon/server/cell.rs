@@ -1384,7 +1384,10 @@ impl Cell {
     /// between jobs).
     pub fn current_position(&self) -> Option<Vec<f64>> {
         let latest = self.hub.slot().latest();
-        if self.running_as_of(&latest).is_some_and(|job| job.cycles > 0) {
+        if self
+            .running_as_of(&latest)
+            .is_some_and(|job| job.cycles > 0)
+        {
             return Some(latest.commanded.as_slice().to_vec());
         }
         match self.link.try_lock().as_deref() {

@@ -52,10 +52,7 @@ enum ServoRefused {
         dof: usize,
     },
     #[error("servo target {index}: {source}")]
-    Outside {
-        index: u64,
-        source: OutsideLimits,
-    },
+    Outside { index: u64, source: OutsideLimits },
     #[error("servo target {index}: pose {pose}: {source}")]
     BadPose {
         index: u64,
@@ -69,7 +66,11 @@ enum ServoRefused {
         source: IkError,
     },
     #[error("servo target {index}: the rig {rig} has no pose solver: {why}")]
-    NoSolver { index: u64, rig: String, why: String },
+    NoSolver {
+        index: u64,
+        rig: String,
+        why: String,
+    },
     #[error(
         "servo target {index}: a pose needs the arm's position to solve from, and it is not \
          known yet: send a joint target first"
@@ -207,8 +208,7 @@ impl<'a> Servo<'a> {
         match given {
             Ok(id) => {
                 self.last = Some(target.as_slice().to_vec());
-                (self.session.replace(id) != Some(id))
-                    .then(|| serde_json::json!({ "session": id }))
+                (self.session.replace(id) != Some(id)).then(|| serde_json::json!({ "session": id }))
             }
             Err(refused) => Some(serde_json::json!({ "error": self.refusal(refused) })),
         }
@@ -259,26 +259,24 @@ impl<'a> Servo<'a> {
                 pose,
                 source,
             })?;
-        let solver = self
-            .solver
-            .as_ref()
-            .map_err(|why| ServoRefused::NoSolver {
-                index,
-                rig: rig.name.clone(),
-                why: why.clone(),
-            })?;
+        let solver = self.solver.as_ref().map_err(|why| ServoRefused::NoSolver {
+            index,
+            rig: rig.name.clone(),
+            why: why.clone(),
+        })?;
         let seed = self
             .last
             .clone()
             .or_else(|| self.cell.current_position())
             .ok_or(ServoRefused::NoSeed { index })?;
-        let solution = solver
-            .solve(&target, &seed)
-            .map_err(|source| ServoRefused::Unreachable {
-                index,
-                pose,
-                source,
-            })?;
+        let solution =
+            solver
+                .solve(&target, &seed)
+                .map_err(|source| ServoRefused::Unreachable {
+                    index,
+                    pose,
+                    source,
+                })?;
         let mut joints = AxisValues::zeros(rig.dof());
         joints.as_mut_slice().copy_from_slice(&solution.joints);
         Ok(joints)
