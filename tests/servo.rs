@@ -121,7 +121,11 @@ fn a_websocket_client_servos_a_circle_within_limits_and_bad_targets_move_nothing
     // The session's log: every target within every limit, on the circle.
     let log = read_log(&runs.join(format!("job-{session}.mcap"))).unwrap();
     let commands = &log.commands;
-    assert!(commands.len() as f64 >= SECONDS / dt, "{} targets", commands.len());
+    assert!(
+        commands.len() as f64 >= SECONDS / dt,
+        "{} targets",
+        commands.len()
+    );
     let mut worst: f64 = 0.0;
     for (k, c) in commands.iter().enumerate() {
         for (axis, joint) in rig.joints.iter().enumerate() {
@@ -133,7 +137,10 @@ fn a_websocket_client_servos_a_circle_within_limits_and_bad_targets_move_nothing
                 let (b, o) = (&commands[k - 1], &commands[k - 2]);
                 let step = (p - b.positions[axis]) / dt;
                 let second = (p - 2.0 * b.positions[axis] + o.positions[axis]) / (dt * dt);
-                assert!(step.abs() <= l.max_speed * (1.0 + SLACK), "target {k} steps {step}");
+                assert!(
+                    step.abs() <= l.max_speed * (1.0 + SLACK),
+                    "target {k} steps {step}"
+                );
                 assert!(
                     second.abs() <= l.max_acceleration * (1.0 + SLACK),
                     "target {k}: {} second difference {second}",
@@ -165,7 +172,10 @@ fn a_servo_client_without_the_token_is_refused() {
     let refused = tungstenite::connect(format!("ws://{address}/api/servo"));
     match refused {
         Err(tungstenite::Error::Http(response)) => assert_eq!(response.status(), 401),
-        other => panic!("a servo client without the token got in: {:?}", other.is_ok()),
+        other => panic!(
+            "a servo client without the token got in: {:?}",
+            other.is_ok()
+        ),
     }
     let (_, response) = tungstenite::connect(format!("ws://{address}/api/servo?token=sesame"))
         .expect("the token lets a client in");
