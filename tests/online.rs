@@ -576,7 +576,7 @@ fn a_servo_stream_on_a_circle_is_followed_within_limits_and_held_when_it_stops()
         let t = m as f64 / SERVO_RATE_HZ;
         let pose = rigbridge::rig::Pose::new(
             servo_circle(start_pose.translation, t),
-            glam::DQuat::from_mat3(&start_pose.matrix3.into()),
+            glam::DQuat::from_mat3(&start_pose.matrix3),
         );
         let joints = solver.solve(&pose, &seed).unwrap().joints;
         seed.clone_from(&joints);

@@ -63,7 +63,7 @@ fn a_websocket_client_servos_a_circle_within_limits_and_bad_targets_move_nothing
     let rig = settings.rig.clone();
     let dt = settings.period().as_secs_f64();
     let start = rig.forward(&settings.initial()).unwrap();
-    let q = glam::DQuat::from_mat3(&start.matrix3.into());
+    let q = glam::DQuat::from_mat3(&start.matrix3);
     let runs = common::scratch_dir("servo", "circle").join("runs");
     let served = in_process::start(vec![settings], in_process::options(runs.clone()));
     let address = served.address.to_string();

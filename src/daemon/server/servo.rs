@@ -56,14 +56,15 @@ enum ServoRefused {
     #[error("servo target {index}: pose {pose}: {source}")]
     BadPose {
         index: u64,
-        pose: PoseSpec,
-        source: crate::job::JobInvalid,
+        // Boxed: a refusal is rare, and the common `Ok` stays small.
+        pose: Box<PoseSpec>,
+        source: Box<crate::job::JobInvalid>,
     },
     #[error("servo target {index}: pose {pose} is unreachable: {source}")]
     Unreachable {
         index: u64,
-        pose: PoseSpec,
-        source: IkError,
+        pose: Box<PoseSpec>,
+        source: Box<IkError>,
     },
     #[error("servo target {index}: the rig {rig} has no pose solver: {why}")]
     NoSolver {
@@ -256,8 +257,8 @@ impl<'a> Servo<'a> {
             .to_pose("pose")
             .map_err(|source| ServoRefused::BadPose {
                 index,
-                pose,
-                source,
+                pose: Box::new(pose),
+                source: Box::new(source),
             })?;
         let solver = self.solver.as_ref().map_err(|why| ServoRefused::NoSolver {
             index,
@@ -274,8 +275,8 @@ impl<'a> Servo<'a> {
                 .solve(&target, &seed)
                 .map_err(|source| ServoRefused::Unreachable {
                     index,
-                    pose,
-                    source,
+                    pose: Box::new(pose),
+                    source: Box::new(source),
                 })?;
         let mut joints = AxisValues::zeros(rig.dof());
         joints.as_mut_slice().copy_from_slice(&solution.joints);
