@@ -74,6 +74,10 @@ const SERVO_VELOCITY_SHARE: f64 = 0.99;
 /// own velocity: the distance falls by this share a second. Tuned on the servo figure
 /// (docs/online.md): higher overshoots with rsruckig's jerk-limited response.
 const SERVO_GAIN: f64 = 6.0;
+/// A servo target arriving more than this many mean intervals after the one before ends a
+/// gap: a 100 Hz client lands 2 or 3 cycles of 250 Hz apart (0.8 or 1.2 intervals), one
+/// lost on the way makes it 2.
+const SERVO_GAP_INTERVALS: f64 = 1.5;
 /// A servo target older than this many mean intervals is late: the next one did not come
 /// when due, so the arm brakes where it is, near the last target, rather than run on past
 /// it (rsruckig's jerk-limited stop from 0.2 m/s takes 16 mm); the next target moves it
@@ -451,12 +455,20 @@ impl Online {
         if let Some(before) = continued {
             let since = (self.cycle - before.cycle) as f64 * self.dt;
             if since > 0.0 && since <= timeout {
-                let mean = before
-                    .interval
-                    .map_or(since, |mean| mean + SERVO_INTERVAL_WEIGHT * (since - mean));
+                // A gap (a target lost or late, or two in one cycle, of which the cycle
+                // sees the newer) spans more than one interval: its own time is the one
+                // to divide by, and it says nothing of the client's rate.
+                let (mean, over) = match before.interval {
+                    Some(mean) if since > SERVO_GAP_INTERVALS * mean => (mean, since),
+                    Some(mean) => {
+                        let mean = mean + SERVO_INTERVAL_WEIGHT * (since - mean);
+                        (mean, mean)
+                    }
+                    None => (since, since),
+                };
                 for axis in 0..self.dof {
                     velocity.as_mut_slice()[axis] =
-                        (target.as_slice()[axis] - before.last.as_slice()[axis]) / mean;
+                        (target.as_slice()[axis] - before.last.as_slice()[axis]) / over;
                 }
                 interval = Some(mean);
             }
