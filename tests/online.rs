@@ -546,9 +546,10 @@ const SERVO_SECONDS: f64 = 3.0;
 /// The tracking error once the arm caught up (after the first half second): the bridge
 /// follows each target moved on by its velocity, so what is left is the lag of a
 /// jerk-limited follower (rsruckig's acceleration takes 0.1 s to build up, at jerk 10 x
-/// acceleration) on a target that turns at 0.8 m/s^2: 5 mm is a fortieth of a second of
-/// the circle's speed.
-const SERVO_STEADY_ERROR_M: f64 = 0.005;
+/// acceleration) on a target that turns at 0.8 m/s^2, about 3 mm, and the velocity's own
+/// lag: measured over four targets (40 ms), it points 20 ms behind, 0.08 rad on a circle
+/// turning at 4 rad/s, 16 mm/s off, which the gain of 6/s holds at 2.7 mm.
+const SERVO_STEADY_ERROR_M: f64 = 0.006;
 /// The whole stream's, the start included: the client's circle starts at full speed from
 /// rest, and the arm's acceleration builds up over 0.1 s, so it falls about 0.1 s (20 mm at
 /// 0.2 m/s) behind before it catches up.

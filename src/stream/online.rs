@@ -10,7 +10,7 @@
 //! comes to rest along the line it moved on, never faster than the cycle before.
 //!
 //! A servo stream (`OnlineCommand::Servo`) is a goal that moves: each target a client sends
-//! replaces the last, with the velocity of the last two targets as the target's velocity
+//! replaces the last, with the velocity of the last few targets as the target's velocity
 //! (so the arm follows a moving target instead of stopping at each one); when no target
 //! arrives for `servo_timeout` the arm comes to rest along its path with the brake.
 //!
@@ -62,9 +62,9 @@ const DLS_DAMPING: f64 = 0.01;
 const TRACKING_SHARE: f64 = 0.95;
 /// A velocity below this (rad/s or m/s) on every axis is at rest.
 const REST_SPEED: f64 = 1e-9;
-/// The weight of the newest interval in the servo targets' mean interval: a 100 Hz client
-/// lands 2 or 3 cycles of 250 Hz apart, so one interval alone would make its velocity 20 %
-/// off each time; the mean of about ten is within a few percent.
+/// The weight of the newest interval in the servo targets' mean interval (what a late
+/// target is measured in): a 100 Hz client lands 2 or 3 cycles of 250 Hz apart; the mean
+/// of about ten is within a few percent of its rate.
 const SERVO_INTERVAL_WEIGHT: f64 = 0.1;
 /// The share of each axis' velocity limit a servo stream's velocity may use: rsruckig
 /// refuses a target velocity above its limit, and a target faster than the arm may move is
@@ -78,6 +78,10 @@ const SERVO_GAIN: f64 = 6.0;
 /// gap: a 100 Hz client lands 2 or 3 cycles of 250 Hz apart (0.8 or 1.2 intervals), one
 /// lost on the way makes it 2.
 const SERVO_GAP_INTERVALS: f64 = 1.5;
+/// How many targets back a servo target's velocity is measured from: four intervals of a
+/// 100 Hz client (40 ms), so a burst and the pause after it average out, while the
+/// velocity lags the client's by half that.
+const SERVO_WINDOW: usize = 4;
 /// A servo target older than this many mean intervals is late: the next one did not come
 /// when due, so the arm brakes where it is, near the last target, rather than run on past
 /// it (rsruckig's jerk-limited stop from 0.2 m/s takes 16 mm); the next target moves it
@@ -234,20 +238,23 @@ enum Intent {
     Idle,
     Goal(AxisValues),
     Jog(Jog),
-    /// A servo target and its velocity (from the last two targets).
+    /// A servo target and its velocity (from the last few targets).
     Servo {
         target: AxisValues,
         velocity: AxisValues,
     },
 }
 
-/// Where the servo stream's targets arrived: the last one, its cycle, and the mean
-/// interval between targets (s) once there were two.
+/// Where the servo stream's targets arrived: the last one, its cycle, the mean interval
+/// between targets (s) once there were two, and the ones before (cycle and target, newest
+/// first; `held` of them are real).
 #[derive(Debug, Clone, Copy)]
 struct ServoArrivals {
     last: AxisValues,
     cycle: u64,
     interval: Option<f64>,
+    earlier: [(u64, AxisValues); SERVO_WINDOW],
+    held: usize,
 }
 
 /// The brake's progress: the velocity it started from and the share of it left.
@@ -451,33 +458,37 @@ impl Online {
             .servo
             .filter(|_| matches!(self.intent, Intent::Servo { .. }));
         let mut velocity = AxisValues::zeros(self.dof);
-        let mut interval = None;
+        let mut arrivals = ServoArrivals {
+            last: target,
+            cycle: self.cycle,
+            interval: None,
+            earlier: [(self.cycle, target); SERVO_WINDOW],
+            held: 0,
+        };
         if let Some(before) = continued {
             let since = (self.cycle - before.cycle) as f64 * self.dt;
             if since > 0.0 && since <= timeout {
-                // A gap (a target lost or late, or two in one cycle, of which the cycle
-                // sees the newer) spans more than one interval: its own time is the one
-                // to divide by, and it says nothing of the client's rate.
-                let (mean, over) = match before.interval {
-                    Some(mean) if since > SERVO_GAP_INTERVALS * mean => (mean, since),
-                    Some(mean) => {
-                        let mean = mean + SERVO_INTERVAL_WEIGHT * (since - mean);
-                        (mean, mean)
-                    }
-                    None => (since, since),
-                };
+                // A gap (a target lost or late) says nothing of the client's rate.
+                arrivals.interval = Some(match before.interval {
+                    Some(mean) if since > SERVO_GAP_INTERVALS * mean => mean,
+                    Some(mean) => mean + SERVO_INTERVAL_WEIGHT * (since - mean),
+                    None => since,
+                });
+                arrivals.earlier[0] = (before.cycle, before.last);
+                arrivals.earlier[1..].copy_from_slice(&before.earlier[..SERVO_WINDOW - 1]);
+                arrivals.held = (before.held + 1).min(SERVO_WINDOW);
+                // Over the window, not the last interval alone: a client that sends in
+                // bursts (two in one cycle, of which the cycle sees the newer, then a
+                // pause) averages out.
+                let (cycle, oldest) = arrivals.earlier[arrivals.held - 1];
+                let elapsed = (self.cycle - cycle) as f64 * self.dt;
                 for axis in 0..self.dof {
                     velocity.as_mut_slice()[axis] =
-                        (target.as_slice()[axis] - before.last.as_slice()[axis]) / over;
+                        (target.as_slice()[axis] - oldest.as_slice()[axis]) / elapsed;
                 }
-                interval = Some(mean);
             }
         }
-        self.servo = Some(ServoArrivals {
-            last: target,
-            cycle: self.cycle,
-            interval,
-        });
+        self.servo = Some(arrivals);
         self.intent = Intent::Servo { target, velocity };
     }
 
