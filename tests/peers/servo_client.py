@@ -89,6 +89,10 @@ async def main():
                 "quat_wxyz": [qw, qx, qy, qz],
             }
             await socket.send(json.dumps({"pose": pose}))
+            sent_at = time.monotonic()
+            if m > 0:
+                result["max_gap_s"] = max(result.get("max_gap_s", 0.0), sent_at - last_sent)
+            last_sent = sent_at
         result["stream_s"] = time.monotonic() - start
         for reply in await replies(socket, REST_CHECK_AFTER_S):
             if "session" in reply:
