@@ -25,6 +25,7 @@ mod foxglove;
 mod guard;
 mod online;
 mod scene;
+mod servo;
 
 pub use cell::{CellError, check_cells};
 pub use connections::{HEADER_TIMEOUT, IDLE_TIMEOUT, LISTEN_BACKLOG, bind, connection_cap};
@@ -663,10 +664,13 @@ fn routes(daemon: &Arc<Daemon>, exposed: bool) -> Router<Arc<Daemon>> {
         .route_layer(axum::middleware::from_fn(guard::require_json))
         .route_layer(auth.clone())
         .route_layer(same_origin.clone());
-    // A rig's state, live: as guarded as control (a browser cannot send the header).
+    // A rig's state, live, and the servo stream that moves it: as guarded as control (a
+    // browser cannot send the header on a WebSocket; the token may come in the query).
     let live = Router::new()
         .route("/api/live", get(live))
         .route("/api/cells/{cell}/live", get(live))
+        .route("/api/servo", get(servo::servo))
+        .route("/api/cells/{cell}/servo", get(servo::servo))
         .route_layer(live_auth)
         .route_layer(same_origin);
     // Reading a cell's state moves nothing. `GET .../jobs` shares its path with `POST`

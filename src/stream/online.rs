@@ -9,6 +9,11 @@
 //! down together by the same share each cycle, at the brake's acceleration, so the arm
 //! comes to rest along the line it moved on, never faster than the cycle before.
 //!
+//! A servo stream (`OnlineCommand::Servo`) is a goal that moves: each target a client sends
+//! replaces the last, with the velocity of the last few targets as the target's velocity
+//! (so the arm follows a moving target instead of stopping at each one); when no target
+//! arrives for `servo_timeout` the arm comes to rest along its path with the brake.
+//!
 //! A Cartesian jog moves the tool at the jog speed (ISO 10218-1's reduced speed, 250 mm/s,
 //! by default) along a direction of the base or the tool frame, its orientation held, by a
 //! damped least-squares solve of the rig's Jacobian each cycle; a joint jog moves one axis
@@ -34,6 +39,10 @@ use std::time::Duration;
 pub const REDUCED_SPEED_M_S: f64 = 0.25;
 /// The deadman: a jog whose keep-alives stop for this long brings the arm to rest.
 pub const DEADMAN: Duration = Duration::from_millis(200);
+/// A servo stream whose targets stop for this long brings the arm to rest: ten periods of
+/// a 100 Hz client, so a target or two lost on a busy network does not stop the arm, while
+/// a client that went away holds it at rest within this plus the brake's ramp.
+pub const SERVO_TIMEOUT: Duration = Duration::from_millis(100);
 /// An online session with nothing to do (at rest, no command) ends after this long.
 pub const IDLE_END: Duration = Duration::from_secs(5);
 /// The share of each axis' acceleration the brake uses: the rest keeps the braking
@@ -53,6 +62,31 @@ const DLS_DAMPING: f64 = 0.01;
 const TRACKING_SHARE: f64 = 0.95;
 /// A velocity below this (rad/s or m/s) on every axis is at rest.
 const REST_SPEED: f64 = 1e-9;
+/// The weight of the newest interval in the servo targets' mean interval (what a late
+/// target is measured in): a 100 Hz client lands 2 or 3 cycles of 250 Hz apart; the mean
+/// of about ten is within a few percent of its rate.
+const SERVO_INTERVAL_WEIGHT: f64 = 0.1;
+/// The share of each axis' velocity limit a servo stream's velocity may use: rsruckig
+/// refuses a target velocity above its limit, and a target faster than the arm may move is
+/// followed at the arm's speed, its position never changed.
+const SERVO_VELOCITY_SHARE: f64 = 0.99;
+/// How fast (1/s) a servo stream closes the distance to its target, on top of the target's
+/// own velocity: the distance falls by this share a second. Tuned on the servo figure
+/// (docs/online.md): higher overshoots with rsruckig's jerk-limited response.
+const SERVO_GAIN: f64 = 6.0;
+/// A servo target arriving more than this many mean intervals after the one before ends a
+/// gap: a 100 Hz client lands 2 or 3 cycles of 250 Hz apart (0.8 or 1.2 intervals), one
+/// lost on the way makes it 2.
+const SERVO_GAP_INTERVALS: f64 = 1.5;
+/// How many targets back a servo target's velocity is measured from: four intervals of a
+/// 100 Hz client (40 ms), so a burst and the pause after it average out, while the
+/// velocity lags the client's by half that.
+const SERVO_WINDOW: usize = 4;
+/// A servo target older than this many mean intervals is late: the next one did not come
+/// when due, so the arm brakes where it is, near the last target, rather than run on past
+/// it (rsruckig's jerk-limited stop from 0.2 m/s takes 16 mm); the next target moves it
+/// on from there.
+const SERVO_LATE_INTERVALS: f64 = 2.0;
 
 /// A frame a Cartesian jog's direction is given in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -82,6 +116,9 @@ pub enum OnlineCommand {
     Jog(Jog),
     /// The jog key was released: to rest along the path now.
     Release,
+    /// A servo client's newest target (validated within the limits and the cell): follow
+    /// it, while targets keep arriving within [`SERVO_TIMEOUT`].
+    Servo(AxisValues),
 }
 
 /// The commands waiting for the cycle, and the jog's keep-alives. The API writes here; the
@@ -168,6 +205,8 @@ pub struct OnlineSettings {
     /// The tool's jog speed (m/s).
     pub jog_speed_m_s: f64,
     pub deadman: Duration,
+    /// A servo stream with no target for this long brings the arm to rest.
+    pub servo_timeout: Duration,
     /// An online session at rest with nothing to do ends after this long.
     pub idle_end: Duration,
     /// Shares of each axis' speed and acceleration a goal or a jog may use (the plan's).
@@ -182,6 +221,7 @@ impl Default for OnlineSettings {
         Self {
             jog_speed_m_s: REDUCED_SPEED_M_S,
             deadman: DEADMAN,
+            servo_timeout: SERVO_TIMEOUT,
             idle_end: IDLE_END,
             speed_scale: 0.9,
             accel_scale: 0.8,
@@ -198,6 +238,23 @@ enum Intent {
     Idle,
     Goal(AxisValues),
     Jog(Jog),
+    /// A servo target and its velocity (from the last few targets).
+    Servo {
+        target: AxisValues,
+        velocity: AxisValues,
+    },
+}
+
+/// Where the servo stream's targets arrived: the last one, its cycle, the mean interval
+/// between targets (s) once there were two, and the ones before (cycle and target, newest
+/// first; `held` of them are real).
+#[derive(Debug, Clone, Copy)]
+struct ServoArrivals {
+    last: AxisValues,
+    cycle: u64,
+    interval: Option<f64>,
+    earlier: [(u64, AxisValues); SERVO_WINDOW],
+    held: usize,
 }
 
 /// The brake's progress: the velocity it started from and the share of it left.
@@ -238,6 +295,7 @@ pub(super) struct Online {
     keepalives: u64,
     keepalive_cycle: u64,
     rest_since: Option<u64>,
+    servo: Option<ServoArrivals>,
     /// Where the joint axes are this cycle (kept: no allocation in the cycle).
     axes: Vec<JointAxis>,
 }
@@ -277,6 +335,7 @@ impl Online {
             keepalives: 0,
             keepalive_cycle: 0,
             rest_since: None,
+            servo: None,
             axes: Vec::with_capacity(dof),
         }
     }
@@ -320,10 +379,13 @@ impl Online {
         let deadman = matches!(self.intent, Intent::Jog(_))
             && (self.cycle - self.keepalive_cycle) as f64 * self.dt
                 > self.settings.deadman.as_secs_f64();
-        if deadman {
+        let servo_timeout = matches!(self.intent, Intent::Servo { .. })
+            && (self.cycle - self.keepalive_cycle) as f64 * self.dt
+                > self.settings.servo_timeout.as_secs_f64();
+        if deadman || servo_timeout {
             self.intent = Intent::Idle;
         }
-        let brake = stopping || speed <= 0.0 || self.intent == Intent::Idle;
+        let brake = stopping || speed <= 0.0 || self.intent == Intent::Idle || self.servo_late();
         let braked = brake || !self.generate(rig, speed, cell);
         if braked {
             self.brake_step(rig);
@@ -346,7 +408,7 @@ impl Online {
             Intent::Idle => self.rest_since.is_some_and(|since| {
                 (self.cycle - since) as f64 * self.dt >= self.settings.idle_end.as_secs_f64()
             }),
-            Intent::Jog(_) => false,
+            Intent::Jog(_) | Intent::Servo { .. } => false,
         };
         Step {
             positions: self.position,
@@ -366,8 +428,68 @@ impl Online {
             Some(OnlineCommand::Goal(goal)) => self.intent = Intent::Goal(goal),
             Some(OnlineCommand::Jog(jog)) => self.intent = Intent::Jog(jog),
             Some(OnlineCommand::Release) => self.intent = Intent::Idle,
+            Some(OnlineCommand::Servo(target)) => self.follow(target),
             None => {}
         }
+        if !matches!(self.intent, Intent::Servo { .. }) {
+            self.servo = None;
+        }
+    }
+
+    /// Whether the servo stream's next target is late (see [`SERVO_LATE_INTERVALS`]).
+    fn servo_late(&self) -> bool {
+        let Some(arrivals) = self
+            .servo
+            .filter(|_| matches!(self.intent, Intent::Servo { .. }))
+        else {
+            return false;
+        };
+        let age = (self.cycle - arrivals.cycle) as f64 * self.dt;
+        arrivals
+            .interval
+            .is_some_and(|mean| age > SERVO_LATE_INTERVALS * mean)
+    }
+
+    /// A servo target: its velocity from the last one over the mean interval between
+    /// targets; zero for the first of a stream (or after a pause longer than the timeout).
+    fn follow(&mut self, target: AxisValues) {
+        let timeout = self.settings.servo_timeout.as_secs_f64();
+        let continued = self
+            .servo
+            .filter(|_| matches!(self.intent, Intent::Servo { .. }));
+        let mut velocity = AxisValues::zeros(self.dof);
+        let mut arrivals = ServoArrivals {
+            last: target,
+            cycle: self.cycle,
+            interval: None,
+            earlier: [(self.cycle, target); SERVO_WINDOW],
+            held: 0,
+        };
+        if let Some(before) = continued {
+            let since = (self.cycle - before.cycle) as f64 * self.dt;
+            if since > 0.0 && since <= timeout {
+                // A gap (a target lost or late) says nothing of the client's rate.
+                arrivals.interval = Some(match before.interval {
+                    Some(mean) if since > SERVO_GAP_INTERVALS * mean => mean,
+                    Some(mean) => mean + SERVO_INTERVAL_WEIGHT * (since - mean),
+                    None => since,
+                });
+                arrivals.earlier[0] = (before.cycle, before.last);
+                arrivals.earlier[1..].copy_from_slice(&before.earlier[..SERVO_WINDOW - 1]);
+                arrivals.held = (before.held + 1).min(SERVO_WINDOW);
+                // Over the window, not the last interval alone: a client that sends in
+                // bursts (two in one cycle, of which the cycle sees the newer, then a
+                // pause) averages out.
+                let (cycle, oldest) = arrivals.earlier[arrivals.held - 1];
+                let elapsed = (self.cycle - cycle) as f64 * self.dt;
+                for axis in 0..self.dof {
+                    velocity.as_mut_slice()[axis] =
+                        (target.as_slice()[axis] - oldest.as_slice()[axis]) / elapsed;
+                }
+            }
+        }
+        self.servo = Some(arrivals);
+        self.intent = Intent::Servo { target, velocity };
     }
 
     fn at(&self, goal: &AxisValues) -> bool {
@@ -397,12 +519,26 @@ impl Online {
             self.input.current_acceleration[axis] = self.acceleration.as_slice()[axis];
             self.input.target_acceleration[axis] = 0.0;
         }
+        // Goals and jogs move every axis in step (a line in joint space, a direction of the
+        // tool); a servo target's axes each follow their own target.
+        self.input.synchronization = Synchronization::Time;
         match self.intent {
             Intent::Goal(goal) => {
                 self.input.control_interface = ControlInterface::Position;
                 for axis in 0..self.dof {
                     self.input.target_position[axis] = goal.as_slice()[axis];
                     self.input.target_velocity[axis] = 0.0;
+                }
+            }
+            Intent::Servo { target, velocity } => {
+                let wanted = self.servo_velocity(&target, &velocity);
+                if !self.clear_of_limits(rig, &wanted) {
+                    return false;
+                }
+                self.input.control_interface = ControlInterface::Velocity;
+                self.input.synchronization = Synchronization::None;
+                for axis in 0..self.dof {
+                    self.input.target_velocity[axis] = wanted.as_slice()[axis];
                 }
             }
             Intent::Jog(jog) => {
@@ -434,6 +570,31 @@ impl Online {
             self.acceleration.as_mut_slice()[axis] = self.output.new_acceleration[axis];
         }
         true
+    }
+
+    /// The velocity that follows a servo target: its own velocity, plus [`SERVO_GAIN`] times
+    /// the distance to where it is now (moved on by its velocity since it arrived), each
+    /// axis within [`SERVO_VELOCITY_SHARE`] of its limit (all scaled down together).
+    fn servo_velocity(&self, target: &AxisValues, velocity: &AxisValues) -> AxisValues {
+        let age = self.servo.map_or(0.0, |arrivals| {
+            (self.cycle - arrivals.cycle) as f64 * self.dt
+        });
+        let mut wanted = AxisValues::zeros(self.dof);
+        for axis in 0..self.dof {
+            let v = velocity.as_slice()[axis];
+            let now = target.as_slice()[axis] + v * age;
+            wanted.as_mut_slice()[axis] = v + SERVO_GAIN * (now - self.position.as_slice()[axis]);
+        }
+        let share = (0..self.dof)
+            .map(|axis| {
+                wanted.as_slice()[axis].abs()
+                    / (SERVO_VELOCITY_SHARE * self.input.max_velocity[axis])
+            })
+            .fold(1.0, f64::max);
+        for v in wanted.as_mut_slice() {
+            *v /= share;
+        }
+        wanted
     }
 
     /// The joint velocity a jog asks for at `speed` of its own, or None when an axis would

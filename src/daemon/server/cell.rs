@@ -340,6 +340,15 @@ fn describe(command: &OnlineCommand, rig: &crate::rig::Rig) -> String {
             )
         }
         OnlineCommand::Release => "released".to_string(),
+        OnlineCommand::Servo(target) => {
+            let shown: Vec<String> = rig
+                .joints
+                .iter()
+                .zip(target.as_slice())
+                .map(|(joint, q)| format!("{:.3}", joint.kind.to_user(*q)))
+                .collect();
+            format!("servo from [{}]", shown.join(", "))
+        }
     }
 }
 
@@ -434,6 +443,23 @@ pub struct Cell {
     history: Mutex<std::collections::VecDeque<JobRecord>>,
     /// How many jobs have ended: a lookup that waits for a job's end wakes on its change.
     ended: watch::Sender<u64>,
+    /// The servo client streaming to the cell, if one is (its address): one at a time.
+    servo_client: Mutex<Option<String>>,
+}
+
+/// The cell's servo slot while a client holds it; dropping it frees the slot.
+pub struct ServoClaim {
+    cell: Arc<Cell>,
+}
+
+impl Drop for ServoClaim {
+    fn drop(&mut self) {
+        *self
+            .cell
+            .servo_client
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = None;
+    }
 }
 
 /// What a cell's status reads of its twin's collision watch while the twin runs.
@@ -520,6 +546,7 @@ impl Cell {
             contacts,
             history: Mutex::default(),
             ended: watch::Sender::new(0),
+            servo_client: Mutex::new(None),
         })
     }
 
@@ -1282,6 +1309,14 @@ impl Cell {
         true
     }
 
+    /// The id of the planned job running here, if one is (it refuses a servo client).
+    pub fn planned_job(&self) -> Option<u64> {
+        let job = self.job.lock().unwrap_or_else(PoisonError::into_inner);
+        job.as_ref()
+            .filter(|j| !j.handle.is_finished() && j.name != ONLINE_SESSION)
+            .map(|j| j.id)
+    }
+
     /// Hands an online command to the running session, or starts a session for it (a jog
     /// or a goal, numbered by `next_id`); a planned job takes a goal (it blends from where
     /// the arm is) but not a jog. `log`: the action to log it as (keep-alives are not).
@@ -1300,6 +1335,10 @@ impl Cell {
                 Some(OnlineCommand::Jog(_)) if !online.given() => {
                     return Err(OnlineRefused::JobRunning(running.id));
                 }
+                // A planned job's motion is not a servo client's, even after a new goal.
+                Some(OnlineCommand::Servo(_)) if running.name != ONLINE_SESSION => {
+                    return Err(OnlineRefused::JobRunning(running.id));
+                }
                 Some(command) => online.give(command),
                 None => online.keep_alive(),
             }
@@ -1311,7 +1350,10 @@ impl Cell {
             return Ok(running.id);
         }
         drop(job);
-        let Some(command @ (OnlineCommand::Jog(_) | OnlineCommand::Goal(_))) = command else {
+        let Some(
+            command @ (OnlineCommand::Jog(_) | OnlineCommand::Goal(_) | OnlineCommand::Servo(_)),
+        ) = command
+        else {
             return Err(OnlineRefused::NoSession);
         };
         let id = next_id();
@@ -1322,6 +1364,37 @@ impl Cell {
             self.log_event(action, Some(id), result, None);
         }
         Ok(id)
+    }
+
+    /// Takes the cell's servo slot for `client` (its address), or names the client that
+    /// holds it.
+    pub fn claim_servo(self: &Arc<Self>, client: &str) -> Result<ServoClaim, String> {
+        let mut slot = self
+            .servo_client
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        if let Some(holder) = slot.as_ref() {
+            return Err(holder.clone());
+        }
+        *slot = Some(client.to_string());
+        Ok(ServoClaim { cell: self.clone() })
+    }
+
+    /// Where the arm is commanded (SI units): the running session's latest target, else
+    /// the in-process twin's position; `None` when neither is known (a remote controller
+    /// between jobs).
+    pub fn current_position(&self) -> Option<Vec<f64>> {
+        let latest = self.hub.slot().latest();
+        if self
+            .running_as_of(&latest)
+            .is_some_and(|job| job.cycles > 0)
+        {
+            return Some(latest.commanded.as_slice().to_vec());
+        }
+        match self.link.try_lock().as_deref() {
+            Ok(CellLink::Twin(link)) => Some(link.twin().actual().to_vec()),
+            _ => None,
+        }
     }
 
     /// Moves the job's thread, planning done, to the cycles' priority, for the cycles of a
