@@ -18,8 +18,8 @@ use super::steps::{Action, Goal, How, MoveOp, Op, goal_position};
 use super::{Neighbour, check_zone_room};
 use crate::ik::{CartesianError, FabrikSolver, IkError, IkSolver, line_joint_path};
 use crate::job::{JobError, JobInvalid, PlanContext};
-use crate::trajectory::free::plan_free;
 use crate::rig::{Pose, Rig};
+use crate::trajectory::free::plan_free;
 use crate::trajectory::{
     AxisLimits, JointPath, Origins, PathNode, PathTiming, PlanError, Samples, Trajectory,
     check_start,
@@ -80,12 +80,13 @@ pub fn free_move_path(
     let Some(model) = context.model else {
         return Ok(vec![to.to_vec()]);
     };
-    let waypoints = plan_free(model, context.rig, from, to, &context.settings.free).map_err(
-        |error| JobError::FreeMove {
-            key: key.to_string(),
-            error: Box::new(error),
-        },
-    )?;
+    let waypoints =
+        plan_free(model, context.rig, from, to, &context.settings.free).map_err(|error| {
+            JobError::FreeMove {
+                key: key.to_string(),
+                error: Box::new(error),
+            }
+        })?;
     Ok(waypoints.into_iter().skip(1).collect())
 }
 
