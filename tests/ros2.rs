@@ -9,11 +9,12 @@
 mod common;
 
 use common::cli::{assert_succeeded, rigbridge};
+use common::line_peer::LinePeer;
 use common::repo_path;
 use common::serve::{Served, serve_command, start_serve};
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdout, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -55,40 +56,12 @@ fn free_endpoint() -> String {
 }
 
 /// The Python peer, once it listens.
-struct Peer {
-    child: Child,
-    stdout: BufReader<ChildStdout>,
-}
-
-impl Peer {
-    fn start(python: &str, args: &[&str]) -> Peer {
-        let mut child = Command::new(python)
-            .arg(repo_path("tests/peers/ros2_peer.py"))
-            .args(args)
-            .stdout(Stdio::piped())
-            .spawn()
-            .unwrap();
-        let mut stdout = BufReader::new(child.stdout.take().unwrap());
-        let mut line = String::new();
-        stdout.read_line(&mut line).unwrap();
-        assert_eq!(line.trim(), "ready", "the peer should listen first");
-        Peer { child, stdout }
-    }
-
-    /// Its one JSON line of results.
-    fn result(mut self) -> serde_json::Value {
-        let mut line = String::new();
-        self.stdout.read_line(&mut line).unwrap();
-        assert!(self.child.wait().unwrap().success(), "the peer failed");
-        serde_json::from_str(&line).unwrap_or_else(|e| panic!("peer said {line:?}: {e}"))
-    }
-}
-
-impl Drop for Peer {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
+fn start_peer(python: &str, args: &[&str]) -> LinePeer {
+    let mut command = Command::new(python);
+    command
+        .arg(repo_path("tests/peers/ros2_peer.py"))
+        .args(args);
+    LinePeer::start(command)
 }
 
 /// A `rigbridge serve` whose stderr is collected (the refusals are logged there).
@@ -144,7 +117,7 @@ fn run_publishes_joint_states_that_rosbags_decodes_with_rmw_zenohs_tokens() {
     let Some(python) = peer_python() else { return };
     let dir = scratch("run");
     let endpoint = free_endpoint();
-    let peer = Peer::start(&python, &["listen", "--endpoint", &endpoint, "--wait-end"]);
+    let peer = start_peer(&python, &["listen", "--endpoint", &endpoint, "--wait-end"]);
     let log = dir.join("run.mcap");
     let output = rigbridge()
         .args([
@@ -307,7 +280,7 @@ fn serve_takes_motion_only_from_a_logged_in_zenoh_session_and_from_where_the_arm
     let endpoint = free_endpoint();
     let logins = logins(&dir);
     let joints = irb120_joints().join(",");
-    let router = Peer::start(
+    let router = start_peer(
         &python,
         &[
             "router",
@@ -345,7 +318,7 @@ fn serve_takes_motion_only_from_a_logged_in_zenoh_session_and_from_where_the_arm
         for send in sends {
             args.extend(["--send", send]);
         }
-        Peer::start(&python, &args).result()
+        start_peer(&python, &args).result()
     };
     for (who, password) in [
         ("anonymous", None),
@@ -416,7 +389,7 @@ fn with_accept_motion_off_no_trajectory_from_ros_2_runs() {
     let endpoint = free_endpoint();
     let joints = irb120_joints().join(",");
     // The shipped settings: no [ros2], so accept_motion is off; an open Zenoh peer.
-    let peer = Peer::start(
+    let peer = start_peer(
         &python,
         &[
             "trajectory",
@@ -476,7 +449,7 @@ fn a_daemon_with_a_login_does_not_join_a_zenoh_peer_that_asks_for_none() {
     let endpoint = free_endpoint();
     let logins = logins(&dir);
     let joints = irb120_joints().join(",");
-    let peer = Peer::start(
+    let peer = start_peer(
         &python,
         &[
             "trajectory",
@@ -540,7 +513,7 @@ fn one_subscriber_sees_four_daemons_in_one_zenoh_group() {
     let Some(python) = peer_python() else { return };
     let dir = scratch("fleet");
     let endpoint = free_endpoint();
-    let peer = Peer::start(&python, &["listen", "--endpoint", &endpoint, "--rigs", "4"]);
+    let peer = start_peer(&python, &["listen", "--endpoint", &endpoint, "--rigs", "4"]);
     let names = ["cell_a", "cell_b", "cell_c", "cell_d"];
     let daemons: Vec<Serve> = names
         .iter()

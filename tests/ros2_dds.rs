@@ -13,11 +13,11 @@
 mod common;
 
 use common::cli::{assert_succeeded, rigbridge};
+use common::line_peer::LinePeer;
 use common::repo_path;
 use common::serve::{serve_command, start_serve};
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdout, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::Duration;
 
 /// JointState messages a second the issue asks for.
@@ -69,47 +69,19 @@ fn settings(dir: &Path, ros2: &str) -> PathBuf {
 }
 
 /// The rclpy peer in DDS domain `domain`, on loopback, once its subscriptions exist.
-struct Peer {
-    child: Child,
-    stdout: BufReader<ChildStdout>,
-}
-
-impl Peer {
-    fn start(python: &str, domain: u32, dir: &Path, args: &[&str]) -> Peer {
-        let mut child = Command::new(python)
-            .arg(repo_path("tests/peers/ros2_dds_peer.py"))
-            .args(args)
-            .env("ROS_DOMAIN_ID", domain.to_string())
-            .env("ROS_AUTOMATIC_DISCOVERY_RANGE", "SYSTEM_DEFAULT")
-            .env(
-                "FASTRTPS_DEFAULT_PROFILES_FILE",
-                repo_path("tests/peers/fastdds_loopback.xml"),
-            )
-            .env("ROS_LOG_DIR", dir.join("ros-log"))
-            .stdout(Stdio::piped())
-            .spawn()
-            .unwrap();
-        let mut stdout = BufReader::new(child.stdout.take().unwrap());
-        let mut line = String::new();
-        stdout.read_line(&mut line).unwrap();
-        assert_eq!(line.trim(), "ready", "the peer should subscribe first");
-        Peer { child, stdout }
-    }
-
-    /// Its one JSON line of results.
-    fn result(mut self) -> serde_json::Value {
-        let mut line = String::new();
-        self.stdout.read_line(&mut line).unwrap();
-        assert!(self.child.wait().unwrap().success(), "the peer failed");
-        serde_json::from_str(&line).unwrap_or_else(|e| panic!("peer said {line:?}: {e}"))
-    }
-}
-
-impl Drop for Peer {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
+fn start_peer(python: &str, domain: u32, dir: &Path, args: &[&str]) -> LinePeer {
+    let mut command = Command::new(python);
+    command
+        .arg(repo_path("tests/peers/ros2_dds_peer.py"))
+        .args(args)
+        .env("ROS_DOMAIN_ID", domain.to_string())
+        .env("ROS_AUTOMATIC_DISCOVERY_RANGE", "SYSTEM_DEFAULT")
+        .env(
+            "FASTRTPS_DEFAULT_PROFILES_FILE",
+            repo_path("tests/peers/fastdds_loopback.xml"),
+        )
+        .env("ROS_LOG_DIR", dir.join("ros-log"));
+    LinePeer::start(command)
 }
 
 /// The one publisher the graph shows on `topic`: the rig's node, with `type_name`.
@@ -132,7 +104,7 @@ fn rclpy_receives_runs_joint_states_over_dds_at_100_hz_without_a_gap() {
     let dir = scratch("run");
     let config = settings(&dir, &format!("domain_id = {DOMAIN}\n"));
     let hz = JOINT_STATES_HZ.to_string();
-    let peer = Peer::start(
+    let peer = start_peer(
         &python,
         DOMAIN,
         &dir,
@@ -198,7 +170,7 @@ fn a_late_rclpy_subscriber_gets_the_cells_urdf_as_robot_description() {
     let mut command = serve_command(&dir.join("runs"));
     let _daemon = start_serve(command.arg("--config").arg(&config).stderr(Stdio::null()));
     std::thread::sleep(LATE_BY);
-    let peer = Peer::start(
+    let peer = start_peer(
         &python,
         DOMAIN,
         &dir,

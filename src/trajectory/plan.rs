@@ -86,15 +86,7 @@ impl PlanSettings {
             ("cartesian_step_rad", self.cartesian_step_rad),
             ("max_joint_jump", self.max_joint_jump),
         ];
-        for (setting, value) in positive {
-            if !(value.is_finite() && value > 0.0) {
-                return Err(PlanError::InvalidSettings {
-                    setting,
-                    value,
-                    reason: "must be positive and finite",
-                });
-            }
-        }
+        check_positive(&positive)?;
         for (setting, value) in [
             ("speed_scale", self.speed_scale),
             ("accel_scale", self.accel_scale),
@@ -267,6 +259,20 @@ fn first_invalid(rig: &Rig, values: &[f64]) -> Option<(usize, InvalidValue)> {
                 None
             }
         })
+}
+
+/// Each named setting positive and finite, else the first that is not, by its name.
+pub(crate) fn check_positive(settings: &[(&'static str, f64)]) -> Result<(), PlanError> {
+    for &(setting, value) in settings {
+        if !(value.is_finite() && value > 0.0) {
+            return Err(PlanError::InvalidSettings {
+                setting,
+                value,
+                reason: "must be positive and finite",
+            });
+        }
+    }
+    Ok(())
 }
 
 pub(crate) fn check_start(rig: &Rig, start: &[f64]) -> Result<(), PlanError> {

@@ -11,6 +11,7 @@
 pub mod can;
 pub mod cli;
 pub mod cycles;
+pub mod line_peer;
 pub mod runlog;
 pub mod serve;
 pub mod twin;

@@ -20,7 +20,7 @@ mod timing;
 pub use timing::{MovesAround, plan_free_move, plan_joint_moves_around, time_free};
 
 use super::clearance::{JointValue, distance_words, joint_values, joint_words};
-use super::plan::{PlanError, check_start, check_waypoint};
+use super::plan::{PlanError, check_positive, check_start, check_waypoint};
 use crate::cell::{Clearance, CollisionModel};
 use crate::rig::Rig;
 use checker::Checker;
@@ -79,15 +79,7 @@ impl FreePlanOptions {
             ("free.step", self.step),
             ("free.allowance_m", self.allowance_m),
         ];
-        for (setting, value) in positive {
-            if !(value.is_finite() && value > 0.0) {
-                return Err(PlanError::InvalidSettings {
-                    setting,
-                    value,
-                    reason: "must be positive and finite",
-                });
-            }
-        }
+        check_positive(&positive)?;
         if self.max_samples == 0 {
             return Err(PlanError::InvalidSettings {
                 setting: "free.max_samples",
