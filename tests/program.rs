@@ -206,10 +206,17 @@ fn the_motion_demo_completes_against_the_twin_with_cycle_times_per_step_and_pass
     assert!((total - planned).abs() < 0.005, "{total} vs {planned}");
     let summary = String::from_utf8_lossy(&output.stdout);
     assert!(summary.contains("cycle times (planned):"), "{summary}");
-    assert!(
-        summary.contains("job.steps[1] pass 11 (slot[11]): "),
-        "{summary}"
-    );
+    // Each repeat's passes are listed under it, before the next step.
+    let repeat = summary
+        .find("job.steps[1] repeat: ")
+        .expect("the repeat's line");
+    let last_pass = summary
+        .find("      pass 11 (slot[11]): ")
+        .expect("the last pass");
+    let next_step = summary
+        .find("job.steps[2] ")
+        .expect("the step after the repeat");
+    assert!(repeat < last_pass && last_pass < next_step, "{summary}");
 }
 
 const IO_REFUSAL: &str = "refused before motion: job.steps[1]: release needs I/O, and the link loopback carries none: the loopback twin carries no I/O yet (protocol v2 has no I/O messages; a later version adds them, with the twin's gripper); EGM, CiA 402 and Dynamixel carry none";

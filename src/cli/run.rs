@@ -362,20 +362,19 @@ fn print_summary(report: &RunReport) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// A program's planned cycle time per step, then per pass of each repeat.
+/// A program's planned cycle time per step, each repeat's passes under it.
 fn print_cycle_times(times: &rigbridge::job::CycleTimes) -> anyhow::Result<()> {
     say!("  cycle times (planned):");
     for step in &times.steps {
         say!("    {} {}: {:.3} s", step.step, step.what, step.duration_s);
-    }
-    for lap in &times.laps {
-        say!(
-            "    {} pass {} ({}): {:.3} s",
-            lap.repeat,
-            lap.index,
-            lap.target,
-            lap.duration_s
-        );
+        for lap in times.laps.iter().filter(|lap| lap.repeat == step.step) {
+            say!(
+                "      pass {} ({}): {:.3} s",
+                lap.index,
+                lap.target,
+                lap.duration_s
+            );
+        }
     }
     Ok(())
 }
@@ -421,6 +420,17 @@ pub fn print_stream_summary(
         s.counters.duplicates,
         s.counters.reconnects
     );
+    for (k, interruption) in s.interruptions.iter().enumerate() {
+        say!(
+            "  warning: interruption {} of {}: {} at {:.3} s ({}); {}",
+            k + 1,
+            s.interruptions.len(),
+            interruption.outcome,
+            interruption.at_s,
+            interruption.why,
+            interruption.then
+        );
+    }
     if let Some(fault) = &s.fault {
         say!("  fault: {fault}");
     }

@@ -13,8 +13,9 @@ use crate::link::{Link, LinkEvent};
 use crate::log::Recorder;
 use crate::protocol::{Command, ControllerStatus, Feedback};
 use crate::stream::{
-    CycleSink, Executor, OnlineCommand, Outcome, Phase, StreamControl, StreamError, StreamReport,
-    StreamSettings, check_controller, fault_text, stream, stream_shared,
+    AfterInterruption, CycleSink, Executor, Interruption, OnlineCommand, Outcome, Phase,
+    StreamControl, StreamError, StreamReport, StreamSettings, check_controller, fault_text, stream,
+    stream_shared,
 };
 use crate::trajectory::Trajectory;
 use std::time::Duration;
@@ -296,18 +297,24 @@ pub fn stream_resuming(mut io: Streaming<'_>, trajectory: &Trajectory) -> Stream
             &report.outcome.to_string(),
             serde_json::json!({ "at_sample": report.samples_done, "why": report.fault }),
         );
+        report.interruptions.push(Interruption {
+            at_s: t,
+            outcome: report.outcome,
+            why: report.fault.clone().unwrap_or_default(),
+            then: AfterInterruption::Resumed,
+        });
         if io.control.online().given() {
             // Online motion has no path to return to: from where the arm holds, the goal
             // it was moving to is given again (a jog waits for its next command).
             match resume_online(&mut io, &mut streaming, &report) {
-                Resumed::Ended(report) => return report,
+                Resumed::Ended(report) => return ended_after_interruption(report),
                 Resumed::Approach(part, _) => report = part,
             }
             continue;
         }
         let (part, approached) =
             match resume_once(&mut io, &remaining, &mut streaming, trajectory, &report) {
-                Resumed::Ended(report) => return report,
+                Resumed::Ended(report) => return ended_after_interruption(report),
                 Resumed::Approach(part, approached) => (part, approached),
             };
         report = part;
@@ -323,6 +330,14 @@ pub fn stream_resuming(mut io: Streaming<'_>, trajectory: &Trajectory) -> Stream
         streaming.first_seq = rest.first_seq;
         remaining = remaining.tail(part.samples_done);
         report = report.merge(part);
+    }
+    report
+}
+
+/// `report`, ended while resuming from its last interruption: that one says so.
+fn ended_after_interruption(mut report: StreamReport) -> StreamReport {
+    if let Some(last) = report.interruptions.last_mut() {
+        last.then = AfterInterruption::Ended;
     }
     report
 }

@@ -359,8 +359,43 @@ pub struct StreamReport {
     pub link: String,
     /// The phase the job was in when a stop or e-stop was acknowledged, if one was.
     pub stopped_in: Option<Phase>,
+    /// Every stall and link loss of the job, in order, and what the bridge did after each
+    /// (issue 32: a completed run lists each one, not only the last).
+    pub interruptions: Vec<Interruption>,
     #[serde(flatten)]
     pub counters: LinkCounters,
+}
+
+/// One stall or link loss in a job's stream: when, the stream's words for it, and what the
+/// bridge did then.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Interruption {
+    /// Seconds of streaming before it, from the job's first target.
+    pub at_s: f64,
+    /// `stalled` or `link_lost`.
+    pub outcome: Outcome,
+    /// The stream's words (`the cycle woke 316.0 ms late`).
+    pub why: String,
+    pub then: AfterInterruption,
+}
+
+/// What the bridge did after an interruption.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AfterInterruption {
+    /// Waited for the controller's hold, went back to the path and streamed on from rest.
+    Resumed,
+    /// The job ended there (no hold in time, a stop, a refusal: the outcome says).
+    Ended,
+}
+
+impl std::fmt::Display for AfterInterruption {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            AfterInterruption::Resumed => "resumed from rest on the path",
+            AfterInterruption::Ended => "the job ended there",
+        })
+    }
 }
 
 impl StreamReport {
@@ -377,9 +412,17 @@ impl StreamReport {
     /// One report for a job streamed in several parts (resumed after link losses): counts
     /// add up, worst cases are kept, the outcome is the last part's.
     pub fn merge(self, later: StreamReport) -> StreamReport {
+        // A part that completed clears an earlier part's fault: the interruptions list it.
+        let fault = match later.outcome {
+            Outcome::Completed => later.fault,
+            _ => later.fault.or(self.fault),
+        };
+        let mut interruptions = self.interruptions;
+        interruptions.extend(later.interruptions);
         StreamReport {
             outcome: later.outcome,
-            fault: later.fault.or(self.fault),
+            fault,
+            interruptions,
             cycles: self.cycles + later.cycles,
             missed_cycles: self.missed_cycles + later.missed_cycles,
             limit_violations: self.limit_violations + later.limit_violations,
@@ -1147,6 +1190,7 @@ impl Cycle {
             last_seq: 0,
             link,
             stopped_in: None,
+            interruptions: Vec::new(),
             counters,
         }
     }
@@ -1184,6 +1228,7 @@ impl Cycle {
             last_seq: self.seq,
             link,
             stopped_in: None,
+            interruptions: Vec::new(),
             counters,
         }
     }
