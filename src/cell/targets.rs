@@ -285,12 +285,10 @@ fn grid_into(file: &Path, key: &str, raw: &RawGrid, out: &mut Targets) -> Result
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cell::cell_from_toml;
+    use crate::cell::{CellError, cell_from_toml};
 
-    fn load(text: &str) -> Result<Targets, String> {
-        cell_from_toml(text, Path::new("c.toml"))
-            .map(|cell| cell.targets)
-            .map_err(|e| e.to_string())
+    fn load(text: &str) -> Result<Targets, CellError> {
+        cell_from_toml(text, Path::new("c.toml")).map(|cell| cell.targets)
     }
 
     #[test]
@@ -337,7 +335,7 @@ mod tests {
             ),
         ];
         for (text, expected) in cases {
-            let refused = load(text).unwrap_err();
+            let refused = load(text).unwrap_err().to_string();
             assert!(
                 refused.contains(expected),
                 "{text}: got {refused}, expected {expected}"

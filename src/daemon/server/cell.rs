@@ -447,6 +447,14 @@ pub struct Cell {
     servo_client: Mutex<Option<String>>,
 }
 
+/// A servo client refused because another holds the cell's servo slot: one at a time.
+#[derive(Debug, thiserror::Error)]
+#[error("{holder} streams to cell `{cell}`: one servo client at a time")]
+pub struct ServoTaken {
+    pub holder: String,
+    pub cell: String,
+}
+
 /// The cell's servo slot while a client holds it; dropping it frees the slot.
 pub struct ServoClaim {
     cell: Arc<Cell>,
@@ -1368,13 +1376,16 @@ impl Cell {
 
     /// Takes the cell's servo slot for `client` (its address), or names the client that
     /// holds it.
-    pub fn claim_servo(self: &Arc<Self>, client: &str) -> Result<ServoClaim, String> {
+    pub fn claim_servo(self: &Arc<Self>, client: &str) -> Result<ServoClaim, ServoTaken> {
         let mut slot = self
             .servo_client
             .lock()
             .unwrap_or_else(PoisonError::into_inner);
         if let Some(holder) = slot.as_ref() {
-            return Err(holder.clone());
+            return Err(ServoTaken {
+                holder: holder.clone(),
+                cell: self.name().to_string(),
+            });
         }
         *slot = Some(client.to_string());
         Ok(ServoClaim { cell: self.clone() })

@@ -111,15 +111,7 @@ pub async fn servo(
     let client = format!("servo client {number}");
     let claim = match cell.claim_servo(&client) {
         Ok(claim) => claim,
-        Err(holder) => {
-            return error(
-                StatusCode::CONFLICT,
-                format!(
-                    "{holder} streams to cell `{}`: one servo client at a time",
-                    cell.name()
-                ),
-            );
-        }
+        Err(taken) => return error(StatusCode::CONFLICT, taken.to_string()),
     };
     upgrade
         .max_message_size(MAX_SERVO_MESSAGE_BYTES)
@@ -171,7 +163,7 @@ async fn serve_servo(mut socket: WebSocket, daemon: &Arc<Daemon>, cell: &Arc<Cel
 /// One client's stream: its count, its last target (a pose's IK seed) and its session.
 struct Servo<'a> {
     cell: &'a Arc<Cell>,
-    solver: Result<FabrikSolver, String>,
+    solver: Result<FabrikSolver, crate::ik::StructureError>,
     index: u64,
     last: Option<Vec<f64>>,
     session: Option<u64>,
@@ -183,7 +175,7 @@ impl<'a> Servo<'a> {
         let settings = cell.settings();
         Servo {
             cell,
-            solver: FabrikSolver::new(settings.rig.clone()).map_err(|e| e.to_string()),
+            solver: FabrikSolver::new(settings.rig.clone()),
             index: 0,
             last: None,
             session: None,
@@ -263,7 +255,7 @@ impl<'a> Servo<'a> {
         let solver = self.solver.as_ref().map_err(|why| ServoRefused::NoSolver {
             index,
             rig: rig.name.clone(),
-            why: why.clone(),
+            why: why.to_string(),
         })?;
         let seed = self
             .last
