@@ -161,6 +161,10 @@ pub struct Bus {
     decoder: PacketDecoder,
     out: Vec<u8>,
     read: Vec<u8>,
+    /// An answer came late (a status wait ran out): its bytes may still sit in the port's
+    /// input, where the next exchange would take them for its own answers, one exchange
+    /// behind from then on. The next write flushes the input first.
+    late_answer_possible: bool,
 }
 
 impl Bus {
@@ -173,6 +177,7 @@ impl Bus {
             decoder: PacketDecoder::default(),
             out: Vec::with_capacity(256),
             read: vec![0; 512],
+            late_answer_possible: false,
         })
     }
 
@@ -181,6 +186,11 @@ impl Bus {
         // (Dropped from the decoder only: flushing the port's input is a syscall a cycle,
         // and draining its output (tcdrain) waits on the far side.)
         self.decoder.clear();
+        if std::mem::take(&mut self.late_answer_possible) {
+            self.port
+                .clear(serialport::ClearBuffer::Input)
+                .map_err(|e| BusError::Lost(format!("port: {e}")))?;
+        }
         self.port
             .write_all(&self.out)
             .map_err(|e| BusError::Lost(format!("write failed: {e}")))?;
@@ -211,6 +221,7 @@ impl Bus {
             }
             let now = Instant::now();
             if now >= deadline {
+                self.late_answer_possible = true;
                 return Ok(None);
             }
             let wait = (deadline - now).max(Duration::from_micros(100));
@@ -303,21 +314,38 @@ impl Bus {
             describe_error(code)
         );
         if code & error::ALERT != 0 {
-            encode_packet(
-                id,
-                instruction::READ,
-                &read_params(address::HARDWARE_ERROR_STATUS, 1),
-                &mut self.out,
-            );
-            if self.write_out(shared).is_ok()
-                && let Ok(Some(packet)) =
-                    self.status_from(shared, id, Instant::now() + SETUP_TIMEOUT)
-                && let Some((_, [bits])) = packet.status()
-            {
-                text.push_str(&format!("; hardware error status {bits:#04x}"));
+            match self.hardware_error_status(shared, id) {
+                Ok(bits) => text.push_str(&format!("; hardware error status {bits:#04x}")),
+                Err(BusError::Lost(why) | BusError::Drive { text: why, .. }) => {
+                    text.push_str(&format!("; hardware error status not read: {why}"))
+                }
             }
         }
         BusError::Drive { axis, text }
+    }
+
+    /// Reads `id`'s Hardware Error Status. A status of `id` with other than one byte is
+    /// a late answer to an earlier exchange (the position of a Sync Read), skipped.
+    fn hardware_error_status(&mut self, shared: &Shared, id: u8) -> Result<u8, BusError> {
+        encode_packet(
+            id,
+            instruction::READ,
+            &read_params(address::HARDWARE_ERROR_STATUS, 1),
+            &mut self.out,
+        );
+        self.write_out(shared)?;
+        let deadline = Instant::now() + SETUP_TIMEOUT;
+        loop {
+            let Some(packet) = self.status_from(shared, id, deadline)? else {
+                return Err(BusError::Lost(format!(
+                    "servo id {id} did not answer within {} ms",
+                    SETUP_TIMEOUT.as_millis()
+                )));
+            };
+            if let Some((_, [bits])) = packet.status() {
+                return Ok(*bits);
+            }
+        }
     }
 }
 

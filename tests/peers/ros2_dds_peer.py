@@ -2,11 +2,11 @@
 topics over DDS, for tests/ros2_dds.rs. It prints "ready" once its subscriptions exist, then
 one JSON line of what it received.
 
-  listen --rig R --hz F [--quiet-s S] [--timeout-s T]
+  listen --rig R --hz F [--gap-hz G] [--quiet-s S] [--timeout-s T]
       /R/joint_states (reliable, volatile, depth 10) until no joint state came for S
       seconds after the first (the run ended) or T seconds passed. Reports the count, the
-      rate and gaps by header stamp (a gap: consecutive stamps 2 periods of F apart or
-      more), the names, the last position, and what the ROS 2 graph says of the publishers
+      rate and gaps by header stamp (a gap: consecutive stamps 2 periods of G apart or
+      more; G is F unless given; the gaps at 2 periods of F are reported too), the names, the last position, and what the ROS 2 graph says of the publishers
       of /tf, /tf_static and /R/robot_description (node, type, QoS). PyPI ships no
       tf2_msgs for rclpy, so /tf's content is not read here.
   late --rig R [--timeout-s T]
@@ -30,8 +30,9 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 # A gap: consecutive stamps this many periods apart or more: a message missing (its
-# neighbours are 2 periods apart), or the stream held up as long as one message. A late wake
-# of the publisher alone stays under it (pacing keeps the rate from the late wake on).
+# neighbours are 2 periods apart), or the stream held up as long as one message. At the
+# publishing rate a wake of the publisher more than one period late is one (pacing keeps the
+# rate from the late wake on); at a lower rate asked of the stream it is not.
 GAP_PERIODS = 2.0
 
 
@@ -79,11 +80,13 @@ def listen(node, args):
     stamps = [stamp_s(s.header) for s in states]
     intervals = np.diff(stamps) if len(stamps) > 1 else np.array([])
     period = 1.0 / args.hz
+    gap_period = 1.0 / (args.gap_hz or args.hz)
     return {
         "count": len(states),
         "rate_hz": (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 1 else 0.0,
         "increasing": bool(np.all(intervals > 0)),
-        "gaps": int(np.sum(intervals >= GAP_PERIODS * period)),
+        "gaps": int(np.sum(intervals >= GAP_PERIODS * gap_period)),
+        "gaps_at_publish_rate": int(np.sum(intervals >= GAP_PERIODS * period)),
         "max_interval_s": float(intervals.max()) if intervals.size else None,
         "names": list(states[-1].name) if states else [],
         "last_position": list(states[-1].position) if states else [],
@@ -110,6 +113,7 @@ def main():
     parser.add_argument("mode", choices=["listen", "late"])
     parser.add_argument("--rig", required=True)
     parser.add_argument("--hz", type=float, default=125.0)
+    parser.add_argument("--gap-hz", type=float, default=None)
     parser.add_argument("--quiet-s", type=float, default=1.5)
     parser.add_argument("--timeout-s", type=float, default=60.0)
     args = parser.parse_args()
