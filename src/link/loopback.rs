@@ -40,6 +40,10 @@ impl Link for LoopbackLink {
         self.twin.take_contacts()
     }
 
+    fn judgement(&self) -> Option<crate::twin::CellJudgement> {
+        self.twin.judgement()
+    }
+
     fn send(&mut self, command: &Command) -> Result<(), LinkError> {
         self.counters.frames_sent += 1;
         self.twin.handle(command);

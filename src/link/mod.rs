@@ -223,4 +223,10 @@ pub trait Link: Send {
     fn take_contacts(&mut self) -> Option<crate::twin::ContactReport> {
         None
     }
+    /// The in-process twin's judgement of the cell's parts (issue 29): where each ended
+    /// against its goal; `None` for a controller that does not tell (every remote one) or a
+    /// cell without parts.
+    fn judgement(&self) -> Option<crate::twin::CellJudgement> {
+        None
+    }
 }
