@@ -173,7 +173,7 @@ fn sender_of(message: &Message) -> CanSender {
         Message::Feedback(_) | Message::Fault(_) | Message::Io(IoMessage::State(_)) => {
             CanSender::Controller
         }
-        Message::Hello(_) | Message::Command(_) => CanSender::Bridge,
+        Message::Hello(_) | Message::Command(_) | Message::Io(_) => CanSender::Bridge,
     }
 }
 
