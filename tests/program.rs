@@ -225,7 +225,8 @@ fn the_motion_demo_completes_against_the_twin_with_cycle_times_per_step_and_pass
 /// What `run` and `serve` say of a program with I/O when the controller speaks protocol v2.
 const IO_REFUSAL_V2: &str = "refused before motion: job.steps[1]: release needs I/O, and the link loopback carries none: the controller speaks protocol v2, which has no I/O messages (v3 adds them, docs/protocol.md 6.10)";
 
-/// The full demo's settings with the twin told to speak protocol v2, in `dir`.
+/// The full demo's settings with the twin told to speak protocol v2, in `dir` (a
+/// [`demo_dir`]).
 fn demo_over_v2(dir: &Path) -> PathBuf {
     let text = std::fs::read_to_string(repo_path("config/pick-place.toml")).unwrap();
     let text = text.replace("[twin]\n", "[twin]\nprotocol_version = 2\n");
@@ -327,6 +328,7 @@ fn waiting_for_an_input_that_never_comes_ends_the_job_faulted_naming_the_step() 
         "{report}"
     );
     // An output the twin does not have is refused by name.
+    let dir = demo_dir("no-output");
     let steps = serde_json::json!([
         { "kind": "move_joints", "to": "home" },
         { "kind": "set_output", "output": "coolant", "value": true },
@@ -343,7 +345,7 @@ fn waiting_for_an_input_that_never_comes_ends_the_job_faulted_naming_the_step() 
 
 #[test]
 fn the_full_demo_over_a_v2_controller_is_refused_before_motion_naming_its_version() {
-    let dir = common::scratch_dir("program", "io-demo-v2");
+    let dir = demo_dir("io-demo-v2");
     let config = demo_over_v2(&dir);
     let (output, report) = run(&dir, &config);
     assert!(!output.status.success());
