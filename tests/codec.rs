@@ -293,7 +293,10 @@ fn annotated(message: &Message) -> String {
                     &state.name
                 }
             };
-            fields.push((1 + name.len(), format!("name: length {}, {name:?}", name.len())));
+            fields.push((
+                1 + name.len(),
+                format!("name: length {}, {name:?}", name.len()),
+            ));
         }
         Message::Command(_) => {}
     }
@@ -355,10 +358,16 @@ fn doc_blocks() -> Vec<(&'static str, String)> {
         ("fault-body", annotated(&fault_example())),
         ("set-output-body", annotated(&set_output_example())),
         ("set-output-frame", hex_lines(&frame(&set_output_example()))),
-        ("io-state-output-body", annotated(&io_state_output_example())),
+        (
+            "io-state-output-body",
+            annotated(&io_state_output_example()),
+        ),
         ("read-input-body", annotated(&read_input_example())),
         ("io-state-input-body", annotated(&io_state_input_example())),
-        ("io-state-input-frame", hex_lines(&frame(&io_state_input_example()))),
+        (
+            "io-state-input-frame",
+            hex_lines(&frame(&io_state_input_example())),
+        ),
         ("set-output-can", can_block(&set_output_example(), false)),
         ("target-6-can", can_block(&target6(), false)),
         ("feedback-6-can", can_block(&feedback6(), false)),
@@ -771,12 +780,25 @@ fn io_name() -> impl Strategy<Value = String> {
 
 fn io_message() -> impl Strategy<Value = IoMessage> {
     prop_oneof![
-        (1..=u32::MAX, io_name(), any::<bool>())
-            .prop_map(|(request, name, value)| IoMessage::SetOutput { request, name, value }),
-        (1..=u32::MAX, io_name()).prop_map(|(request, name)| IoMessage::ReadInput { request, name }),
-        (1..=u32::MAX, io_name(), any::<bool>(), any::<bool>(), 0u8..3).prop_map(
-            |(request, name, value, input, result)| {
-                let result = [IoResult::Done, IoResult::NoSuch, IoResult::Refused][usize::from(result)];
+        (1..=u32::MAX, io_name(), any::<bool>()).prop_map(|(request, name, value)| {
+            IoMessage::SetOutput {
+                request,
+                name,
+                value,
+            }
+        }),
+        (1..=u32::MAX, io_name())
+            .prop_map(|(request, name)| IoMessage::ReadInput { request, name }),
+        (
+            1..=u32::MAX,
+            io_name(),
+            any::<bool>(),
+            any::<bool>(),
+            0u8..3
+        )
+            .prop_map(|(request, name, value, input, result)| {
+                let result =
+                    [IoResult::Done, IoResult::NoSuch, IoResult::Refused][usize::from(result)];
                 IoMessage::State(IoState {
                     request,
                     kind: if input { IoKind::Input } else { IoKind::Output },
@@ -784,8 +806,7 @@ fn io_message() -> impl Strategy<Value = IoMessage> {
                     result,
                     name,
                 })
-            }
-        ),
+            }),
     ]
 }
 

@@ -242,7 +242,11 @@ fn the_full_demo_places_12_of_12_parts_within_1_mm_and_1_deg_with_no_collision()
     let (output, report) = run(&dir, &repo_path("config/pick-place.toml"));
     assert!(output.status.success(), "{report}");
     assert_eq!(report["outcome"], "completed", "{report}");
-    assert_eq!(report["contacts"]["collisions"], 0, "{}", report["contacts"]);
+    assert_eq!(
+        report["contacts"]["collisions"], 0,
+        "{}",
+        report["contacts"]
+    );
     let parts = &report["parts"];
     assert_eq!(parts["parts"], 12, "{parts}");
     assert_eq!(parts["placed"], 12, "{parts}");
@@ -252,7 +256,10 @@ fn the_full_demo_places_12_of_12_parts_within_1_mm_and_1_deg_with_no_collision()
     for part in parts["per_part"].as_array().unwrap() {
         assert_eq!(part["state"], "placed", "{part}");
         assert!(part["position_error_mm"].as_f64().unwrap() <= 1.0, "{part}");
-        assert!(part["orientation_error_deg"].as_f64().unwrap() <= 1.0, "{part}");
+        assert!(
+            part["orientation_error_deg"].as_f64().unwrap() <= 1.0,
+            "{part}"
+        );
         assert_eq!(part["collision_cycles"], 0, "{part}");
         // Picked, then released later.
         let picked = part["picked_at_s"].as_f64().unwrap();
@@ -269,13 +276,19 @@ fn the_full_demo_places_12_of_12_parts_within_1_mm_and_1_deg_with_no_collision()
     }
     // The I/O waits (the gripper's 0.2 s each way, the input read) are on top of the plan.
     let planned = report["planned_duration_s"].as_f64().unwrap();
-    assert!(job_s > planned + 24.0 * 0.2, "{job_s} s against {planned} s planned");
+    assert!(
+        job_s > planned + 24.0 * 0.2,
+        "{job_s} s against {planned} s planned"
+    );
     let summary = String::from_utf8_lossy(&output.stdout);
     assert!(
         summary.contains("parts (the twin's judge): 12 of 12 placed within 1 mm and 1 deg"),
         "{summary}"
     );
-    assert!(summary.contains("cycle time per part (measured"), "{summary}");
+    assert!(
+        summary.contains("cycle time per part (measured"),
+        "{summary}"
+    );
 }
 
 #[test]

@@ -126,7 +126,11 @@ pub(crate) fn cell_from_raw(raw: &RawCell, file: &Path, prefix: &str) -> Result<
     })?;
     let targets = targets_from_raw(file, prefix, &raw.target, &raw.target_grid)?;
     let parts = parts_of(file, prefix, &raw.part, &targets, &read_mesh)?;
-    let gripper = gripper_of(file, prefix, raw.gripper.as_ref().unwrap_or(&RawGripper::default()))?;
+    let gripper = gripper_of(
+        file,
+        prefix,
+        raw.gripper.as_ref().unwrap_or(&RawGripper::default()),
+    )?;
     Ok(Cell {
         mount,
         objects,

@@ -6,8 +6,8 @@
 //! object of the collision model (it moves).
 
 use super::targets::{Spot, Targets};
-use crate::rig::geometry::{Collision, MeshReader, RawSolid};
 use crate::rig::ConfigError;
+use crate::rig::geometry::{Collision, MeshReader, RawSolid};
 use glam::DAffine3;
 use serde::Deserialize;
 use std::path::Path;

@@ -389,7 +389,10 @@ fn print_parts(parts: &rigbridge::twin::CellJudgement) -> anyhow::Result<()> {
         .iter()
         .map(|t| format!("{t:.3}"))
         .collect();
-    say!("    cycle time per part (measured, pick to pick, s): {}", times.join(", "));
+    say!(
+        "    cycle time per part (measured, pick to pick, s): {}",
+        times.join(", ")
+    );
     for part in parts.per_part.iter().filter(|p| p.state != "placed") {
         say!(
             "    {} ({} to {}): {}, {:.3} mm and {:.3} deg from it{}",
@@ -401,7 +404,10 @@ fn print_parts(parts: &rigbridge::twin::CellJudgement) -> anyhow::Result<()> {
             part.orientation_error_deg,
             part.collided_with
                 .as_deref()
-                .map(|other| format!(", collided with {other} ({:.2} mm deep)", part.collision_depth_mm))
+                .map(|other| format!(
+                    ", collided with {other} ({:.2} mm deep)",
+                    part.collision_depth_mm
+                ))
                 .unwrap_or_default()
         );
     }

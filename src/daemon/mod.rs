@@ -288,7 +288,11 @@ pub fn loopback_twin(settings: &RunSettings) -> Result<LoopbackLink, DaemonError
 /// The twin of `settings` at its initial position, watching its cell's clearances.
 pub fn settings_twin(settings: &RunSettings) -> Result<Twin, DaemonError> {
     let twin = Twin::new(&settings.rig, twin_settings(settings), &settings.initial())?.with_io(
-        crate::twin::TwinIo::in_cell(&settings.rig, &settings.cell, settings.period().as_secs_f64()),
+        crate::twin::TwinIo::in_cell(
+            &settings.rig,
+            &settings.cell,
+            settings.period().as_secs_f64(),
+        ),
     );
     Ok(match contact_watch(settings)? {
         Some(watch) => twin.with_contacts(watch),

@@ -825,7 +825,9 @@ pub fn decode_body(body: &[u8]) -> Result<Message, DecodeError> {
     };
     let mut message = match kind {
         TYPE_SET_OUTPUT | TYPE_READ_INPUT | TYPE_IO_STATE if version == PROTOCOL_VERSION => {
-            return Err(DecodeError::Malformed("an I/O message in a version 2 frame"));
+            return Err(DecodeError::Malformed(
+                "an I/O message in a version 2 frame",
+            ));
         }
         TYPE_SET_OUTPUT | TYPE_READ_INPUT | TYPE_IO_STATE => {
             Message::Io(read_io(kind, &mut reader)?)
@@ -897,7 +899,9 @@ fn read_io_name(reader: &mut Reader<'_>) -> Result<String, DecodeError> {
     if io_name_ok(&name) {
         Ok(name)
     } else {
-        Err(DecodeError::Malformed("an I/O name that is not 1 to 32 letters, digits or _"))
+        Err(DecodeError::Malformed(
+            "an I/O name that is not 1 to 32 letters, digits or _",
+        ))
     }
 }
 

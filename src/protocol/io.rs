@@ -83,9 +83,7 @@ impl IoMessage {
     /// The request number it carries or answers.
     pub fn request(&self) -> u32 {
         match self {
-            IoMessage::SetOutput { request, .. } | IoMessage::ReadInput { request, .. } => {
-                *request
-            }
+            IoMessage::SetOutput { request, .. } | IoMessage::ReadInput { request, .. } => *request,
             IoMessage::State(state) => state.request,
         }
     }

@@ -14,8 +14,8 @@ pub mod io;
 
 pub use can::{CanAssembler, CanCounters, CanMapping, CanPayload, CanSender, can_frames};
 pub use codec::{
-    DecodeError, DecoderCounters, EncodeError, FaultReport, FrameDecoder, Hello, Message, cycle_us,
-    PROTOCOL_VERSION_IO, decode_body, encode_body, encode_frame,
+    DecodeError, DecoderCounters, EncodeError, FaultReport, FrameDecoder, Hello, Message,
+    PROTOCOL_VERSION_IO, cycle_us, decode_body, encode_body, encode_frame,
 };
 pub use io::{IoKind, IoMessage, IoResult, IoState, io_name_ok};
 

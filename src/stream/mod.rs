@@ -1047,7 +1047,10 @@ impl Cycle {
             }
         };
         // An I/O point not done yet holds the path there (the arm is at rest at it).
-        let hold = self.io.hold_at().map_or(last, |sample| (sample as f64).min(last));
+        let hold = self
+            .io
+            .hold_at()
+            .map_or(last, |sample| (sample as f64).min(last));
         self.path = (self.path + self.scale).min(hold);
         if stopping && self.scale == 0.0 && self.path < last {
             self.aborting.get_or_insert(Outcome::Stopped);

@@ -366,7 +366,10 @@ impl Session {
     fn answer_io(&mut self, twin: &mut Twin, port: &mut dyn ControllerPort) {
         while let Some(answer) = twin.take_io_answer() {
             if self.attached {
-                self.send(port, &Message::Io(crate::protocol::IoMessage::State(answer)));
+                self.send(
+                    port,
+                    &Message::Io(crate::protocol::IoMessage::State(answer)),
+                );
             }
         }
     }
