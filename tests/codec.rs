@@ -1375,3 +1375,64 @@ fn a_hello_cycle_is_the_period_in_whole_microseconds() {
     }
     assert_eq!(cycle_us(Duration::MAX), u32::MAX);
 }
+
+/// A body of `version`, `kind` and `payload` with its good CRC.
+fn body_with_crc(version: u8, kind: u8, payload: &[u8]) -> Vec<u8> {
+    let mut body = vec![version, kind];
+    body.extend_from_slice(payload);
+    let crc = crc32(&body);
+    body.extend_from_slice(&crc.to_le_bytes());
+    body
+}
+
+#[test]
+fn io_messages_are_strict_on_the_wire_and_refused_by_the_encoder() {
+    // The SetOutput of section 4 decodes; the same bytes in a version 2 frame do not.
+    let payload = [7, 0, 0, 0, 1, 7, b'g', b'r', b'i', b'p', b'p', b'e', b'r'];
+    assert_eq!(
+        decode_body(&body_with_crc(3, 0x09, &payload)),
+        Ok(set_output_example())
+    );
+    let malformed = |version: u8, kind: u8, payload: &[u8]| {
+        matches!(
+            decode_body(&body_with_crc(version, kind, payload)),
+            Err(rigbridge::protocol::DecodeError::Malformed(_))
+        )
+    };
+    assert!(malformed(2, 0x09, &payload), "an I/O message in a v2 frame");
+    // Value 2, request 0, a name with `-`, an empty name, a name of 33 bytes.
+    assert!(malformed(3, 0x09, &[7, 0, 0, 0, 2, 1, b'g']));
+    assert!(malformed(3, 0x09, &[0, 0, 0, 0, 1, 1, b'g']));
+    assert!(malformed(3, 0x0A, &[8, 0, 0, 0, 3, b'a', b'-', b'b']));
+    assert!(malformed(3, 0x0A, &[8, 0, 0, 0, 0]));
+    let mut long = vec![8, 0, 0, 0, 33];
+    long.extend_from_slice(&[b'x'; 33]);
+    assert!(malformed(3, 0x0A, &long));
+    // IoState: kind 2 and result 3 are unknown.
+    assert!(malformed(3, 0x0B, &[8, 0, 0, 0, 2, 0, 1, 1, b'x']));
+    assert!(malformed(3, 0x0B, &[8, 0, 0, 0, 1, 3, 1, 1, b'x']));
+    // Version 4 is another version, counted apart.
+    assert!(matches!(
+        decode_body(&body_with_crc(4, 0x09, &payload)),
+        Err(rigbridge::protocol::DecodeError::UnsupportedVersion(4))
+    ));
+    // The encoder writes no name the wire refuses, and no request 0.
+    let mut out = Vec::new();
+    let bad_name = Message::Io(IoMessage::ReadInput {
+        request: 1,
+        name: "a-b".into(),
+    });
+    assert!(matches!(
+        encode_frame(&bad_name, &mut out),
+        Err(EncodeError::IoName { .. })
+    ));
+    let request_zero = Message::Io(IoMessage::ReadInput {
+        request: 0,
+        name: "ab".into(),
+    });
+    assert_eq!(
+        encode_frame(&request_zero, &mut out),
+        Err(EncodeError::IoRequestZero)
+    );
+    assert!(out.is_empty(), "nothing written for a refused message");
+}

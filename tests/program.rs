@@ -604,3 +604,64 @@ fn zones_make_the_pick_and_place_demo_faster_both_within_every_limit() {
         assert!(closest(&settings, &fine, above) < 1e-4);
     }
 }
+
+/// A short pick over TCP: the part of slot[0] gripped, `part_held` read, lifted, let go.
+fn pick_over_tcp_steps() -> serde_json::Value {
+    serde_json::json!([
+        { "kind": "move_joints", "to": "home" },
+        { "kind": "release" },
+        { "kind": "move_poses", "to": "slot[0]", "offset_m": [0.0, 0.0, -0.1] },
+        { "kind": "move_linear", "to": "slot[0]", "speed": 0.5 },
+        { "kind": "grip" },
+        { "kind": "wait_input", "input": "part_held", "value": true, "timeout_s": 0.5 },
+        { "kind": "move_linear", "to": "slot[0]", "offset_m": [0.0, 0.0, -0.1] },
+        { "kind": "release" },
+    ])
+}
+
+/// `rigbridge run` of `config` against `rigbridge twin --listen` started with the same
+/// settings (wall clock): its exit, its report.
+fn run_over_tcp(dir: &Path, config: &Path) -> (std::process::Output, serde_json::Value) {
+    let mut twin_command = common::twin::listen_command("tcp://127.0.0.1:0");
+    twin_command.args(["--config", config.to_str().unwrap()]);
+    let twin = common::twin::start_listening(&mut twin_command);
+    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args(["run", "--config", config.to_str().unwrap()])
+        .args(["--link", &twin.address, "--report", "report.json"])
+        .current_dir(dir)
+        .output()
+        .unwrap();
+    drop(twin);
+    let report = std::fs::read_to_string(dir.join("report.json")).unwrap();
+    (output, serde_json::from_str(&report).unwrap())
+}
+
+#[test]
+fn grip_and_input_travel_over_tcp_to_a_v3_twin_and_a_v2_twin_refuses_them_by_version() {
+    let dir = demo_dir("tcp-v3");
+    std::fs::write(dir.join("job.toml"), settings_text(&pick_over_tcp_steps())).unwrap();
+    let (output, report) = run_over_tcp(&dir, &dir.join("job.toml"));
+    // Completed only if the twin answered each SetOutput once its gripper had moved, and
+    // read `part_held` on: it held the part it closed on, over the wire.
+    assert!(output.status.success(), "{report}");
+    assert_eq!(report["outcome"], "completed", "{report}");
+    assert!(
+        report["link"].as_str().unwrap().starts_with("tcp://"),
+        "{report}"
+    );
+
+    let dir = demo_dir("tcp-v2");
+    let text =
+        settings_text(&pick_over_tcp_steps()).replace("[twin]\n", "[twin]\nprotocol_version = 2\n");
+    std::fs::write(dir.join("job.toml"), text).unwrap();
+    let (output, report) = run_over_tcp(&dir, &dir.join("job.toml"));
+    assert!(!output.status.success());
+    assert_eq!(report["outcome"], "refused", "{report}");
+    assert_eq!(report["cycles"], 0, "{report}");
+    let fault = report["fault"].as_str().unwrap();
+    assert!(
+        fault.starts_with("refused before motion: job.steps[1]: release needs I/O, and the link tcp://127.0.0.1:")
+            && fault.ends_with("carries none: the controller speaks protocol v2, which has no I/O messages (v3 adds them, docs/protocol.md 6.10)"),
+        "{fault}"
+    );
+}
