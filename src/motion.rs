@@ -5,7 +5,9 @@
 //! A leaf beside the chain, as `protocol` is beside the link: the planners above
 //! (`trajectory`, `ik`, `job`, `task`) build it and the streamer below runs it, so it
 //! lives under both (`docs/architecture.md`, "Layers"). Owns the type, its errors and the
-//! validator; must not plan, stream or import anything but `rig`.
+//! validator, and the I/O points a program puts on it (where the stream stops at rest
+//! until an output is set or an input read); must not plan, stream or import anything but
+//! `rig`.
 
 use crate::rig::{JointKind, Rig};
 use std::time::Duration;
@@ -118,7 +120,31 @@ fn acceleration_unit(joint: &crate::rig::Joint) -> &'static str {
     }
 }
 
-/// Samples `0..len` at times `i * period`, row-major: sample `i` holds `dof` values.
+/// What the stream does at an I/O point, the arm at rest there.
+#[derive(Debug, Clone, PartialEq)]
+pub enum IoAction {
+    /// Set a digital output and wait until the controller says it took effect.
+    SetOutput { name: String, value: bool },
+    /// Read a digital input until it has `value`, at most `timeout`.
+    WaitInput {
+        name: String,
+        value: bool,
+        timeout: Duration,
+    },
+}
+
+/// An I/O step on a trajectory: at `sample` (at rest), the stream holds the arm still until
+/// `action` is done.
+#[derive(Debug, Clone, PartialEq)]
+pub struct IoPoint {
+    pub sample: usize,
+    pub action: IoAction,
+    /// The step as written (`job.steps[2].steps[2] (grip)`), for refusals.
+    pub step: String,
+}
+
+/// Samples `0..len` at times `i * period`, row-major: sample `i` holds `dof` values; and
+/// the I/O points on them, in order.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Trajectory {
     pub rig: String,
@@ -126,6 +152,7 @@ pub struct Trajectory {
     pub period: Duration,
     positions: Vec<f64>,
     velocities: Vec<f64>,
+    io: Vec<IoPoint>,
 }
 
 impl Trajectory {
@@ -154,7 +181,26 @@ impl Trajectory {
             period,
             positions,
             velocities,
+            io: Vec::new(),
         })
+    }
+
+    /// The same samples with `points` (sorted by sample, each within the trajectory).
+    pub fn with_io(mut self, points: Vec<IoPoint>) -> Self {
+        let last = self.len().saturating_sub(1);
+        self.io = points
+            .into_iter()
+            .map(|p| IoPoint {
+                sample: p.sample.min(last),
+                ..p
+            })
+            .collect();
+        self
+    }
+
+    /// The I/O points, in order.
+    pub fn io_points(&self) -> &[IoPoint] {
+        &self.io
     }
 
     pub fn dof(&self) -> usize {
@@ -195,6 +241,16 @@ impl Trajectory {
             period: self.period,
             positions: self.positions[from * dof..].to_vec(),
             velocities: self.velocities[from * dof..].to_vec(),
+            // A point at `from` itself runs again: setting an output twice is setting it.
+            io: self
+                .io
+                .iter()
+                .filter(|p| p.sample >= from)
+                .map(|p| IoPoint {
+                    sample: p.sample - from,
+                    ..p.clone()
+                })
+                .collect(),
         }
     }
 
@@ -203,6 +259,11 @@ impl Trajectory {
         debug_assert_eq!(self.joint_names, next.joint_names);
         let dof = self.dof();
         let skip = if self.is_empty() { 0 } else { dof };
+        let offset = self.len().saturating_sub(1);
+        self.io.extend(next.io.iter().map(|p| IoPoint {
+            sample: p.sample + offset,
+            ..p.clone()
+        }));
         self.positions
             .extend_from_slice(&next.positions[skip.min(next.positions.len())..]);
         self.velocities

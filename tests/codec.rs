@@ -20,7 +20,8 @@ use rigbridge::protocol::codec::{
     encode_frame,
 };
 use rigbridge::protocol::{
-    AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget, MAX_AXES,
+    AxisValues, Command, ControllerStatus, Fault, Feedback, IoKind, IoMessage, IoResult, IoState,
+    JointTarget, MAX_AXES,
 };
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -108,6 +109,7 @@ fn hello6() -> Message {
         cycle_us: 4000,
         watchdog_cycles: 25,
         answer: true,
+        version: 2,
     })
 }
 
@@ -116,6 +118,42 @@ fn fault_example() -> Message {
         fault: Fault::OverSpeed { axis: 2 },
         text: "axis 3 step".to_string(),
     })
+}
+
+/// docs/protocol.md 4's I/O examples: the gripper closed by request 7, `part_held` read by 8.
+fn set_output_example() -> Message {
+    Message::Io(IoMessage::SetOutput {
+        request: 7,
+        name: "gripper".into(),
+        value: true,
+    })
+}
+
+fn io_state_output_example() -> Message {
+    Message::Io(IoMessage::State(IoState {
+        request: 7,
+        kind: IoKind::Output,
+        result: IoResult::Done,
+        value: true,
+        name: "gripper".into(),
+    }))
+}
+
+fn read_input_example() -> Message {
+    Message::Io(IoMessage::ReadInput {
+        request: 8,
+        name: "part_held".into(),
+    })
+}
+
+fn io_state_input_example() -> Message {
+    Message::Io(IoMessage::State(IoState {
+        request: 8,
+        kind: IoKind::Input,
+        result: IoResult::Done,
+        value: true,
+        name: "part_held".into(),
+    }))
 }
 
 fn body(message: &Message) -> Vec<u8> {
@@ -132,8 +170,10 @@ fn frame(message: &Message) -> Vec<u8> {
 
 fn sender_of(message: &Message) -> CanSender {
     match message {
-        Message::Feedback(_) | Message::Fault(_) => CanSender::Controller,
-        Message::Hello(_) | Message::Command(_) => CanSender::Bridge,
+        Message::Feedback(_) | Message::Fault(_) | Message::Io(IoMessage::State(_)) => {
+            CanSender::Controller
+        }
+        Message::Hello(_) | Message::Command(_) | Message::Io(_) => CanSender::Bridge,
     }
 }
 
@@ -171,7 +211,7 @@ fn hex_lines(bytes: &[u8]) -> String {
 fn annotated(message: &Message) -> String {
     let bytes = body(message);
     let mut fields: Vec<(usize, String)> = vec![
-        (1, "version 2".to_string()),
+        (1, format!("version {}", bytes[0])),
         (
             1,
             format!("type 0x{:02x} {}", bytes[1], type_name(bytes[1])),
@@ -237,6 +277,27 @@ fn annotated(message: &Message) -> String {
                 format!("text: length {}, {:?}", r.text.len(), r.text),
             ));
         }
+        Message::Io(io) => {
+            fields.push((4, format!("request = {}", io.request())));
+            let name = match io {
+                IoMessage::SetOutput { value, name, .. } => {
+                    fields.push((1, format!("value = {}", u8::from(*value))));
+                    name
+                }
+                IoMessage::ReadInput { name, .. } => name,
+                IoMessage::State(state) => {
+                    let (kind, result) = (state.kind, state.result);
+                    fields.push((1, format!("kind {} ({})", kind as u8, kind.word())));
+                    fields.push((1, format!("result {} ({})", result as u8, result.words())));
+                    fields.push((1, format!("value = {}", u8::from(state.value))));
+                    &state.name
+                }
+            };
+            fields.push((
+                1 + name.len(),
+                format!("name: length {}, {name:?}", name.len()),
+            ));
+        }
         Message::Command(_) => {}
     }
     let crc = u32::from_le_bytes(bytes[bytes.len() - 4..].try_into().unwrap());
@@ -268,6 +329,9 @@ fn type_name(code: u8) -> &'static str {
         0x05 => "Heartbeat",
         0x06 => "Feedback",
         0x08 => "Reset",
+        0x09 => "SetOutput",
+        0x0a => "ReadInput",
+        0x0b => "IoState",
         _ => "Fault",
     }
 }
@@ -292,6 +356,19 @@ fn doc_blocks() -> Vec<(&'static str, String)> {
         ("hello-6-body", annotated(&hello6())),
         ("hello-6-frame", hex_lines(&frame(&hello6()))),
         ("fault-body", annotated(&fault_example())),
+        ("set-output-body", annotated(&set_output_example())),
+        ("set-output-frame", hex_lines(&frame(&set_output_example()))),
+        (
+            "io-state-output-body",
+            annotated(&io_state_output_example()),
+        ),
+        ("read-input-body", annotated(&read_input_example())),
+        ("io-state-input-body", annotated(&io_state_input_example())),
+        (
+            "io-state-input-frame",
+            hex_lines(&frame(&io_state_input_example())),
+        ),
+        ("set-output-can", can_block(&set_output_example(), false)),
         ("target-6-can", can_block(&target6(), false)),
         ("feedback-6-can", can_block(&feedback6(), false)),
         ("target-6-canfd", can_block(&target6(), true)),
@@ -333,6 +410,7 @@ fn frame_size_table() -> String {
         cycle_us: 0,
         watchdog_cycles: 0,
         answer: false,
+        version: 2,
     });
     let cases = [
         ("Target, n axes", None),
@@ -672,7 +750,7 @@ fn hello() -> impl Strategy<Value = Hello> {
                 vec(micro(), n),
                 vec(micro(), n),
                 (vec(micro(), n), vec(micro(), n)),
-                (any::<u32>(), any::<u32>(), any::<bool>()),
+                (any::<u32>(), any::<u32>(), any::<bool>(), 2u8..=3),
             )
         })
         .prop_map(
@@ -681,7 +759,7 @@ fn hello() -> impl Strategy<Value = Hello> {
                 lower,
                 upper,
                 (max_speed, max_acceleration),
-                (cycle_us, watchdog_cycles, answer),
+                (cycle_us, watchdog_cycles, answer, version),
             )| Hello {
                 axis_names,
                 lower,
@@ -691,8 +769,45 @@ fn hello() -> impl Strategy<Value = Hello> {
                 cycle_us,
                 watchdog_cycles,
                 answer,
+                version,
             },
         )
+}
+
+fn io_name() -> impl Strategy<Value = String> {
+    "[A-Za-z0-9_]{1,32}"
+}
+
+fn io_message() -> impl Strategy<Value = IoMessage> {
+    prop_oneof![
+        (1..=u32::MAX, io_name(), any::<bool>()).prop_map(|(request, name, value)| {
+            IoMessage::SetOutput {
+                request,
+                name,
+                value,
+            }
+        }),
+        (1..=u32::MAX, io_name())
+            .prop_map(|(request, name)| IoMessage::ReadInput { request, name }),
+        (
+            1..=u32::MAX,
+            io_name(),
+            any::<bool>(),
+            any::<bool>(),
+            0u8..3
+        )
+            .prop_map(|(request, name, value, input, result)| {
+                let result =
+                    [IoResult::Done, IoResult::NoSuch, IoResult::Refused][usize::from(result)];
+                IoMessage::State(IoState {
+                    request,
+                    kind: if input { IoKind::Input } else { IoKind::Output },
+                    value: value && result == IoResult::Done,
+                    result,
+                    name,
+                })
+            }),
+    ]
 }
 
 fn message() -> impl Strategy<Value = Message> {
@@ -705,6 +820,7 @@ fn message() -> impl Strategy<Value = Message> {
         4 => feedback().prop_map(Message::Feedback),
         1 => (fault(), "\\PC{0,32}").prop_map(|(fault, text)| Message::Fault(FaultReport { fault, text })),
         1 => hello().prop_map(Message::Hello),
+        2 => io_message().prop_map(Message::Io),
     ]
 }
 
@@ -1192,6 +1308,7 @@ fn the_longest_hello_fits_every_transport() {
         cycle_us: 1000,
         watchdog_cycles: 3,
         answer: true,
+        version: 2,
     });
     assert_eq!(body(&longest).len(), 1584);
     assert!(body(&longest).len() <= MAX_BODY_LEN);
@@ -1257,4 +1374,65 @@ fn a_hello_cycle_is_the_period_in_whole_microseconds() {
         );
     }
     assert_eq!(cycle_us(Duration::MAX), u32::MAX);
+}
+
+/// A body of `version`, `kind` and `payload` with its good CRC.
+fn body_with_crc(version: u8, kind: u8, payload: &[u8]) -> Vec<u8> {
+    let mut body = vec![version, kind];
+    body.extend_from_slice(payload);
+    let crc = crc32(&body);
+    body.extend_from_slice(&crc.to_le_bytes());
+    body
+}
+
+#[test]
+fn io_messages_are_strict_on_the_wire_and_refused_by_the_encoder() {
+    // The SetOutput of section 4 decodes; the same bytes in a version 2 frame do not.
+    let payload = [7, 0, 0, 0, 1, 7, b'g', b'r', b'i', b'p', b'p', b'e', b'r'];
+    assert_eq!(
+        decode_body(&body_with_crc(3, 0x09, &payload)),
+        Ok(set_output_example())
+    );
+    let malformed = |version: u8, kind: u8, payload: &[u8]| {
+        matches!(
+            decode_body(&body_with_crc(version, kind, payload)),
+            Err(rigbridge::protocol::DecodeError::Malformed(_))
+        )
+    };
+    assert!(malformed(2, 0x09, &payload), "an I/O message in a v2 frame");
+    // Value 2, request 0, a name with `-`, an empty name, a name of 33 bytes.
+    assert!(malformed(3, 0x09, &[7, 0, 0, 0, 2, 1, b'g']));
+    assert!(malformed(3, 0x09, &[0, 0, 0, 0, 1, 1, b'g']));
+    assert!(malformed(3, 0x0A, &[8, 0, 0, 0, 3, b'a', b'-', b'b']));
+    assert!(malformed(3, 0x0A, &[8, 0, 0, 0, 0]));
+    let mut long = vec![8, 0, 0, 0, 33];
+    long.extend_from_slice(&[b'x'; 33]);
+    assert!(malformed(3, 0x0A, &long));
+    // IoState: kind 2 and result 3 are unknown.
+    assert!(malformed(3, 0x0B, &[8, 0, 0, 0, 2, 0, 1, 1, b'x']));
+    assert!(malformed(3, 0x0B, &[8, 0, 0, 0, 1, 3, 1, 1, b'x']));
+    // Version 4 is another version, counted apart.
+    assert!(matches!(
+        decode_body(&body_with_crc(4, 0x09, &payload)),
+        Err(rigbridge::protocol::DecodeError::UnsupportedVersion(4))
+    ));
+    // The encoder writes no name the wire refuses, and no request 0.
+    let mut out = Vec::new();
+    let bad_name = Message::Io(IoMessage::ReadInput {
+        request: 1,
+        name: "a-b".into(),
+    });
+    assert!(matches!(
+        encode_frame(&bad_name, &mut out),
+        Err(EncodeError::IoName { .. })
+    ));
+    let request_zero = Message::Io(IoMessage::ReadInput {
+        request: 0,
+        name: "ab".into(),
+    });
+    assert_eq!(
+        encode_frame(&request_zero, &mut out),
+        Err(EncodeError::IoRequestZero)
+    );
+    assert!(out.is_empty(), "nothing written for a refused message");
 }

@@ -69,6 +69,8 @@ fn cell() -> Cell {
         margin_m: 0.01,
         allowed_pairs: Vec::new(),
         targets: Default::default(),
+        parts: Vec::new(),
+        gripper: Default::default(),
     }
 }
 

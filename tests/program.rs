@@ -1,7 +1,10 @@
 //! The `program` job kind (issue 29, docs/programs.md): TOML and HTTP refuse the same bad
 //! programs with the same text; the pick-and-place demo's motion runs to `completed`
 //! against the twin with its cycle times per step and per pass in the report and the
-//! summary; the full demo, with its grip and release, is refused before motion with no log
+//! summary; the full demo, with its grip and release, places 12 of 12 parts within 1 mm
+//! and 1 deg with no collision (the twin's judge), which also tells a part dropped and
+//! parts never picked; an input that never comes and an unknown output end the job
+//! faulted; over a v2 controller the full demo is refused before motion with no log
 //! opened, by `run` and over HTTP; a collision names the step as written; and zones make
 //! the demo at least 20 % faster than fine points, both within every limit.
 
@@ -219,28 +222,161 @@ fn the_motion_demo_completes_against_the_twin_with_cycle_times_per_step_and_pass
     assert!(repeat < last_pass && last_pass < next_step, "{summary}");
 }
 
-const IO_REFUSAL: &str = "refused before motion: job.steps[1]: release needs I/O, and the link loopback carries none: the loopback twin carries no I/O yet (protocol v2 has no I/O messages; a later version adds them, with the twin's gripper); EGM, CiA 402 and Dynamixel carry none";
+/// What `run` and `serve` say of a program with I/O when the controller speaks protocol v2.
+const IO_REFUSAL_V2: &str = "refused before motion: job.steps[1]: release needs I/O, and the link loopback carries none: the controller speaks protocol v2, which has no I/O messages (v3 adds them, docs/protocol.md 6.10)";
+
+/// The full demo's settings with the twin told to speak protocol v2, in `dir` (a
+/// [`demo_dir`]).
+fn demo_over_v2(dir: &Path) -> PathBuf {
+    let text = std::fs::read_to_string(repo_path("config/pick-place.toml")).unwrap();
+    let text = text.replace("[twin]\n", "[twin]\nprotocol_version = 2\n");
+    assert!(text.contains("protocol_version = 2"));
+    let file = dir.join("pick-place-v2.toml");
+    std::fs::write(&file, text).unwrap();
+    file
+}
 
 #[test]
-fn the_full_demo_needs_io_and_is_refused_before_motion_with_no_log_opened() {
+fn the_full_demo_places_12_of_12_parts_within_1_mm_and_1_deg_with_no_collision() {
     let dir = common::scratch_dir("program", "io-demo");
     let (output, report) = run(&dir, &repo_path("config/pick-place.toml"));
+    assert!(output.status.success(), "{report}");
+    assert_eq!(report["outcome"], "completed", "{report}");
+    assert_eq!(
+        report["contacts"]["collisions"], 0,
+        "{}",
+        report["contacts"]
+    );
+    let parts = &report["parts"];
+    assert_eq!(parts["parts"], 12, "{parts}");
+    assert_eq!(parts["placed"], 12, "{parts}");
+    for fate in ["dropped", "never_picked", "carried", "collisions"] {
+        assert_eq!(parts[fate], 0, "{fate}: {parts}");
+    }
+    for part in parts["per_part"].as_array().unwrap() {
+        assert_eq!(part["state"], "placed", "{part}");
+        assert!(part["position_error_mm"].as_f64().unwrap() <= 1.0, "{part}");
+        assert!(
+            part["orientation_error_deg"].as_f64().unwrap() <= 1.0,
+            "{part}"
+        );
+        assert_eq!(part["collision_cycles"], 0, "{part}");
+        // Picked, then released later.
+        let picked = part["picked_at_s"].as_f64().unwrap();
+        assert!(part["released_at_s"].as_f64().unwrap() > picked, "{part}");
+    }
+    // One measured time per part, each a whole pass: above the motion's planned share and
+    // below the whole job.
+    let times = parts["cycle_times_s"].as_array().unwrap();
+    assert_eq!(times.len(), 12, "{parts}");
+    let job_s = report["duration_s"].as_f64().unwrap();
+    for t in times {
+        let t = t.as_f64().unwrap();
+        assert!(t > 1.0 && t < job_s / 6.0, "{t} s of a {job_s} s job");
+    }
+    // The I/O waits (the gripper's 0.2 s each way, the input read) are on top of the plan.
+    let planned = report["planned_duration_s"].as_f64().unwrap();
+    assert!(
+        job_s > planned + 24.0 * 0.2,
+        "{job_s} s against {planned} s planned"
+    );
+    let summary = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        summary.contains("parts (the twin's judge): 12 of 12 placed within 1 mm and 1 deg"),
+        "{summary}"
+    );
+    assert!(
+        summary.contains("cycle time per part (measured"),
+        "{summary}"
+    );
+}
+
+#[test]
+fn the_judge_tells_a_part_released_off_its_goal_and_parts_never_picked() {
+    let dir = demo_dir("judge");
+    // slot[0]'s part, picked and released 100 mm above where it lay: dropped there.
+    let steps = serde_json::json!([
+        { "kind": "move_joints", "to": "home" },
+        { "kind": "release" },
+        { "kind": "move_poses", "to": "slot[0]", "offset_m": [0.0, 0.0, -0.1] },
+        { "kind": "move_linear", "to": "slot[0]", "speed": 0.5 },
+        { "kind": "grip" },
+        { "kind": "wait_input", "input": "part_held", "value": true, "timeout_s": 0.5 },
+        { "kind": "move_linear", "to": "slot[0]", "offset_m": [0.0, 0.0, -0.1] },
+        { "kind": "release" },
+        { "kind": "move_joints", "to": "home" },
+    ]);
+    std::fs::write(dir.join("job.toml"), settings_text(&steps)).unwrap();
+    let (output, report) = run(&dir, &dir.join("job.toml"));
+    assert!(output.status.success(), "{report}");
+    let parts = &report["parts"];
+    assert_eq!(parts["placed"], 0, "{parts}");
+    assert_eq!(parts["dropped"], 1, "{parts}");
+    assert_eq!(parts["never_picked"], 11, "{parts}");
+    let first = &parts["per_part"][0];
+    assert_eq!(first["state"], "dropped", "{first}");
+    // Left where it was released: 100 mm above its slot, far from the fixture.
+    let error = first["position_error_mm"].as_f64().unwrap();
+    assert!(error > 100.0, "{first}");
+}
+
+#[test]
+fn waiting_for_an_input_that_never_comes_ends_the_job_faulted_naming_the_step() {
+    let dir = demo_dir("no-part");
+    // Nothing lies at `place`: the gripper closes on air and `part_held` stays off.
+    let steps = serde_json::json!([
+        { "kind": "move_joints", "to": "home" },
+        { "kind": "move_poses", "to": "place" },
+        { "kind": "grip" },
+        { "kind": "wait_input", "input": "part_held", "value": true, "timeout_s": 0.3 },
+        { "kind": "move_joints", "to": "home" },
+    ]);
+    std::fs::write(dir.join("job.toml"), settings_text(&steps)).unwrap();
+    let (output, report) = run(&dir, &dir.join("job.toml"));
+    assert!(!output.status.success());
+    assert_eq!(report["outcome"], "faulted", "{report}");
+    assert_eq!(
+        report["fault"],
+        "job.steps[3] (wait_input part_held = true): input `part_held` was not 1 within 0.300 s",
+        "{report}"
+    );
+    // An output the twin does not have is refused by name.
+    let dir = demo_dir("no-output");
+    let steps = serde_json::json!([
+        { "kind": "move_joints", "to": "home" },
+        { "kind": "set_output", "output": "coolant", "value": true },
+    ]);
+    std::fs::write(dir.join("job.toml"), settings_text(&steps)).unwrap();
+    let (output, report) = run(&dir, &dir.join("job.toml"));
+    assert!(!output.status.success());
+    assert_eq!(
+        report["fault"],
+        "job.steps[1] (set_output coolant = true): output `coolant` (request 1): the controller has none of that name",
+        "{report}"
+    );
+}
+
+#[test]
+fn the_full_demo_over_a_v2_controller_is_refused_before_motion_naming_its_version() {
+    let dir = demo_dir("io-demo-v2");
+    let config = demo_over_v2(&dir);
+    let (output, report) = run(&dir, &config);
     assert!(!output.status.success());
     assert_eq!(report["outcome"], "refused", "{report}");
     assert_eq!(report["cycles"], 0);
-    assert_eq!(report["fault"], IO_REFUSAL);
+    assert_eq!(report["fault"], IO_REFUSAL_V2);
     assert!(
         !dir.join("run.mcap").exists(),
         "a refused program opened a log"
     );
 
     // Over HTTP: the cell's configured job, refused with the same words, nothing logged.
-    let settings = load_run_settings(&repo_path("config/pick-place.toml")).unwrap();
+    let settings = load_run_settings(&config).unwrap();
     let runs = dir.join("runs");
     let server = in_process::start(vec![settings], in_process::options(runs.clone()));
     let (code, answer) = request_json(&server.address.to_string(), "POST", "/api/jobs", "", "");
     assert_eq!(code, 422, "{answer}");
-    assert_eq!(answer["error"], IO_REFUSAL);
+    assert_eq!(answer["error"], IO_REFUSAL_V2);
     server.stop().unwrap().unwrap();
     let logs = std::fs::read_dir(&runs).map_or(0, |d| {
         d.filter(|e| {
@@ -467,4 +603,65 @@ fn zones_make_the_pick_and_place_demo_faster_both_within_every_limit() {
         assert!(closest(&settings, &zoned, slot.translation) < 1e-4);
         assert!(closest(&settings, &fine, above) < 1e-4);
     }
+}
+
+/// A short pick over TCP: the part of slot[0] gripped, `part_held` read, lifted, let go.
+fn pick_over_tcp_steps() -> serde_json::Value {
+    serde_json::json!([
+        { "kind": "move_joints", "to": "home" },
+        { "kind": "release" },
+        { "kind": "move_poses", "to": "slot[0]", "offset_m": [0.0, 0.0, -0.1] },
+        { "kind": "move_linear", "to": "slot[0]", "speed": 0.5 },
+        { "kind": "grip" },
+        { "kind": "wait_input", "input": "part_held", "value": true, "timeout_s": 0.5 },
+        { "kind": "move_linear", "to": "slot[0]", "offset_m": [0.0, 0.0, -0.1] },
+        { "kind": "release" },
+    ])
+}
+
+/// `rigbridge run` of `config` against `rigbridge twin --listen` started with the same
+/// settings (wall clock): its exit, its report.
+fn run_over_tcp(dir: &Path, config: &Path) -> (std::process::Output, serde_json::Value) {
+    let mut twin_command = common::twin::listen_command("tcp://127.0.0.1:0");
+    twin_command.args(["--config", config.to_str().unwrap()]);
+    let twin = common::twin::start_listening(&mut twin_command);
+    let output = Command::new(env!("CARGO_BIN_EXE_rigbridge"))
+        .args(["run", "--config", config.to_str().unwrap()])
+        .args(["--link", &twin.address, "--report", "report.json"])
+        .current_dir(dir)
+        .output()
+        .unwrap();
+    drop(twin);
+    let report = std::fs::read_to_string(dir.join("report.json")).unwrap();
+    (output, serde_json::from_str(&report).unwrap())
+}
+
+#[test]
+fn grip_and_input_travel_over_tcp_to_a_v3_twin_and_a_v2_twin_refuses_them_by_version() {
+    let dir = demo_dir("tcp-v3");
+    std::fs::write(dir.join("job.toml"), settings_text(&pick_over_tcp_steps())).unwrap();
+    let (output, report) = run_over_tcp(&dir, &dir.join("job.toml"));
+    // Completed only if the twin answered each SetOutput once its gripper had moved, and
+    // read `part_held` on: it held the part it closed on, over the wire.
+    assert!(output.status.success(), "{report}");
+    assert_eq!(report["outcome"], "completed", "{report}");
+    assert!(
+        report["link"].as_str().unwrap().starts_with("tcp://"),
+        "{report}"
+    );
+
+    let dir = demo_dir("tcp-v2");
+    let text =
+        settings_text(&pick_over_tcp_steps()).replace("[twin]\n", "[twin]\nprotocol_version = 2\n");
+    std::fs::write(dir.join("job.toml"), text).unwrap();
+    let (output, report) = run_over_tcp(&dir, &dir.join("job.toml"));
+    assert!(!output.status.success());
+    assert_eq!(report["outcome"], "refused", "{report}");
+    assert_eq!(report["cycles"], 0, "{report}");
+    let fault = report["fault"].as_str().unwrap();
+    assert!(
+        fault.starts_with("refused before motion: job.steps[1]: release needs I/O, and the link tcp://127.0.0.1:")
+            && fault.ends_with("carries none: the controller speaks protocol v2, which has no I/O messages (v3 adds them, docs/protocol.md 6.10)"),
+        "{fault}"
+    );
 }

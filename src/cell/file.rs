@@ -2,6 +2,7 @@
 //! on load, every error naming the file, the key and the bad value. Owns the format only;
 //! whether the named bodies exist is the collision model's question (it knows the rig).
 
+use super::parts::{RawGripper, RawPart, gripper_of, parts_of};
 use super::targets::{RawGrid, RawTarget, targets_from_raw};
 use super::{Cell, CellError, CellObject, DEFAULT_MARGIN_M, Tool};
 use crate::rig::geometry::{RawSolid, check_pairs};
@@ -30,6 +31,9 @@ pub(crate) struct RawCell {
     target: Vec<RawTarget>,
     #[serde(default)]
     target_grid: Vec<RawGrid>,
+    #[serde(default)]
+    part: Vec<RawPart>,
+    gripper: Option<RawGripper>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -121,6 +125,12 @@ pub(crate) fn cell_from_raw(raw: &RawCell, file: &Path, prefix: &str) -> Result<
         !name.trim().is_empty()
     })?;
     let targets = targets_from_raw(file, prefix, &raw.target, &raw.target_grid)?;
+    let parts = parts_of(file, prefix, &raw.part, &targets, &read_mesh)?;
+    let gripper = gripper_of(
+        file,
+        prefix,
+        raw.gripper.as_ref().unwrap_or(&RawGripper::default()),
+    )?;
     Ok(Cell {
         mount,
         objects,
@@ -128,6 +138,8 @@ pub(crate) fn cell_from_raw(raw: &RawCell, file: &Path, prefix: &str) -> Result<
         margin_m,
         allowed_pairs: raw.allowed_pairs.clone(),
         targets,
+        parts,
+        gripper,
     })
 }
 

@@ -12,6 +12,7 @@ mod bound;
 mod file;
 mod model;
 mod parry;
+mod parts;
 mod path;
 mod targets;
 pub mod urdf;
@@ -23,6 +24,7 @@ pub use allowed::{
 pub(crate) use file::{RawCell, cell_from_raw};
 pub use file::{cell_from_toml, load_cell};
 pub use model::{BodyId, Clearance, CollisionModel, NO_BODY, PlacedShape, Scratch, Status};
+pub use parts::{Gripper, Part};
 pub use path::{PathClearance, PathCollision};
 pub use targets::{GridNames, NamedTarget, Spot, Targets};
 
@@ -51,6 +53,10 @@ pub struct Cell {
     pub allowed_pairs: Vec<(String, String)>,
     /// Named targets and grids of them, for programs (`[[target]]`, `[[target_grid]]`).
     pub targets: Targets,
+    /// The parts the twin's gripper picks and places (`[[part]]`), and the gripper
+    /// (`[gripper]`, defaults when absent).
+    pub parts: Vec<Part>,
+    pub gripper: Gripper,
 }
 
 /// A named static solid of the cell.
@@ -87,6 +93,8 @@ impl Cell {
             margin_m: DEFAULT_MARGIN_M,
             allowed_pairs: Vec::new(),
             targets: Targets::default(),
+            parts: Vec::new(),
+            gripper: Gripper::default(),
         }
     }
 

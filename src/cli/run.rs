@@ -359,6 +359,58 @@ fn print_summary(report: &RunReport) -> anyhow::Result<()> {
     if let Some(times) = &report.cycle_times {
         print_cycle_times(times)?;
     }
+    if let Some(parts) = &report.parts {
+        print_parts(parts)?;
+    }
+    Ok(())
+}
+
+/// The twin's judgement of the cell's parts: the tally, the worst placement, the measured
+/// time per part, and every part that was not placed.
+fn print_parts(parts: &rigbridge::twin::CellJudgement) -> anyhow::Result<()> {
+    say!(
+        "  parts (the twin's judge): {} of {} placed within {} mm and {} deg; {} dropped, {} never picked, {} still held; {} with collisions",
+        parts.placed,
+        parts.parts,
+        parts.placed_within_mm,
+        parts.placed_within_deg,
+        parts.dropped,
+        parts.never_picked,
+        parts.carried,
+        parts.collisions
+    );
+    say!(
+        "    worst placed: {:.4} mm, {:.4} deg from the goal",
+        parts.worst_position_error_mm,
+        parts.worst_orientation_error_deg
+    );
+    let times: Vec<String> = parts
+        .cycle_times_s
+        .iter()
+        .map(|t| format!("{t:.3}"))
+        .collect();
+    say!(
+        "    cycle time per part (measured, pick to pick, s): {}",
+        times.join(", ")
+    );
+    for part in parts.per_part.iter().filter(|p| p.state != "placed") {
+        say!(
+            "    {} ({} to {}): {}, {:.3} mm and {:.3} deg from it{}",
+            part.name,
+            part.state,
+            part.goal,
+            part.state,
+            part.position_error_mm,
+            part.orientation_error_deg,
+            part.collided_with
+                .as_deref()
+                .map(|other| format!(
+                    ", collided with {other} ({:.2} mm deep)",
+                    part.collision_depth_mm
+                ))
+                .unwrap_or_default()
+        );
+    }
     Ok(())
 }
 

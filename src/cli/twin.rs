@@ -185,7 +185,13 @@ fn protocol_twin(
         );
         twin_config.watchdog_cycles = cycles;
     }
-    let mut twin = Twin::new(&settings.rig, twin_config, &settings.initial())?;
+    let mut twin = Twin::new(&settings.rig, twin_config, &settings.initial())?.with_io(
+        rigbridge::twin::TwinIo::in_cell(
+            &settings.rig,
+            &settings.cell,
+            settings.period().as_secs_f64(),
+        ),
+    );
     if let Some(watch) = rigbridge::daemon::contact_watch(settings)? {
         twin = twin.with_contacts(watch);
     }

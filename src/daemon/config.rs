@@ -993,6 +993,10 @@ pub struct TwinConfig {
     /// The twin's initial position (degrees, metres for prismatic axes). When absent: 0 on
     /// every axis whose range holds 0, else the axis' limit nearest 0.
     pub initial_deg: Vec<f64>,
+    /// The protocol version the twin speaks (docs/protocol.md 6.10), 3 when absent: 3
+    /// carries I/O (its gripper), 2 plays a controller from before I/O (a program with I/O
+    /// is then refused before motion).
+    pub protocol_version: u8,
 }
 
 impl Default for TwinConfig {
@@ -1002,6 +1006,7 @@ impl Default for TwinConfig {
             delay_ms: 12.0,
             watchdog_cycles: 25,
             initial_deg: Vec::new(),
+            protocol_version: crate::protocol::PROTOCOL_VERSION_IO,
         }
     }
 }
@@ -1291,6 +1296,16 @@ impl TwinConfig {
                 "twin.watchdog_cycles",
                 0,
                 "must be at least 1",
+            ));
+        }
+        if !(crate::protocol::codec::PROTOCOL_VERSION..=crate::protocol::PROTOCOL_VERSION_IO)
+            .contains(&self.protocol_version)
+        {
+            return Err(ConfigError::invalid(
+                file,
+                "twin.protocol_version",
+                self.protocol_version,
+                "must be 2 or 3 (docs/protocol.md 6.10)",
             ));
         }
         if self.initial_deg.is_empty() {

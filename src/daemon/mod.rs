@@ -142,6 +142,7 @@ impl Halted {
             log_error: None,
             contacts: None,
             cycle_times: None,
+            parts: None,
         }
     }
 }
@@ -180,6 +181,12 @@ pub struct RunReport {
     /// (docs/programs.md); absent for other jobs.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub cycle_times: Option<crate::job::CycleTimes>,
+    /// The in-process twin's judgement of the cell's parts when the cell has some
+    /// (docs/programs.md, "Parts and the judge"): each part's final pose against its goal,
+    /// parts dropped or never picked, carried parts' collisions, the measured time from one
+    /// pick to the next; absent otherwise.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub parts: Option<crate::twin::CellJudgement>,
 }
 
 /// A log that failed during a run: what failed, from when, and what the job did about it.
@@ -225,6 +232,7 @@ pub fn twin_settings(settings: &RunSettings) -> TwinSettings {
         bandwidth_hz: twin.bandwidth_hz,
         delay: settings.twin_delay(),
         watchdog_cycles: twin.watchdog_cycles,
+        protocol_version: twin.protocol_version,
     }
 }
 
@@ -279,7 +287,13 @@ pub fn loopback_twin(settings: &RunSettings) -> Result<LoopbackLink, DaemonError
 
 /// The twin of `settings` at its initial position, watching its cell's clearances.
 pub fn settings_twin(settings: &RunSettings) -> Result<Twin, DaemonError> {
-    let twin = Twin::new(&settings.rig, twin_settings(settings), &settings.initial())?;
+    let twin = Twin::new(&settings.rig, twin_settings(settings), &settings.initial())?.with_io(
+        crate::twin::TwinIo::in_cell(
+            &settings.rig,
+            &settings.cell,
+            settings.period().as_secs_f64(),
+        ),
+    );
     Ok(match contact_watch(settings)? {
         Some(watch) => twin.with_contacts(watch),
         None => twin,
@@ -620,8 +634,10 @@ pub fn plan_for(
     clock: &dyn Clock,
     control: &StreamControl,
 ) -> Result<PlannedJob, DaemonError> {
-    check_io(job, link)?;
+    // Checked once the controller has answered: its Hello's version says whether a remote
+    // link carries I/O (docs/protocol.md 6.10). Still before any motion.
     let start = held_position(settings, link, clock, control)?;
+    check_io(job, link)?;
     if control.enter(Phase::Planning) {
         return Err(Halted::of(control).told(link));
     }
@@ -799,6 +815,7 @@ pub fn stream_job_with(
         cycle_times: job
             .job
             .and_then(|j| j.cycle_times(job.origins, job.trajectory.period)),
+        parts: link.judgement(),
     })
 }
 

@@ -195,6 +195,9 @@ async fn session(
             command = ends.commands.recv() => {
                 on_command(bus.get_ref(), command, mapping, ends, bridge)
             }
+            request = ends.io_requests.recv() => {
+                on_io_request(bus.get_ref(), request, mapping, ends, bridge)
+            }
             ready = bus.ready(Interest::READABLE | Interest::ERROR) => match ready {
                 Ok(guard) => on_readable(guard, mapping, assembler, ends, bridge),
                 Err(_) => ControlFlow::Break(false),
@@ -227,6 +230,28 @@ fn on_command(
         return ControlFlow::Continue(());
     }
     if !send_noted(bus, &Message::Command(command), mapping, ends, bridge) {
+        return ControlFlow::Break(false);
+    }
+    ControlFlow::Continue(())
+}
+
+/// An I/O request from the streamer, sent as its segments once the controller has
+/// answered (dropped and counted before). Breaks as [`on_command`] does.
+fn on_io_request(
+    bus: &CanBus,
+    request: Option<crate::protocol::IoMessage>,
+    mapping: &CanMapping,
+    ends: &IoEnds,
+    bridge: &mut BridgeSession,
+) -> ControlFlow<bool> {
+    let Some(request) = request else {
+        return ControlFlow::Break(true);
+    };
+    if !bridge.may_send_io() {
+        LinkShared::count(&ends.shared.dropped_commands);
+        return ControlFlow::Continue(());
+    }
+    if !send_noted(bus, &Message::Io(request), mapping, ends, bridge) {
         return ControlFlow::Break(false);
     }
     ControlFlow::Continue(())
@@ -317,6 +342,7 @@ mod tests {
             cycle_us: 4000,
             watchdog_cycles: 25,
             answer: false,
+            version: 2,
         };
         let Err(error) = connect_can("vcan0", mapping, hello) else {
             panic!("a controller-side mapping was accepted");

@@ -6,7 +6,7 @@
 
 use super::session::BridgeSession;
 use super::{Link, LinkCounters, LinkError, LinkEvent};
-use crate::protocol::{Command, Feedback, Hello};
+use crate::protocol::{Command, Feedback, Hello, IoMessage, IoState};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender};
 use std::sync::{Arc, Mutex};
@@ -95,6 +95,9 @@ pub struct IoEnds {
     pub commands: tokio::sync::mpsc::Receiver<Command>,
     pub feedback: SyncSender<Feedback>,
     pub events: SyncSender<LinkEvent>,
+    /// I/O requests to write (protocol v3), and the controller's answers.
+    pub io_requests: tokio::sync::mpsc::Receiver<IoMessage>,
+    pub io_states: SyncSender<IoState>,
     pub shared: Arc<LinkShared>,
 }
 
@@ -112,6 +115,8 @@ pub struct ChannelLink {
     commands: tokio::sync::mpsc::Sender<Command>,
     feedback: Receiver<Feedback>,
     events: Receiver<LinkEvent>,
+    io_requests: tokio::sync::mpsc::Sender<IoMessage>,
+    io_states: Receiver<IoState>,
     shared: Arc<LinkShared>,
     description: String,
 }
@@ -123,6 +128,8 @@ impl ChannelLink {
         let (command_tx, command_rx) = tokio::sync::mpsc::channel(CHANNEL_DEPTH);
         let (feedback_tx, feedback_rx) = std::sync::mpsc::sync_channel(CHANNEL_DEPTH);
         let (event_tx, event_rx) = std::sync::mpsc::sync_channel(CHANNEL_DEPTH);
+        let (io_tx, io_rx) = tokio::sync::mpsc::channel(CHANNEL_DEPTH);
+        let (io_state_tx, io_state_rx) = std::sync::mpsc::sync_channel(CHANNEL_DEPTH);
         let shared = Arc::new(LinkShared::default());
         (
             Self {
@@ -130,6 +137,8 @@ impl ChannelLink {
                 commands: command_tx,
                 feedback: feedback_rx,
                 events: event_rx,
+                io_requests: io_tx,
+                io_states: io_state_rx,
                 shared: shared.clone(),
                 description,
             },
@@ -137,6 +146,8 @@ impl ChannelLink {
                 commands: command_rx,
                 feedback: feedback_tx,
                 events: event_tx,
+                io_requests: io_rx,
+                io_states: io_state_tx,
                 shared,
             },
             BridgeSession::new(hello),
@@ -216,6 +227,39 @@ impl Link for ChannelLink {
 
     fn controller_hello(&self) -> Option<Hello> {
         self.shared.controller_hello.lock().ok()?.clone()
+    }
+
+    /// Carried when the controller's latest Hello was version 3 (docs/protocol.md 6.10).
+    fn io(&self) -> super::Io {
+        match self.controller_hello() {
+            Some(hello) if hello.version >= crate::protocol::PROTOCOL_VERSION_IO => {
+                super::Io::Carried
+            }
+            Some(_) => super::Io::NotCarried(super::NO_IO_V2),
+            None => super::Io::NotCarried(super::NO_IO_UNKNOWN),
+        }
+    }
+
+    fn send_io(&mut self, request: &IoMessage) -> Result<(), LinkError> {
+        if let super::Io::NotCarried(why) = self.io() {
+            return Err(LinkError::NoIo {
+                link: self.describe(),
+                why,
+            });
+        }
+        match self.io_requests.try_send(request.clone()) {
+            // A request lost to a full queue is not answered: the streamer's wait for the
+            // answer runs out and says so.
+            Ok(()) | Err(TrySendError::Full(_)) => Ok(()),
+            Err(TrySendError::Closed(_)) => Err(LinkError::Closed(format!(
+                "{}: I/O thread ended",
+                self.description
+            ))),
+        }
+    }
+
+    fn take_io(&mut self) -> Option<IoState> {
+        self.io_states.try_recv().ok()
     }
 
     fn down_reason(&self) -> Option<String> {

@@ -2,7 +2,8 @@
 //! `receive` after a command advances it by one cycle and returns its feedback. No bytes,
 //! no threads; the streamer's clock is the twin's clock. The session of
 //! `docs/protocol.md` 6.1 is immediate: the link binds the twin as the bridge's Hello
-//! would, at once and again after a reset, and passes on the twin's Fault notices.
+//! would, at once and again after a reset, and passes on the twin's Fault notices. I/O
+//! requests go to the twin as they would over protocol v3, and its answers come back.
 
 use super::{Link, LinkCounters, LinkError, LinkEvent};
 use crate::protocol::{Command, Feedback, Hello};
@@ -39,6 +40,10 @@ impl Link for LoopbackLink {
         self.twin.take_contacts()
     }
 
+    fn judgement(&self) -> Option<crate::twin::CellJudgement> {
+        self.twin.judgement()
+    }
+
     fn send(&mut self, command: &Command) -> Result<(), LinkError> {
         self.counters.frames_sent += 1;
         self.twin.handle(command);
@@ -70,9 +75,27 @@ impl Link for LoopbackLink {
     }
 
     fn io(&self) -> super::Io {
-        super::Io::NotCarried(
-            "the loopback twin carries no I/O yet (protocol v2 has no I/O messages; a later version adds them, with the twin's gripper); EGM, CiA 402 and Dynamixel carry none",
-        )
+        if self.twin.carries_io() {
+            super::Io::Carried
+        } else {
+            super::Io::NotCarried(super::NO_IO_V2)
+        }
+    }
+
+    fn send_io(&mut self, request: &crate::protocol::IoMessage) -> Result<(), LinkError> {
+        if let super::Io::NotCarried(why) = self.io() {
+            return Err(LinkError::NoIo {
+                link: self.describe(),
+                why,
+            });
+        }
+        self.counters.frames_sent += 1;
+        self.twin.handle_io(request);
+        Ok(())
+    }
+
+    fn take_io(&mut self) -> Option<crate::protocol::IoState> {
+        self.twin.take_io_answer()
     }
 
     fn next_event(&mut self) -> Option<LinkEvent> {

@@ -61,6 +61,8 @@ pub enum LinkError {
     Closed(String),
     #[error("link I/O error")]
     Io(#[from] std::io::Error),
+    #[error("the link {link} carries no digital I/O: {why}")]
+    NoIo { link: String, why: &'static str },
 }
 
 /// What a link hears from the controller besides Feedback, in the order it happened.
@@ -102,6 +104,7 @@ pub fn bridge_hello(
         cycle_us: crate::protocol::cycle_us(period),
         watchdog_cycles,
         answer: false,
+        version: crate::protocol::codec::PROTOCOL_VERSION,
     }
 }
 
@@ -127,18 +130,22 @@ pub struct LinkCounters {
 
 /// Whether a link carries digital I/O beside motion (a program's `set_output`,
 /// `wait_input`, `grip`, `release`), and if not, why: what a program that needs I/O is told
-/// before any motion (docs/programs.md). No link carries any yet; one that does answers
-/// [`Io::Carried`] from [`Link::io`] and nothing else changes for it to be let through.
+/// before any motion (docs/programs.md). Our protocol carries it from version 3 (the
+/// loopback twin, TCP, serial, CAN with a v3 controller); the device links carry none.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Io {
     Carried,
     NotCarried(&'static str),
 }
 
-/// Why no link carries I/O today, told with every refusal: protocol v2's messages are
-/// joint targets, feedback and session control only; EGM's joint references, Dynamixel's
-/// goal positions and CiA 402's cyclic positions as rigbridge drives them carry none.
-pub const NO_IO_ANYWHERE: &str = "protocol v2 (the twin, TCP, serial, CAN) has no I/O messages yet (a later version adds them); EGM, CiA 402 and Dynamixel carry none";
+/// Why a device link carries no I/O, told with every refusal: EGM's joint references,
+/// Dynamixel's goal positions and CiA 402's cyclic positions as rigbridge drives them carry
+/// none; our protocol carries it from version 3 (docs/protocol.md 6.10).
+pub const NO_IO_ANYWHERE: &str = "EGM, CiA 402 and Dynamixel carry none as rigbridge drives them; our protocol v3 does (the twin, TCP, serial, CAN)";
+/// Why a session with a v2 controller carries no I/O.
+pub const NO_IO_V2: &str = "the controller speaks protocol v2, which has no I/O messages (v3 adds them, docs/protocol.md 6.10)";
+/// Why a link whose controller has not answered yet cannot say.
+pub const NO_IO_UNKNOWN: &str = "no controller has answered the bridge's Hello yet (its Hello's version says whether it carries I/O)";
 
 pub trait Link: Send {
     fn send(&mut self, command: &Command) -> Result<(), LinkError>;
@@ -147,9 +154,25 @@ pub trait Link: Send {
     fn counters(&self) -> LinkCounters;
     /// A short description for summaries, such as `loopback` or `tcp://127.0.0.1:7000`.
     fn describe(&self) -> String;
-    /// Whether this link carries digital I/O ([`Io`]); none does yet.
+    /// Whether this link carries digital I/O ([`Io`]).
     fn io(&self) -> Io {
         Io::NotCarried(NO_IO_ANYWHERE)
+    }
+    /// Sends an I/O request (protocol v3's SetOutput or ReadInput); refused by a link that
+    /// carries none.
+    fn send_io(&mut self, request: &crate::protocol::IoMessage) -> Result<(), LinkError> {
+        let _ = request;
+        let Io::NotCarried(why) = self.io() else {
+            return Ok(());
+        };
+        Err(LinkError::NoIo {
+            link: self.describe(),
+            why,
+        })
+    }
+    /// The controller's next answer to an I/O request, if one arrived (never blocks).
+    fn take_io(&mut self) -> Option<crate::protocol::IoState> {
+        None
     }
     /// True while a session is established: the transport is up and the controller has
     /// answered the bridge's Hello (a link that reconnects is false between attempts).
@@ -198,6 +221,12 @@ pub trait Link: Send {
     /// afresh from now: the in-process twin's collision watch; `None` for a controller that
     /// does not tell (every remote one).
     fn take_contacts(&mut self) -> Option<crate::twin::ContactReport> {
+        None
+    }
+    /// The in-process twin's judgement of the cell's parts (issue 29): where each ended
+    /// against its goal; `None` for a controller that does not tell (every remote one) or a
+    /// cell without parts.
+    fn judgement(&self) -> Option<crate::twin::CellJudgement> {
         None
     }
 }

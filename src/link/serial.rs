@@ -82,13 +82,16 @@ async fn keep_open(settings: SerialSettings, mut ends: IoEnds, session: BridgeSe
     }
 }
 
-/// The reader's copy of the ends (it needs no commands).
+/// The reader's copy of the ends (it needs no commands and no I/O requests).
 fn reader_ends(ends: &IoEnds) -> IoEnds {
     let (_, commands) = tokio::sync::mpsc::channel(1);
+    let (_, io_requests) = tokio::sync::mpsc::channel(1);
     IoEnds {
         commands,
         feedback: ends.feedback.clone(),
         events: ends.events.clone(),
+        io_requests,
+        io_states: ends.io_states.clone(),
         shared: ends.shared.clone(),
     }
 }
@@ -156,6 +159,15 @@ async fn write_commands(
                     .is_ok_and(|s| s.may_send(&command, &ends.shared));
                 if allowed {
                     pending = Some((Message::Command(command), false));
+                } else {
+                    LinkShared::count(&ends.shared.dropped_commands);
+                }
+            }
+            request = ends.io_requests.recv() => {
+                let Some(request) = request else { return true };
+                let allowed = shared.session.lock().is_ok_and(|s| s.may_send_io());
+                if allowed {
+                    pending = Some((Message::Io(request), false));
                 } else {
                     LinkShared::count(&ends.shared.dropped_commands);
                 }

@@ -90,6 +90,12 @@ impl BridgeSession {
         shared.established.store(false, Ordering::SeqCst);
     }
 
+    /// Whether an I/O request may go out now: only once the controller has answered (a
+    /// request before it would reach a controller that is not bound).
+    pub fn may_send_io(&self) -> bool {
+        self.state == State::Established
+    }
+
     /// Whether `command` may go out now: only Heartbeat, Stop, EStop and Reset before
     /// the controller's answer (docs/protocol.md 6.1, step 5), and targets only in the
     /// session the streamer adopted.
@@ -127,8 +133,15 @@ impl BridgeSession {
                 let _ = ends.events.try_send(LinkEvent::Fault(report));
                 None
             }
-            // Commands come from the bridge's side; a Heartbeat only proves the link.
-            Message::Command(_) => None,
+            Message::Io(crate::protocol::IoMessage::State(state)) => {
+                if self.state == State::Established {
+                    let _ = ends.io_states.try_send(state);
+                }
+                None
+            }
+            // Commands and I/O requests come from the bridge's side; a Heartbeat only
+            // proves the link.
+            Message::Command(_) | Message::Io(_) => None,
         }
     }
 

@@ -157,6 +157,21 @@ async fn session(stream: TcpStream, ends: &mut IoEnds, bridge: &mut BridgeSessio
                 bridge.sent(Instant::now());
                 LinkShared::count(&ends.shared.frames_sent);
             }
+            request = ends.io_requests.recv() => {
+                let Some(request) = request else { return true };
+                if !bridge.may_send_io() {
+                    LinkShared::count(&ends.shared.dropped_commands);
+                    continue;
+                }
+                if !encode(&Message::Io(request), &mut frame, ends) {
+                    continue;
+                }
+                if writer.write_all(&frame).await.is_err() {
+                    return false;
+                }
+                bridge.sent(Instant::now());
+                LinkShared::count(&ends.shared.frames_sent);
+            }
             read = reader.read(&mut buffer) => {
                 let n = match read {
                     Ok(0) | Err(_) => return false,

@@ -1,4 +1,4 @@
-//! The CAN mapping of protocol version 1: which 11-bit identifiers carry which message, how
+//! The CAN mapping of protocol versions 2 and 3: which 11-bit identifiers carry which message, how
 //! a Target or Feedback is split over classic CAN (8-byte) or CAN FD (up to 64-byte) frames,
 //! and [`CanAssembler`], which rebuilds messages and delivers a multi-frame one only when
 //! every frame arrived and its CRC-32 holds (never a half-updated target).
@@ -12,6 +12,7 @@ use super::codec::{
     DecodeError, EncodeError, MAX_BODY_LEN, Message, Reader, Sink, WireFeedback, WireTarget,
     decode_body, encode_body,
 };
+use super::io::IoMessage;
 use super::{Command, MAX_AXES};
 use thiserror::Error;
 
@@ -37,6 +38,8 @@ pub const OFFSET_HEARTBEAT_BRIDGE: u16 = 0x25;
 pub const OFFSET_HELLO_BRIDGE: u16 = 0x26;
 /// Protocol v2's Reset, after the bridge's other IDs (it is never urgent).
 pub const OFFSET_RESET: u16 = 0x27;
+/// Version 3: SetOutput or ReadInput, segmented (docs/protocol.md 7.1, 7.4).
+pub const OFFSET_IO_REQUEST: u16 = 0x28;
 // Sent by the controller:
 pub const OFFSET_FAULT: u16 = 0x40;
 /// A whole Feedback in one CAN FD frame (when it fits: up to 13 axes).
@@ -47,6 +50,8 @@ pub const OFFSET_FEEDBACK_POSITIONS: u16 = 0x43;
 pub const OFFSET_FEEDBACK_COMMIT: u16 = 0x53;
 pub const OFFSET_HEARTBEAT_CONTROLLER: u16 = 0x54;
 pub const OFFSET_HELLO_CONTROLLER: u16 = 0x55;
+/// Version 3: IoState, segmented.
+pub const OFFSET_IO_STATE: u16 = 0x56;
 
 /// Position or velocity frames per message, at most (32 axes at 2 per classic frame).
 const DATA_FRAMES: u16 = 16;
@@ -263,6 +268,14 @@ fn push_frames(
                 CanSender::Controller => OFFSET_HELLO_CONTROLLER,
             };
             segment_frames(message, mapping.id(offset), mapping, out)?;
+        }
+        Message::Io(IoMessage::State(_)) => {
+            require(mapping, CanSender::Controller, "I/O state")?;
+            segment_frames(message, mapping.id(OFFSET_IO_STATE), mapping, out)?;
+        }
+        Message::Io(_) => {
+            require(mapping, CanSender::Bridge, "I/O request")?;
+            segment_frames(message, mapping.id(OFFSET_IO_REQUEST), mapping, out)?;
         }
     }
     Ok(())
@@ -482,6 +495,8 @@ pub struct CanAssembler {
     hello_bridge: Segments,
     hello_controller: Segments,
     fault: Segments,
+    io_request: Segments,
+    io_state: Segments,
     counters: CanCounters,
 }
 
@@ -494,6 +509,8 @@ impl CanAssembler {
             hello_bridge: Segments::new(),
             hello_controller: Segments::new(),
             fault: Segments::new(),
+            io_request: Segments::new(),
+            io_state: Segments::new(),
             counters: CanCounters::default(),
         }
     }
@@ -509,6 +526,8 @@ impl CanAssembler {
         self.hello_bridge.open = false;
         self.hello_controller.open = false;
         self.fault.open = false;
+        self.io_request.open = false;
+        self.io_state.open = false;
     }
 
     /// Takes one received frame; returns a message when this frame completes one.
@@ -596,6 +615,8 @@ impl CanAssembler {
             OFFSET_HELLO_BRIDGE => segment(&mut self.hello_bridge, data, is_hello, lost),
             OFFSET_HELLO_CONTROLLER => segment(&mut self.hello_controller, data, is_hello, lost),
             OFFSET_FAULT => segment(&mut self.fault, data, is_fault, lost),
+            OFFSET_IO_REQUEST => segment(&mut self.io_request, data, is_io_request, lost),
+            OFFSET_IO_STATE => segment(&mut self.io_state, data, is_io_state, lost),
             _ => Step::Malformed,
         }
     }
@@ -743,6 +764,17 @@ fn is_hello(message: &Message) -> bool {
 
 fn is_fault(message: &Message) -> bool {
     matches!(message, Message::Fault(_))
+}
+
+fn is_io_request(message: &Message) -> bool {
+    matches!(
+        message,
+        Message::Io(IoMessage::SetOutput { .. } | IoMessage::ReadInput { .. })
+    )
+}
+
+fn is_io_state(message: &Message) -> bool {
+    matches!(message, Message::Io(IoMessage::State(_)))
 }
 
 /// One segment of a Hello or Fault; the last one decodes the body like a stream frame.

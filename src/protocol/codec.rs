@@ -1,4 +1,4 @@
-//! The byte encoding of protocol version 2 for byte streams (serial, TCP): message bodies,
+//! The byte encoding of protocol versions 2 and 3 for byte streams (serial, TCP): message bodies,
 //! CRC-32, COBS framing, and a resynchronising [`FrameDecoder`]. `docs/protocol.md` is the
 //! normative description; this file must agree with it (tests/codec.rs checks the examples).
 //!
@@ -11,11 +11,15 @@
 //! buffers, so a Target or Feedback allocates nothing once the buffers have grown. Hello
 //! and Fault carry strings and may allocate; they are rare.
 
+use super::io::{IoKind, IoMessage, IoResult, IoState, MAX_IO_NAME_LEN, io_name_ok};
 use super::{AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget, MAX_AXES};
 use thiserror::Error;
 
-/// The version byte every v2 frame starts with.
+/// The version byte of messages 0x01-0x08 (version 2's layouts), in every session.
 pub const PROTOCOL_VERSION: u8 = 2;
+/// The version byte of the I/O messages, and of a controller's Hello that says it speaks
+/// version 3 (docs/protocol.md 2, 6.10).
+pub const PROTOCOL_VERSION_IO: u8 = 3;
 /// The longest frame body (version through CRC) a v2 receiver accepts. The longest v2
 /// message, a Hello of 32 axes with 32-byte names, is 1584 bytes.
 pub const MAX_BODY_LEN: usize = 1600;
@@ -44,6 +48,9 @@ pub(super) const TYPE_HEARTBEAT: u8 = 0x05;
 pub(super) const TYPE_FEEDBACK: u8 = 0x06;
 pub(super) const TYPE_FAULT: u8 = 0x07;
 pub(super) const TYPE_RESET: u8 = 0x08;
+pub(super) const TYPE_SET_OUTPUT: u8 = 0x09;
+pub(super) const TYPE_READ_INPUT: u8 = 0x0A;
+pub(super) const TYPE_IO_STATE: u8 = 0x0B;
 /// Hello flags bit 0: this Hello answers a bridge Hello (docs/protocol.md 6.1).
 const HELLO_ANSWER: u8 = 0x01;
 
@@ -65,6 +72,9 @@ pub struct Hello {
     pub watchdog_cycles: u32,
     /// True when this Hello answers a bridge Hello (controllers only).
     pub answer: bool,
+    /// The frame's version byte: 2, or 3 from a controller that speaks version 3 (I/O).
+    /// The bridge's Hello is always 2 (docs/protocol.md 6.10).
+    pub version: u8,
 }
 
 /// `period` as a Hello's `cycle_us`: whole microseconds, rounded to the nearest.
@@ -92,6 +102,8 @@ pub enum Message {
     Feedback(Feedback),
     /// Controller to bridge, once when a fault latches.
     Fault(FaultReport),
+    /// Version 3's I/O: a request from the bridge or the controller's answer.
+    Io(IoMessage),
 }
 
 #[derive(Debug, Clone, PartialEq, Error)]
@@ -120,6 +132,14 @@ pub enum EncodeError {
     TextTooLong { len: usize },
     #[error("a body of {len} bytes needs more than 256 CAN segments")]
     TooLongForCan { len: usize },
+    #[error(
+        "I/O name `{name}` is not 1 to {MAX_IO_NAME_LEN} letters, digits or `_` (docs/protocol.md 3.6)"
+    )]
+    IoName { name: String },
+    #[error("an I/O request is numbered 0; requests count from 1")]
+    IoRequestZero,
+    #[error("a Hello of version {0}: a Hello is version 2 or 3")]
+    HelloVersion(u8),
     #[error("a {message} is not sent by the {sender} on CAN")]
     WrongSender {
         message: &'static str,
@@ -137,7 +157,7 @@ pub enum DecodeError {
     TooLong(usize),
     #[error("CRC mismatch: frame says {sent:#010x}, bytes give {computed:#010x}")]
     Crc { sent: u32, computed: u32 },
-    #[error("protocol version {0} is not supported (this is version {PROTOCOL_VERSION})")]
+    #[error("protocol version {0} is not supported (this is versions 2 and 3)")]
     UnsupportedVersion(u8),
     #[error("COBS encoding is broken")]
     Cobs,
@@ -627,6 +647,52 @@ fn write_message<S: Sink>(message: &Message, sink: &mut S) -> Result<(), EncodeE
             Ok(())
         }
         Message::Fault(report) => write_fault(report, sink),
+        Message::Io(io) => write_io(io, sink),
+    }
+}
+
+/// request u32 | [SetOutput: value u8] | [IoState: kind u8 | result u8 | value u8] |
+/// name length u8 | name
+fn write_io<S: Sink>(io: &IoMessage, sink: &mut S) -> Result<(), EncodeError> {
+    let (kind, name) = match io {
+        IoMessage::SetOutput { name, .. } => (TYPE_SET_OUTPUT, name),
+        IoMessage::ReadInput { name, .. } => (TYPE_READ_INPUT, name),
+        IoMessage::State(state) => (TYPE_IO_STATE, &state.name),
+    };
+    if !io_name_ok(name) {
+        return Err(EncodeError::IoName { name: name.clone() });
+    }
+    if io.request() == 0 {
+        return Err(EncodeError::IoRequestZero);
+    }
+    sink.put(&[PROTOCOL_VERSION_IO, kind]);
+    sink.put(&io.request().to_le_bytes());
+    match io {
+        IoMessage::SetOutput { value, .. } => sink.put(&[u8::from(*value)]),
+        IoMessage::ReadInput { .. } => {}
+        IoMessage::State(state) => sink.put(&[
+            io_kind_to_wire(state.kind),
+            io_result_to_wire(state.result),
+            u8::from(state.value),
+        ]),
+    }
+    sink.put(&[name.len() as u8]);
+    sink.put(name.as_bytes());
+    Ok(())
+}
+
+fn io_kind_to_wire(kind: IoKind) -> u8 {
+    match kind {
+        IoKind::Output => 0,
+        IoKind::Input => 1,
+    }
+}
+
+fn io_result_to_wire(result: IoResult) -> u8 {
+    match result {
+        IoResult::Done => 0,
+        IoResult::NoSuch => 1,
+        IoResult::Refused => 2,
     }
 }
 
@@ -654,7 +720,10 @@ fn write_hello<S: Sink>(hello: &Hello, sink: &mut S) -> Result<(), EncodeError> 
             len: name.len(),
         });
     }
-    sink.put(&[PROTOCOL_VERSION, TYPE_HELLO, axes as u8]);
+    if hello.version != PROTOCOL_VERSION && hello.version != PROTOCOL_VERSION_IO {
+        return Err(EncodeError::HelloVersion(hello.version));
+    }
+    sink.put(&[hello.version, TYPE_HELLO, axes as u8]);
     for name in &hello.axis_names {
         sink.put(&[name.len() as u8]);
         sink.put(name.as_bytes());
@@ -747,15 +816,93 @@ pub fn decode_body(body: &[u8]) -> Result<Message, DecodeError> {
     if sent != computed {
         return Err(DecodeError::Crc { sent, computed });
     }
-    if covered[0] != PROTOCOL_VERSION {
-        return Err(DecodeError::UnsupportedVersion(covered[0]));
+    let (version, kind) = (covered[0], covered[1]);
+    if version != PROTOCOL_VERSION && version != PROTOCOL_VERSION_IO {
+        return Err(DecodeError::UnsupportedVersion(version));
     }
     let mut reader = Reader {
         bytes: &covered[2..],
     };
-    let message = read_message(covered[1], &mut reader)?;
+    let mut message = match kind {
+        TYPE_SET_OUTPUT | TYPE_READ_INPUT | TYPE_IO_STATE if version == PROTOCOL_VERSION => {
+            return Err(DecodeError::Malformed(
+                "an I/O message in a version 2 frame",
+            ));
+        }
+        TYPE_SET_OUTPUT | TYPE_READ_INPUT | TYPE_IO_STATE => {
+            Message::Io(read_io(kind, &mut reader)?)
+        }
+        _ => read_message(kind, &mut reader)?,
+    };
     reader.finish()?;
+    if let Message::Hello(hello) = &mut message {
+        hello.version = version;
+    }
     Ok(message)
+}
+
+/// The payload of SetOutput, ReadInput or IoState (`kind`), strict as 3.6 says.
+fn read_io(kind: u8, reader: &mut Reader<'_>) -> Result<IoMessage, DecodeError> {
+    let request = reader.u32()?;
+    if request == 0 {
+        return Err(DecodeError::Malformed("I/O request 0"));
+    }
+    let io = match kind {
+        TYPE_SET_OUTPUT => {
+            let value = read_bit(reader)?;
+            IoMessage::SetOutput {
+                request,
+                value,
+                name: read_io_name(reader)?,
+            }
+        }
+        TYPE_READ_INPUT => IoMessage::ReadInput {
+            request,
+            name: read_io_name(reader)?,
+        },
+        _ => {
+            let kind = match reader.u8()? {
+                0 => IoKind::Output,
+                1 => IoKind::Input,
+                _ => return Err(DecodeError::Malformed("unknown I/O kind")),
+            };
+            let result = match reader.u8()? {
+                0 => IoResult::Done,
+                1 => IoResult::NoSuch,
+                2 => IoResult::Refused,
+                _ => return Err(DecodeError::Malformed("unknown I/O result")),
+            };
+            let value = read_bit(reader)?;
+            IoMessage::State(IoState {
+                request,
+                kind,
+                result,
+                value,
+                name: read_io_name(reader)?,
+            })
+        }
+    };
+    Ok(io)
+}
+
+fn read_bit(reader: &mut Reader<'_>) -> Result<bool, DecodeError> {
+    match reader.u8()? {
+        0 => Ok(false),
+        1 => Ok(true),
+        _ => Err(DecodeError::Malformed("a digital value other than 0 or 1")),
+    }
+}
+
+fn read_io_name(reader: &mut Reader<'_>) -> Result<String, DecodeError> {
+    let len = usize::from(reader.u8()?);
+    let name = reader.text(len)?;
+    if io_name_ok(&name) {
+        Ok(name)
+    } else {
+        Err(DecodeError::Malformed(
+            "an I/O name that is not 1 to 32 letters, digits or _",
+        ))
+    }
 }
 
 fn read_message(kind: u8, reader: &mut Reader<'_>) -> Result<Message, DecodeError> {
@@ -789,6 +936,7 @@ fn read_hello(reader: &mut Reader<'_>) -> Result<Hello, DecodeError> {
         cycle_us: 0,
         watchdog_cycles: 0,
         answer: false,
+        version: PROTOCOL_VERSION,
     };
     for _ in 0..axes {
         let len = usize::from(reader.u8()?);

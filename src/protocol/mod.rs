@@ -10,12 +10,14 @@ pub mod canopen;
 pub mod codec;
 pub mod dynamixel;
 pub mod egm;
+pub mod io;
 
 pub use can::{CanAssembler, CanCounters, CanMapping, CanPayload, CanSender, can_frames};
 pub use codec::{
-    DecodeError, DecoderCounters, EncodeError, FaultReport, FrameDecoder, Hello, Message, cycle_us,
-    decode_body, encode_body, encode_frame,
+    DecodeError, DecoderCounters, EncodeError, FaultReport, FrameDecoder, Hello, Message,
+    PROTOCOL_VERSION_IO, cycle_us, decode_body, encode_body, encode_frame,
 };
+pub use io::{IoKind, IoMessage, IoResult, IoState, io_name_ok};
 
 /// The most axes one rig may stream (the arm with its base, the sloth's bones and body).
 pub const MAX_AXES: usize = 32;

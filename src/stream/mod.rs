@@ -20,6 +20,7 @@ mod controller;
 mod executor;
 mod follow;
 mod gate;
+mod io;
 mod metrics;
 mod online;
 mod phase;
@@ -662,6 +663,11 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
             link.send(&Command::Stop)?;
             return Ok(Some(Outcome::Stopped));
         }
+        let stopping = self.control.is_stopping() || cycle.aborting.is_some();
+        if let Err(words) = cycle.io.step(cycle.path, link, stopping) {
+            cycle.fault.get_or_insert(words);
+            cycle.aborting = Some(Outcome::Faulted);
+        }
         let (positions, velocities, finished) = cycle.next(self.control, self.trajectory, self.rig);
         self.control
             .halting
@@ -882,6 +888,8 @@ struct Cycle {
     online: Online,
     /// The commanded velocities of the target before the last (its acceleration).
     velocity_before: Option<AxisValues>,
+    /// The trajectory's I/O points: where the path waits for the controller.
+    io: io::IoRun,
 }
 
 impl Cycle {
@@ -920,6 +928,7 @@ impl Cycle {
             aborting: None,
             online: Online::new(rig, trajectory.period, settings.online),
             velocity_before: None,
+            io: io::IoRun::new(trajectory),
         }
     }
 
@@ -1037,11 +1046,16 @@ impl Cycle {
                 (self.scale - self.scale_step).max(wanted)
             }
         };
-        self.path = (self.path + self.scale).min(last);
+        // An I/O point not done yet holds the path there (the arm is at rest at it).
+        let hold = self
+            .io
+            .hold_at()
+            .map_or(last, |sample| (sample as f64).min(last));
+        self.path = (self.path + self.scale).min(hold);
         if stopping && self.scale == 0.0 && self.path < last {
             self.aborting.get_or_insert(Outcome::Stopped);
         }
-        self.path >= last
+        self.path >= last && self.io.hold_at().is_none()
     }
 
     /// Turns the following check's verdict into the stream's end, if it is one. A path

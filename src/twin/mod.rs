@@ -2,13 +2,15 @@
 //!
 //! Per axis it models what real servo loops do to a stream of targets: a transport delay
 //! and a first-order lag of configurable bandwidth. It is a strict controller of
-//! `docs/protocol.md` (version 2): it drops targets until a bridge Hello binds it (and
+//! `docs/protocol.md` (version 3, or 2 when told to speak it): it drops targets until a bridge Hello binds it (and
 //! again after link loss or a reset), and answers a target outside the limits, a step or
 //! velocity faster than an axis allows, a velocity change or position second difference
 //! above its acceleration, or a wrong axis count with a latched fault, no motion and one
 //! Fault notice. Without targets for `watchdog_cycles` it decelerates within the limits
 //! and holds. Given the cell's collision model, it measures clearances from the positions
 //! it reaches and stops with a latched collision fault when a contact begins (`contact`).
+//! Its I/O (a gripper, the cell's parts and the judge of them) is `gripper`'s; a twin that
+//! speaks version 2 has none.
 //! It owns the simulated arm state only; it must not know about trajectories,
 //! jobs, logs or bytes (the session over a transport is `server`'s).
 
@@ -17,11 +19,13 @@ pub mod canopen;
 pub mod contact;
 pub mod dynamixel;
 pub mod egm;
+pub mod gripper;
 pub mod serial_port;
 pub mod server;
 mod world;
 
 pub use contact::{ContactReport, ContactWatch};
+pub use gripper::{CellJudgement, PartJudgement, TwinIo};
 pub use world::{SharedWorld, TwinWorld, ViewOnly};
 
 use crate::protocol::{
@@ -49,6 +53,8 @@ pub struct TwinSettings {
     pub delay: Duration,
     /// Cycles without a target before the twin decelerates and holds.
     pub watchdog_cycles: u32,
+    /// The protocol version it speaks: 3 (with I/O) or 2 (none), docs/protocol.md 6.10.
+    pub protocol_version: u8,
 }
 
 impl Default for TwinSettings {
@@ -58,6 +64,7 @@ impl Default for TwinSettings {
             bandwidth_hz: 20.0,
             delay: Duration::from_millis(12),
             watchdog_cycles: 25,
+            protocol_version: crate::protocol::PROTOCOL_VERSION_IO,
         }
     }
 }
@@ -122,6 +129,8 @@ pub struct Twin {
     world: Option<Box<dyn TwinWorld>>,
     /// The cell's collision model watching the actual positions (none: no cell given).
     contacts: Option<ContactWatch>,
+    /// The gripper and the cell's parts (protocol v3's I/O).
+    io: TwinIo,
 }
 
 impl Twin {
@@ -172,6 +181,7 @@ impl Twin {
             notice: None,
             world: None,
             contacts: None,
+            io: TwinIo::bare(dt),
             smoothing: 1.0 - (-std::f64::consts::TAU * settings.bandwidth_hz * dt).exp(),
         })
     }
@@ -187,6 +197,35 @@ impl Twin {
     pub fn with_contacts(mut self, watch: ContactWatch) -> Self {
         self.contacts = Some(watch);
         self
+    }
+
+    /// Gives the twin the gripper and the parts of its cell.
+    pub fn with_io(mut self, io: TwinIo) -> Self {
+        self.io = io;
+        self
+    }
+
+    /// Whether it speaks protocol v3 (and so carries I/O).
+    pub fn carries_io(&self) -> bool {
+        self.settings.protocol_version >= crate::protocol::PROTOCOL_VERSION_IO
+    }
+
+    /// An I/O request from the bridge (docs/protocol.md 6.10): a SetOutput changes nothing
+    /// while the twin is unbound or faulted. A twin that speaks v2 never gets one (its
+    /// server drops the frames as another version's).
+    pub fn handle_io(&mut self, message: &crate::protocol::IoMessage) {
+        let may_change = self.bound && !matches!(self.status, ControllerStatus::Fault(_));
+        self.io.request(message, may_change);
+    }
+
+    /// The next I/O answer due.
+    pub fn take_io_answer(&mut self) -> Option<crate::protocol::IoState> {
+        self.io.take_answer()
+    }
+
+    /// The judge's verdict on the cell's parts so far (none without parts).
+    pub fn judgement(&self) -> Option<CellJudgement> {
+        self.io.judgement()
     }
 
     /// The collision watch, when the twin has a cell.
@@ -224,6 +263,7 @@ impl Twin {
             cycle_us: crate::protocol::cycle_us(self.settings.period),
             watchdog_cycles: self.settings.watchdog_cycles,
             answer,
+            version: self.settings.protocol_version,
         }
     }
 
@@ -472,6 +512,7 @@ impl Twin {
             *actual += smoothing * (setpoint - *actual);
         }
         self.watch_contacts();
+        self.io.tick(self.actual.as_slice());
         if let Some(world) = self.world.as_mut() {
             world.observe(self.actual.as_slice());
         }

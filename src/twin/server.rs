@@ -337,6 +337,11 @@ impl Session {
                         self.tick(twin, port);
                     }
                 }
+                // A v3 request (a twin told to speak v2 takes it as another version's).
+                Message::Io(request) if twin.carries_io() => {
+                    twin.handle_io(&request);
+                    self.answer_io(twin, port);
+                }
                 // Feedback, Fault or an answer Hello from the bridge's side: ignored
                 // (docs/protocol.md 3).
                 _ => {}
@@ -357,6 +362,18 @@ impl Session {
         }
     }
 
+    /// Sends every I/O answer that is due (docs/protocol.md 6.10).
+    fn answer_io(&mut self, twin: &mut Twin, port: &mut dyn ControllerPort) {
+        while let Some(answer) = twin.take_io_answer() {
+            if self.attached {
+                self.send(
+                    port,
+                    &Message::Io(crate::protocol::IoMessage::State(answer)),
+                );
+            }
+        }
+    }
+
     fn announce_fault(&mut self, twin: &mut Twin, port: &mut dyn ControllerPort) {
         if let Some(notice) = twin.take_fault_notice() {
             self.send(port, &Message::Fault(notice));
@@ -369,6 +386,7 @@ impl Session {
         if self.attached && self.greeted && !self.send(port, &Message::Feedback(feedback)) {
             self.lose(twin, port, "write failed");
         }
+        self.answer_io(twin, port);
         if feedback.status != self.last_status {
             tracing::info!(
                 "status {} at cycle {}",

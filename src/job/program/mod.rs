@@ -7,10 +7,10 @@
 //! file (the job, zone checks, cycle times).
 //!
 //! A program compiles to one trajectory before motion like every job, and the daemon's
-//! gate checks it against the cell. I/O steps parse and validate fully; no link carries
-//! I/O yet, so the daemon refuses a program that uses one before motion
-//! ([`Program::first_io_step`]), and planning refuses it too. Must not stream, open a link
-//! or pretend to drive I/O.
+//! gate checks it against the cell. An I/O step is an I/O point on the trajectory, where
+//! the arm is at rest and the stream waits until the controller has done it; a link that
+//! carries no I/O refuses a program that uses one before motion
+//! ([`Program::first_io_step`]). Must not stream, open a link or drive I/O itself.
 
 mod steps;
 mod timing;

@@ -5,6 +5,7 @@
 
 use super::super::{JobContext, JobInvalid, check_joints, in_range, to_si};
 use crate::cell::{Cell, NamedTarget, Spot};
+use crate::motion::IoAction;
 use crate::rig::{Pose, Rig};
 use glam::{DAffine3, DVec3};
 use schemars::JsonSchema;
@@ -167,8 +168,8 @@ pub struct Lap {
 pub enum Action {
     Move(MoveOp),
     Dwell(Duration),
-    /// A step that needs I/O (its kind), carried by no link yet.
-    Io(&'static str),
+    /// A step that needs I/O: the stream stops at rest there until it is done.
+    Io(IoAction),
 }
 
 /// How a move goes to its goal.
@@ -356,12 +357,27 @@ fn unknown_target(key: &str, name: &str, scope: &Scope) -> JobInvalid {
 }
 
 /// A signal's or a variable's name: letters, digits and `_`, at least one.
+/// The output `grip` and `release` set (docs/protocol.md 6.10: 1 closes, 0 opens).
+const GRIPPER_OUTPUT: &str = "gripper";
+/// The longest I/O name: what protocol v3 carries (docs/protocol.md 3.6).
+const MAX_IO_NAME_LEN: usize = 32;
+
+fn gripper(close: bool) -> Action {
+    Action::Io(IoAction::SetOutput {
+        name: GRIPPER_OUTPUT.to_string(),
+        value: close,
+    })
+}
+
 fn check_name(key: &str, name: &str, whose: &str) -> Result<(), JobInvalid> {
-    if name.is_empty() || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
+    if name.is_empty()
+        || name.len() > MAX_IO_NAME_LEN
+        || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+    {
         return Err(JobInvalid::new(
             key,
             name,
-            format!("{whose} name is letters, digits and `_` (at least one)"),
+            format!("{whose} name is 1 to {MAX_IO_NAME_LEN} letters, digits and `_`"),
         ));
     }
     Ok(())
@@ -400,7 +416,10 @@ fn op_of(
             check_name(&format!("{key}.output"), &s.output, "an output's")?;
             (
                 format!("set_output {} = {}", s.output, s.value),
-                Action::Io("set_output"),
+                Action::Io(IoAction::SetOutput {
+                    name: s.output.clone(),
+                    value: s.value,
+                }),
             )
         }
         Step::WaitInput(w) => {
@@ -415,11 +434,15 @@ fn op_of(
             wait_time(&format!("{key}.timeout_s"), timeout)?;
             (
                 format!("wait_input {} = {}", w.input, w.value),
-                Action::Io("wait_input"),
+                Action::Io(IoAction::WaitInput {
+                    name: w.input.clone(),
+                    value: w.value,
+                    timeout: Duration::from_secs_f64(timeout),
+                }),
             )
         }
-        Step::Grip(_) => ("grip".to_string(), Action::Io("grip")),
-        Step::Release(_) => ("release".to_string(), Action::Io("release")),
+        Step::Grip(_) => ("grip".to_string(), gripper(true)),
+        Step::Release(_) => ("release".to_string(), gripper(false)),
         Step::Repeat(_) => unreachable!("repeats are unrolled by the caller"),
     };
     Ok(Op {

@@ -18,6 +18,7 @@ use super::steps::{Action, Goal, How, MoveOp, Op, goal_position};
 use super::{Neighbour, check_zone_room};
 use crate::ik::{CartesianError, FabrikSolver, IkError, IkSolver, line_joint_path};
 use crate::job::{JobError, JobInvalid, PlanContext};
+use crate::motion::IoPoint;
 use crate::rig::{Pose, Rig};
 use crate::trajectory::free::plan_free;
 use crate::trajectory::{
@@ -53,10 +54,6 @@ pub enum ProgramError {
         what: String,
         error: PlanError,
     },
-    #[error(
-        "{key}: {kind}: a planned motion has no place for I/O and no link carries it yet (docs/programs.md)"
-    )]
-    Io { key: String, kind: &'static str },
 }
 
 impl From<ProgramError> for JobError {
@@ -111,6 +108,7 @@ pub fn plan_ops(ops: &[Op], context: &PlanContext) -> Result<(Trajectory, Origin
         limits: AxisLimits::new(context.rig, settings)?,
         samples: Samples::at_rest(context.start, settings.budget, settings.period),
         marks: Vec::with_capacity(ops.len()),
+        io: Vec::new(),
     };
     let mut q = context.start.to_vec();
     let mut run_start = q.clone();
@@ -139,12 +137,16 @@ pub fn plan_ops(ops: &[Op], context: &PlanContext) -> Result<(Trajectory, Origin
                 run_start.clone_from(&q);
                 planner.dwell(&q, *duration)?;
             }
-            Action::Io(kind) => {
-                return Err(ProgramError::Io {
-                    key: op.key.clone(),
-                    kind,
-                }
-                .into());
+            Action::Io(action) => {
+                planner.flush(&run_start, std::mem::take(&mut run))?;
+                run_start.clone_from(&q);
+                let sample = planner.samples.last_index();
+                planner.io.push(IoPoint {
+                    sample,
+                    action: action.clone(),
+                    step: format!("{} ({})", op.key, op.what),
+                });
+                planner.marks.push(sample);
             }
         }
     }
@@ -153,7 +155,10 @@ pub fn plan_ops(ops: &[Op], context: &PlanContext) -> Result<(Trajectory, Origin
     for (op, mark) in ops.iter().zip(&planner.marks) {
         origins.push(*mark, format!("{} ({})", op.key, op.what));
     }
-    let trajectory = planner.samples.finish(context.rig, settings.period)?;
+    let trajectory = planner
+        .samples
+        .finish(context.rig, settings.period)?
+        .with_io(planner.io);
     Ok((trajectory, origins))
 }
 
@@ -166,6 +171,8 @@ struct Planner<'a> {
     samples: Samples,
     /// Per op, in order: the sample its stretch ends at.
     marks: Vec<usize>,
+    /// The I/O steps' points, in order.
+    io: Vec<IoPoint>,
 }
 
 impl Planner<'_> {

@@ -112,6 +112,8 @@ pub fn room_cell(rig: &Rig, room: &Room, config: &PaintConfig) -> Cell {
         margin_m: config.body.planning_clearance_m,
         allowed_pairs,
         targets: crate::cell::Targets::default(),
+        parts: Vec::new(),
+        gripper: crate::cell::Gripper::default(),
     }
 }
 
