@@ -5,6 +5,10 @@
 //! and writes a JSON summary when the bridge disconnects; the assertions below read that
 //! summary (what the controller saw), the bridge's exit code, its stderr and its report.
 //!
+//! The last two tests run a `program` job with I/O steps (protocol version 3, 6.10) against
+//! the controller as version 3 (completes, outputs recorded in order) and as version 2
+//! (refused before motion, naming the version).
+//!
 //! Needs `python3` (3.11, for `tomllib`); without it every test here says it skips.
 
 use serde_json::Value;
@@ -639,6 +643,11 @@ fn a_50_ms_servo_lag_refuses_no_first_target_after_a_resume() {
     assert!(run.bridge.success(), "bridge exit code: {ctx}");
 }
 
+/// The controller's self-test: COBS and CRC-32 (2.1, 2.2), the decoder's counters (2.3),
+/// every worked example of docs/protocol.md read from the doc itself (sections 4 and 7.4:
+/// versions 2 and 3, the I/O messages, the version 3 Hello, the SetOutput's CAN segments)
+/// encoded and decoded byte for byte, the I/O names and fields a version 3 receiver drops
+/// (3.6), and 6.10's rules on a controller without a socket.
 #[test]
 fn doc_controller_framing_matches_the_spec_examples() {
     skip_without_python!("doc_controller_framing_matches_the_spec_examples");
@@ -647,10 +656,236 @@ fn doc_controller_framing_matches_the_spec_examples() {
         .args(["tests/peers/doc_controller.py", "--self-test"])
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
+    let said = format!(
         "{}{}",
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "{said}");
+    // The doc's examples were found and checked (16 when version 3 came: target, feedback,
+    // heartbeat and hello bodies and frames, fault, set-output body and frame, both
+    // io-state bodies, the io-state-input frame, read-input, set-output-can).
+    let checked: usize = said
+        .split("self-test ok (")
+        .nth(1)
+        .and_then(|rest| rest.split(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no count of worked examples: {said}"));
+    assert!(checked >= 16, "only {checked} worked examples checked: {said}");
+}
+
+// ----------------------------------------------------------------------------------------
+// Version 3: digital I/O (docs/protocol.md 3.6, 6.10), a `program` job's `set_output`,
+// `wait_input`, `grip` and `release` steps (docs/programs.md) against the doc-only
+// controller.
+
+/// The program both I/O tests run: a move, the lamp on, a wait for the part sensor (which
+/// the controller raises 0.3 s after the lamp came on), grip, the lamp off, release, and a
+/// move back. `grip` and `release` set the output `gripper` (6.10, last paragraph); the
+/// controller's gripper is an actuator answered 0.25 s after its SetOutput.
+const IO_PROGRAM: &str = r#"
+[[job.steps]]
+kind = "move_joints"
+to = "reach"
+
+[[job.steps]]
+kind = "set_output"
+output = "lamp"
+value = true
+
+[[job.steps]]
+kind = "wait_input"
+input = "part_held"
+value = true
+timeout_s = 5.0
+
+[[job.steps]]
+kind = "grip"
+
+[[job.steps]]
+kind = "set_output"
+output = "lamp"
+value = false
+
+[[job.steps]]
+kind = "release"
+
+[[job.steps]]
+kind = "move_joints"
+to = "back"
+"#;
+
+/// The outputs the program sets, in order, with their values, as the controller must have
+/// carried them out.
+const IO_PROGRAM_OUTPUTS: [(&str, i64); 4] =
+    [("lamp", 1), ("gripper", 1), ("lamp", 0), ("gripper", 0)];
+
+/// A directory with the rig, a cell naming the program's two joint targets, and run
+/// settings holding [`IO_PROGRAM`]; removed on drop.
+fn io_program_settings(name: &str) -> (TempDir, PathBuf) {
+    let dir = TempDir::new(&format!("{name}-settings"));
+    std::fs::copy(
+        manifest_dir().join("config/irb120.toml"),
+        dir.0.join("irb120.toml"),
+    )
+    .unwrap();
+    // The controller starts at [0, 0, 0, 0, 30, 0] deg (its --initial-deg default); the
+    // move is docs/jobs.md's first example.
+    std::fs::write(
+        dir.0.join("cell.toml"),
+        "[[target]]\nname = \"reach\"\njoints_deg = [20.0, 10.0, 10.0, 0.0, 40.0, 0.0]\n\n\
+         [[target]]\nname = \"back\"\njoints_deg = [0.0, 0.0, 0.0, 0.0, 30.0, 0.0]\n",
+    )
+    .unwrap();
+    let settings = dir.0.join("program.toml");
+    std::fs::write(
+        &settings,
+        format!(
+            "rig = \"irb120.toml\"\ncell = \"cell.toml\"\n\n[stream]\nrate_hz = 250.0\n\n\
+             [job]\nkind = \"program\"\n{IO_PROGRAM}"
+        ),
+    )
+    .unwrap();
+    (dir, settings)
+}
+
+/// `outputs_done` of the controller's summary, consecutive repeats merged (a SetOutput sent
+/// again after a resume, 6.10, sets the same value twice).
+fn outputs_done(summary: &Value) -> Vec<(String, i64)> {
+    let mut out: Vec<(String, i64)> = Vec::new();
+    for entry in summary["outputs_done"]
+        .as_array()
+        .unwrap_or_else(|| panic!("summary has no outputs_done: {summary}"))
+    {
+        let item = (
+            entry[0].as_str().unwrap().to_string(),
+            entry[1].as_i64().unwrap(),
+        );
+        if out.last() != Some(&item) {
+            out.push(item);
+        }
+    }
+    out
+}
+
+/// 6.10 against a version 3 controller: the program completes; the controller carried out
+/// every SetOutput (lamp on, gripper closed, lamp off, gripper open, in this order), the
+/// bridge read the part sensor until it came on, one request at a time, and kept the arm
+/// following with Targets at rest meanwhile (no watchdog hold, no refusal).
+#[test]
+fn program_with_io_steps_completes_against_a_version_3_controller() {
+    skip_without_python!("program_with_io_steps_completes_against_a_version_3_controller");
+    let (_settings_dir, settings) = io_program_settings("io-v3");
+    let run = run_against_with(
+        "io-v3",
+        &["--version", "3", "--input", "part_held=1@lamp=1+0.3"],
+        &["--config", settings.to_str().unwrap()],
+        Duration::from_secs(90),
+    );
+    let ctx = run.context();
+    assert!(run.bridge.success(), "bridge exit code: {ctx}");
+    assert_eq!(run.outcome(), Some("completed"), "{ctx}");
+    assert_eq!(run.count("protocol_version"), 3, "{ctx}");
+
+    // 6.1 and 6.10: the bridge's Hello stays version 2, and is answered (with version 3).
+    assert!(run.count("bridge_hellos") >= 1, "{ctx}");
+    assert_eq!(run.count("bridge_hellos_v3"), 0, "{ctx}");
+    assert_eq!(
+        run.count("answers_sent"),
+        run.count("bridge_hellos"),
+        "{ctx}"
+    );
+
+    // The outputs, in order, with their values; every SetOutput and ReadInput answered
+    // done (no unknown name, no refusal), one request outstanding at a time, numbered
+    // from 1 in each session.
+    let want: Vec<(String, i64)> = IO_PROGRAM_OUTPUTS
+        .iter()
+        .map(|(n, v)| (n.to_string(), *v))
+        .collect();
+    assert_eq!(outputs_done(&run.summary), want, "{ctx}");
+    let results = &run.summary["io_results"];
+    assert_eq!(results["no_such"].as_i64(), Some(0), "{ctx}");
+    assert_eq!(results["refused"].as_i64(), Some(0), "{ctx}");
+    assert_eq!(run.count("io_overlapping"), 0, "{ctx}");
+    assert_eq!(run.count("io_request_irregular"), 0, "{ctx}");
+    assert_eq!(run.summary["outputs"]["lamp"].as_i64(), Some(0), "{ctx}");
+    assert_eq!(run.summary["outputs"]["gripper"].as_i64(), Some(0), "{ctx}");
+
+    // wait_input: ReadInputs of part_held, off while the sensor was off (0.3 s after the
+    // lamp came on), then on, and the wait ended there.
+    let reads = run.summary["inputs_read"].as_array().unwrap();
+    assert!(!reads.is_empty(), "no ReadInput: {ctx}");
+    assert!(
+        reads.iter().all(|r| r["name"] == "part_held" && r["result"] == 0),
+        "{ctx}"
+    );
+    assert_eq!(reads.first().unwrap()["value"].as_i64(), Some(0), "{ctx}");
+    assert_eq!(reads.last().unwrap()["value"].as_i64(), Some(1), "{ctx}");
+    assert_eq!(reads.last().unwrap()["count"].as_i64(), Some(1), "{ctx}");
+
+    // The arm kept following through the I/O steps (6.10: Targets at rest): every target
+    // accepted, no watchdog hold beyond what a resumption explains.
+    assert!(run.count("accepted") > 250, "{ctx}");
+    assert!(
+        run.summary["refused"].as_array().unwrap().is_empty(),
+        "{ctx}"
+    );
+    assert!(run.count("watchdog_holds") <= run.resumes, "{ctx}");
+    assert_eq!(run.summary["final_fault"][0].as_i64(), Some(0), "{ctx}");
+    let decoder = &run.summary["decoder"];
+    for key in ["crc_errors", "unsupported_version", "malformed", "oversized"] {
+        assert_eq!(decoder[key].as_i64(), Some(0), "decoder {key}: {ctx}");
+    }
+    println!(
+        "conformance: a program's I/O against the doc-only v3 controller: outputs {:?}, reads {}",
+        outputs_done(&run.summary),
+        run.summary["inputs_read"]
+    );
+}
+
+/// 6.10: the same program against a version 2 controller is refused before any motion,
+/// after the Hello exchange (the session's version is the controller's Hello's), naming
+/// the controller's version; the bridge sends it no I/O message.
+#[test]
+fn program_with_io_steps_is_refused_by_version_before_motion_against_a_version_2_controller() {
+    skip_without_python!(
+        "program_with_io_steps_is_refused_by_version_before_motion_against_a_version_2_controller"
+    );
+    let (_settings_dir, settings) = io_program_settings("io-v2");
+    let run = run_against_with(
+        "io-v2",
+        &["--version", "2", "--input", "part_held=1@lamp=1+0.3"],
+        &["--config", settings.to_str().unwrap()],
+        Duration::from_secs(30),
+    );
+    let ctx = run.context();
+    assert_eq!(run.count("protocol_version"), 2, "{ctx}");
+    assert!(!run.bridge.success(), "bridge exited 0: {ctx}");
+    assert_ne!(run.outcome(), Some("completed"), "{ctx}");
+    // The refusal comes from the controller's answer: the exchange took place ...
+    assert!(run.count("bridge_hellos") >= 1, "{ctx}");
+    assert!(run.count("answers_sent") >= 1, "{ctx}");
+    // ... and not one target, not one I/O message (a version 3 frame would be counted
+    // unsupported_version by this version 2 controller) reached it.
+    assert_eq!(run.count("targets_received"), 0, "{ctx}");
+    assert_eq!(run.count("accepted"), 0, "{ctx}");
+    assert_eq!(
+        run.summary["decoder"]["unsupported_version"].as_i64(),
+        Some(0),
+        "{ctx}"
+    );
+    assert_eq!(run.summary["decoder"]["malformed"].as_i64(), Some(0), "{ctx}");
+    assert!(
+        run.summary["outputs_done"].as_array().unwrap().is_empty(),
+        "{ctx}"
+    );
+    // The words name the controller's version (rigbridge's, 6.10: "the controller speaks
+    // protocol v2, which carries no I/O (v3 adds it)").
+    let said = run.said();
+    assert!(said.contains("controller"), "{ctx}");
+    assert!(
+        ["v2", "version 2"].iter().any(|n| said.contains(n)),
+        "the bridge's words name no controller version: {ctx}"
     );
 }

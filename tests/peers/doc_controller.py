@@ -1,11 +1,21 @@
 #!/usr/bin/env python3
-"""A strict robot controller for the rigbridge wire protocol, version 2.
+"""A strict robot controller for the rigbridge wire protocol, version 3 (or 2).
 
 Written from docs/protocol.md alone (no look at the bridge's code), as an independent
 vendor would: a TCP server that speaks COBS/CRC-32 framing, answers the bridge's Hello,
 checks every Target on the wire integers (6.6), latches faults, runs a watchdog and a
 simple servo model on its own 4 ms clock, and writes a JSON summary when the bridge
 disconnects or on SIGTERM.
+
+Version 3 (the default; 3.6, 6.10): its Hellos carry version byte 3, it takes types
+0x01-0x08 with version byte 2 or 3, keeps named digital outputs (some of them actuators,
+answered when they have finished moving) and inputs (scriptable with --input), and answers
+every SetOutput and ReadInput with one IoState. `--version 2` makes it a version 2
+controller exactly (Hellos with version byte 2, version 3 frames counted as
+unsupported_version, no I/O). What it received is in the summary: `outputs_set` (every
+SetOutput in order, with its value and result), `outputs_done` ([name, value] of those
+carried out, in order) and `inputs_read`. The ambiguities met while writing version 3 from
+the doc are listed in AMBIGUITIES.md (the docctl branch).
 
 Python 3.11, standard library only. The first stdout line is the TCP port it listens on;
 events go to stderr.
@@ -28,13 +38,18 @@ import time
 import tomllib
 import zlib
 
-VERSION = 2
+VERSION = 2  # the version byte of types 0x01-0x08 (2, whatever the session's version)
+IO_VERSION = 3  # the version byte of the I/O types 0x09-0x0B (2.)
 MAX_AXES = 32
 MAX_BODY_LEN = 1600
 MAX_COBS_LEN = 1607  # MAX_FRAME_LEN less the delimiter (2.3)
 T_LIMIT = 1 << 48
 
 HELLO, TARGET, STOP, ESTOP, HEARTBEAT, FEEDBACK, FAULT, RESET = range(1, 9)
+SET_OUTPUT, READ_INPUT, IO_STATE = 0x09, 0x0A, 0x0B  # version 3 (3.6)
+IO_TYPES = (SET_OUTPUT, READ_INPUT, IO_STATE)
+KIND_OUTPUT, KIND_INPUT = 0, 1
+R_DONE, R_NO_SUCH, R_REFUSED = 0, 1, 2
 TYPE_NAMES = {
     HELLO: "hello",
     TARGET: "target",
@@ -44,6 +59,9 @@ TYPE_NAMES = {
     FEEDBACK: "feedback",
     FAULT: "fault",
     RESET: "reset",
+    SET_OUTPUT: "set_output",
+    READ_INPUT: "read_input",
+    IO_STATE: "io_state",
 }
 
 ST_OK, ST_HOLDING, ST_FAULT = 0, 1, 2
@@ -137,10 +155,63 @@ def cobs_decode(data: bytes) -> bytes | None:
     return bytes(out)
 
 
-def frame(msg_type: int, payload: bytes) -> bytes:
-    body = bytes([VERSION, msg_type]) + payload
-    body += struct.pack("<I", crc32(body))
-    return cobs_encode(body) + b"\x00"
+def body_of(msg_type: int, payload: bytes, version: int | None = None) -> bytes:
+    """2.: version | type | payload | crc. The version byte is the one that defined the
+    layout (2 for 0x01-0x08, 3 for 0x09-0x0B) unless given (a v3 controller's Hello: 3)."""
+    if version is None:
+        version = IO_VERSION if msg_type in IO_TYPES else VERSION
+    body = bytes([version, msg_type]) + payload
+    return body + struct.pack("<I", crc32(body))
+
+
+def frame(msg_type: int, payload: bytes, version: int | None = None) -> bytes:
+    return cobs_encode(body_of(msg_type, payload, version)) + b"\x00"
+
+
+def can_segments(base: int, offset: int, body: bytes, fd: bool = False) -> list[tuple[int, bytes]]:
+    """7.4: a body cut into segments on one identifier: index u8, segment 0 with the
+    body's length (u16), 5 body bytes in segment 0 and 7 in the others on classic CAN (61
+    and 63 on FD, the last frame padded). The last classic frame carries what remains."""
+    first, later = (61, 63) if fd else (5, 7)
+    out = [(base + offset, bytes([0]) + struct.pack("<H", len(body)) + body[:first])]
+    i, k = first, 1
+    while i < len(body):
+        out.append((base + offset, bytes([k]) + body[i : i + later]))
+        i += later
+        k += 1
+    if fd:
+        sizes = (8, 12, 16, 20, 24, 32, 48, 64)
+        out = [(cid, d + bytes(next(n for n in sizes if n >= len(d)) - len(d))) for cid, d in out]
+    return out
+
+
+# 3.6: a name is 1 to 32 bytes, each an ASCII letter, digit or `_`.
+NAME_BYTES = frozenset(b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_")
+
+
+def valid_io_name(name: str) -> bool:
+    try:
+        b = name.encode("ascii")
+    except UnicodeEncodeError:
+        return False
+    return 1 <= len(b) <= 32 and all(c in NAME_BYTES for c in b)
+
+
+def io_name_bytes(name: str) -> bytes:
+    b = name.encode("ascii")
+    return bytes([len(b)]) + b
+
+
+def set_output_payload(request: int, value: int, name: str) -> bytes:
+    return struct.pack("<IB", request, value) + io_name_bytes(name)
+
+
+def read_input_payload(request: int, name: str) -> bytes:
+    return struct.pack("<I", request) + io_name_bytes(name)
+
+
+def io_state_payload(request: int, kind: int, result: int, value: int, name: str) -> bytes:
+    return struct.pack("<IBBB", request, kind, result, value) + io_name_bytes(name)
 
 
 # --------------------------------------------------------------------------------------
@@ -226,7 +297,47 @@ def decode_payload(msg_type: int, p: bytes) -> dict:
         except UnicodeDecodeError as e:
             raise Malformed("fault: text not UTF-8") from e
         return {"code": code, "a": a, "b": b, "text": text}
+    if msg_type in IO_TYPES:
+        # Only reached for a version 3 frame at a version 3 receiver (2.3 check 4).
+        fixed = {SET_OUTPUT: 5, READ_INPUT: 4, IO_STATE: 7}[msg_type]
+        if len(p) < fixed + 1:
+            raise Malformed(f"{TYPE_NAMES[msg_type]}: short")
+        (request,) = struct.unpack_from("<I", p, 0)
+        if request == 0:
+            # 3.6: "A request of 0 ... makes the frame malformed" (read as applying to all
+            # three I/O messages: AMBIGUITIES.md).
+            raise Malformed(f"{TYPE_NAMES[msg_type]}: request 0")
+        name = decode_io_name(p, fixed, msg_type)
+        m = {"request": request, "name": name}
+        if msg_type == SET_OUTPUT:
+            if p[4] > 1:
+                raise Malformed("set_output: value")
+            m["value"] = p[4]
+        elif msg_type == IO_STATE:
+            kind, result, value = p[4], p[5], p[6]
+            if kind > 1:
+                raise Malformed("io_state: kind")
+            if result > 2:
+                raise Malformed("io_state: result")
+            if value > 1:
+                raise Malformed("io_state: value")
+            m.update(kind=kind, result=result, value=value)
+        return m
     raise Malformed(f"reserved type 0x{msg_type:02x}")
+
+
+def decode_io_name(p: bytes, i: int, msg_type: int) -> str:
+    """3.6: u8 length 1..32, then that many bytes, each an ASCII letter, digit or `_`;
+    the name ends the payload (a byte too many or too few is malformed, 2.3)."""
+    ln = p[i]
+    if not 1 <= ln <= 32:
+        raise Malformed(f"{TYPE_NAMES[msg_type]}: name length {ln}")
+    if len(p) != i + 1 + ln:
+        raise Malformed(f"{TYPE_NAMES[msg_type]}: length")
+    raw = p[i + 1 :]
+    if any(c not in NAME_BYTES for c in raw):
+        raise Malformed(f"{TYPE_NAMES[msg_type]}: name byte")
+    return raw.decode("ascii")
 
 
 def check_fault_bytes(code: int, a: int, b: int, in_feedback: bool, status: int) -> None:
@@ -252,9 +363,10 @@ def check_fault_bytes(code: int, a: int, b: int, in_feedback: bool, status: int)
 
 
 class Decoder:
-    """2.3 Receiving, with the bridge's counters."""
+    """2.3 Receiving, with the bridge's counters. `version`: the receiver's, 2 or 3."""
 
-    def __init__(self) -> None:
+    def __init__(self, version: int = 3) -> None:
+        self.version = version
         self.buf = bytearray()
         self.skipping = False  # dropping an over-long frame until the next delimiter
         self.c = {
@@ -318,14 +430,22 @@ class Decoder:
         if crc != crc32(body[:-4]):
             self._bad("crc_errors", raw)
             return None
-        if body[0] != VERSION:
+        # 3. the version: 2 or 3 at a version 3 receiver, 2 only at a version 2 one.
+        if body[0] not in ((2, 3) if self.version == 3 else (2,)):
             self._bad("unsupported_version", raw)
+            return None
+        # 4. types 0x01-0x08 with version byte 2 or 3; 0x09-0x0B with version byte 3 only
+        # (an I/O type in a version 2 frame is malformed). A version 2 receiver never gets
+        # here with version byte 3, and takes 0x09-0x0B as reserved (malformed).
+        if body[1] in IO_TYPES and body[0] != IO_VERSION:
+            self._bad("malformed", raw, f"{TYPE_NAMES[body[1]]} in a version {body[0]} frame")
             return None
         try:
             fields = decode_payload(body[1], body[2:-4])
         except Malformed as e:
             self._bad("malformed", raw, str(e))
             return None
+        fields["_version"] = body[0]
         self.c["frames"] += 1
         return body[1], fields
 
@@ -480,7 +600,21 @@ class Controller:
         self.ever_accepted = False
         self.started_hello_pending = args.unprompted_hello != "never"
         self.conn: Conn | None = None
-        self.decoder = Decoder()
+        self.version = args.version  # 6.10: the version byte of every Hello of ours
+        self.decoder = Decoder(self.version)
+        # 3.6 / 6.10: named digital outputs and inputs; a controller's restart starts with
+        # every output 0 (6.10 rule 7).
+        self.outputs: dict[str, int] = {n: 0 for n in args.output_names}
+        self.actuators: dict[str, float] = dict(args.actuator_s)  # seconds to finish moving
+        self.inputs: dict[str, int] = {n: 0 for n in args.input_names}
+        self.input_script = list(args.input_script)  # fired once each, in order
+        for name, value in args.input_initial:
+            self.inputs[name] = value
+        self.moving_until: dict[str, int] = {}  # actuator -> µs when it finishes moving
+        self.pending: dict[str, dict] = {}  # output -> the SetOutput answered when done
+        self.output_set_at: dict[tuple[str, int], int] = {}  # (output, value) -> first µs
+        self.first_target_us: int | None = None
+        self.io_next_request = 1
         self.sessions_started = 0
         self.sessions_ended = 0
         self.stop_requested = False
@@ -527,6 +661,27 @@ class Controller:
             "first_accepted_seq": None,
             "last_accepted_seq": None,
             "last_bridge_hello": None,
+            # version 3 (3.6, 6.10)
+            "protocol_version": args.version,
+            "bridge_hellos_v3": 0,
+            "set_outputs_received": 0,
+            "read_inputs_received": 0,
+            "io_states_received": 0,
+            "io_states_sent": 0,
+            "io_results": {"done": 0, "no_such": 0, "refused": 0},
+            "io_refusals": {},
+            "io_request_irregular": 0,
+            "io_overlapping": 0,
+            "io_answers_dropped_link_loss": 0,
+            "max_io_answer_delay_us": 0,
+            # Every SetOutput in arrival order: session, request, name, value, result
+            # (None until answered), answer_delay_ms.
+            "outputs_set": [],
+            # [name, value] of every SetOutput carried out (result 0), in arrival order.
+            "outputs_done": [],
+            # ReadInputs, consecutive equal ones merged: name, value, result, count.
+            "inputs_read": [],
+            "input_changes": [],
         }
         self.per_axis = [
             {
@@ -572,7 +727,8 @@ class Controller:
     def send_hello(self, answer: bool) -> None:
         if self.conn is None:
             return
-        self.send(frame(HELLO, self.hello_payload(answer)))
+        # 6.10: every Hello of ours (answers and unprompted ones) carries our version.
+        self.send(frame(HELLO, self.hello_payload(answer), version=self.version))
         self.conn.hello_sent = True
         if answer:
             self.conn.answer_sent = True
@@ -655,6 +811,14 @@ class Controller:
             self.queue.clear()
         self.decoder.reset()
         self.become_unbound()
+        # 6.10: outputs keep their values (an actuator keeps moving), but the answers owed
+        # to the session that ended are not sent into the next one (AMBIGUITIES.md).
+        if self.pending:
+            self.s["io_answers_dropped_link_loss"] += len(self.pending)
+            for pend in self.pending.values():
+                pend["entry"]["result"] = "dropped_link_loss"
+            self.pending.clear()
+        self.io_next_request = 1
         log(f"link loss ({why})")
 
     # ---------------------------------------------------------------- receiving
@@ -716,12 +880,174 @@ class Controller:
             self.become_unbound()
             self.send_hello(answer=False)
             log("fault reset")
+        elif mtype == SET_OUTPUT:
+            self.on_set_output(m, arrival)
+        elif mtype == READ_INPUT:
+            self.on_read_input(m, arrival)
+        elif mtype == IO_STATE:
+            # From the controller's side only: ignored (3.).
+            self.s["io_states_received"] += 1
+            self.s["wrong_side_messages"] += 1
         else:
             # Feedback or Fault from the bridge: wrong side, ignored (3.).
             self.s["wrong_side_messages"] += 1
 
+    # ---------------------------------------------------------------- I/O (version 3)
+
+    def io_request_arrived(self, m: dict) -> None:
+        """6.10 rule 1, as the controller sees it: counted, never refused for."""
+        if m["request"] != self.io_next_request:
+            self.s["io_request_irregular"] += 1
+            log(f"I/O request {m['request']}, expected {self.io_next_request}")
+        self.io_next_request = (m["request"] + 1) % (1 << 32) or 1
+        if self.pending:
+            self.s["io_overlapping"] += 1
+
+    def send_io_state(self, request: int, kind: int, result: int, value: int, name: str,
+                      arrival: int) -> None:
+        """6.10 rule 2: one IoState per request, same number, kind and name."""
+        if result != R_DONE:
+            value = 0  # 3.6: 0 when result is not 0
+        self.send(frame(IO_STATE, io_state_payload(request, kind, result, value, name)))
+        self.s["io_states_sent"] += 1
+        self.s["io_results"][("done", "no_such", "refused")[result]] += 1
+        delay = now_us() - arrival
+        self.s["max_io_answer_delay_us"] = max(self.s["max_io_answer_delay_us"], delay)
+
+    def refuse_io(self, why: str) -> None:
+        self.s["io_refusals"][why] = self.s["io_refusals"].get(why, 0) + 1
+
+    def on_set_output(self, m: dict, arrival: int) -> None:
+        s = self.s
+        s["set_outputs_received"] += 1
+        self.io_request_arrived(m)
+        name, value, request = m["name"], m["value"], m["request"]
+        entry = {
+            "session": self.sessions_started,
+            "request": request,
+            "name": name,
+            "value": value,
+            "result": None,
+            "answer_delay_ms": None,
+        }
+        s["outputs_set"].append(entry)
+
+        def answer(result: int) -> None:
+            entry["result"] = result
+            entry["answer_delay_ms"] = round((now_us() - arrival) / 1000, 3)
+            self.send_io_state(request, KIND_OUTPUT, result, value, name, arrival)
+
+        # Rule 6 before rule 5 (AMBIGUITIES.md): a name we do not have, of this kind, is
+        # result 1 whatever our state; nothing changes.
+        if name not in self.outputs:
+            self.refuse_io("no_such_output")
+            log(f"SetOutput {request}: no output {name!r}")
+            answer(R_NO_SUCH)
+            return
+        # Rule 5: refused while unbound or faulted, or while this output's previous
+        # SetOutput is unanswered; the output unchanged.
+        why = None
+        if not self.bound:
+            why = "unbound"
+        elif self.status == ST_FAULT:
+            why = "faulted"
+        elif name in self.pending:
+            why = "previous_unanswered"
+        if why is not None:
+            self.refuse_io(why)
+            log(f"SetOutput {request} {name}={value}: refused ({why})")
+            answer(R_REFUSED)
+            return
+        # Rule 4: takes effect when it arrives.
+        old = self.outputs[name]
+        self.outputs[name] = value
+        self.output_set_at.setdefault((name, value), arrival)
+        s["outputs_done"].append([name, value])
+        log(f"SetOutput {request}: {name} {old} -> {value}")
+        if name in self.actuators:
+            still = self.moving_until.get(name)
+            if old != value:
+                self.moving_until[name] = arrival + round(self.actuators[name] * 1e6)
+            elif still is None or still <= arrival:
+                self.moving_until.pop(name, None)
+            # The same value while it still moves toward it: answered when it has finished
+            # (AMBIGUITIES.md); the same value at rest: at once.
+            if name in self.moving_until:
+                self.pending[name] = {
+                    "request": request,
+                    "value": value,
+                    "arrival": arrival,
+                    "entry": entry,
+                }
+                return
+        entry["result"] = R_DONE
+        answer(R_DONE)
+
+    def answer_finished_actuators(self, now: int) -> None:
+        """6.10 rule 4: an actuator's SetOutput is answered when it has finished moving,
+        whatever happened meanwhile (stop, fault: the answer is still owed, rule 2)."""
+        for name in [n for n, until in self.moving_until.items() if until <= now]:
+            del self.moving_until[name]
+            pend = self.pending.pop(name, None)
+            if pend is None:
+                continue
+            entry = pend["entry"]
+            entry["result"] = R_DONE
+            entry["answer_delay_ms"] = round((now_us() - pend["arrival"]) / 1000, 3)
+            self.send_io_state(pend["request"], KIND_OUTPUT, R_DONE, self.outputs[name], name,
+                               pend["arrival"])
+            log(f"SetOutput {pend['request']}: {name} finished moving, answered")
+
+    def update_inputs(self, now: int) -> None:
+        """The --input script: `NAME=V@S` (S s after the first accepted target) and
+        `NAME=V@OUT=W+S` (S s after output OUT was first set to W)."""
+        keep = []
+        for item in self.input_script:
+            name, value, cond = item
+            at = None
+            if cond[0] == "target":
+                if self.first_target_us is not None:
+                    at = self.first_target_us + round(cond[1] * 1e6)
+            else:
+                _, out, w, delay = cond
+                t0 = self.output_set_at.get((out, w))
+                if t0 is not None:
+                    at = t0 + round(delay * 1e6)
+            if at is not None and at <= now:
+                if self.inputs.get(name) != value:
+                    log(f"input {name} -> {value}")
+                self.inputs[name] = value
+                self.s["input_changes"].append([name, value])
+            else:
+                keep.append(item)
+        self.input_script = keep
+
+    def on_read_input(self, m: dict, arrival: int) -> None:
+        """6.10 rule 3: answered at once, in every state, with the value at the answer."""
+        s = self.s
+        s["read_inputs_received"] += 1
+        self.io_request_arrived(m)
+        self.update_inputs(now_us())
+        name = m["name"]
+        if name in self.inputs:
+            result, value = R_DONE, self.inputs[name]
+        else:
+            self.refuse_io("no_such_input")
+            result, value = R_NO_SUCH, 0
+        reads = s["inputs_read"]
+        if reads and (reads[-1]["name"], reads[-1]["value"], reads[-1]["result"]) == (
+            name, value, result,
+        ):
+            reads[-1]["count"] += 1
+        else:
+            reads.append({"name": name, "value": value, "result": result, "count": 1})
+        self.send_io_state(m["request"], KIND_INPUT, result, value, name, arrival)
+
     def on_bridge_hello(self, m: dict) -> None:
         self.s["bridge_hellos"] += 1
+        if m.get("_version") == 3:
+            # 2.: the bridge's Hello is always version 2; 2.3 takes it with 3 (counted).
+            self.s["bridge_hellos_v3"] += 1
         self.s["last_bridge_hello"] = m
         mismatch = []
         if m["names"] != [a.name for a in self.axes]:
@@ -792,6 +1118,8 @@ class Controller:
         self.accepted_since_tick = True
         self.ever_accepted = True
         s["accepted"] += 1
+        if self.first_target_us is None:
+            self.first_target_us = arrival
         if s["first_accepted_seq"] is None:
             s["first_accepted_seq"] = seq
             log(f"first target accepted: seq {seq}")
@@ -873,6 +1201,8 @@ class Controller:
 
     def tick(self, now: int) -> None:
         self.s["ticks"] += 1
+        self.update_inputs(now)
+        self.answer_finished_actuators(now)
         c = self.conn
         # 6.5 link loss on silence: no valid frame of any kind for w cycles.
         if c is not None and not c.silence_lost and now - c.last_valid_us >= self.w * self.T:
@@ -962,6 +1292,7 @@ class Controller:
         self.sessions_started += 1
         self.decoder.reset()
         self.become_unbound()
+        self.io_next_request = 1  # 6.10 rule 1: numbered from 1 in each session
         self.send(b"\x00")  # 2.3: a sender sends one 0x00 when it opens the link
         if self.started_hello_pending:
             if self.args.unprompted_hello == "first":
@@ -1076,6 +1407,9 @@ class Controller:
             "cycle_us": self.T,
             "watchdog": self.w,
         }
+        s["outputs"] = dict(self.outputs)
+        s["inputs"] = dict(self.inputs)
+        s["actuators_s"] = dict(self.actuators)
         s["final_status"] = self.status
         s["final_fault"] = list(self.fault)
         s["sessions_started"] = self.sessions_started
@@ -1132,16 +1466,90 @@ def parse_args(argv):
         "the first connection (the controller's start) or on every connection",
     )
     ap.add_argument("--max-sessions", type=int, default=1, help="exit after N sessions (0: never)")
+    ap.add_argument(
+        "--version", type=int, choices=[2, 3], default=3,
+        help="the protocol version this controller speaks (6.10): 3 (Hellos with version "
+        "byte 3, I/O) or 2 (a version 2 controller exactly: no I/O, version 3 frames counted "
+        "as unsupported_version)",
+    )
+    ap.add_argument(
+        "--outputs", default="gripper,lamp",
+        help="the digital outputs this controller has, comma-separated (3.6 names)",
+    )
+    ap.add_argument(
+        "--actuator", action="append", default=None, metavar="OUTPUT=SECONDS",
+        help="an output that drives an actuator, answered SECONDS after its SetOutput arrived "
+        "(6.10 rule 4); default gripper=0.25 (when there is a gripper output)",
+    )
+    ap.add_argument(
+        "--inputs", default="part_held",
+        help="the digital inputs this controller has, comma-separated (names given to --input "
+        "are added)",
+    )
+    ap.add_argument(
+        "--input", action="append", default=[], metavar="SCRIPT",
+        help="script an input: NAME=V (its value at start), NAME=V@S (V from S seconds after "
+        "the first accepted target) or NAME=V@OUTPUT=W+S (V from S seconds after the output "
+        "OUTPUT was first set to W); each fires once",
+    )
     a = ap.parse_args(argv)
+    parse_io_args(ap, a)
     if a.hold_axis_offset_deg:
         a.hold_axis_offset_deg = (a.hold_axis_offset_deg[0], float(a.hold_axis_offset_deg[1]))
     return a
 
 
+def parse_io_args(ap: argparse.ArgumentParser, a) -> None:
+    def names(text: str) -> list[str]:
+        out = [n for n in (x.strip() for x in text.split(",")) if n]
+        for n in out:
+            if not valid_io_name(n):
+                ap.error(f"{n!r} is not a protocol name (3.6: 1 to 32 letters, digits, _)")
+        return out
+
+    def bit(text: str) -> int:
+        if text not in ("0", "1"):
+            ap.error(f"a digital value is 0 or 1, not {text!r}")
+        return int(text)
+
+    a.output_names = names(a.outputs)
+    if a.actuator is None:
+        a.actuator = ["gripper=0.25"] if "gripper" in a.output_names else []
+    a.actuator_s = []
+    for item in a.actuator:
+        name, _, secs = item.partition("=")
+        if name not in a.output_names:
+            ap.error(f"--actuator {item}: {name!r} is not among --outputs")
+        a.actuator_s.append((name, float(secs)))
+    a.input_names = names(a.inputs)
+    a.input_initial = []
+    a.input_script = []
+    for item in a.input:
+        head, at, when = item.partition("@")
+        name, eq, value = head.partition("=")
+        if not eq or not valid_io_name(name):
+            ap.error(f"--input {item}: NAME=V[@WHEN]")
+        if name not in a.input_names:
+            a.input_names.append(name)
+        v = bit(value)
+        if not at:
+            a.input_initial.append((name, v))
+        elif "=" in when:
+            out, _, rest = when.partition("=")
+            if out not in a.output_names:
+                ap.error(f"--input {item}: {out!r} is not among --outputs")
+            w, plus, delay = rest.partition("+")
+            a.input_script.append((name, v, ("output", out, bit(w), float(delay) if plus else 0.0)))
+        else:
+            a.input_script.append((name, v, ("target", float(when))))
+
+
 def self_test() -> int:
-    """Framing against docs/protocol.md 2.2 and section 4 (whose examples carry version
-    byte 1: the layouts of Target, Feedback and Heartbeat are unchanged in v2), and the
-    decoder's counters of 2.3."""
+    """Framing against docs/protocol.md 2.2; version 1 frames (the layouts of Target,
+    Feedback and Heartbeat are unchanged since) are unsupported_version; the decoder's
+    counters of 2.3; then every worked example of sections 4 and 7.4 read from the doc
+    itself, byte for byte, versions 2 and 3 (doc_examples_test), and 6.10's rules on a
+    controller without a socket (io_rules_test)."""
 
     def hx(s: str) -> bytes:
         return bytes.fromhex(" ".join(s.split()))
@@ -1202,8 +1610,265 @@ def self_test() -> int:
     assert d.c["oversized"] == 2, d.c
     assert d.push(good) and d.c["frames"] == 2
     assert d.c["overruns"] == 0
-    print("self-test ok")
+    n_examples = doc_examples_test()
+    io_rules_test()
+    print(f"self-test ok ({n_examples} worked examples of docs/protocol.md matched byte for byte)")
     return 0
+
+
+DOC = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "docs", "protocol.md")
+
+
+def doc_examples() -> dict[str, list[str]]:
+    """Section 4 and 7.4/7.5 of docs/protocol.md: every `<!-- example: NAME -->` block, as
+    its lines with the comments (after `#`, not in CAN lines) removed."""
+    import re
+
+    with open(DOC, encoding="utf-8") as f:
+        text = f.read()
+    out = {}
+    for m in re.finditer(r"<!-- example: ([\w-]+) -->\s*```text\n(.*?)```", text, re.S):
+        out[m.group(1)] = [ln for ln in m.group(2).splitlines() if ln.strip()]
+    return out
+
+
+def example_bytes(lines: list[str]) -> bytes:
+    return bytes.fromhex(" ".join(ln.split("#", 1)[0] for ln in lines))
+
+
+def doc_examples_test() -> int:
+    """Encodes the values the doc states for each worked example and compares with the doc's
+    bytes; decodes the doc's bytes back to those values (a version 3 receiver; a version 2
+    receiver for the version 2 layouts). Returns the number of examples checked."""
+    ex = doc_examples()
+    checked = 0
+
+    def same(name: str, got: bytes) -> None:
+        nonlocal checked
+        want = example_bytes(ex[name])
+        assert got == want, f"{name}:\n got  {got.hex(' ')}\n want {want.hex(' ')}"
+        checked += 1
+
+    def decode_one(frame_bytes: bytes, version: int = 3) -> tuple[int, dict]:
+        d = Decoder(version)
+        msgs = d.push(b"\0" + frame_bytes)
+        assert len(msgs) == 1, (frame_bytes.hex(" "), d.c, d.malformed_reasons)
+        return msgs[0]
+
+    def body_and_frame(name: str, mtype: int, payload: bytes, version: int | None = None) -> bytes:
+        body = body_of(mtype, payload, version)
+        same(f"{name}-body", body)
+        fr = cobs_encode(body) + b"\0"
+        if f"{name}-frame" in ex:
+            same(f"{name}-frame", fr)
+        return fr
+
+    # Version 2 layouts (section 4).
+    target = struct.pack("<IQB", 42, 1500000, 6)
+    target += struct.pack("<6i", 100000, -500000, 250000, 0, 1570796, -3141593)
+    target += struct.pack("<6i", 10000, -20000, 0, 500000, 0, -1000000)
+    fr = body_and_frame("target-6", TARGET, target)
+    for v in (2, 3):
+        mt, m = decode_one(fr, v)
+        assert mt == TARGET and m["seq"] == 42 and m["t"] == 1500000 and m["vel"][5] == -1000000
+    feedback = struct.pack("<IBBBBB", 42, 0, 0, 0, 0, 6)
+    feedback += struct.pack("<6i", 99512, -499007, 249875, 0, 1570013, -3140911)
+    fr = body_and_frame("feedback-6", FEEDBACK, feedback)
+    assert decode_one(fr)[1]["seq"] == 42
+    fr = body_and_frame("heartbeat", HEARTBEAT, b"")
+    assert decode_one(fr) == (HEARTBEAT, {"_version": 2})
+    lims = [
+        (-2879793, 2879793, 4363323, 17453293),
+        (-1919862, 1919862, 4363323, 17453293),
+        (-1919862, 1221730, 4363323, 17453293),
+        (-2792527, 2792527, 5585054, 22340214),
+        (-2094395, 2094395, 5585054, 22340214),
+        (-6981317, 6981317, 7330383, 29321531),
+    ]
+    hello = bytearray([6])
+    for k in range(6):
+        hello += bytes([7]) + f"joint_{k + 1}".encode()
+    for row in lims:
+        hello += struct.pack("<iiii", *row)
+    hello += struct.pack("<IIB", 4000, 25, 1)
+    fr = body_and_frame("hello-6", HELLO, bytes(hello))
+    mt, m = decode_one(fr)
+    assert mt == HELLO and m["answer"] and m["_version"] == 2 and m["amax"][5] == 29321531
+    fault = bytes([2, 2, 0, 11]) + b"axis 3 step"
+    body_and_frame("fault", FAULT, fault)
+    # The degrees of config/irb120.toml on the wire (the Hello's values).
+    assert [deg_to_urad(x) for x in (-165, 70, 250, 320, 420)] == [
+        -2879793, 1221730, 4363323, 5585054, 7330383
+    ]
+
+    # Version 3 (section 4, "I/O (version 3)").
+    fr = body_and_frame("set-output", SET_OUTPUT, set_output_payload(7, 1, "gripper"))
+    mt, m = decode_one(fr)
+    assert (mt, m) == (SET_OUTPUT, {"request": 7, "name": "gripper", "value": 1, "_version": 3})
+    d2 = Decoder(2)
+    assert d2.push(fr) == [] and d2.c["unsupported_version"] == 1  # 2.3 check 3
+    out_state = io_state_payload(7, KIND_OUTPUT, R_DONE, 1, "gripper")
+    fr = body_and_frame("io-state-output", IO_STATE, out_state)
+    assert decode_one(fr)[1] == {
+        "request": 7, "name": "gripper", "kind": 0, "result": 0, "value": 1, "_version": 3
+    }
+    fr = body_and_frame("read-input", READ_INPUT, read_input_payload(8, "part_held"))
+    assert decode_one(fr) == (READ_INPUT, {"request": 8, "name": "part_held", "_version": 3})
+    in_state = io_state_payload(8, KIND_INPUT, R_DONE, 1, "part_held")
+    fr = body_and_frame("io-state-input", IO_STATE, in_state)
+    assert decode_one(fr)[1]["kind"] == 1
+    # "A version 3 controller's Hello is the Hello above with its first byte 03 instead of
+    # 02 (and so another CRC); nothing else in it changes."
+    v2_body = example_bytes(ex["hello-6-body"])
+    v3_body = body_of(HELLO, bytes(hello), version=3)
+    assert v3_body[0] == 3 and v3_body[1:-4] == v2_body[1:-4]
+    assert v3_body[-4:] == struct.pack("<I", crc32(b"\x03" + v2_body[1:-4]))
+    mt, m = decode_one(cobs_encode(v3_body) + b"\0")
+    assert mt == HELLO and m["_version"] == 3
+    d2 = Decoder(2)
+    assert d2.push(cobs_encode(v3_body) + b"\0") == [] and d2.c["unsupported_version"] == 1
+    # 7.4: the SetOutput in classic CAN segments on offset 0x28, base 0x100.
+    segs = can_segments(0x100, 0x28, body_of(SET_OUTPUT, set_output_payload(7, 1, "gripper")))
+    want = []
+    for ln in ex["set-output-can"]:
+        cid, data = ln.strip().split("#")
+        want.append((int(cid, 16), bytes.fromhex(data)))
+    assert segs == want, (segs, want)
+    checked += 1
+    missing = {
+        "set-output-body", "set-output-frame", "io-state-output-body", "read-input-body",
+        "io-state-input-body", "io-state-input-frame", "set-output-can",
+    } - set(ex)
+    assert not missing, f"docs/protocol.md lost examples {missing}"
+
+    # 2.3 / 3.6: what a version 3 receiver takes and drops.
+    def counts(body: bytes, version: int = 3) -> dict:
+        d = Decoder(version)
+        msgs = d.push(cobs_encode(body) + b"\0")
+        return {"ok": len(msgs), **{k: v for k, v in d.c.items() if v and k not in ("frames", "bytes_discarded")}}
+
+    def raw_body(version: int, mtype: int, payload: bytes) -> bytes:
+        b = bytes([version, mtype]) + payload
+        return b + struct.pack("<I", crc32(b))
+
+    ok = {"ok": 1}
+    bad = {"ok": 0, "malformed": 1}
+    assert counts(raw_body(3, TARGET, target)) == ok  # 0x01-0x08 with version byte 3
+    assert counts(raw_body(3, HEARTBEAT, b"")) == ok
+    assert counts(raw_body(2, SET_OUTPUT, set_output_payload(7, 1, "gripper"))) == bad
+    assert counts(raw_body(2, READ_INPUT, read_input_payload(8, "x")), version=2) == bad
+    assert counts(raw_body(4, HEARTBEAT, b"")) == {"ok": 0, "unsupported_version": 1}
+    assert counts(raw_body(3, HEARTBEAT, b""), version=2) == {"ok": 0, "unsupported_version": 1}
+    assert counts(raw_body(3, 0x0C, b"")) == bad  # reserved
+    for payload in [
+        struct.pack("<IB", 7, 1) + b"\x00",  # name length 0
+        struct.pack("<IB", 7, 1) + b"\x21" + b"a" * 33,  # over 32
+        struct.pack("<IB", 7, 1) + b"\x04grip-",  # `-`, and one byte too many
+        struct.pack("<IB", 7, 1) + b"\x04gr p",  # a space
+        struct.pack("<IB", 7, 1) + b"\x04gr\xc3\xa9",  # not ASCII
+        struct.pack("<IB", 7, 2) + b"\x04grip",  # value 2
+        struct.pack("<IB", 0, 1) + b"\x04grip",  # request 0
+        struct.pack("<IB", 7, 1) + b"\x05grip",  # a byte too few
+        struct.pack("<I", 7),  # no name
+    ]:
+        assert counts(raw_body(3, SET_OUTPUT, payload)) == bad, payload
+    assert counts(raw_body(3, SET_OUTPUT, set_output_payload(7, 0, "A_b9" * 8))) == ok  # 32
+    assert counts(raw_body(3, READ_INPUT, read_input_payload(0, "x"))) == bad
+    assert counts(raw_body(3, READ_INPUT, read_input_payload(1, "x") + b"\0")) == bad
+    for kind, result, value in [(2, 0, 0), (0, 3, 0), (0, 0, 2)]:
+        p = struct.pack("<IBBB", 5, kind, result, value) + b"\x01x"
+        assert counts(raw_body(3, IO_STATE, p)) == bad, (kind, result, value)
+    assert counts(raw_body(3, IO_STATE, io_state_payload(5, 1, 2, 0, "x"))) == ok
+    return checked
+
+
+class _Probe:
+    """A controller without a socket, for io_rules_test: what it sends is decoded back."""
+
+    def __init__(self, extra: list[str]) -> None:
+        rig = os.path.join(os.path.dirname(DOC), "..", "config", "irb120.toml")
+        args = parse_args(["--rig", rig, *extra])
+        self.ctl = Controller(args, load_axes(args))
+        self.ctl.conn = Conn(None, "probe")
+        self.ctl.sessions_started = 1
+        self.rx = Decoder(3)
+        self.t = now_us()
+
+    def send(self, mtype: int, payload: bytes, version: int | None = None) -> list:
+        for mt, m in Decoder(3).push(frame(mtype, payload, version)):
+            self.ctl.on_message(mt, m, now_us())
+        return self.take()
+
+    def take(self) -> list:
+        out = [x for x in self.rx.push(bytes(self.ctl.conn.out)) if x[0] != FEEDBACK]
+        self.ctl.conn.out.clear()
+        return out
+
+    def tick(self, seconds: float) -> list:
+        end = now_us() + round(seconds * 1e6)
+        while True:
+            self.ctl.conn.last_valid_us = now_us()  # as if the bridge's Heartbeats came
+            self.ctl.tick(now_us())
+            if now_us() >= end:
+                return self.take()
+            time.sleep(self.ctl.T / 1e6)
+
+
+def io_rules_test() -> None:
+    """6.10's rules on a socketless controller (version 3), and version 2's refusal of I/O."""
+
+    def st(request, kind, result, value, name):
+        return (IO_STATE, {"request": request, "kind": kind, "result": result, "value": value,
+                           "name": name, "_version": 3})
+
+    p = _Probe(["--actuator", "gripper=0.05", "--input", "part_held=1@gripper=1+0.02"])
+    c = p.ctl
+    hello = p.send(HELLO, c.hello_payload(False))  # the rig's own Hello, as the bridge's
+    assert [m[0] for m in hello] == [HELLO]
+    c.bound = False  # rule 5: unbound
+    assert p.send(SET_OUTPUT, set_output_payload(1, 1, "lamp")) == [st(1, 0, 2, 0, "lamp")]
+    assert c.outputs["lamp"] == 0
+    # Rule 3: reads in every state; rule 6: unknown names, whatever the state.
+    assert p.send(READ_INPUT, read_input_payload(2, "part_held")) == [st(2, 1, 0, 0, "part_held")]
+    assert p.send(READ_INPUT, read_input_payload(3, "lamp")) == [st(3, 1, 1, 0, "lamp")]
+    assert p.send(SET_OUTPUT, set_output_payload(4, 1, "part_held")) == [st(4, 0, 1, 0, "part_held")]
+    c.bound = True
+    # Rule 4: a plain output at once; an actuator when it has finished.
+    assert p.send(SET_OUTPUT, set_output_payload(5, 1, "lamp")) == [st(5, 0, 0, 1, "lamp")]
+    assert p.send(SET_OUTPUT, set_output_payload(6, 1, "gripper")) == []
+    assert c.outputs["gripper"] == 1  # takes effect when it arrives
+    # Rule 5: the same output's previous SetOutput unanswered: refused, unchanged.
+    assert p.send(SET_OUTPUT, set_output_payload(7, 0, "gripper")) == [st(7, 0, 2, 0, "gripper")]
+    assert c.outputs["gripper"] == 1
+    # Rule 7: outputs kept through EStop; the owed answer still comes (rule 2).
+    assert [m[0] for m in p.send(ESTOP, b"")] == [FAULT]
+    assert p.send(SET_OUTPUT, set_output_payload(8, 0, "lamp")) == [st(8, 0, 2, 0, "lamp")]
+    assert p.tick(0.1) == [st(6, 0, 0, 1, "gripper")]
+    assert c.outputs == {"gripper": 1, "lamp": 1}
+    # The scripted input: part_held 1 from 0.02 s after gripper was set to 1.
+    assert p.send(READ_INPUT, read_input_payload(9, "part_held")) == [st(9, 1, 0, 1, "part_held")]
+    # Reset: unbound, unprompted Hello with version byte 3 (6.10), outputs kept.
+    out = p.send(RESET, b"")
+    assert [(m[0], m[1]["_version"], m[1]["answer"]) for m in out] == [(HELLO, 3, False)]
+    assert p.send(SET_OUTPUT, set_output_payload(10, 0, "gripper")) == [st(10, 0, 2, 0, "gripper")]
+    assert [m[0] for m in p.send(HELLO, c.hello_payload(False))] == [HELLO]
+    # The same value at rest: at once; link loss keeps outputs and drops owed answers.
+    assert p.send(SET_OUTPUT, set_output_payload(11, 1, "gripper")) == [st(11, 0, 0, 1, "gripper")]
+    assert p.send(SET_OUTPUT, set_output_payload(12, 0, "gripper")) == []
+    c.link_loss("probe")
+    assert p.tick(0.1) == [] and c.outputs["gripper"] == 0
+    assert c.s["io_answers_dropped_link_loss"] == 1
+    assert c.s["outputs_done"] == [["lamp", 1], ["gripper", 1], ["gripper", 1], ["gripper", 0]]
+    assert [e["result"] for e in c.s["outputs_set"]] == [
+        2, 1, 0, 0, 2, 2, 2, 0, "dropped_link_loss"
+    ]
+    # Rule 8: I/O does not feed the target watchdog (nothing here resets wd_count).
+    # Version 2: the Hello carries version byte 2 and I/O frames are not for it.
+    p2 = _Probe(["--version", "2"])
+    out = p2.send(HELLO, p2.ctl.hello_payload(False))
+    assert [(m[0], m[1]["_version"]) for m in out] == [(HELLO, 2)]
+    p2.ctl.decoder.push(frame(SET_OUTPUT, set_output_payload(1, 1, "gripper")))
+    assert p2.ctl.decoder.c["unsupported_version"] == 1
 
 
 def main(argv=None) -> int:
