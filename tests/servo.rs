@@ -120,6 +120,7 @@ fn a_websocket_client_servos_a_circle_within_limits_and_bad_targets_move_nothing
         "6 joints",
         "unreachable",
         "send `joints_deg` or `pose`, one of them",
+        "sent_s = 0 is not after the target before's 2.99",
     ];
     for (bad, words) in seen["bad"].as_array().unwrap().iter().zip(wanted) {
         let replies = bad["replies"].as_array().unwrap();
@@ -156,13 +157,16 @@ fn a_websocket_client_servos_a_circle_within_limits_and_bad_targets_move_nothing
         .filter(|e| e.kind == "resumed")
         .map(|e| e.t)
         .collect();
+    // A resumption starts again from where the controller held (it lags the target
+    // before): the differences across it are not the controller's.
+    let across = |from: f64, to: f64| resumed.iter().any(|r| (from..to).contains(r));
     for (k, c) in commands.iter().enumerate() {
         for (axis, joint) in rig.joints.iter().enumerate() {
             let l = joint.limits;
             let p = c.positions[axis];
             assert!(l.contains(p), "target {k}: {} at {p}", joint.name);
             assert!(c.velocities[axis].abs() <= l.max_speed * (1.0 + SLACK));
-            if k >= 2 {
+            if k >= 2 && !across(commands[k - 2].t, c.t) {
                 let (b, o) = (&commands[k - 1], &commands[k - 2]);
                 let step = (p - b.positions[axis]) / dt;
                 let second = (p - 2.0 * b.positions[axis] + o.positions[axis]) / (dt * dt);
