@@ -21,15 +21,18 @@ const SECONDS: f64 = 3.0;
 /// How far the commanded tool may stray from the circle's line (m) once it caught up, for
 /// 95 % of its targets. The follower's own bound is the virtual-clock test's
 /// (tests/online.rs: within 6 mm once caught up). Over the socket, with late targets no
-/// longer braked (docs/online.md, Servo): p95 4.4 to 4.5 mm over 12 runs, 5.0 to 6.8 mm
-/// with a release build running beside it; the margin is for the whole suite's load.
-const OFF_THE_CIRCLE_M: f64 = 0.010;
+/// longer braked (docs/online.md, Servo): p95 4.4 to 4.5 mm over 12 runs, 4.6 to 8.8 mm
+/// with a release build or clippy running beside it (but one run in eleven, below); the
+/// margin is for the whole suite's load.
+const OFF_THE_CIRCLE_M: f64 = 0.012;
 /// The share of caught-up targets that must lie within [`OFF_THE_CIRCLE_M`].
 const ON_THE_CIRCLE_SHARE: f64 = 0.95;
 /// No caught-up target further from the line than this (m): at most 5.3 mm in those 12
-/// runs, 9.2 mm loaded. Before, one run in three cut 35 to 90 mm off it, each time after a
-/// late target had braked the arm for a cycle or two.
-const WORST_OFF_THE_CIRCLE_M: f64 = 0.020;
+/// runs, 11 mm loaded. Before, one run in three cut 35 to 90 mm off it, each time after a
+/// late target had braked the arm for a cycle or two. Open: with clippy compiling beside
+/// it, one loaded run in eleven (the cycle itself stalled 27 ms) still cut 43 mm off it
+/// while catching up after starved targets.
+const WORST_OFF_THE_CIRCLE_M: f64 = 0.025;
 /// The share of the client's angle round the circle the tool must sweep: it starts behind
 /// (the session starts while the client streams) and slows down on a late target.
 const SWEPT_SHARE: f64 = 0.8;
