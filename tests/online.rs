@@ -514,6 +514,7 @@ fn random_goals_jogs_and_overrides_stay_within_every_limit_and_react_in_a_cycle(
     let mut scratch = model.scratch();
     let (mut collisions, mut in_margin, mut closest) = (0, 0, f64::INFINITY);
     let mut first_in_margin = None;
+    let mut pair = (0, 0);
     for (k, w) in targets.windows(2).enumerate() {
         let clearance = match model.check_step(&w[0].positions, &w[1].positions, &mut scratch) {
             Ok(clearance) => clearance,
@@ -523,18 +524,23 @@ fn random_goals_jogs_and_overrides_stay_within_every_limit_and_react_in_a_cycle(
                 clearance
             }
         };
-        closest = closest.min(clearance.distance_m);
+        if clearance.distance_m < closest {
+            closest = clearance.distance_m;
+            pair = (clearance.a, clearance.b);
+        }
         if clearance.distance_m <= 0.0 {
             collisions += 1;
         }
     }
     println!(
         "collisions: {collisions} steps; {in_margin} of {} steps within the cell's margin \
-         {:.3} m (the first at target {}); closest {:.4} m",
+         {:.3} m (the first at target {}); closest {:.4} m ({} - {})",
         targets.len() - 1,
         model.margin(),
         first_in_margin.map_or("none".to_string(), |k| k.to_string()),
-        closest
+        closest,
+        model.body_name(pair.0),
+        model.body_name(pair.1)
     );
     assert_eq!(collisions, 0, "steps that collide");
     // Reaction: a goal or a jog given after target `k` is read by the cycle of target

@@ -297,7 +297,7 @@ fn run_node(
         (Some((trajectories, servo)), Some(motion)) => {
             let Motion {
                 trajectories: mut on_trajectory,
-                servo: mut on_servo,
+                servo: on_servo,
             } = motion;
             let stop = publishing.stop.clone();
             let trajectory_thread = std::thread::spawn(move || {
@@ -308,8 +308,7 @@ fn run_node(
                 })
             });
             let stop = publishing.stop.clone();
-            let servo_thread =
-                std::thread::spawn(move || receive(servo, &stop, |payload| on_servo(payload)));
+            let servo_thread = std::thread::spawn(move || receive(servo, &stop, on_servo));
             vec![trajectory_thread, servo_thread]
         }
         _ => Vec::new(),
