@@ -568,11 +568,13 @@ fn random_goals_jogs_and_overrides_stay_within_every_limit_and_react_in_a_cycle(
         "{} random commands over {:.0} s of twin time: {} targets, 0 over a limit, 0 refused \
          by the gate, 0 collisions; reaction of the {} goals and jogs given \
          while the override was above 0 % ({held} more given at 0 %, held) (command to \
-         first changed target) p50 {:.0} p99 {:.0} max {:.0} cycles ({:.0} ms at p99)",
+         first changed target, found for {} of them) p50 {:.0} p99 {:.0} max {:.0} cycles \
+         ({:.0} ms at p99)",
         commands,
         targets.len() as f64 * settings.period().as_secs_f64(),
         targets.len(),
         given.len(),
+        reactions.len(),
         percentile(reactions.clone(), 0.5),
         p99,
         percentile(reactions, 1.0),
