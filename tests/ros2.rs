@@ -693,3 +693,142 @@ fn motion_settings_are_validated(dir: &Path) {
         assert!(!format!("{ros2:?}").contains("Secret-good"), "{name}");
     }
 }
+
+/// The servo stream of the Zenoh tests: joint_1 to this (deg) over a second, held half a
+/// second more (tests/peers/ros2_peer.py `servo`).
+const SERVO_DEG: f64 = 10.0;
+/// How far the commanded joint_1 may end from the stream's last target (deg): the follower
+/// closes the distance by 6/s (docs/online.md, Servo) for the half second the target is
+/// held, from a lag of a few tenths of a degree; this tells "followed" from "did not move".
+const SERVO_REACHED_DEG: f64 = 0.2;
+
+/// The status once the commanded joint_1 is within [`SERVO_REACHED_DEG`] of `deg` and
+/// stays there (two readings 0.3 s apart agree), or the last one after 10 s.
+fn commanded_joint_1_settles_at(serve: &Serve, deg: f64) -> serde_json::Value {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let joint_1 = |status: &serde_json::Value| status["commanded"][0]["value"].as_f64();
+    loop {
+        let status = serve.get("/api/status");
+        std::thread::sleep(Duration::from_millis(300));
+        let later = serve.get("/api/status");
+        let settled = joint_1(&status) == joint_1(&later);
+        if (settled && joint_1(&later).is_some_and(|q| (q - deg).abs() <= SERVO_REACHED_DEG))
+            || Instant::now() > deadline
+        {
+            return later;
+        }
+    }
+}
+
+#[test]
+fn servo_over_zenoh_is_followed_with_accept_motion_and_its_login_and_refused_without() {
+    let Some(python) = peer_python() else { return };
+    let dir = scratch("servo");
+    // On: the daemon and the operator logged in to a router that checks them.
+    let endpoint = free_endpoint();
+    let logins = logins(&dir);
+    let router = start_peer(
+        &python,
+        &[
+            "router",
+            "--endpoint",
+            &endpoint,
+            "--dictionary",
+            logins.dictionary.to_str().unwrap(),
+            "--timeout",
+            "300",
+        ],
+    );
+    let config = cell_settings(&dir, "irb120", &daemon_login(&logins));
+    let serve = Serve::start(
+        &[&config],
+        &["--zenoh-connect", &endpoint],
+        &dir.join("runs"),
+    );
+    let deg = SERVO_DEG.to_string();
+    let sent = start_peer(
+        &python,
+        &[
+            "servo",
+            "--connect",
+            "--endpoint",
+            &endpoint,
+            "--rig",
+            "irb120",
+            "--user",
+            OPERATOR_USER,
+            "--password-file",
+            logins.operator_password.to_str().unwrap(),
+            "--servo-deg",
+            &deg,
+            "--seconds",
+            "1.5",
+            "--bad",
+        ],
+    )
+    .result();
+    println!("servo over Zenoh, accept_motion on: {sent}");
+    assert_eq!(sent["opened"], true, "{sent}");
+    assert_eq!(sent["node_seen"], true, "{sent}");
+    assert_eq!(sent["key"], "irb120/servo");
+    let status = commanded_joint_1_settles_at(&serve, SERVO_DEG);
+    let joint_1 = status["commanded"][0]["value"].as_f64().unwrap();
+    println!("the commanded joint_1 settled at {joint_1:.3} deg (the stream's last {SERVO_DEG})");
+    assert!(
+        (joint_1 - SERVO_DEG).abs() <= SERVO_REACHED_DEG,
+        "joint_1 commanded at {joint_1} deg: {status}"
+    );
+    let actions = event_actions(&status);
+    assert!(actions.iter().any(|a| a == "servo"), "{actions:?}");
+    let refused = status["events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|e| e["action"] == "ros2_servo_refused")
+        .unwrap_or_else(|| panic!("the bad target was not refused: {status}"));
+    let words = refused["result"].as_str().unwrap();
+    assert!(
+        words.contains("irb120/servo")
+            && words.contains("joint_3 = 80.000 deg is outside its limits")
+            && words.contains("(refusal 1 from ROS 2"),
+        "{words}"
+    );
+    drop(serve);
+    drop(router);
+    // Off: the shipped settings (no [ros2]) and an open peer: the same stream moves nothing.
+    let endpoint = free_endpoint();
+    let peer = start_peer(
+        &python,
+        &[
+            "servo",
+            "--endpoint",
+            &endpoint,
+            "--rig",
+            "irb120",
+            "--token-timeout",
+            "10",
+            "--servo-deg",
+            &deg,
+            "--seconds",
+            "1.0",
+        ],
+    );
+    let serve = Serve::start(
+        &[&repo_path("config/rigbridge.toml")],
+        &["--zenoh-connect", &endpoint],
+        &dir.join("runs-off"),
+    );
+    let sent = peer.result();
+    println!("servo over Zenoh, accept_motion off: {sent}");
+    assert_eq!(sent["node_seen"], true, "the daemon joined: {sent}");
+    assert_eq!(sent["sent"], 100, "{sent}");
+    // Given a second for anything that would have come of them.
+    std::thread::sleep(Duration::from_secs(1));
+    let status = serve.get("/api/status");
+    assert_eq!(status["state"], "idle", "{status}");
+    assert!(status["last"].is_null(), "no session ran: {status}");
+    assert_eq!(event_actions(&status), ["ros2_motion"]);
+    assert_arm_at(&status, &[0.0, 0.0, 0.0, 0.0, 30f64.to_radians(), 0.0]);
+    drop(serve);
+    let _ = std::fs::remove_dir_all(&dir);
+}

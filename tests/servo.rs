@@ -19,17 +19,22 @@ const SPEED_M_S: f64 = 0.2;
 const RATE_HZ: f64 = 100.0;
 const SECONDS: f64 = 3.0;
 /// How far the commanded tool may stray from the circle's line (m) once it caught up, for
-/// half of its targets. The follower's own bound is the virtual-clock test's
-/// (tests/online.rs: within 6 mm once caught up). Over a real socket the p95 was 5.2 to
-/// 7.6 mm in most runs, but about one run in four shows an excursion of 28 to 52 mm for a
-/// few hundred milliseconds (p95 up to 32 mm), with the client on time and no stall: an
-/// open defect (docs/online.md, Servo), printed here, not hidden. The median tells a circle
-/// followed from one cut across; the sweep below tells it from an arm that stays put.
+/// 95 % of its targets. The follower's own bound is the virtual-clock test's
+/// (tests/online.rs: within 6 mm once caught up). Over the socket, with late targets no
+/// longer braked (docs/online.md, Servo): p95 4.4 to 4.5 mm over 12 runs, 4.6 to 8.8 mm
+/// with a release build or clippy running beside it (but one run in eleven, below); the
+/// margin is for the whole suite's load.
 const OFF_THE_CIRCLE_M: f64 = 0.012;
 /// The share of caught-up targets that must lie within [`OFF_THE_CIRCLE_M`].
-const ON_THE_CIRCLE_SHARE: f64 = 0.5;
+const ON_THE_CIRCLE_SHARE: f64 = 0.95;
+/// No caught-up target further from the line than this (m): at most 5.3 mm in those 12
+/// runs, 11 mm loaded. Before, one run in three cut 35 to 90 mm off it, each time after a
+/// late target had braked the arm for a cycle or two. Open: with clippy compiling beside
+/// it, one loaded run in eleven (the cycle itself stalled 27 ms) still cut 43 mm off it
+/// while catching up after starved targets.
+const WORST_OFF_THE_CIRCLE_M: f64 = 0.025;
 /// The share of the client's angle round the circle the tool must sweep: it starts behind
-/// (the session starts while the client streams) and may brake on a late target.
+/// (the session starts while the client streams) and slows down on a late target.
 const SWEPT_SHARE: f64 = 0.8;
 /// The start left out of that (s), and the same after each resumption from a stall: the
 /// client streams from its first message while the session starts (it waits for the
@@ -104,8 +109,12 @@ fn a_websocket_client_servos_a_circle_within_limits_and_bad_targets_move_nothing
         String::from_utf8_lossy(&output.stderr)
     );
     let seen: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
-    let (code, _) = request_json(&address, "POST", "/api/stop", "", "");
-    assert_eq!(code, 200);
+    // The peer's last job is stopped; on a loaded machine it may have ended already.
+    let (code, body) = request_json(&address, "POST", "/api/stop", "", "");
+    assert!(
+        code == 200 || (code == 409 && body.to_string().contains("no job is running")),
+        "{code} {body}"
+    );
     // One session, every target taken.
     assert_eq!(seen["stream_errors"], serde_json::json!([]), "{seen}");
     let sessions = seen["sessions"].as_array().unwrap();
@@ -120,6 +129,7 @@ fn a_websocket_client_servos_a_circle_within_limits_and_bad_targets_move_nothing
         "6 joints",
         "unreachable",
         "send `joints_deg` or `pose`, one of them",
+        "sent_s = 0 is not after the target before's 2.99",
     ];
     for (bad, words) in seen["bad"].as_array().unwrap().iter().zip(wanted) {
         let replies = bad["replies"].as_array().unwrap();
@@ -156,13 +166,16 @@ fn a_websocket_client_servos_a_circle_within_limits_and_bad_targets_move_nothing
         .filter(|e| e.kind == "resumed")
         .map(|e| e.t)
         .collect();
+    // A resumption starts again from where the controller held (it lags the target
+    // before): the differences across it are not the controller's.
+    let across = |from: f64, to: f64| resumed.iter().any(|r| (from..to).contains(r));
     for (k, c) in commands.iter().enumerate() {
         for (axis, joint) in rig.joints.iter().enumerate() {
             let l = joint.limits;
             let p = c.positions[axis];
             assert!(l.contains(p), "target {k}: {} at {p}", joint.name);
             assert!(c.velocities[axis].abs() <= l.max_speed * (1.0 + SLACK));
-            if k >= 2 {
+            if k >= 2 && !across(commands[k - 2].t, c.t) {
                 let (b, o) = (&commands[k - 1], &commands[k - 2]);
                 let step = (p - b.positions[axis]) / dt;
                 let second = (p - 2.0 * b.positions[axis] + o.positions[axis]) / (dt * dt);
@@ -202,7 +215,8 @@ fn a_websocket_client_servos_a_circle_within_limits_and_bad_targets_move_nothing
     caught_up.sort_by(f64::total_cmp);
     let share =
         |q: f64| caught_up[((caught_up.len() as f64 * q) as usize).min(caught_up.len() - 1)];
-    let (median, p95) = (share(ON_THE_CIRCLE_SHARE), share(0.95));
+    let (median, p95) = (share(0.5), share(ON_THE_CIRCLE_SHARE));
+    let worst_caught_up = caught_up.last().copied().unwrap_or(0.0);
     println!(
         "servo over the WebSocket: {} targets, {} resumptions after a stall, the tool at most \
          {:.2} mm off the circle; but for the first {CAUGHT_UP_S} s of each part median \
@@ -212,15 +226,19 @@ fn a_websocket_client_servos_a_circle_within_limits_and_bad_targets_move_nothing
         1e3 * worst,
         1e3 * median,
         1e3 * p95,
-        1e3 * caught_up.last().copied().unwrap_or(0.0)
+        1e3 * worst_caught_up
     );
     println!(
         "the client's longest gap between two sends: {} s",
         seen["max_gap_s"]
     );
     assert!(
-        median <= OFF_THE_CIRCLE_M,
-        "half the caught-up targets within {median} m of the circle, above {OFF_THE_CIRCLE_M} m"
+        p95 <= OFF_THE_CIRCLE_M,
+        "95 % of the caught-up targets within {p95} m of the circle, above {OFF_THE_CIRCLE_M} m"
+    );
+    assert!(
+        worst_caught_up <= WORST_OFF_THE_CIRCLE_M,
+        "a caught-up target {worst_caught_up} m off the circle, above {WORST_OFF_THE_CIRCLE_M} m"
     );
     let client_angle = SPEED_M_S * SECONDS / RADIUS_M;
     println!("the tool swept {swept:.2} rad round the circle of the client's {client_angle:.2}");

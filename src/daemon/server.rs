@@ -532,8 +532,13 @@ fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::RigNode>, DaemonE
         let handler = ros2.accept_motion.then(|| {
             let (daemon, cell) = (daemon.clone(), cell.clone());
             let mut refusals = super::ros2::Refusals::new(Box::new(crate::clock::WallClock::new()));
-            Box::new(move |message| take_trajectory(&daemon, &cell, &mut refusals, message))
-                as crate::ros2::TrajectoryHandler
+            let servo = servo::zenoh_handler(daemon.clone(), cell.clone());
+            crate::ros2::Motion {
+                trajectories: Box::new(move |message| {
+                    take_trajectory(&daemon, &cell, &mut refusals, message)
+                }),
+                servo,
+            }
         });
         // Zenoh's and RustDDS's own runtimes must not be entered from the server's: a
         // thread of its own.

@@ -21,7 +21,7 @@ mod node;
 pub mod type_hash;
 
 pub use dds::{DdsNode, PublishedRig, WORLD_FRAME};
-pub use node::{Ros2Node, TrajectoryHandler};
+pub use node::{Motion, Ros2Node, ServoHandler, TrajectoryHandler, servo_key};
 
 use thiserror::Error;
 
@@ -103,14 +103,14 @@ impl RigNode {
 }
 
 /// Starts `rig`'s node on the middleware `settings` name, publishing from `slot`
-/// (`known_at_rest` as [`Ros2Node::start`]); `trajectories` only over Zenoh: a DDS node takes
+/// (`known_at_rest` as [`Ros2Node::start`]); `motion` only over Zenoh: a DDS node takes
 /// no motion, and asking it to is refused.
 pub fn start_node(
     settings: &Ros2Settings,
     rig: PublishedRig,
     slot: std::sync::Arc<crate::view::LiveSlot>,
     known_at_rest: bool,
-    trajectories: Option<TrajectoryHandler>,
+    motion: Option<Motion>,
 ) -> Result<RigNode, Ros2Error> {
     match &settings.middleware {
         Middleware::Dds { range } => {
@@ -123,7 +123,7 @@ pub fn start_node(
         }
         Middleware::Zenoh { .. } => {
             let PublishedRig { name, joints, .. } = rig;
-            let node = Ros2Node::start(settings, &name, joints, slot, known_at_rest, trajectories)?;
+            let node = Ros2Node::start(settings, &name, joints, slot, known_at_rest, motion)?;
             Ok(RigNode::Zenoh(node))
         }
     }

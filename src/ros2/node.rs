@@ -1,8 +1,9 @@
 //! One rig as a ROS 2 node over Zenoh, the way rmw_zenoh makes one: a Zenoh session (peer
 //! mode, connected to the configured endpoint, multicast scouting off), liveliness tokens
-//! for the node, its JointState publisher and, when asked, its JointTrajectory subscription,
-//! a thread that publishes the rig's latest state at a fixed rate, and a thread that hands
-//! every trajectory received to a handler.
+//! for the node, its JointState publisher and, when asked, its JointTrajectory subscription
+//! and its servo key (`<rig>/servo`, docs/online.md), a thread that publishes the rig's
+//! latest state at a fixed rate, and a thread for each subscription that hands every
+//! message received to a handler.
 //!
 //! The publishing thread reads the cell's latest-value slot (`view::LiveSlot`), the same the
 //! live view samples: the streaming cycle only offers to that slot with a `try_lock`, so
@@ -26,6 +27,22 @@ const POLL: Duration = Duration::from_millis(100);
 /// What a node does with each JointTrajectory it receives (or why one could not be read).
 pub type TrajectoryHandler = Box<dyn FnMut(Result<JointTrajectory, CdrError>) + Send>;
 
+/// What a node does with each servo message's payload on `<rig>/servo` (`Some`), and after
+/// [`POLL`] without one (`None`: a stream's end is seen without a message).
+pub type ServoHandler = Box<dyn FnMut(Option<&[u8]>) + Send>;
+
+/// The motion a node takes (`[ros2] accept_motion`): trajectories and servo targets.
+pub struct Motion {
+    pub trajectories: TrajectoryHandler,
+    pub servo: ServoHandler,
+}
+
+/// The servo key of rig `rig`: one plain Zenoh key, not a ROS 2 topic (a servo target is
+/// rigbridge's JSON, as on the WebSocket route).
+pub fn servo_key(rig: &str) -> String {
+    format!("{rig}/servo")
+}
+
 /// A running node; dropping it removes the node from the graph (its tokens go) and closes
 /// the session.
 pub struct Ros2Node {
@@ -37,8 +54,8 @@ pub struct Ros2Node {
 
 impl Ros2Node {
     /// Opens the session and declares the node of rig `rig` (its joints `joints`),
-    /// publishing `/<rig>/joint_states` from `slot` and, with a handler, subscribing to
-    /// `/<rig>/joint_trajectory`. `known_at_rest`: the slot's position is the rig's before
+    /// publishing `/<rig>/joint_states` from `slot` and, with `motion`, subscribing to
+    /// `/<rig>/joint_trajectory` and `<rig>/servo`. `known_at_rest`: the slot's position is the rig's before
     /// any cycle (the in-process twin); otherwise nothing is published until the first
     /// cycle's feedback. Returns once the node is declared.
     pub fn start(
@@ -47,7 +64,7 @@ impl Ros2Node {
         joints: Vec<String>,
         slot: Arc<LiveSlot>,
         known_at_rest: bool,
-        trajectories: Option<TrajectoryHandler>,
+        motion: Option<Motion>,
     ) -> Result<Ros2Node, Ros2Error> {
         graph::check_namespace(rig)?;
         let stop = Arc::new(AtomicBool::new(false));
@@ -75,10 +92,10 @@ impl Ros2Node {
                 if let Some(cpu) = crate::realtime::streaming_cpu() {
                     let _ = crate::realtime::keep_off(cpu);
                 }
-                match open_node(&settings, &rig_name, trajectories.is_some()) {
+                match open_node(&settings, &rig_name, motion.is_some()) {
                     Ok((session, declared, names)) => {
                         let _ = ready.send(Ok(names));
-                        run_node(session, declared, publishing, trajectories);
+                        run_node(session, declared, publishing, motion);
                     }
                     Err(e) => {
                         let _ = ready.send(Err(e));
@@ -193,7 +210,7 @@ struct Declared {
     _tokens: Vec<zenoh::liveliness::LivelinessToken>,
     publisher: zenoh::pubsub::Publisher<'static>,
     gid: [u8; 16],
-    subscriber: Option<TrajectorySubscriber>,
+    subscriber: Option<(Subscriber, Subscriber)>,
 }
 
 impl Declared {
@@ -230,7 +247,9 @@ impl Declared {
                 "the subscription's liveliness token",
                 session.liveliness().declare_token(token).wait(),
             )?);
-            Some(subscriber)
+            let servo = servo_key(names.namespace.trim_start_matches('/'));
+            let servo = declare(&servo, session.declare_subscriber(servo.clone()).wait())?;
+            Some((subscriber, servo))
         } else {
             None
         };
@@ -266,7 +285,7 @@ fn run_node(
     session: zenoh::Session,
     declared: Declared,
     publishing: Publishing,
-    trajectories: Option<TrajectoryHandler>,
+    motion: Option<Motion>,
 ) {
     let Declared {
         _tokens,
@@ -274,17 +293,28 @@ fn run_node(
         gid,
         subscriber,
     } = declared;
-    let receiving = match (subscriber, trajectories) {
-        (Some(subscriber), Some(handler)) => {
+    let receiving = match (subscriber, motion) {
+        (Some((trajectories, servo)), Some(motion)) => {
+            let Motion {
+                trajectories: mut on_trajectory,
+                servo: on_servo,
+            } = motion;
             let stop = publishing.stop.clone();
-            Some(std::thread::spawn(move || {
-                receive(subscriber, handler, &stop)
-            }))
+            let trajectory_thread = std::thread::spawn(move || {
+                receive(trajectories, &stop, |payload| {
+                    if let Some(payload) = payload {
+                        on_trajectory(messages::decode_joint_trajectory(payload));
+                    }
+                })
+            });
+            let stop = publishing.stop.clone();
+            let servo_thread = std::thread::spawn(move || receive(servo, &stop, on_servo));
+            vec![trajectory_thread, servo_thread]
         }
-        _ => None,
+        _ => Vec::new(),
     };
     publish_states(&publisher, &gid, &publishing);
-    if let Some(thread) = receiving {
+    for thread in receiving {
         let _ = thread.join();
     }
     drop(_tokens);
@@ -360,17 +390,19 @@ pub(super) fn pace(next: Instant, period: Duration) -> Instant {
     next
 }
 
-type TrajectorySubscriber =
+type Subscriber =
     zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>;
 
-fn receive(subscriber: TrajectorySubscriber, mut handler: TrajectoryHandler, stop: &AtomicBool) {
+/// Every sample's payload to `handler` (and `None` after [`POLL`] without one) until the
+/// stop flag or the session's end.
+fn receive(subscriber: Subscriber, stop: &AtomicBool, mut handler: impl FnMut(Option<&[u8]>)) {
     while !stop.load(Ordering::Relaxed) {
         match subscriber.recv_timeout(POLL) {
             Ok(Some(sample)) => {
                 let payload = sample.payload().to_bytes();
-                handler(messages::decode_joint_trajectory(&payload));
+                handler(Some(&payload));
             }
-            Ok(None) => {}
+            Ok(None) => handler(None),
             // The session is closing.
             Err(_) => break,
         }

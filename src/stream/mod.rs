@@ -33,7 +33,7 @@ pub use gate::{CellGate, CellRefusal, GateCheck, GateRefusal, ModelCheck};
 pub use metrics::MicrosHistogram;
 pub use online::{
     CellCheck, DEADMAN, Frame, IDLE_END, Jog, NoCell, OnlineCommand, OnlineCommands,
-    OnlineSettings, REDUCED_SPEED_M_S, SERVO_TIMEOUT,
+    OnlineSettings, REDUCED_SPEED_M_S, SERVO_TIMEOUT, ServoTarget,
 };
 pub use phase::{Halting, Phase};
 

@@ -11,8 +11,11 @@
 //!
 //! A servo stream (`OnlineCommand::Servo`) is a goal that moves: each target a client sends
 //! replaces the last, with the velocity of the last few targets as the target's velocity
-//! (so the arm follows a moving target instead of stopping at each one); when no target
-//! arrives for `servo_timeout` the arm comes to rest along its path with the brake.
+//! (so the arm follows a moving target instead of stopping at each one), measured over the
+//! times the targets were sent, not the cycles they were seen in: a loaded machine delivers
+//! a client's targets in bursts, and a velocity from arrivals then overshoots (the servo
+//! excursion of docs/online.md). When no target arrives for `servo_timeout` the arm comes
+//! to rest along its path with the brake.
 //!
 //! A Cartesian jog moves the tool at the jog speed (ISO 10218-1's reduced speed, 250 mm/s,
 //! by default) along a direction of the base or the tool frame, its orientation held, by a
@@ -83,9 +86,14 @@ const SERVO_GAP_INTERVALS: f64 = 1.5;
 /// velocity lags the client's by half that.
 const SERVO_WINDOW: usize = 4;
 /// A servo target older than this many mean intervals is late: the next one did not come
-/// when due, so the arm brakes where it is, near the last target, rather than run on past
-/// it (rsruckig's jerk-limited stop from 0.2 m/s takes 16 mm); the next target moves it
-/// on from there.
+/// when due. The target is then no longer moved on by its velocity, and that velocity's
+/// share of the arm's fades to nothing by the stream's timeout, so the arm slows down
+/// toward the last target through rsruckig, its acceleration continuous. Braking at once
+/// instead (this module's brake, acceleration stepping to 95 % of the limit) was the
+/// servo excursion of docs/online.md: on a loaded machine targets are late for a cycle or
+/// two every few hundred milliseconds, and each brake left rsruckig to win back its
+/// acceleration under the jerk limit, each axis on its own, the tool off the client's
+/// path by up to 90 mm.
 const SERVO_LATE_INTERVALS: f64 = 2.0;
 
 /// A frame a Cartesian jog's direction is given in.
@@ -118,7 +126,17 @@ pub enum OnlineCommand {
     Release,
     /// A servo client's newest target (validated within the limits and the cell): follow
     /// it, while targets keep arriving within [`SERVO_TIMEOUT`].
-    Servo(AxisValues),
+    Servo(ServoTarget),
+}
+
+/// One servo target and when it was sent.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ServoTarget {
+    pub joints: AxisValues,
+    /// When the client sent it (s, on any clock of the client's that only goes forward; the
+    /// route's arrival time when the client gives none): the target's velocity is measured
+    /// over these, so how the targets bunch on the way does not change it.
+    pub sent_s: f64,
 }
 
 /// The commands waiting for the cycle, and the jog's keep-alives. The API writes here; the
@@ -246,14 +264,14 @@ enum Intent {
 }
 
 /// Where the servo stream's targets arrived: the last one, its cycle, the mean interval
-/// between targets (s) once there were two, and the ones before (cycle and target, newest
-/// first; `held` of them are real).
+/// between arrivals (s) once there were two, and the ones before (when each was sent, and
+/// the target, newest first; `held` of them are real).
 #[derive(Debug, Clone, Copy)]
 struct ServoArrivals {
-    last: AxisValues,
+    last: ServoTarget,
     cycle: u64,
     interval: Option<f64>,
-    earlier: [(u64, AxisValues); SERVO_WINDOW],
+    earlier: [ServoTarget; SERVO_WINDOW],
     held: usize,
 }
 
@@ -385,7 +403,7 @@ impl Online {
         if deadman || servo_timeout {
             self.intent = Intent::Idle;
         }
-        let brake = stopping || speed <= 0.0 || self.intent == Intent::Idle || self.servo_late();
+        let brake = stopping || speed <= 0.0 || self.intent == Intent::Idle;
         let braked = brake || !self.generate(rig, speed, cell);
         if braked {
             self.brake_step(rig);
@@ -436,23 +454,34 @@ impl Online {
         }
     }
 
-    /// Whether the servo stream's next target is late (see [`SERVO_LATE_INTERVALS`]).
-    fn servo_late(&self) -> bool {
-        let Some(arrivals) = self
-            .servo
-            .filter(|_| matches!(self.intent, Intent::Servo { .. }))
-        else {
-            return false;
+    /// How far (s) the servo target is moved on by its velocity, and the share of that
+    /// velocity the arm is given: its age and 1 while it is on time; once it is late (see
+    /// [`SERVO_LATE_INTERVALS`]) the lateness bound and a share falling to 0 at the
+    /// timeout.
+    fn servo_horizon(&self) -> (f64, f64) {
+        let Some(arrivals) = self.servo else {
+            return (0.0, 0.0);
         };
         let age = (self.cycle - arrivals.cycle) as f64 * self.dt;
-        arrivals
-            .interval
-            .is_some_and(|mean| age > SERVO_LATE_INTERVALS * mean)
+        let Some(mean) = arrivals.interval else {
+            return (age, 1.0);
+        };
+        let late = SERVO_LATE_INTERVALS * mean;
+        if age <= late {
+            return (age, 1.0);
+        }
+        let timeout = self.settings.servo_timeout.as_secs_f64();
+        let share = if timeout > late {
+            ((timeout - age) / (timeout - late)).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        (late, share)
     }
 
-    /// A servo target: its velocity from the last one over the mean interval between
-    /// targets; zero for the first of a stream (or after a pause longer than the timeout).
-    fn follow(&mut self, target: AxisValues) {
+    /// A servo target: its velocity from the targets before it over the time between their
+    /// sending; zero for the first of a stream (or after a pause longer than the timeout).
+    fn follow(&mut self, target: ServoTarget) {
         let timeout = self.settings.servo_timeout.as_secs_f64();
         let continued = self
             .servo
@@ -462,7 +491,7 @@ impl Online {
             last: target,
             cycle: self.cycle,
             interval: None,
-            earlier: [(self.cycle, target); SERVO_WINDOW],
+            earlier: [target; SERVO_WINDOW],
             held: 0,
         };
         if let Some(before) = continued {
@@ -474,22 +503,27 @@ impl Online {
                     Some(mean) => mean + SERVO_INTERVAL_WEIGHT * (since - mean),
                     None => since,
                 });
-                arrivals.earlier[0] = (before.cycle, before.last);
+                arrivals.earlier[0] = before.last;
                 arrivals.earlier[1..].copy_from_slice(&before.earlier[..SERVO_WINDOW - 1]);
                 arrivals.held = (before.held + 1).min(SERVO_WINDOW);
-                // Over the window, not the last interval alone: a client that sends in
-                // bursts (two in one cycle, of which the cycle sees the newer, then a
-                // pause) averages out.
-                let (cycle, oldest) = arrivals.earlier[arrivals.held - 1];
-                let elapsed = (self.cycle - cycle) as f64 * self.dt;
-                for axis in 0..self.dof {
-                    velocity.as_mut_slice()[axis] =
-                        (target.as_slice()[axis] - oldest.as_slice()[axis]) / elapsed;
+                // Over the window and the client's own times: two targets seen in
+                // consecutive cycles after a pause were still sent an interval apart.
+                let oldest = arrivals.earlier[arrivals.held - 1];
+                let elapsed = target.sent_s - oldest.sent_s;
+                if elapsed > 0.0 {
+                    for axis in 0..self.dof {
+                        velocity.as_mut_slice()[axis] = (target.joints.as_slice()[axis]
+                            - oldest.joints.as_slice()[axis])
+                            / elapsed;
+                    }
                 }
             }
         }
         self.servo = Some(arrivals);
-        self.intent = Intent::Servo { target, velocity };
+        self.intent = Intent::Servo {
+            target: target.joints,
+            velocity,
+        };
     }
 
     fn at(&self, goal: &AxisValues) -> bool {
@@ -574,25 +608,25 @@ impl Online {
 
     /// The velocity that follows a servo target: its own velocity, plus [`SERVO_GAIN`] times
     /// the distance to where it is now (moved on by its velocity since it arrived), each
-    /// axis within [`SERVO_VELOCITY_SHARE`] of its limit (all scaled down together).
+    /// axis within [`SERVO_VELOCITY_SHARE`] of its limit (all scaled down together); a late
+    /// target's as [`Self::servo_horizon`] says.
     fn servo_velocity(&self, target: &AxisValues, velocity: &AxisValues) -> AxisValues {
-        let age = self.servo.map_or(0.0, |arrivals| {
-            (self.cycle - arrivals.cycle) as f64 * self.dt
-        });
+        let (horizon, share) = self.servo_horizon();
         let mut wanted = AxisValues::zeros(self.dof);
         for axis in 0..self.dof {
             let v = velocity.as_slice()[axis];
-            let now = target.as_slice()[axis] + v * age;
-            wanted.as_mut_slice()[axis] = v + SERVO_GAIN * (now - self.position.as_slice()[axis]);
+            let now = target.as_slice()[axis] + v * horizon;
+            wanted.as_mut_slice()[axis] =
+                share * v + SERVO_GAIN * (now - self.position.as_slice()[axis]);
         }
-        let share = (0..self.dof)
+        let over = (0..self.dof)
             .map(|axis| {
                 wanted.as_slice()[axis].abs()
                     / (SERVO_VELOCITY_SHARE * self.input.max_velocity[axis])
             })
             .fold(1.0, f64::max);
         for v in wanted.as_mut_slice() {
-            *v /= share;
+            *v /= over;
         }
         wanted
     }

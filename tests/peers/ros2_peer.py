@@ -15,6 +15,13 @@ session and rosbags for the CDR messages and the RIHS01 type hashes. Used by tes
       anyway). P: `t:q1,q2,..;t:q1,..` (s, rad). Prints whether the subscription and the
       node's token were seen and how many of R's JointState samples arrived; or, when the
       session cannot be opened (the router refused the login), `opened: false` and why.
+  servo --endpoint E --rig R [--connect] [--user U --password-file F] [--token-timeout S]
+        [--servo-deg D] [--seconds S] [--bad]
+      as `trajectory` opens its session and waits for R's node, then puts servo targets
+      on the key `R/servo` at 100 Hz for S seconds: joint_1 from 0 to D degrees (a smooth
+      step over the first two thirds, then held), the other joints at the IRB 120's rest
+      (0, 0, 0, 0, 30, 0 deg), each `{"joints_deg": [..], "sent_s": t}`; with --bad, one
+      more with joint_3 at 80 deg (outside its limits). Prints what it sent.
   router --endpoint E --dictionary F
       a Zenoh router listening on E that admits only sessions logging in with a
       `user:password` line of F (Zenoh's usrpwd authentication); runs until killed.
@@ -193,6 +200,47 @@ def trajectory(args):
                       "joint_states": received}), flush=True)
 
 
+SERVO_RATE_HZ = 100.0
+
+
+def servo(args):
+    if args.connect:
+        session, refused = open_client(args)
+        if session is None:
+            print(json.dumps({"opened": False, "error": refused}), flush=True)
+            return
+    else:
+        session = open_listening(args.endpoint)
+    node = f"/NN/%/%{args.rig}/rigbridge"
+    deadline = time.monotonic() + args.token_timeout
+    seen = []
+    while time.monotonic() < deadline and not any(t.endswith(node) for t in seen):
+        seen = tokens(session, args.domain)
+        time.sleep(0.2)
+    # The node's subscriptions are declared with its token; a moment for them to reach us.
+    time.sleep(0.5)
+    key = f"{args.rig}/servo"
+    messages = int(args.seconds * SERVO_RATE_HZ)
+    ramp = 2.0 / 3.0 * args.seconds
+    start = time.monotonic()
+    for m in range(messages):
+        t = m / SERVO_RATE_HZ
+        time.sleep(max(0.0, start + t - time.monotonic()))
+        s = min(t / ramp, 1.0)
+        joint_1 = args.servo_deg * s * s * (3.0 - 2.0 * s)
+        session.put(key, json.dumps({"joints_deg": [joint_1, 0.0, 0.0, 0.0, 30.0, 0.0],
+                                     "sent_s": t}))
+    sent = messages
+    if args.bad:
+        session.put(key, json.dumps({"joints_deg": [args.servo_deg, 0.0, 80.0, 0.0, 30.0, 0.0],
+                                     "sent_s": messages / SERVO_RATE_HZ}))
+        sent += 1
+    time.sleep(0.2)
+    session.close()
+    print(json.dumps({"opened": True, "key": key, "sent": sent,
+                      "node_seen": any(t.endswith(node) for t in seen)}), flush=True)
+
+
 def router(args):
     config = zenoh.Config()
     config.insert_json5("mode", '"router"')
@@ -207,7 +255,7 @@ def router(args):
 
 def main():
     parser = argparse.ArgumentParser()
-    parser.add_argument("mode", choices=["listen", "trajectory", "router"])
+    parser.add_argument("mode", choices=["listen", "trajectory", "servo", "router"])
     parser.add_argument("--endpoint", required=True)
     parser.add_argument("--domain", type=int, default=0)
     parser.add_argument("--seconds", type=float, default=2.0)
@@ -223,8 +271,11 @@ def main():
     parser.add_argument("--user")
     parser.add_argument("--password-file")
     parser.add_argument("--dictionary")
+    parser.add_argument("--servo-deg", type=float, default=10.0)
+    parser.add_argument("--bad", action="store_true")
     args = parser.parse_args()
-    {"listen": listen, "trajectory": trajectory, "router": router}[args.mode](args)
+    {"listen": listen, "trajectory": trajectory, "servo": servo,
+     "router": router}[args.mode](args)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,9 @@
 """A servo client we did not write the WebSocket side of (PyPI's `websockets`), for
 tests/servo.rs: it streams tool poses on a circle at its own rate to `GET /api/servo`,
 stops, reads the commanded position from `GET /api/status` to see the arm at rest, sends
-bad targets (a joint outside its limits, NaN, an unreachable pose) and reads the commanded
-position again, tries a second client while it is connected, and a client while a planned
-job runs. It judges nothing: it prints what it saw as one JSON line on stdout.
+bad targets (a joint outside its limits, NaN, an unreachable pose, one sent before the
+last) and reads the commanded position again, tries a second client while it is
+connected, and a client while a planned job runs. It judges nothing: it prints what it saw as one JSON line on stdout.
 
 Usage: servo_client.py HOST:PORT X Y Z QW QX QY QZ RADIUS_M SPEED_M_S RATE_HZ SECONDS
 """
@@ -88,7 +88,8 @@ async def main():
                 "xyz_m": [x, y + radius * (math.cos(angle) - 1.0), z + radius * math.sin(angle)],
                 "quat_wxyz": [qw, qx, qy, qz],
             }
-            await socket.send(json.dumps({"pose": pose}))
+            # When it was sent, on the client's clock: the pose's own instant.
+            await socket.send(json.dumps({"pose": pose, "sent_s": m / rate}))
             sent_at = time.monotonic()
             if m > 0:
                 result["max_gap_s"] = max(result.get("max_gap_s", 0.0), sent_at - last_sent)
@@ -112,6 +113,8 @@ async def main():
                 "joints_deg": [10.0, 0.0, 0.0, 0.0, 30.0, 0.0],
                 "pose": {"xyz_m": [x, y, z], "quat_wxyz": [qw, qx, qy, qz]},
             },
+            # Sent (by its own word) before the stream's last target.
+            {"joints_deg": [0.0, 0.0, 0.0, 0.0, 30.0, 0.0], "sent_s": 0.0},
         ]
         result["bad"] = []
         for message in bad:

@@ -344,7 +344,7 @@ fn describe(command: &OnlineCommand, rig: &crate::rig::Rig) -> String {
             let shown: Vec<String> = rig
                 .joints
                 .iter()
-                .zip(target.as_slice())
+                .zip(target.joints.as_slice())
                 .map(|(joint, q)| format!("{:.3}", joint.kind.to_user(*q)))
                 .collect();
             format!("servo from [{}]", shown.join(", "))

@@ -1,19 +1,24 @@
 //! The servo route (docs/online.md, Servo): `GET .../servo` upgraded to a WebSocket on
 //! which one client at a time streams targets at its own rate, each a JSON text message
 //! `{"joints_deg": [...]}` (degrees, or metres for a prismatic axis) or `{"pose": {"xyz_m":
-//! [...], "quat_wxyz": [...]}}` (solved by the planner's IK nearest the last target). Owns
-//! reading and checking the targets only: each is checked here (finite, within every joint
-//! limit, clear of the cell by its margin, a pose reachable) and refused on the socket with
-//! words naming it, never clamped; the online generator follows the targets it is given
-//! (`stream/online.rs`), and brings the arm to rest when they stop.
+//! [...], "quat_wxyz": [...]}}` (solved by the planner's IK nearest the last target), with
+//! an optional `"sent_s"`, when the client sent it on its own clock. Owns reading and
+//! checking the targets only: each is checked here (finite, within every joint limit, clear
+//! of the cell by its margin, a pose reachable without a jump of its joints, sent after the
+//! one before) and refused on the socket with words naming it, never clamped; the online
+//! generator follows the targets it is given (`stream/online.rs`), and brings the arm to
+//! rest when they stop. The same messages come over Zenoh on `<rig>/servo` when the cell
+//! takes motion from ROS 2 (`[ros2] accept_motion`, its login): [`zenoh_handler`], whose
+//! refusals are logged as a trajectory's are (there is no socket to answer on).
 
-use super::cell::{Cell, OnlineRefused};
+use super::cell::{Cell, OnlineRefused, ServoClaim};
 use super::{Daemon, error, start_refusal};
+use crate::clock::{Clock, WallClock};
 use crate::ik::{FabrikSolver, IkError, IkSolver};
 use crate::job::PoseSpec;
 use crate::protocol::AxisValues;
 use crate::rig::{OutsideLimits, Rig};
-use crate::stream::OnlineCommand;
+use crate::stream::{OnlineCommand, SERVO_TIMEOUT, ServoTarget};
 use axum::extract::State;
 use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
 use axum::http::StatusCode;
@@ -25,6 +30,10 @@ use std::sync::atomic::{AtomicU64, Ordering};
 /// Largest servo message (bytes): a target is a few hundred; more is not a target.
 const MAX_SERVO_MESSAGE_BYTES: usize = 4096;
 
+/// The event of a servo target over Zenoh refused (or its stream: the slot taken), logged
+/// rate-limited as a JointTrajectory's refusal is.
+pub const ZENOH_SERVO_REFUSED: &str = "ros2_servo_refused";
+
 /// Servo clients connected since the daemon started: a client is named by its number in
 /// the refusal a second one gets (the server does not keep peers' addresses).
 static SERVO_CLIENTS: AtomicU64 = AtomicU64::new(0);
@@ -35,6 +44,9 @@ static SERVO_CLIENTS: AtomicU64 = AtomicU64::new(0);
 struct ServoMessage {
     joints_deg: Option<Vec<f64>>,
     pose: Option<PoseSpec>,
+    /// When the client sent it (s, its own clock): the target's velocity is measured over
+    /// these. Without it, the time the route read it stands in.
+    sent_s: Option<f64>,
 }
 
 /// Why a servo target was refused: it names the value and what it broke.
@@ -44,6 +56,32 @@ enum ServoRefused {
     Unreadable { index: u64, why: String },
     #[error("servo target {index}: send `joints_deg` or `pose`, one of them")]
     NotOne { index: u64 },
+    #[error(
+        "servo target {index}: sent_s = {sent_s} is not after the target before's {before} \
+         (the client's clock must go forward)"
+    )]
+    NotAfter {
+        index: u64,
+        sent_s: f64,
+        before: f64,
+    },
+    #[error(
+        "servo target {index}: pose {pose} solves to {joint} = {to:.3} {unit} from {from:.3} \
+         {unit} (the last target), a jump of {jump:.3} {unit} beyond the {bound:.3} {unit} the \
+         arm can move in {timeout_s} s at its speed limit: the IK changed branch; send poses \
+         closer together"
+    )]
+    Jump {
+        index: u64,
+        pose: Box<PoseSpec>,
+        joint: String,
+        from: f64,
+        to: f64,
+        jump: f64,
+        bound: f64,
+        unit: &'static str,
+        timeout_s: f64,
+    },
     #[error("servo target {index}: {given} joint values given, the rig {rig} has {dof} joints")]
     Count {
         index: u64,
@@ -161,23 +199,29 @@ async fn serve_servo(mut socket: WebSocket, daemon: &Arc<Daemon>, cell: &Arc<Cel
 }
 
 /// One client's stream: its count, its last target (a pose's IK seed) and its session.
-struct Servo<'a> {
-    cell: &'a Arc<Cell>,
+struct Servo {
+    cell: Arc<Cell>,
     solver: Result<FabrikSolver, crate::ik::StructureError>,
     index: u64,
     last: Option<Vec<f64>>,
+    /// When the last target taken was sent (the client's clock, or the route's).
+    last_sent: Option<f64>,
+    /// The route's clock: a target's time when the client gives none.
+    clock: WallClock,
     session: Option<u64>,
     scratch: crate::cell::Scratch,
 }
 
-impl<'a> Servo<'a> {
-    fn new(cell: &'a Arc<Cell>) -> Self {
+impl Servo {
+    fn new(cell: &Arc<Cell>) -> Self {
         let settings = cell.settings();
         Servo {
-            cell,
+            cell: cell.clone(),
             solver: FabrikSolver::new(settings.rig.clone()),
             index: 0,
             last: None,
+            last_sent: None,
+            clock: WallClock::new(),
             session: None,
             scratch: settings.collision.scratch(),
         }
@@ -200,7 +244,8 @@ impl<'a> Servo<'a> {
         );
         match given {
             Ok(id) => {
-                self.last = Some(target.as_slice().to_vec());
+                self.last = Some(target.joints.as_slice().to_vec());
+                self.last_sent = Some(target.sent_s);
                 (self.session.replace(id) != Some(id)).then(|| serde_json::json!({ "session": id }))
             }
             Err(refused) => Some(serde_json::json!({ "error": self.refusal(refused) })),
@@ -219,27 +264,47 @@ impl<'a> Servo<'a> {
             OnlineRefused::Start(refused) => format!(
                 "servo target {}: {}",
                 self.index,
-                start_refusal(self.cell, refused)
+                start_refusal(&self.cell, refused)
             ),
         }
     }
 
-    /// The message's target in SI units: within every limit and clear of the cell.
-    fn target(&mut self, text: &str) -> Result<AxisValues, ServoRefused> {
+    /// The message's target in SI units, within every limit and clear of the cell, and
+    /// when it was sent.
+    fn target(&mut self, text: &str) -> Result<ServoTarget, ServoRefused> {
         let index = self.index;
         let message: ServoMessage =
             serde_json::from_str(text).map_err(|e| ServoRefused::Unreadable {
                 index,
                 why: super::guard::shorten(&e.to_string()),
             })?;
+        let sent_s = self.sent(index, message.sent_s)?;
         let rig = &self.cell.settings().rig;
-        let target = match (message.joints_deg, message.pose) {
+        let joints = match (message.joints_deg, message.pose) {
             (Some(joints), None) => within_limits(index, &joints, rig)?,
             (None, Some(pose)) => self.solve(index, pose)?,
             _ => return Err(ServoRefused::NotOne { index }),
         };
-        self.clear_of_the_cell(index, &target)?;
-        Ok(target)
+        self.clear_of_the_cell(index, &joints)?;
+        Ok(ServoTarget { joints, sent_s })
+    }
+
+    /// When the target was sent: the client's time, after the last target's (a value that
+    /// is not finite is after nothing), or the route's clock now.
+    fn sent(&self, index: u64, given: Option<f64>) -> Result<f64, ServoRefused> {
+        let Some(sent_s) = given else {
+            return Ok(self.clock.now().as_secs_f64());
+        };
+        let before = self.last_sent.unwrap_or(f64::NEG_INFINITY);
+        // Not finite: after nothing (NaN compares false, so the check is spelled out).
+        if !sent_s.is_finite() || sent_s <= before {
+            return Err(ServoRefused::NotAfter {
+                index,
+                sent_s,
+                before,
+            });
+        }
+        Ok(sent_s)
     }
 
     /// The joints placing the tool at `pose`, nearest the last target (else the arm).
@@ -270,6 +335,9 @@ impl<'a> Servo<'a> {
                     pose: Box::new(pose),
                     source: Box::new(source),
                 })?;
+        if self.last.is_some() {
+            no_jump(index, rig, &pose, &seed, &solution.joints)?;
+        }
         let mut joints = AxisValues::zeros(rig.dof());
         joints.as_mut_slice().copy_from_slice(&solution.joints);
         Ok(joints)
@@ -292,6 +360,91 @@ impl<'a> Servo<'a> {
             margin_m: model.margin(),
         })
     }
+}
+
+/// The servo messages of one cell over Zenoh (`<rig>/servo`, see the module doc): a
+/// stream holds the cell's servo slot from its first message until the node's
+/// poll finds none for a while (longer than [`SERVO_TIMEOUT`], so the arm is at rest by then);
+/// a WebSocket client holding the slot refuses it, and it refuses one.
+pub fn zenoh_handler(daemon: Arc<Daemon>, cell: Arc<Cell>) -> crate::ros2::ServoHandler {
+    let mut refusals = crate::daemon::ros2::Refusals::new(Box::new(WallClock::new()));
+    let key = crate::ros2::servo_key(cell.name());
+    let mut stream: Option<(Servo, ServoClaim)> = None;
+    Box::new(move |payload| {
+        let Some(payload) = payload else {
+            // No message for the node's poll: the stream is over; the slot is free.
+            stream = None;
+            return;
+        };
+        let refused = match zenoh_target(&daemon, &cell, &key, &mut stream, payload) {
+            Ok(()) => return,
+            Err(refused) => refused,
+        };
+        if let Some(text) = refusals.refuse(&refused) {
+            cell.log_ros2(ZENOH_SERVO_REFUSED, None, text);
+        }
+    })
+}
+
+/// One Zenoh servo message, given to the stream (started if there is none): why it was
+/// refused, if it was.
+fn zenoh_target(
+    daemon: &Arc<Daemon>,
+    cell: &Arc<Cell>,
+    key: &str,
+    stream: &mut Option<(Servo, ServoClaim)>,
+    payload: &[u8],
+) -> Result<(), String> {
+    if stream.is_none() {
+        let claim = cell
+            .claim_servo(&format!("the Zenoh servo stream on {key}"))
+            .map_err(|taken| format!("servo over Zenoh on {key}: {taken}"))?;
+        *stream = Some((Servo::new(cell), claim));
+    }
+    let Some((servo, _)) = stream.as_mut() else {
+        return Ok(());
+    };
+    let text = std::str::from_utf8(payload)
+        .map_err(|_| format!("servo over Zenoh on {key}: a payload that is not UTF-8 text"))?;
+    match servo.take(daemon, text) {
+        Some(reply) => match reply.get("error").and_then(|e| e.as_str()) {
+            Some(error) => Err(format!("servo over Zenoh on {key}: {error}")),
+            None => Ok(()),
+        },
+        None => Ok(()),
+    }
+}
+
+/// A pose's solution `to`, from the last target `from`: refused when an axis jumps further than its speed limit covers in [`SERVO_TIMEOUT`], the
+/// longest a stream's targets may be apart. The circle of tests/servo.rs moves an axis at
+/// most a few degrees between targets; a jump beyond that bound is the IK's other branch
+/// (the wrist flipped), and following it would swing the tool off the client's path.
+fn no_jump(
+    index: u64,
+    rig: &Rig,
+    pose: &PoseSpec,
+    from: &[f64],
+    to: &[f64],
+) -> Result<(), ServoRefused> {
+    let timeout_s = SERVO_TIMEOUT.as_secs_f64();
+    for (joint, (a, b)) in rig.joints.iter().zip(from.iter().zip(to)) {
+        let bound = joint.limits.max_speed * timeout_s;
+        if (b - a).abs() > bound {
+            let user = |v: f64| joint.kind.to_user(v);
+            return Err(ServoRefused::Jump {
+                index,
+                pose: Box::new(*pose),
+                joint: joint.name.clone(),
+                from: user(*a),
+                to: user(*b),
+                jump: user((b - a).abs()),
+                bound: user(bound),
+                unit: joint.kind.unit(),
+                timeout_s,
+            });
+        }
+    }
+    Ok(())
 }
 
 /// Joint values in the user's units: `10.000, -20.000, ...`.
@@ -325,4 +478,44 @@ fn within_limits(index: u64, joints: &[f64], rig: &Rig) -> Result<AxisValues, Se
         *out = si;
     }
     Ok(target)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rig::load_rig;
+    use std::path::Path;
+
+    fn irb120() -> Rig {
+        load_rig(&Path::new(env!("CARGO_MANIFEST_DIR")).join("config/irb120.toml"))
+            .expect("the shipped rig loads")
+    }
+
+    fn pose() -> PoseSpec {
+        serde_json::from_str(r#"{"xyz_m": [0.3, 0.0, 0.5], "quat_wxyz": [1.0, 0.0, 0.0, 0.0]}"#)
+            .expect("a pose")
+    }
+
+    #[test]
+    fn a_pose_whose_solution_jumps_further_than_the_arm_moves_in_the_timeout_is_refused() {
+        let rig = irb120();
+        let from = [0.0, 0.0, 0.0, 0.0, 30f64.to_radians(), 0.0];
+        // joint_4 at 320 deg/s (config/irb120.toml) covers 32 deg in the 100 ms timeout:
+        // 31 deg passes, 33 deg (a wrist flip's first step is far more) is refused.
+        let mut near = from;
+        near[3] = 31f64.to_radians();
+        assert!(no_jump(7, &rig, &pose(), &from, &near).is_ok());
+        let mut flipped = from;
+        flipped[3] = 33f64.to_radians();
+        let refused = no_jump(7, &rig, &pose(), &from, &flipped)
+            .expect_err("a jump past the bound")
+            .to_string();
+        assert!(
+            refused.contains("servo target 7")
+                && refused.contains("joint_4 = 33.000 deg from 0.000 deg")
+                && refused.contains("a jump of 33.000 deg beyond the 32.000 deg")
+                && refused.contains("0.1 s"),
+            "{refused}"
+        );
+    }
 }
