@@ -671,7 +671,10 @@ fn doc_controller_framing_matches_the_spec_examples() {
         .and_then(|rest| rest.split(' ').next())
         .and_then(|n| n.parse().ok())
         .unwrap_or_else(|| panic!("no count of worked examples: {said}"));
-    assert!(checked >= 16, "only {checked} worked examples checked: {said}");
+    assert!(
+        checked >= 16,
+        "only {checked} worked examples checked: {said}"
+    );
 }
 
 // ----------------------------------------------------------------------------------------
@@ -817,7 +820,9 @@ fn program_with_io_steps_completes_against_a_version_3_controller() {
     let reads = run.summary["inputs_read"].as_array().unwrap();
     assert!(!reads.is_empty(), "no ReadInput: {ctx}");
     assert!(
-        reads.iter().all(|r| r["name"] == "part_held" && r["result"] == 0),
+        reads
+            .iter()
+            .all(|r| r["name"] == "part_held" && r["result"] == 0),
         "{ctx}"
     );
     assert_eq!(reads.first().unwrap()["value"].as_i64(), Some(0), "{ctx}");
@@ -834,7 +839,12 @@ fn program_with_io_steps_completes_against_a_version_3_controller() {
     assert!(run.count("watchdog_holds") <= run.resumes, "{ctx}");
     assert_eq!(run.summary["final_fault"][0].as_i64(), Some(0), "{ctx}");
     let decoder = &run.summary["decoder"];
-    for key in ["crc_errors", "unsupported_version", "malformed", "oversized"] {
+    for key in [
+        "crc_errors",
+        "unsupported_version",
+        "malformed",
+        "oversized",
+    ] {
         assert_eq!(decoder[key].as_i64(), Some(0), "decoder {key}: {ctx}");
     }
     println!(
@@ -875,7 +885,11 @@ fn program_with_io_steps_is_refused_by_version_before_motion_against_a_version_2
         Some(0),
         "{ctx}"
     );
-    assert_eq!(run.summary["decoder"]["malformed"].as_i64(), Some(0), "{ctx}");
+    assert_eq!(
+        run.summary["decoder"]["malformed"].as_i64(),
+        Some(0),
+        "{ctx}"
+    );
     assert!(
         run.summary["outputs_done"].as_array().unwrap().is_empty(),
         "{ctx}"

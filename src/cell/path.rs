@@ -142,6 +142,22 @@ impl CollisionModel {
         })
     }
 
+    /// Whether one step from `from`, already closer to something than the margin (but not
+    /// touching it), moves away: the end clearance grows and no point between comes into
+    /// contact (the lower bound along the step, from both ends' clearances and the change
+    /// bound, stays above zero). What lets an arm that was left inside the margin (by a job
+    /// that ended there, or a cell edited under it) be jogged out, where
+    /// [`Self::check_step`] refuses every step that starts inside.
+    pub fn step_leaves_margin(&self, from: &[f64], to: &[f64], scratch: &mut Scratch) -> bool {
+        let start = self.clearance(from, scratch).distance_m;
+        if start >= self.margin || start <= 0.0 {
+            return false;
+        }
+        let end = self.clearance(to, scratch).distance_m;
+        let lowest = (start + end - self.clearance_change(from, to)) / 2.0;
+        end > start && lowest > 0.0
+    }
+
     /// The first measured configuration strictly inside `(s0, s1)` of `stretch` whose
     /// clearance is below the margin, given lower bounds `c0`, `c1` on the clearance at
     /// the ends; `None` once every point is proven above [`Self::proof_floor`] (or, when an

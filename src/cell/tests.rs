@@ -162,6 +162,35 @@ fn a_thin_plate_between_two_samples_is_found() {
     assert!(ok.min.distance_m >= model.margin());
 }
 
+#[test]
+fn a_step_out_of_the_margin_is_admitted_and_a_step_deeper_or_along_is_not() {
+    // A 0.1 m ball on a slider along x; a wall's face at x = 0 (a box from -1 to 0). At
+    // q the gap is q - 0.1: at q = 0.105 the ball is 5 mm from the wall, inside the
+    // default 10 mm margin.
+    let rig = slider(
+        DVec3::X,
+        vec![at(DAffine3::IDENTITY, Shape::Sphere { radius: 0.1 })],
+    );
+    let wall = object(
+        "wall",
+        DAffine3::from_translation(DVec3::new(-0.5, 0.0, 0.0)),
+        Shape::Box {
+            half_extents: DVec3::new(0.5, 0.5, 0.5),
+        },
+    );
+    let model = CollisionModel::new(&rig, &cell_of(vec![wall])).unwrap();
+    let mut scratch = model.scratch();
+    assert!(model.margin() > 0.005, "the start is inside the margin");
+    assert!(model.check_step(&[0.105], &[0.106], &mut scratch).is_err());
+    assert!(model.step_leaves_margin(&[0.105], &[0.106], &mut scratch));
+    assert!(!model.step_leaves_margin(&[0.105], &[0.104], &mut scratch));
+    assert!(!model.step_leaves_margin(&[0.105], &[0.105], &mut scratch));
+    // Outside the margin the rule has nothing to say: check_step decides there.
+    assert!(!model.step_leaves_margin(&[0.2], &[0.3], &mut scratch));
+    // In contact it admits nothing.
+    assert!(!model.step_leaves_margin(&[0.09], &[0.2], &mut scratch));
+}
+
 fn irb120() -> Rig {
     crate::rig::load_rig(&crate::rig::shipped::path("irb120.toml")).unwrap()
 }

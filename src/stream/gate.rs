@@ -143,7 +143,8 @@ impl<'a> CellGate<'a> {
 }
 
 /// The cell's collision model as the online motion's [`CellCheck`] (jog, goals): each
-/// step a cycle generates is checked continuously before it is sent. Only the cycle's
+/// step a cycle generates is checked continuously before it is sent; a step that starts
+/// inside the margin is admitted only when it moves away. Only the cycle's
 /// thread checks, so the lock is never contended; it is there because a session's control
 /// is shared with the API that sets it.
 pub struct ModelCheck {
@@ -171,6 +172,7 @@ impl CellCheck for ModelCheck {
             return false;
         };
         self.model.check_step(from, to, &mut scratch).is_ok()
+            || self.model.step_leaves_margin(from, to, &mut scratch)
     }
 }
 

@@ -590,7 +590,7 @@ impl Online {
             Ok(RuckigResult::Working | RuckigResult::Finished) => {}
             _ => return false,
         }
-        if !cell.admits(self.position.as_slice(), &self.output.new_position) {
+        if !self.admitted_with_its_stop(rig, cell) {
             return false;
         }
         if let Intent::Jog(_) = self.intent
@@ -604,6 +604,34 @@ impl Online {
             self.acceleration.as_mut_slice()[axis] = self.output.new_acceleration[axis];
         }
         true
+    }
+
+    /// Whether the cell admits the generated step and, from its end, the brake that
+    /// [`Self::brake_step`] would run next cycle: a refusal must leave the arm room to stop
+    /// outside the margin, so the stop is checked before the step is taken, not after.
+    /// That brake is a line in joint space (every axis' velocity down by one share a
+    /// cycle), over at most `T + dt` at half the speed, `T` the slowest axis' time to rest.
+    fn admitted_with_its_stop(&self, rig: &Rig, cell: &dyn CellCheck) -> bool {
+        let next: &[f64] = &self.output.new_position;
+        if !cell.admits(self.position.as_slice(), next) {
+            return false;
+        }
+        let velocity: &[f64] = &self.output.new_velocity;
+        let time_to_rest = rig
+            .joints
+            .iter()
+            .zip(velocity)
+            .map(|(joint, v)| v.abs() / (BRAKE_SHARE * joint.limits.max_acceleration))
+            .fold(0.0, f64::max);
+        if time_to_rest == 0.0 {
+            return true;
+        }
+        let reach = 0.5 * (time_to_rest + self.dt);
+        let mut stop = AxisValues::zeros(self.dof);
+        for (axis, (p, v)) in next.iter().zip(velocity).enumerate() {
+            stop.as_mut_slice()[axis] = p + v * reach;
+        }
+        cell.admits(next, stop.as_slice())
     }
 
     /// The velocity that follows a servo target: its own velocity, plus [`SERVO_GAIN`] times
