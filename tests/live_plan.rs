@@ -89,8 +89,11 @@ fn distance(a: [f64; 3], b: [f64; 3]) -> f64 {
         .sqrt()
 }
 
-/// The plan of a scene message: its tool path and targets (position, words).
-fn plan_of(scene: &Value) -> (Vec<[f64; 3]>, Vec<([f64; 3], String)>) {
+/// A drawn target: where, and the job's words for it.
+type Target = ([f64; 3], String);
+
+/// The plan of a scene message: its tool path and targets.
+fn plan_of(scene: &Value) -> (Vec<[f64; 3]>, Vec<Target>) {
     let plan = &scene["plan"];
     assert!(plan.is_object(), "the scene has no plan: {plan}");
     let path = plan["tool_path"]
