@@ -499,25 +499,33 @@ function chainDrawables(v, chain, colour, out) {
 
 // The plan's tool path as a thin line and its targets as rings, over the floor and under
 // everything else: a guide to where the tool will go, not a thing in the cell. Solid, not
-// dashed: a dashed path of 2 000 points costs software rendering frames.
+// dashed, and thinned on screen: both cheaper for software rendering.
 const PLAN_COLOUR = '#16a34a';
 const TARGET_RADIUS_PX = 4;
+// Points of the path closer than this on screen to the last one drawn are skipped: a
+// 2 000-point path stroked whole cost the room view frames under software rendering.
+const PLAN_STEP_PX = 3;
 function drawPlan(v) {
   if (!plan) return;
   ctx.strokeStyle = PLAN_COLOUR;
   ctx.lineWidth = 1.5;
   ctx.beginPath();
-  let drawing = false;
-  for (const point of plan.tool_path) {
+  let last = null;
+  const final = plan.tool_path.length - 1;
+  plan.tool_path.forEach((point, i) => {
     const p = project(v, point);
     if (!p) {
-      drawing = false;
-      continue;
+      last = null;
+      return;
     }
-    if (drawing) ctx.lineTo(p[0], p[1]);
-    else ctx.moveTo(p[0], p[1]);
-    drawing = true;
-  }
+    if (!last) {
+      ctx.moveTo(p[0], p[1]);
+      last = p;
+    } else if (i === final || Math.abs(p[0] - last[0]) + Math.abs(p[1] - last[1]) >= PLAN_STEP_PX) {
+      ctx.lineTo(p[0], p[1]);
+      last = p;
+    }
+  });
   ctx.stroke();
   for (const target of plan.targets) {
     const p = project(v, target.at);
