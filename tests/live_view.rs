@@ -304,9 +304,20 @@ fn the_live_view_draws_the_twin_and_runs_a_job_in_headless_chromium() {
     let (report, console) = report;
     eprintln!("live view: {report}");
     let entries = console["value"].as_array().cloned().unwrap_or_default();
+    // The one refusal this test asks for (the pasted job out of range) is a 422 that
+    // Chromium logs as a failed load: that entry, and only that one, is expected.
+    let asked_refusal = |e: &Value| {
+        e["source"] == "network"
+            && e["message"]
+                .as_str()
+                .is_some_and(|m| m.contains("/api/jobs - ") && m.contains("status of 422"))
+    };
+    let refusals = entries.iter().filter(|e| asked_refusal(e)).count();
+    assert_eq!(refusals, 1, "the pasted job's refusal: {entries:#?}");
     let severe: Vec<&Value> = entries
         .iter()
         .filter(|e| e["level"] == "SEVERE" || e["level"] == "WARNING")
+        .filter(|e| !asked_refusal(e))
         .collect();
     eprintln!(
         "browser console: {} entries, {} warnings or errors",
@@ -396,6 +407,13 @@ async fn exercise_page(client: &Client, url: &str) -> Value {
     )
     .await;
     assert_eq!(text_of(client, "job-last").await, "last job: completed");
+    let star_plan = health(client).await;
+    assert!(
+        star_plan["planPoints"].as_u64().unwrap() > 100
+            && star_plan["planTargets"].as_u64().unwrap() > 5,
+        "the star's tool path and corners are drawn: {star_plan}"
+    );
+    let pasted = paste_jobs(client, url).await;
     let room = paint_the_room(client).await;
     let sloth = watch_the_sloth(client).await;
     let end = health(client).await;
@@ -410,9 +428,79 @@ async fn exercise_page(client: &Client, url: &str) -> Value {
         "paint_quads": painted,
         "frames_drawn": end["framesDrawn"],
         "page_errors": errors.len(),
+        "star_plan": [star_plan["planPoints"], star_plan["planTargets"]],
+        "pasted": pasted,
         "room": room,
         "sloth": sloth,
     })
+}
+
+/// Puts `text` in the page's paste box and clicks "Start pasted job".
+async fn paste(client: &Client, text: &str) {
+    client
+        .execute(
+            "document.getElementById('paste').value = arguments[0];
+             document.getElementById('paste-result').textContent = '';
+             document.getElementById('paste-start').click();",
+            vec![json!(text)],
+        )
+        .await
+        .unwrap();
+}
+
+/// The paste box: a TOML job with a value out of range comes back with the API's refusal
+/// (key and value) under the box; a good one starts, its plan (one target) is drawn, and it
+/// completes (waited for on the API's `?wait_s=`).
+async fn paste_jobs(client: &Client, url: &str) -> Value {
+    paste(
+        client,
+        "[job]\nkind = \"move_joints\"\ntargets_deg = [[0, 130, 0, 0, 30, 0]]\n",
+    )
+    .await;
+    wait_until(
+        client,
+        "the pasted job's refusal",
+        "return document.getElementById('paste-result').textContent.startsWith('422');",
+        Duration::from_secs(10),
+    )
+    .await;
+    let refusal = text_of(client, "paste-result").await;
+    assert!(
+        refusal.starts_with("422: key `job.targets_deg[0][1]` = 130"),
+        "{refusal}"
+    );
+    paste(
+        client,
+        "[job]\nkind = \"move_joints\"\ntargets_deg = [[20, 10, 0, 0, 30, 0]]\n",
+    )
+    .await;
+    wait_until(
+        client,
+        "the pasted job to start",
+        "return document.getElementById('paste-result').textContent.startsWith('started job');",
+        Duration::from_secs(10),
+    )
+    .await;
+    let started = text_of(client, "paste-result").await;
+    wait_until(
+        client,
+        "the pasted job's plan",
+        "return window.rigbridgeView.planTargets === 1 && window.rigbridgeView.planPoints > 1;",
+        Duration::from_secs(10),
+    )
+    .await;
+    let id: u64 = started
+        .trim_start_matches("started job ")
+        .split(' ')
+        .next()
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("{started}"));
+    let address = url.trim_start_matches("http://").trim_end_matches('/');
+    let (code, entry) =
+        common::serve::request_json(address, "GET", &format!("/api/jobs/{id}?wait_s=30"), "", "");
+    assert_eq!(code, 200, "{entry}");
+    assert_eq!(entry["report"]["outcome"], "completed", "{entry}");
+    json!({ "refusal": refusal, "started": started })
 }
 
 /// Saves the page as `target/e2e/<name>`.

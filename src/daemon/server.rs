@@ -313,12 +313,16 @@ impl FromRequestParts<Arc<Daemon>> for CellRef {
     }
 }
 
-/// The only body `POST .../jobs` takes besides an empty one (the cell's configured job).
+/// The only body `POST .../jobs` takes besides an empty one (the cell's configured job):
+/// one of `job` and `toml`.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct JobRequest {
     /// A job like config's `[job]`.
-    job: JobConfig,
+    job: Option<JobConfig>,
+    /// The same job as TOML text (the live page's pasted job): a run settings file's `[job]`
+    /// table, or its keys alone.
+    toml: Option<String>,
 }
 
 fn error(status: StatusCode, message: impl std::fmt::Display) -> Response {
@@ -999,19 +1003,22 @@ async fn submit(
     let job = if body.is_empty() {
         cell.configured_job()
     } else {
-        let request: JobRequest = match serde_json::from_slice(&body) {
-            Ok(request) => request,
-            Err(e) => {
+        let parsed = serde_json::from_slice(&body)
+            .map_err(|e| guard::shorten(&e.to_string()))
+            .and_then(requested_job);
+        let job = match parsed {
+            Ok(job) => job,
+            Err(why) => {
                 let reason = format!(
-                    "job request is not valid: {}; send {{\"job\": {{\"kind\": ...}}}} \
-                     (GET /api/schema) or an empty body for the cell's job",
-                    guard::shorten(&e.to_string())
+                    "job request is not valid: {why}; send {{\"job\": {{\"kind\": ...}}}} \
+                     or {{\"toml\": \"[job] ...\"}} (GET /api/schema) or an empty body for \
+                     the cell's job"
                 );
                 cell.log_refusal(cell::JOB_REFUSED, None, reason.clone());
                 return error(StatusCode::BAD_REQUEST, reason);
             }
         };
-        match cell.validate(request.job) {
+        match cell.validate(job) {
             Ok(job) => job,
             Err(refused) => {
                 cell.log_refusal(cell::JOB_REFUSED, None, refused.to_string());
@@ -1047,6 +1054,17 @@ async fn submit(
             StatusCode::INTERNAL_SERVER_ERROR,
             "the job thread ended before planning",
         ),
+    }
+}
+
+/// The job of a request: its `job`, or its `toml` parsed (one of the two); why not, in
+/// words, naming the line and column of a TOML error.
+fn requested_job(request: JobRequest) -> Result<JobConfig, String> {
+    match (request.job, request.toml) {
+        (Some(job), None) => Ok(job),
+        (None, Some(text)) => crate::job::job_from_toml(&text).map_err(|e| e.to_string()),
+        (Some(_), Some(_)) => Err("both `job` and `toml` given: send one".to_string()),
+        (None, None) => Err("neither `job` nor `toml` given".to_string()),
     }
 }
 

@@ -18,6 +18,7 @@ mod move_joints;
 mod move_linear;
 mod move_poses;
 mod paint;
+mod pasted;
 mod poses;
 mod program;
 mod wall_figure;
@@ -34,6 +35,7 @@ pub use move_joints::MoveJoints;
 pub use move_linear::{LineRefused, MoveLinear, top_tool_speed};
 pub use move_poses::MovePoses;
 pub use paint::Paint;
+pub use pasted::{PastedJobError, job_from_toml};
 pub use poses::PoseSpec;
 pub use program::{
     CycleTimes, LapTime, Move as ProgramMove, NoKeys, Over, Program, ProgramError, Repeat,
@@ -307,9 +309,12 @@ pub fn request_schema() -> serde_json::Value {
     #[derive(JsonSchema)]
     #[allow(dead_code)]
     #[schemars(deny_unknown_fields)]
-    /// A job request: the job, or an empty body for the cell's configured job.
+    /// A job request: the job (as JSON or as TOML text, one of the two), or an empty body
+    /// for the cell's configured job.
     struct JobRequest {
-        job: Job,
+        job: Option<Job>,
+        /// The job as TOML text instead: a run settings file's `[job]` table or its keys.
+        toml: Option<String>,
     }
     serde_json::to_value(schemars::schema_for!(JobRequest)).unwrap_or_default()
 }

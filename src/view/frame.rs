@@ -23,6 +23,8 @@ pub struct SceneMessage<'a> {
     /// Frames per second the server sends.
     pub frame_rate_hz: f64,
     pub scene: &'a SceneView,
+    /// The running job's tool path and targets; `null` before the first job is planned.
+    pub plan: Option<&'a super::PlanView>,
 }
 
 #[derive(Debug, Serialize)]

@@ -4,6 +4,7 @@
 //! outside the streaming cycle and must not touch the link or the job.
 
 use super::frame::{Frame, LinkView, Message, SceneMessage};
+use super::plan::PlanView;
 use super::solid::CellDrawing;
 use super::{JointLabel, LiveScene, LiveSlot};
 use crate::protocol::{AxisValues, ControllerStatus};
@@ -65,6 +66,8 @@ struct HubState {
     generation: u64,
     /// The scene with every paint quad drained since it was set.
     view: SceneView,
+    /// The running job's plan (tool path and targets), from when it was planned.
+    plan: Option<PlanView>,
     frames: u64,
     /// (time, cycles) of recent frames, for the measured cycle rate.
     recent: VecDeque<(Duration, u64)>,
@@ -97,6 +100,7 @@ impl LiveHub {
             frame_rate_hz,
             state: Mutex::new(HubState {
                 view: scene.scene(),
+                plan: None,
                 scene,
                 cell: None,
                 closest: None,
@@ -132,13 +136,14 @@ impl LiveHub {
         self.state.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
-    fn scene_message(&self, view: &SceneView) -> Arc<str> {
+    fn scene_message(&self, state: &HubState) -> Arc<str> {
         let message = Message::Scene(SceneMessage {
             rig: &self.rig.name,
             joints: &self.joints,
             rate_hz: self.rate_hz,
             frame_rate_hz: self.frame_rate_hz,
-            scene: view,
+            scene: &state.view,
+            plan: state.plan.as_ref(),
         });
         Arc::from(serde_json::to_string(&message).unwrap_or_default())
     }
@@ -147,17 +152,23 @@ impl LiveHub {
     /// Subscribed before the scene is taken, so no paint falls between them.
     pub fn subscribe(&self) -> (Arc<str>, broadcast::Receiver<Arc<str>>) {
         let frames = self.sender.subscribe();
-        let scene = self.scene_message(&self.state().view);
+        let scene = self.scene_message(&self.state());
         (scene, frames)
     }
 
     /// The scene as it stands, for a page that fell behind.
     pub fn scene_now(&self) -> Arc<str> {
-        self.scene_message(&self.state().view)
+        self.scene_message(&self.state())
     }
 
     /// Shows `scene` from now on (a new job); every page gets the new scene.
     pub fn set_scene(&self, scene: Box<dyn LiveScene>) {
+        self.set_job_scene(scene, None);
+    }
+
+    /// Shows `scene` and the running job's `plan` (its tool path and targets) from now on;
+    /// every page gets them.
+    pub fn set_job_scene(&self, scene: Box<dyn LiveScene>, plan: Option<PlanView>) {
         let message = {
             let mut state = self.state();
             let mut view = scene.scene();
@@ -165,9 +176,10 @@ impl LiveHub {
                 with_cell_solids(&mut view, cell);
             }
             state.view = view;
+            state.plan = plan;
             state.scene = scene;
             state.generation += 1;
-            self.scene_message(&state.view)
+            self.scene_message(&state)
         };
         let _ = self.sender.send(message);
     }

@@ -24,7 +24,7 @@ use crate::stream::{
 };
 use crate::trajectory::Origins;
 use crate::twin::SharedWorld;
-use crate::view::{JobView, LiveHub, LiveSample, LiveSink, LiveSlot};
+use crate::view::{JobView, LiveHub, LiveSample, LiveSink, LiveSlot, PlanView};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
@@ -1236,7 +1236,10 @@ impl Cell {
         let (scene, world) = scene_for_job(&self.settings, job);
         // Nothing streams yet: the twin is not observing.
         self.world.lock().unwrap_or_else(PoisonError::into_inner).0 = world;
-        self.hub.set_scene(scene);
+        // Drawn from the plan itself, whatever kind of job made it: jobs are planned at
+        // the tool's TCP, so that is the path shown.
+        let plan_view = PlanView::of(&self.settings.tcp_rig, &plan.trajectory, &plan.origins);
+        self.hub.set_job_scene(scene, Some(plan_view));
         let rate = self.settings.config.stream.rate_hz.round() as u64;
         let mut live = LiveSink::new(self.hub.slot(), rate);
         // A device-paced link keeps its own pacing, on this thread.

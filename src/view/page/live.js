@@ -17,6 +17,9 @@ const health = {
   sceneCylinders: 0,
   sceneSolids: 0,
   sceneBodies: 0,
+  // The running job's plan as drawn: tool path points and targets.
+  planPoints: 0,
+  planTargets: 0,
   errors: [],
 };
 window.rigbridgeView = health;
@@ -204,6 +207,8 @@ window.addEventListener('resize', resize);
 
 // ---------------------------------------------------------------------- scene --
 let scene = { walls: [], cylinders: [], paint: [], solids: [], bodies: [] };
+// The running job's plan (tool path and targets), whatever started the job; null before.
+let plan = null;
 // The cell's static objects' triangles in world coordinates, computed once per scene.
 let solidTriangles = [];
 let paintByWall = [];
@@ -248,6 +253,9 @@ function setScene(message) {
   solidTriangles = scene.solids.map((s) => ({ name: s.name, triangles: posed(s.triangles, s.pose) }));
   health.sceneSolids = scene.solids.length;
   health.sceneBodies = scene.bodies.length;
+  plan = message.plan || null;
+  health.planPoints = plan ? plan.tool_path.length : 0;
+  health.planTargets = plan ? plan.targets.length : 0;
   health.paintQuads = 0;
   addPaint(scene.paint);
   document.getElementById('rig-name').textContent =
@@ -489,6 +497,45 @@ function chainDrawables(v, chain, colour, out) {
   });
 }
 
+// The plan's tool path as a thin line and its targets as rings, over the floor and under
+// everything else: a guide to where the tool will go, not a thing in the cell. Solid, not
+// dashed, and thinned on screen: both cheaper for software rendering.
+const PLAN_COLOUR = '#16a34a';
+const TARGET_RADIUS_PX = 4;
+// Points of the path closer than this on screen to the last one drawn are skipped: a
+// 2 000-point path stroked whole cost the room view frames under software rendering.
+const PLAN_STEP_PX = 3;
+function drawPlan(v) {
+  if (!plan) return;
+  ctx.strokeStyle = PLAN_COLOUR;
+  ctx.lineWidth = 1.5;
+  ctx.beginPath();
+  let last = null;
+  const final = plan.tool_path.length - 1;
+  plan.tool_path.forEach((point, i) => {
+    const p = project(v, point);
+    if (!p) {
+      last = null;
+      return;
+    }
+    if (!last) {
+      ctx.moveTo(p[0], p[1]);
+      last = p;
+    } else if (i === final || Math.abs(p[0] - last[0]) + Math.abs(p[1] - last[1]) >= PLAN_STEP_PX) {
+      ctx.lineTo(p[0], p[1]);
+      last = p;
+    }
+  });
+  ctx.stroke();
+  for (const target of plan.targets) {
+    const p = project(v, target.at);
+    if (!p) continue;
+    ctx.beginPath();
+    ctx.arc(p[0], p[1], TARGET_RADIUS_PX, 0, 2 * Math.PI);
+    ctx.stroke();
+  }
+}
+
 // The floor's grid: 0.2 m squares, 0.5 m in scenes wider than 8 m, reaching past the scene.
 let floorHalf = 2;
 let floorZ = 0;
@@ -518,6 +565,7 @@ function draw() {
   ctx.fillStyle = '#f7f8fa';
   ctx.fillRect(0, 0, canvas.width, canvas.height);
   drawFloor(v);
+  drawPlan(v);
   const drawables = [];
   scene.walls.forEach((wall, i) => drawables.push(wallDrawable(v, wall, i)));
   scene.cylinders.forEach((c) => drawables.push(cylinderDrawable(v, c)));
@@ -754,6 +802,39 @@ async function control(action) {
     result.textContent = path + ': ' + error;
   }
 }
+// A job pasted as JSON (`{"job": {...}}` or the job alone) or as TOML (a `[job]` table or
+// its keys): JSON goes as it is, TOML as text the server parses and validates like a job
+// file. The answer (the job's number, or the refusal naming key and value) shows below.
+async function startPasted() {
+  const text = document.getElementById('paste').value;
+  const result = document.getElementById('paste-result');
+  let body;
+  try {
+    const parsed = JSON.parse(text);
+    body = parsed && typeof parsed === 'object' && ('job' in parsed || 'toml' in parsed) ? parsed : { job: parsed };
+  } catch (_) {
+    body = { toml: text };
+  }
+  result.className = '';
+  result.textContent = 'starting ...';
+  try {
+    const headers = Object.assign({ 'Content-Type': 'application/json' }, authHeaders());
+    const response = await fetch(cellPrefix + '/jobs', { method: 'POST', headers, body: JSON.stringify(body) });
+    const answer = await response.json().catch(() => ({}));
+    if (response.status === 401) askForToken('token needed');
+    if (response.ok) {
+      result.textContent = 'started job ' + answer.id + ' (' + answer.job + ')';
+    } else {
+      result.className = 'fault';
+      result.textContent = response.status + ': ' + (answer.error || response.statusText);
+    }
+  } catch (error) {
+    result.className = 'fault';
+    result.textContent = String(error);
+  }
+}
+document.getElementById('paste-start').addEventListener('click', startPasted);
+
 const CONTROLS = { start: '/jobs', pause: '/pause', resume: '/resume', stop: '/stop', estop: '/estop', reset: '/reset' };
 for (const [id, path] of Object.entries(CONTROLS)) {
   document.getElementById(id).addEventListener('click', () => control(path));
@@ -821,7 +902,9 @@ jogFrame.addEventListener('change', jogButtons);
 jogButtons();
 const JOG_KEYS = { '1': 0, '2': 1, '3': 2, '4': 3, '5': 4, '6': 5, x: 0, y: 1, z: 2 };
 window.addEventListener('keydown', (event) => {
-  if (event.repeat || event.target instanceof HTMLInputElement) return;
+  // Typing a job in the paste box (or a token) must never jog the arm.
+  const typing = event.target instanceof HTMLInputElement || event.target instanceof HTMLTextAreaElement;
+  if (event.repeat || typing) return;
   const index = JOG_KEYS[event.key.toLowerCase()] ?? JOG_KEYS[event.code.replace('Digit', '')];
   if (index === undefined) return;
   jogStart(jogBody(index, event.shiftKey ? -1 : 1));
