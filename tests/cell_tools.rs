@@ -291,7 +291,10 @@ fn allowed_pairs_command_reproduces_the_shipped_rig_and_its_never_pairs_never_to
         .map(pair_of)
         .collect();
     let adjacent = key.lines().filter(|l| l.contains("# adjacent")).count();
-    assert_eq!(adjacent, 6, "the IRB 120's six joints each join two links:\n{key}");
+    assert_eq!(
+        adjacent, 6,
+        "the IRB 120's six joints each join two links:\n{key}"
+    );
     assert!(!never.is_empty(), "{key}");
     // Every pair checked (none allowed), over fresh random configurations: a pair called
     // "never" must never touch.
@@ -318,7 +321,10 @@ fn allowed_pairs_command_reproduces_the_shipped_rig_and_its_never_pairs_never_to
     for _ in 0..NEVER_TRIALS {
         let q = common::random_configuration(&rig, &mut rng);
         model.pairs_within(&q, f64::INFINITY, &mut scratch, &mut within);
-        for c in within.iter().filter(|c| ids.contains(&(c.a.min(c.b), c.a.max(c.b)))) {
+        for c in within
+            .iter()
+            .filter(|c| ids.contains(&(c.a.min(c.b), c.a.max(c.b))))
+        {
             assert!(
                 c.distance_m > 0.0,
                 "{} and {} touch at [{}] deg ({} m)",
