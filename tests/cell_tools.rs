@@ -261,3 +261,87 @@ fn fk_with_a_cell_tool_works_at_its_tcp_and_tool0_stays_available() {
         "{message}"
     );
 }
+
+/// Configurations the "never" pairs are tried in: ten times the command's own 10,000, from
+/// another generator, so the check does not repeat the command's samples.
+const NEVER_TRIALS: usize = 100_000;
+
+#[test]
+fn allowed_pairs_command_reproduces_the_shipped_rig_and_its_never_pairs_never_touch() {
+    let rig_file = "config/irb120.toml";
+    let output = rigbridge(&["config", "allowed-pairs", "--rig", rig_file], "");
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    let key = text(&output.stdout);
+    let key = key.trim_end();
+    // The command's key put into the shipped file leaves it as it is: the two cannot drift.
+    let shipped = std::fs::read_to_string(repo_path(rig_file)).unwrap();
+    assert_eq!(
+        rigbridge::cell::replace_allowed_pairs(&shipped, key),
+        shipped,
+        "{rig_file} does not hold what `rigbridge config allowed-pairs` finds:\n{key}"
+    );
+    // Each pair line: `["a", "b"], # reason, closest 0.123 m`.
+    let pair_of = |line: &str| {
+        let names: Vec<&str> = line.split('"').collect();
+        (names[1].to_string(), names[3].to_string())
+    };
+    let never: Vec<(String, String)> = key
+        .lines()
+        .filter(|line| line.contains("# never in collision"))
+        .map(pair_of)
+        .collect();
+    let adjacent = key.lines().filter(|l| l.contains("# adjacent")).count();
+    assert_eq!(
+        adjacent, 6,
+        "the IRB 120's six joints each join two links:\n{key}"
+    );
+    assert!(!never.is_empty(), "{key}");
+    // Every pair checked (none allowed), over fresh random configurations: a pair called
+    // "never" must never touch.
+    let rig = rigbridge::rig::Rig {
+        allowed_pairs: Vec::new(),
+        ..rigbridge::rig::load_rig(&repo_path(rig_file)).unwrap()
+    };
+    let empty = rigbridge::cell::Cell {
+        objects: Vec::new(),
+        ..rigbridge::cell::Cell::builtin()
+    };
+    let model = rigbridge::cell::CollisionModel::new(&rig, &empty).unwrap();
+    let ids: Vec<(usize, usize)> = never
+        .iter()
+        .map(|(a, b)| {
+            let (a, b) = (model.body_id(a).unwrap(), model.body_id(b).unwrap());
+            (a.min(b), a.max(b))
+        })
+        .collect();
+    let mut scratch = model.scratch();
+    let mut within = Vec::new();
+    let mut closest = f64::INFINITY;
+    let mut rng = common::rng(27);
+    for _ in 0..NEVER_TRIALS {
+        let q = common::random_configuration(&rig, &mut rng);
+        model.pairs_within(&q, f64::INFINITY, &mut scratch, &mut within);
+        for c in within
+            .iter()
+            .filter(|c| ids.contains(&(c.a.min(c.b), c.a.max(c.b))))
+        {
+            assert!(
+                c.distance_m > 0.0,
+                "{} and {} touch at [{}] deg ({} m)",
+                model.body_name(c.a),
+                model.body_name(c.b),
+                common::degrees(&q)
+                    .iter()
+                    .map(|v| format!("{v:.3}"))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                c.distance_m
+            );
+            closest = closest.min(c.distance_m);
+        }
+    }
+    eprintln!(
+        "{} never pairs, closest over {NEVER_TRIALS} configurations: {closest:.4} m",
+        never.len()
+    );
+}

@@ -121,6 +121,23 @@ pub(super) fn tight(i: &Solid<'_>, j: &Solid<'_>) -> f64 {
         .max(slabs(j, i) - ROUNDING_M)
 }
 
+/// The exact signed distance of a fixed half-space and a solid that is not a hull (its
+/// support along the plane's normal is a closed form), when one of `i` and `j` is such a
+/// pair: the distance of the solid's deepest point from the plane, which is also the depth
+/// of a penetration. Cheaper than parry's query by the pose conversion and the dispatch,
+/// and the same figure up to rounding (about 1e-15 m).
+pub(super) fn plane_exact(i: &Solid<'_>, j: &Solid<'_>) -> Option<f64> {
+    let (plane, solid) = match (i.volumes.plane, j.volumes.plane) {
+        (Some(plane), None) => (plane, j),
+        (None, Some(plane)) => (plane, i),
+        _ => return None,
+    };
+    match solid.shape {
+        Shape::ConvexHull { .. } => None,
+        _ => Some(plane_distance(plane, solid)),
+    }
+}
+
 /// The signed distance of `solid` from the half-space `{ p : normal . p <= offset }`:
 /// exact but for a hull, which its bounding sphere stands for.
 fn plane_distance((normal, offset): (DVec3, f64), solid: &Solid<'_>) -> f64 {

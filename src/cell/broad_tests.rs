@@ -14,6 +14,10 @@ use rand_chacha::ChaCha8Rng;
 /// Random poses tried for each pair of kinds.
 const TRIALS: usize = 3000;
 
+/// How far the closed form of a half-space pair may lie from parry's query: both are exact,
+/// computed in another order, so only rounding (about 1e-15 m on metres) separates them.
+const PLANE_AGREEMENT_M: f64 = 1e-12;
+
 fn random_vector(rng: &mut ChaCha8Rng, half: f64) -> DVec3 {
     DVec3::new(
         rng.random_range(-half..half),
@@ -96,7 +100,7 @@ fn view(p: &Placed) -> bound::Solid<'_> {
 #[test]
 fn no_bound_is_above_the_exact_distance_for_any_pair_of_kinds() {
     let mut rng = ChaCha8Rng::seed_from_u64(27);
-    let (mut pruned, mut overlapping) = (0, 0);
+    let (mut pruned, mut overlapping, mut plane_pairs) = (0, 0, 0);
     for _ in 0..TRIALS {
         let kinds = every_kind(&mut rng, 0.2);
         for (i, first) in kinds.iter().enumerate() {
@@ -123,16 +127,28 @@ fn no_bound_is_above_the_exact_distance_for_any_pair_of_kinds() {
                     second.kind()
                 );
                 assert!(tight >= quick, "the tight bound is never looser");
+                // The closed form the model measures a half-space pair by is parry's figure.
+                if let Some(closed) = bound::plane_exact(&view(&p), &view(&q)) {
+                    assert!(
+                        (closed - exact).abs() < PLANE_AGREEMENT_M,
+                        "{} / {}: closed form {closed}, parry {exact}",
+                        first.kind(),
+                        second.kind()
+                    );
+                    plane_pairs += 1;
+                }
                 pruned += usize::from(tight > 0.0);
                 overlapping += usize::from(exact < 0.0);
             }
         }
     }
-    // The draw holds both gaps the bounds prune on and overlaps.
+    // The draw holds both gaps the bounds prune on and overlaps, and every bounded kind
+    // but the hull against a half-space.
     assert!(
         pruned > TRIALS && overlapping > TRIALS,
         "{pruned} {overlapping}"
     );
+    assert_eq!(plane_pairs, 4 * TRIALS);
 }
 
 /// The IRB 120 on its floor with a tool of a box, a cylinder and a hull beyond its flange,

@@ -421,10 +421,13 @@ impl CollisionModel {
         for i in self.bodies[a].shapes.clone() {
             for j in self.bodies[b].shapes.clone() {
                 let (si, sj) = (self.solid(i, scratch), self.solid(j, scratch));
-                if bound::quick(&si, &sj) >= best || bound::tight(&si, &sj) >= best {
-                    continue;
-                }
-                let d = self.exact(i, j, scratch);
+                let d = match bound::plane_exact(&si, &sj) {
+                    Some(d) => d,
+                    None if bound::quick(&si, &sj) >= best || bound::tight(&si, &sj) >= best => {
+                        continue;
+                    }
+                    None => self.exact(i, j, scratch),
+                };
                 if d < best {
                     best = d;
                     found = true;

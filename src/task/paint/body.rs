@@ -180,8 +180,14 @@ impl Body {
             .rig
             .forward_with_axes(positions, &mut scratch.axes)
             .unwrap_or(DAffine3::IDENTITY);
+        (self.distance(positions, scratch), tool0)
+    }
+
+    /// The closest pair's distance alone, as [`Body::clearance`] without tool0: what the
+    /// planner's sweeps need, without a second pass through the kinematics.
+    pub fn distance(&self, positions: &[f64], scratch: &mut Scratch) -> f64 {
         scratch.last = self.model.clearance(positions, &mut scratch.model);
-        (scratch.last.distance_m, tool0)
+        scratch.last.distance_m
     }
 
     /// The wall of the closest pair of the last [`Body::clearance`] call.

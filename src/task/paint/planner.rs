@@ -429,7 +429,7 @@ impl<'a> Planner<'a> {
             .map(|i| trajectory.position(i));
         let (body, scratch) = (&self.body, &mut self.scratch);
         self.travel.lowest(samples, needed, |positions| {
-            body.clearance(positions, scratch).0
+            body.distance(positions, scratch)
         })
     }
 
@@ -1097,9 +1097,7 @@ impl<'a> Planner<'a> {
             let (body, scratch) = (&planner.body, &mut planner.scratch);
             planner
                 .travel
-                .first_below(samples, 0.0, |positions| {
-                    body.clearance(positions, scratch).0
-                })
+                .first_below(samples, 0.0, |positions| body.distance(positions, scratch))
                 .map(|(sample, clearance_m)| PaintPlanError::Collides {
                     sample,
                     clearance_m,
