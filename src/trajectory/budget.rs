@@ -4,6 +4,7 @@
 //! samples x axes x [`BYTES_PER_AXIS_SAMPLE`]. Owns the arithmetic and its error; the caps'
 //! defaults and the `[limits]` keys that override them are the job layer's.
 
+use crate::motion::HermiteCurve;
 use std::time::Duration;
 use thiserror::Error;
 
@@ -84,14 +85,7 @@ impl SampleBudget {
     /// Whether `more` samples every `period` of `dof` axes, after those spent, stay within
     /// the budget. Counts in `f64` and `u64`, so a hostile length cannot overflow it.
     pub fn check(&self, more: u64, period: Duration, dof: usize) -> Result<(), OverBudget> {
-        let samples = (self.spent as u64).saturating_add(more);
-        let duration_s = samples.saturating_sub(1) as f64 * period.as_secs_f64();
-        if duration_s > self.max_duration_s {
-            return Err(OverBudget::Duration {
-                duration_s,
-                max_duration_s: self.max_duration_s,
-            });
-        }
+        let samples = self.check_duration(more, period)?;
         let mb = plan_mb(samples, dof);
         if mb > self.max_plan_mb {
             return Err(OverBudget::Memory {
@@ -104,6 +98,20 @@ impl SampleBudget {
         Ok(())
     }
 
+    /// Whether `more` samples every `period`, after those spent, stay within the duration
+    /// cap: the samples in all, when they do.
+    fn check_duration(&self, more: u64, period: Duration) -> Result<u64, OverBudget> {
+        let samples = (self.spent as u64).saturating_add(more);
+        let duration_s = samples.saturating_sub(1) as f64 * period.as_secs_f64();
+        if duration_s > self.max_duration_s {
+            return Err(OverBudget::Duration {
+                duration_s,
+                max_duration_s: self.max_duration_s,
+            });
+        }
+        Ok(samples)
+    }
+
     /// [`Self::check`] for a trajectory lasting `seconds` sampled every `period`: its
     /// samples, first and last included.
     pub fn check_seconds(
@@ -112,15 +120,46 @@ impl SampleBudget {
         period: Duration,
         dof: usize,
     ) -> Result<(), OverBudget> {
-        let periods = (seconds / period.as_secs_f64()).ceil();
-        // Saturates for a hostile `seconds`: the check then refuses it.
-        let samples = if periods.is_finite() && periods >= 0.0 {
-            periods as u64
-        } else {
-            u64::MAX
-        };
-        self.check(samples.saturating_add(1), period, dof)
+        self.check(samples_in(seconds, period), period, dof)
     }
+
+    /// A curve lasting `seconds` through `knots` knots of `dof` axes, sampled on demand
+    /// every `period` ([`crate::motion::HermiteCurve`]): its samples count against the
+    /// duration cap, its knots (not its samples) against the memory cap, beside the samples
+    /// spent before it, stored.
+    pub fn check_curve(
+        &self,
+        seconds: f64,
+        knots: usize,
+        period: Duration,
+        dof: usize,
+    ) -> Result<(), OverBudget> {
+        let samples = samples_in(seconds, period);
+        self.check_duration(samples, period)?;
+        let stored = HermiteCurve::bytes_for(knots, dof) as f64 / BYTES_PER_MB;
+        let mb = plan_mb(self.spent as u64, dof) + stored;
+        if mb > self.max_plan_mb {
+            return Err(OverBudget::Memory {
+                samples: (self.spent as u64).saturating_add(samples),
+                dof,
+                mb,
+                max_plan_mb: self.max_plan_mb,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// The samples of a trajectory lasting `seconds` every `period`, first and last included;
+/// saturates for a hostile `seconds`, which the checks then refuse.
+fn samples_in(seconds: f64, period: Duration) -> u64 {
+    let periods = (seconds / period.as_secs_f64()).ceil();
+    let samples = if periods.is_finite() && periods >= 0.0 {
+        periods as u64
+    } else {
+        u64::MAX
+    };
+    samples.saturating_add(1)
 }
 
 #[cfg(test)]
