@@ -1,11 +1,13 @@
 //! The `Trajectory` every stage hands down (joint samples at a fixed period, positions and
-//! velocities per axis, generic over the rig) and `validate`, the check every trajectory
-//! passes after it is planned, before it is streamed and before it is replayed.
+//! velocities per axis, generic over the rig; stored as the samples themselves or as a
+//! curve through few knots sampled on demand, read alike as [`Sample`]s held inline) and
+//! `validate`, the check every trajectory passes after it is planned, before it is streamed
+//! and before it is replayed.
 //!
 //! A leaf beside the chain, as `protocol` is beside the link: the planners above
 //! (`trajectory`, `ik`, `job`, `task`) build it and the streamer below runs it, so it
 //! lives under both (`docs/architecture.md`, "Layers"). Owns the type, its errors and the
-//! validator; must not plan, stream or import anything but `rig`.
+//! validator; must not plan, stream or import anything but `rig` and `protocol`'s axis values.
 
 use crate::protocol::{AxisValues, MAX_AXES};
 use crate::rig::{JointKind, Rig};
@@ -158,6 +160,12 @@ impl AsRef<[f64]> for Sample {
 impl PartialEq<&[f64]> for Sample {
     fn eq(&self, other: &&[f64]) -> bool {
         self.0.as_slice() == *other
+    }
+}
+
+impl PartialEq<Sample> for &[f64] {
+    fn eq(&self, other: &Sample) -> bool {
+        *self == other.0.as_slice()
     }
 }
 
@@ -814,4 +822,121 @@ pub fn peak_accelerations(trajectory: &Trajectory, rig: &Rig) -> Vec<Option<Peak
         }
     }
     peaks
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const PERIOD: Duration = Duration::from_millis(4);
+
+    /// Knots of a two-axis curve: (t in s, positions), rows at uneven times.
+    const KNOTS: [(f64, [f64; 2]); 4] = [
+        (0.0, [0.0, 0.1]),
+        (0.31, [0.2, -0.1]),
+        (0.5, [0.25, 0.0]),
+        (1.013, [-0.1, 0.3]),
+    ];
+
+    /// The knots' tangents: the slope over the knots either side, zero at the ends.
+    fn tangents() -> Vec<f64> {
+        let mut tangents = vec![0.0; 2];
+        for k in 1..KNOTS.len() - 1 {
+            let (before, after) = (KNOTS[k - 1], KNOTS[k + 1]);
+            for axis in 0..2 {
+                tangents.push((after.1[axis] - before.1[axis]) / (after.0 - before.0));
+            }
+        }
+        tangents.extend([0.0; 2]);
+        tangents
+    }
+
+    fn names() -> Vec<String> {
+        vec!["a".into(), "b".into()]
+    }
+
+    fn compact() -> Trajectory {
+        let times = KNOTS.iter().map(|k| k.0).collect();
+        let positions = KNOTS.iter().flat_map(|k| k.1).collect();
+        let curve = HermiteCurve::new(times, positions, tangents(), 2, PERIOD).unwrap();
+        Trajectory::from_curve("r".into(), names(), PERIOD, curve).unwrap()
+    }
+
+    /// The same curve sampled densely, the way the planner sampled it before it was stored
+    /// compactly: walk the pieces in time, the textbook Hermite basis at each sample.
+    fn dense() -> Trajectory {
+        let tangents = tangents();
+        let end = KNOTS[KNOTS.len() - 1].0;
+        let (mut positions, mut velocities) = (Vec::new(), Vec::new());
+        let mut piece = 0;
+        for k in 0..=(end / PERIOD.as_secs_f64()).ceil() as usize {
+            let t = (k as f64 * PERIOD.as_secs_f64()).min(end);
+            while piece + 2 < KNOTS.len() && KNOTS[piece + 1].0 <= t {
+                piece += 1;
+            }
+            let h = KNOTS[piece + 1].0 - KNOTS[piece].0;
+            let s = (t - KNOTS[piece].0) / h;
+            for axis in 0..2 {
+                let (p0, p1) = (KNOTS[piece].1[axis], KNOTS[piece + 1].1[axis]);
+                let m0 = tangents[piece * 2 + axis] * h;
+                let m1 = tangents[(piece + 1) * 2 + axis] * h;
+                let (h00, h10) = (2.0 * s.powi(3) - 3.0 * s * s + 1.0, s.powi(3) - 2.0 * s * s + s);
+                let (h01, h11) = (-2.0 * s.powi(3) + 3.0 * s * s, s.powi(3) - s * s);
+                positions.push(h00 * p0 + h10 * m0 + h01 * p1 + h11 * m1);
+                let d00 = 6.0 * s * s - 6.0 * s;
+                let d10 = 3.0 * s * s - 4.0 * s + 1.0;
+                let d11 = 3.0 * s * s - 2.0 * s;
+                velocities.push((d00 * p0 + d10 * m0 - d00 * p1 + d11 * m1) / h);
+            }
+        }
+        Trajectory::new("r".into(), names(), PERIOD, positions, velocities).unwrap()
+    }
+
+    fn assert_same_samples(a: &Trajectory, b: &Trajectory) {
+        assert_eq!(a.len(), b.len());
+        for k in 0..a.len() {
+            let ((pa, va), (pb, vb)) = (a.sample(k), b.sample(k));
+            for axis in 0..a.dof() {
+                assert!((pa[axis] - pb[axis]).abs() <= 1e-12, "sample {k} axis {axis}");
+                assert!((va[axis] - vb[axis]).abs() <= 1e-12, "sample {k} axis {axis}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_curve_sampled_on_demand_yields_the_samples_the_dense_form_holds() {
+        let (compact, dense) = (compact(), dense());
+        // 1.013 s at 4 ms: 254 periods, the last knot exactly as the last sample.
+        assert_eq!(compact.len(), 255);
+        assert_eq!(compact.position(254), &[-0.1, 0.3][..]);
+        assert_same_samples(&compact, &dense);
+        assert!(compact.stored_bytes() < dense.stored_bytes() / 20);
+    }
+
+    #[test]
+    fn tails_and_joins_of_both_forms_hold_the_same_samples() {
+        let (compact, dense) = (compact(), dense());
+        for from in [0, 1, 77, 254] {
+            assert_same_samples(&compact.tail(from), &dense.tail(from));
+        }
+        // A dense approach, then the curve: the join drops the curve's first sample.
+        let approach = dense.tail(200);
+        let mut joined = Trajectory::new(
+            "r".into(),
+            names(),
+            PERIOD,
+            vec![0.0, 0.1, 0.0, 0.1],
+            vec![0.0; 4],
+        )
+        .unwrap();
+        let mut expected = joined.clone();
+        joined.append(&compact);
+        expected.append(&dense);
+        assert_eq!(joined.len(), 256);
+        assert_same_samples(&joined, &expected);
+        assert_same_samples(&joined.tail(100), &expected.tail(100));
+        let mut twice = approach.clone();
+        twice.append(&approach);
+        assert_eq!(twice.len(), 2 * approach.len() - 1);
+    }
 }

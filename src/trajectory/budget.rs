@@ -1,7 +1,8 @@
 //! The sample budget of one plan: how long a planned trajectory may last and how much memory
 //! its samples may take, checked before a planner samples anything (`docs/jobs.md`,
-//! "Limits"). A plan is stored sampled at the stream's period, so its memory is its length:
-//! samples x axes x [`BYTES_PER_AXIS_SAMPLE`]. Owns the arithmetic and its error; the caps'
+//! "Limits"). A plan sampled at the stream's period takes samples x axes x
+//! [`BYTES_PER_AXIS_SAMPLE`]; a curve sampled on demand takes its knots
+//! ([`SampleBudget::check_curve`]). Owns the arithmetic and its error; the caps'
 //! defaults and the `[limits]` keys that override them are the job layer's.
 
 use crate::motion::HermiteCurve;
