@@ -880,7 +880,10 @@ mod tests {
                 let (p0, p1) = (KNOTS[piece].1[axis], KNOTS[piece + 1].1[axis]);
                 let m0 = tangents[piece * 2 + axis] * h;
                 let m1 = tangents[(piece + 1) * 2 + axis] * h;
-                let (h00, h10) = (2.0 * s.powi(3) - 3.0 * s * s + 1.0, s.powi(3) - 2.0 * s * s + s);
+                let (h00, h10) = (
+                    2.0 * s.powi(3) - 3.0 * s * s + 1.0,
+                    s.powi(3) - 2.0 * s * s + s,
+                );
                 let (h01, h11) = (-2.0 * s.powi(3) + 3.0 * s * s, s.powi(3) - s * s);
                 positions.push(h00 * p0 + h10 * m0 + h01 * p1 + h11 * m1);
                 let d00 = 6.0 * s * s - 6.0 * s;
@@ -897,8 +900,14 @@ mod tests {
         for k in 0..a.len() {
             let ((pa, va), (pb, vb)) = (a.sample(k), b.sample(k));
             for axis in 0..a.dof() {
-                assert!((pa[axis] - pb[axis]).abs() <= 1e-12, "sample {k} axis {axis}");
-                assert!((va[axis] - vb[axis]).abs() <= 1e-12, "sample {k} axis {axis}");
+                assert!(
+                    (pa[axis] - pb[axis]).abs() <= 1e-12,
+                    "sample {k} axis {axis}"
+                );
+                assert!(
+                    (va[axis] - vb[axis]).abs() <= 1e-12,
+                    "sample {k} axis {axis}"
+                );
             }
         }
     }

@@ -11,8 +11,10 @@ use common::{scratch_dir, shipped_settings_text};
 use std::time::{Duration, Instant};
 
 /// The audit's message as an HTTP job: two rows, t = 0 and t = 86,400 s, a 10 degree move
-/// of joint 1 (degrees, as a job's rows are written).
-const DAY_LONG_JOB: &str = r#"{"job": {"kind": "follow_trajectory", "rows": [[0, 0, 0, 0, 0, 30, 0], [86400, 10, 0, 0, 0, 30, 0]]}}"#;
+/// of joint 1 (degrees, as a job's rows are written), taken as a ROS 2 trajectory is: from
+/// where the rig holds (the shipped twin's `initial_deg`), no approach, so the job lasts
+/// the day and no more, at the cap.
+const DAY_LONG_JOB: &str = r#"{"job": {"kind": "follow_trajectory", "approach": false, "rows": [[0, 0, 0, 0, 0, 30, 0], [86400, 10, 0, 0, 0, 30, 0]]}}"#;
 
 /// The figure: the daemon running the day-long plan stays under 64 MB (the audit saw
 /// 4.07 GB at peak before the caps).

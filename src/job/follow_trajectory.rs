@@ -13,8 +13,8 @@
 
 use super::limits::{CEILING_DURATION_S, CEILING_POINTS, JobLimits};
 use super::{JobContext, JobError, JobInvalid, PlanContext, resolve_file, to_si};
-use crate::rig::{JointKind, OutsideLimits, Rig};
 use crate::motion::HermiteCurve;
+use crate::rig::{JointKind, OutsideLimits, Rig};
 use crate::trajectory::{
     Origins, OverBudget, SampleBudget, Trajectory, TrajectoryError, plan_joint_moves, validate,
 };
@@ -286,7 +286,8 @@ impl FollowTrajectory {
             std::slice::from_ref(&rows[0].1),
             settings,
         )?;
-        let budget = settings.budget.after(trajectory.len());
+        // The curve's first sample is the approach's last: joined, it is one sample.
+        let budget = settings.budget.after(trajectory.len() - 1);
         let followed =
             sample_rows(rig, &rows, settings.period, budget).map_err(|e| self.shape(e))?;
         let on_rows = |(sample, problem): (usize, CurveProblem)| {
@@ -695,7 +696,9 @@ fn sample_rows(
     let samples = |e| ShapeProblem::Samples(Box::new(e));
     let times = rows.iter().map(|row| row.0).collect();
     let positions = rows.iter().flat_map(|row| row.1.iter().copied()).collect();
-    let tangents = (0..rows.len()).flat_map(|k| tangent(rows, k, dof)).collect();
+    let tangents = (0..rows.len())
+        .flat_map(|k| tangent(rows, k, dof))
+        .collect();
     let curve = HermiteCurve::new(times, positions, tangents, dof, period).map_err(samples)?;
     Trajectory::from_curve(
         rig.name.clone(),
