@@ -5,7 +5,7 @@
 //! ([`SampleBudget::check_curve`]). Owns the arithmetic and its error; the caps'
 //! defaults and the `[limits]` keys that override them are the job layer's.
 
-use crate::motion::HermiteCurve;
+use crate::motion::{HermiteCurve, Trajectory};
 use std::time::Duration;
 use thiserror::Error;
 
@@ -135,13 +135,24 @@ impl SampleBudget {
         period: Duration,
         dof: usize,
     ) -> Result<(), OverBudget> {
-        let samples = samples_in(seconds, period);
-        self.check_duration(samples, period)?;
-        let stored = HermiteCurve::bytes_for(knots, dof) as f64 / BYTES_PER_MB;
-        let mb = plan_mb(self.spent as u64, dof) + stored;
+        let samples = self.check_duration(samples_in(seconds, period), period)?;
+        self.check_stored(samples, dof, HermiteCurve::bytes_for(knots, dof))
+    }
+
+    /// A planned trajectory within the budget: its samples against the duration cap, what
+    /// it stores (not its samples, for a curve sampled on demand) against the memory cap.
+    pub fn check_trajectory(&self, trajectory: &Trajectory) -> Result<(), OverBudget> {
+        let samples = self.check_duration(trajectory.len() as u64, trajectory.period)?;
+        self.check_stored(samples, trajectory.dof(), trajectory.stored_bytes())
+    }
+
+    /// `bytes` stored beside the samples spent (of `dof` axes) within the memory cap;
+    /// `samples` in all, for the refusal.
+    fn check_stored(&self, samples: u64, dof: usize, bytes: usize) -> Result<(), OverBudget> {
+        let mb = plan_mb(self.spent as u64, dof) + bytes as f64 / BYTES_PER_MB;
         if mb > self.max_plan_mb {
             return Err(OverBudget::Memory {
-                samples: (self.spent as u64).saturating_add(samples),
+                samples,
                 dof,
                 mb,
                 max_plan_mb: self.max_plan_mb,
