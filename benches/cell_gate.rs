@@ -36,7 +36,7 @@ fn main_bench(c: &mut Criterion) {
         .expect("the demo plans");
     let model = collision_model(&settings);
     let targets: Vec<AxisValues> = (0..trajectory.len())
-        .map(|k| AxisValues::from_slice(trajectory.position(k)).expect("six axes"))
+        .map(|k| AxisValues::from_slice(&trajectory.position(k)).expect("six axes"))
         .collect();
     let mut gate = CellGate::new(&model);
     let mut refused = 0;

@@ -30,8 +30,8 @@ fn fingerprint(plan: &PaintPlan) -> u64 {
     let trajectory = &plan.trajectory;
     bits(&[trajectory.period.as_secs_f64()], &mut hasher);
     for i in 0..trajectory.len() {
-        bits(trajectory.position(i), &mut hasher);
-        bits(trajectory.velocity(i), &mut hasher);
+        bits(&trajectory.position(i), &mut hasher);
+        bits(&trajectory.velocity(i), &mut hasher);
     }
     hasher.finish()
 }

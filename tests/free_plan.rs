@@ -49,12 +49,16 @@ fn dense_clearance(model: &CollisionModel, trajectory: &Trajectory) -> (f64, usi
         smallest = smallest.min(d);
         collisions += usize::from(d <= 0.0);
     };
-    measure(trajectory.position(0));
+    measure(&trajectory.position(0));
     for k in 1..trajectory.len() {
         let (a, b) = (trajectory.position(k - 1), trajectory.position(k));
         for i in 1..=DENSE_POINTS_PER_SAMPLE + 1 {
             let s = i as f64 / (DENSE_POINTS_PER_SAMPLE + 1) as f64;
-            let q: Vec<f64> = a.iter().zip(b).map(|(x, y)| x + s * (y - x)).collect();
+            let q: Vec<f64> = a
+                .iter()
+                .zip(b.iter())
+                .map(|(x, y)| x + s * (y - x))
+                .collect();
             measure(&q);
         }
     }

@@ -613,7 +613,7 @@ fn a_trunk_job_approaches_from_the_configured_start_clear_of_the_trunk() {
         let trunk = scenario.terrain.cylinders[0];
         let least = (0..trajectory.len())
             .map(|k| {
-                let spine = &sloth.bone_polylines(trajectory.position(k)).unwrap()[0];
+                let spine = &sloth.bone_polylines(&trajectory.position(k)).unwrap()[0];
                 let (tail, head) = (spine[0], *spine.last().unwrap());
                 let axis = |p: glam::DVec3| glam::DVec3::new(trunk.from.x, trunk.from.y, p.z);
                 // The torso's nearest approach to the vertical axis, sampled along the spine.

@@ -226,11 +226,11 @@ fn move_linear_keeps_the_tool_on_its_lines_and_ends_on_the_last_pose() {
         corners.push(glam::DVec3::new(xyz[0], xyz[1], xyz[2]));
     }
     let reached = (0..trajectory.len())
-        .find(|&k| (tool(trajectory.position(k)).position - corners[0]).length() <= 1e-6)
+        .find(|&k| (tool(&trajectory.position(k)).position - corners[0]).length() <= 1e-6)
         .expect("the first pose is reached");
     let mut worst: f64 = 0.0;
     for k in reached..trajectory.len() {
-        let p = tool(trajectory.position(k)).position;
+        let p = tool(&trajectory.position(k)).position;
         let nearest = corners
             .windows(2)
             .map(|w| to_segment(p, w[0], w[1]))
@@ -243,7 +243,7 @@ fn move_linear_keeps_the_tool_on_its_lines_and_ends_on_the_last_pose() {
         trajectory.len()
     );
     assert!(worst <= 0.5e-3, "{worst} m off the lines");
-    let last = tool(trajectory.position(trajectory.len() - 1)).position;
+    let last = tool(&trajectory.position(trajectory.len() - 1)).position;
     let end = corners[corners.len() - 1];
     assert!(
         (last - end).length() <= 1e-6,

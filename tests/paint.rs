@@ -359,8 +359,8 @@ fn start_position() -> Vec<f64> {
 fn head(trajectory: &Trajectory, last: usize) -> Trajectory {
     let (mut positions, mut velocities) = (Vec::new(), Vec::new());
     for i in 0..=last {
-        positions.extend_from_slice(trajectory.position(i));
-        velocities.extend_from_slice(trajectory.velocity(i));
+        positions.extend_from_slice(&trajectory.position(i));
+        velocities.extend_from_slice(&trajectory.velocity(i));
     }
     Trajectory::new(
         trajectory.rig.clone(),
@@ -708,7 +708,7 @@ fn paint_does_not_depend_on_how_often_the_brush_is_seen() {
         let mut world = world_for(&settings, &room).unwrap();
         let samples: Vec<usize> = (0..=last).step_by(step).chain([last]).collect();
         for &i in &samples {
-            rigbridge::twin::TwinWorld::observe(&mut world, planned.trajectory.position(i));
+            rigbridge::twin::TwinWorld::observe(&mut world, &planned.trajectory.position(i));
         }
         world
     };
@@ -783,13 +783,13 @@ fn assert_same_plan(a: &PaintPlan, b: &PaintPlan, what: &str) {
     assert_eq!(ta.period, tb.period);
     for i in 0..ta.len() {
         assert_eq!(
-            bits(ta.position(i)),
-            bits(tb.position(i)),
+            bits(&ta.position(i)),
+            bits(&tb.position(i)),
             "{what}: sample {i}"
         );
         assert_eq!(
-            bits(ta.velocity(i)),
-            bits(tb.velocity(i)),
+            bits(&ta.velocity(i)),
+            bits(&tb.velocity(i)),
             "{what}: sample {i}"
         );
     }

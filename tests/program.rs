@@ -478,7 +478,7 @@ fn all_fine(job: &Job, settings: &RunSettings) -> Job {
 fn closest(settings: &RunSettings, trajectory: &Trajectory, point: glam::DVec3) -> f64 {
     (0..trajectory.len())
         .map(|k| {
-            let at = settings.tcp_rig.tool_pose(trajectory.position(k)).unwrap();
+            let at = settings.tcp_rig.tool_pose(&trajectory.position(k)).unwrap();
             (at.position - point).length()
         })
         .fold(f64::INFINITY, f64::min)

@@ -229,8 +229,8 @@ fn refuses_before_motion_a_trajectory_that_breaks_a_limit() {
 fn cut(rig: &Rig, trajectory: &Trajectory, samples: usize) -> Trajectory {
     let (mut positions, mut velocities) = (Vec::new(), Vec::new());
     for i in 0..samples {
-        positions.extend_from_slice(trajectory.position(i));
-        velocities.extend_from_slice(trajectory.velocity(i));
+        positions.extend_from_slice(&trajectory.position(i));
+        velocities.extend_from_slice(&trajectory.velocity(i));
     }
     let names = rig.joint_names().map(String::from).collect();
     Trajectory::new(rig.name.clone(), names, period(), positions, velocities).unwrap()
@@ -305,7 +305,7 @@ fn estop_halts_at_once() {
 fn reversed(rig: &Rig, trajectory: &Trajectory) -> Trajectory {
     let (mut positions, mut velocities) = (Vec::new(), Vec::new());
     for i in (0..trajectory.len()).rev() {
-        positions.extend_from_slice(trajectory.position(i));
+        positions.extend_from_slice(&trajectory.position(i));
         velocities.extend(trajectory.velocity(i).iter().map(|v| -v));
     }
     let names = rig.joint_names().map(String::from).collect();

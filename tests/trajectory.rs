@@ -189,7 +189,7 @@ fn a_square_on_a_wall_stays_on_its_edges() {
     let mut worst_position = 0.0f64;
     let mut worst_orientation = 0.0f64;
     for k in 0..trajectory.len() {
-        let pose = rig.tool_pose(trajectory.position(k)).unwrap();
+        let pose = rig.tool_pose(&trajectory.position(k)).unwrap();
         let off_edges = (0..4)
             .map(|i| {
                 distance_to_segment(
@@ -203,7 +203,7 @@ fn a_square_on_a_wall_stays_on_its_edges() {
         worst_orientation = worst_orientation.max(pose.orientation_error(&corners[0]));
     }
     let end = rig
-        .tool_pose(trajectory.position(trajectory.len() - 1))
+        .tool_pose(&trajectory.position(trajectory.len() - 1))
         .unwrap();
     assert!(end.position_error(&corners[0]) < 1e-6);
     let (velocity, acceleration) = peak_velocity_and_acceleration(&trajectory);
@@ -476,7 +476,7 @@ fn random_lines_stay_on_the_line_within_the_scaled_limits() {
                 validate(&trajectory, &rig).unwrap();
                 assert_within_scaled_limits(&rig, &trajectory, &settings);
                 for k in 0..trajectory.len() {
-                    let pose = rig.tool_pose(trajectory.position(k)).unwrap();
+                    let pose = rig.tool_pose(&trajectory.position(k)).unwrap();
                     let line = to.position - from.position;
                     let u = (pose.position - from.position).dot(line) / line.length_squared();
                     off_line = off_line.max(distance_to_segment(

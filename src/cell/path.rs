@@ -65,29 +65,31 @@ impl CollisionModel {
     ///
     /// # Panics
     /// When a sample does not hold one value per joint.
-    pub fn check_path<'a>(
+    pub fn check_path<Q: AsRef<[f64]>>(
         &self,
-        samples: impl IntoIterator<Item = (f64, &'a [f64])>,
+        samples: impl IntoIterator<Item = (f64, Q)>,
         scratch: &mut Scratch,
     ) -> Result<PathClearance, PathCollision> {
         let mut best = PathClearance {
             min: Clearance::NONE,
             at_t: 0.0,
         };
-        let mut previous: Option<(f64, &'a [f64], f64)> = None;
-        for (index, (t, q)) in samples.into_iter().enumerate() {
-            let Some((t0, q0, floor0)) = previous else {
+        let mut previous: Option<(f64, Q, f64)> = None;
+        for (index, (t, sample)) in samples.into_iter().enumerate() {
+            let q = sample.as_ref();
+            let Some((t0, held, floor0)) = previous.take() else {
                 let c = self.measure(q, t, &mut best, scratch);
                 if c.distance_m < self.margin {
                     return Err(self.collision(index, t, q.to_vec(), c));
                 }
-                previous = Some((t, q, c.distance_m));
+                previous = Some((t, sample, c.distance_m));
                 continue;
             };
+            let q0 = held.as_ref();
             let change = self.clearance_change(q0, q);
             // The bound alone keeps this sample, and the way to it, above the margin.
             if floor0 - change >= self.margin {
-                previous = Some((t, q, floor0 - change));
+                previous = Some((t, sample, floor0 - change));
                 continue;
             }
             let c = self.measure(q, t, &mut best, scratch);
@@ -105,7 +107,7 @@ impl CollisionModel {
             if c.distance_m < self.margin {
                 return Err(self.collision(index, t, q.to_vec(), c));
             }
-            previous = Some((t, q, c.distance_m));
+            previous = Some((t, sample, c.distance_m));
         }
         Ok(best)
     }

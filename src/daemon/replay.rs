@@ -143,8 +143,9 @@ pub fn replay_trajectory(
     let mut positions = start.clone();
     let mut velocities = vec![0.0; start.len()];
     for sample in 0..commands.len() {
-        positions.extend_from_slice(commands.position(sample));
-        velocities.extend_from_slice(commands.velocity(sample));
+        let (at, moving) = commands.sample(sample);
+        positions.extend_from_slice(&at);
+        velocities.extend_from_slice(&moving);
     }
     let recorded = Trajectory::new(
         log.rig.clone(),
@@ -307,7 +308,7 @@ pub fn replay(
 ) -> Result<ReplayReport, DaemonError> {
     let replayed = replay_trajectory(log, settings, speed)?;
     let held = held_position(settings, link, clock, control)?;
-    let trajectory = match approach(settings, &held, replayed.trajectory.position(0))? {
+    let trajectory = match approach(settings, &held, &replayed.trajectory.position(0))? {
         Some(mut moved) => {
             clear(settings, &moved, &Origins::whole(APPROACH))?;
             moved.append(&replayed.trajectory);

@@ -13,6 +13,7 @@
 
 use super::limits::{CEILING_DURATION_S, CEILING_POINTS, JobLimits};
 use super::{JobContext, JobError, JobInvalid, PlanContext, resolve_file, to_si};
+use crate::motion::HermiteCurve;
 use crate::rig::{JointKind, OutsideLimits, Rig};
 use crate::trajectory::{
     Origins, OverBudget, SampleBudget, Trajectory, TrajectoryError, plan_joint_moves, validate,
@@ -285,7 +286,8 @@ impl FollowTrajectory {
             std::slice::from_ref(&rows[0].1),
             settings,
         )?;
-        let budget = settings.budget.after(trajectory.len());
+        // The curve's first sample is the approach's last: joined, it is one sample.
+        let budget = settings.budget.after(trajectory.len() - 1);
         let followed =
             sample_rows(rig, &rows, settings.period, budget).map_err(|e| self.shape(e))?;
         let on_rows = |(sample, problem): (usize, CurveProblem)| {
@@ -500,12 +502,13 @@ fn starts_where_held(
 }
 
 /// The plan of `rows` (already within the caps on points and `t`) within the memory cap
-/// too: its duration at the stream's period on the rig's axes, refused under `key`.
+/// too: a curve through the rows, sampled on demand (its samples count against the
+/// duration cap, its rows against the memory cap), refused under `key`.
 fn check_plan_size(key: &str, rows: &[Row], context: &JobContext) -> Result<(), JobInvalid> {
     let last_t = rows.last().map_or(0.0, |row| row.0);
     context
         .limits
-        .check_duration(key, last_t, context.period, context.rig.dof())
+        .check_curve(key, last_t, rows.len(), context.period, context.rig.dof())
 }
 
 /// Inline rows (`t` then the joints, config units) checked like a file's, in SI units.
@@ -676,8 +679,9 @@ fn check_row(
 
 /// The rows sampled every `period`: a cubic Hermite piece between consecutive rows, its
 /// tangents the slope over the rows either side (zero at the first and last row, so the
-/// trajectory starts and ends at rest). The last row is the last sample, exactly. Refused
-/// before anything is sampled when the samples would break `budget`.
+/// trajectory starts and ends at rest). The last row is the last sample, exactly. Stored as
+/// the rows and their tangents, sampled on demand ([`HermiteCurve`]): a day through two
+/// rows stores two rows. Refused before anything is built when it would break `budget`.
 fn sample_rows(
     rig: &Rig,
     rows: &[Row],
@@ -685,63 +689,36 @@ fn sample_rows(
     budget: SampleBudget,
 ) -> Result<Trajectory, ShapeProblem> {
     let dof = rig.dof();
-    // The rows' times are seconds from the file: the sampling is maths in seconds.
-    let period_s = period.as_secs_f64();
-    let tangent = |k: usize| -> Vec<f64> {
-        if k == 0 || k + 1 == rows.len() {
-            return vec![0.0; dof];
-        }
-        let (before, after) = (&rows[k - 1], &rows[k + 1]);
-        (0..dof)
-            .map(|a| (after.1[a] - before.1[a]) / (after.0 - before.0))
-            .collect()
-    };
     let end = rows[rows.len() - 1].0;
     budget
-        .check_seconds(end, period, dof)
+        .check_curve(end, rows.len(), period, dof)
         .map_err(ShapeProblem::OverBudget)?;
-    let periods = (end / period_s).ceil() as usize;
-    let mut positions = Vec::with_capacity((periods + 1) * dof);
-    let mut velocities = Vec::with_capacity((periods + 1) * dof);
-    let mut piece = 0;
-    for k in 0..=periods {
-        let t = (k as f64 * period_s).min(end);
-        while piece + 2 < rows.len() && rows[piece + 1].0 <= t {
-            piece += 1;
-        }
-        let (a, b) = (&rows[piece], &rows[(piece + 1).min(rows.len() - 1)]);
-        let (ta, tb) = (tangent(piece), tangent((piece + 1).min(rows.len() - 1)));
-        let h = (b.0 - a.0).max(f64::MIN_POSITIVE);
-        let s = ((t - a.0) / h).clamp(0.0, 1.0);
-        for axis in 0..dof {
-            let (p, v) = hermite(a.1[axis], b.1[axis], ta[axis] * h, tb[axis] * h, s);
-            positions.push(p);
-            velocities.push(v / h);
-        }
-    }
-    Trajectory::new(
+    let samples = |e| ShapeProblem::Samples(Box::new(e));
+    let times = rows.iter().map(|row| row.0).collect();
+    let positions = rows.iter().flat_map(|row| row.1.iter().copied()).collect();
+    let tangents = (0..rows.len())
+        .flat_map(|k| tangent(rows, k, dof))
+        .collect();
+    let curve = HermiteCurve::new(times, positions, tangents, dof, period).map_err(samples)?;
+    Trajectory::from_curve(
         rig.name.clone(),
         rig.joint_names().map(str::to_owned).collect(),
         period,
-        positions,
-        velocities,
+        curve,
     )
-    .map_err(|e| ShapeProblem::Samples(Box::new(e)))
+    .map_err(samples)
 }
 
-/// Position and derivative (per unit `s`) of the cubic Hermite piece from `p0` (slope `m0`)
-/// to `p1` (slope `m1`) at `s` in [0, 1].
-fn hermite(p0: f64, p1: f64, m0: f64, m1: f64, s: f64) -> (f64, f64) {
-    let (s2, s3) = (s * s, s * s * s);
-    let p = (2.0 * s3 - 3.0 * s2 + 1.0) * p0
-        + (s3 - 2.0 * s2 + s) * m0
-        + (-2.0 * s3 + 3.0 * s2) * p1
-        + (s3 - s2) * m1;
-    let d = (6.0 * s2 - 6.0 * s) * p0
-        + (3.0 * s2 - 4.0 * s + 1.0) * m0
-        + (-6.0 * s2 + 6.0 * s) * p1
-        + (3.0 * s2 - 2.0 * s) * m1;
-    (p, d)
+/// The tangent (per second) at row `k` of `dof` axes: the slope over the rows either side,
+/// zero at the first and last row.
+fn tangent(rows: &[Row], k: usize, dof: usize) -> Vec<f64> {
+    if k == 0 || k + 1 == rows.len() {
+        return vec![0.0; dof];
+    }
+    let (before, after) = (&rows[k - 1], &rows[k + 1]);
+    (0..dof)
+        .map(|a| (after.1[a] - before.1[a]) / (after.0 - before.0))
+        .collect()
 }
 
 /// Every second difference of the samples (at rest before the first and after the last)
@@ -749,11 +726,14 @@ fn hermite(p0: f64, p1: f64, m0: f64, m1: f64, s: f64) -> (f64, f64) {
 /// breaks.
 fn check_acceleration(rig: &Rig, trajectory: &Trajectory) -> Result<(), (usize, CurveProblem)> {
     let n = trajectory.len();
-    let at = |k: isize| trajectory.position(k.clamp(0, n as isize - 1) as usize);
+    let at = |k: usize| trajectory.position(k.min(n - 1));
     let dt = trajectory.period.as_secs_f64();
-    for k in 0..n as isize {
+    // Each sample is evaluated once, the window sliding along (a curve is sampled on demand).
+    let (mut before, mut here) = (at(0), at(0));
+    for k in 0..n {
+        let after = at(k + 1);
         for (axis, joint) in rig.joints.iter().enumerate() {
-            let second = at(k + 1)[axis] - 2.0 * at(k)[axis] + at(k - 1)[axis];
+            let second = after[axis] - 2.0 * here[axis] + before[axis];
             if !joint.limits.second_difference_ok(second, dt) {
                 let problem = CurveProblem::Acceleration {
                     joint: joint.name.clone(),
@@ -761,9 +741,10 @@ fn check_acceleration(rig: &Rig, trajectory: &Trajectory) -> Result<(), (usize, 
                     max_acceleration: joint.limits.max_acceleration,
                     kind: joint.kind,
                 };
-                return Err((k as usize, problem));
+                return Err((k, problem));
             }
         }
+        (before, here) = (here, after);
     }
     Ok(())
 }

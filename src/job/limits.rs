@@ -89,6 +89,27 @@ impl JobLimits {
     }
 }
 
+impl JobLimits {
+    /// A curve under `key` lasting `seconds` through `knots` points, sampled on demand every
+    /// `period` on `dof` axes (a `follow_trajectory`'s rows): within the duration cap, and
+    /// its knots within the memory cap; refused here, before any of it is planned.
+    pub fn check_curve(
+        &self,
+        key: &str,
+        seconds: f64,
+        knots: usize,
+        period: Duration,
+        dof: usize,
+    ) -> Result<(), JobInvalid> {
+        let refuse = |reason: OverBudget| {
+            JobInvalid::new(key, format!("{seconds} s"), refusal_reason(&reason))
+        };
+        self.budget()
+            .check_curve(seconds, knots, period, dof)
+            .map_err(refuse)
+    }
+}
+
 /// The reason a job over budget is refused, naming the value and the cap.
 fn refusal_reason(over: &OverBudget) -> String {
     match over {

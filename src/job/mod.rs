@@ -232,7 +232,7 @@ impl Job {
         let settings = context.settings;
         settings
             .budget
-            .check(trajectory.len() as u64, settings.period, trajectory.dof())
+            .check_trajectory(&trajectory)
             .map_err(PlanError::from)?;
         Ok((trajectory, origins))
     }

@@ -217,7 +217,7 @@ impl MoveLinear {
 
 /// The tool's fastest speed between two samples (m/s), by forward kinematics.
 pub fn top_tool_speed(rig: &Rig, trajectory: &Trajectory) -> f64 {
-    let tool = |k: usize| rig.tool_pose(trajectory.position(k)).map(|p| p.position);
+    let tool = |k: usize| rig.tool_pose(&trajectory.position(k)).map(|p| p.position);
     (1..trajectory.len())
         .filter_map(|k| Some((tool(k).ok()? - tool(k - 1).ok()?).length()))
         .fold(0.0, f64::max)

@@ -43,8 +43,8 @@ pub(super) fn sample_at(trajectory: &Trajectory, path: f64, rate: f64) -> (AxisV
     let fraction = path - index as f64;
     let mut positions = AxisValues::zeros(dof);
     let mut velocities = AxisValues::zeros(dof);
-    let (pa, pb) = (trajectory.position(index), trajectory.position(next));
-    let (va, vb) = (trajectory.velocity(index), trajectory.velocity(next));
+    // Each sample read once: one on a curve is evaluated on demand.
+    let ((pa, va), (pb, vb)) = (trajectory.sample(index), trajectory.sample(next));
     for axis in 0..dof {
         positions.as_mut_slice()[axis] = pa[axis] + fraction * (pb[axis] - pa[axis]);
         velocities.as_mut_slice()[axis] = rate * (va[axis] + fraction * (vb[axis] - va[axis]));

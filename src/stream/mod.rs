@@ -834,7 +834,7 @@ fn check_start(
     for ((joint, start), actual) in rig
         .joints
         .iter()
-        .zip(first)
+        .zip(first.iter())
         .zip(feedback.positions.as_slice())
     {
         if !joint.limits.step_ok(start - actual, dt) {
@@ -992,7 +992,7 @@ impl Cycle {
             return (positions, velocities, finished);
         }
         if !self.online.engaged() {
-            self.online.start_at(trajectory.position(0));
+            self.online.start_at(&trajectory.position(0));
             self.online.engage(&self.sent, self.velocity_before);
         }
         self.seq += 1;

@@ -1,9 +1,11 @@
 //! The sample budget of one plan: how long a planned trajectory may last and how much memory
 //! its samples may take, checked before a planner samples anything (`docs/jobs.md`,
-//! "Limits"). A plan is stored sampled at the stream's period, so its memory is its length:
-//! samples x axes x [`BYTES_PER_AXIS_SAMPLE`]. Owns the arithmetic and its error; the caps'
+//! "Limits"). A plan sampled at the stream's period takes samples x axes x
+//! [`BYTES_PER_AXIS_SAMPLE`]; a curve sampled on demand takes its knots
+//! ([`SampleBudget::check_curve`]). Owns the arithmetic and its error; the caps'
 //! defaults and the `[limits]` keys that override them are the job layer's.
 
+use crate::motion::{HermiteCurve, Trajectory};
 use std::time::Duration;
 use thiserror::Error;
 
@@ -84,14 +86,7 @@ impl SampleBudget {
     /// Whether `more` samples every `period` of `dof` axes, after those spent, stay within
     /// the budget. Counts in `f64` and `u64`, so a hostile length cannot overflow it.
     pub fn check(&self, more: u64, period: Duration, dof: usize) -> Result<(), OverBudget> {
-        let samples = (self.spent as u64).saturating_add(more);
-        let duration_s = samples.saturating_sub(1) as f64 * period.as_secs_f64();
-        if duration_s > self.max_duration_s {
-            return Err(OverBudget::Duration {
-                duration_s,
-                max_duration_s: self.max_duration_s,
-            });
-        }
+        let samples = self.check_duration(more, period)?;
         let mb = plan_mb(samples, dof);
         if mb > self.max_plan_mb {
             return Err(OverBudget::Memory {
@@ -104,6 +99,20 @@ impl SampleBudget {
         Ok(())
     }
 
+    /// Whether `more` samples every `period`, after those spent, stay within the duration
+    /// cap: the samples in all, when they do.
+    fn check_duration(&self, more: u64, period: Duration) -> Result<u64, OverBudget> {
+        let samples = (self.spent as u64).saturating_add(more);
+        let duration_s = samples.saturating_sub(1) as f64 * period.as_secs_f64();
+        if duration_s > self.max_duration_s {
+            return Err(OverBudget::Duration {
+                duration_s,
+                max_duration_s: self.max_duration_s,
+            });
+        }
+        Ok(samples)
+    }
+
     /// [`Self::check`] for a trajectory lasting `seconds` sampled every `period`: its
     /// samples, first and last included.
     pub fn check_seconds(
@@ -112,15 +121,57 @@ impl SampleBudget {
         period: Duration,
         dof: usize,
     ) -> Result<(), OverBudget> {
-        let periods = (seconds / period.as_secs_f64()).ceil();
-        // Saturates for a hostile `seconds`: the check then refuses it.
-        let samples = if periods.is_finite() && periods >= 0.0 {
-            periods as u64
-        } else {
-            u64::MAX
-        };
-        self.check(samples.saturating_add(1), period, dof)
+        self.check(samples_in(seconds, period), period, dof)
     }
+
+    /// A curve lasting `seconds` through `knots` knots of `dof` axes, sampled on demand
+    /// every `period` ([`crate::motion::HermiteCurve`]): its samples count against the
+    /// duration cap, its knots (not its samples) against the memory cap, beside the samples
+    /// spent before it, stored.
+    pub fn check_curve(
+        &self,
+        seconds: f64,
+        knots: usize,
+        period: Duration,
+        dof: usize,
+    ) -> Result<(), OverBudget> {
+        let samples = self.check_duration(samples_in(seconds, period), period)?;
+        self.check_stored(samples, dof, HermiteCurve::bytes_for(knots, dof))
+    }
+
+    /// A planned trajectory within the budget: its samples against the duration cap, what
+    /// it stores (not its samples, for a curve sampled on demand) against the memory cap.
+    pub fn check_trajectory(&self, trajectory: &Trajectory) -> Result<(), OverBudget> {
+        let samples = self.check_duration(trajectory.len() as u64, trajectory.period)?;
+        self.check_stored(samples, trajectory.dof(), trajectory.stored_bytes())
+    }
+
+    /// `bytes` stored beside the samples spent (of `dof` axes) within the memory cap;
+    /// `samples` in all, for the refusal.
+    fn check_stored(&self, samples: u64, dof: usize, bytes: usize) -> Result<(), OverBudget> {
+        let mb = plan_mb(self.spent as u64, dof) + bytes as f64 / BYTES_PER_MB;
+        if mb > self.max_plan_mb {
+            return Err(OverBudget::Memory {
+                samples,
+                dof,
+                mb,
+                max_plan_mb: self.max_plan_mb,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// The samples of a trajectory lasting `seconds` every `period`, first and last included;
+/// saturates for a hostile `seconds`, which the checks then refuse.
+fn samples_in(seconds: f64, period: Duration) -> u64 {
+    let periods = (seconds / period.as_secs_f64()).ceil();
+    let samples = if periods.is_finite() && periods >= 0.0 {
+        periods as u64
+    } else {
+        u64::MAX
+    };
+    samples.saturating_add(1)
 }
 
 #[cfg(test)]

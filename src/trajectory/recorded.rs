@@ -166,7 +166,7 @@ mod tests {
             .to_trajectory(Duration::from_millis(4))
             .expect("the commands make a trajectory");
         assert_eq!(trajectory.len(), 3);
-        assert_eq!(trajectory.position(2), &[1.008]);
+        assert_eq!(&*trajectory.position(2), &[1.008]);
     }
 
     #[test]

@@ -39,8 +39,10 @@ pub fn resample(
     let samples = trajectory.len();
     if (period_s * speed - source_period).abs() <= SAME_PERIOD * source_period || samples < 2 {
         let positions = (0..samples).flat_map(|k| trajectory.position(k).to_vec());
-        let velocities =
-            (0..samples).flat_map(|k| trajectory.velocity(k).iter().map(|v| v * speed));
+        let velocities = (0..samples).flat_map(|k| {
+            let moving = trajectory.velocity(k);
+            (0..moving.len()).map(move |axis| moving[axis] * speed)
+        });
         return Trajectory::new(
             trajectory.rig.clone(),
             trajectory.joint_names.clone(),
@@ -126,7 +128,7 @@ pub fn ramp_to_rest(
     let velocity = trajectory.velocity(len - 1).to_vec();
     let step: Vec<f64> = if len > 1 {
         let before = trajectory.position(len - 2);
-        last.iter().zip(before).map(|(a, b)| a - b).collect()
+        last.iter().zip(before.iter()).map(|(a, b)| a - b).collect()
     } else {
         velocity.iter().map(|v| v * period).collect()
     };

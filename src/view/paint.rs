@@ -202,7 +202,7 @@ mod tests {
             world
                 .lock()
                 .expect("the world lock is not poisoned")
-                .observe(plan.trajectory.position(sample));
+                .observe(&plan.trajectory.position(sample));
             if sample % 2 == 1 {
                 quads.extend(scene.drain_paint());
             }

@@ -315,19 +315,20 @@ impl Travel {
     /// `samples`, exactly, when that is at most `needed`; otherwise some value above
     /// `needed`. Samples the bound from the last measured one places above both `needed`
     /// and the least so far are not measured: they can change neither answer.
-    pub fn lowest<'s>(
+    pub fn lowest<Q: AsRef<[f64]>>(
         &self,
-        samples: impl IntoIterator<Item = &'s [f64]>,
+        samples: impl IntoIterator<Item = Q>,
         needed: f64,
         mut measure: impl FnMut(&[f64]) -> f64,
     ) -> f64 {
         let mut worst = f64::INFINITY;
-        let mut anchor: Option<(f64, &[f64])> = None;
+        let mut anchor: Option<(f64, Q)> = None;
         for sample in samples {
-            if self.rules_out(anchor, sample, needed.min(worst)) {
+            let anchored = anchor.as_ref().map(|(value, at)| (*value, at.as_ref()));
+            if self.rules_out(anchored, sample.as_ref(), needed.min(worst)) {
                 continue;
             }
-            let value = measure(sample);
+            let value = measure(sample.as_ref());
             worst = worst.min(value);
             anchor = Some((value, sample));
         }
@@ -336,18 +337,19 @@ impl Travel {
 
     /// The first of `samples` (index, positions) whose `measure` is below `needed`, with
     /// that value; samples the bound places above it are not measured.
-    pub fn first_below<'s>(
+    pub fn first_below<Q: AsRef<[f64]>>(
         &self,
-        samples: impl IntoIterator<Item = (usize, &'s [f64])>,
+        samples: impl IntoIterator<Item = (usize, Q)>,
         needed: f64,
         mut measure: impl FnMut(&[f64]) -> f64,
     ) -> Option<(usize, f64)> {
-        let mut anchor: Option<(f64, &[f64])> = None;
+        let mut anchor: Option<(f64, Q)> = None;
         for (index, sample) in samples {
-            if self.rules_out(anchor, sample, needed) {
+            let anchored = anchor.as_ref().map(|(value, at)| (*value, at.as_ref()));
+            if self.rules_out(anchored, sample.as_ref(), needed) {
                 continue;
             }
-            let value = measure(sample);
+            let value = measure(sample.as_ref());
             if value < needed {
                 return Some((index, value));
             }

@@ -1114,7 +1114,7 @@ impl<'a> Planner<'a> {
 /// strokes, and from the last stroke back to `start`.
 fn route_requests(start: &[f64], legs: &[Leg]) -> Vec<RouteRequest> {
     let mut requests = Vec::with_capacity(legs.len() + 1);
-    let mut at = start;
+    let mut at = start.to_vec();
     let mut at_wall = 0;
     for leg in legs {
         requests.push(RouteRequest {
@@ -1122,7 +1122,7 @@ fn route_requests(start: &[f64], legs: &[Leg]) -> Vec<RouteRequest> {
             to: leg.stroke.position(0).to_vec(),
             walls: (at_wall, leg.record.wall),
         });
-        at = leg.stroke.position(leg.stroke.len() - 1);
+        at = leg.stroke.position(leg.stroke.len() - 1).to_vec();
         at_wall = leg.record.wall;
     }
     requests.push(RouteRequest {
@@ -1164,7 +1164,7 @@ fn same_bits(a: &Trajectory, b: &Trajectory) -> bool {
         && a.len() == b.len()
         && a.dof() == b.dof()
         && (0..a.len())
-            .all(|i| same(a.position(i), b.position(i)) && same(a.velocity(i), b.velocity(i)))
+            .all(|i| same(&a.position(i), &b.position(i)) && same(&a.velocity(i), &b.velocity(i)))
 }
 
 /// The same motion backwards in time (positions in reverse order, velocities negated).
@@ -1173,8 +1173,9 @@ fn reversed(trajectory: &Trajectory) -> Result<Trajectory, TrajectoryError> {
     let mut positions = Vec::with_capacity(trajectory.len() * dof);
     let mut velocities = Vec::with_capacity(trajectory.len() * dof);
     for i in (0..trajectory.len()).rev() {
-        positions.extend_from_slice(trajectory.position(i));
-        velocities.extend(trajectory.velocity(i).iter().map(|v| -v));
+        let (at, moving) = trajectory.sample(i);
+        positions.extend_from_slice(&at);
+        velocities.extend(moving.iter().map(|v| -v));
     }
     Trajectory::new(
         trajectory.rig.clone(),
