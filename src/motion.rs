@@ -7,13 +7,9 @@
 //! A leaf beside the chain, as `protocol` is beside the link: the planners above
 //! (`trajectory`, `ik`, `job`, `task`) build it and the streamer below runs it, so it
 //! lives under both (`docs/architecture.md`, "Layers"). Owns the type, its errors and the
-<<<<<<< HEAD
 //! validator, and the I/O points a program puts on it (where the stream stops at rest
 //! until an output is set or an input read); must not plan, stream or import anything but
-//! `rig`.
-=======
-//! validator; must not plan, stream or import anything but `rig` and `protocol`'s axis values.
->>>>>>> compact
+//! `rig` and `protocol`'s axis values.
 
 use crate::protocol::{AxisValues, MAX_AXES};
 use crate::rig::{JointKind, Rig};
@@ -134,7 +130,6 @@ fn acceleration_unit(joint: &crate::rig::Joint) -> &'static str {
     }
 }
 
-<<<<<<< HEAD
 /// What the stream does at an I/O point, the arm at rest there.
 #[derive(Debug, Clone, PartialEq)]
 pub enum IoAction {
@@ -158,9 +153,6 @@ pub struct IoPoint {
     pub step: String,
 }
 
-/// Samples `0..len` at times `i * period`, row-major: sample `i` holds `dof` values; and
-/// the I/O points on them, in order.
-=======
 /// The most axes a trajectory may have: what one sample's inline storage holds, the most
 /// the stream sends ([`MAX_AXES`]).
 pub const MAX_TRAJECTORY_AXES: usize = MAX_AXES;
@@ -387,22 +379,17 @@ impl Part {
 /// the samples themselves (what most planners make) or a curve through few knots sampled
 /// on demand (a long `follow_trajectory`), so a day-long plan through two points stores two
 /// points. Every reader sees samples alike: [`Trajectory::position`], [`Trajectory::velocity`].
->>>>>>> compact
+/// And the I/O points on them, in order.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Trajectory {
     pub rig: String,
     pub joint_names: Vec<String>,
     pub period: Duration,
-<<<<<<< HEAD
-    positions: Vec<f64>,
-    velocities: Vec<f64>,
-    io: Vec<IoPoint>,
-=======
     parts: Vec<Part>,
     /// The first sample of each part.
     starts: Vec<usize>,
     len: usize,
->>>>>>> compact
+    io: Vec<IoPoint>,
 }
 
 impl Trajectory {
@@ -462,15 +449,10 @@ impl Trajectory {
             rig,
             joint_names,
             period,
-<<<<<<< HEAD
-            positions,
-            velocities,
-            io: Vec::new(),
-        })
-=======
             parts: Vec::new(),
             starts: Vec::new(),
             len: 0,
+            io: Vec::new(),
         }
     }
 
@@ -483,7 +465,6 @@ impl Trajectory {
         self.starts.push(self.len);
         self.len += len;
         self.parts.push(part);
->>>>>>> compact
     }
 
     /// The same samples with `points` (sorted by sample, each within the trajectory).
@@ -561,24 +542,6 @@ impl Trajectory {
     /// Samples `from..` as a trajectory of their own (where a resumed job picks up).
     pub fn tail(&self, from: usize) -> Trajectory {
         let from = from.min(self.len().saturating_sub(1));
-<<<<<<< HEAD
-        Trajectory {
-            rig: self.rig.clone(),
-            joint_names: self.joint_names.clone(),
-            period: self.period,
-            positions: self.positions[from * dof..].to_vec(),
-            velocities: self.velocities[from * dof..].to_vec(),
-            // A point at `from` itself runs again: setting an output twice is setting it.
-            io: self
-                .io
-                .iter()
-                .filter(|p| p.sample >= from)
-                .map(|p| IoPoint {
-                    sample: p.sample - from,
-                    ..p.clone()
-                })
-                .collect(),
-=======
         let dof = self.dof();
         let mut tail = Self::empty(self.rig.clone(), self.joint_names.clone(), self.period);
         for (part, start) in self.parts.iter().zip(&self.starts) {
@@ -586,28 +549,29 @@ impl Trajectory {
             if end > from {
                 tail.push(part.from(from.saturating_sub(*start), dof));
             }
->>>>>>> compact
         }
+        // A point at `from` itself runs again: setting an output twice is setting it.
+        tail.io = self
+            .io
+            .iter()
+            .filter(|p| p.sample >= from)
+            .map(|p| IoPoint {
+                sample: p.sample - from,
+                ..p.clone()
+            })
+            .collect();
         tail
     }
 
     /// Joins `next` on the end; it must start where this one ends (same rig and period).
     pub fn append(&mut self, next: &Trajectory) {
         debug_assert_eq!(self.joint_names, next.joint_names);
-<<<<<<< HEAD
-        let dof = self.dof();
-        let skip = if self.is_empty() { 0 } else { dof };
+        let (dof, skip) = (self.dof(), usize::from(!self.is_empty()));
         let offset = self.len().saturating_sub(1);
         self.io.extend(next.io.iter().map(|p| IoPoint {
             sample: p.sample + offset,
             ..p.clone()
         }));
-        self.positions
-            .extend_from_slice(&next.positions[skip.min(next.positions.len())..]);
-        self.velocities
-            .extend_from_slice(&next.velocities[skip.min(next.velocities.len())..]);
-=======
-        let (dof, skip) = (self.dof(), usize::from(!self.is_empty()));
         let mut parts = next.parts.iter();
         if skip == 1 {
             let Some(first) = parts.next() else {
@@ -620,7 +584,6 @@ impl Trajectory {
         for part in parts {
             self.join(part.clone());
         }
->>>>>>> compact
     }
 
     /// Adds `part` at the end, into the last part when both are dense.

@@ -49,7 +49,7 @@ impl PlanView {
         let last = samples - 1;
         let ends = target_samples(origins, last);
         let tool_at = |sample: usize| {
-            rig.forward(trajectory.position(sample))
+            rig.forward(&trajectory.position(sample))
                 .map(|pose| pose.translation.to_array())
                 .ok()
         };
