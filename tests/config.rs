@@ -254,7 +254,7 @@ fn a_bad_body_names_its_key_and_value() {
     });
     let message = load_rig(&path).unwrap_err().to_string();
     assert!(
-        message.contains("key `allowed_pairs[5]` = \"link_7\": names no body"),
+        message.contains("key `allowed_pairs[9]` = \"link_7\": names no body"),
         "{message}"
     );
 }

@@ -758,3 +758,84 @@ fn a_servo_stream_on_a_circle_is_followed_within_limits_and_held_when_it_stops()
     );
     assert!(off <= run, "held {off} m from the last target");
 }
+
+/// How long the wall jog runs (cycles): 8 s at 250 Hz, far longer than the tool needs to
+/// reach the star's wall from where the jog turns.
+const WALL_JOG_CYCLES: usize = 2000;
+/// When the jog away from the wall turns toward it: 1.2 s, some 250 mm from it.
+const WALL_JOG_TURN: usize = 300;
+
+#[test]
+fn a_jog_toward_the_wall_slows_down_as_it_nears_and_stops_outside_the_margin() {
+    let settings = common::shipped_run_settings();
+    let control = Arc::new(StreamControl::default());
+    control.set_cell_check(Arc::new(ModelCheck::new(settings.collision.clone())));
+    // The star's wall faces the arm at x = 0.45 m (config/cell-star.toml), the pen starts
+    // 19 mm from the margin: first jog away from it, then straight at it.
+    let jog = |x: f64| {
+        OnlineCommand::Jog(Jog::Cartesian {
+            frame: Frame::Base,
+            direction: glam::DVec3::new(x, 0.0, 0.0),
+        })
+    };
+    let script: Script = Box::new(move |sent, control| {
+        if sent == WALL_JOG_TURN {
+            control.online().give(jog(1.0));
+        }
+        control.online().keep_alive();
+        if sent >= WALL_JOG_CYCLES {
+            control.stop();
+        }
+    });
+    let (report, targets) = online_session(
+        &settings,
+        &control,
+        Some(jog(-1.0)),
+        Duration::from_secs(3600),
+        script,
+    );
+    assert_eq!(report.limit_violations, 0, "{:?}", report.fault);
+    assert_eq!(over_a_limit(&settings, &targets), None);
+    let model = &settings.collision;
+    let mut scratch = model.scratch();
+    let dt = settings.period().as_secs_f64();
+    let tool = |q: &[f64]| settings.rig.forward(q).unwrap().translation;
+    // Per step: the room beyond the margin at its end, and the tool's speed over it.
+    let steps: Vec<(f64, f64)> = targets
+        .windows(2)
+        .map(|w| {
+            let room = model.clearance(&w[1].positions, &mut scratch).distance_m - model.margin();
+            let speed = (tool(&w[1].positions) - tool(&w[0].positions)).length() / dt;
+            (room, speed)
+        })
+        .collect();
+    let closest = steps.iter().map(|s| s.0).fold(f64::INFINITY, f64::min);
+    let fastest = |lo: f64, hi: f64| {
+        steps
+            .iter()
+            .filter(|(room, _)| (lo..hi).contains(room))
+            .map(|s| s.1)
+            .fold(0.0, f64::max)
+    };
+    let (far, near, nearest) = (fastest(0.15, 10.0), fastest(0.0, 0.02), fastest(0.0, 0.005));
+    println!(
+        "jog at the wall: {} steps; fastest {:.1} mm/s with over 150 mm of room, {:.1} mm/s \
+         within 20 mm, {:.1} mm/s within 5 mm; closest {:.2} mm beyond the {:.0} mm margin",
+        steps.len(),
+        1e3 * far,
+        1e3 * near,
+        1e3 * nearest,
+        1e3 * closest,
+        1e3 * model.margin()
+    );
+    assert!(closest >= 0.0, "the arm entered the margin: {closest} m");
+    assert!(
+        closest < 0.005,
+        "the jog stopped short of the wall: {closest} m of room"
+    );
+    // Within 20 mm of the margin the jog runs at no more than 40 % of its 250 mm/s, within
+    // 5 mm at no more than 20 %. (The share follows the cell's smallest clearance whichever
+    // way the jog goes, so the jog away from the wall starts slow too: `far` is printed.)
+    assert!(near <= 0.1, "{near} m/s within 20 mm of the margin");
+    assert!(nearest <= 0.05, "{nearest} m/s within 5 mm of the margin");
+}

@@ -174,6 +174,11 @@ impl CellCheck for ModelCheck {
         self.model.check_step(from, to, &mut scratch).is_ok()
             || self.model.step_leaves_margin(from, to, &mut scratch)
     }
+
+    fn room_m(&self, at: &[f64]) -> Option<f64> {
+        let mut scratch = self.scratch.lock().ok()?;
+        Some(self.model.clearance(at, &mut scratch).distance_m - self.model.margin())
+    }
 }
 
 /// The targets sent before this one, for the checks between periods.

@@ -63,6 +63,13 @@ const DLS_DAMPING: f64 = 0.01;
 /// changes each cycle (a Cartesian jog's joints) with limited jerk, so it may overshoot it by
 /// a little; the tool stays under the jog speed.
 const TRACKING_SHARE: f64 = 0.95;
+/// Within this much room beyond the cell's margin a jog slows down, in proportion to the
+/// room left: at 250 mm/s the arm then needs under 0.1 s to brake (its stopping distance
+/// is millimetres), so the look-ahead at the margin stops a slow arm, not a fast one.
+const JOG_SLOW_ROOM_M: f64 = 0.1;
+/// The least share of the jog speed near the cell: the arm still creeps up to the margin's
+/// edge, where the look-ahead stops it, instead of slowing without end.
+const JOG_CREEP_SHARE: f64 = 0.1;
 /// A velocity below this (rad/s or m/s) on every axis is at rest.
 const REST_SPEED: f64 = 1e-9;
 /// The weight of the newest interval in the servo targets' mean interval (what a late
@@ -205,6 +212,12 @@ pub trait CellCheck: Send + Sync + std::fmt::Debug {
     /// Whether the arm may move from `from` to `to` (one cycle's step, checked
     /// continuously) without coming closer to anything than the cell's margin.
     fn admits(&self, from: &[f64], to: &[f64]) -> bool;
+
+    /// How much clearer than the margin the arm is at `at` (m; negative inside it), for a
+    /// jog to slow down as it nears the cell; `None` without a model.
+    fn room_m(&self, _at: &[f64]) -> Option<f64> {
+        None
+    }
 }
 
 /// No workcell model: every target within the limits is admitted.
@@ -576,7 +589,8 @@ impl Online {
                 }
             }
             Intent::Jog(jog) => {
-                let Some(velocity) = self.jog_velocity(rig, jog, speed) else {
+                let near = jog_share_near_the_cell(cell.room_m(self.position.as_slice()));
+                let Some(velocity) = self.jog_velocity(rig, jog, speed * near) else {
                     return false;
                 };
                 self.input.control_interface = ControlInterface::Velocity;
@@ -858,12 +872,24 @@ impl Online {
             // positions is then half the change over two cycles, within the acceleration.
             self.position.as_mut_slice()[axis] += 0.5 * (was + now) * dt;
             self.velocity.as_mut_slice()[axis] = now;
-            self.acceleration.as_mut_slice()[axis] = (now - was) / dt;
+            // The brake is not jerk-limited. Handing its deceleration to rsruckig as the
+            // present acceleration, when a command takes over mid-brake, made rsruckig
+            // overshoot the other way under its jerk limit (a jog stopped at the cell's
+            // margin swung back at 0.8 rad/s); it takes over from the brake's velocity with
+            // no acceleration instead, as it does at rest.
+            self.acceleration.as_mut_slice()[axis] = 0.0;
         }
         if share == 0.0 {
             self.brake = None;
         }
     }
+}
+
+/// The share of the jog speed at `room` beyond the cell's margin (see [`JOG_SLOW_ROOM_M`]).
+fn jog_share_near_the_cell(room: Option<f64>) -> f64 {
+    room.map_or(1.0, |room| {
+        (room / JOG_SLOW_ROOM_M).clamp(JOG_CREEP_SHARE, 1.0)
+    })
 }
 
 /// Solves the 6x6 system in `m` (its 7th column the right-hand side), with partial

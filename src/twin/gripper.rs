@@ -224,6 +224,14 @@ impl TwinIo {
         None
     }
 
+    /// The session ended (link loss, a reset): the answers still owed are dropped, never
+    /// sent into a later session, where a restarted request number could match another
+    /// request (docs/protocol.md 6.10 rule 2). A gripper still moving goes on moving.
+    pub fn end_session(&mut self) {
+        self.pending = None;
+        self.answers.clear();
+    }
+
     /// The next answer due, if any.
     pub fn take_answer(&mut self) -> Option<IoState> {
         self.answers.pop_front()

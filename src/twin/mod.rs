@@ -277,6 +277,8 @@ impl Twin {
 
     /// The link was lost (or a session ended): hold, and drop targets until a Hello.
     pub fn link_lost(&mut self) {
+        // Answers are owed to the session that asked (docs/protocol.md 6.10 rule 2).
+        self.io.end_session();
         self.hold();
         self.bound = false;
     }
