@@ -1005,7 +1005,7 @@ async fn submit(
     } else {
         let parsed = serde_json::from_slice(&body)
             .map_err(|e| guard::shorten(&e.to_string()))
-            .and_then(requested_job);
+            .and_then(|request| requested_job(request).map_err(|e| e.to_string()));
         let job = match parsed {
             Ok(job) => job,
             Err(why) => {
@@ -1057,14 +1057,25 @@ async fn submit(
     }
 }
 
-/// The job of a request: its `job`, or its `toml` parsed (one of the two); why not, in
-/// words, naming the line and column of a TOML error.
-fn requested_job(request: JobRequest) -> Result<JobConfig, String> {
+/// Why a job request's body names no job.
+#[derive(Debug, thiserror::Error)]
+enum RequestedJobError {
+    /// Its TOML, with the line and column of the error.
+    #[error(transparent)]
+    Pasted(#[from] crate::job::PastedJobError),
+    #[error("both `job` and `toml` given: send one")]
+    Both,
+    #[error("neither `job` nor `toml` given")]
+    Neither,
+}
+
+/// The job of a request: its `job`, or its `toml` parsed (one of the two).
+fn requested_job(request: JobRequest) -> Result<JobConfig, RequestedJobError> {
     match (request.job, request.toml) {
         (Some(job), None) => Ok(job),
-        (None, Some(text)) => crate::job::job_from_toml(&text).map_err(|e| e.to_string()),
-        (Some(_), Some(_)) => Err("both `job` and `toml` given: send one".to_string()),
-        (None, None) => Err("neither `job` nor `toml` given".to_string()),
+        (None, Some(text)) => Ok(crate::job::job_from_toml(&text)?),
+        (Some(_), Some(_)) => Err(RequestedJobError::Both),
+        (None, None) => Err(RequestedJobError::Neither),
     }
 }
 

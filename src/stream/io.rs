@@ -12,6 +12,38 @@ use crate::motion::{IoAction, IoPoint, Trajectory};
 use crate::protocol::{IoKind, IoMessage, IoResult};
 use std::time::Duration;
 
+/// Why an I/O step ended the job, naming the step as written.
+#[derive(Debug, thiserror::Error)]
+pub enum IoStepFailed {
+    /// No answer, or the input never had the value, in time.
+    #[error("{step}: {why}within {limit_s:.3} s")]
+    TimedOut {
+        step: String,
+        why: String,
+        limit_s: f64,
+    },
+    #[error("{step}: {error}")]
+    NotSent {
+        step: String,
+        error: crate::link::LinkError,
+    },
+    #[error("{step}: the controller set output `{name}` to {}, not {}", u8::from(*got), u8::from(*wanted))]
+    OtherValue {
+        step: String,
+        name: String,
+        got: bool,
+        wanted: bool,
+    },
+    #[error("{step}: {kind} `{name}` (request {request}): {result}")]
+    Refused {
+        step: String,
+        kind: &'static str,
+        name: String,
+        request: u32,
+        result: &'static str,
+    },
+}
+
 /// How long the controller may take to answer a SetOutput: longer than any gripper's travel
 /// (the twin's closes in 0.2 s), short enough that a controller that lost the request is
 /// noticed while someone still watches.
@@ -53,7 +85,7 @@ impl IoRun {
         path: f64,
         link: &mut dyn Link,
         stopping: bool,
-    ) -> Result<(), String> {
+    ) -> Result<(), IoStepFailed> {
         let Some(point) = self.points.get(self.next) else {
             return Ok(());
         };
@@ -83,11 +115,11 @@ impl IoRun {
             ),
         };
         if self.waited as f64 * self.period.as_secs_f64() > limit.as_secs_f64() {
-            return Err(format!(
-                "{}: {why}within {:.3} s",
-                point.step,
-                limit.as_secs_f64()
-            ));
+            return Err(IoStepFailed::TimedOut {
+                step: point.step,
+                why,
+                limit_s: limit.as_secs_f64(),
+            });
         }
         if self.asked.is_none() && !stopping {
             self.request = self.request.wrapping_add(1).max(1);
@@ -103,7 +135,10 @@ impl IoRun {
                 },
             };
             link.send_io(&message)
-                .map_err(|error| format!("{}: {error}", point.step))?;
+                .map_err(|error| IoStepFailed::NotSent {
+                    step: point.step.clone(),
+                    error,
+                })?;
             self.asked = Some(self.request);
         }
         Ok(())
@@ -111,7 +146,7 @@ impl IoRun {
 
     /// Whether the controller's answers so far finish `point`. Answers to anything but the
     /// request outstanding are late ones (before a reconnect): ignored.
-    fn answered(&mut self, point: &IoPoint, link: &mut dyn Link) -> Result<bool, String> {
+    fn answered(&mut self, point: &IoPoint, link: &mut dyn Link) -> Result<bool, IoStepFailed> {
         let (name, kind, wanted) = match &point.action {
             IoAction::SetOutput { name, value } => (name, IoKind::Output, *value),
             IoAction::WaitInput { name, value, .. } => (name, IoKind::Input, *value),
@@ -126,21 +161,21 @@ impl IoRun {
                 // An input not yet as wanted is read again next cycle.
                 IoResult::Done if kind == IoKind::Input => {}
                 IoResult::Done => {
-                    return Err(format!(
-                        "{}: the controller set output `{name}` to {}, not {}",
-                        point.step,
-                        u8::from(state.value),
-                        u8::from(wanted)
-                    ));
+                    return Err(IoStepFailed::OtherValue {
+                        step: point.step.clone(),
+                        name: name.clone(),
+                        got: state.value,
+                        wanted,
+                    });
                 }
                 refused => {
-                    return Err(format!(
-                        "{}: {} `{name}` (request {}): {}",
-                        point.step,
-                        kind.word(),
-                        state.request,
-                        refused.words()
-                    ));
+                    return Err(IoStepFailed::Refused {
+                        step: point.step.clone(),
+                        kind: kind.word(),
+                        name: name.clone(),
+                        request: state.request,
+                        result: refused.words(),
+                    });
                 }
             }
         }

@@ -664,8 +664,8 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
             return Ok(Some(Outcome::Stopped));
         }
         let stopping = self.control.is_stopping() || cycle.aborting.is_some();
-        if let Err(words) = cycle.io.step(cycle.path, link, stopping) {
-            cycle.fault.get_or_insert(words);
+        if let Err(failed) = cycle.io.step(cycle.path, link, stopping) {
+            cycle.fault.get_or_insert(failed.to_string());
             cycle.aborting = Some(Outcome::Faulted);
         }
         let (positions, velocities, finished) = cycle.next(self.control, self.trajectory, self.rig);

@@ -380,10 +380,23 @@ pub fn zenoh_handler(daemon: Arc<Daemon>, cell: Arc<Cell>) -> crate::ros2::Servo
             Ok(()) => return,
             Err(refused) => refused,
         };
-        if let Some(text) = refusals.refuse(&refused) {
+        if let Some(text) = refusals.refuse(&refused.to_string()) {
             cell.log_ros2(ZENOH_SERVO_REFUSED, None, text);
         }
     })
+}
+
+/// Why a Zenoh servo message was not followed.
+#[derive(Debug, thiserror::Error)]
+enum ZenohServoRefused {
+    /// Another stream holds the cell's servo slot.
+    #[error("servo over Zenoh on {key}: {why}")]
+    Taken { key: String, why: String },
+    #[error("servo over Zenoh on {key}: a payload that is not UTF-8 text")]
+    NotText { key: String },
+    /// The target's own refusal, as the WebSocket route words it.
+    #[error("servo over Zenoh on {key}: {why}")]
+    Target { key: String, why: String },
 }
 
 /// One Zenoh servo message, given to the stream (started if there is none): why it was
@@ -394,21 +407,28 @@ fn zenoh_target(
     key: &str,
     stream: &mut Option<(Servo, ServoClaim)>,
     payload: &[u8],
-) -> Result<(), String> {
+) -> Result<(), ZenohServoRefused> {
     if stream.is_none() {
         let claim = cell
             .claim_servo(&format!("the Zenoh servo stream on {key}"))
-            .map_err(|taken| format!("servo over Zenoh on {key}: {taken}"))?;
+            .map_err(|taken| ZenohServoRefused::Taken {
+                key: key.to_owned(),
+                why: taken.to_string(),
+            })?;
         *stream = Some((Servo::new(cell), claim));
     }
     let Some((servo, _)) = stream.as_mut() else {
         return Ok(());
     };
-    let text = std::str::from_utf8(payload)
-        .map_err(|_| format!("servo over Zenoh on {key}: a payload that is not UTF-8 text"))?;
+    let text = std::str::from_utf8(payload).map_err(|_| ZenohServoRefused::NotText {
+        key: key.to_owned(),
+    })?;
     match servo.take(daemon, text) {
         Some(reply) => match reply.get("error").and_then(|e| e.as_str()) {
-            Some(error) => Err(format!("servo over Zenoh on {key}: {error}")),
+            Some(error) => Err(ZenohServoRefused::Target {
+                key: key.to_owned(),
+                why: error.to_owned(),
+            }),
             None => Ok(()),
         },
         None => Ok(()),
