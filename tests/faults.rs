@@ -231,7 +231,50 @@ impl Deck {
     }
 }
 
-fn run_one(job: JobKind, seed: u64, deck: &Mutex<Deck>) -> Run {
+/// Where a run's faults come from: the suite's shared deck, each injected once the bridge
+/// has recovered from the last; or a failing run's schedule, replayed at its times.
+enum Faults<'a> {
+    Deck(&'a Mutex<Deck>),
+    Replay(&'a [(Duration, Injection)]),
+}
+
+/// Faults at their times since the proxy started.
+type Schedule = Vec<(Duration, Injection)>;
+
+/// A failing run as its failure message prints it, to run it again alone:
+/// `FAULT_REPLAY="paint seed 1310727039: 0.621 s corrupt bridge->twin; 0.881 s close"`.
+fn replay_from_env() -> Option<(JobKind, u64, Schedule)> {
+    let text = std::env::var("FAULT_REPLAY").ok()?;
+    let (head, schedule) = text
+        .split_once(':')
+        .expect("FAULT_REPLAY: `<job> seed <n>: <schedule>`");
+    let words: Vec<&str> = head.split_whitespace().collect();
+    let job = [JobKind::Star, JobKind::Paint, JobKind::Gait]
+        .into_iter()
+        .find(|j| Some(&j.name()) == words.first())
+        .expect("FAULT_REPLAY names star, paint or gait");
+    let seed = words
+        .last()
+        .and_then(|w| w.parse().ok())
+        .expect("FAULT_REPLAY's seed");
+    let faults = schedule
+        .split(';')
+        .map(|item| {
+            let (at, fault) = item
+                .trim()
+                .split_once(" s ")
+                .expect("`<seconds> s <fault>`");
+            let at = Duration::from_secs_f64(at.parse().expect("a fault's time in seconds"));
+            (
+                at,
+                Injection::parse(fault).expect("a fault as the failure prints it"),
+            )
+        })
+        .collect();
+    Some((job, seed, faults))
+}
+
+fn run_one(job: JobKind, seed: u64, faults: Faults) -> Run {
     let twin = start_twin(job.config());
     let proxy = FaultProxy::start(&twin.address, twin.detached.clone(), seed);
     let (log, json) = (
@@ -258,14 +301,23 @@ fn run_one(job: JobKind, seed: u64, deck: &Mutex<Deck>) -> Run {
         proxy.targets_seen().0 > 0
     }) {
         let mut since = proxy.now();
-        for _ in 0..job.faults_per_run() {
-            let need = RECOVERED_TARGETS + rng.random_range(0..RECOVERED_TARGETS);
-            if !wait_for(&mut child, RECOVERY_TIMEOUT, || {
-                proxy.targets_since(since) >= need
-            }) {
-                break;
-            }
-            let Some(injection) = Deck::draw(deck) else {
+        for turn in 0..job.faults_per_run() {
+            let injection = match faults {
+                Faults::Deck(deck) => {
+                    let need = RECOVERED_TARGETS + rng.random_range(0..RECOVERED_TARGETS);
+                    if !wait_for(&mut child, RECOVERY_TIMEOUT, || {
+                        proxy.targets_since(since) >= need
+                    }) {
+                        break;
+                    }
+                    Deck::draw(deck)
+                }
+                Faults::Replay(schedule) => schedule.get(turn).and_then(|(at, injection)| {
+                    wait_for(&mut child, RECOVERY_TIMEOUT, || proxy.now() >= *at)
+                        .then_some(*injection)
+                }),
+            };
+            let Some(injection) = injection else {
                 break;
             };
             injected.push((proxy.now(), injection));
@@ -687,6 +739,18 @@ fn job_of_run(index: u64) -> (JobKind, u64) {
 #[test]
 fn seeded_faults_against_real_jobs_leave_every_limit_and_the_twin_unfaulted() {
     let started = Instant::now();
+    if let Some((job, seed, schedule)) = replay_from_env() {
+        let run = run_one(job, seed, Faults::Replay(&schedule));
+        let verdict = check_run(&run);
+        println!("replayed {} seed {seed}: {}", job.name(), run.schedule());
+        println!("outcome {}, stderr: {}", run.outcome(), run.stderr.trim());
+        assert!(
+            verdict.failures.is_empty(),
+            "{}",
+            verdict.failures.join("\n")
+        );
+        return;
+    }
     let max_runs = std::env::var("FAULT_RUNS")
         .ok()
         .and_then(|n| n.parse().ok())
@@ -704,7 +768,7 @@ fn seeded_faults_against_real_jobs_leave_every_limit_and_the_twin_unfaulted() {
                         break;
                     }
                     let (job, seed) = job_of_run(index);
-                    let run = run_one(job, seed, &deck);
+                    let run = run_one(job, seed, Faults::Deck(&deck));
                     let verdict = check_run(&run);
                     eprintln!(
                         "run {} seed {seed}: {} faults, {}, {} resumes, {} failures ({:.0} s)",
@@ -731,7 +795,7 @@ fn seeded_faults_against_real_jobs_leave_every_limit_and_the_twin_unfaulted() {
         .filter(|(_, v)| !v.failures.is_empty())
         .map(|(run, v)| {
             format!(
-                "{} seed {}: {}\n  schedule: {}",
+                "{} seed {}: {}\n  schedule: {}\n  run it alone: FAULT_REPLAY=\"{} seed {}: {}\"",
                 run.job.name(),
                 run.seed,
                 v.failures
@@ -740,6 +804,9 @@ fn seeded_faults_against_real_jobs_leave_every_limit_and_the_twin_unfaulted() {
                     .cloned()
                     .collect::<Vec<_>>()
                     .join("\n  "),
+                run.schedule(),
+                run.job.name(),
+                run.seed,
                 run.schedule()
             )
         })

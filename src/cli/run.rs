@@ -97,11 +97,17 @@ pub async fn supervise<T>(
     let bar = ProgressBar::new(1000).with_style(
         ProgressStyle::with_template("{bar:40} {percent:>3}% {msg}").expect("static template"),
     );
-    let mut terminate = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
+    // Both signal streams live across the loop: a `ctrl_c()` future made anew each turn
+    // misses a SIGINT delivered in the same turn as the tick (the tick wins the select, the
+    // dropped future's notice goes with it, the new one subscribes after it), and the job
+    // ran on after a Ctrl-C (`tests/faults.rs`, a paint run left running).
+    use tokio::signal::unix::{SignalKind, signal};
+    let mut interrupt = signal(SignalKind::interrupt())?;
+    let mut terminate = signal(SignalKind::terminate())?;
     let mut tick = tokio::time::interval(Duration::from_millis(100));
     while !job.is_finished() {
         tokio::select! {
-            _ = tokio::signal::ctrl_c() => stop(control, &bar),
+            _ = interrupt.recv() => stop(control, &bar),
             _ = terminate.recv() => stop(control, &bar),
             _ = tick.tick() => {
                 bar.set_position((control.progress() * 1000.0) as u64);

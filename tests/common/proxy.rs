@@ -91,6 +91,29 @@ impl Injection {
         }
     }
 
+    /// The inverse of `describe`: a fault as a failure message prints it.
+    pub fn parse(text: &str) -> Option<Self> {
+        let words: Vec<&str> = text.split_whitespace().collect();
+        let name = *words.first()?;
+        let kind = *FAULT_KINDS.iter().find(|k| k.name() == name)?;
+        let millis = match words.get(2) {
+            Some(&"ms") => words.get(1)?.parse().ok()?,
+            _ => 0,
+        };
+        let (up, down) = match words.last() {
+            Some(&"bridge->twin") => (true, false),
+            Some(&"twin->bridge") => (false, true),
+            Some(&"ways") => (true, true),
+            _ => (false, false),
+        };
+        Some(Self {
+            kind,
+            up,
+            down,
+            millis,
+        })
+    }
+
     pub fn describe(&self) -> String {
         let dirs = match (self.up, self.down) {
             (true, true) => "both ways",
