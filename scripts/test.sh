@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The project's full test command (the README's, and what .ci/run runs after fmt and clippy):
-#  1. every test on this machine: `cargo test --release`. Here tests/can.rs only says it is
+#  1. every test on this machine, the full tier: `RIGBRIDGE_TIER=full cargo test --release`. Here tests/can.rs only says it is
 #     skipping, since this machine's kernel has no SocketCAN;
 #  2. tests/can.rs again, inside a throw-away QEMU VM with SocketCAN and vcan interfaces
 #     (../shared/tools/run-in-vcan-vm.sh), where it must pass and may not skip.
@@ -214,7 +214,8 @@ fi
 # ----------------------------------------------------------------- end CANopen peers --
 
 # ------------------------------------------------------------- 1. on this machine --
-[ -n "$vm_only" ] || cargo test --release --no-fail-fast
+# The full tier: the tests a plain `cargo test` skips for their minutes run here too.
+[ -n "$vm_only" ] || RIGBRIDGE_TIER=full cargo test --release --no-fail-fast
 
 # ------------------------------------------------------- 2. tests/can.rs in the VM --
 # The test binary and the rigbridge binary it spawns, from cargo's own account of them.

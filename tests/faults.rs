@@ -751,6 +751,9 @@ fn seeded_faults_against_real_jobs_leave_every_limit_and_the_twin_unfaulted() {
         );
         return;
     }
+    if !common::in_full_tier("the seeded fault injection (about 6 minutes)") {
+        return;
+    }
     let max_runs = std::env::var("FAULT_RUNS")
         .ok()
         .and_then(|n| n.parse().ok())

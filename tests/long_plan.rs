@@ -7,7 +7,7 @@
 mod common;
 
 use common::serve::{request_json, serve_command, start_serve};
-use common::{scratch_dir, shipped_settings_text};
+use common::{scratch_dir, shipped_settings_text, wait_until};
 use std::time::{Duration, Instant};
 
 /// The audit's message as an HTTP job: two rows, t = 0 and t = 86,400 s, a 10 degree move
@@ -37,24 +37,16 @@ fn peak_kb(pid: u32) -> u64 {
         .expect("VmHWM in /proc/<pid>/status")
 }
 
-/// Polls `/api/status` at `address` until `done` holds; the status then.
+/// The daemon's `/api/status` at `address`, once `done` holds of it.
 fn wait_for(
     address: &str,
     what: &str,
     done: impl Fn(&serde_json::Value) -> bool,
 ) -> serde_json::Value {
-    let deadline = Instant::now() + WAIT;
-    loop {
+    wait_until(what, WAIT, || {
         let (_, status) = request_json(address, "GET", "/api/status", "", "");
-        if done(&status) {
-            return status;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "timed out waiting for {what}: {status}"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
+        done(&status).then_some(status)
+    })
 }
 
 #[test]

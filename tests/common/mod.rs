@@ -256,6 +256,21 @@ pub fn assert_gait_figures(run: &rigbridge::daemon::gait::GaitRun) {
     );
 }
 
+/// Whether the full tier runs (docs/testing.md, "Two tiers"): `scripts/test.sh` and CI
+/// (`CI=true`) run every test; a plain `cargo test` is the fast tier, where the few tests
+/// that take minutes say they skip, and how to run them.
+pub fn in_full_tier(test: &str) -> bool {
+    let full = std::env::var("RIGBRIDGE_TIER").as_deref() == Ok("full")
+        || std::env::var("CI").as_deref() == Ok("true");
+    if !full {
+        println!(
+            "skipping {test}: it belongs to the full tier (it takes minutes); run it with \
+             RIGBRIDGE_TIER=full, or run everything with bash scripts/test.sh"
+        );
+    }
+    full
+}
+
 /// The Python of a PyPI peer: `$var` (scripts/test.sh sets it to the peer's venv), else
 /// `python3`, if it can run `import {imports}`. The error says why not, for the skip note.
 pub fn peer_python(var: &str, imports: &str, what: &str) -> Result<String, String> {
