@@ -132,3 +132,29 @@ fn interruptions(log: &RunLog) -> Vec<Window> {
     windows.sort_by_key(|w| w.seq);
     windows
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_stall_is_logged_under_the_kind_the_measurement_reads() {
+        // resume.rs names the event after the outcome; the log reads stalls by this kind.
+        assert_eq!(Outcome::Stalled.to_string(), STALL_EVENT);
+    }
+
+    #[test]
+    fn says_a_broken_promise_with_its_figure() {
+        let line = LineAfterStall {
+            stall_at_s: 3.2104,
+            off_line_mm: 1.1372,
+            at_s: 3.3,
+            promised_mm: 0.5,
+            broken: true,
+        };
+        assert_eq!(
+            line.to_string(),
+            "after the stall at 3.21 s the tool left its line by 1.14 mm (move_linear promises 0.5 mm)"
+        );
+    }
+}

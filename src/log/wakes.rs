@@ -276,4 +276,94 @@ mod tests {
         // About 48 KB, against 800 KB of 1 us bins to 100 ms.
         assert_eq!(histogram.bins.len(), 5_001 + 950);
     }
+
+    #[test]
+    fn parts_added_give_the_figures_of_the_whole() {
+        let (mut first, mut second, mut whole) = (
+            MicrosHistogram::new(JITTER_CEILING_US),
+            MicrosHistogram::new(JITTER_CEILING_US),
+            MicrosHistogram::new(JITTER_CEILING_US),
+        );
+        // A short part that ends in a stall, a long calm one after it.
+        for late in [3.0, 4.0, 300_000.0] {
+            first.record(late);
+            whole.record(late);
+        }
+        for k in 0..200 {
+            let late = f64::from(k % 7);
+            second.record(late);
+            whole.record(late);
+        }
+        // The worst part's p99 is the stall (100 ms, the ceiling); the whole's is not.
+        assert_eq!(Jitter::of(&first).p99_us, 100_000.0);
+        first.add(&second);
+        assert_eq!(first, whole);
+        let jitter = Jitter::of(&first);
+        assert_eq!(
+            (jitter.cycles, jitter.p99_us, jitter.max_us),
+            (203, 6.0, 300_000.0)
+        );
+        assert_eq!(
+            jitter.to_string(),
+            "jitter p50 3 us, p99 6 us, max 300000 us"
+        );
+    }
+
+    fn sample(seq: u32, late_us: Option<f64>) -> super::super::LoggedSample {
+        super::super::LoggedSample {
+            seq,
+            t: f64::from(seq) * 0.004,
+            positions: vec![0.0],
+            velocities: vec![0.0],
+            late_us,
+        }
+    }
+
+    fn event(kind: &str, detail: serde_json::Value) -> LoggedEvent {
+        LoggedEvent {
+            t: 0.8,
+            kind: kind.to_owned(),
+            detail,
+        }
+    }
+
+    #[test]
+    fn a_format_2_log_counts_its_commands_and_stalls_a_format_1_log_its_states() {
+        let mut log = RunLog {
+            commands: vec![sample(1, Some(2.0)), sample(2, Some(7.0))],
+            // A state without feedback's command: no state, the command still counts.
+            states: vec![sample(1, None)],
+            events: vec![event(
+                STALL_EVENT,
+                serde_json::json!({"seq": 2, "late_us": 300000.0, "why": "the cycle woke 300.0 ms late", "then": "resumed"}),
+            )],
+            ..RunLog::default()
+        };
+        assert_eq!(wake_lateness(&log), vec![2.0, 7.0, 300_000.0]);
+        let stall = &stalls(&log)[0];
+        assert_eq!(
+            (stall.seq, stall.late_us, stall.then.as_deref()),
+            (Some(2), Some(300_000.0), Some("resumed"))
+        );
+        assert_eq!(
+            stall.to_string(),
+            "stall at 0.800 s: the cycle woke 300.0 ms late; then resumed"
+        );
+        // Format 1: lateness on the states, stalls with their words only.
+        log.commands = vec![sample(1, None), sample(2, None)];
+        log.states = vec![sample(1, Some(5.0)), sample(2, Some(9.0))];
+        log.events = vec![event(
+            STALL_EVENT,
+            serde_json::json!({"at_sample": 10, "why": "the cycle woke 23.2 ms late"}),
+        )];
+        assert_eq!(wake_lateness(&log), vec![5.0, 9.0]);
+        let stall = &stalls(&log)[0];
+        assert_eq!(
+            (stall.seq, stall.late_us, stall.then.clone()),
+            (None, None, None)
+        );
+        assert_eq!(jitter(&log).map(|j| j.max_us), Some(9.0));
+        log.states.clear();
+        assert_eq!(jitter(&log), None);
+    }
 }
