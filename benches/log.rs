@@ -28,13 +28,13 @@ fn cycle(i: u32) -> (LogRecord, LogRecord) {
             t,
             positions: axes(&q),
             velocities: axes(&v),
+            late_us: 0.0,
         },
         LogRecord::State {
             seq: i,
             t,
             positions: axes(&measured),
             velocities: axes(&v),
-            late_us: 0.0,
         },
     )
 }

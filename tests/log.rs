@@ -50,13 +50,13 @@ fn cycle(i: u32) -> (LogRecord, LogRecord) {
         t,
         positions: axes(&q),
         velocities: axes(&v),
+        late_us: 0.0,
     };
     let state = LogRecord::State {
         seq: i,
         t,
         positions: axes(&measured),
         velocities: axes(&v),
-        late_us: 0.0,
     };
     (command, state)
 }
@@ -127,6 +127,7 @@ fn fields(record: &LogRecord) -> (u32, f64, &[f64], &[f64]) {
             t,
             positions,
             velocities,
+            ..
         }
         | LogRecord::State {
             seq,

@@ -1,6 +1,7 @@
 //! `rigbridge log plot`: one PNG of a run log: per axis, commanded against actual position
 //! over time; the tracking error over time; a histogram of the per-cycle wake lateness
-//! (jitter) the recorder stores with each state.
+//! (jitter) the log holds, stalls included, with the figures `log info` and the run's
+//! summary give (`rigbridge::log::jitter`).
 //!
 //! Text is drawn with DejaVu Sans embedded in the binary (the `dejavu` crate), so plotting
 //! needs no system fonts.
@@ -9,7 +10,7 @@ use anyhow::Context;
 use clap::Args;
 use plotters::coord::Shift;
 use plotters::prelude::*;
-use rigbridge::log::{RunLog, read_log};
+use rigbridge::log::{RunLog, jitter, read_log, wake_lateness};
 use rigbridge::rig::JointKind;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -54,6 +55,9 @@ pub fn plot_command(args: PlotArgs) -> anyhow::Result<ExitCode> {
         run.states.len(),
         args.output.display()
     );
+    if let Some(jitter) = jitter(&run) {
+        say!("  {jitter} over {} cycles", jitter.cycles);
+    }
     Ok(ExitCode::SUCCESS)
 }
 
@@ -318,34 +322,18 @@ fn draw_tracking_error(
     Ok(())
 }
 
-fn percentile(sorted: &[f64], p: f64) -> f64 {
-    let rank = (p * (sorted.len() - 1) as f64).round() as usize;
-    sorted[rank.min(sorted.len() - 1)]
-}
-
 fn draw_jitter(run: &RunLog, area: &DrawingArea<BitMapBackend<'_>, Shift>) -> anyhow::Result<()> {
-    let mut late: Vec<f64> = run
-        .states
-        .iter()
-        .filter_map(|s| s.late_us)
-        .filter(|v| v.is_finite())
-        .collect();
-    if late.is_empty() {
+    let late = wake_lateness(run);
+    let Some(figures) = jitter(run) else {
         area.draw(&Text::new(
             "no per-cycle timing (late_us) in this log: no jitter histogram",
             (20, area.dim_in_pixel().1 as i32 / 2),
             (FONT, 16),
         ))?;
         return Ok(());
-    }
-    late.sort_by(f64::total_cmp);
-    let (p50, p99, max) = (
-        percentile(&late, 0.5),
-        percentile(&late, 0.99),
-        late[late.len() - 1],
-    );
+    };
     const BINS: usize = 40;
-    let hi = max.max(1.0);
+    let hi = figures.max_us.max(1.0);
     let width = hi / BINS as f64;
     let mut counts = [0u64; BINS];
     for v in &late {
@@ -354,10 +342,7 @@ fn draw_jitter(run: &RunLog, area: &DrawingArea<BitMapBackend<'_>, Shift>) -> an
     let top = counts.iter().copied().max().unwrap_or(1) as f64 * 1.1;
     let mut chart = ChartBuilder::on(area)
         .caption(
-            format!(
-                "cycle jitter (wake lateness), {} cycles: p50 {p50:.1} us, p99 {p99:.1} us, max {max:.1} us",
-                late.len()
-            ),
+            format!("cycle wake lateness, {} cycles: {figures}", figures.cycles),
             (FONT, 14),
         )
         .margin(8)

@@ -368,6 +368,9 @@ fn print_summary(report: &RunReport) -> anyhow::Result<()> {
     if let Some(parts) = &report.parts {
         print_parts(parts)?;
     }
+    for warning in report.warnings() {
+        say!("  warning: {warning}");
+    }
     Ok(())
 }
 
@@ -461,11 +464,10 @@ pub fn print_stream_summary(
         s.limit_violations,
         s.feedback_timeouts
     );
+    // The jitter in the words `log info` and `log plot` use for the run's log.
     say!(
-        "  jitter p50 {:.0} us, p99 {:.0} us, max {:.0} us; latency p99 {:.0} us; tracking error max {:.3} deg",
-        s.jitter_p50_us,
-        s.jitter_p99_us,
-        s.jitter_max_us,
+        "  {}; latency p99 {:.0} us; tracking error max {:.3} deg",
+        s.jitter(),
         s.latency_p99_us,
         s.tracking_error_max_deg
     );

@@ -4,6 +4,7 @@
 
 pub mod config;
 pub mod gait;
+mod line_check;
 pub mod paint;
 mod recording;
 pub mod replay;
@@ -12,6 +13,7 @@ pub mod resume;
 pub mod ros2;
 pub mod server;
 
+pub use line_check::LineAfterStall;
 pub use recording::{ActionLog, HeldActions, RecorderSink};
 
 use crate::clock::Clock;
@@ -143,6 +145,7 @@ impl Halted {
             contacts: None,
             cycle_times: None,
             parts: None,
+            line_after_stalls: Vec::new(),
         }
     }
 }
@@ -187,6 +190,23 @@ pub struct RunReport {
     /// pick to the next; absent otherwise.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub parts: Option<crate::twin::CellJudgement>,
+    /// A `move_linear` job that stalled: per stall, how far the tool left its lines after
+    /// it, measured from the log, and whether that broke the job's 0.5 mm (issue 32);
+    /// absent otherwise.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub line_after_stalls: Vec<LineAfterStall>,
+}
+
+impl RunReport {
+    /// The warnings a finished run gives besides its interruptions: each broken promise,
+    /// with its figure.
+    pub fn warnings(&self) -> Vec<String> {
+        self.line_after_stalls
+            .iter()
+            .filter(|line| line.broken)
+            .map(ToString::to_string)
+            .collect()
+    }
 }
 
 /// A log that failed during a run: what failed, from when, and what the job did about it.
@@ -802,6 +822,12 @@ pub fn stream_job_with(
         }
         _ => (None, None),
     };
+    let line_after_stalls = match (job.job, log) {
+        (Some(config::JobConfig::MoveLinear(linear)), Some(path)) => {
+            line_after_stalls(settings, linear, &report, path)
+        }
+        _ => Vec::new(),
+    };
     Ok(RunReport {
         rig: settings.rig.name.clone(),
         job: job.name.clone(),
@@ -816,7 +842,29 @@ pub fn stream_job_with(
             .job
             .and_then(|j| j.cycle_times(job.origins, job.trajectory.period)),
         parts: link.judgement(),
+        line_after_stalls,
     })
+}
+
+/// [`line_check::after_stalls`] of the closed log at `path`, when the run stalled. A log
+/// that cannot be read back (its failure is reported already) measures nothing.
+fn line_after_stalls(
+    settings: &RunSettings,
+    job: &crate::job::MoveLinear,
+    report: &StreamReport,
+    path: &std::path::Path,
+) -> Vec<LineAfterStall> {
+    let stalled = report
+        .interruptions
+        .iter()
+        .any(|i| i.outcome == Outcome::Stalled);
+    if !stalled {
+        return Vec::new();
+    }
+    match crate::log::read_log(path) {
+        Ok(log) => line_check::after_stalls(settings, job, &log),
+        Err(_) => Vec::new(),
+    }
 }
 
 /// What the log's metadata and its `job_started` event say of the job and the stream.

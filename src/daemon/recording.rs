@@ -91,6 +91,7 @@ impl CycleSink for RecorderSink<'_> {
             t: target.t,
             positions: target.positions,
             velocities: target.velocities,
+            late_us: cycle.late_us,
         });
         if let Some(feedback) = &cycle.feedback {
             let velocities = self.estimated_velocity(&feedback.positions);
@@ -99,7 +100,6 @@ impl CycleSink for RecorderSink<'_> {
                 t: target.t,
                 positions: feedback.positions,
                 velocities,
-                late_us: cycle.late_us,
             });
             self.previous_actual = Some(feedback.positions);
         }

@@ -278,6 +278,26 @@ impl Streaming<'_> {
             recorder.event(t, name, detail);
         }
     }
+
+    /// The log's record of `report`'s last interruption (`stalled` or `link_lost`,
+    /// `docs/logs.md` "Stalls"), once the bridge knows what it did after it: written as
+    /// it resumes, before anything of the way back is sent, or as the job ends.
+    fn interrupted(&self, report: &StreamReport) {
+        let Some(last) = report.interruptions.last() else {
+            return;
+        };
+        self.event(
+            last.at_s,
+            &last.outcome.to_string(),
+            serde_json::json!({
+                "at_sample": report.samples_done,
+                "seq": report.last_seq,
+                "why": last.why,
+                "late_us": last.late_us,
+                "then": last.then,
+            }),
+        );
+    }
 }
 
 /// Streams `trajectory`; after a link loss or a stall, waits (up to the configured
@@ -291,30 +311,27 @@ pub fn stream_resuming(mut io: Streaming<'_>, trajectory: &Trajectory) -> Stream
     let mut report = io.run(trajectory, &mut streaming);
     let mut remaining = trajectory.tail(report.samples_done);
     while matches!(report.outcome, Outcome::LinkLost | Outcome::Stalled) {
-        let t = report.duration_s;
-        io.event(
-            t,
-            &report.outcome.to_string(),
-            serde_json::json!({ "at_sample": report.samples_done, "why": report.fault }),
-        );
         report.interruptions.push(Interruption {
-            at_s: t,
+            at_s: report.duration_s,
             outcome: report.outcome,
             why: report.fault.clone().unwrap_or_default(),
+            late_us: report
+                .stall_late_us
+                .filter(|_| report.outcome == Outcome::Stalled),
             then: AfterInterruption::Resumed,
         });
         if io.control.online().given() {
             // Online motion has no path to return to: from where the arm holds, the goal
             // it was moving to is given again (a jog waits for its next command).
             match resume_online(&mut io, &mut streaming, &report) {
-                Resumed::Ended(report) => return ended_after_interruption(report),
+                Resumed::Ended(report) => return ended_after_interruption(&io, report),
                 Resumed::Approach(part, _) => report = part,
             }
             continue;
         }
         let (part, approached) =
             match resume_once(&mut io, &remaining, &mut streaming, trajectory, &report) {
-                Resumed::Ended(report) => return ended_after_interruption(report),
+                Resumed::Ended(report) => return ended_after_interruption(&io, report),
                 Resumed::Approach(part, approached) => (part, approached),
             };
         report = part;
@@ -334,11 +351,13 @@ pub fn stream_resuming(mut io: Streaming<'_>, trajectory: &Trajectory) -> Stream
     report
 }
 
-/// `report`, ended while resuming from its last interruption: that one says so.
-fn ended_after_interruption(mut report: StreamReport) -> StreamReport {
+/// `report`, ended while resuming from its last interruption: that one says so, in the
+/// report and in the log.
+fn ended_after_interruption(io: &Streaming<'_>, mut report: StreamReport) -> StreamReport {
     if let Some(last) = report.interruptions.last_mut() {
         last.then = AfterInterruption::Ended;
     }
+    io.interrupted(&report);
     report
 }
 
@@ -378,6 +397,7 @@ fn resume_online(
     if let Some(goal) = io.control.online().goal() {
         io.control.online().give(OnlineCommand::Goal(goal));
     }
+    io.interrupted(report);
     io.event(
         report.duration_s,
         "resumed",
@@ -448,6 +468,7 @@ fn resume_once(
         ended.fault = Some(super::error_chain(&error));
         return Resumed::Ended(ended);
     }
+    io.interrupted(report);
     let part = io.run(&approach, streaming);
     let approached = part.outcome == Outcome::Completed;
     Resumed::Approach(report.clone().merge(part), approached)

@@ -32,7 +32,7 @@ pub use limits::{
     planned_mb,
 };
 pub use move_joints::MoveJoints;
-pub use move_linear::{LineRefused, MoveLinear, top_tool_speed};
+pub use move_linear::{LINE_TOLERANCE_M, LineRefused, Lines, MoveLinear, top_tool_speed};
 pub use move_poses::MovePoses;
 pub use paint::Paint;
 pub use pasted::{PastedJobError, job_from_toml};

@@ -215,6 +215,57 @@ impl MoveLinear {
     }
 }
 
+/// How close to its lines `move_linear` keeps the tool (m), by forward kinematics of the
+/// commanded joints (`docs/jobs.md`; `tests/jobs.rs` measures it).
+pub const LINE_TOLERANCE_M: f64 = 0.5e-3;
+
+/// The tool lines of a `move_linear` job, to measure a tool path against (issue 32: how far
+/// the arm strayed after a stall). Walked in order: each distance is to the nearest of the
+/// line the tool was last nearest and its neighbours, so a path of 10,000 poses costs a few
+/// segments a sample, not all of them.
+pub struct Lines {
+    corners: Vec<DVec3>,
+    /// The line the tool was last nearest (index of its first corner).
+    at: usize,
+}
+
+impl Lines {
+    /// Where the lines start: the first pose, which the joint move reaches.
+    pub fn start(&self) -> DVec3 {
+        self.corners[0]
+    }
+
+    /// The tool position `p`'s distance from the lines (m), walking on from the line it
+    /// was last nearest.
+    pub fn distance(&mut self, p: DVec3) -> f64 {
+        let last = self.corners.len() - 2;
+        let (from, to) = (self.at.saturating_sub(1), (self.at + 2).min(last));
+        let (nearest, distance) = (from..=to)
+            .map(|k| (k, to_segment(p, self.corners[k], self.corners[k + 1])))
+            .fold((self.at, f64::INFINITY), |best, next| {
+                if next.1 < best.1 { next } else { best }
+            });
+        self.at = nearest;
+        distance
+    }
+}
+
+/// The distance from `p` to the segment `a`-`b`.
+fn to_segment(p: DVec3, a: DVec3, b: DVec3) -> f64 {
+    let ab = b - a;
+    let u = ((p - a).dot(ab) / ab.length_squared().max(f64::MIN_POSITIVE)).clamp(0.0, 1.0);
+    (a + ab * u - p).length()
+}
+
+impl MoveLinear {
+    /// The job's lines; `None` for a single pose (no line, nothing promised).
+    pub fn lines(&self) -> Result<Option<Lines>, JobInvalid> {
+        let poses = check_poses("job.poses", &self.poses)?;
+        let corners: Vec<DVec3> = poses.iter().map(|p| p.position).collect();
+        Ok((corners.len() >= 2).then_some(Lines { corners, at: 0 }))
+    }
+}
+
 /// The tool's fastest speed between two samples (m/s), by forward kinematics.
 pub fn top_tool_speed(rig: &Rig, trajectory: &Trajectory) -> f64 {
     let tool = |k: usize| rig.tool_pose(&trajectory.position(k)).map(|p| p.position);

@@ -11,7 +11,10 @@
 //! - [`RobotDescription`]: the rig's links and URDF behind the Foxglove channels (`/tf`,
 //!   `/joint_states`) and the `robot_description.urdf` attachment (`docs/foxglove.md`), and
 //!   [`LoggedScene`]: the world drawn on `/scene`;
-//! - [`summarize`]: counts, gaps, events and tracking error for `rigbridge log info`.
+//! - [`summarize`]: counts, gaps, events, jitter, stalls and tracking error for
+//!   `rigbridge log info`;
+//! - [`Jitter`] and [`MicrosHistogram`]: the one way the stream, `log info` and `log plot`
+//!   count the cycle's wakes (`wakes`), and the stalls a log records.
 
 mod foxglove;
 mod reader;
@@ -19,6 +22,7 @@ mod recorder;
 mod records;
 mod ring;
 mod summary;
+mod wakes;
 mod wire;
 
 pub use foxglove::{
@@ -32,6 +36,10 @@ pub use recorder::{
     capacity_for_rate,
 };
 pub use summary::{ChannelSummary, LogSummary, SeqGap, TrackingError, summarize};
+pub use wakes::{
+    JITTER_CEILING_US, Jitter, LoggedStall, MicrosHistogram, STALL_EVENT, jitter, stalls,
+    wake_lateness,
+};
 pub use wire::{EVENTS_TOPIC, LogDecodeError, METADATA_NAME, command_topic, state_topic};
 
 use crate::rig::JointKind;
@@ -93,8 +101,9 @@ pub struct LoggedSample {
     pub positions: Vec<f64>,
     /// rad/s or m/s; NaN as for positions.
     pub velocities: Vec<f64>,
-    /// States only: how late the cycle woke after its deadline (jitter), microseconds;
-    /// `None` for commands and for logs recorded before it was written.
+    /// How late the cycle that sent this command woke after its deadline (jitter),
+    /// microseconds: on commands from format 2 on, on states before (`docs/logs.md`);
+    /// `None` where the log holds none.
     pub late_us: Option<f64>,
 }
 

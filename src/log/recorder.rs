@@ -135,31 +135,33 @@ impl LogHealth {
 /// One cycle's command or measured state, handed to [`Recorder::record`] by value.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum LogRecord {
-    /// What the bridge sent.
+    /// What the bridge sent, and how late the cycle that sent it woke (microseconds; its
+    /// jitter).
     Command {
-        seq: u32,
-        t: f64,
-        positions: AxisValues,
-        velocities: AxisValues,
-    },
-    /// What the controller reported (velocities may be estimated by the caller), and how
-    /// late the cycle that asked for it woke (microseconds; its jitter).
-    State {
         seq: u32,
         t: f64,
         positions: AxisValues,
         velocities: AxisValues,
         late_us: f32,
     },
+    /// What the controller reported (velocities may be estimated by the caller).
+    State {
+        seq: u32,
+        t: f64,
+        positions: AxisValues,
+        velocities: AxisValues,
+    },
 }
 
 impl LogRecord {
-    pub fn command(target: &JointTarget) -> Self {
+    /// The command of `target`, sent by a cycle that woke `late_us` late.
+    pub fn command(target: &JointTarget, late_us: f32) -> Self {
         Self::Command {
             seq: target.seq,
             t: target.t,
             positions: target.positions,
             velocities: target.velocities,
+            late_us,
         }
     }
 }
@@ -695,26 +697,27 @@ impl Sink {
 
     fn write_record(&mut self, record: &LogRecord) -> Result<(), LogError> {
         let (channel, seq, t, positions, velocities, late_us) = match record {
+            // Widened exactly: the log reads back the very value the jitter counted.
             LogRecord::Command {
-                seq,
-                t,
-                positions,
-                velocities,
-            } => (self.command_channel, seq, t, positions, velocities, None),
-            LogRecord::State {
                 seq,
                 t,
                 positions,
                 velocities,
                 late_us,
             } => (
-                self.state_channel,
+                self.command_channel,
                 seq,
                 t,
                 positions,
                 velocities,
-                Some(*late_us),
+                Some(f64::from(*late_us)),
             ),
+            LogRecord::State {
+                seq,
+                t,
+                positions,
+                velocities,
+            } => (self.state_channel, seq, t, positions, velocities, None),
         };
         self.written.last_t = *t;
         self.json.clear();

@@ -104,20 +104,14 @@ fn pack(record: &LogRecord, words: &mut [u64; MAX_WORDS]) -> usize {
             t,
             positions,
             velocities,
-        } => (u64::from(*seq), t, positions, velocities, 0.0),
+            late_us,
+        } => (u64::from(*seq), t, positions, velocities, *late_us),
         LogRecord::State {
             seq,
             t,
             positions,
             velocities,
-            late_us,
-        } => (
-            u64::from(*seq) | STATE_FLAG,
-            t,
-            positions,
-            velocities,
-            *late_us,
-        ),
+        } => (u64::from(*seq) | STATE_FLAG, t, positions, velocities, 0.0),
     };
     let (p, v) = (positions.as_slice(), velocities.as_slice());
     words[0] = first;
@@ -157,6 +151,7 @@ fn unpack(words: &[u64]) -> LogRecord {
             t,
             positions,
             velocities,
+            late_us: f32::from_bits(words[2] as u32),
         }
     } else {
         LogRecord::State {
@@ -164,7 +159,6 @@ fn unpack(words: &[u64]) -> LogRecord {
             t,
             positions,
             velocities,
-            late_us: f32::from_bits(words[2] as u32),
         }
     }
 }
@@ -186,13 +180,13 @@ mod tests {
             t: -0.0,
             positions: values(f64::NAN, 6),
             velocities: values(1.5, 6),
+            late_us: 12.5,
         };
         let state = LogRecord::State {
             seq: 7,
             t: 0.028,
             positions: values(-3.0, MAX_AXES),
             velocities: values(2.0, 0),
-            late_us: 12.5,
         };
         assert!(tx.try_send(&command) && tx.try_send(&state));
         for sent in [command, state] {
@@ -215,6 +209,7 @@ mod tests {
             t: 0.0,
             positions: values(0.0, 6),
             velocities: values(0.0, 6),
+            late_us: 0.0,
         };
         assert!(tx.try_send(&record) && tx.try_send(&record));
         assert!(!tx.try_send(&record));

@@ -1,7 +1,9 @@
 //! What `rigbridge log info` shows about a run log: counts, time span, seq gaps, events by
-//! kind, and tracking error (command vs reported state, matched by seq). Pure arithmetic on
-//! a [`RunLog`]; must not read files or change the log.
+//! kind, the jitter (as the run counted it, `wakes`), each stall, and tracking error
+//! (command vs reported state, matched by seq). Pure arithmetic on a [`RunLog`]; must not
+//! read files or change the log.
 
+use super::wakes::{Jitter, LoggedStall, jitter, stalls};
 use super::wire::{EVENTS_TOPIC, command_topic, state_topic};
 use super::{LoggedSample, ReadStop, RunLog};
 use crate::rig::JointKind;
@@ -27,6 +29,11 @@ pub struct LogSummary {
     pub commands: ChannelSummary,
     pub states: ChannelSummary,
     pub events_by_kind: BTreeMap<String, u64>,
+    /// How late the cycles woke, counted as the run's own summary counts it; `None` when
+    /// the log holds no lateness.
+    pub jitter: Option<Jitter>,
+    /// Every stall, in file order.
+    pub stalls: Vec<LoggedStall>,
     /// Commands that have a state with the same seq: what `tracking` compares.
     pub tracking_pairs: u64,
     /// Per joint, in joint order.
@@ -95,6 +102,8 @@ pub fn summarize(log: &RunLog) -> LogSummary {
         commands,
         states,
         events_by_kind,
+        jitter: jitter(log),
+        stalls: stalls(log),
         tracking_pairs,
         tracking,
         other_messages: log.other_messages,
@@ -219,6 +228,7 @@ impl fmt::Display for LogSummary {
         write_channel(f, &self.commands)?;
         write_channel(f, &self.states)?;
         self.write_events(f)?;
+        self.write_wakes(f)?;
         if self.other_messages > 0 {
             writeln!(f, "other messages: {}", self.other_messages)?;
         }
@@ -240,6 +250,17 @@ impl LogSummary {
             format!(": {}", kinds.join(", "))
         };
         writeln!(f, "{EVENTS_TOPIC:<28} {count} messages{kinds}")
+    }
+
+    fn write_wakes(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match &self.jitter {
+            Some(jitter) => writeln!(f, "{jitter} over {} cycles", jitter.cycles)?,
+            None => writeln!(f, "jitter: no per-cycle timing (late_us) in this log")?,
+        }
+        for (k, stall) in self.stalls.iter().enumerate() {
+            writeln!(f, "  stall {} of {}: {stall}", k + 1, self.stalls.len())?;
+        }
+        Ok(())
     }
 
     fn write_tracking(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {

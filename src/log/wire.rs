@@ -32,7 +32,9 @@ pub const EVENTS_TOPIC: &str = "/rigbridge/events";
 /// Name of the MCAP Metadata record holding the rig, its joints and the job metadata.
 pub const METADATA_NAME: &str = "rigbridge";
 
-pub(super) const FORMAT: &str = "rigbridge-log/1";
+/// The log format's version (`docs/logs.md`, "Versions"): 2 moved each wake's lateness
+/// from the state to the command and records stalls; version 1 logs still read.
+pub(super) const FORMAT: &str = "rigbridge-log/2";
 pub(super) const MESSAGE_ENCODING: &str = "json";
 pub(super) const SCHEMA_ENCODING: &str = "jsonschema";
 pub(super) const SAMPLE_SCHEMA_NAME: &str = "rigbridge.JointSample";
@@ -118,7 +120,7 @@ pub(super) fn sample_schema() -> String {
             "velocity": number_array("rad/s or m/s."),
             "late_us": {
                 "type": "number",
-                "description": "States only, optional: how late the cycle woke after its deadline (its jitter), microseconds."
+                "description": "Commands only, optional: how late the cycle that sent it woke after its deadline (its jitter), microseconds. Format 1 logs had it on states."
             },
         },
         "required": ["seq", "t", "name", "position", "velocity"],
@@ -154,9 +156,9 @@ pub(super) struct SampleOut<'a> {
     pub name: &'a [String],
     pub position: &'a [f64],
     pub velocity: &'a [f64],
-    /// States only: how late the cycle woke, microseconds.
+    /// Commands only: how late the cycle that sent it woke, microseconds.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub late_us: Option<f32>,
+    pub late_us: Option<f64>,
 }
 
 #[derive(Serialize)]

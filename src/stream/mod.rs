@@ -21,16 +21,15 @@ mod executor;
 mod follow;
 mod gate;
 mod io;
-mod metrics;
 mod online;
 mod phase;
 
+pub use crate::log::MicrosHistogram;
 pub use crate::realtime::raise_priority;
 pub use controller::{Incompatible, check_controller};
 pub use executor::{CycleTask, Executor, ExecutorSettings, Handback};
 pub use follow::Tolerances;
 pub use gate::{CellGate, CellRefusal, GateCheck, GateRefusal, ModelCheck};
-pub use metrics::MicrosHistogram;
 pub use online::{
     CellCheck, DEADMAN, Frame, IDLE_END, Jog, NoCell, OnlineCommand, OnlineCommands,
     OnlineSettings, REDUCED_SPEED_M_S, SERVO_TIMEOUT, ServoTarget,
@@ -39,6 +38,7 @@ pub use phase::{Halting, Phase};
 
 use crate::clock::Clock;
 use crate::link::{Link, LinkCounters, LinkError, LinkEvent};
+use crate::log::{JITTER_CEILING_US, Jitter};
 use crate::motion::{Trajectory, TrajectoryError, validate};
 use crate::protocol::{AxisValues, Command, ControllerStatus, Fault, Feedback, JointTarget};
 use crate::rig::{JointKind, Rig};
@@ -50,8 +50,9 @@ use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 use thiserror::Error;
 
-/// Timing histograms reach 100 ms; anything later is counted there.
-const HISTOGRAM_CEILING_US: usize = 100_000;
+/// The latency histogram reaches 100 ms, as the jitter's does ([`JITTER_CEILING_US`]);
+/// anything later is counted there.
+const LATENCY_CEILING_US: usize = 100_000;
 /// How long to wait for the controller's first feedback before streaming.
 const START_FEEDBACK_TIMEOUT: Duration = Duration::from_millis(200);
 /// Send times kept for matching feedback to its target (by seq modulo this).
@@ -261,7 +262,8 @@ impl StreamControl {
 pub struct CycleRecord {
     pub target: JointTarget,
     pub feedback: Option<Feedback>,
-    /// How late the cycle woke after its deadline (jitter), microseconds.
+    /// How late the cycle woke after its deadline (jitter), microseconds: the very value
+    /// the stream's jitter counts for this cycle (the log records it on the command).
     pub late_us: f32,
     /// Command-to-feedback latency measured this cycle (a fresh echo), microseconds.
     pub latency_us: Option<f32>,
@@ -365,6 +367,13 @@ pub struct StreamReport {
     pub interruptions: Vec<Interruption>,
     #[serde(flatten)]
     pub counters: LinkCounters,
+    /// Every wake the jitter figures count, so that the parts of a resumed job add up to
+    /// the figures of the whole (as its log gives them) rather than to the worst part's.
+    #[serde(skip)]
+    pub wakes: Option<MicrosHistogram>,
+    /// How late the stalled wake was (us), when this stream ended in a stall.
+    #[serde(skip)]
+    pub stall_late_us: Option<f64>,
 }
 
 /// One stall or link loss in a job's stream: when, the stream's words for it, and what the
@@ -377,6 +386,8 @@ pub struct Interruption {
     pub outcome: Outcome,
     /// The stream's words (`the cycle woke 316.0 ms late`).
     pub why: String,
+    /// How late the stalled wake was (us), as the jitter counts it; `null` for a link loss.
+    pub late_us: Option<f64>,
     pub then: AfterInterruption,
 }
 
@@ -400,6 +411,17 @@ impl std::fmt::Display for AfterInterruption {
 }
 
 impl StreamReport {
+    /// The jitter figures as the report holds them (`run`'s summary line); `cycles` counts
+    /// the wakes when the report still carries them.
+    pub fn jitter(&self) -> Jitter {
+        Jitter {
+            cycles: self.wakes.as_ref().map_or(0, MicrosHistogram::count),
+            p50_us: self.jitter_p50_us,
+            p99_us: self.jitter_p99_us,
+            max_us: self.jitter_max_us,
+        }
+    }
+
     /// A report of a stream that moved nothing: refused, or ended while waiting.
     pub fn without_motion(
         outcome: Outcome,
@@ -420,17 +442,26 @@ impl StreamReport {
         };
         let mut interruptions = self.interruptions;
         interruptions.extend(later.interruptions);
+        let wakes = match (self.wakes, later.wakes) {
+            (Some(mut earlier), Some(later)) => {
+                earlier.add(&later);
+                Some(earlier)
+            }
+            (earlier, later) => earlier.or(later),
+        };
+        let jitter = wakes.as_ref().map(Jitter::of).unwrap_or_default();
         StreamReport {
             outcome: later.outcome,
             fault,
             interruptions,
+            wakes,
             cycles: self.cycles + later.cycles,
             missed_cycles: self.missed_cycles + later.missed_cycles,
             limit_violations: self.limit_violations + later.limit_violations,
             feedback_timeouts: self.feedback_timeouts + later.feedback_timeouts,
-            jitter_p50_us: self.jitter_p50_us.max(later.jitter_p50_us),
-            jitter_p99_us: self.jitter_p99_us.max(later.jitter_p99_us),
-            jitter_max_us: self.jitter_max_us.max(later.jitter_max_us),
+            jitter_p50_us: jitter.p50_us,
+            jitter_p99_us: jitter.p99_us,
+            jitter_max_us: jitter.max_us,
             latency_p50_us: self.latency_p50_us.max(later.latency_p50_us),
             latency_p99_us: self.latency_p99_us.max(later.latency_p99_us),
             tracking_error_max_deg: self
@@ -609,6 +640,8 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
                 .send(&Command::Stop)
                 .map_err(StreamError::from)
                 .map(|()| {
+                    self.cycle.count_wake();
+                    self.cycle.stall_late_us = Some(self.cycle.wake_us());
                     self.cycle.fault = Some(format!(
                         "the cycle woke {:.1} ms late",
                         late.as_secs_f64() * 1e3
@@ -709,6 +742,8 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
         // check alike: the target the controller held when it measured.
         let reference = feedback.map_or(target.positions, |f| cycle.held_when_measured(&f));
         let latency_us = cycle.record_feedback(feedback.as_ref(), &reference, clock.now());
+        // Counted where the sink gets it: the log holds the same wakes as the figures.
+        cycle.count_wake();
         self.sink.record(&CycleRecord {
             target,
             feedback,
@@ -858,8 +893,10 @@ struct Cycle {
     scale_step: f64,
     /// The last two targets sent: the gate checks steps and accelerations against them.
     sent: gate::Sent,
+    /// The wakes that sent a target and the stalled ones (see [`Jitter`]).
     jitter: MicrosHistogram,
     latency: MicrosHistogram,
+    stall_late_us: Option<f64>,
     missed: u64,
     timeouts: u64,
     violations: u64,
@@ -909,8 +946,9 @@ impl Cycle {
             scale: settings.start_scale.clamp(0.0, 1.0),
             scale_step: settings.slowdown_rate_per_s * trajectory.period.as_secs_f64(),
             sent: gate::Sent::default(),
-            jitter: MicrosHistogram::new(HISTOGRAM_CEILING_US),
-            latency: MicrosHistogram::new(HISTOGRAM_CEILING_US),
+            jitter: MicrosHistogram::new(JITTER_CEILING_US),
+            latency: MicrosHistogram::new(LATENCY_CEILING_US),
+            stall_late_us: None,
             missed: 0,
             timeouts: 0,
             violations: 0,
@@ -937,13 +975,24 @@ impl Cycle {
         (self.path / last).min(1.0)
     }
 
+    /// The wake, `late` after its deadline: kept for [`Cycle::count_wake`], counted as
+    /// missed when later than a period.
     fn record_wake(&mut self, late: Duration, period: Duration) {
-        let late_us = late.as_secs_f64() * 1e6;
-        self.last_late_us = late_us as f32;
-        self.jitter.record(late_us);
+        self.last_late_us = (late.as_secs_f64() * 1e6) as f32;
         if late > period {
             self.missed += 1;
         }
+    }
+
+    /// The last wake's lateness (us) as the jitter counts it and the log writes it: the
+    /// cycle record's `f32`, widened exactly, so the log reads back the very value.
+    fn wake_us(&self) -> f64 {
+        f64::from(self.last_late_us)
+    }
+
+    /// Counts the last wake in the jitter: one that sent a target, or stalled.
+    fn count_wake(&mut self) {
+        self.jitter.record(self.wake_us());
     }
 
     /// The link's events: a controller fault ends the stream with its words; a
@@ -1206,6 +1255,8 @@ impl Cycle {
             stopped_in: None,
             interruptions: Vec::new(),
             counters,
+            wakes: None,
+            stall_late_us: None,
         }
     }
 
@@ -1223,6 +1274,7 @@ impl Cycle {
             (Some(Outcome::Faulted), Outcome::LinkLost | Outcome::Stalled) => Outcome::Faulted,
             _ => outcome,
         };
+        let jitter = Jitter::of(&self.jitter);
         StreamReport {
             outcome,
             fault: self.fault,
@@ -1230,9 +1282,9 @@ impl Cycle {
             missed_cycles: self.missed,
             limit_violations: self.violations,
             feedback_timeouts: self.timeouts,
-            jitter_p50_us: self.jitter.percentile(0.5),
-            jitter_p99_us: self.jitter.percentile(0.99),
-            jitter_max_us: self.jitter.max_us(),
+            jitter_p50_us: jitter.p50_us,
+            jitter_p99_us: jitter.p99_us,
+            jitter_max_us: jitter.max_us,
             latency_p50_us: self.latency.percentile(0.5),
             latency_p99_us: self.latency.percentile(0.99),
             tracking_error_max_deg: self.tracking_max,
@@ -1244,6 +1296,8 @@ impl Cycle {
             stopped_in: None,
             interruptions: Vec::new(),
             counters,
+            wakes: Some(self.jitter),
+            stall_late_us: self.stall_late_us,
         }
     }
 }
