@@ -484,17 +484,46 @@ fn closest(settings: &RunSettings, trajectory: &Trajectory, point: glam::DVec3) 
         .fold(f64::INFINITY, f64::min)
 }
 
+/// The largest jerk over `trajectory` as a share of each axis' limit: the third difference
+/// of its positions over period^3, the arm at rest before its first sample and after its
+/// last (it starts and ends held), against the plan's jerk limit (docs/programs.md: each
+/// axis' max acceleration x `accel_scale` x `jerk_per_accel_s`).
+fn worst_jerk_share(settings: &RunSettings, trajectory: &Trajectory) -> f64 {
+    let plan = plan_settings(settings);
+    let dt = trajectory.period.as_secs_f64();
+    let mut positions = vec![trajectory.position(0); 3];
+    positions.extend((0..trajectory.len()).map(|k| trajectory.position(k)));
+    positions.extend(vec![trajectory.position(trajectory.len() - 1); 3]);
+    let mut worst: f64 = 0.0;
+    for w in positions.windows(4) {
+        for (axis, joint) in settings.rig.joints.iter().enumerate() {
+            let limit = joint.limits.max_acceleration * plan.accel_scale * plan.jerk_per_accel_s;
+            let jerk = (w[3][axis] - 3.0 * w[2][axis] + 3.0 * w[1][axis] - w[0][axis]).abs()
+                / (dt * dt * dt);
+            worst = worst.max(jerk / limit);
+        }
+    }
+    worst
+}
+
 /// `settings`' program planned with its zones and with every point fine: both pass
-/// `validate` and the cell's check; the durations (s), zoned then fine, and the zoned plan.
+/// `validate` and the cell's check and keep within every axis' jerk limit; the durations
+/// (s), zoned then fine, and both plans.
 fn zoned_and_fine(settings: &RunSettings) -> (f64, f64, Trajectory, Trajectory) {
     let zoned_job = settings.config.job.clone();
     let fine_job = all_fine(&zoned_job, settings);
     assert_ne!(zoned_job, fine_job);
     let (zoned, zoned_origins) = plan(settings, &zoned_job);
     let (fine, fine_origins) = plan(settings, &fine_job);
-    for (trajectory, origins) in [(&zoned, &zoned_origins), (&fine, &fine_origins)] {
+    for (name, trajectory, origins) in [
+        ("zones", &zoned, &zoned_origins),
+        ("fine", &fine, &fine_origins),
+    ] {
         validate(trajectory, &settings.rig).unwrap();
         rigbridge::daemon::clear(settings, trajectory, origins).unwrap();
+        let jerk = worst_jerk_share(settings, trajectory);
+        println!("{name}: worst jerk {:.1} % of the limit", 100.0 * jerk);
+        assert!(jerk <= 1.0 + 1e-9, "{name}: jerk {jerk} x the limit");
     }
     (zoned.duration_s(), fine.duration_s(), zoned, fine)
 }

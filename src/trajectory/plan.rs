@@ -185,12 +185,14 @@ pub enum PlanError {
         reason: InvalidValue,
     },
     #[error(
-        "move to waypoint {waypoint}: {joint} still needs {ratio:.3} x its allowed speed or acceleration after slowing down; the path bends too sharply (singularity?)"
+        "move to waypoint {waypoint}: {joint} still needs {ratio:.3} x its allowed {limit} after slowing down; the path bends too sharply (singularity?)"
     )]
     OverLimits {
         waypoint: usize,
         joint: String,
         ratio: f64,
+        /// The limit broken, as a message names it: `speed or acceleration`, `jerk`.
+        limit: &'static str,
     },
     #[error("move to waypoint {waypoint}: profile generator failed: {message}")]
     Profile { waypoint: usize, message: String },
