@@ -26,11 +26,11 @@ pub use clearance::{CollisionRefusal, JointValue, check_clear, joint_values};
 pub use origins::Origins;
 pub(crate) use path::{JointPath, PathNode, PathTiming};
 pub(crate) use plan::{AxisLimits, Samples, check_start};
-pub(crate) use smooth::{SmoothTiming, differences};
 pub use plan::{InvalidValue, PlanError, PlanSettings, plan_joint_moves, plan_joint_moves_marked};
 pub use recorded::{RecordedError, TIME_TOLERANCE_S};
 pub use resample::{ramp_to_rest, resample};
 pub use retime::{RetimeError, Retimed, retime};
+pub(crate) use smooth::{BLENDED_SHARE, REST_TO_REST_SHARE, SmoothTiming, differences};
 
 pub use crate::motion::{
     PeakAcceleration, SPEED_SLACK, Trajectory, TrajectoryError, peak_accelerations, validate,

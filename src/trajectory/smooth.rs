@@ -2,7 +2,8 @@
 //! by one rest-to-rest S-curve in its length (rsruckig, one axis: jerk, acceleration and
 //! speed each capped), so every axis' speed, acceleration and jerk are its share of the
 //! path's. The caps are the tightest any piece of the path allows (each axis' scaled limit
-//! over its share of the piece's direction, the speed times the step's `speed`); the
+//! over its share of the piece's direction, the speed times the step's `speed`, the
+//! acceleration and jerk times the move's share: less for a move blended at a zone); the
 //! samples are then checked against every axis' scaled speed, acceleration and jerk, and
 //! the whole move slowed down until they pass (the bends of a polyline cost acceleration
 //! and jerk the caps do not see).
@@ -20,10 +21,18 @@ use rsruckig::prelude::{
 };
 use std::time::Duration;
 
-/// Share of each axis' (scaled) acceleration and jerk the S-curve takes along the path;
-/// the rest is kept for what the path's own bending costs at speed (the joint paths of
-/// straight tool lines are curved), as `path.rs` keeps a quarter of the acceleration.
-const TANGENTIAL_SHARE: f64 = 0.75;
+/// Share of each axis' (scaled) acceleration and jerk a move at rest at both ends takes
+/// along its path; the rest is kept for what the path's own bending costs at speed (the
+/// joint paths of straight tool lines are curved), as `path.rs` keeps a quarter of the
+/// acceleration.
+pub(crate) const REST_TO_REST_SHARE: f64 = 0.75;
+
+/// The share a move that is blended into its neighbour at a zone takes: half, so that the
+/// two moves of a corner (never more than two overlap) add up within each axis' limit at
+/// any phase of their S-curves. With more, a corner where an axis goes on the same way
+/// would break the jerk limit wherever the end of one move's deceleration met the start
+/// of the next's acceleration, and the overlap would shrink to nothing.
+pub(crate) const BLENDED_SHARE: f64 = 0.5;
 
 /// How often a move is slowed down before it is refused. A polyline's bends cost
 /// acceleration and jerk in proportion to its speed rather than its square or cube, so the
@@ -39,6 +48,9 @@ pub(crate) struct SmoothTiming<'a> {
     pub period: Duration,
     pub limits: &'a AxisLimits,
     pub waypoint: usize,
+    /// Share of each axis' acceleration and jerk the S-curve takes: [`REST_TO_REST_SHARE`]
+    /// or [`BLENDED_SHARE`].
+    pub share: f64,
 }
 
 /// Path speed, acceleration and jerk (in path length per second, ^2, ^3) of an S-curve.
@@ -120,13 +132,15 @@ impl SmoothTiming<'_> {
         for piece in 0..path.nodes().len() - 1 {
             let direction = path.direction(piece);
             let share = path.share(piece + 1);
-            caps.speed = caps.speed.min(share * allowed(&direction, &self.limits.speed));
+            caps.speed = caps
+                .speed
+                .min(share * allowed(&direction, &self.limits.speed));
             caps.acceleration = caps
                 .acceleration
-                .min(TANGENTIAL_SHARE * allowed(&direction, &self.limits.acceleration));
+                .min(self.share * allowed(&direction, &self.limits.acceleration));
             caps.jerk = caps
                 .jerk
-                .min(TANGENTIAL_SHARE * allowed(&direction, &self.limits.jerk));
+                .min(self.share * allowed(&direction, &self.limits.jerk));
         }
         caps
     }

@@ -1,14 +1,15 @@
 //! A program's ops timed into one trajectory. Each move is timed alone, at rest at both
-//! ends, by the path timing of `trajectory/path.rs` (the fastest speed along its joint path
-//! within every axis' scaled speed, times the step's `speed`, and acceleration;
-//! acceleration-limited, not jerk-limited, as the Cartesian lines are). A fine point is
-//! reached at rest. At a zoned point the next move starts before this one has ended: from
-//! the sample where the tool enters the point's zone, the two moves' displacements are
-//! added, so the arm turns the corner without stopping, as RAPID starts its corner path
-//! where the tool enters the zone (ABB, RAPID Reference Manual, "zonedata"). The overlap
-//! is shortened (the corner starts nearer the point) until the sum keeps within every
-//! axis' speed and acceleration; each sample's velocity is the central difference of the
-//! positions either side. Every sample passes `validate` before the program is handed on.
+//! ends, by one jerk-limited S-curve along its joint path (`trajectory/smooth.rs`: every
+//! axis within its scaled speed, times the step's `speed`, acceleration and jerk; a move
+//! blended at a zone takes half the acceleration and jerk, so that two overlapping moves
+//! add up within the limits). A fine point is reached at rest. At a zoned point the next
+//! move starts before this one has ended: from the sample where the tool enters the
+//! point's zone, the two moves' displacements are added, so the arm turns the corner
+//! without stopping, as RAPID starts its corner path where the tool enters the zone (ABB,
+//! RAPID Reference Manual, "zonedata"). The overlap is shortened (the corner starts nearer
+//! the point) until the sum keeps within every axis' speed, acceleration and jerk; each
+//! sample's velocity is the central difference of the positions either side. Every sample
+//! passes `validate` before the program is handed on.
 //!
 //! Owns the joining, the overlaps and the marks that name each step's stretch. Must not
 //! change a point a step names (a fine point is reached exactly, a zoned one passed within
@@ -22,8 +23,8 @@ use crate::motion::IoPoint;
 use crate::rig::{Pose, Rig};
 use crate::trajectory::free::plan_free;
 use crate::trajectory::{
-    AxisLimits, JointPath, Origins, PathNode, PlanError, Samples, SmoothTiming, Trajectory,
-    check_start, differences,
+    AxisLimits, BLENDED_SHARE, JointPath, Origins, PathNode, PlanError, REST_TO_REST_SHARE,
+    Samples, SmoothTiming, Trajectory, check_start, differences,
 };
 use glam::DAffine3;
 use std::time::Duration;
@@ -266,8 +267,10 @@ impl Planner<'_> {
         self.check_first_zone(start, &pieces)?;
         let mut from = start.to_vec();
         let mut moves = Vec::with_capacity(pieces.len());
-        for piece in &pieces {
-            let rows = self.time_move(&from, piece)?;
+        for (k, piece) in pieces.iter().enumerate() {
+            // Blended at its end (its own zone) or its start (the zone before it).
+            let blended = piece.zone_m.is_some() || k > 0 && pieces[k - 1].zone_m.is_some();
+            let rows = self.time_move(&from, piece, blended)?;
             moves.push(Displacement::of(&from, &rows));
             if let Some(last) = rows.last() {
                 from.clone_from(last);
@@ -333,20 +336,31 @@ impl Planner<'_> {
     /// not move): one S-curve along its whole path, or where a free move's way round the
     /// cell bends too sharply for that, one from each of its via configurations to the next,
     /// at rest at each (every sample still on the proven path).
-    fn time_move(&self, from: &[f64], piece: &Piece) -> Result<Vec<Vec<f64>>, JobError> {
+    fn time_move(
+        &self,
+        from: &[f64],
+        piece: &Piece,
+        blended: bool,
+    ) -> Result<Vec<Vec<f64>>, JobError> {
+        let share = if blended {
+            BLENDED_SHARE
+        } else {
+            REST_TO_REST_SHARE
+        };
         let op = &self.ops[piece.op];
         let refused = |error: PlanError| ProgramError::Timing {
             key: op.key.clone(),
             what: op.what.clone(),
             error,
         };
-        match self.time_legs(from, &piece.nodes, piece) {
+        match self.time_legs(from, &piece.nodes, piece, share) {
             Err(PlanError::OverLimits { .. }) if !piece.linear && piece.nodes.len() > 1 => {
                 let mut rows = Vec::new();
                 let mut leg_from = from.to_vec();
                 for node in &piece.nodes {
                     let leg = std::slice::from_ref(node);
-                    rows.extend(self.time_legs(&leg_from, leg, piece).map_err(refused)?);
+                    let timed = self.time_legs(&leg_from, leg, piece, share);
+                    rows.extend(timed.map_err(refused)?);
                     leg_from.clone_from(node);
                 }
                 Ok(rows)
@@ -362,6 +376,7 @@ impl Planner<'_> {
         from: &[f64],
         nodes: &[Vec<f64>],
         piece: &Piece,
+        share: f64,
     ) -> Result<Vec<Vec<f64>>, PlanError> {
         let mut path = JointPath::starting_at(PathNode {
             u: 0.0,
@@ -382,6 +397,7 @@ impl Planner<'_> {
             period: self.context.settings.period,
             limits: &self.limits,
             waypoint: piece.op,
+            share,
         };
         timing.rows(&path, &self.samples)
     }
