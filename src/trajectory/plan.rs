@@ -33,7 +33,8 @@ pub struct PlanSettings {
     /// Fraction of each axis' max acceleration a plan may use.
     pub accel_scale: f64,
     /// Max jerk = (scaled) max acceleration x this, in 1/s: 10 builds up full acceleration
-    /// in 0.1 s. Joint moves only; Cartesian moves are acceleration-limited.
+    /// in 0.1 s. Joint moves and a program's moves (`smooth.rs`); a standalone Cartesian
+    /// move is acceleration-limited.
     pub jerk_per_accel_s: f64,
     /// Largest Cartesian step (m) between two IK samples of a linear move.
     pub cartesian_step_m: f64,
