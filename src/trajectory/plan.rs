@@ -33,7 +33,8 @@ pub struct PlanSettings {
     /// Fraction of each axis' max acceleration a plan may use.
     pub accel_scale: f64,
     /// Max jerk = (scaled) max acceleration x this, in 1/s: 10 builds up full acceleration
-    /// in 0.1 s. Joint moves only; Cartesian moves are acceleration-limited.
+    /// in 0.1 s. Joint moves and a program's moves (`smooth.rs`); a standalone Cartesian
+    /// move is acceleration-limited.
     pub jerk_per_accel_s: f64,
     /// Largest Cartesian step (m) between two IK samples of a linear move.
     pub cartesian_step_m: f64,
@@ -185,12 +186,14 @@ pub enum PlanError {
         reason: InvalidValue,
     },
     #[error(
-        "move to waypoint {waypoint}: {joint} still needs {ratio:.3} x its allowed speed or acceleration after slowing down; the path bends too sharply (singularity?)"
+        "move to waypoint {waypoint}: {joint} still needs {ratio:.3} x its allowed {limit} after slowing down; the path bends too sharply (singularity?)"
     )]
     OverLimits {
         waypoint: usize,
         joint: String,
         ratio: f64,
+        /// The limit broken, as a message names it: `speed or acceleration`, `jerk`.
+        limit: &'static str,
     },
     #[error("move to waypoint {waypoint}: profile generator failed: {message}")]
     Profile { waypoint: usize, message: String },

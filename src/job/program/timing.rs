@@ -1,14 +1,15 @@
 //! A program's ops timed into one trajectory. Each move is timed alone, at rest at both
-//! ends, by the path timing of `trajectory/path.rs` (the fastest speed along its joint path
-//! within every axis' scaled speed, times the step's `speed`, and acceleration;
-//! acceleration-limited, not jerk-limited, as the Cartesian lines are). A fine point is
-//! reached at rest. At a zoned point the next move starts before this one has ended: from
-//! the sample where the tool enters the point's zone, the two moves' displacements are
-//! added, so the arm turns the corner without stopping, as RAPID starts its corner path
-//! where the tool enters the zone (ABB, RAPID Reference Manual, "zonedata"). The overlap
-//! is shortened (the corner starts nearer the point) until the sum keeps within every
-//! axis' speed and acceleration; each sample's velocity is the central difference of the
-//! positions either side. Every sample passes `validate` before the program is handed on.
+//! ends, by one jerk-limited S-curve along its joint path (`trajectory/smooth.rs`: every
+//! axis within its scaled speed, times the step's `speed`, acceleration and jerk; a move
+//! blended at a zone takes half the acceleration and jerk, so that two overlapping moves
+//! add up within the limits). A fine point is reached at rest. At a zoned point the next
+//! move starts before this one has ended: from the sample where the tool enters the
+//! point's zone, the two moves' displacements are added, so the arm turns the corner
+//! without stopping, as RAPID starts its corner path where the tool enters the zone (ABB,
+//! RAPID Reference Manual, "zonedata"). The overlap is shortened (the corner starts nearer
+//! the point) until the sum keeps within every axis' speed, acceleration and jerk; each
+//! sample's velocity is the central difference of the positions either side. Every sample
+//! passes `validate` before the program is handed on.
 //!
 //! Owns the joining, the overlaps and the marks that name each step's stretch. Must not
 //! change a point a step names (a fine point is reached exactly, a zoned one passed within
@@ -22,16 +23,12 @@ use crate::motion::IoPoint;
 use crate::rig::{Pose, Rig};
 use crate::trajectory::free::plan_free;
 use crate::trajectory::{
-    AxisLimits, JointPath, Origins, PathNode, PathTiming, PlanError, Samples, Trajectory,
-    check_start,
+    AxisLimits, BLENDED_SHARE, JointPath, Origins, PathNode, PlanError, REST_TO_REST_SHARE,
+    Samples, SmoothTiming, Trajectory, check_start, differences,
 };
 use glam::DAffine3;
 use std::time::Duration;
 use thiserror::Error;
-
-/// How much an overlap shrinks each time the sum of two moves breaks a limit: a tenth, so
-/// that the corner starts as far out in the zone as the limits allow, within ten percent.
-const OVERLAP_SHRINK: f64 = 0.9;
 
 /// A program refused while it is planned, naming the step as written.
 #[derive(Debug, Error)]
@@ -94,6 +91,8 @@ struct Piece {
     share: f64,
     zone_m: Option<f64>,
     tool: DAffine3,
+    /// A `move_linear`: its path is the line's, never split at its nodes.
+    linear: bool,
 }
 
 /// `ops` timed from `context.start` into one trajectory, each op's stretch named.
@@ -126,6 +125,7 @@ pub fn plan_ops(ops: &[Op], context: &PlanContext) -> Result<(Trajectory, Origin
                     share: m.speed,
                     zone_m: m.zone_m,
                     tool: m.tool,
+                    linear: m.how == How::Linear,
                 });
                 if m.zone_m.is_none() {
                     planner.flush(&run_start, std::mem::take(&mut run))?;
@@ -267,8 +267,10 @@ impl Planner<'_> {
         self.check_first_zone(start, &pieces)?;
         let mut from = start.to_vec();
         let mut moves = Vec::with_capacity(pieces.len());
-        for piece in &pieces {
-            let rows = self.time_move(&from, piece)?;
+        for (k, piece) in pieces.iter().enumerate() {
+            // Blended at its end (its own zone) or its start (the zone before it).
+            let blended = piece.zone_m.is_some() || k > 0 && pieces[k - 1].zone_m.is_some();
+            let rows = self.time_move(&from, piece, blended)?;
             moves.push(Displacement::of(&from, &rows));
             if let Some(last) = rows.last() {
                 from.clone_from(last);
@@ -294,7 +296,10 @@ impl Planner<'_> {
                     next_start(overlap) + overlap,
                 )
             {
-                overlap = (overlap as f64 * OVERLAP_SHRINK) as usize;
+                // One sample at a time, none skipped: the corner starts as far out in the
+                // zone as the limits allow (whether the sum keeps within them does not
+                // change in step with the overlap, so a search by halves could miss it).
+                overlap -= 1;
             }
             starts.push(next_start(overlap));
             overlaps.push(overlap);
@@ -328,15 +333,58 @@ impl Planner<'_> {
     }
 
     /// The samples of one move from `from` alone, at rest at both ends (none when it does
-    /// not move).
-    fn time_move(&self, from: &[f64], piece: &Piece) -> Result<Vec<Vec<f64>>, JobError> {
+    /// not move): one S-curve along its whole path, or where a free move's way round the
+    /// cell bends too sharply for that, one from each of its via configurations to the next,
+    /// at rest at each (every sample still on the proven path).
+    fn time_move(
+        &self,
+        from: &[f64],
+        piece: &Piece,
+        blended: bool,
+    ) -> Result<Vec<Vec<f64>>, JobError> {
+        let share = if blended {
+            BLENDED_SHARE
+        } else {
+            REST_TO_REST_SHARE
+        };
+        let op = &self.ops[piece.op];
+        let refused = |error: PlanError| ProgramError::Timing {
+            key: op.key.clone(),
+            what: op.what.clone(),
+            error,
+        };
+        match self.time_legs(from, &piece.nodes, piece, share) {
+            Err(PlanError::OverLimits { .. }) if !piece.linear && piece.nodes.len() > 1 => {
+                let mut rows = Vec::new();
+                let mut leg_from = from.to_vec();
+                for node in &piece.nodes {
+                    let leg = std::slice::from_ref(node);
+                    let timed = self.time_legs(&leg_from, leg, piece, share);
+                    rows.extend(timed.map_err(refused)?);
+                    leg_from.clone_from(node);
+                }
+                Ok(rows)
+            }
+            timed => Ok(timed.map_err(refused)?),
+        }
+    }
+
+    /// The samples of the path from `from` through `nodes` along one S-curve, at rest at
+    /// both ends (none when it does not move).
+    fn time_legs(
+        &self,
+        from: &[f64],
+        nodes: &[Vec<f64>],
+        piece: &Piece,
+        share: f64,
+    ) -> Result<Vec<Vec<f64>>, PlanError> {
         let mut path = JointPath::starting_at(PathNode {
             u: 0.0,
             joints: from.to_vec(),
         });
         let mut u = 0.0;
         let mut previous = from.to_vec();
-        for node in &piece.nodes {
+        for node in nodes {
             u += distance(&previous, node);
             path.push_at_share(u, node.clone(), piece.share);
             previous.clone_from(node);
@@ -344,25 +392,14 @@ impl Planner<'_> {
         if path.nodes().len() < 2 {
             return Ok(Vec::new());
         }
-        let op = &self.ops[piece.op];
-        let timing = PathTiming {
+        let timing = SmoothTiming {
             rig: self.context.rig,
-            settings: self.context.settings,
+            period: self.context.settings.period,
             limits: &self.limits,
             waypoint: piece.op,
+            share,
         };
-        let rows = timing
-            .timed_rows(
-                &path,
-                |_, seed| Ok::<_, PlanError>(seed.to_vec()),
-                &self.samples,
-            )
-            .map_err(|error| ProgramError::Timing {
-                key: op.key.clone(),
-                what: op.what.clone(),
-                error,
-            })?;
-        Ok(rows.into_iter().map(|(positions, _)| positions).collect())
+        timing.rows(&path, &self.samples)
     }
 
     /// How many of `moved`'s last samples have the tool within `zone` of where the move
@@ -380,8 +417,8 @@ impl Planner<'_> {
     }
 
     /// Whether the sum of `moves` (each from its start in `starts`, the last from
-    /// `last_start`) keeps within every axis' scaled speed and acceleration over samples
-    /// `last_start - 1 ..= until + 1`.
+    /// `last_start`) keeps within every axis' scaled speed, acceleration and jerk over
+    /// samples `last_start - 1 ..= until + 1`.
     fn within_limits(
         &self,
         start: &[f64],
@@ -400,14 +437,17 @@ impl Planner<'_> {
             q
         };
         let dt = self.context.settings.period.as_secs_f64();
-        let window: Vec<Vec<f64>> = (last_start as isize - 2..=until as isize + 2)
+        let window: Vec<Vec<f64>> = (last_start as isize - 3..=until as isize + 3)
             .map(at)
             .collect();
-        window.windows(3).all(|w| {
+        let limits = &self.limits;
+        window.windows(4).all(|w| {
+            let w: Vec<&[f64]> = w.iter().map(Vec::as_slice).collect();
             (0..start.len()).all(|axis| {
-                let speed = (w[2][axis] - w[1][axis]).abs() / dt;
-                let accel = (w[2][axis] - 2.0 * w[1][axis] + w[0][axis]).abs() / (dt * dt);
-                speed <= self.limits.speed[axis] && accel <= self.limits.acceleration[axis]
+                let [speed, accel, jerk] = differences(&w, axis, dt);
+                speed <= limits.speed[axis]
+                    && accel <= limits.acceleration[axis]
+                    && jerk <= limits.jerk[axis]
             })
         })
     }
