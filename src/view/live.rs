@@ -195,6 +195,8 @@ mod tests {
                 frames_sent: u64::from(seq),
                 ..LinkCounters::default()
             },
+            at: std::time::Duration::from_millis(u64::from(seq) * 4),
+            on_job: None,
         }
     }
 
