@@ -19,6 +19,7 @@ use crate::rig::{Rig, rotation_angle_between};
 use glam::{DAffine3, DQuat};
 use serde::Serialize;
 use std::collections::VecDeque;
+use std::sync::{Arc, Mutex, PoisonError};
 
 /// The gripper's output: 1 closes it, 0 opens it.
 pub const GRIPPER_OUTPUT: &str = "gripper";
@@ -91,6 +92,32 @@ pub struct CellJudgement {
     pub per_part: Vec<PartJudgement>,
 }
 
+/// The parts as the twin last saw them, for the live page and Foxglove to draw and judge:
+/// every part's grasp frame (cell frame), refreshed each cycle one is carried (a `try_lock`
+/// that never waits: a cycle that finds a reader skips one refresh), and the judgement,
+/// renewed when a part is grasped or released.
+#[derive(Debug, Default)]
+pub struct PartsBoard {
+    state: Mutex<PartsNow>,
+}
+
+/// What a [`PartsBoard`] holds.
+#[derive(Debug, Clone, Default)]
+pub struct PartsNow {
+    /// Each part's grasp frame in the cell frame, in the cell's part order.
+    pub poses: Vec<DAffine3>,
+    pub judgement: Option<CellJudgement>,
+}
+
+impl PartsBoard {
+    pub fn read(&self) -> PartsNow {
+        self.state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+}
+
 struct PartState {
     part: Part,
     pose: DAffine3,
@@ -161,6 +188,7 @@ pub struct TwinIo {
     parts: Vec<PartState>,
     carried: Option<Carried>,
     resting: Option<Resting>,
+    board: Arc<PartsBoard>,
     cycle: u64,
     /// Trouble the twin could not act on (a collision model that would not build), in words.
     pub trouble: Option<String>,
@@ -179,6 +207,7 @@ impl TwinIo {
             parts: Vec::new(),
             carried: None,
             resting: None,
+            board: Arc::default(),
             cycle: 0,
             trouble: None,
         }
@@ -211,7 +240,35 @@ impl TwinIo {
             ..TwinIo::bare(period_s)
         };
         io.rebuild_resting();
+        io.publish();
         io
+    }
+
+    /// Where the parts are and the judgement, shared with the view; `None` without parts.
+    pub fn board(&self) -> Option<Arc<PartsBoard>> {
+        (!self.parts.is_empty()).then(|| self.board.clone())
+    }
+
+    /// Every part's pose and the judgement onto the board (a grasp, a release, the start).
+    fn publish(&self) {
+        let now = PartsNow {
+            poses: self.parts.iter().map(|state| state.pose).collect(),
+            judgement: self.judgement(),
+        };
+        *self
+            .board
+            .state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = now;
+    }
+
+    /// The carried part's pose onto the board, in place, unless a reader holds it.
+    fn publish_carried(&self, part: usize) {
+        if let Ok(mut board) = self.board.state.try_lock()
+            && let Some(pose) = board.poses.get_mut(part)
+        {
+            *pose = self.parts[part].pose;
+        }
     }
 
     /// A request from the bridge; `may_change` is false while the twin is unbound or
@@ -304,6 +361,9 @@ impl TwinIo {
                     state.collided_with = Some(other.to_owned());
                 }
             }
+        }
+        if let Some(part) = self.carried.as_ref().map(|c| c.part) {
+            self.publish_carried(part);
         }
         self.watch_resting(actual);
         let Travel::Moving(closing, left) = self.travel else {
@@ -451,6 +511,7 @@ impl TwinIo {
                 state.picked_cycle.get_or_insert(self.cycle);
                 state.released_cycle = None;
                 self.rebuild_resting();
+                self.publish();
             }
             Err(error) => self.trouble = Some(error.to_string()),
         }
@@ -460,6 +521,7 @@ impl TwinIo {
         if let Some(carried) = self.carried.take() {
             self.parts[carried.part].released_cycle = Some(self.cycle);
             self.rebuild_resting();
+            self.publish();
         }
     }
 
