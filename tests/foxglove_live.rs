@@ -636,6 +636,13 @@ fn a_websockets_client_follows_the_program_topic_through_the_demo() {
     }
     let last = &peer["last"];
     assert_eq!(last["parts"].as_array().unwrap().len(), 12, "{last}");
+    // /scene draws the 12 parts; part_0 moved with the tool (tray to fixture, over 0.4 m
+    // apart), part_11 never did.
+    let positions = &peer["part_positions"];
+    assert_eq!(positions.as_object().unwrap().len(), 12, "{positions}");
+    let moved = |id: &str| positions[id].as_array().unwrap().len();
+    assert!(moved("part-part_0") > 10, "{}", positions["part-part_0"]);
+    assert_eq!(moved("part-part_11"), 1, "{}", positions["part-part_11"]);
     assert_eq!(last["judgement"]["placed"], 2, "{last}");
     println!(
         "/program: {} messages, {} steps seen",

@@ -371,6 +371,20 @@ impl FoxgloveFeed {
             payload: text.clone().into_bytes(),
         }));
         feed.program_sent = Some(text);
+        // The parts where they are now, in `/scene`.
+        let states: Vec<&str> = program
+            .judgement
+            .as_ref()
+            .map(|j| j.per_part.iter().map(|p| p.state).collect())
+            .unwrap_or_default();
+        let parts = crate::scene::foxglove::parts_update(
+            hub.part_solids(),
+            &program.parts,
+            &states,
+            &feed.frame_id,
+            timestamp(now),
+        );
+        self.send(feed.scene, now, &parts);
     }
 
     fn send(&self, channel: u32, time_ns: u64, message: &impl Encode) {
