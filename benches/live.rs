@@ -48,6 +48,8 @@ fn live(c: &mut Criterion) {
         late_us: 12.0,
         latency_us: Some(30.0),
         counters: LinkCounters::default(),
+        at: std::time::Duration::ZERO,
+        on_job: None,
     };
     {
         let mut sink = LiveSink::new(&slot, 250);

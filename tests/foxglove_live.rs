@@ -578,3 +578,75 @@ fn foxglove_origins_are_checked_on_load_and_let_in() {
     assert_eq!(code, 403);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The pick-and-place demo's program over two slots only: a few seconds of wall time.
+fn two_part_demo() -> serde_json::Value {
+    let text = std::fs::read_to_string(repo_path("config/pick-place.toml")).unwrap();
+    let text = text.replace("over = \"slot\"", "over = [\"slot[0]\", \"slot[1]\"]");
+    assert!(
+        text.contains("slot[1]"),
+        "the demo's repeat is over the grid"
+    );
+    let table: toml::Value = toml::from_str(&text).unwrap();
+    serde_json::json!({ "job": serde_json::to_value(&table["job"]).unwrap() })
+}
+
+#[test]
+fn a_websockets_client_follows_the_program_topic_through_the_demo() {
+    let Some(python) = peer_python() else {
+        return;
+    };
+    let dir = scratch("program");
+    let port = free_port();
+    let server = serve(
+        &dir,
+        &[
+            "--config",
+            "config/pick-place.toml",
+            "--foxglove-port",
+            &port.to_string(),
+        ],
+    );
+    let (code, job) = call(&server, "POST", "/api/jobs", &two_part_demo().to_string());
+    assert_eq!(code, 202, "{job}");
+    // The two passes take about 7 s; the peer listens through them and past the end.
+    let output = Command::new(&python)
+        .arg(repo_path("tests/peers/foxglove_program.py"))
+        .arg(format!("ws://127.0.0.1:{port}/"))
+        .arg("12")
+        .output()
+        .unwrap();
+    assert_succeeded_as(&output, "the peer");
+    let peer: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(peer["channel"]["encoding"], "json", "{}", peer["channel"]);
+    assert_eq!(peer["channel"]["schemaEncoding"], "jsonschema");
+    assert_eq!(peer["schema"]["title"], "rigbridge.Program");
+    let steps: Vec<&str> = peer["steps"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s.as_str().unwrap())
+        .collect();
+    for expected in [
+        "job.steps[2] repeat, pass 0 (slot[0]): job.steps[2].steps[2] grip",
+        "job.steps[2] repeat, pass 1 (slot[1]): job.steps[2].steps[8] release",
+        "job.steps[3] move_joints to home",
+    ] {
+        assert!(steps.contains(&expected), "{expected} not among {steps:#?}");
+    }
+    let last = &peer["last"];
+    assert_eq!(last["parts"].as_array().unwrap().len(), 12, "{last}");
+    // /scene draws the 12 parts; part_0 moved with the tool (tray to fixture, over 0.4 m
+    // apart), part_11 never did.
+    let positions = &peer["part_positions"];
+    assert_eq!(positions.as_object().unwrap().len(), 12, "{positions}");
+    let moved = |id: &str| positions[id].as_array().unwrap().len();
+    assert!(moved("part-part_0") > 10, "{}", positions["part-part_0"]);
+    assert_eq!(moved("part-part_11"), 1, "{}", positions["part-part_11"]);
+    assert_eq!(last["judgement"]["placed"], 2, "{last}");
+    println!(
+        "/program: {} messages, {} steps seen",
+        peer["messages"],
+        steps.len()
+    );
+}

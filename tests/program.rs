@@ -207,8 +207,27 @@ fn the_motion_demo_completes_against_the_twin_with_cycle_times_per_step_and_pass
         .sum();
     let planned = report["planned_duration_s"].as_f64().unwrap();
     assert!((total - planned).abs() < 0.005, "{total} vs {planned}");
+    // Streamed without a pause or a stall, each pass took its planned time, measured on
+    // the clock (within a cycle of each end: the record follows the target sent).
+    let measured = report["measured_cycle_times"]["laps"].as_array().unwrap();
+    assert_eq!(measured.len(), 12, "{}", report["measured_cycle_times"]);
+    for (lap, took) in laps.iter().zip(measured) {
+        let (planned, took) = (
+            lap["duration_s"].as_f64().unwrap(),
+            took["duration_s"].as_f64().unwrap(),
+        );
+        assert!(
+            (took - planned).abs() <= 0.0081,
+            "pass {}: planned {planned} s, measured {took} s",
+            lap["index"]
+        );
+    }
     let summary = String::from_utf8_lossy(&output.stdout);
-    assert!(summary.contains("cycle times (planned):"), "{summary}");
+    assert!(
+        summary
+            .contains("cycle times (planned | measured on the clock, pauses and waits included):"),
+        "{summary}"
+    );
     // Each repeat's passes are listed under it, before the next step.
     let repeat = summary
         .find("job.steps[1] repeat: ")
@@ -220,6 +239,210 @@ fn the_motion_demo_completes_against_the_twin_with_cycle_times_per_step_and_pass
         .find("job.steps[2] ")
         .expect("the step after the repeat");
     assert!(repeat < last_pass && last_pass < next_step, "{summary}");
+}
+
+/// A live sink that pauses the job at its cycle `at` and resumes it `cycles` cycles later.
+struct PauseLever<'a> {
+    control: &'a rigbridge::stream::StreamControl,
+    at: u64,
+    cycles: u64,
+    seen: u64,
+}
+
+impl rigbridge::stream::CycleSink for PauseLever<'_> {
+    fn record(&mut self, _: &rigbridge::stream::CycleRecord) {
+        if self.seen == self.at {
+            self.control.pause();
+        }
+        if self.seen == self.at + self.cycles {
+            self.control.resume();
+        }
+        self.seen += 1;
+    }
+}
+
+#[test]
+fn a_pause_mid_program_lengthens_the_measured_time_of_its_step_by_the_pause() {
+    let dir = demo_dir("pause");
+    let steps = serde_json::json!([
+        { "kind": "move_joints", "to": "home" },
+        { "kind": "move_poses", "to": "over_pillar", "speed": 0.3 },
+        { "kind": "move_joints", "to": "home" },
+    ]);
+    std::fs::write(dir.join("pause.toml"), settings_text(&steps)).unwrap();
+    let settings = load_run_settings(&dir.join("pause.toml")).unwrap();
+    let mut link = rigbridge::daemon::loopback_twin(&settings).unwrap();
+    let clock = rigbridge::clock::VirtualClock::new();
+    let control = rigbridge::stream::StreamControl::default();
+    let planned =
+        rigbridge::daemon::plan_for(&settings, &settings.config.job, &mut link, &clock, &control)
+            .unwrap();
+    let period = settings.period().as_secs_f64();
+    let plan = settings
+        .config
+        .job
+        .cycle_times(&planned.origins, planned.trajectory.period)
+        .unwrap();
+    let paused_step = &plan.steps[1];
+    assert!(paused_step.duration_s > 1.0, "{plan:?}");
+    // Paused 0.3 s into the move for 2 s: the ramps down and up (at most 0.3 s each at the
+    // plan's slowdown rate) stay inside it.
+    const PAUSE_CYCLES: u64 = 500;
+    let mut lever = PauseLever {
+        control: &control,
+        at: ((paused_step.start_s + 0.3) / period).round() as u64,
+        cycles: PAUSE_CYCLES,
+        seen: 0,
+    };
+    let sinks = rigbridge::daemon::Sinks {
+        live: &mut lever,
+        actions: None,
+        executor: None,
+    };
+    let report = rigbridge::daemon::stream_planned_with(
+        &settings, &planned, &mut link, &clock, None, &control, sinks,
+    )
+    .unwrap();
+    assert_eq!(
+        report.stream.outcome.to_string(),
+        "completed",
+        "{:?}",
+        report.stream
+    );
+    let measured = report
+        .measured_cycle_times
+        .expect("a program's measured times");
+    assert_eq!(measured.steps.len(), plan.steps.len(), "{measured:?}");
+    let pause_s = PAUSE_CYCLES as f64 * period;
+    for (k, (planned, took)) in plan.steps.iter().zip(&measured.steps).enumerate() {
+        assert_eq!(planned.step, took.step);
+        let extra = took.duration_s - planned.duration_s;
+        println!(
+            "{} {}: planned {:.3} s, measured {:.3} s ({extra:+.3} s)",
+            planned.step, planned.what, planned.duration_s, took.duration_s
+        );
+        // The ramps are symmetric: what the path lags behind on the way down it makes up
+        // on the way up, so the step takes the held time longer, within a few cycles.
+        let expected = if k == 1 { pause_s } else { 0.0 };
+        assert!(
+            (extra - expected).abs() <= 5.0 * period,
+            "{}: planned {} s, measured {} s, expected {expected} s more",
+            planned.step,
+            planned.duration_s,
+            took.duration_s
+        );
+    }
+    // The planned times stay the plan's: the report says which is which.
+    assert_eq!(report.cycle_times.unwrap(), plan);
+}
+
+/// The demo's program over two slots only: a few seconds of wall-clock time.
+fn two_part_demo() -> serde_json::Value {
+    let text = std::fs::read_to_string(repo_path("config/pick-place.toml")).unwrap();
+    let text = text.replace("over = \"slot\"", "over = [\"slot[0]\", \"slot[1]\"]");
+    assert!(
+        text.contains("slot[1]"),
+        "the demo's repeat is over the grid"
+    );
+    let table: toml::Value = toml::from_str(&text).unwrap();
+    serde_json::to_value(&table["job"]).unwrap()
+}
+
+#[test]
+fn the_live_frames_name_the_program_step_as_it_advances_and_show_the_parts_placed() {
+    let dir = demo_dir("live");
+    std::fs::write(dir.join("good.toml"), settings_text(&good_steps())).unwrap();
+    let settings = load_run_settings(&dir.join("good.toml")).unwrap();
+    let server = in_process::start(vec![settings], in_process::options(dir.join("runs")));
+    let (mut socket, _) =
+        tungstenite::connect(format!("ws://{}/api/live", server.address)).unwrap();
+    if let tungstenite::stream::MaybeTlsStream::Plain(stream) = socket.get_ref() {
+        stream
+            .set_read_timeout(Some(std::time::Duration::from_secs(60)))
+            .unwrap();
+    }
+    let body = serde_json::json!({ "job": two_part_demo() });
+    let (code, answer) = request_json(
+        &server.address.to_string(),
+        "POST",
+        "/api/jobs",
+        "",
+        &body.to_string(),
+    );
+    assert!(code < 300, "{code}: {answer}");
+    // Every frame until the job has ended: the steps named, in the order shown, and the
+    // twin's judgement and part poses as they came.
+    let mut steps: Vec<usize> = Vec::new();
+    let mut texts: Vec<String> = Vec::new();
+    let mut scene_parts = 0;
+    let mut carried_moved = false;
+    let mut last_program = serde_json::Value::Null;
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    let mut carried_at: Option<Vec<f64>> = None;
+    loop {
+        assert!(std::time::Instant::now() < deadline, "the job did not end");
+        let tungstenite::Message::Text(text) = socket.read().unwrap() else {
+            continue;
+        };
+        let message: serde_json::Value = serde_json::from_str(&text).unwrap();
+        if message["type"] == "scene" {
+            scene_parts = message["parts"].as_array().map_or(0, Vec::len);
+            continue;
+        }
+        let program = &message["program"];
+        if let Some(index) = program["step"]["index"].as_u64() {
+            let index = index as usize;
+            if steps.last() != Some(&index) {
+                steps.push(index);
+                texts.push(program["step"]["text"].as_str().unwrap().to_string());
+            }
+        }
+        // While part_0 is carried its solid moves with the tool, frame by frame.
+        if program["judgement"]["per_part"][0]["state"] == "carried" {
+            let here: Vec<f64> = program["parts"][0]["position"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_f64().unwrap())
+                .collect();
+            if let Some(before) = &carried_at {
+                carried_moved |= before.iter().zip(&here).any(|(a, b)| (a - b).abs() > 0.01);
+            }
+            carried_at = Some(here);
+        }
+        if !program.is_null() {
+            last_program = program.clone();
+        }
+        let state = &message["job"]["state"];
+        if state == "idle" && !steps.is_empty() {
+            break;
+        }
+    }
+    server.stop().unwrap().unwrap();
+    assert_eq!(scene_parts, 12, "the scene carries the cell's 12 parts");
+    // The steps advance in order, through both passes, each seen.
+    assert!(
+        steps.windows(2).all(|w| w[0] < w[1]),
+        "steps out of order: {steps:?}"
+    );
+    assert!(steps.len() >= 10, "few steps seen: {texts:#?}");
+    for expected in [
+        "job.steps[2] repeat, pass 0 (slot[0]): job.steps[2].steps[1] move_linear to slot[0]",
+        "job.steps[2] repeat, pass 1 (slot[1]): job.steps[2].steps[2] grip",
+    ] {
+        assert!(
+            texts.iter().any(|t| t.starts_with(expected)),
+            "{expected} not seen in {texts:#?}"
+        );
+    }
+    assert!(carried_moved, "the carried part did not move with the tool");
+    let judgement = &last_program["judgement"];
+    assert_eq!(judgement["placed"], 2, "{judgement}");
+    assert_eq!(judgement["never_picked"], 10, "{judgement}");
+    assert_eq!(judgement["collisions"], 0, "{judgement}");
+    // The placed parts are drawn at the fixture: part_0 where the judge measured it.
+    assert_eq!(judgement["per_part"][0]["state"], "placed", "{judgement}");
+    println!("steps shown: {}", texts.join(" | "));
 }
 
 /// What `run` and `serve` say of a program with I/O when the controller speaks protocol v2.
@@ -250,7 +473,7 @@ fn the_full_demo_places_12_of_12_parts_within_1_mm_and_1_deg_with_no_collision()
     let parts = &report["parts"];
     assert_eq!(parts["parts"], 12, "{parts}");
     assert_eq!(parts["placed"], 12, "{parts}");
-    for fate in ["dropped", "never_picked", "carried", "collisions"] {
+    for fate in ["dropped", "never_picked", "carried", "collisions", "struck"] {
         assert_eq!(parts[fate], 0, "{fate}: {parts}");
     }
     for part in parts["per_part"].as_array().unwrap() {
@@ -289,6 +512,55 @@ fn the_full_demo_places_12_of_12_parts_within_1_mm_and_1_deg_with_no_collision()
         summary.contains("cycle time per part (measured"),
         "{summary}"
     );
+}
+
+#[test]
+fn a_carried_part_driven_through_a_resting_one_is_judged_a_collision_of_the_carried_part() {
+    let dir = demo_dir("through");
+    // slot[0]'s part, picked and carried sideways at the tray's height into slot[1], where
+    // part_1 rests: the plan knows no parts, so it streams; the twin's judge tells.
+    let steps = serde_json::json!([
+        { "kind": "move_joints", "to": "home" },
+        { "kind": "release" },
+        { "kind": "move_poses", "to": "slot[0]", "offset_m": [0.0, 0.0, -0.1] },
+        { "kind": "move_linear", "to": "slot[0]", "speed": 0.5 },
+        { "kind": "grip" },
+        { "kind": "move_linear", "to": "slot[1]", "speed": 0.5 },
+        { "kind": "release" },
+        { "kind": "move_linear", "to": "slot[1]", "offset_m": [0.0, 0.0, -0.1] },
+        { "kind": "move_joints", "to": "home" },
+    ]);
+    std::fs::write(dir.join("job.toml"), settings_text(&steps)).unwrap();
+    let (output, report) = run(&dir, &dir.join("job.toml"));
+    assert!(output.status.success(), "{report}");
+    let parts = &report["parts"];
+    assert_eq!(parts["collisions"], 1, "{parts}");
+    let carried = &parts["per_part"][0];
+    assert_eq!(carried["collided_with"], "part_1", "{carried}");
+    assert!(
+        carried["collision_cycles"].as_u64().unwrap() > 0,
+        "{carried}"
+    );
+    // Driven the whole 50 mm pitch onto it: far deeper than a touch (24 mm blocks).
+    assert!(
+        carried["collision_depth_mm"].as_f64().unwrap() > 10.0,
+        "{carried}"
+    );
+    // The resting part is struck by the gripper's fingers on the way too.
+    let resting = &parts["per_part"][1];
+    assert_eq!(resting["state"], "never_picked", "{resting}");
+    assert!(resting["struck_cycles"].as_u64().unwrap() > 0, "{resting}");
+    assert_eq!(parts["struck"], 1, "{parts}");
+    // No other part was touched.
+    for part in &parts["per_part"].as_array().unwrap()[2..] {
+        assert_eq!(part["struck_cycles"], 0, "{part}");
+    }
+    let summary = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        summary.contains("1 with collisions; 1 struck at rest by the robot"),
+        "{summary}"
+    );
+    assert!(summary.contains("collided with part_1"), "{summary}");
 }
 
 #[test]

@@ -2,8 +2,8 @@
 //! target, and the pose target it must end at) and `[gripper]` (how long the tool takes to
 //! close or open and how near a part must lie to be grasped). Owns their format and their
 //! checks on load, every error naming the file, the key and the value. What the parts do
-//! (grasped, carried, released, judged) is the twin's (`twin::gripper`); a part is no
-//! object of the collision model (it moves).
+//! (grasped, carried, released, judged, obstacles while they rest) is the twin's
+//! (`twin::gripper`); a part is no object of the cell's own collision model (it moves).
 
 use super::targets::{Spot, Targets};
 use crate::rig::ConfigError;
@@ -20,6 +20,10 @@ pub const DEFAULT_CLOSING_S: f64 = 0.2;
 pub const DEFAULT_GRASP_ZONE_M: f64 = 0.005;
 /// How far (deg) a part's orientation may differ from the TCP's to be grasped, by default.
 pub const DEFAULT_GRASP_ZONE_DEG: f64 = 5.0;
+/// A part placed on its goal is taken in there by default: the goal of a pick-and-place
+/// cell is most often a machine's fixture that takes each part in (the demo's), and parts
+/// left there would stack at one pose.
+pub const DEFAULT_TAKEN_AT_GOAL: bool = true;
 /// Most parts a cell may hold: a tray of 100 x 100 (as a grid's side).
 const MAX_PARTS: usize = 10_000;
 /// Longest closing time (s) accepted: slower is a typo for milliseconds.
@@ -61,6 +65,9 @@ pub struct Part {
     pub goal_name: String,
     /// Its solid, in its grasp frame.
     pub solid: Collision,
+    /// Whether its goal takes it in once it is placed there (a machine's fixture, a
+    /// conveyor): it is then no obstacle; otherwise it rests there as one (a pallet).
+    pub taken_at_goal: bool,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -80,6 +87,7 @@ pub(crate) struct RawPart {
     at: String,
     goal: String,
     solid: RawSolid,
+    taken_at_goal: Option<bool>,
 }
 
 pub(crate) fn gripper_of(
@@ -171,6 +179,7 @@ pub(crate) fn parts_of(
             solid: part
                 .solid
                 .validate(file, &format!("{key}.solid"), read_mesh)?,
+            taken_at_goal: part.taken_at_goal.unwrap_or(DEFAULT_TAKEN_AT_GOAL),
         });
     }
     Ok(parts)

@@ -363,7 +363,7 @@ fn print_summary(report: &RunReport) -> anyhow::Result<()> {
         &report.stream,
     )?;
     if let Some(times) = &report.cycle_times {
-        print_cycle_times(times)?;
+        print_cycle_times(times, report.measured_cycle_times.as_ref())?;
     }
     if let Some(parts) = &report.parts {
         print_parts(parts)?;
@@ -378,7 +378,7 @@ fn print_summary(report: &RunReport) -> anyhow::Result<()> {
 /// time per part, and every part that was not placed.
 fn print_parts(parts: &rigbridge::twin::CellJudgement) -> anyhow::Result<()> {
     say!(
-        "  parts (the twin's judge): {} of {} placed within {} mm and {} deg; {} dropped, {} never picked, {} still held; {} with collisions",
+        "  parts (the twin's judge): {} of {} placed within {} mm and {} deg; {} dropped, {} never picked, {} still held; {} with collisions; {} struck at rest by the robot",
         parts.placed,
         parts.parts,
         parts.placed_within_mm,
@@ -386,7 +386,8 @@ fn print_parts(parts: &rigbridge::twin::CellJudgement) -> anyhow::Result<()> {
         parts.dropped,
         parts.never_picked,
         parts.carried,
-        parts.collisions
+        parts.collisions,
+        parts.struck
     );
     say!(
         "    worst placed: {:.4} mm, {:.4} deg from the goal",
@@ -402,6 +403,15 @@ fn print_parts(parts: &rigbridge::twin::CellJudgement) -> anyhow::Result<()> {
         "    cycle time per part (measured, pick to pick, s): {}",
         times.join(", ")
     );
+    for part in parts.per_part.iter().filter(|p| p.struck_cycles > 0) {
+        say!(
+            "    {} struck at rest by {} ({:.2} mm deep, {} cycles)",
+            part.name,
+            part.struck_by.as_deref().unwrap_or("the robot"),
+            part.struck_depth_mm,
+            part.struck_cycles
+        );
+    }
     for part in parts.per_part.iter().filter(|p| p.state != "placed") {
         say!(
             "    {} ({} to {}): {}, {:.3} mm and {:.3} deg from it{}",
@@ -423,17 +433,39 @@ fn print_parts(parts: &rigbridge::twin::CellJudgement) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// A program's planned cycle time per step, each repeat's passes under it.
-fn print_cycle_times(times: &rigbridge::job::CycleTimes) -> anyhow::Result<()> {
-    say!("  cycle times (planned):");
+/// A program's cycle time per step, each repeat's passes under it: planned, and measured
+/// as the stream passed them (`not reached` for a step the job ended before).
+fn print_cycle_times(
+    times: &rigbridge::job::CycleTimes,
+    measured: Option<&rigbridge::job::CycleTimes>,
+) -> anyhow::Result<()> {
+    let shown = |t: Option<f64>| t.map_or("not reached".to_string(), |t| format!("{t:.3} s"));
+    say!("  cycle times (planned | measured on the clock, pauses and waits included):");
     for step in &times.steps {
-        say!("    {} {}: {:.3} s", step.step, step.what, step.duration_s);
+        let took = measured
+            .and_then(|m| m.steps.iter().find(|s| s.step == step.step))
+            .map(|s| s.duration_s);
+        say!(
+            "    {} {}: {:.3} s | {}",
+            step.step,
+            step.what,
+            step.duration_s,
+            shown(took)
+        );
         for lap in times.laps.iter().filter(|lap| lap.repeat == step.step) {
+            let took = measured
+                .and_then(|m| {
+                    m.laps
+                        .iter()
+                        .find(|l| l.repeat == lap.repeat && l.index == lap.index)
+                })
+                .map(|l| l.duration_s);
             say!(
-                "      pass {} ({}): {:.3} s",
+                "      pass {} ({}): {:.3} s | {}",
                 lap.index,
                 lap.target,
-                lap.duration_s
+                lap.duration_s,
+                shown(took)
             );
         }
     }

@@ -144,6 +144,7 @@ impl Halted {
             log_error: None,
             contacts: None,
             cycle_times: None,
+            measured_cycle_times: None,
             parts: None,
             line_after_stalls: Vec::new(),
         }
@@ -184,6 +185,11 @@ pub struct RunReport {
     /// (docs/programs.md); absent for other jobs.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub cycle_times: Option<crate::job::CycleTimes>,
+    /// The same steps and passes as the stream passed them, measured on the clock from one
+    /// step's end to the next: pauses, stalls, resumptions and I/O waits included; steps
+    /// not reached are absent (docs/programs.md, "Cycle times").
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub measured_cycle_times: Option<crate::job::CycleTimes>,
     /// The in-process twin's judgement of the cell's parts when the cell has some
     /// (docs/programs.md, "Parts and the judge"): each part's final pose against its goal,
     /// parts dropped or never picked, carried parts' collisions, the measured time from one
@@ -790,11 +796,18 @@ pub fn stream_job_with(
         .transpose()?;
     // The twin measures the job from its first cycle on.
     let _ = link.take_contacts();
+    let mut timed = Timed {
+        live,
+        timer: job
+            .job
+            .and_then(|j| j.step_spans(job.origins))
+            .map(crate::job::StepTimer::new),
+    };
     let io = resume::Streaming {
         settings,
         link: &mut *link,
         clock,
-        sink: live,
+        sink: &mut timed,
         control,
         events: None,
         executor,
@@ -841,6 +854,7 @@ pub fn stream_job_with(
         cycle_times: job
             .job
             .and_then(|j| j.cycle_times(job.origins, job.trajectory.period)),
+        measured_cycle_times: timed.timer.and_then(|timer| timer.measured()),
         parts: link.judgement(),
         line_after_stalls,
     })
@@ -864,6 +878,21 @@ fn line_after_stalls(
     match crate::log::read_log(path) {
         Ok(log) => line_check::after_stalls(settings, job, &log),
         Err(_) => Vec::new(),
+    }
+}
+
+/// The live sink, with a program's steps timed as the stream passes them.
+struct Timed<'a> {
+    live: &'a mut (dyn crate::stream::CycleSink + Send),
+    timer: Option<crate::job::StepTimer>,
+}
+
+impl crate::stream::CycleSink for Timed<'_> {
+    fn record(&mut self, cycle: &crate::stream::CycleRecord) {
+        if let Some(timer) = &mut self.timer {
+            timer.observe(cycle.at, cycle.on_job);
+        }
+        self.live.record(cycle);
     }
 }
 

@@ -13,7 +13,7 @@ use crate::link::{Link, LinkEvent};
 use crate::log::Recorder;
 use crate::protocol::{Command, ControllerStatus, Feedback};
 use crate::stream::{
-    AfterInterruption, CycleSink, Executor, Interruption, OnlineCommand, Outcome, Phase,
+    AfterInterruption, CycleSink, Executor, Interruption, JobOffset, OnlineCommand, Outcome, Phase,
     StreamControl, StreamError, StreamReport, StreamSettings, check_controller, fault_text, stream,
     stream_shared,
 };
@@ -309,6 +309,8 @@ pub fn stream_resuming(mut io: Streaming<'_>, trajectory: &Trajectory) -> Stream
     // A stop asked for already is the stream's to honour: it sends no target.
     io.control.enter(Phase::Streaming);
     let mut report = io.run(trajectory, &mut streaming);
+    // Where `remaining` begins on the job's trajectory (a program's steps are found by it).
+    let mut base = report.samples_done.min(trajectory.len().saturating_sub(1));
     let mut remaining = trajectory.tail(report.samples_done);
     while matches!(report.outcome, Outcome::LinkLost | Outcome::Stalled) {
         report.interruptions.push(Interruption {
@@ -320,6 +322,8 @@ pub fn stream_resuming(mut io: Streaming<'_>, trajectory: &Trajectory) -> Stream
                 .filter(|_| report.outcome == Outcome::Stalled),
             then: AfterInterruption::Resumed,
         });
+        // What streams from here until the rest of the path is not the job's path.
+        streaming.job_offset = None;
         if io.control.online().given() {
             // Online motion has no path to return to: from where the arm holds, the goal
             // it was moving to is given again (a jog waits for its next command).
@@ -341,14 +345,25 @@ pub fn stream_resuming(mut io: Streaming<'_>, trajectory: &Trajectory) -> Stream
         io.control.enter(Phase::Streaming);
         let mut rest = StreamSettings {
             start_scale: 0.0,
+            job_offset: Some(job_offset(trajectory, base)),
             ..streaming
         };
         let part = io.run(&remaining, &mut rest);
         streaming.first_seq = rest.first_seq;
+        base += part.samples_done.min(remaining.len().saturating_sub(1));
         remaining = remaining.tail(part.samples_done);
         report = report.merge(part);
     }
     report
+}
+
+/// Where a tail of `whole` from sample `from` begins on it: the sample, and the I/O points
+/// before it (a point at `from` itself runs again, as [`Trajectory::tail`] keeps it).
+fn job_offset(whole: &Trajectory, from: usize) -> JobOffset {
+    JobOffset {
+        sample: from,
+        io_done: whole.io_points().iter().filter(|p| p.sample < from).count(),
+    }
 }
 
 /// `report`, ended while resuming from its last interruption: that one says so, in the

@@ -440,6 +440,7 @@ fn foxglove_feed(
             name: cell.name(),
             rig: &cell.settings().rig,
             robot,
+            program: !cell.settings().cell.parts.is_empty(),
         })
         .collect();
     foxglove::FoxgloveFeed::new(&feed_cells)

@@ -39,7 +39,7 @@ pub use pasted::{PastedJobError, job_from_toml};
 pub use poses::PoseSpec;
 pub use program::{
     CycleTimes, LapTime, Move as ProgramMove, NoKeys, Over, Program, ProgramError, Repeat,
-    SetOutput, Step, StepTime, Wait, WaitInput, free_move_path,
+    SetOutput, Step, StepLabel, StepSpans, StepTime, StepTimer, Wait, WaitInput, free_move_path,
 };
 pub use wall_figure::{WallFigure, star_poses};
 
@@ -280,6 +280,15 @@ impl Job {
     pub fn cycle_times(&self, origins: &Origins, period: Duration) -> Option<CycleTimes> {
         match self {
             Job::Program(program) => program.cycle_times(origins, period),
+            _ => None,
+        }
+    }
+
+    /// A program's steps on its trajectory (`origins` its plan's), to find the step a
+    /// cycle is in and time them as they stream; `None` for other kinds.
+    pub fn step_spans(&self, origins: &Origins) -> Option<StepSpans> {
+        match self {
+            Job::Program(program) => program.step_spans(origins),
             _ => None,
         }
     }

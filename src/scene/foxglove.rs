@@ -26,6 +26,13 @@ pub const BODIES_PREFIX: &str = "bodies-";
 /// and `closest-1` (each in its own frame).
 pub const CLOSEST_PREFIX: &str = "closest-";
 const PAINT_PREFIX: &str = "paint-";
+/// The cell's parts: one entity each (`part-part_0`), replaced when it moves or is judged.
+pub const PART_PREFIX: &str = "part-";
+/// A part by the twin's judgement: at rest and not picked yet, carried, placed, dropped.
+const PART_AT_REST: Color = rgba(0.47, 0.47, 0.78, 0.8);
+const PART_CARRIED: Color = rgba(0.16, 0.47, 0.94, 0.9);
+const PART_PLACED: Color = rgba(0.16, 0.67, 0.27, 0.9);
+const PART_DROPPED: Color = rgba(0.85, 0.1, 0.1, 0.9);
 /// The colours of the page (`src/view/page`): pale walls, bark brown, the paint's blue.
 const WALL: Color = rgba(0.85, 0.85, 0.8, 0.6);
 const EDGE: Color = rgba(0.3, 0.3, 0.3, 1.0);
@@ -166,6 +173,46 @@ pub fn closest_update(
     }
     SceneUpdate {
         deletions,
+        entities,
+    }
+}
+
+/// The cell's parts at `poses` (the rig's base frame, `frame_id`), each `solids[i]` (in
+/// its own frame) coloured by `states[i]`, the twin's word for it (`placed`, `carried`,
+/// `dropped`, else at rest).
+pub fn parts_update(
+    solids: &[SolidView],
+    poses: &[PoseView],
+    states: &[&str],
+    frame_id: &str,
+    stamp: Timestamp,
+) -> SceneUpdate {
+    let entities = solids
+        .iter()
+        .zip(poses)
+        .enumerate()
+        .map(|(i, (solid, pose))| {
+            let colour = match states.get(i).copied() {
+                Some("placed") => PART_PLACED,
+                Some("carried") => PART_CARRIED,
+                Some("dropped") => PART_DROPPED,
+                _ => PART_AT_REST,
+            };
+            let placed = SolidView {
+                pose: *pose,
+                ..solid.clone()
+            };
+            SceneEntity {
+                timestamp: Some(stamp),
+                frame_id: frame_id.to_owned(),
+                id: format!("{PART_PREFIX}{}", solid.name),
+                triangles: vec![triangles(&placed, colour)],
+                ..SceneEntity::default()
+            }
+        })
+        .collect();
+    SceneUpdate {
+        deletions: Vec::new(),
         entities,
     }
 }

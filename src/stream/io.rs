@@ -73,6 +73,11 @@ impl IoRun {
         }
     }
 
+    /// The points done so far.
+    pub(super) fn done(&self) -> usize {
+        self.next
+    }
+
     /// The sample the path must not pass yet: the next point not done.
     pub(super) fn hold_at(&self) -> Option<usize> {
         self.points.get(self.next).map(|point| point.sample)

@@ -269,6 +269,29 @@ pub struct CycleRecord {
     pub latency_us: Option<f32>,
     /// The link's counters after this cycle.
     pub counters: LinkCounters,
+    /// The clock's reading when the cycle was recorded.
+    pub at: Duration,
+    /// Where the job's trajectory stood this cycle, when the stream follows it (none on an
+    /// approach back to the path after an interruption, or for online motion).
+    pub on_job: Option<JobPosition>,
+}
+
+/// A cycle's place on the job's whole trajectory (not the part streamed since the last
+/// resumption): what a program's step is found by, and its measured times.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct JobPosition {
+    /// The path's position, in samples from the job's first.
+    pub sample: f64,
+    /// The job's I/O points done so far (the path waits at the next one until it is).
+    pub io_done: usize,
+}
+
+/// Where a streamed trajectory begins on its job's whole one: its first sample, and the
+/// job's I/O points before it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct JobOffset {
+    pub sample: usize,
+    pub io_done: usize,
 }
 
 /// Where the cycle hands its records (the recorder, a live view). Must not block.
@@ -299,6 +322,9 @@ pub struct StreamSettings {
     pub tolerances: Tolerances,
     /// How online motion (jog, retarget) may use the rig.
     pub online: OnlineSettings,
+    /// Where the streamed trajectory begins on its job's (none: an approach, not the job's
+    /// path). Sets [`CycleRecord::on_job`].
+    pub job_offset: Option<JobOffset>,
 }
 
 /// A wake 5 cycles late (20 ms at 250 Hz) is a stall: the arm has had no new target for
@@ -321,6 +347,7 @@ impl StreamSettings {
             echo_patience_cycles: silent,
             tolerances: Tolerances::default(),
             online: OnlineSettings::default(),
+            job_offset: Some(JobOffset::default()),
         }
     }
 }
@@ -750,6 +777,8 @@ impl<'a, S: CycleSink + ?Sized> Run<'a, S> {
             late_us: cycle.last_late_us,
             latency_us: latency_us.map(|us| us as f32),
             counters: link.counters(),
+            at: clock.now(),
+            on_job: cycle.on_job(),
         });
         control.cycles.store(cycle.seq as u64, Ordering::Relaxed);
         control
@@ -927,6 +956,7 @@ struct Cycle {
     velocity_before: Option<AxisValues>,
     /// The trajectory's I/O points: where the path waits for the controller.
     io: io::IoRun,
+    job_offset: Option<JobOffset>,
 }
 
 impl Cycle {
@@ -967,7 +997,20 @@ impl Cycle {
             online: Online::new(rig, trajectory.period, settings.online),
             velocity_before: None,
             io: io::IoRun::new(trajectory),
+            job_offset: settings.job_offset,
         }
+    }
+
+    /// This cycle's place on the job's trajectory; none once online motion took over.
+    fn on_job(&self) -> Option<JobPosition> {
+        let offset = self.job_offset?;
+        if self.online.engaged() {
+            return None;
+        }
+        Some(JobPosition {
+            sample: offset.sample as f64 + self.path,
+            io_done: offset.io_done + self.io.done(),
+        })
     }
 
     fn progress(&self, trajectory: &Trajectory) -> f64 {

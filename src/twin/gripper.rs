@@ -2,8 +2,10 @@
 //! 1 closes, 0 opens, answered when its closing time has passed), the input `part_held`,
 //! and the cell's parts (issue 29): a part lying within the grasp zone when the gripper
 //! has closed is grasped, moves with the TCP while held, and stays where it is when the
-//! gripper has opened. While carried, a part is checked against the cell's objects every
-//! cycle. Then the judge: each part's final pose against its goal, parts dropped or never
+//! gripper has opened. A part at rest (at its start, or released anywhere but a goal that
+//! takes it in) is an obstacle: every cycle the carried part is checked against the cell's
+//! objects and the resting parts, and the robot's bodies and tool against the resting
+//! parts. Then the judge: each part's final pose against its goal, parts dropped or never
 //! picked, carried parts' collisions, and the time between one pick and the next (measured
 //! on the twin's cycles).
 //!
@@ -11,12 +13,13 @@
 //! (the twin's servo model does that), talk to a link, or allocate in a cycle that neither
 //! grasps nor releases.
 
-use crate::cell::{Cell, CollisionModel, Gripper, Part, Scratch, Tool};
+use crate::cell::{Cell, CellObject, CollisionModel, Gripper, Part, Scratch, Tool};
 use crate::protocol::{IoKind, IoMessage, IoResult, IoState};
 use crate::rig::{Rig, rotation_angle_between};
 use glam::{DAffine3, DQuat};
 use serde::Serialize;
 use std::collections::VecDeque;
+use std::sync::{Arc, Mutex, PoisonError};
 
 /// The gripper's output: 1 closes it, 0 opens it.
 pub const GRIPPER_OUTPUT: &str = "gripper";
@@ -60,6 +63,11 @@ pub struct PartJudgement {
     /// The deepest of them (mm) and the object, when there was one.
     pub collision_depth_mm: f64,
     pub collided_with: Option<String>,
+    /// Cycles in which a body of the robot or its tool sank into this part while it
+    /// rested, the deepest (mm) and the body.
+    pub struck_cycles: u64,
+    pub struck_depth_mm: f64,
+    pub struck_by: Option<String>,
 }
 
 /// The twin's verdict on the cell.
@@ -70,8 +78,10 @@ pub struct CellJudgement {
     pub dropped: usize,
     pub never_picked: usize,
     pub carried: usize,
-    /// Carried parts that sank into a cell object at least once.
+    /// Carried parts that sank into a cell object or a resting part at least once.
     pub collisions: usize,
+    /// Resting parts a body of the robot or its tool sank into at least once.
+    pub struck: usize,
     pub placed_within_mm: f64,
     pub placed_within_deg: f64,
     pub worst_position_error_mm: f64,
@@ -82,6 +92,32 @@ pub struct CellJudgement {
     pub per_part: Vec<PartJudgement>,
 }
 
+/// The parts as the twin last saw them, for the live page and Foxglove to draw and judge:
+/// every part's grasp frame (cell frame), refreshed each cycle one is carried (a `try_lock`
+/// that never waits: a cycle that finds a reader skips one refresh), and the judgement,
+/// renewed when a part is grasped or released.
+#[derive(Debug, Default)]
+pub struct PartsBoard {
+    state: Mutex<PartsNow>,
+}
+
+/// What a [`PartsBoard`] holds.
+#[derive(Debug, Clone, Default)]
+pub struct PartsNow {
+    /// Each part's grasp frame in the cell frame, in the cell's part order.
+    pub poses: Vec<DAffine3>,
+    pub judgement: Option<CellJudgement>,
+}
+
+impl PartsBoard {
+    pub fn read(&self) -> PartsNow {
+        self.state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+}
+
 struct PartState {
     part: Part,
     pose: DAffine3,
@@ -90,6 +126,38 @@ struct PartState {
     collision_cycles: u64,
     deepest: f64,
     collided_with: Option<String>,
+    struck: Contact,
+}
+
+/// The contacts of one part with one kind of body: cycles, the deepest and with what.
+#[derive(Debug, Clone, Default)]
+struct Contact {
+    cycles: u64,
+    deepest: f64,
+    with: Option<String>,
+}
+
+impl Contact {
+    /// One cycle's clearance `distance_m` to body `other`: counted when deeper than a touch.
+    fn observe(&mut self, distance_m: f64, other: &str) {
+        if distance_m >= -CONTACT_DEPTH_M {
+            return;
+        }
+        self.cycles += 1;
+        if -distance_m > self.deepest {
+            self.deepest = -distance_m;
+            if self.with.as_deref() != Some(other) {
+                self.with = Some(other.to_owned());
+            }
+        }
+    }
+}
+
+/// The robot's bodies and tool against the resting parts alone (the cell's objects are
+/// the contact watch's), rebuilt when a part is grasped or released.
+struct Resting {
+    model: CollisionModel,
+    scratch: Scratch,
 }
 
 /// The carried part as a tool of its own against the cell's objects.
@@ -119,6 +187,8 @@ pub struct TwinIo {
     kinematics: Option<Kinematics>,
     parts: Vec<PartState>,
     carried: Option<Carried>,
+    resting: Option<Resting>,
+    board: Arc<PartsBoard>,
     cycle: u64,
     /// Trouble the twin could not act on (a collision model that would not build), in words.
     pub trouble: Option<String>,
@@ -136,6 +206,8 @@ impl TwinIo {
             kinematics: None,
             parts: Vec::new(),
             carried: None,
+            resting: None,
+            board: Arc::default(),
             cycle: 0,
             trouble: None,
         }
@@ -154,9 +226,10 @@ impl TwinIo {
                 collision_cycles: 0,
                 deepest: 0.0,
                 collided_with: None,
+                struck: Contact::default(),
             })
             .collect();
-        TwinIo {
+        let mut io = TwinIo {
             gripper: cell.gripper,
             kinematics: Some(Kinematics {
                 rig_at_tcp: cell.rig_at_tcp(rig),
@@ -165,6 +238,36 @@ impl TwinIo {
             }),
             parts,
             ..TwinIo::bare(period_s)
+        };
+        io.rebuild_resting();
+        io.publish();
+        io
+    }
+
+    /// Where the parts are and the judgement, shared with the view; `None` without parts.
+    pub fn board(&self) -> Option<Arc<PartsBoard>> {
+        (!self.parts.is_empty()).then(|| self.board.clone())
+    }
+
+    /// Every part's pose and the judgement onto the board (a grasp, a release, the start).
+    fn publish(&self) {
+        let now = PartsNow {
+            poses: self.parts.iter().map(|state| state.pose).collect(),
+            judgement: self.judgement(),
+        };
+        *self
+            .board
+            .state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = now;
+    }
+
+    /// The carried part's pose onto the board, in place, unless a reader holds it.
+    fn publish_carried(&self, part: usize) {
+        if let Ok(mut board) = self.board.state.try_lock()
+            && let Some(pose) = board.poses.get_mut(part)
+        {
+            *pose = self.parts[part].pose;
         }
     }
 
@@ -259,6 +362,10 @@ impl TwinIo {
                 }
             }
         }
+        if let Some(part) = self.carried.as_ref().map(|c| c.part) {
+            self.publish_carried(part);
+        }
+        self.watch_resting(actual);
         let Travel::Moving(closing, left) = self.travel else {
             return;
         };
@@ -283,6 +390,95 @@ impl TwinIo {
         }
     }
 
+    /// The robot's bodies and tool against the resting parts at `actual`: the part a body
+    /// sank into counts the contact.
+    fn watch_resting(&mut self, actual: &[f64]) {
+        let Some(resting) = self.resting.as_mut() else {
+            return;
+        };
+        let clearance = resting.model.clearance(actual, &mut resting.scratch);
+        if clearance.distance_m >= -CONTACT_DEPTH_M {
+            return;
+        }
+        let (a, b) = (
+            resting.model.body_name(clearance.a),
+            resting.model.body_name(clearance.b),
+        );
+        let Some((state, body)) = self.parts.iter_mut().find_map(|state| {
+            if state.part.name == a {
+                Some((state, b))
+            } else if state.part.name == b {
+                Some((state, a))
+            } else {
+                None
+            }
+        }) else {
+            return;
+        };
+        state.struck.observe(clearance.distance_m, body);
+    }
+
+    /// Whether part `index` rests in the cell as an obstacle: not carried, and not placed
+    /// on a goal that takes it in.
+    fn rests(&self, index: usize) -> bool {
+        let state = &self.parts[index];
+        if self.carried.as_ref().is_some_and(|c| c.part == index) {
+            return false;
+        }
+        !(state.part.taken_at_goal && state.released_cycle.is_some() && placed(state))
+    }
+
+    /// The resting parts as cell objects (their solids where they lie).
+    fn resting_objects(&self) -> Vec<CellObject> {
+        (0..self.parts.len())
+            .filter(|&index| self.rests(index))
+            .map(|index| {
+                let state = &self.parts[index];
+                CellObject {
+                    name: state.part.name.clone(),
+                    pose: state.pose * state.part.solid.origin,
+                    shape: state.part.solid.shape.clone(),
+                }
+            })
+            .collect()
+    }
+
+    /// The models that see the resting parts, after a part was grasped or released (or at
+    /// the start): the robot's against them, and the carried part's against them and the
+    /// cell's objects.
+    fn rebuild_resting(&mut self) {
+        let Some(kinematics) = self.kinematics.as_ref() else {
+            return;
+        };
+        let objects = self.resting_objects();
+        self.resting = None;
+        if !objects.is_empty() {
+            match robot_against(kinematics, objects.clone()) {
+                Ok(model) => {
+                    let scratch = model.scratch();
+                    self.resting = Some(Resting { model, scratch });
+                }
+                Err(error) => self.trouble = Some(error.to_string()),
+            }
+        }
+        let Some(carried) = self.carried.as_ref() else {
+            return;
+        };
+        let (index, grip) = (carried.part, carried.grip);
+        match carried_model(kinematics, &self.parts[index].part, grip, objects) {
+            Ok(model) => {
+                let scratch = model.scratch();
+                self.carried = Some(Carried {
+                    part: index,
+                    grip,
+                    model,
+                    scratch,
+                });
+            }
+            Err(error) => self.trouble = Some(error.to_string()),
+        }
+    }
+
     fn tcp(&self, actual: &[f64]) -> Option<DAffine3> {
         let kinematics = self.kinematics.as_ref()?;
         let base_to_tcp = kinematics.rig_at_tcp.forward(actual).ok()?;
@@ -302,7 +498,7 @@ impl TwinIo {
             return;
         };
         let grip = tcp.inverse() * self.parts[index].pose;
-        match carried_model(kinematics, &self.parts[index].part, grip) {
+        match carried_model(kinematics, &self.parts[index].part, grip, Vec::new()) {
             Ok(model) => {
                 let scratch = model.scratch();
                 self.carried = Some(Carried {
@@ -314,6 +510,8 @@ impl TwinIo {
                 let state = &mut self.parts[index];
                 state.picked_cycle.get_or_insert(self.cycle);
                 state.released_cycle = None;
+                self.rebuild_resting();
+                self.publish();
             }
             Err(error) => self.trouble = Some(error.to_string()),
         }
@@ -322,6 +520,8 @@ impl TwinIo {
     fn release(&mut self) {
         if let Some(carried) = self.carried.take() {
             self.parts[carried.part].released_cycle = Some(self.cycle);
+            self.rebuild_resting();
+            self.publish();
         }
     }
 
@@ -338,11 +538,10 @@ impl TwinIo {
             .enumerate()
             .map(|(index, state)| {
                 let (distance, angle) = pose_error(&state.pose, &state.part.goal);
-                let within = distance <= PLACED_WITHIN_M && angle.to_degrees() <= PLACED_WITHIN_DEG;
                 let fate = match (state.picked_cycle, state.released_cycle) {
                     _ if carried == Some(index) => "carried",
                     (None, _) => "never_picked",
-                    (Some(_), Some(_)) if within => "placed",
+                    (Some(_), Some(_)) if placed(state) => "placed",
                     _ => "dropped",
                 };
                 PartJudgement {
@@ -356,6 +555,9 @@ impl TwinIo {
                     collision_cycles: state.collision_cycles,
                     collision_depth_mm: state.deepest * 1e3,
                     collided_with: state.collided_with.clone(),
+                    struck_cycles: state.struck.cycles,
+                    struck_depth_mm: state.struck.deepest * 1e3,
+                    struck_by: state.struck.with.clone(),
                 }
             })
             .collect();
@@ -382,6 +584,7 @@ impl TwinIo {
             never_picked: count("never_picked"),
             carried: count("carried"),
             collisions: per_part.iter().filter(|p| p.collision_cycles > 0).count(),
+            struck: per_part.iter().filter(|p| p.struck_cycles > 0).count(),
             placed_within_mm: PLACED_WITHIN_M * 1e3,
             placed_within_deg: PLACED_WITHIN_DEG,
             worst_position_error_mm: placed
@@ -398,6 +601,40 @@ impl TwinIo {
     }
 }
 
+/// Whether a part's grasp frame lies within the judge's tolerances of its goal.
+fn placed(state: &PartState) -> bool {
+    let (distance, angle) = pose_error(&state.pose, &state.part.goal);
+    distance <= PLACED_WITHIN_M && angle.to_degrees() <= PLACED_WITHIN_DEG
+}
+
+/// The robot's bodies and its tool against `objects` (the resting parts) alone: the
+/// cell's own objects are left out (the contact watch measures them), and so are the
+/// pairs of the robot's own bodies (the same).
+fn robot_against(
+    kinematics: &Kinematics,
+    objects: Vec<CellObject>,
+) -> Result<CollisionModel, crate::cell::CellError> {
+    let mut moving: Vec<&str> = kinematics
+        .rig
+        .bodies
+        .iter()
+        .map(|b| b.name.as_str())
+        .collect();
+    moving.extend(kinematics.cell.tool.as_ref().map(|tool| tool.name.as_str()));
+    let mut allowed = Vec::with_capacity(moving.len() * moving.len());
+    for (i, a) in moving.iter().enumerate() {
+        for b in &moving[i + 1..] {
+            allowed.push(((*a).to_owned(), (*b).to_owned()));
+        }
+    }
+    let cell = Cell {
+        objects,
+        allowed_pairs: allowed,
+        ..kinematics.cell.clone()
+    };
+    CollisionModel::new(&kinematics.rig, &cell)
+}
+
 /// Distance (m) and angle (rad) between two frames.
 fn pose_error(a: &DAffine3, b: &DAffine3) -> (f64, f64) {
     let rotation = |m: &DAffine3| DQuat::from_mat3(&m.matrix3);
@@ -407,12 +644,14 @@ fn pose_error(a: &DAffine3, b: &DAffine3) -> (f64, f64) {
     )
 }
 
-/// The cell's objects against the carried part alone, as a tool on the flange: its solid
-/// placed by the grasp (`grip`, the part's frame in the TCP's) behind the TCP.
+/// The cell's objects and the resting parts (`resting`) against the carried part alone,
+/// as a tool on the flange: its solid placed by the grasp (`grip`, the part's frame in the
+/// TCP's) behind the TCP.
 fn carried_model(
     kinematics: &Kinematics,
     part: &Part,
     grip: DAffine3,
+    resting: Vec<CellObject>,
 ) -> Result<CollisionModel, crate::cell::CellError> {
     let tcp = kinematics
         .cell
@@ -432,6 +671,13 @@ fn carried_model(
             tcp,
         }),
         allowed_pairs: Vec::new(),
+        objects: kinematics
+            .cell
+            .objects
+            .iter()
+            .cloned()
+            .chain(resting)
+            .collect(),
         ..kinematics.cell.clone()
     };
     CollisionModel::new(&rig, &cell)

@@ -25,7 +25,7 @@ pub mod server;
 mod world;
 
 pub use contact::{ContactReport, ContactWatch};
-pub use gripper::{CellJudgement, PartJudgement, TwinIo};
+pub use gripper::{CellJudgement, PartJudgement, PartsBoard, PartsNow, TwinIo};
 pub use world::{SharedWorld, TwinWorld, ViewOnly};
 
 use crate::protocol::{
@@ -226,6 +226,12 @@ impl Twin {
     /// The judge's verdict on the cell's parts so far (none without parts).
     pub fn judgement(&self) -> Option<CellJudgement> {
         self.io.judgement()
+    }
+
+    /// Where the cell's parts are and their judgement, as the twin goes (for the live page
+    /// and Foxglove); `None` for a cell without parts.
+    pub fn parts_board(&self) -> Option<std::sync::Arc<PartsBoard>> {
+        self.io.board()
     }
 
     /// The collision watch, when the twin has a cell.

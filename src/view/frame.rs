@@ -25,6 +25,9 @@ pub struct SceneMessage<'a> {
     pub scene: &'a SceneView,
     /// The running job's tool path and targets; `null` before the first job is planned.
     pub plan: Option<&'a super::PlanView>,
+    /// The cell's parts' solids, each in its own frame (a frame's `program.parts` poses
+    /// them); empty for a cell without parts or a remote controller.
+    pub parts: &'a [crate::scene::SolidView],
 }
 
 #[derive(Debug, Serialize)]
@@ -47,6 +50,9 @@ pub struct Frame {
     pub closest: Option<ClosestView>,
     pub link: LinkView,
     pub job: super::JobView,
+    /// The program's current step and the cell's parts; `null` for other jobs in a cell
+    /// without parts.
+    pub program: Option<super::ProgramView>,
 }
 
 /// The link and the cycle, as of the last streamed cycle.

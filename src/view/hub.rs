@@ -5,8 +5,10 @@
 
 use super::frame::{Frame, LinkView, Message, SceneMessage};
 use super::plan::PlanView;
+use super::program::{PartsDrawing, program_view};
 use super::solid::CellDrawing;
 use super::{JointLabel, LiveScene, LiveSlot};
+use crate::job::StepSpans;
 use crate::protocol::{AxisValues, ControllerStatus};
 use crate::rig::{JointKind, Rig};
 use crate::scene::{ClosestView, PaintQuad, SceneView};
@@ -68,6 +70,8 @@ struct HubState {
     view: SceneView,
     /// The running job's plan (tool path and targets), from when it was planned.
     plan: Option<PlanView>,
+    /// The running program's steps on its trajectory.
+    steps: Option<StepSpans>,
     frames: u64,
     /// (time, cycles) of recent frames, for the measured cycle rate.
     recent: VecDeque<(Duration, u64)>,
@@ -81,6 +85,8 @@ pub struct LiveHub {
     frame_rate_hz: f64,
     state: Mutex<HubState>,
     sender: broadcast::Sender<Arc<str>>,
+    /// The cell's parts as the in-process twin has them.
+    parts: Option<PartsDrawing>,
 }
 
 impl LiveHub {
@@ -101,6 +107,7 @@ impl LiveHub {
             state: Mutex::new(HubState {
                 view: scene.scene(),
                 plan: None,
+                steps: None,
                 scene,
                 cell: None,
                 closest: None,
@@ -109,7 +116,39 @@ impl LiveHub {
                 recent: VecDeque::new(),
             }),
             sender,
+            parts: None,
         }
+    }
+
+    /// Draws the cell's parts where the twin has them, with its judgement, in every frame.
+    pub fn with_parts(self, parts: PartsDrawing) -> Self {
+        LiveHub {
+            parts: Some(parts),
+            ..self
+        }
+    }
+
+    /// The running program's steps (none for other jobs): each frame names the step its
+    /// last cycle is in.
+    pub fn set_steps(&self, steps: Option<StepSpans>) {
+        self.state().steps = steps;
+    }
+
+    /// The cell's parts' solids, in the order a frame's `program.parts` poses them.
+    pub fn part_solids(&self) -> &[crate::scene::SolidView] {
+        self.parts
+            .as_ref()
+            .map_or(&[], |parts| parts.solids.as_slice())
+    }
+
+    /// The program view as of the latest sample (Foxglove's `/program`).
+    pub fn program_now(&self) -> Option<super::ProgramView> {
+        let sample = self.slot.latest();
+        program_view(
+            self.state().steps.as_ref(),
+            sample.on_job,
+            self.parts.as_ref(),
+        )
     }
 
     /// Draws `cell` (its objects, the tool, the rig's collision bodies) in every scene, and
@@ -144,6 +183,7 @@ impl LiveHub {
             frame_rate_hz: self.frame_rate_hz,
             scene: &state.view,
             plan: state.plan.as_ref(),
+            parts: self.part_solids(),
         });
         Arc::from(serde_json::to_string(&message).unwrap_or_default())
     }
@@ -177,6 +217,7 @@ impl LiveHub {
             }
             state.view = view;
             state.plan = plan;
+            state.steps = None;
             state.scene = scene;
             state.generation += 1;
             self.scene_message(&state)
@@ -253,6 +294,7 @@ impl LiveHub {
                 feedback_timeouts: sample.feedback_timeouts,
             },
             job,
+            program: program_view(state.steps.as_ref(), sample.on_job, self.parts.as_ref()),
         };
         drop(state);
         let text: Arc<str> =

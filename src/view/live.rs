@@ -32,6 +32,8 @@ pub struct LiveSample {
     pub counters: LinkCounters,
     /// Cycles without feedback since the slot was made.
     pub feedback_timeouts: u64,
+    /// The cycle's place on its job's trajectory (a program's step is found by it).
+    pub on_job: Option<crate::stream::JobPosition>,
 }
 
 impl LiveSample {
@@ -52,6 +54,7 @@ impl LiveSample {
             latency_max_us: 0.0,
             counters: LinkCounters::default(),
             feedback_timeouts: 0,
+            on_job: None,
         }
     }
 }
@@ -131,7 +134,11 @@ impl<'a> LiveSink<'a> {
     /// `cycles_per_window`: how many cycles the "last second" figures cover (the rate).
     pub fn new(slot: &'a LiveSlot, cycles_per_window: u64) -> Self {
         LiveSink {
-            sample: slot.latest(),
+            // A new stream: the last one's place on its job means nothing for this one.
+            sample: LiveSample {
+                on_job: None,
+                ..slot.latest()
+            },
             slot,
             late: WindowMax::new(cycles_per_window),
             latency: WindowMax::new(cycles_per_window),
@@ -153,6 +160,7 @@ impl CycleSink for LiveSink<'_> {
             sample.latency_max_us = self.latency.record(latency);
         }
         sample.counters = cycle.counters;
+        sample.on_job = cycle.on_job;
         match &cycle.feedback {
             Some(feedback) => {
                 sample.actual = feedback.positions;
@@ -195,6 +203,8 @@ mod tests {
                 frames_sent: u64::from(seq),
                 ..LinkCounters::default()
             },
+            at: std::time::Duration::from_millis(u64::from(seq) * 4),
+            on_job: None,
         }
     }
 

@@ -115,7 +115,7 @@ pub fn solid(name: &str, pose: DAffine3, shape: &Shape) -> SolidView {
     }
 }
 
-fn pose_view(pose: DAffine3) -> PoseView {
+pub(super) fn pose_view(pose: DAffine3) -> PoseView {
     let (_, rotation, translation) = pose.to_scale_rotation_translation();
     PoseView {
         position: translation.to_array(),

@@ -531,9 +531,19 @@ impl Cell {
             None => hub,
         };
         let link_name = settings.config.stream.link.clone();
-        let link = match link_name.parse::<LinkSpec>() {
-            Ok(LinkSpec::Loopback) | Err(_) => CellLink::Twin(Box::new(LoopbackLink::new(twin))),
-            Ok(_) => CellLink::Remote(None),
+        let in_process = matches!(
+            link_name.parse::<LinkSpec>(),
+            Ok(LinkSpec::Loopback) | Err(_)
+        );
+        // The parts are the in-process twin's: a remote controller does not tell them.
+        let hub = match twin.parts_board().filter(|_| in_process) {
+            Some(board) => hub.with_parts(crate::view::PartsDrawing::new(&settings.cell, board)),
+            None => hub,
+        };
+        let link = if in_process {
+            CellLink::Twin(Box::new(LoopbackLink::new(twin)))
+        } else {
+            CellLink::Remote(None)
         };
         // A remote controller's clearances are its own: the in-process twin is not used.
         let contacts = contacts.filter(|_| matches!(link, CellLink::Twin(_)));
@@ -1240,6 +1250,7 @@ impl Cell {
         // the tool's TCP, so that is the path shown.
         let plan_view = PlanView::of(&self.settings.tcp_rig, &plan.trajectory, &plan.origins);
         self.hub.set_job_scene(scene, Some(plan_view));
+        self.hub.set_steps(job.step_spans(&plan.origins));
         let rate = self.settings.config.stream.rate_hz.round() as u64;
         let mut live = LiveSink::new(self.hub.slot(), rate);
         // A device-paced link keeps its own pacing, on this thread.

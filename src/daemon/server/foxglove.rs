@@ -85,7 +85,24 @@ enum Kind {
     Tf,
     JointStates,
     Scene,
+    Program,
 }
+
+/// `/program`'s JSON schema (a cell with parts): the program's step and the twin's parts,
+/// as a live frame's `program` (docs/live-view.md, "Programs"; docs/foxglove.md).
+const PROGRAM_SCHEMA: &str = r#"{"title": "rigbridge.Program", "type": "object",
+ "properties": {
+  "step": {"type": ["object", "null"], "description": "the step the last streamed cycle is in",
+   "properties": {"index": {"type": "integer"}, "step": {"type": "string"}, "what": {"type": "string"},
+    "repeat": {"type": ["string", "null"]}, "pass": {"type": ["integer", "null"]},
+    "target": {"type": ["string", "null"]}, "text": {"type": "string"}}},
+  "parts": {"type": "array", "description": "each part's solid pose in the rig's base frame",
+   "items": {"type": "object", "properties": {"position": {"type": "array", "items": {"type": "number"}},
+    "orientation": {"type": "array", "items": {"type": "number"}}}}},
+  "judgement": {"type": ["object", "null"], "description": "the twin's judgement so far, as the run report's parts"}}}"#;
+/// `/program` goes out when it changes, and at least this often (ticks of the frame task,
+/// about a second) for a client that subscribed since.
+const PROGRAM_EVERY_TICKS: u64 = 50;
 
 /// One advertised channel.
 struct Channel {
@@ -94,8 +111,11 @@ struct Channel {
     kind: Kind,
     topic: String,
     schema_name: String,
-    /// The schema's `FileDescriptorSet`, base64 (the spec's encoding for protobuf).
+    /// The schema's `FileDescriptorSet`, base64 (the spec's encoding for protobuf); for a
+    /// JSON channel, its JSON schema as text.
     schema: String,
+    /// `protobuf`, or `json` for `/program`.
+    encoding: &'static str,
 }
 
 /// What one cell publishes, and how far it has followed its hub's scene.
@@ -104,6 +124,10 @@ struct CellFeed {
     tf: Option<u32>,
     joints: u32,
     scene: u32,
+    /// `/program`, for a cell with parts.
+    program: Option<u32>,
+    /// The `/program` message sent last.
+    program_sent: Option<String>,
     frame_id: String,
     /// The tf frame id of each frame of the rig (its collision bodies ride on them); empty
     /// for a rig without `/tf`.
@@ -154,6 +178,8 @@ pub struct FeedCell<'a> {
     pub name: &'a str,
     pub rig: &'a crate::rig::Rig,
     pub robot: Option<Arc<RobotDescription>>,
+    /// Whether the cell has parts: it then publishes `/program`.
+    pub program: bool,
 }
 
 impl FoxgloveFeed {
@@ -170,13 +196,26 @@ impl FoxgloveFeed {
             let id = u32::try_from(channels.len() + 1).unwrap_or(u32::MAX);
             let schema =
                 schema.unwrap_or_else(|| foxglove::Schema::new("", "protobuf", Vec::new()));
+            let (schema_name, schema, encoding) = match kind {
+                Kind::Program => (
+                    "rigbridge.Program".to_owned(),
+                    PROGRAM_SCHEMA.to_owned(),
+                    "json",
+                ),
+                _ => (
+                    schema.name,
+                    base64::engine::general_purpose::STANDARD.encode(&schema.data),
+                    "protobuf",
+                ),
+            };
             channels.push(Channel {
                 id,
                 cell,
                 kind,
                 topic,
-                schema_name: schema.name,
-                schema: base64::engine::general_purpose::STANDARD.encode(&schema.data),
+                schema_name,
+                schema,
+                encoding,
             });
             id
         };
@@ -203,12 +242,17 @@ impl FoxgloveFeed {
                 format!("{p}/scene"),
                 SceneUpdate::get_schema(),
             );
+            let program = cell
+                .program
+                .then(|| add(index, Kind::Program, format!("{p}/program"), None));
             let names: Vec<String> = cell.rig.joint_names().map(str::to_owned).collect();
             feeds.push(Mutex::new(CellFeed {
                 messages: RobotMessages::new(cell.robot.clone(), &names),
                 tf,
                 joints,
                 scene,
+                program,
+                program_sent: None,
                 frame_id: cell.rig.base_frame.clone(),
                 body_frames: cell
                     .robot
@@ -306,6 +350,41 @@ impl FoxgloveFeed {
         if let Some(mark) = mark {
             self.send(feed.scene, now, &mark);
         }
+        if let Some(channel) = feed.program {
+            self.publish_program(feed, channel, hub, now);
+        }
+    }
+
+    /// `/program` as JSON when it changed since the last one sent, or a second has passed.
+    fn publish_program(&self, feed: &mut CellFeed, channel: u32, hub: &LiveHub, now: u64) {
+        let Some(program) = hub.program_now() else {
+            return;
+        };
+        let text = serde_json::to_string(&program).unwrap_or_default();
+        let due = feed.ticks % PROGRAM_EVERY_TICKS == 1;
+        if !due && feed.program_sent.as_deref() == Some(text.as_str()) {
+            return;
+        }
+        let _ = self.sender.send(Arc::new(Outgoing {
+            channel,
+            time_ns: now,
+            payload: text.clone().into_bytes(),
+        }));
+        feed.program_sent = Some(text);
+        // The parts where they are now, in `/scene`.
+        let states: Vec<&str> = program
+            .judgement
+            .as_ref()
+            .map(|j| j.per_part.iter().map(|p| p.state).collect())
+            .unwrap_or_default();
+        let parts = crate::scene::foxglove::parts_update(
+            hub.part_solids(),
+            &program.parts,
+            &states,
+            &feed.frame_id,
+            timestamp(now),
+        );
+        self.send(feed.scene, now, &parts);
     }
 
     fn send(&self, channel: u32, time_ns: u64, message: &impl Encode) {
@@ -338,10 +417,10 @@ impl FoxgloveFeed {
                 serde_json::json!({
                     "id": c.id,
                     "topic": c.topic,
-                    "encoding": "protobuf",
+                    "encoding": c.encoding,
                     "schemaName": c.schema_name,
                     "schema": c.schema,
-                    "schemaEncoding": "protobuf",
+                    "schemaEncoding": if c.encoding == "json" { "jsonschema" } else { "protobuf" },
                 })
             })
             .collect();

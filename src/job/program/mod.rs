@@ -12,9 +12,11 @@
 //! carries no I/O refuses a program that uses one before motion
 //! ([`Program::first_io_step`]). Must not stream, open a link or drive I/O itself.
 
+mod progress;
 mod steps;
 mod timing;
 
+pub use progress::{StepLabel, StepSpans, StepTimer};
 pub use steps::{Move, NoKeys, Over, Repeat, SetOutput, Step, Wait, WaitInput};
 pub use timing::{ProgramError, free_move_path};
 
@@ -91,6 +93,13 @@ impl Program {
         first(&self.steps, "job.steps")
     }
 
+    /// Each op's end on the program's trajectory (`origins`, one stretch per op as
+    /// [`Program::plan`] names them): what finds the step a streamed cycle is in, and
+    /// times the steps as they stream.
+    pub fn step_spans(&self, origins: &Origins) -> Option<StepSpans> {
+        StepSpans::new(self.compiled.as_deref()?, origins)
+    }
+
     /// The cycle time of each step and of each pass of each repeat, from the planned
     /// trajectory's stretches (`origins`, one per op as [`Program::plan`] names them).
     pub fn cycle_times(&self, origins: &Origins, period: Duration) -> Option<CycleTimes> {
@@ -140,9 +149,10 @@ pub struct LapTime {
     pub steps: Vec<StepTime>,
 }
 
-/// A program's planned cycle times: per step as written (a repeat whole) and per pass of
-/// each repeat. Planned at full speed override without pauses: what the arm takes when
-/// the job streams as planned (the report's outcome says whether it did).
+/// A program's cycle times: per step as written (a repeat whole) and per pass of each
+/// repeat. Planned ([`Program::cycle_times`]): at full speed override without pauses, what
+/// the arm takes when the job streams as planned. Measured ([`StepTimer::measured`]): the
+/// clock's time from one step's end to the next as the stream passed them.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct CycleTimes {
     pub steps: Vec<StepTime>,

@@ -17,6 +17,9 @@ const health = {
   sceneCylinders: 0,
   sceneSolids: 0,
   sceneBodies: 0,
+  // The cell's parts drawn, and the program's step as last shown.
+  sceneParts: 0,
+  programStep: '',
   // The running job's plan as drawn: tool path points and targets.
   planPoints: 0,
   planTargets: 0,
@@ -253,6 +256,8 @@ function setScene(message) {
   solidTriangles = scene.solids.map((s) => ({ name: s.name, triangles: posed(s.triangles, s.pose) }));
   health.sceneSolids = scene.solids.length;
   health.sceneBodies = scene.bodies.length;
+  partSolids = message.parts || [];
+  health.sceneParts = partSolids.length;
   plan = message.plan || null;
   health.planPoints = plan ? plan.tool_path.length : 0;
   health.planTargets = plan ? plan.targets.length : 0;
@@ -422,6 +427,43 @@ function solidDrawables(v, triangles, colour, out) {
   }
 }
 
+// The cell's parts' solids (each in its own frame; a frame's program.parts poses them),
+// coloured by the twin's judgement of each: at rest or carried, placed, dropped.
+let partSolids = [];
+const PART_COLOURS = {
+  never_picked: [[120, 120, 200], 0.8],
+  carried: [[40, 120, 240], 0.9],
+  placed: [[40, 170, 70], 0.9],
+  dropped: [[215, 25, 25], 0.9],
+};
+
+function partDrawables(v, frame, out) {
+  const program = frame && frame.program;
+  if (!program) return;
+  const judged = (program.judgement && program.judgement.per_part) || [];
+  partSolids.forEach((part, i) => {
+    const pose = program.parts[i];
+    if (!pose) return;
+    const state = judged[i] ? judged[i].state : 'never_picked';
+    solidDrawables(v, posed(part.triangles, pose), PART_COLOURS[state] || PART_COLOURS.never_picked, out);
+  });
+}
+
+// The program's step and the twin's tally of the parts, in words.
+function programText(program) {
+  if (!program) return ['', ''];
+  const step = program.step ? program.step.text : '';
+  health.programStep = step;
+  const j = program.judgement;
+  const parts = j
+    ? 'parts: ' + j.placed + ' of ' + j.parts + ' placed, ' + j.carried + ' carried, ' + j.dropped +
+      ' dropped, ' + j.never_picked + ' not picked yet; ' + j.collisions + ' carried with collisions, ' +
+      j.struck + ' struck at rest (worst placed ' + j.worst_position_error_mm.toFixed(3) + ' mm, ' +
+      j.worst_orientation_error_deg.toFixed(3) + ' deg)'
+    : '';
+  return [step, parts];
+}
+
 // The closest pair's names when it is marked, and its colour.
 function closestMark(frame) {
   const closest = frame && frame.closest;
@@ -433,6 +475,7 @@ function cellDrawables(v, frame, out) {
   const mark = closestMark(frame);
   const colourOf = (name, normal) => (mark && mark.names.includes(name) ? mark.colour : normal);
   for (const s of solidTriangles) solidDrawables(v, s.triangles, colourOf(s.name, OBJECT_COLOUR), out);
+  partDrawables(v, frame, out);
   if (!frame || !frame.bodies) return;
   scene.bodies.forEach((body, i) => {
     const pose = frame.bodies[i];
@@ -663,6 +706,9 @@ function showStatus(frame) {
   document.getElementById('job-progress').value = job.progress;
   document.getElementById('job-percent').textContent = (100 * job.progress).toFixed(1) + ' %';
   document.getElementById('job-last').textContent = job.last ? 'last job: ' + job.last : '';
+  const [step, parts] = programText(frame.program);
+  document.getElementById('program-step').textContent = step ? 'step: ' + step : '';
+  document.getElementById('program-parts').textContent = parts;
   // The cell's closest pair, while it is within the margin (or touching).
   const closest = frame.closest;
   document.getElementById('closest').textContent = closest
