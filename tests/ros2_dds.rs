@@ -422,18 +422,30 @@ fn the_middleware_settings_are_checked_and_motion_over_dds_needs_consent() {
         range_on_zenoh.contains("ros2.discovery_range") && range_on_zenoh.contains("subnet"),
         "{range_on_zenoh}"
     );
-    // Over DDS there is no login: motion needs the explicit consent to go without one,
-    // and a Zenoh user is refused.
+    // Over DDS there is no login: motion needs the explicit consent to go without one
+    // (refused on load without it), and a Zenoh login does not stand in for it (refused
+    // when the node starts, before anything streams).
     let unconsented = load_error(&dir, "accept_motion = true\n");
     assert!(
         unconsented.contains("ros2.accept_motion")
             && unconsented.contains("allow_unauthenticated_motion"),
         "{unconsented}"
     );
-    let user = load_error(&dir, "user = \"arm\"\npassword_file = \"pw\"\n");
+    std::fs::write(dir.join("pw"), "secret\n").unwrap();
+    let config = settings(
+        &dir,
+        "domain_id = 43\naccept_motion = true\nuser = \"arm\"\npassword_file = \"pw\"\n",
+    );
+    let output = serve_command(&dir.join("runs"))
+        .arg("--config")
+        .arg(&config)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "{stderr}");
     assert!(
-        user.contains("ros2.user") && user.contains("Zenoh"),
-        "{user}"
+        stderr.contains("Zenoh login") && stderr.contains("allow_unauthenticated_motion"),
+        "{stderr}"
     );
     let tolerance = load_error(&dir, "path_tolerance = -0.1\n");
     assert!(

@@ -269,26 +269,6 @@ impl Ros2Config {
         }
         self.check_tolerances(file)?;
         self.login = self.read_login(file)?;
-        let dds = self.zenoh_connect.is_none();
-        if dds && let Some(user) = &self.user {
-            return Err(ConfigError::invalid(
-                file,
-                "ros2.user",
-                user,
-                "is a Zenoh login; over DDS (no ros2.zenoh_connect) there is no login \
-                 (docs/ros2.md)",
-            ));
-        }
-        if dds && self.accept_motion && !self.allow_unauthenticated_motion {
-            return Err(ConfigError::invalid(
-                file,
-                "ros2.accept_motion",
-                true,
-                "over DDS needs ros2.allow_unauthenticated_motion = true: DDS without DDS \
-                 Security (SROS2, not built in) lets anyone on the discovery range send \
-                 goals, so only on an isolated network (docs/ros2.md)",
-            ));
-        }
         if self.accept_motion && self.login.is_none() && !self.allow_unauthenticated_motion {
             return Err(ConfigError::invalid(
                 file,

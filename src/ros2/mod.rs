@@ -130,6 +130,11 @@ pub fn start_node(
 ) -> Result<RigNode, Ros2Error> {
     match &settings.middleware {
         Middleware::Dds { range } => {
+            // The settings let motion on with a login or the lab opt-out; a login is
+            // Zenoh's, so over DDS only the opt-out lets it on.
+            if motion.is_some() && settings.login.is_some() {
+                return Err(Ros2Error::LoginOverDds);
+            }
             let motion = match (motion, goals) {
                 (Some(motion), Some(goals)) => Some(DdsMotion {
                     trajectories: motion.trajectories,
@@ -197,6 +202,12 @@ pub enum Ros2Error {
          goal runner, or neither"
     )]
     HalfMotionOverDds,
+    #[error(
+        "[ros2] accept_motion over DDS: user and password_file are a Zenoh login, and DDS \
+         has none here (no DDS Security); over DDS motion needs \
+         allow_unauthenticated_motion = true, on an isolated network only (docs/ros2.md)"
+    )]
+    LoginOverDds,
     #[error("this node speaks Zenoh, and the settings name no Zenoh endpoint")]
     NoZenohEndpoint,
 }
