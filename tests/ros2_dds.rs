@@ -145,7 +145,8 @@ const MIN_FEEDBACK_HZ: f64 = 50.0;
 const ON_PATH_RAD: f64 = 1e-3;
 
 #[test]
-fn rclpy_follow_joint_trajectory_goals_complete_and_a_cancel_rests_on_the_path() {
+fn rclpy_follow_joint_trajectory_goals_complete_a_cancel_rests_on_the_path_and_a_new_goal_preempts()
+{
     let Some(python) = action_python() else {
         return;
     };
@@ -197,6 +198,32 @@ fn rclpy_follow_joint_trajectory_goals_complete_and_a_cancel_rests_on_the_path()
     assert_eq!(cancel["canceling"], 1, "{result}");
     assert!((0.3..0.8).contains(&along), "halfway, braked: {along}");
     assert!(off < ON_PATH_RAD, "{off} rad off the path");
+    // A new goal preempts the running one, as JointTrajectoryController's does.
+    let preempted = &result["preempted"];
+    let preempting = &result["preempting"];
+    println!(
+        "preemption: the first goal {} / {} ({}), the second {} / {}",
+        preempted["status"],
+        preempted["error_code"],
+        preempted["error_string"],
+        preempting["status"],
+        preempting["error_code"]
+    );
+    assert_eq!(preempted["status"], STATUS_CANCELED, "{result}");
+    assert_eq!(preempted["error_code"], INVALID_GOAL, "{result}");
+    assert_eq!(
+        preempted["error_string"],
+        "Current goal cancelled due to new incoming action."
+    );
+    assert_eq!(preempting["status"], STATUS_SUCCEEDED, "{result}");
+    let start: Vec<f64> = serde_json::from_value(result["start"].clone()).unwrap();
+    let ended: Vec<f64> = serde_json::from_value(result["preempting_end"].clone()).unwrap();
+    let missed = start
+        .iter()
+        .zip(&ended)
+        .map(|(s, e)| (s - e).abs())
+        .fold(0.0, f64::max);
+    assert!(missed <= 0.01, "the second goal's end: {missed}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

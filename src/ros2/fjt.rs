@@ -567,11 +567,14 @@ impl Goals {
                     );
                 }
                 if let Some(active) = &mut self.active {
-                    // As JointTrajectoryController: the running goal is canceled by the new.
-                    let why = "Current goal cancelled due to new incoming action.";
-                    active.stopping =
-                        Some((GoalStatusEnum::Canceled, outcome(code::INVALID_GOAL, why)));
-                    self.runner.stop();
+                    // As JointTrajectoryController: the running goal is canceled by the new
+                    // (unless it is being stopped already, with its own result).
+                    if active.stopping.is_none() {
+                        let why = "Current goal cancelled due to new incoming action.";
+                        active.stopping =
+                            Some((GoalStatusEnum::Canceled, outcome(code::INVALID_GOAL, why)));
+                        self.runner.stop();
+                    }
                     self.next = Some((id, checked));
                 } else {
                     self.begin(server, id, checked);

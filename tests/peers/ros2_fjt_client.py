@@ -12,7 +12,8 @@ the ros-jazzy-* wheels, scripts/test.sh), and a JointTrajectory publisher. It pr
       A goal of D seconds along a straight line in joint space from where the arm is, run
       to its end; then the same line back, canceled at half its duration. Reports for each
       the status, code, feedback rate and longest gap (by arrival), and after the cancel
-      where the arm came to rest: its distance from the line and its place along it.
+      where the arm came to rest: its distance from the line and its place along it. Then
+      a goal preempted after 1 s by another: both results, and where the second ended.
   topic --rig R
       One JointTrajectory on /R/joint_trajectory from where the arm is to a point 0.2 rad
       away in 2 s; reports the target and where the arm is 4 s later.
@@ -232,6 +233,19 @@ def motion(peer, duration_s):
     rest = peer.at_rest(10.0)
     out["rest"] = rest
     out["rest_along"], out["rest_off_rad"] = place_on_line(reached, start, rest)
+    # A goal preempted after a second by a second goal, which then runs to its end.
+    first = peer.line_goal(rest, reached, duration_s / 2)
+    handle = wait(peer.client.send_goal_async(first), 10.0)
+    first_result = handle.get_result_async()
+    time.sleep(1.0)
+    out["preempting"] = peer.run(peer.line_goal(rest, start, duration_s / 2), timeout_s=duration_s * 3)
+    result = wait(first_result, 10.0)
+    out["preempted"] = {
+        "status": result.status,
+        "error_code": result.result.error_code,
+        "error_string": result.result.error_string,
+    }
+    out["preempting_end"] = peer.at_rest(10.0)
     return out
 
 
