@@ -524,7 +524,8 @@ fn shared_executor(
 }
 
 /// The ROS 2 node of every cell whose settings have `[ros2]` (or with `--zenoh-connect`):
-/// its joint states from the cell's live slot, its trajectories as jobs, and over DDS its FollowJointTrajectory goals.
+/// its joint states from the cell's live slot, its trajectories as jobs, and over DDS its
+/// FollowJointTrajectory goals.
 fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::RigNode>, DaemonError> {
     let mut nodes = Vec::new();
     for cell in &daemon.cells {
