@@ -242,6 +242,11 @@ fn stream_once(rig: &Rig, rate_hz: f64, seconds: f64, ros2: Option<&Subscriber>)
             joint_states_hz: DEFAULT_JOINT_STATES_HZ,
             login: None,
             accept_motion: false,
+            tolerances: rigbridge::ros2::fjt::Tolerances {
+                path: 0.0,
+                goal: 0.0,
+                goal_time_s: 0.0,
+            },
         };
         let joints = rig.joint_names().map(String::from).collect();
         Ros2Node::start(&settings, &rig.name, joints, slot.clone(), true, None).expect("node")

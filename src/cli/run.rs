@@ -277,7 +277,7 @@ fn ros2_node(
         )),
         mount: settings.cell.mount,
     };
-    let node = rigbridge::ros2::start_node(&ros2, rig, slot.clone(), known_at_rest, None)
+    let node = rigbridge::ros2::start_node(&ros2, rig, slot.clone(), known_at_rest, None, None)
         .with_context(|| format!("cannot join ROS 2 over {}", ros2.middleware))?;
     eprintln!(
         "ros2: node /{}/{} publishing {} over {}",

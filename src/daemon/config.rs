@@ -180,6 +180,15 @@ pub struct Ros2Config {
     /// the arm. Only for an isolated lab network; false when absent.
     #[serde(default)]
     pub allow_unauthenticated_motion: bool,
+    /// A FollowJointTrajectory goal's path tolerance where it names none (rad, m for a
+    /// prismatic joint, as ROS 2's JointTolerance); 0.05 when absent; 0 checks nothing.
+    pub path_tolerance: Option<f64>,
+    /// A goal's tolerance at the last point where it names none (rad, m); 0.01 when absent.
+    pub goal_tolerance: Option<f64>,
+    /// Seconds after a goal's last point by which the goal must be reached, where the goal
+    /// names none; 0 (not checked, as JointTrajectoryController's default) when absent.
+    #[serde(default)]
+    pub goal_time_tolerance_s: f64,
     /// The login read from `user` and `password_file` on load.
     #[serde(skip)]
     login: Option<crate::ros2::Login>,
@@ -190,6 +199,8 @@ pub struct Ros2Config {
 
 /// Largest password file read (bytes): a password is a line, and the file is read whole.
 const MAX_PASSWORD_FILE_BYTES: u64 = 4096;
+/// Largest tolerance taken (rad, m): a full turn; more checks nothing a turn would not.
+const MAX_TOLERANCE: f64 = std::f64::consts::TAU;
 /// Longest Zenoh user name taken.
 const MAX_USER_CHARS: usize = 256;
 
@@ -220,6 +231,15 @@ impl Ros2Config {
                 .unwrap_or(crate::ros2::DEFAULT_JOINT_STATES_HZ),
             login: self.login.clone(),
             accept_motion: self.accept_motion,
+            tolerances: crate::ros2::fjt::Tolerances {
+                path: self
+                    .path_tolerance
+                    .unwrap_or(crate::ros2::DEFAULT_PATH_TOLERANCE),
+                goal: self
+                    .goal_tolerance
+                    .unwrap_or(crate::ros2::DEFAULT_GOAL_TOLERANCE),
+                goal_time_s: self.goal_time_tolerance_s,
+            },
         })
     }
 
@@ -247,6 +267,7 @@ impl Ros2Config {
         if let Some(rate) = self.joint_states_hz {
             check_range(file, "ros2.joint_states_hz", rate, 1.0, 1000.0)?;
         }
+        self.check_tolerances(file)?;
         self.login = self.read_login(file)?;
         if self.accept_motion && self.login.is_none() && !self.allow_unauthenticated_motion {
             return Err(ConfigError::invalid(
@@ -259,6 +280,27 @@ impl Ros2Config {
             ));
         }
         Ok(())
+    }
+
+    /// The tolerances are finite and not negative; the goal time at most a minute (a goal
+    /// late by more is not late, it is stuck).
+    fn check_tolerances(&self, file: &Path) -> Result<(), ConfigError> {
+        for (key, value) in [
+            ("ros2.path_tolerance", self.path_tolerance),
+            ("ros2.goal_tolerance", self.goal_tolerance),
+        ] {
+            if let Some(value) = value {
+                check_range(file, key, value, 0.0, MAX_TOLERANCE)?;
+            }
+        }
+        check_range(
+            file,
+            "ros2.goal_time_tolerance_s",
+            self.goal_time_tolerance_s,
+            0.0,
+            MAX_GOAL_TIME_S,
+        )
+        .map(|_| ())
     }
 
     /// `middleware` agrees with `zenoh_connect`; `discovery_range` is for DDS only.

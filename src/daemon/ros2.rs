@@ -5,7 +5,10 @@
 //! must be where the arm holds), or refused with its reason counted and logged, at most
 //! once a second.
 //!
-//! Owns the translation from the message to a job; the Zenoh side is `crate::ros2`.
+//! A FollowJointTrajectory goal becomes the same job ([`goal_job`]), starting from where the
+//! rig holds when its first point is later than 0, as ros2_controllers' controller does.
+//!
+//! Owns the translation from the message to a job; the middleware side is `crate::ros2`.
 
 use crate::clock::Clock;
 use crate::job::{FollowTrajectory, Job, JobInvalid};
@@ -102,6 +105,39 @@ pub fn trajectory_job(message: &JointTrajectory, rig: &Rig) -> Result<Job, JobIn
     }))
 }
 
+/// The job a FollowJointTrajectory goal asks for: as [`trajectory_job`], but when the first
+/// point is after the start and the rig's position `held` (SI, the rig's order) is known,
+/// the trajectory starts from it at time 0, as JointTrajectoryController starts from the
+/// state it holds; the points keep their times. With a first point at time 0 (or the
+/// position unknown) that point must be where the rig holds.
+pub fn goal_job(
+    trajectory: &JointTrajectory,
+    rig: &Rig,
+    held: Option<&[f64]>,
+) -> Result<Job, JobInvalid> {
+    let order = joint_order(&trajectory.joint_names, rig)?;
+    let first_t = trajectory
+        .points
+        .first()
+        .map_or(0.0, |p| seconds(&p.time_from_start));
+    let Some(held) = held.filter(|held| first_t > 0.0 && held.len() == rig.dof()) else {
+        return trajectory_job(trajectory, rig);
+    };
+    let mut positions = vec![0.0; rig.dof()];
+    for (axis, &index) in order.iter().enumerate() {
+        positions[index] = held[axis];
+    }
+    let mut from_held = trajectory.clone();
+    from_held.points.insert(
+        0,
+        crate::ros2::messages::JointTrajectoryPoint {
+            positions,
+            ..Default::default()
+        },
+    );
+    trajectory_job(&from_held, rig)
+}
+
 fn seconds(duration: &crate::ros2::messages::Duration) -> f64 {
     f64::from(duration.sec) + f64::from(duration.nanosec) / NANOS_PER_SECOND
 }
@@ -183,6 +219,53 @@ mod tests {
         assert_eq!(rows[1][0], 1.5);
         assert!((rows[0][1] - 0.1_f64.to_degrees()).abs() < 1e-12);
         assert!((rows[0][6] - 0.6_f64.to_degrees()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_goal_whose_first_point_is_later_starts_from_where_the_rig_holds() {
+        let rig = rig();
+        let mut names: Vec<String> = rig.joint_names().map(String::from).collect();
+        names.swap(0, 5);
+        let message = JointTrajectory {
+            joint_names: names,
+            points: vec![point(vec![0.6, 0.0, 0.0, 0.0, 0.0, 0.1], 2, 0)],
+            ..Default::default()
+        };
+        let held = [0.01, 0.02, 0.03, 0.04, 0.05, 0.06];
+        let Job::FollowTrajectory(job) =
+            goal_job(&message, &rig, Some(&held)).expect("the goal becomes a job")
+        else {
+            panic!("a follow_trajectory job");
+        };
+        let rows = job.rows.expect("inline rows");
+        assert_eq!(rows.len(), 2, "the held position, then the point");
+        assert_eq!(
+            (rows[0][0], rows[1][0]),
+            (0.0, 2.0),
+            "the point keeps its time"
+        );
+        for (axis, value) in held.iter().enumerate() {
+            assert!((rows[0][axis + 1] - value.to_degrees()).abs() < 1e-12);
+        }
+        // Joint 1 is the message's last name: 0.1 rad; joint 6 its first: 0.6 rad.
+        assert!((rows[1][1] - 0.1_f64.to_degrees()).abs() < 1e-12);
+        assert!((rows[1][6] - 0.6_f64.to_degrees()).abs() < 1e-12);
+        let Job::FollowTrajectory(at_zero) = goal_job(
+            &JointTrajectory {
+                points: vec![point(vec![0.0; 6], 0, 0)],
+                ..message.clone()
+            },
+            &rig,
+            Some(&held),
+        )
+        .expect("the goal becomes a job") else {
+            panic!("a follow_trajectory job");
+        };
+        assert_eq!(
+            at_zero.rows.map(|r| r.len()),
+            Some(1),
+            "nothing prepended at t = 0"
+        );
     }
 
     #[test]

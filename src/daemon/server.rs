@@ -21,6 +21,7 @@
 
 mod cell;
 mod connections;
+mod fjt;
 mod foxglove;
 mod guard;
 mod online;
@@ -524,7 +525,8 @@ fn shared_executor(
 }
 
 /// The ROS 2 node of every cell whose settings have `[ros2]` (or with `--zenoh-connect`):
-/// its joint states from the cell's live slot, its trajectories as jobs (Zenoh only).
+/// its joint states from the cell's live slot, its trajectories as jobs, and over DDS its
+/// FollowJointTrajectory goals.
 fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::RigNode>, DaemonError> {
     let mut nodes = Vec::new();
     for cell in &daemon.cells {
@@ -545,6 +547,17 @@ fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::RigNode>, DaemonE
                 servo,
             }
         });
+        // Over DDS, the FollowJointTrajectory action too, under the same consent.
+        let dds = matches!(ros2.middleware, crate::ros2::Middleware::Dds { .. });
+        let goals = (ros2.accept_motion && dds).then(|| {
+            let server = crate::ros2::fjt::ServerSettings {
+                joints: settings.rig.joint_names().map(String::from).collect(),
+                tolerances: ros2.tolerances,
+                max_points: settings.config.limits.max_job_points,
+            };
+            let runner = fjt::CellGoals::new(daemon.clone(), cell.clone());
+            crate::ros2::fjt::Goals::new(server, Box::new(runner))
+        });
         // Zenoh's and RustDDS's own runtimes must not be entered from the server's: a
         // thread of its own.
         let rig = crate::ros2::PublishedRig {
@@ -560,17 +573,14 @@ fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::RigNode>, DaemonE
         let middleware = ros2.middleware.to_string();
         let motion = motion_from_ros2(&ros2);
         let motion_unauthenticated = ros2.accept_motion && ros2.login.is_none();
-        let node =
-            std::thread::spawn(move || crate::ros2::start_node(&ros2, rig, slot, known, handler))
-                .join()
-                .map_err(|_| DaemonError::Unavailable("the ROS 2 node's start panicked".into()))?
-                .map_err(|e| {
-                    DaemonError::Unavailable(format!(
-                        "cell {}: ROS 2: {}",
-                        cell.name(),
-                        error_chain(&e)
-                    ))
-                })?;
+        let node = std::thread::spawn(move || {
+            crate::ros2::start_node(&ros2, rig, slot, known, handler, goals)
+        })
+        .join()
+        .map_err(|_| DaemonError::Unavailable("the ROS 2 node's start panicked".into()))?
+        .map_err(|e| {
+            DaemonError::Unavailable(format!("cell {}: ROS 2: {}", cell.name(), error_chain(&e)))
+        })?;
         tracing::info!(
             cell = %cell.name(),
             "cell {}: ROS 2 node /{}/{} on {} (joint states on {})",
@@ -591,7 +601,17 @@ fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::RigNode>, DaemonE
 
 /// Whether and how a cell takes motion from ROS 2, as its status and journal say it.
 fn motion_from_ros2(ros2: &crate::ros2::Ros2Settings) -> &'static str {
+    let dds = matches!(ros2.middleware, crate::ros2::Middleware::Dds { .. });
     match (ros2.accept_motion, &ros2.login) {
+        (false, _) if dds => {
+            "off: JointTrajectory is not subscribed to and FollowJointTrajectory is not \
+             served ([ros2] accept_motion = false); joint states are published"
+        }
+        (true, _) if dds => {
+            "on WITHOUT AUTHENTICATION over DDS ([ros2] allow_unauthenticated_motion): \
+             JointTrajectory and FollowJointTrajectory goals from anyone on the DDS \
+             discovery range move the arm"
+        }
         (false, _) => {
             "off: JointTrajectory is not subscribed to ([ros2] accept_motion = false); \
              joint states are published"

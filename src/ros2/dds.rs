@@ -6,20 +6,28 @@
 //!
 //! Like the Zenoh node (`node.rs`), its thread reads the cell's latest-value slot
 //! (`view::LiveSlot`), which the streaming cycle only offers to with a `try_lock`: nothing
-//! here can delay a cycle. Every DDS object lives and dies on this module's threads. It
-//! takes no motion: a JointTrajectory over DDS is not subscribed to.
+//! here can delay a cycle. Every DDS object lives and dies on this module's threads.
+//!
+//! Motion only with `[ros2] accept_motion` ([`DdsMotion`]): then, on a thread of its own,
+//! `/<rig>/joint_trajectory` is subscribed to and the `/<rig>/follow_joint_trajectory`
+//! action is served (`super::fjt`); without it neither exists, so nothing a peer sends can
+//! reach a job.
 
+use super::fjt::{self, Goals};
 use super::messages::{
     Header, JointState, Quaternion, StringMessage, TfMessage, Time, Transform, TransformStamped,
     Vector3,
 };
-use super::{DiscoveryRange, Ros2Error};
+use super::{DiscoveryRange, Ros2Error, TrajectoryHandler};
 use crate::log::RobotDescription;
 use crate::view::LiveSlot;
 use glam::{DAffine3, DQuat};
-use ros2_client::dds::{Context, Node, Publisher, Spinner, rustdds};
+use ros2_client::action::ActionServerQosPolicies;
+use ros2_client::dds::{ActionServer, Context, Node, Publisher, Spinner, Subscription, rustdds};
 use ros2_client::qos::{Durability, History, WhenFull};
-use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, QosProfile};
+use ros2_client::{
+    ActionTypeName, MessageTypeName, Name, NodeName, NodeOptions, QosProfile, ServiceMapping,
+};
 use std::net::{IpAddr, Ipv4Addr};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -39,6 +47,16 @@ const TF_DEPTH: usize = 100;
 /// whole state, kept for late subscribers (transient local), as tf2_ros's
 /// `StaticBroadcasterQoS` and robot_state_publisher publish them.
 const LATCHED_DEPTH: usize = 1;
+/// Depth of `/<rig>/joint_trajectory`: ROS 2's default profile (reliable, volatile, keep
+/// last 10), what `ros2 topic pub` and rclpy publish with.
+const TRAJECTORY_DEPTH: usize = 10;
+
+/// The motion a DDS node takes (`[ros2] accept_motion`): JointTrajectory messages, and the
+/// FollowJointTrajectory action's goals.
+pub struct DdsMotion {
+    pub trajectories: TrajectoryHandler,
+    pub goals: Goals,
+}
 
 /// What the node publishes about its rig.
 pub struct PublishedRig {
@@ -70,6 +88,7 @@ impl DdsNode {
         rig: PublishedRig,
         slot: Arc<LiveSlot>,
         known_at_rest: bool,
+        motion: Option<DdsMotion>,
     ) -> Result<DdsNode, Ros2Error> {
         super::graph::check_namespace(&rig.name)?;
         let stop = Arc::new(AtomicBool::new(false));
@@ -91,7 +110,7 @@ impl DdsNode {
                 if let Some(cpu) = crate::realtime::streaming_cpu() {
                     let _ = crate::realtime::keep_off(cpu);
                 }
-                match Declared::new(domain_id, range, &rig) {
+                match Declared::new(domain_id, range, &rig, motion, &publishing.stop) {
                     Ok(declared) => {
                         let _ = ready.send(Ok(()));
                         declared.run(&rig, &publishing);
@@ -147,6 +166,8 @@ struct Declared {
     tf_static: Publisher<TfMessage>,
     description: Publisher<StringMessage>,
     spinner: Option<JoinHandle<()>>,
+    /// The motion thread (`[ros2] accept_motion`), ended by the same stop flag.
+    motion: Option<JoinHandle<()>>,
 }
 
 /// What could not be made, and the DDS side's reason.
@@ -186,7 +207,13 @@ fn qos(durability: Durability, depth: usize) -> QosProfile {
 }
 
 impl Declared {
-    fn new(domain_id: u32, range: DiscoveryRange, rig: &PublishedRig) -> Result<Self, Ros2Error> {
+    fn new(
+        domain_id: u32,
+        range: DiscoveryRange,
+        rig: &PublishedRig,
+        motion: Option<DdsMotion>,
+        stop: &Arc<AtomicBool>,
+    ) -> Result<Self, Ros2Error> {
         let context = context(domain_id, range)?;
         let namespace = format!("/{}", rig.name);
         let node_name = NodeName::new(&namespace, super::graph::NODE_NAME)
@@ -218,6 +245,10 @@ impl Declared {
             ("std_msgs", "String"),
             qos(Durability::TransientLocal, LATCHED_DEPTH),
         )?;
+        let motion = match motion {
+            Some(motion) => Some(start_motion(&mut node, &namespace, motion, stop.clone())?),
+            None => None,
+        };
         let spinner = node.spinner().map_err(dds_error("the node's spinner"))?;
         let spinner = std::thread::Builder::new()
             .name(format!("ros2-spin-{}", rig.name))
@@ -230,6 +261,7 @@ impl Declared {
             tf_static,
             description,
             spinner: Some(spinner),
+            motion,
         })
     }
 
@@ -251,6 +283,9 @@ impl Declared {
             tracing::warn!("ros2: publishing the robot description and /tf_static: {e}");
         }
         publish_states(&self, rig, io);
+        if let Some(motion) = self.motion.take() {
+            let _ = motion.join();
+        }
         self.node.stop_spinner();
         if let Some(spinner) = self.spinner.take() {
             let _ = spinner.join();
@@ -271,6 +306,81 @@ fn publisher<M: serde::Serialize>(
         .map_err(dds_error(&what))?;
     node.create_publisher(&topic, None)
         .map_err(dds_error(&what))
+}
+
+/// The trajectory subscription and the action server on `node`, served on a thread of
+/// their own every [`fjt::TICK`] until `stop`.
+fn start_motion(
+    node: &mut Node,
+    namespace: &str,
+    motion: DdsMotion,
+    stop: Arc<AtomicBool>,
+) -> Result<JoinHandle<()>, Ros2Error> {
+    let what = format!("{namespace}/joint_trajectory");
+    let name = Name::new(namespace, "joint_trajectory").map_err(dds_error(&what))?;
+    let qos = qos(Durability::Volatile, TRAJECTORY_DEPTH);
+    let topic = node
+        .create_topic(
+            &name,
+            MessageTypeName::new("trajectory_msgs", "JointTrajectory"),
+            &qos,
+        )
+        .map_err(dds_error(&what))?;
+    let trajectories: Subscription<super::messages::JointTrajectory> = node
+        .create_subscription(&topic, None)
+        .map_err(dds_error(&what))?;
+    let what = format!("{namespace}/follow_joint_trajectory");
+    let name = Name::new(namespace, "follow_joint_trajectory").map_err(dds_error(&what))?;
+    let server = node
+        .create_action_server(
+            ServiceMapping::Enhanced,
+            &name,
+            &ActionTypeName::new("control_msgs", "FollowJointTrajectory"),
+            action_qos(),
+        )
+        .map_err(dds_error(&what))?;
+    std::thread::Builder::new()
+        .name(format!("ros2-motion{}", namespace.replace('/', "-")))
+        .spawn(move || serve_motion(&trajectories, &server, motion, &stop))
+        .map_err(Ros2Error::Thread)
+}
+
+/// The QoS an rclpy ActionClient asks for: its services and feedback reliable and
+/// volatile, its status topic transient local (rcl_action's defaults).
+fn action_qos() -> ActionServerQosPolicies {
+    let service = qos(Durability::Volatile, TRAJECTORY_DEPTH);
+    ActionServerQosPolicies {
+        goal_service: service.clone(),
+        result_service: service.clone(),
+        cancel_service: service.clone(),
+        feedback_publisher: service,
+        status_publisher: qos(Durability::TransientLocal, LATCHED_DEPTH),
+    }
+}
+
+/// Every tick: each JointTrajectory received to the handler, then the action's requests,
+/// feedback and statuses.
+fn serve_motion(
+    trajectories: &Subscription<super::messages::JointTrajectory>,
+    server: &ActionServer<fjt::Goal, fjt::Outcome, fjt::Feedback>,
+    mut motion: DdsMotion,
+    stop: &AtomicBool,
+) {
+    let mut next = Instant::now();
+    while !stop.load(Ordering::Relaxed) {
+        loop {
+            match trajectories.take() {
+                Ok(Some((message, _))) => (motion.trajectories)(Ok(message)),
+                Ok(None) => break,
+                Err(e) => {
+                    tracing::warn!("ros2: reading a JointTrajectory over DDS: {e}");
+                    break;
+                }
+            }
+        }
+        fjt::serve_tick(server, &mut motion.goals);
+        next = super::node::pace(next, fjt::TICK);
+    }
 }
 
 /// The spinner answers graph queries until the node stops it; it needs an executor of its

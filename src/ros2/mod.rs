@@ -6,8 +6,10 @@
 //! reaches the same router or peer sees it, so several daemons form one fleet; with a
 //! [`Login`], only sessions the router admits by user and password reach it.
 //!
-//! Over DDS, the same node also publishes `/tf`, `/tf_static` and `/<rig>/robot_description`
-//! and takes no motion.
+//! Over DDS, the same node also publishes `/tf`, `/tf_static` and `/<rig>/robot_description`,
+//! and with `[ros2] accept_motion` takes JointTrajectory on `/<rig>/joint_trajectory` and
+//! serves the `control_msgs/action/FollowJointTrajectory` action at
+//! `/<rig>/follow_joint_trajectory` (`fjt`).
 //!
 //! `type_hash` computes the RIHS01 hashes, `messages` encodes CDR, `graph` names keys,
 //! tokens and attachments, `node` runs the Zenoh session, `dds` the DDS participant. This module sits beside the live
@@ -15,12 +17,13 @@
 //! and never touches the cycle; turning a received trajectory into a job is the daemon's.
 
 mod dds;
+pub mod fjt;
 pub mod graph;
 pub mod messages;
 mod node;
 pub mod type_hash;
 
-pub use dds::{DdsNode, PublishedRig, WORLD_FRAME};
+pub use dds::{DdsMotion, DdsNode, PublishedRig, WORLD_FRAME};
 pub use node::{Motion, Ros2Node, ServoHandler, TrajectoryHandler, servo_key};
 
 use thiserror::Error;
@@ -30,6 +33,14 @@ use thiserror::Error;
 pub const DEFAULT_JOINT_STATES_HZ: f64 = 125.0;
 /// Highest ROS 2 domain id (the DDS port mapping's limit, which rmw_zenoh keeps).
 pub const MAX_DOMAIN_ID: u32 = 232;
+/// `[ros2] path_tolerance` when absent (rad, m): how far the arm may be from the position
+/// commanded while a FollowJointTrajectory goal runs. The twin follows within a cycle's
+/// step (under 0.02 rad at the IRB 120's fastest axis); a real controller's lag is larger,
+/// and this still stops an arm that does not follow well before it strays a hand's width.
+pub const DEFAULT_PATH_TOLERANCE: f64 = 0.05;
+/// `[ros2] goal_tolerance` when absent (rad, m): how close to the last point a goal must
+/// end; the stream's own settle check already holds a completed job to its goal tolerance.
+pub const DEFAULT_GOAL_TOLERANCE: f64 = 0.01;
 
 /// Where and how a rig joins ROS 2.
 #[derive(Debug, Clone, PartialEq)]
@@ -40,8 +51,11 @@ pub struct Ros2Settings {
     /// The user and password the session logs in to its router with (Zenoh's `usrpwd`
     /// authentication); `None`: it connects anonymously.
     pub login: Option<Login>,
-    /// Whether `serve` subscribes to `/<rig>/joint_trajectory` and runs what comes as jobs.
+    /// Whether `serve` subscribes to `/<rig>/joint_trajectory` and runs what comes as jobs
+    /// (and, over DDS, serves the FollowJointTrajectory action).
     pub accept_motion: bool,
+    /// A FollowJointTrajectory goal's tolerances where it names none.
+    pub tolerances: fjt::Tolerances,
 }
 
 /// Which middleware a rig's node speaks.
@@ -103,22 +117,42 @@ impl RigNode {
 }
 
 /// Starts `rig`'s node on the middleware `settings` name, publishing from `slot`
-/// (`known_at_rest` as [`Ros2Node::start`]); `motion` only over Zenoh: a DDS node takes
-/// no motion, and asking it to is refused.
+/// (`known_at_rest` as [`Ros2Node::start`]), taking `motion` (its servo targets over Zenoh
+/// only) and, over DDS, serving FollowJointTrajectory `goals`; a DDS node asked to take
+/// motion without both is refused.
 pub fn start_node(
     settings: &Ros2Settings,
     rig: PublishedRig,
     slot: std::sync::Arc<crate::view::LiveSlot>,
     known_at_rest: bool,
     motion: Option<Motion>,
+    goals: Option<fjt::Goals>,
 ) -> Result<RigNode, Ros2Error> {
     match &settings.middleware {
         Middleware::Dds { range } => {
-            if settings.accept_motion {
-                return Err(Ros2Error::NoMotionOverDds);
+            // The settings let motion on with a login or the lab opt-out; a login is
+            // Zenoh's, so over DDS only the opt-out lets it on.
+            if motion.is_some() && settings.login.is_some() {
+                return Err(Ros2Error::LoginOverDds);
             }
+            let motion = match (motion, goals) {
+                (Some(motion), Some(goals)) => Some(DdsMotion {
+                    trajectories: motion.trajectories,
+                    goals,
+                }),
+                (None, None) => None,
+                _ => return Err(Ros2Error::HalfMotionOverDds),
+            };
             let hz = settings.joint_states_hz;
-            let node = DdsNode::start(settings.domain_id, *range, hz, rig, slot, known_at_rest)?;
+            let node = DdsNode::start(
+                settings.domain_id,
+                *range,
+                hz,
+                rig,
+                slot,
+                known_at_rest,
+                motion,
+            )?;
             Ok(RigNode::Dds(node))
         }
         Middleware::Zenoh { .. } => {
@@ -164,10 +198,16 @@ pub enum Ros2Error {
     #[error("creating {what} over DDS: {cause}")]
     Dds { what: String, cause: String },
     #[error(
-        "[ros2] accept_motion = true: JointTrajectory is taken over Zenoh only; over DDS the \
-         node publishes and takes no motion (set middleware = \"zenoh\", docs/ros2.md)"
+        "a DDS node takes motion with both a trajectory handler and a FollowJointTrajectory \
+         goal runner, or neither"
     )]
-    NoMotionOverDds,
+    HalfMotionOverDds,
+    #[error(
+        "[ros2] accept_motion over DDS: user and password_file are a Zenoh login, and DDS \
+         has none here (no DDS Security); over DDS motion needs \
+         allow_unauthenticated_motion = true, on an isolated network only (docs/ros2.md)"
+    )]
+    LoginOverDds,
     #[error("this node speaks Zenoh, and the settings name no Zenoh endpoint")]
     NoZenohEndpoint,
 }
