@@ -280,8 +280,8 @@ impl Streaming<'_> {
     }
 
     /// The log's record of `report`'s last interruption (`stalled` or `link_lost`,
-    /// `docs/logs.md` "Stalls"), once the bridge knows what it did after it: written as
-    /// it resumes, before anything of the way back is sent, or as the job ends.
+    /// `docs/logs.md` "Stalls"), written as it happens; what the bridge did then is the
+    /// `resumed` event that follows it, or the job's end.
     fn interrupted(&self, report: &StreamReport) {
         let Some(last) = report.interruptions.last() else {
             return;
@@ -294,7 +294,6 @@ impl Streaming<'_> {
                 "seq": report.last_seq,
                 "why": last.why,
                 "late_us": last.late_us,
-                "then": last.then,
             }),
         );
     }
@@ -322,20 +321,23 @@ pub fn stream_resuming(mut io: Streaming<'_>, trajectory: &Trajectory) -> Stream
                 .filter(|_| report.outcome == Outcome::Stalled),
             then: AfterInterruption::Resumed,
         });
+        // Logged at once, as it happens: a log read live (the page, Foxglove, an operator
+        // waiting to restart a controller) sees the link go before the bridge waits on it.
+        io.interrupted(&report);
         // What streams from here until the rest of the path is not the job's path.
         streaming.job_offset = None;
         if io.control.online().given() {
             // Online motion has no path to return to: from where the arm holds, the goal
             // it was moving to is given again (a jog waits for its next command).
             match resume_online(&mut io, &mut streaming, &report) {
-                Resumed::Ended(report) => return ended_after_interruption(&io, report),
+                Resumed::Ended(report) => return ended_after_interruption(report),
                 Resumed::Approach(part, _) => report = part,
             }
             continue;
         }
         let (part, approached) =
             match resume_once(&mut io, &remaining, &mut streaming, trajectory, &report) {
-                Resumed::Ended(report) => return ended_after_interruption(&io, report),
+                Resumed::Ended(report) => return ended_after_interruption(report),
                 Resumed::Approach(part, approached) => (part, approached),
             };
         report = part;
@@ -366,13 +368,11 @@ fn job_offset(whole: &Trajectory, from: usize) -> JobOffset {
     }
 }
 
-/// `report`, ended while resuming from its last interruption: that one says so, in the
-/// report and in the log.
-fn ended_after_interruption(io: &Streaming<'_>, mut report: StreamReport) -> StreamReport {
+/// `report`, ended while resuming from its last interruption: that one says so.
+fn ended_after_interruption(mut report: StreamReport) -> StreamReport {
     if let Some(last) = report.interruptions.last_mut() {
         last.then = AfterInterruption::Ended;
     }
-    io.interrupted(&report);
     report
 }
 
@@ -412,7 +412,6 @@ fn resume_online(
     if let Some(goal) = io.control.online().goal() {
         io.control.online().give(OnlineCommand::Goal(goal));
     }
-    io.interrupted(report);
     io.event(
         report.duration_s,
         "resumed",
@@ -483,7 +482,6 @@ fn resume_once(
         ended.fault = Some(super::error_chain(&error));
         return Resumed::Ended(ended);
     }
-    io.interrupted(report);
     let part = io.run(&approach, streaming);
     let approached = part.outcome == Outcome::Completed;
     Resumed::Approach(report.clone().merge(part), approached)

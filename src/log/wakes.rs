@@ -214,7 +214,7 @@ impl LoggedStall {
             late_us: detail["late_us"].as_f64(),
             seq: detail["seq"].as_u64().and_then(|s| u32::try_from(s).ok()),
             why: detail["why"].as_str().unwrap_or_default().to_owned(),
-            then: detail["then"].as_str().map(str::to_owned),
+            then: None,
         }
     }
 }
@@ -229,12 +229,33 @@ impl fmt::Display for LoggedStall {
     }
 }
 
-/// Every stall the log records, in file order.
+/// The event the bridge logs when it goes back to the path after an interruption.
+const RESUMED_EVENT: &str = "resumed";
+/// The event of a link loss, the other interruption.
+const LINK_LOST_EVENT: &str = "link_lost";
+
+/// Every stall the log records, in file order. A stall is logged as it happens; what the
+/// bridge did then is the `resumed` event after it, before the next interruption, or
+/// else the job's end (format 2; a format 1 log's stalls say only their words).
 pub fn stalls(log: &RunLog) -> Vec<LoggedStall> {
-    log.events
+    let events = &log.events;
+    events
         .iter()
-        .filter(|e| e.kind == STALL_EVENT)
-        .map(LoggedStall::of)
+        .enumerate()
+        .filter(|(_, e)| e.kind == STALL_EVENT)
+        .map(|(k, event)| {
+            let mut stall = LoggedStall::of(event);
+            if stall.seq.is_some() {
+                let resumed = events[k + 1..]
+                    .iter()
+                    .find(|e| {
+                        [RESUMED_EVENT, STALL_EVENT, LINK_LOST_EVENT].contains(&e.kind.as_str())
+                    })
+                    .is_some_and(|e| e.kind == RESUMED_EVENT);
+                stall.then = Some(if resumed { "resumed" } else { "ended" }.to_owned());
+            }
+            stall
+        })
         .collect()
 }
 
@@ -333,18 +354,28 @@ mod tests {
             commands: vec![sample(1, Some(2.0)), sample(2, Some(7.0))],
             // A state without feedback's command: no state, the command still counts.
             states: vec![sample(1, None)],
-            events: vec![event(
-                STALL_EVENT,
-                serde_json::json!({"seq": 2, "late_us": 300000.0, "why": "the cycle woke 300.0 ms late", "then": "resumed"}),
-            )],
+            events: vec![
+                event(
+                    STALL_EVENT,
+                    serde_json::json!({"seq": 2, "late_us": 300000.0, "why": "the cycle woke 300.0 ms late"}),
+                ),
+                event(RESUMED_EVENT, serde_json::json!({})),
+                event(
+                    STALL_EVENT,
+                    serde_json::json!({"seq": 2, "late_us": 200000.0, "why": "the cycle woke 200.0 ms late"}),
+                ),
+            ],
             ..RunLog::default()
         };
-        assert_eq!(wake_lateness(&log), vec![2.0, 7.0, 300_000.0]);
-        let stall = &stalls(&log)[0];
+        assert_eq!(wake_lateness(&log), vec![2.0, 7.0, 300_000.0, 200_000.0]);
+        let all = stalls(&log);
+        let stall = &all[0];
         assert_eq!(
             (stall.seq, stall.late_us, stall.then.as_deref()),
             (Some(2), Some(300_000.0), Some("resumed"))
         );
+        // No `resumed` after the last: the job ended there.
+        assert_eq!(all[1].then.as_deref(), Some("ended"));
         assert_eq!(
             stall.to_string(),
             "stall at 0.800 s: the cycle woke 300.0 ms late; then resumed"
