@@ -11,6 +11,8 @@
 //!
 //! Needs `python3` (3.11, for `tomllib`); without it every test here says it skips.
 
+mod common;
+
 use serde_json::Value;
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
@@ -284,6 +286,11 @@ fn rig_joint_names() -> Vec<String> {
 
 #[test]
 fn strict_controller_accepts_every_target_of_the_default_job() {
+    if !common::in_full_tier(
+        "conformance::strict_controller_accepts_every_target_of_the_default_job",
+    ) {
+        return;
+    }
     skip_without_python!("strict_controller_accepts_every_target_of_the_default_job");
     let run = run_against("strict", &[], Duration::from_secs(90));
     let ctx = run.context();
@@ -418,6 +425,9 @@ fn refused_before_motion(name: &str, controller_args: &[&str], needles: &[&[&str
 
 #[test]
 fn narrower_lower_limit_is_refused_before_motion() {
+    if !common::in_full_tier("conformance::narrower_lower_limit_is_refused_before_motion") {
+        return;
+    }
     skip_without_python!("narrower_lower_limit_is_refused_before_motion");
     refused_before_motion(
         "lower",
@@ -428,6 +438,9 @@ fn narrower_lower_limit_is_refused_before_motion() {
 
 #[test]
 fn narrower_upper_limit_is_refused_before_motion() {
+    if !common::in_full_tier("conformance::narrower_upper_limit_is_refused_before_motion") {
+        return;
+    }
     skip_without_python!("narrower_upper_limit_is_refused_before_motion");
     refused_before_motion(
         "upper",
@@ -438,6 +451,9 @@ fn narrower_upper_limit_is_refused_before_motion() {
 
 #[test]
 fn scaled_down_limits_are_refused_before_motion() {
+    if !common::in_full_tier("conformance::scaled_down_limits_are_refused_before_motion") {
+        return;
+    }
     skip_without_python!("scaled_down_limits_are_refused_before_motion");
     refused_before_motion(
         "scale",
@@ -450,6 +466,11 @@ fn scaled_down_limits_are_refused_before_motion() {
 /// must show the controller's value as it differs from the rig's.
 #[test]
 fn upper_limit_one_microradian_narrower_is_refused_and_shown() {
+    if !common::in_full_tier(
+        "conformance::upper_limit_one_microradian_narrower_is_refused_and_shown",
+    ) {
+        return;
+    }
     skip_without_python!("upper_limit_one_microradian_narrower_is_refused_and_shown");
     // joint_3's upper limit is 70 deg = 1221730 urad on the wire.
     refused_before_motion(
@@ -461,6 +482,9 @@ fn upper_limit_one_microradian_narrower_is_refused_and_shown() {
 
 #[test]
 fn narrower_speed_is_refused_before_motion() {
+    if !common::in_full_tier("conformance::narrower_speed_is_refused_before_motion") {
+        return;
+    }
     skip_without_python!("narrower_speed_is_refused_before_motion");
     refused_before_motion(
         "speed",
@@ -471,6 +495,9 @@ fn narrower_speed_is_refused_before_motion() {
 
 #[test]
 fn narrower_acceleration_is_refused_before_motion() {
+    if !common::in_full_tier("conformance::narrower_acceleration_is_refused_before_motion") {
+        return;
+    }
     skip_without_python!("narrower_acceleration_is_refused_before_motion");
     refused_before_motion(
         "accel",
@@ -481,6 +508,9 @@ fn narrower_acceleration_is_refused_before_motion() {
 
 #[test]
 fn renamed_axis_is_refused_before_motion() {
+    if !common::in_full_tier("conformance::renamed_axis_is_refused_before_motion") {
+        return;
+    }
     skip_without_python!("renamed_axis_is_refused_before_motion");
     refused_before_motion(
         "rename",
@@ -491,24 +521,36 @@ fn renamed_axis_is_refused_before_motion() {
 
 #[test]
 fn fewer_axes_are_refused_before_motion() {
+    if !common::in_full_tier("conformance::fewer_axes_are_refused_before_motion") {
+        return;
+    }
     skip_without_python!("fewer_axes_are_refused_before_motion");
     refused_before_motion("axes5", &["--axes", "5"], &[&["axes", "axis"], &["5"]]);
 }
 
 #[test]
 fn more_axes_are_refused_before_motion() {
+    if !common::in_full_tier("conformance::more_axes_are_refused_before_motion") {
+        return;
+    }
     skip_without_python!("more_axes_are_refused_before_motion");
     refused_before_motion("axes7", &["--axes", "7"], &[&["axes", "axis"], &["7"]]);
 }
 
 #[test]
 fn other_cycle_is_refused_before_motion() {
+    if !common::in_full_tier("conformance::other_cycle_is_refused_before_motion") {
+        return;
+    }
     skip_without_python!("other_cycle_is_refused_before_motion");
     refused_before_motion("cycle", &["--cycle-us", "2000"], &[&["2000"]]);
 }
 
 #[test]
 fn axis_held_twenty_degrees_off_never_completes() {
+    if !common::in_full_tier("conformance::axis_held_twenty_degrees_off_never_completes") {
+        return;
+    }
     skip_without_python!("axis_held_twenty_degrees_off_never_completes");
     let run = run_against(
         "offset",
@@ -538,6 +580,9 @@ fn axis_held_twenty_degrees_off_never_completes() {
 
 #[test]
 fn controller_dropping_every_target_never_completes() {
+    if !common::in_full_tier("conformance::controller_dropping_every_target_never_completes") {
+        return;
+    }
     skip_without_python!("controller_dropping_every_target_never_completes");
     let run = run_against("ignore", &["--ignore-targets"], Duration::from_secs(30));
     let ctx = run.context();
@@ -560,6 +605,11 @@ fn controller_dropping_every_target_never_completes() {
 /// within every check of 6.6, and completes.
 #[test]
 fn controller_reset_mid_job_is_resumed_from_the_held_position() {
+    if !common::in_full_tier(
+        "conformance::controller_reset_mid_job_is_resumed_from_the_held_position",
+    ) {
+        return;
+    }
     skip_without_python!("controller_reset_mid_job_is_resumed_from_the_held_position");
     let run = run_against(
         "local-reset",
@@ -588,6 +638,11 @@ fn controller_reset_mid_job_is_resumed_from_the_held_position() {
 /// resume, since the bridge plans from a position at rest within 6.8's test.
 #[test]
 fn a_50_ms_servo_lag_refuses_no_first_target_after_a_resume() {
+    if !common::in_full_tier(
+        "conformance::a_50_ms_servo_lag_refuses_no_first_target_after_a_resume",
+    ) {
+        return;
+    }
     skip_without_python!("a_50_ms_servo_lag_refuses_no_first_target_after_a_resume");
     // 1 / (2 pi 50 ms).
     let bandwidth_hz = format!("{:.4}", 1.0 / (std::f64::consts::TAU * 0.050));
@@ -650,6 +705,9 @@ fn a_50_ms_servo_lag_refuses_no_first_target_after_a_resume() {
 /// (3.6), and 6.10's rules on a controller without a socket.
 #[test]
 fn doc_controller_framing_matches_the_spec_examples() {
+    if !common::in_full_tier("conformance::doc_controller_framing_matches_the_spec_examples") {
+        return;
+    }
     skip_without_python!("doc_controller_framing_matches_the_spec_examples");
     let out = Command::new("python3")
         .current_dir(manifest_dir())
@@ -777,6 +835,11 @@ fn outputs_done(summary: &Value) -> Vec<(String, i64)> {
 /// following with Targets at rest meanwhile (no watchdog hold, no refusal).
 #[test]
 fn program_with_io_steps_completes_against_a_version_3_controller() {
+    if !common::in_full_tier(
+        "conformance::program_with_io_steps_completes_against_a_version_3_controller",
+    ) {
+        return;
+    }
     skip_without_python!("program_with_io_steps_completes_against_a_version_3_controller");
     let (_settings_dir, settings) = io_program_settings("io-v3");
     let run = run_against_with(
@@ -859,6 +922,11 @@ fn program_with_io_steps_completes_against_a_version_3_controller() {
 /// the controller's version; the bridge sends it no I/O message.
 #[test]
 fn program_with_io_steps_is_refused_by_version_before_motion_against_a_version_2_controller() {
+    if !common::in_full_tier(
+        "conformance::program_with_io_steps_is_refused_by_version_before_motion_against_a_version_2_controller",
+    ) {
+        return;
+    }
     skip_without_python!(
         "program_with_io_steps_is_refused_by_version_before_motion_against_a_version_2_controller"
     );

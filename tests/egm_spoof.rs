@@ -369,6 +369,11 @@ fn count(value: &serde_json::Value, key: &str) -> u64 {
 
 #[test]
 fn ten_thousand_forged_datagrams_from_other_ports_move_nothing_and_are_counted() {
+    if !common::in_full_tier(
+        "egm_spoof::ten_thousand_forged_datagrams_from_other_ports_move_nothing_and_are_counted",
+    ) {
+        return;
+    }
     let _cycles = one_at_a_time();
     real_time();
     let bridge = free_udp_port();
@@ -503,6 +508,11 @@ fn job_on_a_thread(
 
 #[test]
 fn a_replay_from_the_robot_s_own_address_is_dropped_and_the_job_completes() {
+    if !common::in_full_tier(
+        "egm_spoof::a_replay_from_the_robot_s_own_address_is_dropped_and_the_job_completes",
+    ) {
+        return;
+    }
     let _cycles = one_at_a_time();
     real_time();
     let settings = shipped_run_settings();
@@ -546,6 +556,11 @@ fn a_replay_from_the_robot_s_own_address_is_dropped_and_the_job_completes() {
 
 #[test]
 fn a_far_jump_from_the_robot_s_own_address_stops_the_job_at_rest() {
+    if !common::in_full_tier(
+        "egm_spoof::a_far_jump_from_the_robot_s_own_address_stops_the_job_at_rest",
+    ) {
+        return;
+    }
     let _cycles = one_at_a_time();
     real_time();
     let settings = shipped_run_settings();
@@ -584,6 +599,11 @@ fn a_far_jump_from_the_robot_s_own_address_stops_the_job_at_rest() {
 
 #[test]
 fn a_second_robot_on_an_unnamed_session_is_reported_and_stops_the_job_at_rest() {
+    if !common::in_full_tier(
+        "egm_spoof::a_second_robot_on_an_unnamed_session_is_reported_and_stops_the_job_at_rest",
+    ) {
+        return;
+    }
     let _cycles = one_at_a_time();
     real_time();
     let settings = shipped_run_settings();
@@ -625,6 +645,11 @@ fn a_second_robot_on_an_unnamed_session_is_reported_and_stops_the_job_at_rest() 
 
 #[test]
 fn an_egm_restart_at_seqno_zero_is_a_new_session_not_a_replay() {
+    if !common::in_full_tier(
+        "egm_spoof::an_egm_restart_at_seqno_zero_is_a_new_session_not_a_replay",
+    ) {
+        return;
+    }
     let _cycles = one_at_a_time();
     let settings = shipped_run_settings();
     let Bench {

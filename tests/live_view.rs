@@ -248,6 +248,11 @@ fn rated_at(figures: &Value) -> f64 {
 
 #[test]
 fn the_live_view_draws_the_twin_and_runs_a_job_in_headless_chromium() {
+    if !common::in_full_tier(
+        "live_view::the_live_view_draws_the_twin_and_runs_a_job_in_headless_chromium",
+    ) {
+        return;
+    }
     let chromium = binary("RIGBRIDGE_CHROMIUM", "/usr/bin/chromium");
     let driver = binary("RIGBRIDGE_CHROMEDRIVER", "/usr/bin/chromedriver");
     if !chromium.exists() || !driver.exists() {

@@ -226,6 +226,11 @@ fn failed_at(run: &Run) -> Duration {
 
 #[test]
 fn a_full_log_disk_brings_the_job_to_rest_within_a_second_and_the_report_is_true() {
+    if !common::in_full_tier(
+        "logfail::a_full_log_disk_brings_the_job_to_rest_within_a_second_and_the_report_is_true",
+    ) {
+        return;
+    }
     let disk = FullDisk::new("logfail-stop");
     // The shipped accel_scale: the stop brakes at the axes' acceleration (stream/brake.rs).
     let config = settings("logfail-stop.toml", 20, 0.8, "on_error = \"stop\"");
@@ -265,6 +270,11 @@ fn a_full_log_disk_brings_the_job_to_rest_within_a_second_and_the_report_is_true
 
 #[test]
 fn with_on_error_continue_the_job_completes_and_the_report_says_the_log_failed() {
+    if !common::in_full_tier(
+        "logfail::with_on_error_continue_the_job_completes_and_the_report_says_the_log_failed",
+    ) {
+        return;
+    }
     let disk = FullDisk::new("logfail-continue");
     let config = settings("logfail-continue.toml", 3, 0.8, "on_error = \"continue\"");
     let run = run_through_proxy(&config, &disk, "logfail-continue");
@@ -289,6 +299,11 @@ fn with_on_error_continue_the_job_completes_and_the_report_says_the_log_failed()
 
 #[test]
 fn a_report_on_a_full_disk_leaves_the_previous_one_and_says_why() {
+    if !common::in_full_tier(
+        "logfail::a_report_on_a_full_disk_leaves_the_previous_one_and_says_why",
+    ) {
+        return;
+    }
     let disk = FullDisk::new("logfail-report");
     if !disk.mounted {
         println!(
@@ -338,6 +353,11 @@ fn fill(dir: &Path) {
 
 #[test]
 fn serve_keeps_the_report_of_a_job_whose_log_failed_and_says_it_while_it_runs() {
+    if !common::in_full_tier(
+        "logfail::serve_keeps_the_report_of_a_job_whose_log_failed_and_says_it_while_it_runs",
+    ) {
+        return;
+    }
     let disk = FullDisk::new("logfail-serve");
     let config = settings("logfail-serve.toml", 20, 0.7, "");
     let mut command = common::serve::serve_command(&disk.dir);
@@ -405,6 +425,9 @@ fn live_log_error(address: &str) -> String {
 
 #[test]
 fn on_error_is_checked_when_the_settings_load() {
+    if !common::in_full_tier("logfail::on_error_is_checked_when_the_settings_load") {
+        return;
+    }
     let shipped = common::shipped_run_settings();
     assert_eq!(
         shipped.config.log.on_error,

@@ -51,6 +51,11 @@ fn wait_for(
 
 #[test]
 fn a_day_long_two_point_trajectory_runs_with_the_daemon_under_64_mb() {
+    if !common::in_full_tier(
+        "long_plan::a_day_long_two_point_trajectory_runs_with_the_daemon_under_64_mb",
+    ) {
+        return;
+    }
     if !std::path::Path::new("/proc/self/status").exists() {
         println!("skipping: no /proc/<pid>/status on this machine to read the peak memory from");
         return;

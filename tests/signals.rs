@@ -84,6 +84,10 @@ fn stopped_run(index: u64, delay: Duration) -> Result<(), String> {
 
 #[test]
 fn ctrl_c_at_any_moment_of_a_run_stops_it_and_reports_stopped() {
+    if !common::in_full_tier("signals::ctrl_c_at_any_moment_of_a_run_stops_it_and_reports_stopped")
+    {
+        return;
+    }
     let lanes: Vec<_> = (0..LANES)
         .map(|lane| {
             std::thread::spawn(move || {

@@ -423,6 +423,11 @@ fn case_for(rng: &mut impl Rng, job: &Job, phase: Phase, request: Request, wall:
 
 #[test]
 fn a_stop_or_estop_at_any_point_of_a_job_moves_nothing_but_a_slowing_ramp() {
+    if !common::in_full_tier(
+        "stop_phases::a_stop_or_estop_at_any_point_of_a_job_moves_nothing_but_a_slowing_ramp",
+    ) {
+        return;
+    }
     let started = Instant::now();
     let jobs = [
         job("star", "config/rigbridge.toml"),

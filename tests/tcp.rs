@@ -74,6 +74,9 @@ fn hello_frame() -> Vec<u8> {
 
 #[test]
 fn a_job_over_tcp_loses_no_frame_and_stays_within_limits() {
+    if !common::in_full_tier("tcp::a_job_over_tcp_loses_no_frame_and_stays_within_limits") {
+        return;
+    }
     let twin = start_twin("tcp://127.0.0.1:0");
     let (log, json) = (scratch("whole.mcap"), scratch("whole.json"));
     run_to_end(&twin.address, &log, &json);
@@ -105,6 +108,9 @@ fn a_job_over_tcp_loses_no_frame_and_stays_within_limits() {
 
 #[test]
 fn a_restarted_twin_is_rejoined_from_its_actual_position() {
+    if !common::in_full_tier("tcp::a_restarted_twin_is_rejoined_from_its_actual_position") {
+        return;
+    }
     // The restarted twin comes back at its initial position, and the way back to the path
     // is a joint move from there: in the shipped cell it may pass the star's wall within the
     // margin, and is then refused before motion like any path that does. This test
@@ -160,6 +166,9 @@ fn settings_on_the_floor() -> PathBuf {
 
 #[test]
 fn a_killed_daemon_leaves_the_twin_holding_within_two_cycles() {
+    if !common::in_full_tier("tcp::a_killed_daemon_leaves_the_twin_holding_within_two_cycles") {
+        return;
+    }
     let twin = start_twin("tcp://127.0.0.1:0");
     let (log, json) = (scratch("killed.mcap"), scratch("killed.json"));
     let mut daemon = spawn_run(&twin.address, &log, &json);
@@ -199,6 +208,9 @@ fn a_killed_daemon_leaves_the_twin_holding_within_two_cycles() {
 
 #[test]
 fn a_megabyte_of_garbage_moves_nothing_and_crashes_nothing() {
+    if !common::in_full_tier("tcp::a_megabyte_of_garbage_moves_nothing_and_crashes_nothing") {
+        return;
+    }
     let twin = start_twin("tcp://127.0.0.1:0");
     let address = twin.address.trim_start_matches("tcp://").to_string();
     let noise = noise(0x2545_f491_4f6c_dd1d);
@@ -278,6 +290,9 @@ fn read_until_answered_twice(socket: &mut std::net::TcpStream) -> Vec<u8> {
 
 #[test]
 fn a_controller_sending_garbage_gets_no_motion_and_no_crash() {
+    if !common::in_full_tier("tcp::a_controller_sending_garbage_gets_no_motion_and_no_crash") {
+        return;
+    }
     let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let address = listener.local_addr().unwrap();
     let server = std::thread::spawn(move || {
@@ -323,6 +338,9 @@ fn a_controller_sending_garbage_gets_no_motion_and_no_crash() {
 
 #[test]
 fn a_twin_that_never_comes_back_aborts_the_job_with_a_message() {
+    if !common::in_full_tier("tcp::a_twin_that_never_comes_back_aborts_the_job_with_a_message") {
+        return;
+    }
     let config = repo_path("config").join(format!(".test-{}-reconnect.toml", std::process::id()));
     let original = common::with_absolute_cell(
         &std::fs::read_to_string(repo_path("config/rigbridge.toml")).unwrap(),
@@ -378,6 +396,9 @@ fn a_twin_that_never_comes_back_aborts_the_job_with_a_message() {
 /// not that a controller kept silent.
 #[test]
 fn a_refused_connection_is_named_with_its_address() {
+    if !common::in_full_tier("tcp::a_refused_connection_is_named_with_its_address") {
+        return;
+    }
     let address = {
         let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
         listener.local_addr().unwrap()
@@ -398,6 +419,10 @@ fn a_refused_connection_is_named_with_its_address() {
 
 #[test]
 fn a_second_bridge_is_refused_with_a_reason_while_one_is_connected() {
+    if !common::in_full_tier("tcp::a_second_bridge_is_refused_with_a_reason_while_one_is_connected")
+    {
+        return;
+    }
     let twin = start_twin("tcp://127.0.0.1:0");
     let address = twin.address.trim_start_matches("tcp://").to_string();
     let first = std::net::TcpStream::connect(&address).unwrap();
@@ -426,6 +451,9 @@ fn a_second_bridge_is_refused_with_a_reason_while_one_is_connected() {
 
 #[test]
 fn a_virtual_clock_over_a_real_link_is_refused() {
+    if !common::in_full_tier("tcp::a_virtual_clock_over_a_real_link_is_refused") {
+        return;
+    }
     let output = rigbridge()
         .args(["run", "--clock", "virtual", "--link", "tcp://127.0.0.1:9"])
         .output()
@@ -440,6 +468,9 @@ fn a_virtual_clock_over_a_real_link_is_refused() {
 
 #[test]
 fn serve_refuses_a_virtual_clock_for_a_cell_on_a_real_link() {
+    if !common::in_full_tier("tcp::serve_refuses_a_virtual_clock_for_a_cell_on_a_real_link") {
+        return;
+    }
     let dir = std::env::temp_dir().join(format!("rigbridge-serve-virtual-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let settings = common::shipped_settings_text()
@@ -473,6 +504,9 @@ fn serve_refuses_a_virtual_clock_for_a_cell_on_a_real_link() {
 /// asks of the diagnostics.
 #[test]
 fn the_twin_prints_its_events_plainly_even_under_rust_log() {
+    if !common::in_full_tier("tcp::the_twin_prints_its_events_plainly_even_under_rust_log") {
+        return;
+    }
     let twin = start_twin_under("tcp://127.0.0.1:0", Some("trace"));
     let peer = std::net::TcpStream::connect(twin.address.trim_start_matches("tcp://")).unwrap();
     let connected = twin
@@ -511,6 +545,11 @@ fn the_twin_prints_its_events_plainly_even_under_rust_log() {
 /// completes rather than ending `faulted: busy with another bridge`.
 #[test]
 fn a_controller_stalled_for_three_seconds_is_resumed_when_it_comes_back() {
+    if !common::in_full_tier(
+        "tcp::a_controller_stalled_for_three_seconds_is_resumed_when_it_comes_back",
+    ) {
+        return;
+    }
     let twin = start_twin("tcp://127.0.0.1:0");
     let (log, json) = (scratch("stalled.mcap"), scratch("stalled.json"));
     let daemon = spawn_run(&twin.address, &log, &json);

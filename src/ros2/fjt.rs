@@ -417,12 +417,25 @@ pub struct Progress {
     pub actual: Vec<f64>,
 }
 
+/// Why a goal's job did not start (nothing then moved): its text is the result's
+/// `error_string`.
+#[derive(Debug, thiserror::Error)]
+pub enum GoalRefused {
+    /// The job's validation or its planning refused it (limits, the cell, the rig), in
+    /// the words it refuses a job from a file or HTTP with.
+    #[error("{0}")]
+    Refused(String),
+    /// The job's thread ended before it had planned.
+    #[error("the job thread ended before planning")]
+    JobThreadEnded,
+}
+
 /// What runs a goal: the daemon's, which makes it a job through the same validation as
 /// every job.
 pub trait GoalRunner: Send {
     /// Starts `goal` as a job, once the previous one is at rest; the validation's text when
     /// it is refused (nothing then moved).
-    fn start(&mut self, goal: &CheckedGoal) -> Result<(), String>;
+    fn start(&mut self, goal: &CheckedGoal) -> Result<(), GoalRefused>;
     /// Asks the running job to stop: it brakes to rest along its path. Returns at once.
     fn stop(&mut self);
     /// How the job goes.
@@ -601,7 +614,7 @@ impl Goals {
                     server,
                     &id,
                     GoalStatusEnum::Aborted,
-                    outcome(code::INVALID_GOAL, text),
+                    outcome(code::INVALID_GOAL, text.to_string()),
                 );
             }
         }

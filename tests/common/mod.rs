@@ -257,14 +257,15 @@ pub fn assert_gait_figures(run: &rigbridge::daemon::gait::GaitRun) {
 }
 
 /// Whether the full tier runs (docs/testing.md, "Two tiers"): `scripts/test.sh` and CI
-/// (`CI=true`) run every test; a plain `cargo test` is the fast tier, where the few tests
-/// that take minutes say they skip, and how to run them.
+/// (`CI=true`) run every test; a plain `cargo test` is the fast tier, where the slow
+/// real-time tests (processes streaming for seconds, a browser, the fault injection) say
+/// they skip, and how to run them.
 pub fn in_full_tier(test: &str) -> bool {
     let full = std::env::var("RIGBRIDGE_TIER").as_deref() == Ok("full")
         || std::env::var("CI").as_deref() == Ok("true");
     if !full {
         println!(
-            "skipping {test}: it belongs to the full tier (it takes minutes); run it with \
+            "skipping {test}: it belongs to the full tier (slow real-time runs); run it with \
              RIGBRIDGE_TIER=full, or run everything with bash scripts/test.sh"
         );
     }

@@ -6,7 +6,7 @@
 
 use super::cell::Cell;
 use super::{Daemon, start_refusal};
-use crate::ros2::fjt::{CheckedGoal, GoalRunner, JobState, Progress};
+use crate::ros2::fjt::{CheckedGoal, GoalRefused, GoalRunner, JobState, Progress};
 use crate::stream::StreamControl;
 use std::sync::Arc;
 
@@ -28,17 +28,19 @@ impl CellGoals {
 }
 
 impl GoalRunner for CellGoals {
-    fn start(&mut self, goal: &CheckedGoal) -> Result<(), String> {
+    fn start(&mut self, goal: &CheckedGoal) -> Result<(), GoalRefused> {
         let cell = &self.cell;
         let held = cell.current_position();
         let job =
             crate::daemon::ros2::goal_job(&goal.trajectory, &cell.settings().rig, held.as_deref())
-                .map_err(|e| e.to_string())?;
-        let job = cell.validate(job).map_err(|e| e.to_string())?;
+                .map_err(|e| GoalRefused::Refused(e.to_string()))?;
+        let job = cell
+            .validate(job)
+            .map_err(|e| GoalRefused::Refused(e.to_string()))?;
         let id = self.daemon.next_job_id();
         let started = cell
             .start(id, job, &self.daemon.options)
-            .map_err(|refused| start_refusal(cell, refused))?;
+            .map_err(|refused| GoalRefused::Refused(start_refusal(cell, refused)))?;
         match started.planned.blocking_recv() {
             Ok(Ok(())) => {
                 cell.log_ros2("ros2_goal_started", Some(id), "streaming".into());
@@ -47,9 +49,9 @@ impl GoalRunner for CellGoals {
             }
             Ok(Err(message)) => {
                 cell.reap(id);
-                Err(message.to_string())
+                Err(GoalRefused::Refused(message.to_string()))
             }
-            Err(_) => Err("the job thread ended before planning".into()),
+            Err(_) => Err(GoalRefused::JobThreadEnded),
         }
     }
 
