@@ -89,26 +89,21 @@ fn settings(dir: &Path, ros2: &str) -> PathBuf {
 
 /// The rclpy peer in DDS domain `domain`, on loopback, once its subscriptions exist.
 fn start_peer(python: &str, domain: u32, dir: &Path, args: &[&str]) -> LinePeer {
-    let mut command = Command::new(python);
-    command
-        .arg(repo_path("tests/peers/ros2_dds_peer.py"))
-        .args(args)
-        .env("ROS_DOMAIN_ID", domain.to_string())
-        .env("ROS_AUTOMATIC_DISCOVERY_RANGE", "SYSTEM_DEFAULT")
-        .env(
-            "FASTRTPS_DEFAULT_PROFILES_FILE",
-            repo_path("tests/peers/fastdds_loopback.xml"),
-        )
-        .env("ROS_LOG_DIR", dir.join("ros-log"));
-    LinePeer::start(command)
+    start_rclpy(python, "tests/peers/ros2_dds_peer.py", domain, dir, args)
 }
 
 /// The rclpy action client (tests/peers/ros2_fjt_client.py) in DDS domain `domain`, once
 /// it has found the rig's action server or trajectory subscriber.
 fn start_client(python: &str, domain: u32, dir: &Path, args: &[&str]) -> LinePeer {
+    start_rclpy(python, "tests/peers/ros2_fjt_client.py", domain, dir, args)
+}
+
+/// The rclpy `script` in DDS domain `domain`, its discovery kept to loopback by Fast DDS's
+/// profile, its ROS logs in `dir`.
+fn start_rclpy(python: &str, script: &str, domain: u32, dir: &Path, args: &[&str]) -> LinePeer {
     let mut command = Command::new(python);
     command
-        .arg(repo_path("tests/peers/ros2_fjt_client.py"))
+        .arg(repo_path(script))
         .args(args)
         .env("ROS_DOMAIN_ID", domain.to_string())
         .env("ROS_AUTOMATIC_DISCOVERY_RANGE", "SYSTEM_DEFAULT")
