@@ -36,7 +36,7 @@ pub use online::{
 };
 pub use phase::{Halting, Phase};
 
-use crate::clock::Clock;
+use crate::clock::{self, Clock};
 use crate::link::{Link, LinkCounters, LinkError, LinkEvent};
 use crate::log::{JITTER_CEILING_US, Jitter};
 use crate::motion::{Trajectory, TrajectoryError, validate};
@@ -841,11 +841,9 @@ fn await_echo(
     seq: u32,
     timeout: Duration,
 ) -> Result<Option<Feedback>, LinkError> {
-    let deadline = std::time::Instant::now() + timeout;
+    let deadline = clock::real().now() + timeout;
     let mut latest = None;
-    while let Some(feedback) =
-        link.receive(deadline.saturating_duration_since(std::time::Instant::now()))?
-    {
+    while let Some(feedback) = link.receive(deadline.saturating_sub(clock::real().now()))? {
         latest = Some(feedback);
         if feedback.seq >= seq {
             break;
