@@ -160,7 +160,7 @@ impl LogRecord {
     pub fn command(target: &JointTarget, late_us: f32) -> Self {
         Self::Command {
             seq: target.seq,
-            t: target.t,
+            t: target.t.as_secs_f64(),
             positions: target.positions,
             velocities: target.velocities,
             late_us,

@@ -1183,7 +1183,7 @@ impl Cycle {
         rig: &Rig,
         cell: Option<&mut CellGate<'_>>,
     ) -> Option<JointTarget> {
-        // The gate's maths and the target's `t` (a log record) are in seconds.
+        // The gate's maths is in seconds.
         let dt = period.as_secs_f64();
         if let Err(refusal) = gate::check(rig, &positions, &velocities, &self.sent, dt) {
             self.violations += 1;
@@ -1206,7 +1206,7 @@ impl Cycle {
         self.held[self.seq as usize % HELD_TARGETS] = (self.seq, positions);
         Some(JointTarget {
             seq: self.seq,
-            t: f64::from(self.seq) * dt,
+            t: period * self.seq,
             positions,
             velocities,
         })
