@@ -36,7 +36,7 @@ fn live(c: &mut Criterion) {
     let mut record = CycleRecord {
         target: JointTarget {
             seq: 0,
-            t: 0.0,
+            t: Duration::ZERO,
             positions,
             velocities: AxisValues::zeros(6),
         },

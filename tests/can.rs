@@ -206,7 +206,7 @@ fn cycle_frames(fd: bool) -> (Vec<CanPayload>, Vec<CanPayload>) {
     let values = AxisValues::from_slice(&[0.1, -0.5, 0.25, 0.0, 1.5, -3.0]).unwrap();
     let target = Message::Command(Command::Target(JointTarget {
         seq: 42,
-        t: 1.5,
+        t: Duration::from_millis(1500),
         positions: values,
         velocities: values,
     }));

@@ -26,6 +26,7 @@ use rigbridge::protocol::{
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::f64::consts::{FRAC_PI_2, PI};
+use std::time::Duration;
 
 // ---------------------------------------------------------------------------------------
 // Allocation counting, per thread (tests run in parallel).
@@ -74,7 +75,7 @@ fn whole_urad(value: f64) -> f64 {
 fn target6() -> Message {
     Message::Command(Command::Target(JointTarget {
         seq: 42,
-        t: 1.5,
+        t: Duration::from_millis(1500),
         // pi/2 and -pi, rounded to whole urad: 1.570796 and -3.141593.
         positions: values(&[0.1, -0.5, 0.25, 0.0, whole_urad(FRAC_PI_2), whole_urad(-PI)]),
         velocities: values(&[0.01, -0.02, 0.0, 0.5, 0.0, -1.0]),
@@ -221,7 +222,7 @@ fn annotated(message: &Message) -> String {
     match message {
         Message::Command(Command::Target(t)) => {
             fields.push((4, format!("seq = {}", t.seq)));
-            fields.push((8, format!("t = {} us", micro(t.t))));
+            fields.push((8, format!("t = {} us", t.t.as_micros())));
             fields.push((1, format!("{} axes", t.positions.len())));
             for (i, p) in t.positions.as_slice().iter().enumerate() {
                 fields.push((4, format!("position {} = {} urad", i + 1, micro(*p))));
@@ -382,7 +383,7 @@ fn doc_blocks() -> Vec<(&'static str, String)> {
 fn target_n(axes: usize) -> Message {
     Message::Command(Command::Target(JointTarget {
         seq: 1,
-        t: 0.0,
+        t: Duration::ZERO,
         positions: AxisValues::zeros(axes),
         velocities: AxisValues::zeros(axes),
     }))
@@ -699,11 +700,11 @@ fn micro() -> impl Strategy<Value = f64> {
     ]
 }
 
-fn time() -> impl Strategy<Value = f64> {
+fn time() -> impl Strategy<Value = Duration> {
     prop_oneof![
-        (0..MAX_TIME_US).prop_map(|us| us as f64 / 1e6),
-        (0u64..3_600_000_000).prop_map(|us| us as f64 / 1e6),
-        Just((MAX_TIME_US - 1) as f64 / 1e6),
+        (0..MAX_TIME_US).prop_map(Duration::from_micros),
+        (0u64..3_600_000_000).prop_map(Duration::from_micros),
+        Just(Duration::from_micros(MAX_TIME_US - 1)),
     ]
 }
 
@@ -1120,7 +1121,7 @@ fn trailing_bytes_and_bad_fields_are_malformed() {
 // ---------------------------------------------------------------------------------------
 // Encoding errors: out of range is refused, never saturated; nothing half-written.
 
-fn target_with(position: f64, velocity: f64, t: f64) -> Message {
+fn target_with(position: f64, velocity: f64, t: Duration) -> Message {
     Message::Command(Command::Target(JointTarget {
         seq: 1,
         t,
@@ -1132,14 +1133,13 @@ fn target_with(position: f64, velocity: f64, t: f64) -> Message {
 #[test]
 fn values_outside_the_wire_range_are_errors() {
     let refused = [
-        target_with(2147.483648, 0.0, 0.0),
-        target_with(-2147.4836485, 0.0, 0.0),
-        target_with(f64::NAN, 0.0, 0.0),
-        target_with(0.0, f64::INFINITY, 0.0),
-        target_with(0.0, -3000.0, 0.0),
-        target_with(0.0, 0.0, -1.0),
-        target_with(0.0, 0.0, MAX_TIME_US as f64 / 1e6),
-        target_with(0.0, 0.0, f64::NAN),
+        target_with(2147.483648, 0.0, Duration::ZERO),
+        target_with(-2147.4836485, 0.0, Duration::ZERO),
+        target_with(f64::NAN, 0.0, Duration::ZERO),
+        target_with(0.0, f64::INFINITY, Duration::ZERO),
+        target_with(0.0, -3000.0, Duration::ZERO),
+        // A negative or NaN time is no longer a value: `t` is a Duration.
+        target_with(0.0, 0.0, Duration::from_micros(MAX_TIME_US)),
     ];
     for message in &refused {
         let mut out = vec![0xAB];
@@ -1154,8 +1154,8 @@ fn values_outside_the_wire_range_are_errors() {
     }
     // The extremes themselves fit.
     for message in [
-        target_with(2147.483647, -2147.483648, 0.0),
-        target_with(0.0, 0.0, (MAX_TIME_US - 1) as f64 / 1e6),
+        target_with(2147.483647, -2147.483648, Duration::ZERO),
+        target_with(0.0, 0.0, Duration::from_micros(MAX_TIME_US - 1)),
     ] {
         assert_eq!(decode_body(&body(&message)).unwrap(), message);
     }
@@ -1165,7 +1165,7 @@ fn values_outside_the_wire_range_are_errors() {
 fn malformed_messages_are_refused_before_encoding() {
     let mismatched = Message::Command(Command::Target(JointTarget {
         seq: 1,
-        t: 0.0,
+        t: Duration::ZERO,
         positions: AxisValues::zeros(3),
         velocities: AxisValues::zeros(2),
     }));

@@ -100,7 +100,7 @@ fn watched_twin() -> (Twin, Arc<Mutex<Trace>>, Arc<CollisionModel>) {
 fn target(seq: u32, position: f64, velocity: f64) -> Command {
     Command::Target(JointTarget {
         seq,
-        t: f64::from(seq) * PERIOD_S,
+        t: std::time::Duration::from_secs_f64(PERIOD_S) * seq,
         positions: AxisValues::from_slice(&[position]).expect("one axis"),
         velocities: AxisValues::from_slice(&[velocity]).expect("one axis"),
     })

@@ -39,7 +39,7 @@ fn ramp(axis: usize, accel: f64, speed: f64, cycles: usize) -> Vec<([f64; 6], [f
 fn target(seq: u32, positions: &[f64], velocities: &[f64]) -> Command {
     Command::Target(JointTarget {
         seq,
-        t: f64::from(seq) * 0.004,
+        t: std::time::Duration::from_millis(4) * seq,
         positions: AxisValues::from_slice(positions).unwrap(),
         velocities: AxisValues::from_slice(velocities).unwrap(),
     })

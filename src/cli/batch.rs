@@ -11,6 +11,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rigbridge::batch::check::{CheckSummary, check_batch};
 use rigbridge::batch::{BatchSummary, fk_batch, ik_batch};
 use rigbridge::cell::{Cell, CollisionModel};
+use rigbridge::clock::{Clock, WallClock};
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::ik::{CcdSolver, FabrikSolver, GradientDescentSolver, IkSolver};
 use rigbridge::rig::{Rig, load_rig_with_tool, shipped};
@@ -18,7 +19,6 @@ use std::fs::File;
 use std::io::{BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::Instant;
 
 /// Where the rig comes from and where its chain ends.
 #[derive(Args)]
@@ -262,12 +262,12 @@ pub fn fk(args: FkArgs) -> anyhow::Result<ExitCode> {
     let rig = load(&args.rig)?;
     let (input, bar) = open_input(&args.input)?;
     let (output, writer) = Output::open(&args.input, &args.output)?;
-    let start = Instant::now();
+    let start = WallClock::new();
     let summary = fk_batch(&rig, input, writer, |n| show_rows(&bar, n))
         .with_context(|| format!("fk batch on {}", args.input.display()))?;
     output.finish()?;
     bar.finish_and_clear();
-    report(&summary, start.elapsed(), false);
+    report(&summary, start.now(), false);
     Ok(exit_code(&summary))
 }
 
@@ -299,14 +299,14 @@ pub fn ik(args: IkArgs) -> anyhow::Result<ExitCode> {
     };
     let (input, bar) = open_input(&args.input)?;
     let (output, writer) = Output::open(&args.input, &args.output)?;
-    let start = Instant::now();
+    let start = WallClock::new();
     let summary = ik_batch(solver.as_ref(), &seed, input, writer, |n| {
         show_rows(&bar, n)
     })
     .with_context(|| format!("ik batch on {}", args.input.display()))?;
     output.finish()?;
     bar.finish_and_clear();
-    report(&summary, start.elapsed(), true);
+    report(&summary, start.now(), true);
     Ok(exit_code(&summary))
 }
 
@@ -364,12 +364,12 @@ pub fn check(args: CheckArgs) -> anyhow::Result<ExitCode> {
     let model = CollisionModel::new(&rig, &cell).context("cannot build the collision model")?;
     let (input, bar) = open_input(&args.input)?;
     let (output, writer) = Output::open(&args.input, &args.output)?;
-    let start = Instant::now();
+    let start = WallClock::new();
     let summary = check_batch(&model, &rig, input, writer, |n| show_rows(&bar, n))
         .with_context(|| format!("check batch on {}", args.input.display()))?;
     output.finish()?;
     bar.finish_and_clear();
-    report_check(&summary, start.elapsed());
+    report_check(&summary, start.now());
     Ok(if summary.all_free() {
         ExitCode::SUCCESS
     } else {

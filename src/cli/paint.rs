@@ -5,6 +5,7 @@
 use super::run::{ClockChoice, default_log_path, make_clock, print_stream_summary};
 use anyhow::Context;
 use clap::Args;
+use rigbridge::clock::{Clock, WallClock};
 use rigbridge::daemon::config::{JobConfig, load_run_settings};
 use rigbridge::daemon::paint::run_paint;
 use rigbridge::stream::StreamControl;
@@ -62,7 +63,7 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
     let job_control = control.clone();
     let job_log = log.clone();
     // Planning time as the user waits for it (the library never reads the clock).
-    let started = std::time::Instant::now();
+    let started = WallClock::new();
     let job = super::run::spawn_streaming(move || {
         Ok(run_paint(
             &settings,
@@ -72,7 +73,7 @@ pub fn paint(args: PaintArgs) -> anyhow::Result<ExitCode> {
             clock.as_ref(),
             Some(&job_log),
             &job_control,
-            &mut |plan| print_plan(plan, started),
+            &mut |plan| print_plan(plan, &started),
         )?)
     })?;
     let run = super::run::wait(&control, job)?;
@@ -128,7 +129,7 @@ impl Picture {
 
 /// What the plan holds, printed on the streaming thread as soon as it is planned: a closed
 /// stdout must not stop the job here; the summary after it ends the output.
-fn print_plan(plan: &PaintPlan, started: std::time::Instant) {
+fn print_plan(plan: &PaintPlan, started: &WallClock) {
     use std::io::Write as _;
     let mut out = super::stdout();
     let unreachable = if plan.unreachable.is_empty() {
@@ -144,7 +145,7 @@ fn print_plan(plan: &PaintPlan, started: std::time::Instant) {
         "planned {} strokes ({:.0} s of motion) in {:.2} s{unreachable}",
         plan.strokes.len(),
         plan.trajectory.duration_s(),
-        started.elapsed().as_secs_f64(),
+        started.now().as_secs_f64(),
     );
     for stroke in &plan.unreachable {
         let _ = writeln!(

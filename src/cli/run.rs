@@ -7,7 +7,7 @@
 use anyhow::Context;
 use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
-use rigbridge::clock::{Clock, VirtualClock, WallClock};
+use rigbridge::clock::{self, Clock, VirtualClock, WallClock};
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::{DaemonError, RunReport, open_link, plan_for, stream_planned_with};
 use rigbridge::link::LinkSpec;
@@ -69,9 +69,7 @@ pub fn make_clock(choice: ClockChoice) -> Arc<dyn Clock> {
 /// The default log path, unique per run: the time in seconds orders runs, the process id
 /// keeps two runs started in the same second apart (the recorder never overwrites a file).
 pub fn default_log_path(prefix: &str) -> PathBuf {
-    let seconds = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs());
+    let seconds = clock::real().unix_time().as_secs();
     let process = std::process::id();
     PathBuf::from("runs").join(format!("{prefix}-{seconds}-{process}.mcap"))
 }

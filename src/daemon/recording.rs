@@ -88,7 +88,7 @@ impl CycleSink for RecorderSink<'_> {
         let target = &cycle.target;
         self.recorder.record(LogRecord::Command {
             seq: target.seq,
-            t: target.t,
+            t: target.t.as_secs_f64(),
             positions: target.positions,
             velocities: target.velocities,
             late_us: cycle.late_us,
@@ -97,7 +97,7 @@ impl CycleSink for RecorderSink<'_> {
             let velocities = self.estimated_velocity(&feedback.positions);
             self.recorder.record(LogRecord::State {
                 seq: target.seq,
-                t: target.t,
+                t: target.t.as_secs_f64(),
                 positions: feedback.positions,
                 velocities,
             });

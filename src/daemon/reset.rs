@@ -4,10 +4,11 @@
 //! answer) is the link's, and it never sends a target.
 
 use super::DaemonError;
+use crate::clock::{self, Clock};
 use crate::link::{Link, LinkEvent};
 use crate::protocol::{Command, ControllerStatus, Feedback};
 use crate::stream::fault_text;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// How long a Reset waits for a session, a first feedback and the controller's answer: a
 /// controller answers within a cycle or two (6.7); this leaves room for a reconnect.
@@ -70,7 +71,7 @@ pub fn reset_controller(
     link: &mut dyn Link,
     timeout: Duration,
 ) -> Result<ResetOutcome, DaemonError> {
-    let deadline = Instant::now() + timeout;
+    let deadline = clock::real().now() + timeout;
     let before = first_feedback(link, deadline)?;
     // Notices of the fault as it latched are old news, not the answer to this Reset.
     while link.next_event().is_some() {}
@@ -80,7 +81,7 @@ pub fn reset_controller(
         });
     };
     link.send(&Command::Reset)?;
-    while Instant::now() < deadline {
+    while clock::real().now() < deadline {
         while let Some(event) = link.next_event() {
             if let LinkEvent::Fault(report) = event {
                 return Ok(ResetOutcome::Kept(fault_text(&report.fault, &report.text)));
@@ -121,8 +122,8 @@ fn poll(link: &mut dyn Link) -> Result<Option<Feedback>, DaemonError> {
 }
 
 /// The controller's status before anything is sent: the first feedback of the session.
-fn first_feedback(link: &mut dyn Link, deadline: Instant) -> Result<Feedback, DaemonError> {
-    while Instant::now() < deadline {
+fn first_feedback(link: &mut dyn Link, deadline: Duration) -> Result<Feedback, DaemonError> {
+    while clock::real().now() < deadline {
         if let Some(feedback) = poll(link)? {
             return Ok(feedback);
         }

@@ -41,7 +41,7 @@ pub use scene::log_scene_for_job;
 use super::config::ExecutorKind;
 use super::config::{JobConfig, RunSettings};
 use super::{DaemonError, error_chain};
-use crate::clock::{Clock, WallClock};
+use crate::clock::{self, Clock, WallClock};
 use crate::stream::{Executor, ExecutorSettings, StreamControl};
 use crate::twin::TwinWorld;
 use crate::view::page;
@@ -920,7 +920,7 @@ async fn job(CellRef(cell): CellRef, params: RawPathParams, query: RawQuery) -> 
     };
     // Subscribed before the first look: an end between the look and the wait still wakes.
     let mut ends = cell.job_ends();
-    let deadline = tokio::time::Instant::now() + wait;
+    let deadline = clock::real().now() + wait;
     loop {
         let entry = match settled(&cell, move |cell| cell.job_entry(number)).await {
             Ok(entry) => entry,
@@ -944,7 +944,8 @@ async fn job(CellRef(cell): CellRef, params: RawPathParams, query: RawQuery) -> 
         if !entry.running {
             return Json(entry.json).into_response();
         }
-        match tokio::time::timeout_at(deadline, ends.changed()).await {
+        let left = deadline.saturating_sub(clock::real().now());
+        match tokio::time::timeout(left, ends.changed()).await {
             Ok(Ok(())) => {}
             // The wait is over (or the cell is gone): the job as it stands.
             Ok(Err(_)) | Err(_) => return Json(entry.json).into_response(),

@@ -27,7 +27,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{self, Receiver, Sender};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+use crate::clock::{self, Clock};
 
 /// 8192 records: command + state at 1 kHz for 4 s, twice the 2 s a stalled disk must be
 /// ridden out for. About 1 MB for six axes (`ring.rs` packs a record into the words its
@@ -158,7 +160,7 @@ impl LogRecord {
     pub fn command(target: &JointTarget, late_us: f32) -> Self {
         Self::Command {
             seq: target.seq,
-            t: target.t,
+            t: target.t.as_secs_f64(),
             positions: target.positions,
             velocities: target.velocities,
             late_us,
@@ -516,7 +518,8 @@ struct Sink {
     joint_names: Vec<String>,
     json: Vec<u8>,
     open_chunk_bytes: usize,
-    chunk_opened: Option<Instant>,
+    /// When the open chunk took its first record, on the process's real clock.
+    chunk_opened: Option<Duration>,
     chunk_bytes: usize,
     chunk_interval: Duration,
     written: Written,
@@ -778,7 +781,7 @@ impl Sink {
 
     fn count_chunk_bytes(&mut self, bytes: usize) -> Result<(), LogError> {
         self.open_chunk_bytes += bytes;
-        self.chunk_opened.get_or_insert_with(Instant::now);
+        self.chunk_opened.get_or_insert_with(|| clock::real().now());
         if self.open_chunk_bytes >= self.chunk_bytes {
             self.close_chunk()?;
         }
@@ -787,7 +790,9 @@ impl Sink {
 
     fn close_chunk_if_old(&mut self) -> Result<(), LogError> {
         match self.chunk_opened {
-            Some(opened) if opened.elapsed() >= self.chunk_interval => self.close_chunk(),
+            Some(opened) if clock::real().now().saturating_sub(opened) >= self.chunk_interval => {
+                self.close_chunk()
+            }
             _ => Ok(()),
         }
     }

@@ -356,8 +356,8 @@ fn time_to_us(t: f64) -> Result<u64, EncodeError> {
     }
 }
 
-pub(super) fn time_from_us(us: u64) -> f64 {
-    us as f64 / MICRO
+pub(super) fn time_from_us(us: u64) -> std::time::Duration {
+    std::time::Duration::from_micros(us)
 }
 
 fn values_to_micro(
@@ -413,7 +413,7 @@ impl WireTarget {
         }
         let mut wire = Self::empty();
         wire.seq = target.seq;
-        wire.t_us = time_to_us(target.t)?;
+        wire.t_us = time_to_us(target.t.as_secs_f64())?;
         // AxisValues holds at most MAX_AXES (32) values, so this fits a u8.
         wire.axes = positions.len() as u8;
         values_to_micro("position", positions, &mut wire.positions)?;

@@ -69,8 +69,8 @@ impl AxisValues {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct JointTarget {
     pub seq: u32,
-    /// Seconds since the job started.
-    pub t: f64,
+    /// Time since the job started (the wire carries whole microseconds).
+    pub t: std::time::Duration,
     /// rad (revolute) or m (prismatic).
     pub positions: AxisValues,
     /// rad/s or m/s.

@@ -19,6 +19,7 @@ use super::messages::{
     Vector3,
 };
 use super::{DiscoveryRange, Ros2Error, TrajectoryHandler};
+use crate::clock::{self, Clock};
 use crate::log::RobotDescription;
 use crate::view::LiveSlot;
 use glam::{DAffine3, DQuat};
@@ -32,7 +33,7 @@ use std::net::{IpAddr, Ipv4Addr};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
 
 /// The frame the rig's mount places its base in: the cell's frame, by the name ROS tools
 /// expect of a fixed world frame (REP 105 names `map`/`odom` for mobile bases; a fixed arm's
@@ -366,7 +367,7 @@ fn serve_motion(
     mut motion: DdsMotion,
     stop: &AtomicBool,
 ) {
-    let mut next = Instant::now();
+    let mut next = clock::real().now();
     while !stop.load(Ordering::Relaxed) {
         loop {
             match trajectories.take() {
@@ -401,9 +402,7 @@ fn spin(spinner: Spinner) {
 
 /// The Unix time now, as ROS 2 stamps messages.
 fn now() -> Time {
-    let now = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .unwrap_or_default();
+    let now = clock::real().unix_time();
     Time {
         sec: i32::try_from(now.as_secs()).unwrap_or(i32::MAX),
         nanosec: now.subsec_nanos(),
@@ -484,7 +483,7 @@ fn publish_states(declared: &Declared, rig: &PublishedRig, io: &Publishing) {
         effort: Vec::new(),
     };
     let mut tf = TfMessage::default();
-    let mut next = Instant::now();
+    let mut next = clock::real().now();
     let mut failing = false;
     while !io.stop.load(Ordering::Relaxed) {
         let sample = io.slot.latest();

@@ -12,6 +12,7 @@
 use super::messages::{
     Duration, Header, JointTrajectory, JointTrajectoryPoint, Time, Transform, Vector3,
 };
+use crate::clock::{self, Clock};
 use ros2_client::action::{GetResultRequest, GetResultResponse, SendGoalResponse};
 use ros2_client::action_msgs::{
     CancelGoalRequest, CancelGoalResponse, CancelGoalResponseEnum, GoalId, GoalInfo, GoalStatus,
@@ -466,7 +467,7 @@ struct Active {
     goal: CheckedGoal,
     /// When its job started (for the goal time), and whether it is being stopped (a cancel,
     /// a preemption, a violated tolerance) with the result it then gets.
-    started: std::time::Instant,
+    started: std::time::Duration,
     stopping: Option<(GoalStatusEnum, Outcome)>,
 }
 
@@ -482,9 +483,7 @@ pub struct Goals {
 }
 
 fn now_s() -> f64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0.0, |d| d.as_secs_f64())
+    clock::real().unix_time().as_secs_f64()
 }
 
 fn outcome(error_code: i32, error_string: impl Into<String>) -> Outcome {
@@ -604,7 +603,7 @@ impl Goals {
                 self.active = Some(Active {
                     id,
                     goal,
-                    started: std::time::Instant::now(),
+                    started: clock::real().now(),
                     stopping: None,
                 });
             }
@@ -798,7 +797,7 @@ fn violated(
     joints: &[String],
     goal: &CheckedGoal,
     progress: &Progress,
-    started: std::time::Instant,
+    started: std::time::Duration,
 ) -> Option<Outcome> {
     let errors = progress
         .desired
@@ -816,7 +815,7 @@ fn violated(
             ));
         }
     }
-    let late = started.elapsed().as_secs_f64() - goal.duration_s;
+    let late = clock::real().now().saturating_sub(started).as_secs_f64() - goal.duration_s;
     if goal.goal_time_s > 0.0 && late > goal.goal_time_s {
         return Some(outcome(
             code::GOAL_TOLERANCE_VIOLATED,
@@ -852,9 +851,7 @@ fn at_goal(joints: &[String], goal: &CheckedGoal, actual: &[f64]) -> Outcome {
 }
 
 fn feedback(joints: &[String], progress: &Progress) -> Feedback {
-    let now = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .unwrap_or_default();
+    let now = clock::real().unix_time();
     let point = |positions: Vec<f64>| JointTrajectoryPoint {
         positions,
         ..Default::default()
@@ -1107,7 +1104,7 @@ mod tests {
             desired: vec![0.2; 6],
             actual: vec![0.2, 0.2, 0.2, 0.2, 0.2, 0.26],
         };
-        let started = std::time::Instant::now();
+        let started = clock::real().now();
         let off = violated(&joints(), &checked, &progress, started).expect("off the path");
         assert_eq!(off.error_code, code::PATH_TOLERANCE_VIOLATED);
         assert!(

@@ -14,11 +14,12 @@ use super::graph::{self, NodeNames, TopicType};
 use super::messages::{self, CdrError, Header, JointState, JointTrajectory, Time};
 use super::type_hash;
 use super::{Ros2Error, Ros2Settings};
+use crate::clock::{self, Clock};
 use crate::view::LiveSlot;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
 use zenoh::Wait;
 
 /// How often the trajectory thread looks at the stop flag while no sample comes.
@@ -334,7 +335,7 @@ fn publish_states(publisher: &zenoh::pubsub::Publisher<'_>, gid: &[u8; 16], io: 
         effort: Vec::new(),
     };
     let mut sequence: i64 = 0;
-    let mut next = Instant::now();
+    let mut next = clock::real().now();
     let mut failing = false;
     while !io.stop.load(Ordering::Relaxed) {
         let sample = io.slot.latest();
@@ -344,9 +345,7 @@ fn publish_states(publisher: &zenoh::pubsub::Publisher<'_>, gid: &[u8; 16], io: 
         }
         message.position.clear();
         message.position.extend_from_slice(sample.actual.as_slice());
-        let now = SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .unwrap_or_default();
+        let now = clock::real().unix_time();
         message.header.stamp = Time {
             sec: i32::try_from(now.as_secs()).unwrap_or(i32::MAX),
             nanosec: now.subsec_nanos(),
@@ -380,9 +379,9 @@ fn publish_states(publisher: &zenoh::pubsub::Publisher<'_>, gid: &[u8; 16], io: 
 
 /// Sleeps until `next` plus one period and returns that time; a late wake keeps the rate
 /// from now on.
-pub(super) fn pace(next: Instant, period: Duration) -> Instant {
+pub(super) fn pace(next: Duration, period: Duration) -> Duration {
     let mut next = next + period;
-    let now = Instant::now();
+    let now = clock::real().now();
     if next <= now {
         next = now + period;
     }

@@ -36,7 +36,7 @@ pub use online::{
 };
 pub use phase::{Halting, Phase};
 
-use crate::clock::Clock;
+use crate::clock::{self, Clock};
 use crate::link::{Link, LinkCounters, LinkError, LinkEvent};
 use crate::log::{JITTER_CEILING_US, Jitter};
 use crate::motion::{Trajectory, TrajectoryError, validate};
@@ -841,11 +841,9 @@ fn await_echo(
     seq: u32,
     timeout: Duration,
 ) -> Result<Option<Feedback>, LinkError> {
-    let deadline = std::time::Instant::now() + timeout;
+    let deadline = clock::real().now() + timeout;
     let mut latest = None;
-    while let Some(feedback) =
-        link.receive(deadline.saturating_duration_since(std::time::Instant::now()))?
-    {
+    while let Some(feedback) = link.receive(deadline.saturating_sub(clock::real().now()))? {
         latest = Some(feedback);
         if feedback.seq >= seq {
             break;
@@ -1185,7 +1183,7 @@ impl Cycle {
         rig: &Rig,
         cell: Option<&mut CellGate<'_>>,
     ) -> Option<JointTarget> {
-        // The gate's maths and the target's `t` (a log record) are in seconds.
+        // The gate's maths is in seconds.
         let dt = period.as_secs_f64();
         if let Err(refusal) = gate::check(rig, &positions, &velocities, &self.sent, dt) {
             self.violations += 1;
@@ -1208,7 +1206,7 @@ impl Cycle {
         self.held[self.seq as usize % HELD_TARGETS] = (self.seq, positions);
         Some(JointTarget {
             seq: self.seq,
-            t: f64::from(self.seq) * dt,
+            t: period * self.seq,
             positions,
             velocities,
         })

@@ -151,7 +151,7 @@ impl CycleSink for LiveSink<'_> {
         let sample = &mut self.sample;
         sample.cycles += 1;
         sample.seq = cycle.target.seq;
-        sample.t = cycle.target.t;
+        sample.t = cycle.target.t.as_secs_f64();
         sample.commanded = cycle.target.positions;
         sample.late_us = cycle.late_us;
         sample.late_max_us = self.late.record(cycle.late_us);
@@ -188,7 +188,7 @@ mod tests {
         CycleRecord {
             target: JointTarget {
                 seq,
-                t: f64::from(seq) * 0.004,
+                t: std::time::Duration::from_millis(4) * seq,
                 positions,
                 velocities: AxisValues::zeros(1),
             },

@@ -8,7 +8,7 @@
 
 use super::scene::scene_for_job;
 use super::{JobWorld, LIVE_FRAME_RATE_HZ, ServeOptions};
-use crate::clock::{Clock, VirtualClock, WallClock};
+use crate::clock::{self, Clock, VirtualClock, WallClock};
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::daemon::reset::{RESET_TIMEOUT, ResetOutcome, reset_controller};
 use crate::daemon::{
@@ -654,9 +654,7 @@ impl Cell {
         result: Option<String>,
         on_job: Option<(&HeldActions<'_>, &StreamControl)>,
     ) {
-        let at_s = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0.0, |d| d.as_secs_f64());
+        let at_s = clock::real().unix_time().as_secs_f64();
         let shown = job.map_or("no job".to_string(), |id| format!("job {id}"));
         let cell = self.name();
         match &result {
@@ -1621,9 +1619,7 @@ struct JournalSetup {
 
 impl JournalSetup {
     fn new(runs_dir: &std::path::Path, settings: &RunSettings) -> JournalSetup {
-        let unix_s = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_secs());
+        let unix_s = clock::real().unix_time().as_secs();
         // The rig's name, as a file name: anything but letters, digits, `-` and `_` is `_`.
         let name: String = settings
             .rig

@@ -13,6 +13,7 @@
 //! of them turns the whole table over before its task first runs: before an idle-looking
 //! connection is closed, the kernel is asked whether bytes wait on it.
 
+use crate::clock::{self, Clock};
 use axum::Router;
 use hyper::body::Incoming;
 use hyper_util::rt::{TokioIo, TokioTimer};
@@ -22,7 +23,7 @@ use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::task::{Context, Poll};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tokio::task::AbortHandle;
@@ -222,7 +223,7 @@ fn spawn_connection(stream: tokio::net::TcpStream, app: Router, registry: &Arc<R
     let fd = stream.as_raw_fd();
     let spoke = Arc::new(AtomicBool::new(bytes_waiting(fd)));
     let busy = Arc::new(AtomicBool::new(false));
-    let last_done = Arc::new(Mutex::new(Instant::now()));
+    let last_done = Arc::new(Mutex::new(clock::real().now()));
     let guard = Registered {
         id,
         registry: registry.clone(),
@@ -235,7 +236,7 @@ fn spawn_connection(stream: tokio::net::TcpStream, app: Router, registry: &Arc<R
             busy.store(true, Ordering::Relaxed);
             async move {
                 let response = app.call(request).await;
-                *last_done.lock().unwrap_or_else(PoisonError::into_inner) = Instant::now();
+                *last_done.lock().unwrap_or_else(PoisonError::into_inner) = clock::real().now();
                 busy.store(false, Ordering::Relaxed);
                 response
             }
@@ -275,13 +276,11 @@ fn spawn_connection(stream: tokio::net::TcpStream, app: Router, registry: &Arc<R
 }
 
 /// Completes once the connection has served no request for [`IDLE_TIMEOUT`].
-async fn idle(busy: &AtomicBool, last_done: &Mutex<Instant>) {
+async fn idle(busy: &AtomicBool, last_done: &Mutex<Duration>) {
     loop {
         tokio::time::sleep(IDLE_CHECK).await;
-        let since = last_done
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .elapsed();
+        let done = *last_done.lock().unwrap_or_else(PoisonError::into_inner);
+        let since = clock::real().now().saturating_sub(done);
         if !busy.load(Ordering::Relaxed) && since >= IDLE_TIMEOUT {
             return;
         }

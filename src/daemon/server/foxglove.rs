@@ -12,6 +12,7 @@
 
 use super::guard::{HostCheck, origin_allowed, require_known_host, shorten};
 use super::{Daemon, connections};
+use crate::clock::{self, Clock};
 use crate::log::{RobotDescription, RobotMessages, timestamp};
 use crate::scene::SceneView;
 use crate::scene::foxglove::{closest_update, full_update, paint_update};
@@ -30,7 +31,6 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 use tokio::sync::{Notify, broadcast, watch};
-use tokio::time::Instant;
 
 /// The ws-protocol version served (the Foxglove app offers it, with newer ones).
 pub const FOXGLOVE_SUBPROTOCOL: &str = "foxglove.websocket.v1";
@@ -483,9 +483,7 @@ impl FoxgloveFeed {
 /// Nanoseconds since the Unix epoch: live messages carry wall time, as Foxglove expects of a
 /// live source.
 fn unix_ns() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
+    u64::try_from(clock::real().unix_time().as_nanos()).unwrap_or(u64::MAX)
 }
 
 /// The connected clients' places: each with when it went idle (`None` while it has a
@@ -497,7 +495,7 @@ struct Seats {
 }
 
 struct SeatEntry {
-    idle_since: Option<Instant>,
+    idle_since: Option<Duration>,
     evict: Arc<Notify>,
 }
 
@@ -525,7 +523,7 @@ impl Seats {
         open.insert(
             id,
             SeatEntry {
-                idle_since: Some(Instant::now()),
+                idle_since: Some(clock::real().now()),
                 evict: evicted.clone(),
             },
         );
@@ -546,7 +544,7 @@ struct Seat {
 }
 
 impl Seat {
-    fn set_idle_since(&self, since: Option<Instant>) {
+    fn set_idle_since(&self, since: Option<Duration>) {
         if let Some(seat) = self.seats.open().get_mut(&self.id) {
             seat.idle_since = since;
         }
@@ -678,7 +676,7 @@ struct Client {
     seat: Seat,
     /// Since when the client has had no subscription and sent nothing; `None` while it has
     /// a subscription.
-    idle_since: Option<Instant>,
+    idle_since: Option<Duration>,
     /// channel id -> subscription id: one subscription per channel, so at most as many
     /// entries as channels.
     subscriptions: BTreeMap<u32, u32>,
@@ -690,14 +688,14 @@ impl Client {
             socket,
             daemon,
             seat,
-            idle_since: Some(Instant::now()),
+            idle_since: Some(clock::real().now()),
             subscriptions: BTreeMap::new(),
         }
     }
 
     /// After a message from the client: idle from now if it has no subscription.
     fn note_activity(&mut self) {
-        self.idle_since = self.subscriptions.is_empty().then(Instant::now);
+        self.idle_since = self.subscriptions.is_empty().then(|| clock::real().now());
         self.seat.set_idle_since(self.idle_since);
     }
 
@@ -900,9 +898,9 @@ impl Client {
 }
 
 /// Completes at `deadline`; never without one.
-async fn sleep_until(deadline: Option<Instant>) {
+async fn sleep_until(deadline: Option<Duration>) {
     match deadline {
-        Some(deadline) => tokio::time::sleep_until(deadline).await,
+        Some(deadline) => tokio::time::sleep(deadline.saturating_sub(clock::real().now())).await,
         None => std::future::pending().await,
     }
 }
