@@ -2,17 +2,26 @@
 //! backend. A link owns its transport and framing; it never interprets motion (that is the
 //! streamer's job) and never changes a command's values.
 
+#[path = "../device/ours/can.rs"]
 mod can;
+#[path = "../device/canopen/link.rs"]
 mod canopen;
 mod channel;
+#[path = "../device/bus.rs"]
 mod device;
+#[path = "../device/dynamixel/link.rs"]
 mod dynamixel;
+#[path = "../device/egm/link.rs"]
 mod egm;
+#[path = "../device/egm/guard.rs"]
 mod egm_guard;
 mod loopback;
+#[path = "../device/ours/serial.rs"]
 mod serial;
 mod session;
+#[path = "../device/spec.rs"]
 mod spec;
+#[path = "../device/ours/tcp.rs"]
 mod tcp;
 
 pub use can::connect_can;

@@ -6,9 +6,12 @@
 //! `twin`), and owns bytes only: no sessions, no transports.
 
 pub mod can;
+#[path = "../device/canopen/wire.rs"]
 pub mod canopen;
 pub mod codec;
+#[path = "../device/dynamixel/wire.rs"]
 pub mod dynamixel;
+#[path = "../device/egm/wire.rs"]
 pub mod egm;
 pub mod io;
 
