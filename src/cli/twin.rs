@@ -6,9 +6,9 @@ use clap::Args;
 use rigbridge::clock::WallClock;
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::twin_settings;
+use rigbridge::device::ours::can_port::{CanPort, CanPortStats};
 use rigbridge::protocol::CanSender;
 use rigbridge::twin::Twin;
-use rigbridge::twin::can_port::{CanPort, CanPortStats};
 use rigbridge::twin::serial_port::SerialControllerPort;
 use rigbridge::twin::server::{ControllerPort, TcpPort, serve_twin};
 use std::io::Write;
@@ -35,7 +35,7 @@ pub struct TwinArgs {
     #[arg(long)]
     serial: Option<PathBuf>,
     /// The serial line's baud rate, with --serial.
-    #[arg(long, default_value_t = rigbridge::link::DEFAULT_BAUD)]
+    #[arg(long, default_value_t = rigbridge::device::DEFAULT_BAUD)]
     baud: u32,
     /// Open a pseudo-terminal pair and serve on it; its path is the first line printed.
     #[arg(long)]
@@ -277,7 +277,9 @@ fn egm_twin(
     sensor: &str,
     settings: &rigbridge::daemon::config::RunSettings,
 ) -> anyhow::Result<ExitCode> {
-    use rigbridge::twin::egm::{EgmMode, EgmRobotModel, EgmTwin, EgmTwinControl, EgmTwinSettings};
+    use rigbridge::device::egm::twin::{
+        EgmMode, EgmRobotModel, EgmTwin, EgmTwinControl, EgmTwinSettings,
+    };
     let address = sensor.strip_prefix("udp://").unwrap_or(sensor);
     let sensor: std::net::SocketAddr = address
         .parse()

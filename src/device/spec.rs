@@ -32,7 +32,7 @@ pub enum LinkSpec {
     Egm {
         address: String,
         robot: Option<std::net::SocketAddr>,
-        mode: crate::protocol::egm::EgmMode,
+        mode: crate::device::egm::wire::EgmMode,
     },
     /// CiA 402 drives on a SocketCAN interface: node ids in axis order, and the counts a
     /// turn of every axis (when given; `[canopen]` in the config may set them per axis).
@@ -119,7 +119,7 @@ impl FromStr for LinkSpec {
 /// and what is streamed (joints when absent). Both addresses are IP addresses: a name would
 /// be resolved to whatever a name server says.
 fn parse_egm(rest: &str) -> Result<LinkSpec, &'static str> {
-    use crate::protocol::egm::EgmMode;
+    use crate::device::egm::wire::EgmMode;
     let (address, query) = rest.split_once('?').unwrap_or((rest, ""));
     if address.parse::<std::net::SocketAddr>().is_err() {
         return Err("needs an IP address and port to bind, such as 0.0.0.0:6510");
@@ -163,7 +163,7 @@ fn parse_dynamixel(rest: &str) -> Result<LinkSpec, &'static str> {
                     Ok(list)
                         if list
                             .iter()
-                            .all(|id| *id <= crate::protocol::dynamixel::MAX_SERVO_ID) =>
+                            .all(|id| *id <= crate::device::dynamixel::wire::MAX_SERVO_ID) =>
                     {
                         ids = Some(list)
                     }
@@ -275,7 +275,7 @@ mod tests {
             Ok(LinkSpec::Egm {
                 address: "0.0.0.0:6510".into(),
                 robot: None,
-                mode: crate::protocol::egm::EgmMode::Joint,
+                mode: crate::device::egm::wire::EgmMode::Joint,
             })
         );
         assert_eq!(
@@ -283,7 +283,7 @@ mod tests {
             Ok(LinkSpec::Egm {
                 address: "0.0.0.0:6510".into(),
                 robot: Some("192.168.125.1:6511".parse().expect("an address")),
-                mode: crate::protocol::egm::EgmMode::Pose,
+                mode: crate::device::egm::wire::EgmMode::Pose,
             })
         );
         assert_eq!(
@@ -291,7 +291,7 @@ mod tests {
             Ok(LinkSpec::Egm {
                 address: "0.0.0.0:6510".into(),
                 robot: Some("192.168.125.1:6511".parse().expect("an address")),
-                mode: crate::protocol::egm::EgmMode::Joint,
+                mode: crate::device::egm::wire::EgmMode::Joint,
             })
         );
         assert_eq!(

@@ -14,15 +14,7 @@
 //! It owns the simulated arm state only; it must not know about trajectories,
 //! jobs, logs or bytes (the session over a transport is `server`'s).
 
-#[path = "../device/ours/can_port.rs"]
-pub mod can_port;
-#[path = "../device/canopen/twin.rs"]
-pub mod canopen;
 pub mod contact;
-#[path = "../device/dynamixel/twin.rs"]
-pub mod dynamixel;
-#[path = "../device/egm/twin.rs"]
-pub mod egm;
 pub mod gripper;
 pub mod serial_port;
 pub mod server;

@@ -15,7 +15,8 @@ use crate::daemon::{
     ActionLog, DaemonError, HeldActions, JobToStream, RunReport, Sinks, error_chain, held_position,
     plan_for, stream_job_with, stream_planned_with,
 };
-use crate::link::{Link, LinkCounters, LinkSpec, LoopbackLink};
+use crate::device::LinkSpec;
+use crate::link::{Link, LinkCounters, LoopbackLink};
 use crate::log::Recorder;
 use crate::protocol::ControllerStatus;
 use crate::stream::Phase;
