@@ -6,11 +6,12 @@
 
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::daemon::run_job;
-use rigbridge::link::{EgmLinkSettings, Link, bind_egm};
-use rigbridge::stream::StreamControl;
-use rigbridge::twin::egm::{
+use rigbridge::device::egm::twin::{
     EgmRobotModel, EgmTwin, EgmTwinControl, EgmTwinSettings, spawn_egm_twin,
 };
+use rigbridge::device::egm::{EgmLinkSettings, bind_egm};
+use rigbridge::link::Link;
+use rigbridge::stream::StreamControl;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};

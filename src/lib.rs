@@ -12,7 +12,10 @@
 //! - [`trajectory`]: planning fixed-period joint trajectories (joint moves, the timing of a
 //!   joint path, resampling, retiming) and a run log read back for replay;
 //! - [`stream`]: the fixed-rate cycle, its safety gate and the following checks;
-//! - [`link`]: one transport per backend and the bridge's side of the protocol's session;
+//! - [`device`]: one folder per device protocol (ours over TCP, serial and CAN; EGM; CiA 402;
+//!   Dynamixel): its wire codec, its link, its twin side, and the one list of them;
+//! - [`link`]: the `Link` trait, the in-process loopback and what every protocol's link
+//!   shares (the session state machine, the channel to an I/O thread);
 //! - [`twin`]: the strict simulated controller, in process or on the far side of a link;
 //! - [`log`]: MCAP recording and reading, summaries;
 //! - [`view`]: the live 3D view;
@@ -27,14 +30,14 @@
 //! [`batch`] (the CSV contract of `fk` and `ik`);
 //! and the two leaves both ends of a link share, which `link` and `twin` import and which
 //! import neither (so `twin` never imports `link`):
-//! - [`protocol`]: the messages, their byte and CAN encodings (`docs/protocol.md`), and the
-//!   wire codecs of the device protocols (EGM, Dynamixel Protocol 2.0, CANopen);
+//! - [`protocol`]: the messages and their byte and CAN encodings (`docs/protocol.md`);
 //! - [`transport`]: the SocketCAN socket and the serial line's settings.
 
 pub mod batch;
 pub mod cell;
 pub mod clock;
 pub mod daemon;
+pub mod device;
 pub mod ik;
 pub mod job;
 pub mod link;

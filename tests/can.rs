@@ -365,11 +365,11 @@ fn an_fd_link_refuses_a_classic_interface_and_a_missing_one_says_why() {
         return skip(&why);
     }
     let mapping = CanMapping::new(0x100, true, CanSender::Bridge).unwrap();
-    match rigbridge::link::connect_can("vcan3", mapping, irb_hello()) {
+    match rigbridge::device::ours::connect_can("vcan3", mapping, irb_hello()) {
         Ok(_) => panic!("an FD link opened on a classic interface"),
         Err(e) => assert!(e.to_string().contains("mtu 72"), "{e}"),
     }
-    match rigbridge::link::connect_can(
+    match rigbridge::device::ours::connect_can(
         "vcan-nope",
         CanMapping::new(0x100, false, CanSender::Bridge).unwrap(),
         irb_hello(),
@@ -423,7 +423,7 @@ fn without_socketcan_the_twin_and_the_link_say_so() {
         return;
     }
     let mapping = CanMapping::new(0x100, false, CanSender::Bridge).unwrap();
-    let Err(error) = rigbridge::link::connect_can("vcan0", mapping, irb_hello()) else {
+    let Err(error) = rigbridge::device::ours::connect_can("vcan0", mapping, irb_hello()) else {
         panic!("a CAN link opened without SocketCAN");
     };
     assert!(error.to_string().contains("can://vcan0"), "{error}");

@@ -696,7 +696,7 @@ fn an_absent_node_is_named_with_its_cause() {
     let nodes = [1, 2, 3, 4, 5, 6];
     let link_settings =
         rigbridge::daemon::canopen_settings(&settings, INTERFACE, &nodes, None).unwrap();
-    let link = rigbridge::link::connect_canopen(link_settings).unwrap();
+    let link = rigbridge::device::canopen::connect_canopen(link_settings).unwrap();
     let reason = common::wait_until("the link's reason", Duration::from_secs(30), || {
         link.down_reason()
     });
@@ -731,7 +731,7 @@ fn canopen_links_and_settings_are_checked_with_their_source_named() {
         .to_string();
     assert!(message.contains("canopen.heartbeat_ms"), "{message}");
     let error = "canopen://vcan0?nodes=1,200"
-        .parse::<rigbridge::link::LinkSpec>()
+        .parse::<rigbridge::device::LinkSpec>()
         .unwrap_err()
         .to_string();
     assert!(error.contains("nodes=1,200"), "{error}");

@@ -10,12 +10,13 @@ use common::shipped_run_settings;
 
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::{dynamixel_settings, run_job};
-use rigbridge::link::{DynamixelLink, Link, connect_dynamixel};
-use rigbridge::stream::{Outcome, STALL_CYCLES, StreamControl};
-use rigbridge::twin::dynamixel::{
+use rigbridge::device::dynamixel::twin::{
     DynamixelBus, DynamixelTwinControl, DynamixelTwinCounters, DynamixelTwinSettings,
     serve_dynamixel,
 };
+use rigbridge::device::dynamixel::{DynamixelLink, connect_dynamixel};
+use rigbridge::link::Link;
+use rigbridge::stream::{Outcome, STALL_CYCLES, StreamControl};
 use rigbridge::twin::serial_port::SerialControllerPort;
 use std::path::PathBuf;
 use std::sync::Arc;

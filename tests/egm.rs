@@ -11,14 +11,15 @@ use prost::Message;
 use rigbridge::clock::Clock;
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::{RunReport, run_job};
-use rigbridge::link::{EgmLink, EgmLinkSettings, Link, bind_egm};
-use rigbridge::protocol::egm::{
-    EgmAxes, EgmKinematics, EgmMode, EgmRobot, EgmSensor, MciState, MotorState, RapidState,
-};
-use rigbridge::stream::{Outcome, StreamControl};
-use rigbridge::twin::egm::{
+use rigbridge::device::egm::twin::{
     EgmRobotModel, EgmTwin, EgmTwinControl, EgmTwinSettings, spawn_egm_twin,
 };
+use rigbridge::device::egm::wire::{
+    EgmAxes, EgmKinematics, EgmMode, EgmRobot, EgmSensor, MciState, MotorState, RapidState,
+};
+use rigbridge::device::egm::{EgmLink, EgmLinkSettings, bind_egm};
+use rigbridge::link::Link;
+use rigbridge::stream::{Outcome, StreamControl};
 use std::net::{SocketAddr, UdpSocket};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -373,7 +374,7 @@ fn pose_mode_follows_a_20_mm_sine_along_x_at_0_2_hz() {
         target.position.x += x_at(cycle);
         let mut message = EgmSensor::pose_correction(1, 0, &kinematics, &[0.0; 6], &[0.0; 6]);
         message.planned.as_mut().expect("planned").cartesian =
-            Some(rigbridge::protocol::egm::EgmPose::from_pose(&target));
+            Some(rigbridge::device::egm::wire::EgmPose::from_pose(&target));
         message
     });
     control.stop.store(true, Ordering::SeqCst);
@@ -429,7 +430,7 @@ fn pose_mode_refuses_an_unreachable_pose_with_mci_error() {
     far.position.x = 2.0;
     let mut message = EgmSensor::pose_correction(1, 0, &kinematics, &[0.0; 6], &[0.0; 6]);
     message.planned.as_mut().expect("planned").cartesian =
-        Some(rigbridge::protocol::egm::EgmPose::from_pose(&far));
+        Some(rigbridge::device::egm::wire::EgmPose::from_pose(&far));
     let mut refused = false;
     for _ in 0..250 {
         let robot = answer_with(&sensor, 1, |_, _| message.clone());

@@ -19,14 +19,15 @@ use common::shipped_run_settings;
 use prost::Message;
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
 use rigbridge::daemon::{RunReport, run_job};
-use rigbridge::link::{EgmLink, EgmLinkSettings, Link, bind_egm};
-use rigbridge::protocol::egm::{
-    EgmAxes, EgmClock, EgmMciState, EgmMotorState, EgmRobot, MciState, MotorState,
-};
-use rigbridge::stream::{Outcome, StreamControl};
-use rigbridge::twin::egm::{
+use rigbridge::device::egm::twin::{
     EgmRobotModel, EgmTwin, EgmTwinControl, EgmTwinCounters, EgmTwinSettings, spawn_egm_twin,
 };
+use rigbridge::device::egm::wire::{
+    EgmAxes, EgmClock, EgmMciState, EgmMotorState, EgmRobot, MciState, MotorState,
+};
+use rigbridge::device::egm::{EgmLink, EgmLinkSettings, bind_egm};
+use rigbridge::link::Link;
+use rigbridge::stream::{Outcome, StreamControl};
 use std::collections::VecDeque;
 use std::net::{SocketAddr, UdpSocket};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};

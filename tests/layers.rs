@@ -22,6 +22,7 @@ const LAYERS: &[&str] = &[
     "ik",
     "trajectory",
     "stream",
+    "device",
     "link",
     "twin",
     "log",

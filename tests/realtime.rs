@@ -240,8 +240,11 @@ fn a_link_opened_at_normal_priority_carries_its_feedback_at_the_cycle_priority()
         .to_string();
     let before = tasks_named("rigbridge-tcp");
     let hello = rigbridge::link::bridge_hello(&irb120(), Duration::from_millis(4), 25);
-    let link = rigbridge::link::connect_tcp(rigbridge::link::TcpSettings::new(address), hello)
-        .expect("the link starts");
+    let link = rigbridge::device::ours::connect_tcp(
+        rigbridge::device::ours::TcpSettings::new(address),
+        hello,
+    )
+    .expect("the link starts");
     let io = wait_until("the link's I/O thread", Duration::from_secs(10), || {
         new_tasks_named("rigbridge-tcp", &before)
             .into_iter()

@@ -8,7 +8,7 @@ use common::cli::rigbridge;
 use common::repo_path;
 use common::twin::{listen_command, start_listening};
 use rigbridge::daemon::config::load_run_settings;
-use rigbridge::link::LinkSpec;
+use rigbridge::device::LinkSpec;
 use rigbridge::protocol::{Command as Wire, ControllerStatus, Fault};
 use std::process::Output;
 use std::time::{Duration, Instant};

@@ -4,7 +4,7 @@
 
 use anyhow::Context;
 use rigbridge::daemon::config::RunSettings;
-use rigbridge::twin::canopen::{
+use rigbridge::device::canopen::twin::{
     CanopenBus, CanopenPort, CanopenTwinControl, CanopenTwinSettings, serve_canopen,
 };
 use rigbridge::twin::server::ControllerPort;

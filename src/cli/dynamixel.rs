@@ -4,7 +4,7 @@
 
 use anyhow::Context;
 use rigbridge::daemon::config::RunSettings;
-use rigbridge::twin::dynamixel::{
+use rigbridge::device::dynamixel::twin::{
     DynamixelBus, DynamixelTwinControl, DynamixelTwinSettings, serve_dynamixel,
 };
 use rigbridge::twin::serial_port::SerialControllerPort;

@@ -7,14 +7,14 @@ use clap::Args;
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::daemon::open_link;
 use rigbridge::daemon::reset::{RESET_TIMEOUT, reset_controller};
-use rigbridge::link::LinkSpec;
+use rigbridge::device::LinkSpec;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Args)]
 pub struct ResetArgs {
     /// The controller (default: the config's `[stream] link`); `--help` lists every form.
-    #[arg(long, long_help = format!("The controller whose latched fault or e-stop to clear (default: the config's `[stream] link`): {}", rigbridge::link::LINK_FORMS))]
+    #[arg(long, long_help = format!("The controller whose latched fault or e-stop to clear (default: the config's `[stream] link`): {}", rigbridge::device::link_forms()))]
     link: Option<String>,
     /// Run settings: the rig and stream rate the bridge's Hello announces.
     #[arg(long, env = "RIGBRIDGE_CONFIG", default_value = rigbridge::rig::shipped::DEFAULT_RUN_SETTINGS)]

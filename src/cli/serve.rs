@@ -10,7 +10,7 @@ use clap::Args;
 use rigbridge::daemon::config::RunSettings;
 use rigbridge::daemon::config::{foxglove_bind_problem, load_run_settings, token_problem};
 use rigbridge::daemon::server::{ServeOptions, check_cells, run};
-use rigbridge::link::LinkSpec;
+use rigbridge::device::LinkSpec;
 use std::net::IpAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;

@@ -105,8 +105,8 @@ impl EgmConfig {
         &self,
         file: &Path,
         rig: &Rig,
-    ) -> Result<crate::protocol::egm::EgmAxes, ConfigError> {
-        crate::protocol::egm::EgmAxes::new(rig, self.external_axes.as_deref()).map_err(|e| {
+    ) -> Result<crate::device::egm::wire::EgmAxes, ConfigError> {
+        crate::device::egm::wire::EgmAxes::new(rig, self.external_axes.as_deref()).map_err(|e| {
             let value = match &self.external_axes {
                 Some(names) => format!("[{}]", names.join(", ")),
                 None => "absent (every joint before the last six)".to_string(),
@@ -447,7 +447,7 @@ impl CanopenConfig {
         file: &Path,
         rig: &Rig,
         link_counts_per_turn: Option<u32>,
-    ) -> Result<Vec<crate::protocol::dynamixel::AxisTicks>, ConfigError> {
+    ) -> Result<Vec<crate::device::dynamixel::wire::AxisTicks>, ConfigError> {
         self.count_maps(file, rig, link_counts_per_turn, true)
     }
 
@@ -463,8 +463,8 @@ impl CanopenConfig {
         rig: &Rig,
         link_counts_per_turn: Option<u32>,
         required: bool,
-    ) -> Result<Vec<crate::protocol::dynamixel::AxisTicks>, ConfigError> {
-        let default = crate::protocol::dynamixel::AxisTicks {
+    ) -> Result<Vec<crate::device::dynamixel::wire::AxisTicks>, ConfigError> {
+        let default = crate::device::dynamixel::wire::AxisTicks {
             ticks_per_turn: link_counts_per_turn.map_or(DEFAULT_COUNTS_PER_TURN, f64::from),
             zero_tick: 0.0,
             ticks_per_metre: None,
@@ -536,7 +536,7 @@ fn set_linear_ticks(
     rig: &Rig,
     (key, given): (&'static str, &Option<PerAxis>),
     required: bool,
-    axes: &mut [crate::protocol::dynamixel::AxisTicks],
+    axes: &mut [crate::device::dynamixel::wire::AxisTicks],
 ) -> Result<(), ConfigError> {
     let prismatic: Vec<&str> = rig
         .joints
@@ -589,7 +589,7 @@ fn set_axis_ticks(
     file: &Path,
     rig: &Rig,
     keys: TickKeys<'_>,
-    axes: &mut [crate::protocol::dynamixel::AxisTicks],
+    axes: &mut [crate::device::dynamixel::wire::AxisTicks],
 ) -> Result<(), ConfigError> {
     for (index, (key, given, low, high)) in keys.into_iter().enumerate() {
         let Some(given) = given else { continue };
@@ -626,7 +626,7 @@ impl DynamixelConfig {
         &self,
         file: &Path,
         rig: &Rig,
-    ) -> Result<Vec<crate::protocol::dynamixel::AxisTicks>, ConfigError> {
+    ) -> Result<Vec<crate::device::dynamixel::wire::AxisTicks>, ConfigError> {
         self.tick_maps(file, rig, true)
     }
 
@@ -641,8 +641,8 @@ impl DynamixelConfig {
         file: &Path,
         rig: &Rig,
         required: bool,
-    ) -> Result<Vec<crate::protocol::dynamixel::AxisTicks>, ConfigError> {
-        let defaults = crate::protocol::dynamixel::AxisTicks::default();
+    ) -> Result<Vec<crate::device::dynamixel::wire::AxisTicks>, ConfigError> {
+        let defaults = crate::device::dynamixel::wire::AxisTicks::default();
         let mut axes = vec![defaults; rig.dof()];
         let keys = [
             (
@@ -654,8 +654,8 @@ impl DynamixelConfig {
             (
                 "dynamixel.zero_tick",
                 &self.zero_tick,
-                -(crate::protocol::dynamixel::EXTENDED_RANGE as f64),
-                crate::protocol::dynamixel::EXTENDED_RANGE as f64,
+                -(crate::device::dynamixel::wire::EXTENDED_RANGE as f64),
+                crate::device::dynamixel::wire::EXTENDED_RANGE as f64,
             ),
         ];
         set_axis_ticks(file, rig, keys, &mut axes)?;
@@ -1151,7 +1151,7 @@ fn loaded_seconds(seconds: f64) -> Duration {
 /// The axis maps of `[dynamixel]`, `[canopen]` and `[egm]`: the keys given are checked, and
 /// what the config's own link needs is required.
 fn check_link_axes(file: &Path, config: &RunConfig, rig: &Rig) -> Result<(), ConfigError> {
-    use crate::link::LinkSpec;
+    use crate::device::LinkSpec;
     let link = config.stream.link.parse::<LinkSpec>().ok();
     let dynamixel = matches!(
         link,
@@ -1287,7 +1287,7 @@ fn load_rigs(rig_path: &Path, job: &JobConfig) -> Result<LoadedRig, ConfigError>
 fn check_links(file: &Path, config: &RunConfig, rig: &Rig) -> Result<(), ConfigError> {
     let stream = &config.stream;
     check_range(file, "stream.rate_hz", stream.rate_hz, 1.0, 1000.0)?;
-    if let Err(e) = stream.link.parse::<crate::link::LinkSpec>() {
+    if let Err(e) = stream.link.parse::<crate::device::LinkSpec>() {
         return Err(ConfigError::invalid(
             file,
             "stream.link",

@@ -376,7 +376,7 @@ pub fn contact_watch(
 /// otherwise (the controller on its far side is someone else's, or `rigbridge twin`),
 /// given until the reconnect timeout to come up.
 pub fn open_link(
-    spec: &crate::link::LinkSpec,
+    spec: &crate::device::LinkSpec,
     settings: &RunSettings,
 ) -> Result<Box<dyn Link>, DaemonError> {
     open_link_for(spec, settings, &StreamControl::default())
@@ -385,15 +385,15 @@ pub fn open_link(
 /// [`open_link`] for a job: the wait for the link ends early on the job's stop or e-stop
 /// (the job then ends before any motion, in [`plan_for`]).
 pub fn open_link_for(
-    spec: &crate::link::LinkSpec,
+    spec: &crate::device::LinkSpec,
     settings: &RunSettings,
     control: &StreamControl,
 ) -> Result<Box<dyn Link>, DaemonError> {
     let link = connect_link(spec, settings)?;
     let mut timeout = settings.reconnect_timeout();
     // CANopen drives are set up over SDO before the session starts.
-    if let crate::link::LinkSpec::Canopen { .. } = spec {
-        timeout += crate::link::SETUP_PATIENCE;
+    if let crate::device::LinkSpec::Canopen { .. } = spec {
+        timeout += crate::device::canopen::SETUP_PATIENCE;
     }
     wait_for_link(
         link.as_ref(),
@@ -407,15 +407,15 @@ pub fn open_link_for(
 /// The link `spec` names, connected: the in-process twin is up at once, a transport's
 /// session may still be coming up.
 fn connect_link(
-    spec: &crate::link::LinkSpec,
+    spec: &crate::device::LinkSpec,
     settings: &RunSettings,
 ) -> Result<Box<dyn Link>, DaemonError> {
-    use crate::link::LinkSpec;
+    use crate::device::LinkSpec;
     Ok(match spec {
         LinkSpec::Loopback => Box::new(loopback_twin(settings)?),
         LinkSpec::Tcp { address } => Box::new(
-            crate::link::connect_tcp(
-                crate::link::TcpSettings::new(address.clone()),
+            crate::device::ours::connect_tcp(
+                crate::device::ours::TcpSettings::new(address.clone()),
                 bridge_hello(settings),
             )
             .map_err(LinkError::Io)?,
@@ -424,9 +424,9 @@ fn connect_link(
             path,
             baud,
             dynamixel: Some(ids),
-        } => Box::new(crate::link::connect_dynamixel(dynamixel_settings(
-            settings, path, *baud, ids,
-        )?)?),
+        } => Box::new(crate::device::dynamixel::connect_dynamixel(
+            dynamixel_settings(settings, path, *baud, ids)?,
+        )?),
         LinkSpec::Serial {
             path,
             baud,
@@ -434,7 +434,7 @@ fn connect_link(
         } => {
             let serial = settings.config.stream.serial_settings(path, *baud);
             Box::new(
-                crate::link::connect_serial(serial, bridge_hello(settings))
+                crate::device::ours::connect_serial(serial, bridge_hello(settings))
                     .map_err(LinkError::Io)?,
             )
         }
@@ -445,7 +445,7 @@ fn connect_link(
                 .can_mapping(crate::protocol::CanSender::Bridge)
                 .map_err(|e| DaemonError::Unavailable(e.to_string()))?;
             Box::new(
-                crate::link::connect_can(interface, mapping, bridge_hello(settings))
+                crate::device::ours::connect_can(interface, mapping, bridge_hello(settings))
                     .map_err(LinkError::Io)?,
             )
         }
@@ -453,7 +453,7 @@ fn connect_link(
             interface,
             nodes,
             counts_per_turn,
-        } => Box::new(crate::link::connect_canopen(canopen_settings(
+        } => Box::new(crate::device::canopen::connect_canopen(canopen_settings(
             settings,
             interface,
             nodes,
@@ -469,14 +469,14 @@ fn connect_link(
                 .egm
                 .axes(&settings.file, &settings.rig)
                 .map_err(|e| DaemonError::Unavailable(e.to_string()))?;
-            let egm = crate::link::EgmLinkSettings::for_rig(
+            let egm = crate::device::egm::EgmLinkSettings::for_rig(
                 &settings.rig,
                 axes,
                 settings.period(),
                 *robot,
             )
             .in_mode(*mode);
-            Box::new(crate::link::bind_egm(address, egm).map_err(LinkError::Io)?)
+            Box::new(crate::device::egm::bind_egm(address, egm).map_err(LinkError::Io)?)
         }
     })
 }
@@ -488,7 +488,7 @@ pub fn dynamixel_settings(
     path: &str,
     baud: u32,
     ids: &[u8],
-) -> Result<crate::link::DynamixelSettings, DaemonError> {
+) -> Result<crate::device::dynamixel::DynamixelSettings, DaemonError> {
     let rig = &settings.rig;
     let axes = settings
         .config
@@ -496,7 +496,7 @@ pub fn dynamixel_settings(
         .axes(&settings.file, rig)
         .map_err(|e| DaemonError::Unavailable(e.to_string()))?;
     // The best case, servos answering at once: a rate above it cannot be kept.
-    let budget = crate::protocol::dynamixel::line_budget(ids.len(), baud, 0.0);
+    let budget = crate::device::dynamixel::wire::line_budget(ids.len(), baud, 0.0);
     if settings.config.stream.rate_hz > budget.max_rate_hz {
         return Err(DaemonError::Unavailable(format!(
             "{} Hz does not fit a Dynamixel bus of {} servos at {baud} baud: one cycle takes up to {:.2} ms, {:.0} Hz at most (docs/dynamixel.md)",
@@ -506,7 +506,7 @@ pub fn dynamixel_settings(
             budget.max_rate_hz
         )));
     }
-    Ok(crate::link::DynamixelSettings {
+    Ok(crate::device::dynamixel::DynamixelSettings {
         serial: settings.config.stream.serial_settings(path, baud),
         ids: ids.to_vec(),
         axes,
@@ -523,7 +523,7 @@ pub fn canopen_settings(
     interface: &str,
     nodes: &[u8],
     counts_per_turn: Option<u32>,
-) -> Result<crate::link::CanopenSettings, DaemonError> {
+) -> Result<crate::device::canopen::CanopenSettings, DaemonError> {
     let rig = &settings.rig;
     let canopen = &settings.config.canopen;
     let unavailable = |e: crate::rig::ConfigError| DaemonError::Unavailable(e.to_string());
@@ -531,7 +531,7 @@ pub fn canopen_settings(
         .axes(&settings.file, rig, counts_per_turn)
         .map_err(unavailable)?;
     let heartbeat_ms = canopen.heartbeat_ms(&settings.file).map_err(unavailable)?;
-    Ok(crate::link::CanopenSettings {
+    Ok(crate::device::canopen::CanopenSettings {
         interface: interface.to_string(),
         nodes: nodes.to_vec(),
         axes,

@@ -123,7 +123,7 @@ pub trait IkSolver {
 
 /// Any solver is the EGM twin's controller kinematics in pose mode: the joints nearest the
 /// reference before, within limits, verified by forward kinematics.
-impl<T: IkSolver + Send> crate::twin::egm::PoseSolver for T {
+impl<T: IkSolver + Send> crate::device::egm::twin::PoseSolver for T {
     fn solve_pose(
         &self,
         pose: &Pose,

@@ -1,39 +1,16 @@
-//! Links carry [`Command`]s to a controller and [`Feedback`] back: one trait, one file per
-//! backend. A link owns its transport and framing; it never interprets motion (that is the
-//! streamer's job) and never changes a command's values.
+//! Links carry [`Command`]s to a controller and [`Feedback`] back: one trait, the in-process
+//! loopback, and what every device protocol's link shares (the session state machine, the
+//! channel to an I/O thread); each protocol's own link is in its `device` folder. A link
+//! owns its transport and framing; it never interprets motion (that is the streamer's job)
+//! and never changes a command's values.
 
-mod can;
-mod canopen;
 mod channel;
-mod device;
-mod dynamixel;
-mod egm;
-mod egm_guard;
 mod loopback;
-mod serial;
 mod session;
-mod spec;
-mod tcp;
 
-pub use can::connect_can;
-pub use canopen::{
-    CanopenError, CanopenLink, CanopenSettings, HEARTBEAT_LOST_FACTOR, SETUP_PATIENCE,
-    connect_canopen,
-};
 pub use channel::{CHANNEL_DEPTH, ChannelLink, IoEnds, LinkShared};
-pub use dynamixel::{
-    DynamixelError, DynamixelLink, DynamixelSettings, LOST_AFTER_CYCLES, connect_dynamixel,
-    operating_mode,
-};
-pub use egm::{
-    EgmClock, EgmLink, EgmLinkSettings, EgmState, LINK_SILENCE, PLAYOUT_DEPTH, bind_egm,
-};
-pub use egm_guard::{JUMP_SLACK, LOCK_RELEASE};
 pub use loopback::LoopbackLink;
-pub use serial::connect_serial;
 pub use session::{BridgeSession, Due, Outgoing};
-pub use spec::{DEFAULT_BAUD, DYNAMIXEL_DEFAULT_BAUD, LINK_FORMS, LinkSpec, LinkSpecError};
-pub use tcp::{TcpSettings, connect_tcp};
 
 use crate::protocol::{Command, EncodeError, FaultReport, Feedback, Hello};
 use std::time::Duration;
@@ -43,7 +20,7 @@ use thiserror::Error;
 /// (a `serve` job opens a remote link before it rises), since the cycle waits on the
 /// feedback it carries and, for EGM, on the clock it paces. A refusal changes nothing else:
 /// the cycle's own thread says so.
-fn spawn_io_thread<T: Send + 'static>(
+pub(crate) fn spawn_io_thread<T: Send + 'static>(
     name: &str,
     io: impl FnOnce() -> T + Send + 'static,
 ) -> std::io::Result<std::thread::JoinHandle<T>> {

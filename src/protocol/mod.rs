@@ -1,15 +1,12 @@
 //! The messages between rigbridge and a controller (real, or the twin), independent of how
 //! they travel. Fixed-size and `Copy`, so the streaming cycle moves them without allocating.
-//! The byte encoding for serial, TCP and CAN lives beside this (see `docs/protocol.md`), and
-//! so do the wire codecs of the device protocols a link masters and the twin plays (`egm`,
-//! `dynamixel`, `canopen`). Both ends import this module; it imports neither (`link`,
-//! `twin`), and owns bytes only: no sessions, no transports.
+//! The byte encoding for serial, TCP and CAN lives beside this (see `docs/protocol.md`); the
+//! wire codecs of the other device protocols are in their `device` folders. Both ends
+//! import this module; it imports neither (`link`, `twin`), and owns bytes only: no
+//! sessions, no transports.
 
 pub mod can;
-pub mod canopen;
 pub mod codec;
-pub mod dynamixel;
-pub mod egm;
 pub mod io;
 
 pub use can::{CanAssembler, CanCounters, CanMapping, CanPayload, CanSender, can_frames};

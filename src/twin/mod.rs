@@ -14,11 +14,7 @@
 //! It owns the simulated arm state only; it must not know about trajectories,
 //! jobs, logs or bytes (the session over a transport is `server`'s).
 
-pub mod can_port;
-pub mod canopen;
 pub mod contact;
-pub mod dynamixel;
-pub mod egm;
 pub mod gripper;
 pub mod serial_port;
 pub mod server;

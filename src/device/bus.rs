@@ -9,9 +9,9 @@
 //! It owns the queue, the session count and the hand-over; it must not know a protocol's
 //! bytes or set-up (its `Device` does), nor plan or check speeds (the streamer's gate does).
 
-use super::{Link, LinkCounters, LinkError, LinkEvent};
+use crate::device::dynamixel::wire::AxisTicks;
+use crate::link::{Link, LinkCounters, LinkError, LinkEvent};
 use crate::protocol::codec::{EncodeError, FaultReport};
-use crate::protocol::dynamixel::AxisTicks;
 use crate::protocol::{AxisValues, Command, ControllerStatus, Fault, Feedback, MAX_AXES};
 use crate::transport::Backoff;
 use std::collections::VecDeque;
@@ -88,7 +88,7 @@ pub trait Device: Send + Sync + Sized + 'static {
     /// needs a new set-up, or the link is dropped.
     fn run(&self, bus: &mut Self::Bus, hub: &Hub<Self>, start: Self::Start);
     /// How many targets before the one a cycle's feedback echoes its positions were
-    /// measured against ([`super::Link::measured_cycles_behind`]).
+    /// measured against ([`Link::measured_cycles_behind`]).
     const MEASURED_CYCLES_BEHIND: u32 = 0;
     /// Latches `fault` with `text` (every one, by default).
     fn latch(hub: &Hub<Self>, fault: Fault, text: &str) {
@@ -148,7 +148,7 @@ pub fn start<D: Device>(
         device,
     });
     let io = hub.clone();
-    let thread = super::spawn_io_thread(thread, move || keep_open(&io))?;
+    let thread = crate::link::spawn_io_thread(thread, move || keep_open(&io))?;
     Ok(DeviceLink {
         hub,
         seen: 0,

@@ -18,14 +18,14 @@
 //! servo's range is refused before anything is written, never clamped. It owns the port
 //! and the bus cycle; it must not plan or check speeds (the streamer's gate does).
 
-use super::LinkError;
-use super::device::{BusError, Device, DeviceLink, Hub, Job, id_list};
-use crate::protocol::Fault;
-use crate::protocol::dynamixel::{
+use crate::device::bus::{BusError, Device, DeviceLink, Hub, Job, id_list};
+use crate::device::dynamixel::wire::{
     AxisTicks, EXTENDED_POSITION_MODE, EXTENDED_RANGE, POSITION_MODE, Packet, PacketDecoder,
     address, describe_error, encode_packet, encode_sync_read, encode_sync_write_i32, error,
     instruction, read_params, write_params,
 };
+use crate::link::LinkError;
+use crate::protocol::Fault;
 use crate::transport::SerialSettings;
 use serialport::SerialPort;
 use std::time::{Duration, Instant};
@@ -116,7 +116,7 @@ pub fn connect_dynamixel(settings: DynamixelSettings) -> Result<DynamixelLink, L
         settings.serial.baud,
         id_list(&settings.ids)
     );
-    super::device::start(Dynamixel { settings }, description, "rigbridge-dynamixel")
+    crate::device::bus::start(Dynamixel { settings }, description, "rigbridge-dynamixel")
 }
 
 fn check_settings(settings: &DynamixelSettings) -> Result<(), DynamixelError> {

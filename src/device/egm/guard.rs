@@ -20,7 +20,7 @@
 //! Pure judgement on (source, message, feedback, arrival time): it owns no socket and must
 //! not decide what is sent.
 
-use crate::protocol::egm::EgmRobot;
+use crate::device::egm::wire::EgmRobot;
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
@@ -272,7 +272,7 @@ fn advanced_u64(a: Option<u64>, b: Option<u64>) -> Option<bool> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::protocol::egm::{EgmClock, EgmFeedBack, EgmHeader};
+    use crate::device::egm::wire::{EgmClock, EgmFeedBack, EgmHeader};
 
     fn message(seqno: u32, tm: u32, time_us: u64) -> EgmRobot {
         EgmRobot {

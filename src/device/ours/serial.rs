@@ -6,8 +6,7 @@
 //! goes silent) is reopened with backoff; commands queued meanwhile are dropped, never sent
 //! late.
 
-use super::session::{BridgeSession, Due, Outgoing};
-use super::{ChannelLink, IoEnds, LinkShared};
+use crate::link::{BridgeSession, ChannelLink, Due, IoEnds, LinkShared, Outgoing};
 use crate::protocol::codec::{FrameDecoder, Message, encode_frame};
 use crate::protocol::{Command, Hello};
 use crate::transport::{Backoff, SerialSettings};
@@ -25,7 +24,7 @@ pub fn connect_serial(settings: SerialSettings, hello: Hello) -> std::io::Result
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
-    super::spawn_io_thread("rigbridge-serial", move || {
+    crate::link::spawn_io_thread("rigbridge-serial", move || {
         runtime.block_on(keep_open(settings, ends, session))
     })?;
     Ok(link)

@@ -27,7 +27,7 @@
 //! It owns the simulated robot only; it must not know about trajectories or jobs.
 
 use crate::clock::{Clock, WallClock};
-use crate::protocol::egm::{
+use crate::device::egm::wire::{
     EgmAxes, EgmClock, EgmFeedBack, EgmHeader, EgmKinematics, EgmMciState, EgmMotorState,
     EgmPlanned, EgmPose, EgmRapidCtrlExecState, EgmRobot, EgmSensor, MciState, MessageType,
     MotorState, RapidState,
@@ -41,7 +41,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use thiserror::Error;
 
-pub use crate::protocol::egm::EgmMode;
+pub use crate::device::egm::wire::EgmMode;
 
 /// References cross the wire in degrees: a conversion there and back may move a value by
 /// a few ulps, far below any real violation.
@@ -831,7 +831,7 @@ impl EgmTwin {
                 return replies;
             }
             // ppoll, not a socket timeout: those round up to whole 4 ms scheduler ticks.
-            if !super::server::wait_readable(&self.socket, left).unwrap_or(false) {
+            if !crate::twin::server::wait_readable(&self.socket, left).unwrap_or(false) {
                 continue;
             }
             let Ok((len, _)) = self.socket.recv_from(&mut buffer) else {

@@ -16,12 +16,12 @@
 //! for a step, two for a second difference), as the EGM twin counts references. It owns
 //! the simulated servos only; it must not know about trajectories or jobs.
 
-use super::server::ControllerPort;
-use crate::protocol::dynamixel::{
+use crate::device::dynamixel::wire::{
     AxisTicks, BROADCAST_ID, EXTENDED_POSITION_MODE, EXTENDED_RANGE, POSITION_MODE, Packet,
     PacketDecoder, address, encode_status, error, instruction,
 };
 use crate::rig::{JointLimits, LIMIT_SLACK, Rig};
+use crate::twin::server::ControllerPort;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use thiserror::Error;
@@ -201,7 +201,7 @@ impl DynamixelBus {
             });
         }
         for (i, id) in ids.iter().enumerate() {
-            if *id > crate::protocol::dynamixel::MAX_SERVO_ID || ids[..i].contains(id) {
+            if *id > crate::device::dynamixel::wire::MAX_SERVO_ID || ids[..i].contains(id) {
                 return Err(DynamixelTwinError::BadId(*id));
             }
         }
@@ -485,7 +485,8 @@ impl DynamixelBus {
         let servo = &mut self.servos[index];
         match at {
             address::ID
-                if (0..=i64::from(crate::protocol::dynamixel::MAX_SERVO_ID)).contains(&value) =>
+                if (0..=i64::from(crate::device::dynamixel::wire::MAX_SERVO_ID))
+                    .contains(&value) =>
             {
                 servo.id = value as u8
             }
@@ -678,7 +679,7 @@ pub fn serve_dynamixel(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::protocol::dynamixel::{encode_packet, read_params, write_params};
+    use crate::device::dynamixel::wire::{encode_packet, read_params, write_params};
 
     fn bus() -> DynamixelBus {
         let path = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("config/irb120.toml");

@@ -30,12 +30,12 @@
 //! A second robot (unless the robot was named) and a feedback jump are a
 //! [`LinkEvent::Untrusted`]: the job is brought to rest and ends, never resumed from them.
 
-use super::egm_guard::{RobotGuard, Verdict};
-use super::{Link, LinkCounters, LinkError, LinkEvent};
+use super::guard::{RobotGuard, Verdict};
 use crate::clock::Clock;
-use crate::protocol::egm::{
+use crate::device::egm::wire::{
     EgmAxes, EgmKinematics, EgmMode, EgmRobot, EgmSensor, MciState, MotorState, RapidState,
 };
+use crate::link::{Link, LinkCounters, LinkError, LinkEvent};
 use crate::protocol::{AxisValues, Command, ControllerStatus, Feedback, JointTarget};
 use prost::Message;
 use std::collections::VecDeque;
@@ -284,7 +284,7 @@ pub fn bind_egm(address: &str, settings: EgmLinkSettings) -> std::io::Result<Egm
         mode,
     });
     let io = shared.clone();
-    let thread = super::spawn_io_thread("rigbridge-egm", move || serve(&socket, &io))?;
+    let thread = crate::link::spawn_io_thread("rigbridge-egm", move || serve(&socket, &io))?;
     Ok(EgmLink {
         shared,
         seen: 0,

@@ -16,8 +16,7 @@
 //! are in CAN frames (`frames_sent`, `frames_received`: 8 and 5 a cycle for 6 axes on classic
 //! CAN); gaps and duplicates are counted on the sequence numbers the feedback echoes.
 
-use super::session::{BridgeSession, Due, Outgoing};
-use super::{ChannelLink, IoEnds, LinkShared};
+use crate::link::{BridgeSession, ChannelLink, Due, IoEnds, LinkShared, Outgoing};
 use crate::protocol::{
     CanAssembler, CanMapping, CanPayload, CanSender, Command, Hello, Message, can_frames,
 };
@@ -55,7 +54,7 @@ pub fn connect_can(interface: &str, mapping: CanMapping, hello: Hello) -> io::Re
         .enable_all()
         .build()?;
     let interface = interface.to_string();
-    super::spawn_io_thread("rigbridge-can", move || {
+    crate::link::spawn_io_thread("rigbridge-can", move || {
         runtime.block_on(keep_open(interface, mapping, ends, session, first))
     })?;
     Ok(link)

@@ -22,15 +22,15 @@
 //! whose counts do not fit a drive's range is refused before anything is written, never
 //! clamped. It owns the bus and the cycle; it must not plan or check speeds.
 
-use super::device::{BusError, Device, DeviceLink, Hub, Job, id_list};
-use super::{LinkError, LinkEvent};
-use crate::protocol::canopen::{
+use crate::device::bus::{BusError, Device, DeviceLink, Hub, Job, id_list};
+use crate::device::canopen::wire::{
     CSP_MODE, DRIVE_PROFILE, PDO_INVALID, PowerState, RPDO1_ENTRIES, STATUS_FAULT,
     SYNCHRONOUS_EVERY_SYNC, SdoAnswer, TPDO1_ENTRIES, Value, cob, controlword,
     interpolation_period, nmt_command, nmt_state, object, rpdo1, sdo_download, sdo_upload, tpdo1,
 };
+use crate::device::dynamixel::wire::AxisTicks;
+use crate::link::{LinkError, LinkEvent};
 use crate::protocol::codec::FaultReport;
-use crate::protocol::dynamixel::AxisTicks;
 use crate::protocol::{CanPayload, ControllerStatus, Fault};
 use crate::transport::{CanBus, SEND_PATIENCE};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -179,7 +179,7 @@ pub fn connect_canopen(settings: CanopenSettings) -> Result<CanopenLink, LinkErr
         syncs: AtomicU64::new(0),
         overruns: AtomicU64::new(0),
     };
-    super::device::start(device, description, "rigbridge-canopen")
+    crate::device::bus::start(device, description, "rigbridge-canopen")
 }
 
 pub fn check_settings(settings: &CanopenSettings) -> Result<(), CanopenError> {

@@ -11,14 +11,14 @@
 //! an interface going down is a read error (the twin holds at once) and the port reopens
 //! the socket with backoff once the interface is up again (and the twin says Hello again).
 //!
-//! [`serve_twin`]: super::server::serve_twin
+//! [`serve_twin`]: crate::twin::server::serve_twin
 
-use super::server::ControllerPort;
 use crate::protocol::{
     CanAssembler, CanCounters, CanMapping, CanPayload, CanSender, FrameDecoder, can_frames,
     encode_frame,
 };
 use crate::transport::{Backoff, CanBus, SEND_PATIENCE};
+use crate::twin::server::ControllerPort;
 use std::collections::VecDeque;
 use std::io::{self, ErrorKind};
 use std::sync::atomic::{AtomicU64, Ordering};

@@ -6,8 +6,7 @@
 //! Runs on its own thread with a current-thread runtime; the cycle only touches the
 //! channels of [`ChannelLink`].
 
-use super::session::{BridgeSession, Due, Outgoing};
-use super::{ChannelLink, IoEnds, LinkShared};
+use crate::link::{BridgeSession, ChannelLink, Due, IoEnds, LinkShared, Outgoing};
 use crate::protocol::Hello;
 use crate::protocol::codec::{FrameDecoder, Message, encode_frame};
 use crate::transport::{BACKOFF_INITIAL, BACKOFF_MAX, Backoff};
@@ -41,7 +40,7 @@ pub fn connect_tcp(settings: TcpSettings, hello: Hello) -> std::io::Result<Chann
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
-    super::spawn_io_thread("rigbridge-tcp", move || {
+    crate::link::spawn_io_thread("rigbridge-tcp", move || {
         runtime.block_on(keep_connected(settings, ends, session))
     })?;
     Ok(link)

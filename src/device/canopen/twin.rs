@@ -19,15 +19,15 @@
 //! moves until a fault reset (controlword bit 7 edge). It owns the simulated drives only;
 //! it must not know about trajectories or jobs.
 
-use super::server::ControllerPort;
-use crate::protocol::CanPayload;
-use crate::protocol::can::classic_frame_bits;
-use crate::protocol::canopen::{
+use crate::device::canopen::wire::{
     CSP_MODE, DRIVE_PROFILE, PDO_BYTES, PDO_INVALID, PowerState, SdoAbortCode, SdoRequest, Value,
     abort, cob, emcy_code, mapping_entry, nmt_command, nmt_state, object, period_of,
 };
-use crate::protocol::dynamixel::AxisTicks;
+use crate::device::dynamixel::wire::AxisTicks;
+use crate::protocol::CanPayload;
+use crate::protocol::can::classic_frame_bits;
 use crate::rig::{JointLimits, LIMIT_SLACK, Rig};
+use crate::twin::server::ControllerPort;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use thiserror::Error;
@@ -441,7 +441,7 @@ impl CanopenBus {
 
     /// The SDO server (expedited transfers): the answer to one request.
     fn sdo(&mut self, axis: usize, request: &[u8], out: &mut Vec<CanPayload>) -> [u8; 8] {
-        let address = |at: (u16, u8)| crate::protocol::canopen::Address::new(at.0, at.1);
+        let address = |at: (u16, u8)| crate::device::canopen::wire::Address::new(at.0, at.1);
         let aborted = |at: (u16, u8), code: u32| {
             let mut p = [0u8; 8];
             p[0] = 0x80;
