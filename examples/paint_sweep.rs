@@ -4,9 +4,9 @@
 
 use rigbridge::clock::VirtualClock;
 use rigbridge::daemon::config::load_run_settings;
-use rigbridge::daemon::paint::run_paint;
+use rigbridge::apps::paint::run::run_paint;
 use rigbridge::stream::StreamControl;
-use rigbridge::task::paint::load_paint_settings;
+use rigbridge::apps::paint::load_paint_settings;
 use std::path::Path;
 
 fn main() -> anyhow::Result<()> {

@@ -31,6 +31,7 @@
 //!   wire codecs of the device protocols (EGM, Dynamixel Protocol 2.0, CANopen);
 //! - [`transport`]: the SocketCAN socket and the serial line's settings.
 
+pub mod apps;
 pub mod batch;
 pub mod cell;
 pub mod clock;
@@ -45,8 +46,8 @@ pub mod realtime;
 pub mod rig;
 pub mod ros2;
 pub mod scene;
+pub mod server;
 pub mod stream;
-pub mod task;
 pub mod trajectory;
 pub mod transport;
 pub mod twin;

@@ -103,9 +103,9 @@ fn the_shipped_sloth_and_gait_run_settings_load() {
 
 #[test]
 fn the_shipped_forest_loads() {
-    let sloth = rigbridge::task::gait::SlothRig::load(&repo_path("config/sloth.toml"))
+    let sloth = rigbridge::apps::gait::SlothRig::load(&repo_path("config/sloth.toml"))
         .unwrap_or_else(|e| panic!("{e}"));
-    let forest = rigbridge::task::gait::Forest::load(
+    let forest = rigbridge::apps::gait::Forest::load(
         &repo_path("config/forest.toml"),
         sloth.gait.trunk_tilt_rad,
     )

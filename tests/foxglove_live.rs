@@ -11,7 +11,7 @@ use common::cli::{assert_succeeded_as, numbers};
 use common::serve::{Served, request_json, serve_args, start_serve};
 use common::{irb120, repo_path};
 use rigbridge::daemon::config::load_run_settings;
-use rigbridge::daemon::server::{FOXGLOVE_BACKLOG, FOXGLOVE_IDLE_TIMEOUT};
+use rigbridge::server::{FOXGLOVE_BACKLOG, FOXGLOVE_IDLE_TIMEOUT};
 use rigbridge::rig::{rig_from_urdf, rig_from_urdf_to};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};

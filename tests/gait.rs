@@ -8,10 +8,10 @@ use common::cli::{assert_succeeded, read_json, rigbridge};
 use common::repo_path;
 use rigbridge::clock::VirtualClock;
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
-use rigbridge::daemon::gait::{GaitRun, run_gait};
+use rigbridge::apps::gait::run::{GaitRun, run_gait};
 use rigbridge::rig::ConfigError;
 use rigbridge::stream::{Outcome, StreamControl};
-use rigbridge::task::gait::{LimbSolver, Scenario, Side, SlothRig, Stance};
+use rigbridge::apps::gait::{LimbSolver, Scenario, Side, SlothRig, Stance};
 
 fn settings() -> RunSettings {
     load_run_settings(&repo_path("config/gait-run.toml")).expect("config/gait-run.toml loads")
@@ -603,7 +603,7 @@ fn a_trunk_job_approaches_from_the_configured_start_clear_of_the_trunk() {
         "transfer-to-trunk",
     ] {
         let scenario = Scenario::build(name, None, None).unwrap();
-        let trajectory = rigbridge::task::gait::plan_gait_job(
+        let trajectory = rigbridge::apps::gait::plan_gait_job(
             &sloth,
             &scenario,
             &settings.initial(),
@@ -786,7 +786,7 @@ fn run_takes_a_gait_job() {
 /// the same frames with the body pitched 0.6 rad nose down fail with the reason.
 #[test]
 fn the_judge_fails_a_head_first_descent_seen_on_the_twin() {
-    use rigbridge::task::gait::{GaitWorld, Walker, judge};
+    use rigbridge::apps::gait::{GaitWorld, Walker, judge};
     use rigbridge::twin::TwinWorld;
     let settings = settings();
     let sloth = settings.sloth.clone().unwrap();
@@ -825,7 +825,7 @@ fn the_judge_fails_a_head_first_descent_seen_on_the_twin() {
 /// branch transfer walks and is judged in it.
 #[test]
 fn a_transfer_walks_in_the_lateral_sequence() {
-    use rigbridge::task::gait::FootfallSequence;
+    use rigbridge::apps::gait::FootfallSequence;
     let mut settings = settings();
     let mut sloth = settings.sloth.as_deref().cloned().unwrap();
     sloth.gait.footfall_order = FootfallSequence::Lateral

@@ -9,7 +9,7 @@ use anyhow::Context;
 use clap::Args;
 use rigbridge::daemon::config::RunSettings;
 use rigbridge::daemon::config::{foxglove_bind_problem, load_run_settings, token_problem};
-use rigbridge::daemon::server::{ServeOptions, check_cells, run};
+use rigbridge::server::{ServeOptions, check_cells, run};
 use rigbridge::link::LinkSpec;
 use std::net::IpAddr;
 use std::path::PathBuf;
@@ -190,7 +190,7 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
     };
     tokio::runtime::Runtime::new()?.block_on(async move {
         let address = std::net::SocketAddr::new(bind, args.port);
-        let listener = rigbridge::daemon::server::bind(address)
+        let listener = rigbridge::server::bind(address)
             .with_context(|| format!("cannot bind {address}"))?;
         say!("http://{}/", listener.local_addr()?);
         run(listener, cells, options, shutdown_signal()).await?;

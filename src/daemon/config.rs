@@ -1111,7 +1111,7 @@ pub struct RunSettings {
     /// (tool0) for the URDF, the logs, the view and the batch tools.
     pub tcp_rig: Rig,
     /// The sloth behind `rig` when the job is a gait (`rig` is then its streamed axes).
-    pub sloth: Option<std::sync::Arc<crate::task::gait::SlothRig>>,
+    pub sloth: Option<std::sync::Arc<crate::apps::gait::SlothRig>>,
     /// The workcell `cell` names (the built-in floor when it names none).
     pub cell: Cell,
     /// `rig`'s bodies, the cell's tool and objects: the one collision model of the run.
@@ -1265,13 +1265,13 @@ fn parse_run_config(file: &Path) -> Result<RunConfig, ConfigError> {
 }
 
 /// The rig a run streams to, and the sloth behind it for a gait job.
-type LoadedRig = (Rig, Option<std::sync::Arc<crate::task::gait::SlothRig>>);
+type LoadedRig = (Rig, Option<std::sync::Arc<crate::apps::gait::SlothRig>>);
 
 /// The rig at `rig_path`; for a gait job the sloth there, whose streamed axes are then the
 /// rig.
 fn load_rigs(rig_path: &Path, job: &JobConfig) -> Result<LoadedRig, ConfigError> {
     let sloth = match job {
-        JobConfig::Gait(_) => Some(std::sync::Arc::new(crate::task::gait::SlothRig::load(
+        JobConfig::Gait(_) => Some(std::sync::Arc::new(crate::apps::gait::SlothRig::load(
             rig_path,
         )?)),
         _ => None,

@@ -3,15 +3,12 @@
 //! run report; the stages themselves live in their own modules.
 
 pub mod config;
-pub mod gait;
 mod line_check;
-pub mod paint;
 mod recording;
 pub mod replay;
 pub mod reset;
 pub mod resume;
-pub mod ros2;
-pub mod server;
+pub mod scene;
 
 pub use line_check::LineAfterStall;
 pub use recording::{ActionLog, HeldActions, RecorderSink};
@@ -37,7 +34,7 @@ pub enum DaemonError {
     #[error("job refused before motion")]
     Job(#[from] JobError),
     #[error("gait refused before motion")]
-    Gait(#[from] crate::task::gait::GaitError),
+    Gait(#[from] crate::apps::gait::GaitError),
     #[error("streaming")]
     Stream(#[from] StreamError),
     #[error("link")]
@@ -54,8 +51,6 @@ pub enum DaemonError {
     Replay(#[from] replay::ReplayError),
     #[error("{0}")]
     Unavailable(String),
-    #[error(transparent)]
-    Cells(#[from] server::CellError),
     /// The trajectory comes closer to something in the cell than its margin.
     #[error("refused before motion")]
     Collision(#[from] Box<CollisionRefusal>),
@@ -634,7 +629,7 @@ fn clear_job(
 ) -> Result<(), DaemonError> {
     match job {
         Some(config::JobConfig::Paint(job)) => {
-            clear(&paint::gate_settings(settings, job)?, trajectory, origins)
+            clear(&crate::apps::paint::run::gate_settings(settings, job)?, trajectory, origins)
         }
         _ => clear(settings, trajectory, origins),
     }
@@ -984,7 +979,7 @@ fn create_recorder(
     let options = crate::log::RecorderOptions {
         wait_when_full: virtual_clock,
         robot: robot_description(settings)?,
-        scene: job.and_then(|job| server::log_scene_for_job(settings, job)),
+        scene: job.and_then(|job| scene::log_scene_for_job(settings, job)),
         capacity: crate::log::capacity_for_rate(settings.config.stream.rate_hz),
         ..crate::log::RecorderOptions::for_rig(&settings.rig)
     };

@@ -7,10 +7,12 @@ use crate::daemon::config::{JobConfig, RunSettings};
 use crate::job::Scene;
 use crate::log::{LoggedScene, SceneSource};
 use crate::scene::{ClosestView, PaintQuad, SceneView};
-use crate::task::gait::forest::scenario_named;
-use crate::task::paint::{load_paint_settings, room_for, world_for};
+use crate::apps::gait::forest::scenario_named;
+use crate::apps::paint::{load_paint_settings, room_for, world_for};
 use crate::twin::{TwinWorld, ViewOnly};
-use crate::view::{ArmScene, CellDrawing, LiveScene, PaintScene, SlothScene, ToolTrace};
+use crate::apps::gait::SlothScene;
+use crate::apps::paint::PaintScene;
+use crate::view::{ArmScene, CellDrawing, LiveScene, ToolTrace};
 use std::sync::{Arc, Mutex};
 
 /// A job's live scene and the twin world (if any) that measures what the scene shows.

@@ -279,7 +279,7 @@ impl IkSolver for PositionFabrikSolver {
 mod tests {
     use super::*;
     use crate::rig::load_rig;
-    use crate::task::gait::SlothRig;
+    use crate::apps::gait::SlothRig;
     use rand::{RngExt, SeedableRng};
     use rand_chacha::ChaCha8Rng;
     use std::path::Path;

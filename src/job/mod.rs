@@ -11,13 +11,11 @@
 
 mod files;
 mod follow_trajectory;
-mod gait;
 mod joint_waypoints;
 mod limits;
 mod move_joints;
 mod move_linear;
 mod move_poses;
-mod paint;
 mod pasted;
 mod poses;
 mod program;
@@ -25,7 +23,7 @@ mod wall_figure;
 
 pub use files::resolve_file;
 pub use follow_trajectory::{FollowTrajectory, RowCaps, TrajectoryFileError, read_trajectory_csv};
-pub use gait::Gait;
+pub use crate::apps::gait::Gait;
 pub use joint_waypoints::JointWaypoints;
 pub use limits::{
     CEILING_DURATION_S, CEILING_PLAN_MB, CEILING_POINTS, DEFAULT_MAX_JOB_POINTS, JobLimits,
@@ -34,7 +32,7 @@ pub use limits::{
 pub use move_joints::MoveJoints;
 pub use move_linear::{LINE_TOLERANCE_M, LineRefused, Lines, MoveLinear, top_tool_speed};
 pub use move_poses::MovePoses;
-pub use paint::Paint;
+pub use crate::apps::paint::Paint;
 pub use pasted::{PastedJobError, job_from_toml};
 pub use poses::PoseSpec;
 pub use program::{
@@ -46,7 +44,7 @@ pub use wall_figure::{WallFigure, star_poses};
 use crate::cell::CollisionModel;
 use crate::ik::{CartesianError, IkError, StructureError};
 use crate::rig::Rig;
-use crate::task::gait::SlothRig;
+use crate::apps::gait::SlothRig;
 use crate::trajectory::{Origins, PlanError, PlanSettings, Trajectory};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -179,9 +177,9 @@ pub enum JobError {
     #[error("paint settings")]
     PaintConfig(#[from] crate::rig::ConfigError),
     #[error("paint job")]
-    Paint(#[from] crate::task::paint::PaintError),
+    Paint(#[from] crate::apps::paint::PaintError),
     #[error("gait")]
-    Gait(#[from] crate::task::gait::GaitError),
+    Gait(#[from] crate::apps::gait::GaitError),
     #[error("trajectory file")]
     TrajectoryFile(#[from] TrajectoryFileError),
     #[error("{0}")]

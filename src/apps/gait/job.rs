@@ -1,9 +1,9 @@
 //! `kind = "gait"`: the sloth's gait over a scenario, built in or a walk of a forest file
 //! next to the config. Owns the job's keys and their checks; the gait itself is
-//! `task::gait`'s. Needs the sloth rig (the config's `rig` a sloth file).
+//! `apps::gait`'s. Needs the sloth rig (the config's `rig` a sloth file).
 
-use super::{JobContext, JobError, JobInvalid, PlanContext, resolve_file};
-use crate::task::gait::{Forest, Scenario, forest::scenario_named, plan_gait_job};
+use crate::job::{JobContext, JobError, JobInvalid, PlanContext, resolve_file};
+use super::{Forest, Scenario, forest::scenario_named, plan_gait_job};
 use crate::trajectory::Trajectory;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -78,7 +78,7 @@ impl Gait {
             self.forest.as_deref(),
             sloth.gait.trunk_tilt_rad,
         )
-        .map_err(crate::task::gait::GaitError::from)?;
+        .map_err(super::GaitError::from)?;
         Ok(plan_gait_job(
             sloth,
             &scenario,

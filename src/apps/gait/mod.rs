@@ -7,18 +7,23 @@
 pub mod body;
 pub mod config;
 pub mod forest;
+pub mod job;
 pub mod metrics;
 pub mod picture;
 pub mod pipeline;
 pub mod placement;
 pub mod rig;
 pub mod rule;
+pub mod run;
 pub mod scenario;
+pub mod scene;
 pub mod smooth;
 pub mod terrain;
 pub mod walker;
 
 pub use config::{FootfallSequence, GaitConfig, LimbSolver};
+pub use job::Gait;
+pub use scene::SlothScene;
 pub use forest::{Forest, ForestError};
 pub use metrics::{GaitReport, GaitWorld, judge};
 pub use pipeline::{GaitError, plan_gait, plan_gait_job, trajectory_from_plan};

@@ -2,12 +2,12 @@
 //! loopback twin (whose world measures the sloth's actual contact, slip and clearance) with
 //! the same streamer and recorder as every job, then judge. Owns that wiring only.
 
-use super::config::{JobConfig, RunSettings};
-use super::{DaemonError, PlannedJob, RunReport, stream_planned, twin_settings};
+use crate::daemon::config::{JobConfig, RunSettings};
+use crate::daemon::{DaemonError, PlannedJob, RunReport, stream_planned, twin_settings};
 use crate::clock::Clock;
 use crate::link::LoopbackLink;
 use crate::stream::{Outcome, StreamControl};
-use crate::task::gait::{GaitPlan, GaitReport, GaitWorld, Scenario, SlothRig, judge, plan_gait};
+use super::{GaitPlan, GaitReport, GaitWorld, Scenario, SlothRig, judge, plan_gait};
 use crate::twin::Twin;
 use glam::DVec3;
 use std::sync::{Arc, Mutex, PoisonError};

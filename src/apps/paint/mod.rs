@@ -7,11 +7,16 @@
 
 pub mod body;
 pub mod config;
+pub mod job;
 pub mod planner;
 pub mod report;
 pub mod room;
+pub mod run;
+pub mod scene;
 pub mod world;
 
+pub use job::Paint;
+pub use scene::PaintScene;
 pub use config::{EXTRA_AXES, PaintSettings, load_paint_settings};
 pub use planner::{PaintPlan, PaintPlanError, plan_paint};
 pub use report::{PaintReport, build_report, write_svg};
