@@ -149,7 +149,7 @@ fn a_ros2_trajectory_goes_through_the_same_caps_as_a_job_from_http_or_a_file() {
     let context = JobContext {
         rig: &settings.rig,
         cell: &settings.cell,
-        sloth: None,
+        app_rig: None,
         base_dir: &dir,
         limits: &settings.config.limits,
         period: settings.period(),

@@ -5,13 +5,13 @@
 mod common;
 
 use common::repo_path;
-use rigbridge::clock::VirtualClock;
-use rigbridge::daemon::config::{JobConfig, load_run_settings};
 use rigbridge::apps::gait::run::run_gait;
-use rigbridge::rig::ConfigError;
-use rigbridge::stream::StreamControl;
 use rigbridge::apps::gait::scenario::Leg;
 use rigbridge::apps::gait::{Forest, ForestError, Scenario, SlothRig};
+use rigbridge::clock::VirtualClock;
+use rigbridge::daemon::config::{JobConfig, load_run_settings};
+use rigbridge::rig::ConfigError;
+use rigbridge::stream::StreamControl;
 use std::path::{Path, PathBuf};
 
 fn trunk_tilt_rad() -> f64 {

@@ -44,7 +44,8 @@ const PENDING_UPWARD: &[(&str, &str, &str)] = &[
     (
         "src/job/mod.rs",
         "apps",
-        "the Job enum still lists the paint and gait kinds, and its contexts carry the sloth",
+        "the Job enum (one serde-tagged enum, which keeps the job formats) still lists the \
+         paint and gait kinds, and JobError their errors",
     ),
     (
         "src/apps/paint/run.rs",

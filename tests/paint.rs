@@ -6,19 +6,19 @@ mod common;
 
 use common::repo_path;
 use glam::DVec2;
+use rigbridge::apps::paint::body::{Body, Scratch, Travel};
+use rigbridge::apps::paint::planner::Planner;
+use rigbridge::apps::paint::room::{OpeningKind, RoomError, WallType, apothem};
+use rigbridge::apps::paint::run::{PaintRun, run_paint};
+use rigbridge::apps::paint::{
+    EXTRA_AXES, PaintPlan, PaintSettings, load_paint_settings, plan_room, room_for, world_for,
+};
 use rigbridge::clock::VirtualClock;
 use rigbridge::daemon::config::load_run_settings;
-use rigbridge::apps::paint::run::{PaintRun, run_paint};
 use rigbridge::ik::{BaseHeldSolver, IkSolver};
 use rigbridge::link::LoopbackLink;
 use rigbridge::rig::{ConfigError, Rig, Shape, load_rig};
 use rigbridge::stream::{Outcome, StreamControl, StreamSettings, slowdown_rate, stream};
-use rigbridge::apps::paint::body::{Body, Scratch, Travel};
-use rigbridge::apps::paint::planner::Planner;
-use rigbridge::apps::paint::room::{OpeningKind, RoomError, WallType, apothem};
-use rigbridge::apps::paint::{
-    EXTRA_AXES, PaintPlan, PaintSettings, load_paint_settings, plan_room, room_for, world_for,
-};
 use rigbridge::trajectory::{PlanSettings, Trajectory};
 use rigbridge::twin::{Twin, TwinSettings};
 use std::num::NonZeroUsize;

@@ -6,11 +6,11 @@
 //! that cells do not clash; HTTP routing and access control stay in `mod.rs`, the choice
 //! of a job's live scene in `daemon/scene.rs`.
 
-use crate::daemon::scene::scene_for_job;
 use super::{JobWorld, LIVE_FRAME_RATE_HZ, ServeOptions};
 use crate::clock::{Clock, VirtualClock, WallClock};
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::daemon::reset::{RESET_TIMEOUT, ResetOutcome, reset_controller};
+use crate::daemon::scene::scene_for_job;
 use crate::daemon::{
     ActionLog, DaemonError, HeldActions, JobToStream, RunReport, Sinks, error_chain, held_position,
     plan_for, stream_job_with, stream_planned_with,
@@ -627,7 +627,7 @@ impl Cell {
         let context = crate::job::JobContext {
             rig: &self.settings.tcp_rig,
             cell: &self.settings.cell,
-            sloth: self.settings.sloth.as_deref(),
+            app_rig: self.settings.app_rig.as_deref(),
             base_dir: &base_dir,
             limits: &self.settings.config.limits,
             period: self.settings.period(),

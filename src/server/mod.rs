@@ -37,10 +37,10 @@ pub use foxglove::{
 };
 pub use guard::{BODY_TIMEOUT, HostCheck, MAX_BODY_BYTES, MAX_LIVE_MESSAGE_BYTES, MAX_LIVE_PAGES};
 
+use crate::clock::{Clock, WallClock};
 use crate::daemon::config::ExecutorKind;
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::daemon::{DaemonError, error_chain};
-use crate::clock::{Clock, WallClock};
 use crate::stream::{Executor, ExecutorSettings, StreamControl};
 use crate::twin::TwinWorld;
 use crate::view::page;

@@ -4,8 +4,8 @@
 //! and no judgement: the callers send requests and check the answers and the result.
 #![allow(dead_code)]
 
-use rigbridge::server::ServeError;
 use rigbridge::daemon::config::RunSettings;
+use rigbridge::server::ServeError;
 use rigbridge::server::{ServeOptions, run};
 use std::net::SocketAddr;
 use std::path::PathBuf;

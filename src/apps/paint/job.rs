@@ -2,8 +2,8 @@
 //! rig, its settings in `paint_config` next to the config. Owns the job's keys and their
 //! checks; the room and its painting are `apps::paint`'s.
 
-use crate::job::{JobContext, JobError, JobInvalid, PlanContext, resolve_file};
 use super::{load_paint_settings, plan_room, room::MAX_WALLS};
+use crate::job::{JobContext, JobError, JobInvalid, PlanContext, resolve_file};
 use crate::trajectory::Trajectory;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};

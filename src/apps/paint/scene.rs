@@ -5,11 +5,11 @@
 //! not the 1 cm coverage grid (the report and the picture have that). It must not plan,
 //! move the rig or change the world's measurements.
 
-use crate::view::{LiveScene, joint_origins_from};
+use super::{PaintWorld, Room};
 use crate::rig::Rig;
 use crate::scene::{PaintQuad, Point, SceneView, WallView};
-use super::{PaintWorld, Room};
 use crate::twin::SharedWorld;
+use crate::view::{LiveScene, joint_origins_from};
 #[cfg(test)]
 use glam::DVec3;
 use glam::{DAffine3, DVec2};
