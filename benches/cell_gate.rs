@@ -28,7 +28,7 @@ fn main_bench(c: &mut Criterion) {
         .job
         .plan(&PlanContext {
             rig: &settings.rig,
-            sloth: None,
+            app_rig: None,
             start: &settings.initial(),
             settings: &rigbridge::daemon::plan_settings(&settings),
             model: Some(&settings.collision),

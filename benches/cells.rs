@@ -1,5 +1,5 @@
 //! Many cells in one daemon (issue 18): N copies of the IRB 120 arm cell on the loopback
-//! twin, served by `rigbridge::daemon::server::run` in this process and driven over its
+//! twin, served by `rigbridge::server::run` in this process and driven over its
 //! HTTP API, every cell streaming a steady joint job at once, at 250 Hz and at 1 kHz, with
 //! the cells' cycles on the shared executor and on a thread per cell (`[serve] executor`),
 //! both in one run. Each (design, rate, N) runs in a child process of its own, so its CPU
@@ -37,7 +37,7 @@ mod in_process;
 mod shield;
 
 use rigbridge::daemon::config::{ExecutorKind, RunSettings, load_run_settings};
-use rigbridge::daemon::server::ServeOptions;
+use rigbridge::server::ServeOptions;
 use serde_json::{Value, json};
 use std::net::SocketAddr;
 use std::path::Path;

@@ -7,7 +7,7 @@
 //! `cargo bench --bench gait -- --measurement-time 3`
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use rigbridge::task::gait::{LimbSolver, Scenario, SlothRig, Walker};
+use rigbridge::apps::gait::{LimbSolver, Scenario, SlothRig, Walker};
 use std::hint::black_box;
 use std::path::Path;
 

@@ -6,7 +6,7 @@
 //! `cargo bench --bench paint -- --measurement-time 20`
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use rigbridge::task::paint::{load_paint_settings, plan_room};
+use rigbridge::apps::paint::{load_paint_settings, plan_room};
 use rigbridge::trajectory::PlanSettings;
 use std::path::Path;
 

@@ -4,8 +4,8 @@
 //! `cargo run --release --example paint_plan -- [FIRST_N LAST_N SEEDS THREADS]`
 //! (default: the 32-wall room of seed 0 on one thread, as in `benches/paint.rs`).
 
-use rigbridge::task::paint::planner::Planner;
-use rigbridge::task::paint::{PaintPlan, load_paint_settings, room_for};
+use rigbridge::apps::paint::planner::Planner;
+use rigbridge::apps::paint::{PaintPlan, load_paint_settings, room_for};
 use rigbridge::trajectory::PlanSettings;
 use std::hash::{DefaultHasher, Hash, Hasher};
 use std::num::NonZeroUsize;

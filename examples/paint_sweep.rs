@@ -2,11 +2,11 @@
 //! painted against the in-process twin under the virtual clock; prints one line per room
 //! and the worst case. `cargo run --release --example paint_sweep -- [FIRST_N LAST_N SEEDS]`
 
+use rigbridge::apps::paint::load_paint_settings;
+use rigbridge::apps::paint::run::run_paint;
 use rigbridge::clock::VirtualClock;
 use rigbridge::daemon::config::load_run_settings;
-use rigbridge::daemon::paint::run_paint;
 use rigbridge::stream::StreamControl;
-use rigbridge::task::paint::load_paint_settings;
 use std::path::Path;
 
 fn main() -> anyhow::Result<()> {

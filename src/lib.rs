@@ -33,6 +33,7 @@
 //! - [`protocol`]: the messages and their byte and CAN encodings (`docs/protocol.md`);
 //! - [`transport`]: the SocketCAN socket and the serial line's settings.
 
+pub mod apps;
 pub mod batch;
 pub mod cell;
 pub mod clock;
@@ -48,8 +49,8 @@ pub mod realtime;
 pub mod rig;
 pub mod ros2;
 pub mod scene;
+pub mod server;
 pub mod stream;
-pub mod task;
 pub mod trajectory;
 pub mod transport;
 pub mod twin;

@@ -149,13 +149,13 @@ fn a_ros2_trajectory_goes_through_the_same_caps_as_a_job_from_http_or_a_file() {
     let context = JobContext {
         rig: &settings.rig,
         cell: &settings.cell,
-        sloth: None,
+        app_rig: None,
         base_dir: &dir,
         limits: &settings.config.limits,
         period: settings.period(),
     };
     let day = joint_trajectory(&[(0, 0.0), (86_400, 0.1)]);
-    let job = rigbridge::daemon::ros2::trajectory_job(&day, &settings.rig).unwrap();
+    let job = rigbridge::server::ros2::trajectory_job(&day, &settings.rig).unwrap();
     let refused = job.validate(&context).unwrap_err().to_string();
     contains_all(
         &refused,
@@ -167,7 +167,7 @@ fn a_ros2_trajectory_goes_through_the_same_caps_as_a_job_from_http_or_a_file() {
         ..JobLimits::default()
     };
     let three = joint_trajectory(&[(0, 0.0), (1, 0.1), (2, 0.2)]);
-    let job = rigbridge::daemon::ros2::trajectory_job(&three, &settings.rig).unwrap();
+    let job = rigbridge::server::ros2::trajectory_job(&three, &settings.rig).unwrap();
     let refused = job
         .validate(&JobContext {
             limits: &few,

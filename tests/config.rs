@@ -97,15 +97,16 @@ fn the_shipped_run_settings_load() {
 fn the_shipped_sloth_and_gait_run_settings_load() {
     let settings = rigbridge::daemon::config::load_run_settings(&repo_path("config/gait-run.toml"))
         .unwrap_or_else(|e| panic!("{e}"));
-    let sloth = settings.sloth.expect("a gait job loads the sloth");
+    let sloth = rigbridge::apps::gait::sloth_of(settings.app_rig.as_deref())
+        .expect("a gait job loads the sloth");
     assert_eq!(settings.rig.dof(), sloth.dof());
 }
 
 #[test]
 fn the_shipped_forest_loads() {
-    let sloth = rigbridge::task::gait::SlothRig::load(&repo_path("config/sloth.toml"))
+    let sloth = rigbridge::apps::gait::SlothRig::load(&repo_path("config/sloth.toml"))
         .unwrap_or_else(|e| panic!("{e}"));
-    let forest = rigbridge::task::gait::Forest::load(
+    let forest = rigbridge::apps::gait::Forest::load(
         &repo_path("config/forest.toml"),
         sloth.gait.trunk_tilt_rad,
     )

@@ -347,7 +347,7 @@ fn the_sloths_branches_are_cylinders_for_a_reader_we_did_not_write() {
         serde_json::to_value(&settings.config.job).unwrap()["scenario"],
         "straight"
     );
-    let scenario = rigbridge::task::gait::Scenario::build("straight", None, None).unwrap();
+    let scenario = rigbridge::apps::gait::Scenario::build("straight", None, None).unwrap();
     let dir = scratch("gait-scene");
     let log = dir.join("g.mcap");
     record_run(&repo_path("config/gait-run.toml"), &log);

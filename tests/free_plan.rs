@@ -352,7 +352,7 @@ fn a_goal_walled_off_from_the_start_is_refused_within_the_budget() {
     let refused = job
         .plan(&rigbridge::job::PlanContext {
             rig: &rig,
-            sloth: None,
+            app_rig: None,
             start: &start,
             settings: &settings,
             model: Some(&model),

@@ -6,12 +6,12 @@ mod common;
 
 use common::cli::{assert_succeeded, read_json, rigbridge};
 use common::repo_path;
+use rigbridge::apps::gait::run::{GaitRun, run_gait};
+use rigbridge::apps::gait::{LimbSolver, Scenario, Side, SlothRig, Stance, shared_sloth, sloth_of};
 use rigbridge::clock::VirtualClock;
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
-use rigbridge::daemon::gait::{GaitRun, run_gait};
 use rigbridge::rig::ConfigError;
 use rigbridge::stream::{Outcome, StreamControl};
-use rigbridge::task::gait::{LimbSolver, Scenario, Side, SlothRig, Stance};
 
 fn settings() -> RunSettings {
     load_run_settings(&repo_path("config/gait-run.toml")).expect("config/gait-run.toml loads")
@@ -24,9 +24,11 @@ fn walk(name: &str, angle: Option<f64>, gap: Option<f64>) -> GaitRun {
 /// The gait's run settings with the limbs placed by `solver`.
 fn settings_with(solver: LimbSolver) -> RunSettings {
     let mut settings = settings();
-    let mut sloth = settings.sloth.as_deref().cloned().expect("a sloth rig");
+    let mut sloth = sloth_of(settings.app_rig.as_deref())
+        .cloned()
+        .expect("a sloth rig");
     sloth.gait.solver = solver;
-    settings.sloth = Some(std::sync::Arc::new(sloth));
+    settings.app_rig = Some(std::sync::Arc::new(sloth));
     settings
 }
 
@@ -34,7 +36,7 @@ fn walk_with(settings: RunSettings, name: &str, angle: Option<f64>, gap: Option<
     let scenario = Scenario::build(name, angle, gap).expect("scenario builds");
     let dir = std::env::temp_dir().join(format!("rigbridge-gait-test-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let solver = settings.sloth.as_ref().map(|s| s.gait.solver);
+    let solver = sloth_of(settings.app_rig.as_deref()).map(|s| s.gait.solver);
     let log = dir.join(format!(
         "{name}-{}-{}-{solver:?}.mcap",
         angle.unwrap_or(0.0),
@@ -594,7 +596,7 @@ fn an_unknown_footfall_limb_is_refused() {
 #[test]
 fn a_trunk_job_approaches_from_the_configured_start_clear_of_the_trunk() {
     let settings = settings();
-    let sloth = settings.sloth.clone().unwrap();
+    let sloth = shared_sloth(settings.app_rig.as_ref()).unwrap();
     for name in [
         "trunk",
         "trunk-down",
@@ -603,7 +605,7 @@ fn a_trunk_job_approaches_from_the_configured_start_clear_of_the_trunk() {
         "transfer-to-trunk",
     ] {
         let scenario = Scenario::build(name, None, None).unwrap();
-        let trajectory = rigbridge::task::gait::plan_gait_job(
+        let trajectory = rigbridge::apps::gait::plan_gait_job(
             &sloth,
             &scenario,
             &settings.initial(),
@@ -786,10 +788,10 @@ fn run_takes_a_gait_job() {
 /// the same frames with the body pitched 0.6 rad nose down fail with the reason.
 #[test]
 fn the_judge_fails_a_head_first_descent_seen_on_the_twin() {
-    use rigbridge::task::gait::{GaitWorld, Walker, judge};
+    use rigbridge::apps::gait::{GaitWorld, Walker, judge};
     use rigbridge::twin::TwinWorld;
     let settings = settings();
-    let sloth = settings.sloth.clone().unwrap();
+    let sloth = shared_sloth(settings.app_rig.as_ref()).unwrap();
     let scenario = Scenario::build("straight", None, None).unwrap();
     let plan = Walker::new(&sloth, &scenario, settings.period())
         .plan()
@@ -825,15 +827,15 @@ fn the_judge_fails_a_head_first_descent_seen_on_the_twin() {
 /// branch transfer walks and is judged in it.
 #[test]
 fn a_transfer_walks_in_the_lateral_sequence() {
-    use rigbridge::task::gait::FootfallSequence;
+    use rigbridge::apps::gait::FootfallSequence;
     let mut settings = settings();
-    let mut sloth = settings.sloth.as_deref().cloned().unwrap();
+    let mut sloth = sloth_of(settings.app_rig.as_deref()).cloned().unwrap();
     sloth.gait.footfall_order = FootfallSequence::Lateral
         .limb_names()
         .iter()
         .map(|name| sloth.limb_index(name).unwrap())
         .collect();
-    settings.sloth = Some(std::sync::Arc::new(sloth));
+    settings.app_rig = Some(std::sync::Arc::new(sloth));
     let run = walk_with(settings, "transfer", Some(120.0), None);
     common::assert_gait_figures(&run);
     let lateral = ["rh", "rf", "lh", "lf"];

@@ -5,13 +5,13 @@
 mod common;
 
 use common::repo_path;
+use rigbridge::apps::gait::run::run_gait;
+use rigbridge::apps::gait::scenario::Leg;
+use rigbridge::apps::gait::{Forest, ForestError, Scenario, SlothRig};
 use rigbridge::clock::VirtualClock;
 use rigbridge::daemon::config::{JobConfig, load_run_settings};
-use rigbridge::daemon::gait::run_gait;
 use rigbridge::rig::ConfigError;
 use rigbridge::stream::StreamControl;
-use rigbridge::task::gait::scenario::Leg;
-use rigbridge::task::gait::{Forest, ForestError, Scenario, SlothRig};
 use std::path::{Path, PathBuf};
 
 fn trunk_tilt_rad() -> f64 {
@@ -532,7 +532,7 @@ fn log_path(name: &str) -> PathBuf {
 }
 
 /// Runs a walk of the shipped forest end to end on the twin (virtual clock), logged.
-fn run_shipped_walk(name: &str) -> rigbridge::daemon::gait::GaitRun {
+fn run_shipped_walk(name: &str) -> rigbridge::apps::gait::run::GaitRun {
     let settings =
         load_run_settings(&repo_path("config/gait-run.toml")).unwrap_or_else(|e| panic!("{e}"));
     let walk = shipped().scenario(name).unwrap();

@@ -6,9 +6,9 @@
 mod common;
 
 use common::output_with_stdin;
+use rigbridge::apps::paint::load_paint_settings;
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::rig::load_rig;
-use rigbridge::task::paint::load_paint_settings;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 

@@ -124,7 +124,7 @@ fn toml_and_json_refuse_the_same_jobs_with_the_same_text() {
     let context = JobContext {
         rig: &settings.rig,
         cell: &settings.cell,
-        sloth: None,
+        app_rig: None,
         base_dir: &dir,
         limits: &settings.config.limits,
         period: settings.period(),
@@ -196,7 +196,7 @@ fn plan(settings: &rigbridge::daemon::config::RunSettings) -> Trajectory {
         .job
         .plan(&PlanContext {
             rig: &settings.rig,
-            sloth: None,
+            app_rig: None,
             start: &start,
             settings: &rigbridge::daemon::plan_settings(settings),
             model: Some(&settings.collision),
@@ -310,7 +310,7 @@ fn follow_trajectory_passes_every_row_and_refuses_a_bad_file_without_quoting_it(
     let settings = load_run_settings(&dir.join("job.toml")).unwrap();
     let too_fast = settings.config.job.plan(&PlanContext {
         rig: &settings.rig,
-        sloth: None,
+        app_rig: None,
         start: &settings.initial(),
         settings: &rigbridge::daemon::plan_settings(&settings),
         model: Some(&settings.collision),
@@ -329,7 +329,7 @@ fn plan_refusal(name: &str, config: &str) -> String {
     let start = settings.initial();
     let refused = settings.config.job.plan(&PlanContext {
         rig: &settings.rig,
-        sloth: None,
+        app_rig: None,
         start: &start,
         settings: &rigbridge::daemon::plan_settings(&settings),
         model: Some(&settings.collision),
@@ -475,7 +475,7 @@ fn follow_refusal(name: &str, csv: &str) -> String {
     let settings = load_run_settings(&dir.join("job.toml")).unwrap();
     let refused = settings.config.job.plan(&PlanContext {
         rig: &settings.rig,
-        sloth: None,
+        app_rig: None,
         start: &settings.initial(),
         settings: &rigbridge::daemon::plan_settings(&settings),
         model: Some(&settings.collision),

@@ -13,12 +13,13 @@ use std::path::{Path, PathBuf};
 /// above. The binary's `src/main.rs` and `src/cli/` count as `cli`.
 const LAYERS: &[&str] = &[
     "cli",
+    "server",
     "daemon",
+    "apps",
     "batch",
     "ros2",
     "view",
     "job",
-    "task",
     "ik",
     "trajectory",
     "stream",
@@ -36,6 +37,29 @@ const LAYERS: &[&str] = &[
     "realtime",
 ];
 
+/// Imports that still point up, each with the file, the module it names and why: the
+/// demo apps' moves out of the core (issue 31 item 2) left these for the app interface to
+/// remove. The first test fails on any other upward import, and on an entry here that no
+/// longer happens (so the list only shrinks).
+const PENDING_UPWARD: &[(&str, &str, &str)] = &[
+    (
+        "src/job/mod.rs",
+        "apps",
+        "the Job enum (one serde-tagged enum, which keeps the job formats) still lists the \
+         paint and gait kinds, and JobError their errors",
+    ),
+    (
+        "src/apps/paint/run.rs",
+        "daemon",
+        "`rigbridge paint`'s end-to-end run streams through the daemon",
+    ),
+    (
+        "src/apps/gait/run.rs",
+        "daemon",
+        "`rigbridge gait`'s end-to-end run streams through the daemon",
+    ),
+];
+
 fn src_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("src")
 }
@@ -43,16 +67,34 @@ fn src_dir() -> PathBuf {
 #[test]
 fn no_module_imports_one_above_it() {
     let mut offences = Vec::new();
+    let mut pending_seen = BTreeSet::new();
     for file in rust_files(&src_dir()) {
         let relative = file.strip_prefix(src_dir()).unwrap();
         let Some(module) = module_path(relative) else {
             continue;
         };
+        let shown = format!("src/{}", relative.display());
         let text = std::fs::read_to_string(&file).unwrap();
         for (line, target) in imports(&module, &text) {
-            if let Some(why) = offence(&module[0], &target) {
-                offences.push(format!("src/{}:{line}: {why}", relative.display()));
+            let Some(why) = offence(&module[0], &target) else {
+                continue;
+            };
+            match PENDING_UPWARD
+                .iter()
+                .position(|(f, t, _)| *f == shown && *t == target)
+            {
+                Some(entry) => {
+                    pending_seen.insert(entry);
+                }
+                None => offences.push(format!("{shown}:{line}: {why}")),
             }
+        }
+    }
+    for (entry, (file, target, _)) in PENDING_UPWARD.iter().enumerate() {
+        if !pending_seen.contains(&entry) {
+            offences.push(format!(
+                "{file} no longer imports {target}: take it off PENDING_UPWARD"
+            ));
         }
     }
     assert!(

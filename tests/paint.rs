@@ -6,19 +6,19 @@ mod common;
 
 use common::repo_path;
 use glam::DVec2;
+use rigbridge::apps::paint::body::{Body, Scratch, Travel};
+use rigbridge::apps::paint::planner::Planner;
+use rigbridge::apps::paint::room::{OpeningKind, RoomError, WallType, apothem};
+use rigbridge::apps::paint::run::{PaintRun, run_paint};
+use rigbridge::apps::paint::{
+    EXTRA_AXES, PaintPlan, PaintSettings, load_paint_settings, plan_room, room_for, world_for,
+};
 use rigbridge::clock::VirtualClock;
 use rigbridge::daemon::config::load_run_settings;
-use rigbridge::daemon::paint::{PaintRun, run_paint};
 use rigbridge::ik::{BaseHeldSolver, IkSolver};
 use rigbridge::link::LoopbackLink;
 use rigbridge::rig::{ConfigError, Rig, Shape, load_rig};
 use rigbridge::stream::{Outcome, StreamControl, StreamSettings, slowdown_rate, stream};
-use rigbridge::task::paint::body::{Body, Scratch, Travel};
-use rigbridge::task::paint::planner::Planner;
-use rigbridge::task::paint::room::{OpeningKind, RoomError, WallType, apothem};
-use rigbridge::task::paint::{
-    EXTRA_AXES, PaintPlan, PaintSettings, load_paint_settings, plan_room, room_for, world_for,
-};
 use rigbridge::trajectory::{PlanSettings, Trajectory};
 use rigbridge::twin::{Twin, TwinSettings};
 use std::num::NonZeroUsize;
@@ -178,7 +178,7 @@ fn bad_rooms_are_refused_with_the_value() {
     narrow.wall_width_m = 1.2;
     let error = (0..20)
         .find_map(|seed| {
-            rigbridge::task::paint::generate_room(4, seed, &narrow, 0.1)
+            rigbridge::apps::paint::generate_room(4, seed, &narrow, 0.1)
                 .err()
                 .filter(|e| matches!(e, RoomError::OpeningsDoNotFit { .. }))
         })
@@ -322,7 +322,7 @@ fn a_32_wall_room_is_painted() {
 fn stream_into(
     trajectory: &Trajectory,
     settings: &PaintSettings,
-    world: Arc<Mutex<rigbridge::task::paint::PaintWorld>>,
+    world: Arc<Mutex<rigbridge::apps::paint::PaintWorld>>,
     start: &[f64],
 ) {
     let twin = Twin::new(
@@ -714,7 +714,7 @@ fn paint_does_not_depend_on_how_often_the_brush_is_seen() {
     };
     let wall = planned.strokes[1].wall;
     let painted =
-        |world: &rigbridge::task::paint::PaintWorld| world.grids()[wall].stats().painted_m2;
+        |world: &rigbridge::apps::paint::PaintWorld| world.grids()[wall].stats().painted_m2;
     let (every, tenth) = (painted(&seen_every(1)), painted(&seen_every(10)));
     assert!(every > 0.5, "three strokes paint more than 0.5 m2: {every}");
     assert!(
@@ -726,8 +726,8 @@ fn paint_does_not_depend_on_how_often_the_brush_is_seen() {
     let sparse = seen_every(25);
     let grid = &sparse.grids()[wall];
     let (first, second) = (&planned.strokes[1], &planned.strokes[2]);
-    let lowest = |s: &rigbridge::task::paint::planner::PlannedStroke| s.v_from_m.min(s.v_to_m);
-    let highest = |s: &rigbridge::task::paint::planner::PlannedStroke| s.v_from_m.max(s.v_to_m);
+    let lowest = |s: &rigbridge::apps::paint::planner::PlannedStroke| s.v_from_m.min(s.v_to_m);
+    let highest = |s: &rigbridge::apps::paint::planner::PlannedStroke| s.v_from_m.max(s.v_to_m);
     let (lo, hi) = (
         lowest(first).max(lowest(second)) + 0.05,
         highest(first).min(highest(second)) - 0.05,

@@ -709,7 +709,7 @@ fn plan(settings: &RunSettings, job: &Job) -> (Trajectory, Origins) {
     let start = settings.initial();
     job.plan_traced(&PlanContext {
         rig: &settings.tcp_rig,
-        sloth: None,
+        app_rig: None,
         start: &start,
         settings: &plan_settings(settings),
         model: Some(&rigbridge::daemon::collision_model(settings)),
@@ -735,7 +735,7 @@ fn all_fine(job: &Job, settings: &RunSettings) -> Job {
     let context = JobContext {
         rig: &settings.tcp_rig,
         cell: &settings.cell,
-        sloth: None,
+        app_rig: None,
         base_dir: &dir,
         limits: &settings.config.limits,
         period: settings.period(),

@@ -350,7 +350,7 @@ fn diagnostics_are_plain_lines_unless_rust_log_asks_for_more() {
     let detailed = stderr_up_to_a_stop(Some("rigbridge=info"));
     assert!(
         detailed.lines().any(|line| line.ends_with(
-            " INFO rigbridge::daemon::server::cell: cell irb120: stop (no job) cell=irb120 action=stop"
+            " INFO rigbridge::server::cell: cell irb120: stop (no job) cell=irb120 action=stop"
         )),
         "{detailed}"
     );

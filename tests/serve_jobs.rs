@@ -434,7 +434,7 @@ fn pan_tilt_cell(dir: &Path) -> PathBuf {
 #[test]
 fn a_panicking_job_fails_alone_while_the_daemon_and_the_other_cell_go_on() {
     use rigbridge::daemon::config::load_run_settings;
-    use rigbridge::daemon::server::ServeOptions;
+    use rigbridge::server::ServeOptions;
     use std::sync::Arc;
     use std::sync::atomic::{AtomicBool, Ordering};
 

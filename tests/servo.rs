@@ -253,7 +253,7 @@ fn a_servo_client_without_the_token_or_from_another_site_is_refused() {
     use tungstenite::client::IntoClientRequest;
     let settings = common::shipped_run_settings();
     let runs = common::scratch_dir("servo", "token").join("runs");
-    let options = rigbridge::daemon::server::ServeOptions {
+    let options = rigbridge::server::ServeOptions {
         token: Some("sesame".into()),
         ..in_process::options(runs)
     };

@@ -5,11 +5,13 @@
 use super::run::{ClockChoice, default_log_path, make_clock, spawn_streaming, wait, write_report};
 use anyhow::Context;
 use clap::Args;
+use rigbridge::apps::gait::run::{GaitRun, run_gait};
+use rigbridge::apps::gait::{
+    FootfallSequence, Forest, GaitReport, LimbSolver, Scenario, picture, sloth_of,
+};
 use rigbridge::daemon::RunReport;
 use rigbridge::daemon::config::{RunSettings, load_run_settings};
-use rigbridge::daemon::gait::{GaitRun, run_gait};
 use rigbridge::stream::StreamControl;
-use rigbridge::task::gait::{FootfallSequence, Forest, GaitReport, LimbSolver, Scenario, picture};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -76,9 +78,7 @@ struct GaitRunReport {
 pub fn gait(args: GaitArgs) -> anyhow::Result<ExitCode> {
     let mut settings = load_run_settings(&args.config).context("cannot load run settings")?;
     if args.solver.is_some() || args.sequence.is_some() {
-        let mut sloth = settings
-            .sloth
-            .as_deref()
+        let mut sloth = sloth_of(settings.app_rig.as_deref())
             .cloned()
             .with_context(|| format!("{} names no sloth rig", args.config.display()))?;
         if let Some(name) = &args.solver {
@@ -106,7 +106,7 @@ pub fn gait(args: GaitArgs) -> anyhow::Result<ExitCode> {
                 })
                 .collect::<anyhow::Result<_>>()?;
         }
-        settings.sloth = Some(Arc::new(sloth));
+        settings.app_rig = Some(Arc::new(sloth));
     }
     let scenario = match &args.forest {
         None => Scenario::build(&args.scenario, args.angle, args.gap)?,
@@ -168,9 +168,7 @@ fn walk_from(
             forest.display()
         );
     }
-    let sloth = settings
-        .sloth
-        .as_deref()
+    let sloth = sloth_of(settings.app_rig.as_deref())
         .with_context(|| format!("{} names no sloth rig", args.config.display()))?;
     let forest = Forest::load(forest, sloth.gait.trunk_tilt_rad)?;
     Ok(forest.scenario(&args.scenario)?)

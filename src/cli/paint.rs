@@ -6,10 +6,10 @@ use super::run::{ClockChoice, default_log_path, make_clock, print_stream_summary
 use anyhow::Context;
 use clap::Args;
 use rigbridge::clock::{Clock, WallClock};
+use rigbridge::apps::paint::run::run_paint;
+use rigbridge::apps::paint::{PaintPlan, PaintReport, PaintWorld, load_paint_settings, write_svg};
 use rigbridge::daemon::config::{JobConfig, load_run_settings};
-use rigbridge::daemon::paint::run_paint;
 use rigbridge::stream::StreamControl;
-use rigbridge::task::paint::{PaintPlan, PaintReport, PaintWorld, load_paint_settings, write_svg};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::{Arc, PoisonError};
@@ -216,7 +216,7 @@ fn write_png(world: &PaintWorld, report: &PaintReport, path: &Path) -> anyhow::R
                         let s = (f64::from(col) + 0.5) * grid.cell;
                         let v = (f64::from(row) + 0.5) * grid.cell;
                         let is_door = openings.iter().any(|(kind, l, r, b, t)| {
-                            *kind == rigbridge::task::paint::room::OpeningKind::Door
+                            *kind == rigbridge::apps::paint::room::OpeningKind::Door
                                 && s > *l
                                 && s < *r
                                 && v > *b

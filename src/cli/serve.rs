@@ -9,8 +9,8 @@ use anyhow::Context;
 use clap::Args;
 use rigbridge::daemon::config::RunSettings;
 use rigbridge::daemon::config::{foxglove_bind_problem, load_run_settings, token_problem};
-use rigbridge::daemon::server::{ServeOptions, check_cells, run};
 use rigbridge::device::LinkSpec;
+use rigbridge::server::{ServeOptions, check_cells, run};
 use std::net::IpAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -190,8 +190,8 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
     };
     tokio::runtime::Runtime::new()?.block_on(async move {
         let address = std::net::SocketAddr::new(bind, args.port);
-        let listener = rigbridge::daemon::server::bind(address)
-            .with_context(|| format!("cannot bind {address}"))?;
+        let listener =
+            rigbridge::server::bind(address).with_context(|| format!("cannot bind {address}"))?;
         say!("http://{}/", listener.local_addr()?);
         run(listener, cells, options, shutdown_signal()).await?;
         anyhow::Ok(())

@@ -1110,8 +1110,9 @@ pub struct RunSettings {
     /// tool): what every job is validated and planned with. `rig` keeps its own tool frame
     /// (tool0) for the URDF, the logs, the view and the batch tools.
     pub tcp_rig: Rig,
-    /// The sloth behind `rig` when the job is a gait (`rig` is then its streamed axes).
-    pub sloth: Option<std::sync::Arc<crate::task::gait::SlothRig>>,
+    /// What the job's app loaded beside `rig` ([`crate::apps::App::load_rig`]), whose
+    /// streamed axes `rig` then is.
+    pub app_rig: Option<std::sync::Arc<crate::job::AppRig>>,
     /// The workcell `cell` names (the built-in floor when it names none).
     pub cell: Cell,
     /// `rig`'s bodies, the cell's tool and objects: the one collision model of the run.
@@ -1173,7 +1174,7 @@ fn check_link_axes(file: &Path, config: &RunConfig, rig: &Rig) -> Result<(), Con
 pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     let mut config = parse_run_config(file)?;
     let base_dir = config_dir(file);
-    let (rig, sloth) = load_rigs(&base_dir.join(&config.rig), &config.job)?;
+    let (rig, app_rig) = load_rigs(&base_dir.join(&config.rig), &config.job)?;
     let cell = load_cell_setting(file, &base_dir, config.cell.as_ref())?;
     // Every job is validated and planned at the cell tool's TCP (the pen's tip), not at
     // tool0: a pose in a job is where the tool does its work.
@@ -1185,7 +1186,7 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
     let context = crate::job::JobContext {
         rig: &tcp_rig,
         cell: &cell,
-        sloth: sloth.as_deref(),
+        app_rig: app_rig.as_deref(),
         base_dir: &base_dir,
         limits: &config.limits,
         period: loaded_seconds(1.0 / config.stream.rate_hz),
@@ -1203,7 +1204,7 @@ pub fn load_run_settings(file: &Path) -> Result<RunSettings, ConfigError> {
         config,
         rig,
         tcp_rig,
-        sloth,
+        app_rig,
         cell,
         collision: std::sync::Arc::new(collision),
     })
@@ -1264,23 +1265,13 @@ fn parse_run_config(file: &Path) -> Result<RunConfig, ConfigError> {
     })
 }
 
-/// The rig a run streams to, and the sloth behind it for a gait job.
-type LoadedRig = (Rig, Option<std::sync::Arc<crate::task::gait::SlothRig>>);
-
-/// The rig at `rig_path`; for a gait job the sloth there, whose streamed axes are then the
-/// rig.
-fn load_rigs(rig_path: &Path, job: &JobConfig) -> Result<LoadedRig, ConfigError> {
-    let sloth = match job {
-        JobConfig::Gait(_) => Some(std::sync::Arc::new(crate::task::gait::SlothRig::load(
-            rig_path,
-        )?)),
-        _ => None,
-    };
-    let rig = match &sloth {
-        Some(sloth) => sloth.streamed.clone(),
-        None => load_rig(rig_path)?,
-    };
-    Ok((rig, sloth))
+/// The rig at `rig_path`, loaded by the job's app when it is an app's (with what the app
+/// keeps beside it).
+fn load_rigs(rig_path: &Path, job: &JobConfig) -> Result<crate::apps::LoadedRig, ConfigError> {
+    match crate::apps::app_of(job) {
+        Some(app) => app.load_rig(rig_path),
+        None => Ok((load_rig(rig_path)?, None)),
+    }
 }
 
 /// `[stream]` and the link sections it points at (`[dynamixel]`, `[canopen]`).

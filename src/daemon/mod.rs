@@ -3,15 +3,12 @@
 //! run report; the stages themselves live in their own modules.
 
 pub mod config;
-pub mod gait;
 mod line_check;
-pub mod paint;
 mod recording;
 pub mod replay;
 pub mod reset;
 pub mod resume;
-pub mod ros2;
-pub mod server;
+pub mod scene;
 
 pub use line_check::LineAfterStall;
 pub use recording::{ActionLog, HeldActions, RecorderSink};
@@ -36,8 +33,6 @@ pub enum DaemonError {
     Twin(#[from] TwinError),
     #[error("job refused before motion")]
     Job(#[from] JobError),
-    #[error("gait refused before motion")]
-    Gait(#[from] crate::task::gait::GaitError),
     #[error("streaming")]
     Stream(#[from] StreamError),
     #[error("link")]
@@ -54,8 +49,6 @@ pub enum DaemonError {
     Replay(#[from] replay::ReplayError),
     #[error("{0}")]
     Unavailable(String),
-    #[error(transparent)]
-    Cells(#[from] server::CellError),
     /// The trajectory comes closer to something in the cell than its margin.
     #[error("refused before motion")]
     Collision(#[from] Box<CollisionRefusal>),
@@ -326,12 +319,12 @@ pub fn settings_twin(settings: &RunSettings) -> Result<Twin, DaemonError> {
     })
 }
 
-/// What the live page, the live Foxglove server and the log draw of the rig's cell. A
-/// gait's streamed axes pose no body (see [`contact_watch`]).
+/// What the live page, the live Foxglove server and the log draw of the rig's cell; nothing
+/// for streamed axes that are not one chain ([`one_chain`]).
 pub fn cell_drawing(
     settings: &RunSettings,
 ) -> Result<Option<crate::view::CellDrawing>, DaemonError> {
-    if settings.sloth.is_some() {
+    if !one_chain(settings) {
         return Ok(None);
     }
     let model = crate::cell::CollisionModel::new(&settings.rig, &settings.cell)?;
@@ -355,12 +348,19 @@ fn tool0_of(settings: &RunSettings) -> glam::DAffine3 {
     }
 }
 
-/// The twin's collision watch over the rig in its cell. A gait's streamed axes are the
-/// sloth's body and limbs side by side, not one chain: no collision model poses them.
+/// Whether the rig's streamed axes are one serial chain, which forward kinematics and the
+/// collision model pose: not when they stand for a model an app loaded beside them
+/// ([`crate::apps::App::load_rig`]).
+fn one_chain(settings: &RunSettings) -> bool {
+    settings.app_rig.is_none()
+}
+
+/// The twin's collision watch over the rig in its cell; none for streamed axes that are not
+/// one chain ([`one_chain`]): no collision model poses them.
 pub fn contact_watch(
     settings: &RunSettings,
 ) -> Result<Option<crate::twin::ContactWatch>, DaemonError> {
-    if settings.sloth.is_some() {
+    if !one_chain(settings) {
         return Ok(None);
     }
     let model = crate::cell::CollisionModel::new(&settings.rig, &settings.cell)?;
@@ -624,20 +624,29 @@ pub fn clear(
     Ok(())
 }
 
-/// [`clear`] for `job`'s trajectory, against the cell of the job: a paint job's is the
-/// run's cell with the walls of the room it generates ([`paint::gate_settings`]).
+/// [`clear`] for `job`'s trajectory, against the cell of the job: the run's, or the one its
+/// app checks it in ([`crate::apps::App::gate_cell`]).
 fn clear_job(
     settings: &RunSettings,
     job: Option<&config::JobConfig>,
     trajectory: &crate::trajectory::Trajectory,
     origins: &Origins,
 ) -> Result<(), DaemonError> {
-    match job {
-        Some(config::JobConfig::Paint(job)) => {
-            clear(&paint::gate_settings(settings, job)?, trajectory, origins)
-        }
-        _ => clear(settings, trajectory, origins),
-    }
+    let app = job.and_then(|job| crate::apps::app_of(job).map(|app| (app, job)));
+    let Some(cell) = app
+        .map(|(app, job)| app.gate_cell(job, &settings.rig, &settings.cell))
+        .transpose()?
+        .flatten()
+    else {
+        return clear(settings, trajectory, origins);
+    };
+    let collision = crate::cell::CollisionModel::new(&settings.rig, &cell)?;
+    let gated = RunSettings {
+        cell,
+        collision: std::sync::Arc::new(collision),
+        ..settings.clone()
+    };
+    clear(&gated, trajectory, origins)
 }
 
 /// Refuses `job` before anything else when it needs I/O that `link` does not carry,
@@ -669,7 +678,7 @@ pub fn plan_for(
     }
     let (trajectory, origins) = job.plan_traced(&crate::job::PlanContext {
         rig: &settings.tcp_rig,
-        sloth: settings.sloth.as_deref(),
+        app_rig: settings.app_rig.as_deref(),
         start: &start,
         settings: &plan_settings(settings),
         model: Some(&settings.collision),
@@ -984,7 +993,7 @@ fn create_recorder(
     let options = crate::log::RecorderOptions {
         wait_when_full: virtual_clock,
         robot: robot_description(settings)?,
-        scene: job.and_then(|job| server::log_scene_for_job(settings, job)),
+        scene: job.and_then(|job| scene::log_scene_for_job(settings, job)),
         capacity: crate::log::capacity_for_rate(settings.config.stream.rate_hz),
         ..crate::log::RecorderOptions::for_rig(&settings.rig)
     };
@@ -1004,9 +1013,9 @@ fn create_recorder(
 pub fn robot_description(
     settings: &RunSettings,
 ) -> Result<Option<std::sync::Arc<crate::log::RobotDescription>>, DaemonError> {
-    if settings.sloth.is_some() {
-        // The sloth's streamed axes are its body and four limbs side by side, not one chain:
-        // their serial FK is no pose of the sloth, so it gets no /tf rather than a wrong one.
+    if !one_chain(settings) {
+        // Axes that are not one chain ([`one_chain`]) have no serial FK that poses the rig:
+        // no /tf rather than a wrong one.
         return Ok(None);
     }
     let robot = match rig_urdf(settings)? {

@@ -278,8 +278,8 @@ impl IkSolver for PositionFabrikSolver {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::apps::gait::SlothRig;
     use crate::rig::load_rig;
-    use crate::task::gait::SlothRig;
     use rand::{RngExt, SeedableRng};
     use rand_chacha::ChaCha8Rng;
     use std::path::Path;

@@ -11,21 +11,20 @@
 
 mod files;
 mod follow_trajectory;
-mod gait;
 mod joint_waypoints;
 mod limits;
 mod move_joints;
 mod move_linear;
 mod move_poses;
-mod paint;
 mod pasted;
 mod poses;
 mod program;
 mod wall_figure;
 
+pub use crate::apps::gait::Gait;
+pub use crate::apps::paint::Paint;
 pub use files::resolve_file;
 pub use follow_trajectory::{FollowTrajectory, RowCaps, TrajectoryFileError, read_trajectory_csv};
-pub use gait::Gait;
 pub use joint_waypoints::JointWaypoints;
 pub use limits::{
     CEILING_DURATION_S, CEILING_PLAN_MB, CEILING_POINTS, DEFAULT_MAX_JOB_POINTS, JobLimits,
@@ -34,7 +33,6 @@ pub use limits::{
 pub use move_joints::MoveJoints;
 pub use move_linear::{LINE_TOLERANCE_M, LineRefused, Lines, MoveLinear, top_tool_speed};
 pub use move_poses::MovePoses;
-pub use paint::Paint;
 pub use pasted::{PastedJobError, job_from_toml};
 pub use poses::PoseSpec;
 pub use program::{
@@ -46,7 +44,6 @@ pub use wall_figure::{WallFigure, star_poses};
 use crate::cell::CollisionModel;
 use crate::ik::{CartesianError, IkError, StructureError};
 use crate::rig::Rig;
-use crate::task::gait::SlothRig;
 use crate::trajectory::{Origins, PlanError, PlanSettings, Trajectory};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -84,38 +81,40 @@ pub enum Job {
     Program(Program),
 }
 
-/// What validating a job needs: the rig it runs on, the sloth behind it for a gait, the
+/// What an app loads beside the rig it streams (`apps::App::load_rig`: the gait's model
+/// behind its streamed axes), handed to its jobs as is: only the app knows its type.
+pub type AppRig = dyn std::any::Any + Send + Sync;
+
+/// What validating a job needs: the rig it runs on, what its app loaded beside it, the
 /// cell (a program's named targets), the directory files are named relative to, and the
 /// caps on its cost (`[limits]`) with the stream period its plan will be sampled at.
 #[derive(Clone, Copy)]
 pub struct JobContext<'a> {
     pub rig: &'a Rig,
     pub cell: &'a crate::cell::Cell,
-    pub sloth: Option<&'a SlothRig>,
+    pub app_rig: Option<&'a AppRig>,
     pub base_dir: &'a Path,
     pub limits: &'a JobLimits,
     pub period: Duration,
 }
 
-/// What planning a job needs: the rig, the sloth behind it for a gait, where the rig is,
+/// What planning a job needs: the rig, what its app loaded beside it, where the rig is,
 /// how the planner may use it, and the cell's collision model (what a move that goes
 /// around the cell plans around; `None` where no cell is known, as in [`plan_job`]).
 #[derive(Clone, Copy)]
 pub struct PlanContext<'a> {
     pub rig: &'a Rig,
-    pub sloth: Option<&'a SlothRig>,
+    pub app_rig: Option<&'a AppRig>,
     pub start: &'a [f64],
     pub settings: &'a PlanSettings,
     pub model: Option<&'a CollisionModel>,
 }
 
-/// How a job is shown in the live view: the bare rig, the rig before the wall it draws on,
-/// the painting room, or the sloth on its branches.
+/// How a job of the core's kinds is shown in the live view: the bare rig, or the rig before
+/// the wall it draws on. An app's job is shown by its app (`apps::App::scene`).
 pub enum Scene<'a> {
     Arm,
     Wall(&'a WallFigure),
-    PaintRoom(&'a Paint),
-    Sloth(&'a Gait),
 }
 
 /// A job refused before planning: the key, the value given and why. The same text comes
@@ -179,9 +178,9 @@ pub enum JobError {
     #[error("paint settings")]
     PaintConfig(#[from] crate::rig::ConfigError),
     #[error("paint job")]
-    Paint(#[from] crate::task::paint::PaintError),
+    Paint(#[from] crate::apps::paint::PaintError),
     #[error("gait")]
-    Gait(#[from] crate::task::gait::GaitError),
+    Gait(#[from] crate::apps::gait::GaitError),
     #[error("trajectory file")]
     TrajectoryFile(#[from] TrajectoryFileError),
     #[error("{0}")]
@@ -306,8 +305,6 @@ impl Job {
     pub fn scene(&self) -> Scene<'_> {
         match self {
             Job::WallFigure(job) => Scene::Wall(job),
-            Job::Gait(job) => Scene::Sloth(job),
-            Job::Paint(job) => Scene::PaintRoom(job),
             _ => Scene::Arm,
         }
     }
@@ -328,8 +325,8 @@ pub fn request_schema() -> serde_json::Value {
     serde_json::to_value(schemars::schema_for!(JobRequest)).unwrap_or_default()
 }
 
-/// Plans `job` from `start` on `rig` (a job that is not a gait; kept for callers that plan
-/// without a sloth).
+/// Plans `job` from `start` on `rig` (a job whose app loads nothing beside the rig; kept
+/// for callers that plan without one).
 pub fn plan_job(
     job: &Job,
     rig: &Rig,
@@ -338,7 +335,7 @@ pub fn plan_job(
 ) -> Result<Trajectory, JobError> {
     job.plan(&PlanContext {
         rig,
-        sloth: None,
+        app_rig: None,
         start,
         settings,
         model: None,

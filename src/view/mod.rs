@@ -17,20 +17,16 @@ pub mod frame;
 mod hub;
 mod live;
 pub mod page;
-mod paint;
 mod plan;
 mod program;
-mod sloth;
 pub mod solid;
 mod trace;
 
 pub use arm::{ArmScene, joint_origins, joint_origins_from};
 pub use hub::{JobView, LiveHub, SceneChange, SceneCursor};
 pub use live::{LiveSample, LiveSink, LiveSlot};
-pub use paint::PaintScene;
 pub use plan::{MAX_PATH_POINTS, MAX_TARGETS_DRAWN, PlanView, TargetView};
 pub use program::{PartsDrawing, ProgramView, program_view};
-pub use sloth::SlothScene;
 pub use solid::CellDrawing;
 pub use trace::ToolTrace;
 

@@ -1,12 +1,12 @@
-//! The daemon's server (`rigbridge::daemon::server::run`) in the test's own process, shared
+//! The daemon's server (`rigbridge::server::run`) in the test's own process, shared
 //! by tests/executor.rs, tests/serve_jobs.rs and benches/cells.rs: on a tokio runtime of its
 //! own, listening on a free port of 127.0.0.1, stopped when the caller asks. Owns no request
 //! and no judgement: the callers send requests and check the answers and the result.
 #![allow(dead_code)]
 
-use rigbridge::daemon::DaemonError;
 use rigbridge::daemon::config::RunSettings;
-use rigbridge::daemon::server::{ServeOptions, run};
+use rigbridge::server::ServeError;
+use rigbridge::server::{ServeOptions, run};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
@@ -34,7 +34,7 @@ pub struct Running {
     runtime: tokio::runtime::Runtime,
     pub address: SocketAddr,
     stop: tokio::sync::oneshot::Sender<()>,
-    server: tokio::task::JoinHandle<Result<(), DaemonError>>,
+    server: tokio::task::JoinHandle<Result<(), ServeError>>,
 }
 
 /// Serves `cells` with `options` on a free port of 127.0.0.1.
@@ -58,7 +58,7 @@ pub fn start(cells: Vec<RunSettings>, options: ServeOptions) -> Running {
 
 impl Running {
     /// Asks the server to stop and waits for it: what it returned, or its task's panic.
-    pub fn stop(self) -> Result<Result<(), DaemonError>, tokio::task::JoinError> {
+    pub fn stop(self) -> Result<Result<(), ServeError>, tokio::task::JoinError> {
         let _ = self.stop.send(());
         self.runtime.block_on(self.server)
     }

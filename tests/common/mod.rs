@@ -210,7 +210,7 @@ pub fn degrees(radians: &[f64]) -> Vec<f64> {
 }
 
 /// The supports `limb` stood on in a gait run, stance by stance in time order.
-pub fn supports_walked(run: &rigbridge::daemon::gait::GaitRun, limb: usize) -> Vec<usize> {
+pub fn supports_walked(run: &rigbridge::apps::gait::run::GaitRun, limb: usize) -> Vec<usize> {
     let mut stances: Vec<_> = run.plan.stances.iter().filter(|s| s.limb == limb).collect();
     stances.sort_by_key(|s| s.start);
     stances.iter().map(|s| s.contact.support).collect()
@@ -219,7 +219,7 @@ pub fn supports_walked(run: &rigbridge::daemon::gait::GaitRun, limb: usize) -> V
 /// The figures every passing gait run meets (issue 6): passed over at least 3 judged cycles,
 /// streamed to the end within the limits, feet on the surface within 5 mm, slip within 1 mm,
 /// bones in range, the body clear of every support.
-pub fn assert_gait_figures(run: &rigbridge::daemon::gait::GaitRun) {
+pub fn assert_gait_figures(run: &rigbridge::apps::gait::run::GaitRun) {
     let v = &run.verdict;
     assert!(
         v.passed,

@@ -1,9 +1,9 @@
 //! `kind = "paint"`: paint a generated room of `walls` walls (seed `seed`) with the painter
 //! rig, its settings in `paint_config` next to the config. Owns the job's keys and their
-//! checks; the room and its painting are `task::paint`'s.
+//! checks; the room and its painting are `apps::paint`'s.
 
-use super::{JobContext, JobError, JobInvalid, PlanContext, resolve_file};
-use crate::task::paint::{load_paint_settings, plan_room, room::MAX_WALLS};
+use super::{load_paint_settings, plan_room, room::MAX_WALLS};
+use crate::job::{JobContext, JobError, JobInvalid, PlanContext, resolve_file};
 use crate::trajectory::Trajectory;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};

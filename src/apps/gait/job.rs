@@ -1,9 +1,9 @@
 //! `kind = "gait"`: the sloth's gait over a scenario, built in or a walk of a forest file
 //! next to the config. Owns the job's keys and their checks; the gait itself is
-//! `task::gait`'s. Needs the sloth rig (the config's `rig` a sloth file).
+//! `apps::gait`'s. Needs the sloth rig (the config's `rig` a sloth file).
 
-use super::{JobContext, JobError, JobInvalid, PlanContext, resolve_file};
-use crate::task::gait::{Forest, Scenario, forest::scenario_named, plan_gait_job};
+use super::{Forest, Scenario, forest::scenario_named, plan_gait_job};
+use crate::job::{JobContext, JobError, JobInvalid, PlanContext, resolve_file};
 use crate::trajectory::Trajectory;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -27,7 +27,7 @@ pub struct Gait {
 
 impl Gait {
     pub fn validate(self, context: &JobContext) -> Result<Self, JobInvalid> {
-        let Some(sloth) = context.sloth else {
+        let Some(sloth) = super::sloth_of(context.app_rig) else {
             return Err(JobInvalid::new(
                 "job.kind",
                 "gait",
@@ -70,7 +70,7 @@ impl Gait {
     }
 
     pub fn plan(&self, context: &PlanContext) -> Result<Trajectory, JobError> {
-        let sloth = context.sloth.ok_or(JobError::NeedsSloth)?;
+        let sloth = super::sloth_of(context.app_rig).ok_or(JobError::NeedsSloth)?;
         let scenario = scenario_named(
             &self.scenario,
             self.angle_deg,
@@ -78,7 +78,7 @@ impl Gait {
             self.forest.as_deref(),
             sloth.gait.trunk_tilt_rad,
         )
-        .map_err(crate::task::gait::GaitError::from)?;
+        .map_err(super::GaitError::from)?;
         Ok(plan_gait_job(
             sloth,
             &scenario,

@@ -32,7 +32,7 @@ impl GoalRunner for CellGoals {
         let cell = &self.cell;
         let held = cell.current_position();
         let job =
-            crate::daemon::ros2::goal_job(&goal.trajectory, &cell.settings().rig, held.as_deref())
+            crate::server::ros2::goal_job(&goal.trajectory, &cell.settings().rig, held.as_deref())
                 .map_err(|e| GoalRefused::Refused(e.to_string()))?;
         let job = cell
             .validate(job)

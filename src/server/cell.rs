@@ -3,14 +3,14 @@
 //! own clock), its latest jobs and how they ended, and its own live hub and twin world.
 //! Cells share nothing but the daemon's options and its job numbering; jobs in different
 //! cells run concurrently. This file owns a cell's state and its job lifecycle and the startup check
-//! that cells do not clash; HTTP routing and access control stay in `server.rs`, the choice
-//! of a job's live scene in `scene.rs`.
+//! that cells do not clash; HTTP routing and access control stay in `mod.rs`, the choice
+//! of a job's live scene in `daemon/scene.rs`.
 
-use super::scene::scene_for_job;
 use super::{JobWorld, LIVE_FRAME_RATE_HZ, ServeOptions};
 use crate::clock::{self, Clock, VirtualClock, WallClock};
 use crate::daemon::config::{JobConfig, RunSettings};
 use crate::daemon::reset::{RESET_TIMEOUT, ResetOutcome, reset_controller};
+use crate::daemon::scene::scene_for_job;
 use crate::daemon::{
     ActionLog, DaemonError, HeldActions, JobToStream, RunReport, Sinks, error_chain, held_position,
     plan_for, stream_job_with, stream_planned_with,
@@ -619,7 +619,7 @@ impl Cell {
         let context = crate::job::JobContext {
             rig: &self.settings.tcp_rig,
             cell: &self.settings.cell,
-            sloth: self.settings.sloth.as_deref(),
+            app_rig: self.settings.app_rig.as_deref(),
             base_dir: &base_dir,
             limits: &self.settings.config.limits,
             period: self.settings.period(),
@@ -692,7 +692,7 @@ impl Cell {
     /// Logs what came of a JointTrajectory received over ROS 2 (docs/ros2.md) the way a
     /// control action is logged: on stderr, in the status' events and in the journal. Its
     /// refusals ([`ROS2_REFUSED`]) arrive already rate-limited and numbered by the ROS 2
-    /// side (`daemon::ros2::Refusals`, at most one a second), so they are not limited twice.
+    /// side (`server::ros2::Refusals`, at most one a second), so they are not limited twice.
     pub fn log_ros2(&self, action: &'static str, job: Option<u64>, result: String) {
         self.log_event(action, job, Some(result), None);
     }

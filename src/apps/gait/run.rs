@@ -2,12 +2,12 @@
 //! loopback twin (whose world measures the sloth's actual contact, slip and clearance) with
 //! the same streamer and recorder as every job, then judge. Owns that wiring only.
 
-use super::config::{JobConfig, RunSettings};
-use super::{DaemonError, PlannedJob, RunReport, stream_planned, twin_settings};
+use super::{GaitPlan, GaitReport, GaitWorld, Scenario, SlothRig, judge, plan_gait};
 use crate::clock::Clock;
+use crate::daemon::config::{JobConfig, RunSettings};
+use crate::daemon::{DaemonError, PlannedJob, RunReport, stream_planned, twin_settings};
 use crate::link::LoopbackLink;
 use crate::stream::{Outcome, StreamControl};
-use crate::task::gait::{GaitPlan, GaitReport, GaitWorld, Scenario, SlothRig, judge, plan_gait};
 use crate::twin::Twin;
 use glam::DVec3;
 use std::sync::{Arc, Mutex, PoisonError};
@@ -30,13 +30,14 @@ pub fn run_gait(
     log: Option<&std::path::Path>,
     control: &StreamControl,
 ) -> Result<GaitRun, DaemonError> {
-    let sloth = settings.sloth.clone().ok_or_else(|| {
+    let sloth = super::shared_sloth(settings.app_rig.as_ref()).ok_or_else(|| {
         DaemonError::Unavailable(format!(
             "{}: a gait run needs `[job] kind = \"gait\"` and a sloth rig",
             settings.file.display()
         ))
     })?;
-    let (plan, trajectory) = plan_gait(&sloth, scenario, settings.period())?;
+    let (plan, trajectory) =
+        plan_gait(&sloth, scenario, settings.period()).map_err(crate::job::JobError::Gait)?;
     let start = trajectory.position(0).to_vec();
     let twin = twin_settings(settings);
     let lag_frames = (twin.delay.as_secs_f64() / twin.period.as_secs_f64()).round() as usize;

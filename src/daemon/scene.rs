@@ -1,66 +1,40 @@
 //! Which live scene (and which twin world) a cell shows for a job: the arm before its wall,
-//! the painting room with its paint, or the sloth on its branches. Owns only that choice; the
-//! scenes themselves live in `src/view`, and planning stays with the job. A job's log gets
-//! the same world, fed by the log's writer thread ([`log_scene_for_job`]).
+//! or the scene the job's app brings ([`crate::apps::App::scene`]). Owns only that choice;
+//! the scenes themselves live in `src/view` and in the apps, and planning stays with the
+//! job. A job's log gets the same world, fed by the log's writer thread
+//! ([`log_scene_for_job`]).
 
+use crate::apps::JobScene;
 use crate::daemon::config::{JobConfig, RunSettings};
-use crate::job::Scene;
 use crate::log::{LoggedScene, SceneSource};
 use crate::scene::{ClosestView, PaintQuad, SceneView};
-use crate::task::gait::forest::scenario_named;
-use crate::task::paint::{load_paint_settings, room_for, world_for};
-use crate::twin::{TwinWorld, ViewOnly};
-use crate::view::{ArmScene, CellDrawing, LiveScene, PaintScene, SlothScene, ToolTrace};
+use crate::twin::ViewOnly;
+use crate::view::{ArmScene, CellDrawing, ToolTrace};
 use std::sync::{Arc, Mutex};
 
-/// A job's live scene and the twin world (if any) that measures what the scene shows.
-pub type JobScene = (Box<dyn LiveScene>, Option<Box<dyn TwinWorld>>);
-
 /// The scene of `job` for the cell of `settings`, and the world the twin must feed for it.
-/// A job whose room or scenario cannot be built shows the bare rig: planning the same job
-/// fails and reports why.
+/// An app's job whose world cannot be built shows the bare rig: planning the same job fails
+/// and reports why.
 pub fn scene_for_job(settings: &RunSettings, job: &JobConfig) -> JobScene {
-    match job.scene() {
-        Scene::PaintRoom(paint) => {
-            painting_room(settings, paint.walls, paint.seed, &paint.paint_config)
-                .unwrap_or_else(|| (Box::new(ArmScene::new(settings.rig.clone())), None))
-        }
-        Scene::Sloth(gait) => {
-            let built = settings.sloth.as_ref().and_then(|sloth| {
-                scenario_named(
-                    &gait.scenario,
-                    gait.angle_deg,
-                    gait.gap_m,
-                    gait.forest.as_deref(),
-                    sloth.gait.trunk_tilt_rad,
-                )
-                .ok()
-                .map(|scenario| (sloth, scenario))
-            });
-            let scene: Box<dyn LiveScene> = match built {
-                Some((sloth, scenario)) => Box::new(SlothScene::new(sloth.clone(), &scenario)),
-                None => Box::new(ArmScene::new(settings.rig.clone())),
-            };
-            (scene, None)
-        }
-        Scene::Wall(_) | Scene::Arm => {
-            let trace = Arc::new(Mutex::new(ToolTrace::new(settings.tcp_rig.clone())));
-            let scene = ArmScene::for_job(settings.rig.clone(), job, Some(trace.clone()));
-            // The trace is drawn, not measured: a cycle skips it rather than wait for the view.
-            (Box::new(scene), Some(Box::new(ViewOnly(trace))))
-        }
-    }
+    let Some(app) = crate::apps::app_of(job) else {
+        let trace = Arc::new(Mutex::new(ToolTrace::new(settings.tcp_rig.clone())));
+        let scene = ArmScene::for_job(settings.rig.clone(), job, Some(trace.clone()));
+        // The trace is drawn, not measured: a cycle skips it rather than wait for the view.
+        return (Box::new(scene), Some(Box::new(ViewOnly(trace))));
+    };
+    app.scene(job, &settings.rig, settings.app_rig.as_ref())
+        .unwrap_or_else(|| (Box::new(ArmScene::new(settings.rig.clone())), None))
 }
 
-/// The world of `job` for its run log's `/scene`: the paint room or the sloth's branches,
-/// and the cell (its objects, the tool, the rig's collision bodies, the closest pair within
+/// The world of `job` for its run log's `/scene`: its app's world (a room's paint, the
+/// branches), and the cell (its objects, the tool, the rig's collision bodies, the closest pair within
 /// the margin), over a world of its own that the log's writer thread feeds the logged
 /// states, so the paint in the log is the paint at each logged state. An arm's job without
 /// a cell has none.
 pub fn log_scene_for_job(settings: &RunSettings, job: &JobConfig) -> Option<SceneSource> {
     // A cell whose model cannot be built is refused when the job plans; the log goes without.
     let cell = crate::daemon::cell_drawing(settings).ok().flatten();
-    if cell.is_none() && !matches!(job.scene(), Scene::PaintRoom(_) | Scene::Sloth(_)) {
+    if cell.is_none() && crate::apps::app_of(job).is_none() {
         return None;
     }
     let scene = SceneForLog {
@@ -104,20 +78,6 @@ impl LoggedScene for SceneForLog {
     fn closest(&mut self) -> Option<ClosestView> {
         self.cell.as_mut()?.closest(&self.last)
     }
-}
-
-/// The generated room with the painter in it, and its paint world (what the twin paints).
-fn painting_room(
-    settings: &RunSettings,
-    walls: u32,
-    seed: u64,
-    paint_config: &std::path::Path,
-) -> Option<JobScene> {
-    let paint = load_paint_settings(paint_config).ok()?;
-    let room = room_for(&paint, walls, seed).ok()?;
-    let world = Arc::new(Mutex::new(world_for(&paint, &room).ok()?));
-    let scene = PaintScene::new(settings.rig.clone(), world.clone());
-    Some((Box::new(scene), Some(Box::new(world))))
 }
 
 #[cfg(test)]

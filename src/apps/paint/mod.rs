@@ -5,17 +5,24 @@
 //! Owns the task's geometry, plan and measurements. Streaming, logging and the twin itself
 //! are the pipeline's; this module only plans and measures.
 
+mod app;
 pub mod body;
 pub mod config;
+pub mod job;
 pub mod planner;
 pub mod report;
 pub mod room;
+pub mod run;
+pub mod scene;
 pub mod world;
 
+pub use app::PaintApp;
 pub use config::{EXTRA_AXES, PaintSettings, load_paint_settings};
+pub use job::Paint;
 pub use planner::{PaintPlan, PaintPlanError, plan_paint};
 pub use report::{PaintReport, build_report, write_svg};
 pub use room::{Room, RoomError, generate_room};
+pub use scene::PaintScene;
 pub use world::PaintWorld;
 
 use crate::trajectory::PlanSettings;

@@ -25,7 +25,7 @@ mod fjt;
 mod foxglove;
 mod guard;
 mod online;
-mod scene;
+pub mod ros2;
 mod servo;
 
 pub use cell::{CellError, check_cells};
@@ -36,12 +36,11 @@ pub use foxglove::{
     URDF_URI_PREFIX,
 };
 pub use guard::{BODY_TIMEOUT, HostCheck, MAX_BODY_BYTES, MAX_LIVE_MESSAGE_BYTES, MAX_LIVE_PAGES};
-pub use scene::log_scene_for_job;
 
-use super::config::ExecutorKind;
-use super::config::{JobConfig, RunSettings};
-use super::{DaemonError, error_chain};
 use crate::clock::{self, Clock, WallClock};
+use crate::daemon::config::ExecutorKind;
+use crate::daemon::config::{JobConfig, RunSettings};
+use crate::daemon::{DaemonError, error_chain};
 use crate::stream::{Executor, ExecutorSettings, StreamControl};
 use crate::twin::TwinWorld;
 use crate::view::page;
@@ -343,14 +342,33 @@ pub async fn run(
     cells: Vec<RunSettings>,
     options: ServeOptions,
     shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), ServeError> {
+    check_cells(&cells)?;
+    Ok(serve_cells(listener, cells, options, shutdown).await?)
+}
+
+/// Why `rigbridge serve` stopped or never started: its cells clash, or the daemon refused.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error(transparent)]
+    Cells(#[from] CellError),
+    #[error(transparent)]
+    Daemon(#[from] DaemonError),
+}
+
+/// [`run`] once the cells are known not to clash.
+async fn serve_cells(
+    listener: tokio::net::TcpListener,
+    cells: Vec<RunSettings>,
+    options: ServeOptions,
+    shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), DaemonError> {
     let local = listener.local_addr().map_err(crate::link::LinkError::Io)?;
     let exposed = refuse_unguarded(local, &options)?;
-    check_cells(&cells)?;
     let foxglove_listener = bind_foxglove(local.ip(), &options)?;
     let robots = cells
         .iter()
-        .map(super::robot_description)
+        .map(crate::daemon::robot_description)
         .collect::<Result<Vec<_>, _>>()?;
     let cells = start_cells(cells, &options)?;
     let (stop_live, stopping) = watch::channel(false);
@@ -479,7 +497,7 @@ fn bind_foxglove(
         return Ok(None);
     }
     if let Some(problem) =
-        super::config::foxglove_bind_problem(ip, port, options.foxglove_allow_remote)
+        crate::daemon::config::foxglove_bind_problem(ip, port, options.foxglove_allow_remote)
     {
         return Err(DaemonError::Unavailable(format!(
             "refusing to serve: {problem}"
@@ -538,7 +556,7 @@ fn ros2_nodes(daemon: &Arc<Daemon>) -> Result<Vec<crate::ros2::RigNode>, DaemonE
         // Off: no subscription at all, so nothing any peer sends can reach a job.
         let handler = ros2.accept_motion.then(|| {
             let (daemon, cell) = (daemon.clone(), cell.clone());
-            let mut refusals = super::ros2::Refusals::new(Box::new(crate::clock::WallClock::new()));
+            let mut refusals = ros2::Refusals::new(Box::new(crate::clock::WallClock::new()));
             let servo = servo::zenoh_handler(daemon.clone(), cell.clone());
             crate::ros2::Motion {
                 trajectories: Box::new(move |message| {
@@ -633,7 +651,7 @@ fn motion_from_ros2(ros2: &crate::ros2::Ros2Settings) -> &'static str {
 fn take_trajectory(
     daemon: &Daemon,
     cell: &Arc<Cell>,
-    refusals: &mut super::ros2::Refusals,
+    refusals: &mut ros2::Refusals,
     message: Result<crate::ros2::messages::JointTrajectory, crate::ros2::messages::CdrError>,
 ) {
     const REFUSED: &str = cell::ROS2_REFUSED;
@@ -646,7 +664,7 @@ fn take_trajectory(
     let job = message
         .map_err(|e| error_chain(&e))
         .and_then(|message| {
-            super::ros2::trajectory_job(&message, &cell.settings().rig).map_err(|e| e.to_string())
+            ros2::trajectory_job(&message, &cell.settings().rig).map_err(|e| e.to_string())
         })
         .and_then(|job| cell.validate(job).map_err(|e| e.to_string()));
     let job = match job {
@@ -1186,7 +1204,7 @@ async fn reset(CellRef(cell): CellRef) -> Response {
     match outcome {
         Ok(outcome) if outcome.is_clear() => {
             let result = match outcome {
-                super::reset::ResetOutcome::Cleared { .. } => "cleared",
+                crate::daemon::reset::ResetOutcome::Cleared { .. } => "cleared",
                 _ => "nothing_latched",
             };
             Json(serde_json::json!({ "result": result, "message": outcome.to_string() }))

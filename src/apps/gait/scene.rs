@@ -2,9 +2,9 @@
 //! values, and the branches and trunks of its scenario as cylinders. It must not plan or
 //! judge the gait; it only draws what the twin reports.
 
-use super::LiveScene;
+use super::{Scenario, SlothRig};
 use crate::scene::{CylinderView, Point, SceneView};
-use crate::task::gait::{Scenario, SlothRig};
+use crate::view::LiveScene;
 use std::sync::Arc;
 
 pub struct SlothScene {

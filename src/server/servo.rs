@@ -367,7 +367,7 @@ impl Servo {
 /// poll finds none for a while (longer than [`SERVO_TIMEOUT`], so the arm is at rest by then);
 /// a WebSocket client holding the slot refuses it, and it refuses one.
 pub fn zenoh_handler(daemon: Arc<Daemon>, cell: Arc<Cell>) -> crate::ros2::ServoHandler {
-    let mut refusals = crate::daemon::ros2::Refusals::new(Box::new(WallClock::new()));
+    let mut refusals = crate::server::ros2::Refusals::new(Box::new(WallClock::new()));
     let key = crate::ros2::servo_key(cell.name());
     let mut stream: Option<(Servo, ServoClaim)> = None;
     Box::new(move |payload| {

@@ -5,11 +5,11 @@
 //! not the 1 cm coverage grid (the report and the picture have that). It must not plan,
 //! move the rig or change the world's measurements.
 
-use super::{LiveScene, joint_origins_from};
+use super::{PaintWorld, Room};
 use crate::rig::Rig;
 use crate::scene::{PaintQuad, Point, SceneView, WallView};
-use crate::task::paint::{PaintWorld, Room};
 use crate::twin::SharedWorld;
+use crate::view::{LiveScene, joint_origins_from};
 #[cfg(test)]
 use glam::DVec3;
 use glam::{DAffine3, DVec2};
@@ -174,7 +174,7 @@ fn tool0_point(tool0: &DAffine3) -> Point {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::task::paint::{load_paint_settings, plan_room, world_for};
+    use crate::apps::paint::{load_paint_settings, plan_room, world_for};
     use crate::trajectory::PlanSettings;
     use crate::twin::TwinWorld;
     use std::path::Path;
