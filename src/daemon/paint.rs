@@ -81,8 +81,8 @@ pub fn run_paint(
 }
 
 /// `settings` with the cell a paint job's plan is checked against before motion: the run's
-/// own cell objects and pairs, plus the walls and brush of the room the job generates (a
-/// cell file cannot know a generated room's walls), at the run cell's margin. That margin
+/// own cell objects and pairs, plus the walls, floor and brush of the room the job
+/// generates (a cell file cannot know a generated room's walls), at the run cell's margin. That margin
 /// must lie below the planner's clearance, which the planner keeps at its samples only.
 pub fn gate_settings(
     settings: &RunSettings,
@@ -104,15 +104,7 @@ pub fn gate_settings(
     let room = crate::task::paint::room_for(&paint, job.walls, job.seed)
         .map_err(|e| JobError::Paint(e.into()))?;
     let room = crate::task::paint::body::room_cell(&settings.rig, &room, &paint.config);
-    let mut cell = settings.cell.clone();
-    // The room's walls are placed in the painter's base frame; the cell's objects in its own.
-    cell.objects
-        .extend(room.objects.iter().map(|object| crate::cell::CellObject {
-            pose: settings.cell.mount * object.pose,
-            ..object.clone()
-        }));
-    cell.allowed_pairs.extend(room.allowed_pairs);
-    cell.tool = room.tool;
+    let cell = crate::task::paint::body::merge_room(&settings.cell, &room);
     let collision = crate::cell::CollisionModel::new(&settings.rig, &cell)?;
     Ok(RunSettings {
         cell,

@@ -1,7 +1,8 @@
 //! The painter's body and brush from its joint positions: the brush's contact line (the
 //! geometry of coverage, the task's own), and its collision envelope on the project's one
 //! collision model (issue 27): the painter rig's link bodies and the brush's handle, as
-//! tool, against the room's walls as cell objects ([`room_cell`]), with their clearance.
+//! tool, against the room's walls and floor as cell objects ([`room_cell`]), with their
+//! clearance.
 //!
 //! Owns the envelope both the planner and the twin's world use, so the planner checks
 //! exactly what the twin measures. Must not decide what is acceptable: callers compare the
@@ -9,7 +10,7 @@
 
 use super::config::{EXTRA_AXES, PaintConfig};
 use super::room::Room;
-use crate::cell::{Cell, CellError, CellObject, Clearance, CollisionModel, Tool};
+use crate::cell::{Cell, CellError, CellObject, Clearance, CollisionModel, FLOOR, Tool};
 use crate::rig::{Collision, JointAxis, JointKind, Rig, Shape};
 use glam::{DAffine3, DVec3};
 use std::sync::Arc;
@@ -59,30 +60,63 @@ pub fn wall_name(index: usize) -> String {
     format!("wall_{index}")
 }
 
+/// The floor the painter stands on: the room frame's z = 0 (the lift's zero, the walls'
+/// v = 0), solid below, named as the built-in cell's floor so that a run cell giving the
+/// same floor and a paint room merge into one object ([`merge_room`]).
+pub fn room_floor() -> CellObject {
+    CellObject {
+        name: FLOOR.to_string(),
+        pose: DAffine3::IDENTITY,
+        shape: Shape::HalfSpace { normal: DVec3::Z },
+    }
+}
+
+/// `cell` (a run's cell, whose mount places the painter's base frame, the room frame) with
+/// the paint task's `room` cell added: its walls and floor placed in the cell frame, its
+/// brush as the tool and its allowed pairs. An object of the room that the cell already
+/// holds, the same name at the same place with the same shape (the floor a painter's cell
+/// file gives), is one object and kept once; any other clash of names is left to the model,
+/// which refuses it naming the name. The margin stays the cell's.
+pub fn merge_room(cell: &Cell, room: &Cell) -> Cell {
+    let mut merged = cell.clone();
+    for object in &room.objects {
+        let placed = CellObject {
+            pose: cell.mount * object.pose,
+            ..object.clone()
+        };
+        if !cell.objects.contains(&placed) {
+            merged.objects.push(placed);
+        }
+    }
+    merged
+        .allowed_pairs
+        .extend(room.allowed_pairs.iter().cloned());
+    merged.tool = room.tool.clone();
+    merged
+}
+
 /// The name of the brush's handle, the tool of the paint task's cell.
 pub const BRUSH: &str = "brush";
 
-/// The paint task's cell for `room`: its walls as half-spaces (the solid outside the room),
-/// the brush's handle as the tool (its bristles, which touch the walls on purpose, left
-/// out), the planning clearance as the margin, and every pair of the painter's own bodies
-/// (the brush's included) allowed: the task checks its body against its walls, and its
-/// travel bound ([`Travel`]) counts motion in the floor plan only, which is all a vertical
-/// wall's distance depends on.
+/// The paint task's cell for `room`: its walls as half-spaces (the solid outside the room)
+/// and the floor the painter stands on (the half-space below the room frame's z = 0, named
+/// as every cell's floor), the brush's handle as the tool (its bristles, which touch the
+/// walls on purpose, left out), the planning clearance as the margin, and every pair of
+/// the painter's own bodies (the brush's included) allowed: the task checks its body
+/// against its room, and its travel bound ([`Travel::spatial`]) counts motion in every
+/// direction.
 pub fn room_cell(rig: &Rig, room: &Room, config: &PaintConfig) -> Cell {
     let handle_end = config.brush.handle_m - config.brush.bristle_m;
-    let objects = room
-        .walls
-        .iter()
-        .map(|wall| {
-            let out = wall.normal().extend(0.0);
-            CellObject {
-                name: wall_name(wall.index),
-                pose: DAffine3::from_translation(out * room.apothem_m),
-                // Solid where `p . normal <= 0`: beyond the wall's plane, outside the room.
-                shape: Shape::HalfSpace { normal: -out },
-            }
-        })
-        .collect();
+    let walls = room.walls.iter().map(|wall| {
+        let out = wall.normal().extend(0.0);
+        CellObject {
+            name: wall_name(wall.index),
+            pose: DAffine3::from_translation(out * room.apothem_m),
+            // Solid where `p . normal <= 0`: beyond the wall's plane, outside the room.
+            shape: Shape::HalfSpace { normal: -out },
+        }
+    });
+    let objects = walls.chain([room_floor()]).collect();
     let own: Vec<&str> = rig
         .bodies
         .iter()
@@ -119,7 +153,7 @@ pub fn room_cell(rig: &Rig, room: &Room, config: &PaintConfig) -> Cell {
 
 /// The painter's collision envelope in one room: the one collision model (issue 27) of the
 /// rig's link bodies (`config/painter.toml`) and the brush's handle against the room's
-/// walls, and the brush's contact line.
+/// walls and floor, and the brush's contact line.
 #[derive(Debug, Clone)]
 pub struct Body {
     pub brush: Brush,
@@ -173,8 +207,8 @@ impl Body {
         self.base_radius
     }
 
-    /// The closest pair of the painter and a wall (negative when it pierces one), and
-    /// tool0. The room is convex, so inside every wall's plane is inside the room.
+    /// The closest pair of the painter and a wall or the floor (negative when it pierces
+    /// one), and tool0. The room is convex, so inside every wall's plane is inside the room.
     pub fn clearance(&self, positions: &[f64], scratch: &mut Scratch) -> (f64, DAffine3) {
         let tool0 = scratch
             .rig
@@ -190,13 +224,13 @@ impl Body {
         scratch.last.distance_m
     }
 
-    /// The wall of the closest pair of the last [`Body::clearance`] call.
-    pub fn nearest_wall(&self, scratch: &Scratch) -> usize {
+    /// The wall of the closest pair of the last [`Body::clearance`] call; `None` when that
+    /// pair is not against a wall (the floor).
+    pub fn nearest_wall(&self, scratch: &Scratch) -> Option<usize> {
         let last = scratch.last;
         [last.a, last.b]
             .iter()
             .find_map(|id| self.walls.get(*id).copied().flatten())
-            .unwrap_or(0)
     }
 }
 
@@ -219,24 +253,39 @@ impl Scratch {
     }
 }
 
-/// How far the body, the brush's contact line and the base's axis can move over the floor
-/// plan between two joint positions of the rig (both within its limits): every clearance
-/// the planner measures is the distance of such points from wall planes in the floor plan,
-/// so it changes by no more than that. Lets a sweep over a trajectory measure only the
-/// samples a bound from the last measured one cannot place clear.
+/// How far the body, the brush's contact line and the base's axis can move between two
+/// joint positions of the rig (both within its limits), in space ([`Travel::spatial`]) or
+/// over the floor plan ([`Travel::planar`]): a clearance from the room's walls and floor
+/// changes by no more than the first, a distance from a wall's (vertical) plane by no more
+/// than the second. Lets a sweep over a trajectory measure only the samples a bound from
+/// the last measured one cannot place clear.
 #[derive(Debug, Clone)]
 pub struct Travel {
-    /// Per joint: how far (m) the farthest point after it moves in the floor plan per unit
-    /// of its motion.
+    /// Per joint: how far (m) the farthest point after it moves per unit of its motion.
     levers: Vec<f64>,
 }
 
 impl Travel {
+    /// The bound on motion in space: what the body's clearance from the walls and the
+    /// floor needs (the lift moves everything on it by its own stroke).
+    pub fn spatial(rig: &Rig, brush: &Brush) -> Self {
+        Self::new(rig, brush, true)
+    }
+
+    /// The bound on motion over the floor plan: what a distance from a vertical wall's
+    /// plane needs (the lift moves nothing in the floor plan).
+    pub fn planar(rig: &Rig, brush: &Brush) -> Self {
+        Self::new(rig, brush, false)
+    }
+
     /// A revolute joint moves a point by at most the angle times its distance from the
     /// joint's origin, which the links, prismatic strokes (at their limits), tool and brush
-    /// after it bound whatever the other joints do; a prismatic joint by its stroke, or not
-    /// at all in the floor plan when its axis is vertical whatever the joints before it do.
-    pub fn new(rig: &Rig, brush: &Brush) -> Self {
+    /// after it bound whatever the other joints do; a prismatic joint by its stroke, except
+    /// that one whose axis stays vertical whatever the joints before it do moves nothing
+    /// in the floor plan (`vertical_counts` false). A vertical revolute joint moves a point
+    /// by the angle times its distance from the axis, which a vertical stroke after it
+    /// leaves alone, in space as in the plan.
+    fn new(rig: &Rig, brush: &Brush, vertical_counts: bool) -> Self {
         let vertical = vertical_axes(rig);
         let brush_reach = brush.handle.hypot(brush.width / 2.0);
         let tool_reach = rig.tool.translation.length() + brush_reach;
@@ -253,7 +302,7 @@ impl Travel {
             .map(|j| {
                 let joint = &rig.joints[j];
                 if joint.kind == JointKind::Prismatic {
-                    return if vertical[j] {
+                    return if vertical[j] && !vertical_counts {
                         0.0
                     } else {
                         joint.axis.length()
@@ -297,8 +346,8 @@ impl Travel {
         Self { levers }
     }
 
-    /// At least how far (m) any point of the body or brush moves in the floor plan from
-    /// joint positions `a` to `b`.
+    /// At least how far (m) any point of the body or brush moves (in space or in the floor
+    /// plan, as built) from joint positions `a` to `b`.
     pub fn between(&self, a: &[f64], b: &[f64]) -> f64 {
         let joints: f64 = self
             .levers

@@ -12,7 +12,7 @@ pub mod report;
 pub mod room;
 pub mod world;
 
-pub use config::{EXTRA_AXES, PaintSettings, load_paint_settings};
+pub use config::{EXTRA_AXES, LIFT_AXIS, PaintSettings, load_paint_settings};
 pub use planner::{PaintPlan, PaintPlanError, plan_paint};
 pub use report::{PaintReport, build_report, write_svg};
 pub use room::{Room, RoomError, generate_room};
