@@ -14,7 +14,9 @@ use rigbridge::ik::{BaseHeldSolver, IkSolver};
 use rigbridge::link::LoopbackLink;
 use rigbridge::rig::{ConfigError, Rig, Shape, load_rig};
 use rigbridge::stream::{Outcome, StreamControl, StreamSettings, slowdown_rate, stream};
-use rigbridge::task::paint::body::{Body, Scratch, Travel, merge_room, room_cell};
+use rigbridge::task::paint::body::{
+    Body, Part, RoomTravel, Scratch, Travel, merge_room, room_cell,
+};
 use rigbridge::task::paint::planner::Planner;
 use rigbridge::task::paint::room::{OpeningKind, RoomError, WallType, apothem};
 use rigbridge::task::paint::{
@@ -866,17 +868,18 @@ fn measured_points(body: &Body, rig: &Rig, positions: &[f64]) -> Vec<DVec3> {
 fn the_travel_bounds_cover_every_point_the_planner_measures() {
     // The planner skips measuring samples these bounds place clear, so they must hold for
     // any two in-limit positions: far apart, a plan's step apart, or one joint moved. The
-    // spatial bound covers motion in space (the walls and the floor), the planar one motion
-    // in the floor plan (the brush's distance from the walls' planes).
+    // planar bound covers motion in the floor plan (the body's and the brush's distances
+    // from the walls' planes), the vertical one motion up and down (the body's distance
+    // from the floor).
     let settings = paint_settings();
     let rig = &settings.rig;
     let room = room_for(&settings, 3, 0).unwrap();
     let body = Body::new(rig, &room, &settings.config).unwrap();
-    let spatial = Travel::spatial(rig, &body.brush);
+    let vertical = Travel::vertical(rig, &body.brush);
     let planar = Travel::planar(rig, &body.brush);
     let mut next = uniform(0x2545_f491_4f6c_dd1d);
-    let (mut tightest_spatial, mut tightest_planar) = (0.0f64, 0.0f64);
-    let mut lift_only_spatial = 0.0f64;
+    let (mut tightest_vertical, mut tightest_planar) = (0.0f64, 0.0f64);
+    let mut lift_only_vertical = 0.0f64;
     for trial in 0..20_000 {
         let a: Vec<f64> = rig
             .joints
@@ -907,43 +910,50 @@ fn the_travel_bounds_cover_every_point_the_planner_measures() {
                 .zip(&to)
                 .map(|(p, q)| match flat {
                     true => p.truncate().distance(q.truncate()),
-                    false => p.distance(*q),
+                    false => (p.z - q.z).abs(),
                 })
                 .fold(0.0, f64::max)
         };
         for (travel, flat, tightest) in [
-            (&spatial, false, &mut tightest_spatial),
+            (&vertical, false, &mut tightest_vertical),
             (&planar, true, &mut tightest_planar),
         ] {
             let bound = travel.between(&a, &b);
             let moved = moved(flat);
             assert!(
                 moved <= bound + BOUND_ROUNDING_M,
-                "from {a:?} to {b:?}: a point moves {moved} m (floor plan only: {flat}), bound {bound} m"
+                "from {a:?} to {b:?}: a point moves {moved} m (floor plan: {flat}, else up or down), bound {bound} m"
             );
             if bound > 0.0 {
                 *tightest = tightest.max(moved / bound);
             }
         }
         if only == Some(LIFT_AXIS) && b[LIFT_AXIS] != a[LIFT_AXIS] {
-            lift_only_spatial = lift_only_spatial.max(moved(false) / spatial.between(&a, &b));
+            lift_only_vertical = lift_only_vertical.max(moved(false) / vertical.between(&a, &b));
+            assert_eq!(
+                planar.between(&a, &b),
+                0.0,
+                "the lift moves nothing in the plan"
+            );
         }
     }
-    // Not vacuous: moving the base alone moves every point by exactly the bound, and the
-    // lift alone every point by exactly its stroke in space (none in the floor plan).
-    assert!(tightest_spatial > 0.99, "{tightest_spatial}");
+    // Not vacuous: moving the base alone moves every point by exactly the planar bound,
+    // and the lift alone every point by exactly its stroke up (none in the floor plan).
+    assert!(tightest_vertical > 0.99, "{tightest_vertical}");
     assert!(tightest_planar > 0.99, "{tightest_planar}");
-    assert!(lift_only_spatial > 0.99, "{lift_only_spatial}");
+    assert!(lift_only_vertical > 0.99, "{lift_only_vertical}");
 }
 
 #[test]
 fn sweeps_skipping_samples_give_the_same_answers_as_measuring_all() {
-    // A random walk of the painter through a 3-walled room, in and out of its walls.
+    // A random walk of the painter through a 3-walled room, in and out of its walls and
+    // its floor. The sweeps measure the walls and the floor apart, each with its own bound;
+    // their answers must be those of the whole room's clearance at every sample.
     let settings = paint_settings();
     let rig = &settings.rig;
     let room = room_for(&settings, 3, 0).unwrap();
     let body = Body::new(rig, &room, &settings.config).unwrap();
-    let travel = Travel::spatial(rig, &body.brush);
+    let travel = RoomTravel::new(rig, &body.brush);
     let mut scratch = Scratch::new(rig, &body);
     let mut next = uniform(0x9e37_79b9_7f4a_7c15);
     let mut walk = vec![start_position()];
@@ -960,7 +970,20 @@ fn sweeps_skipping_samples_give_the_same_answers_as_measuring_all() {
         .collect();
     let least = measured.iter().copied().fold(f64::INFINITY, f64::min);
     assert!(least < 0.0, "the walk must leave the room: {least}");
-    let mut measure = |q: &[f64]| body.clearance(q, &mut scratch).0;
+    let mut parts = Scratch::new(rig, &body);
+    let floor_nearest = walk
+        .iter()
+        .filter(|q| {
+            body.part_distance(Part::Floor, q, &mut parts)
+                < body.part_distance(Part::Walls, q, &mut parts)
+        })
+        .count();
+    // Not vacuous: the floor's part decides the answer at many samples (2087 of 4001).
+    assert!(
+        floor_nearest > 0,
+        "the walk must come nearer the floor than the walls"
+    );
+    let mut measure = |part: Part, q: &[f64]| body.part_distance(part, q, &mut parts);
     for needed in [least - 0.1, least, 0.0, 0.01, 0.5, 10.0] {
         let lowest = travel.lowest(walk.iter().map(Vec::as_slice), needed, &mut measure);
         if least <= needed {

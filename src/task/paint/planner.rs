@@ -16,7 +16,7 @@
 //! Owns choosing strokes, attitudes and stations. Must not stream, and never clamps a
 //! target: everything is solved, validated and collision-checked.
 
-use super::body::{Body, Scratch, Travel};
+use super::body::{Body, RoomTravel, Scratch, Travel};
 use super::config::{EXTRA_AXES, LIFT_AXIS, PaintSettings};
 use super::room::{Room, Wall};
 use crate::ik::{BaseHeldSolver, IkSolver, StructureError, plan_cartesian};
@@ -218,8 +218,8 @@ pub struct Planner<'a> {
     solver: BaseHeldSolver,
     body: Body,
     scratch: Scratch,
-    /// Bounds the body's clearance from the walls and the floor between samples.
-    travel: Travel,
+    /// Bounds the body's clearance from the walls and from the floor between samples.
+    travel: RoomTravel,
     /// Bounds the brush's distance from the walls' planes between samples.
     travel_planar: Travel,
     travel_arm: Vec<f64>,
@@ -269,7 +269,7 @@ impl<'a> Planner<'a> {
             plan,
             rig,
             solver: BaseHeldSolver::new(rig.clone(), EXTRA_AXES)?,
-            travel: Travel::spatial(rig, &body.brush),
+            travel: RoomTravel::new(rig, &body.brush),
             travel_planar: Travel::planar(rig, &body.brush),
             scratch: Scratch::new(rig, &body),
             body,
@@ -432,8 +432,8 @@ impl<'a> Planner<'a> {
             .chain([last])
             .map(|i| trajectory.position(i));
         let (body, scratch) = (&self.body, &mut self.scratch);
-        self.travel.lowest(samples, needed, |positions| {
-            body.distance(positions, scratch)
+        self.travel.lowest(samples, needed, |part, positions| {
+            body.part_distance(part, positions, scratch)
         })
     }
 
@@ -1101,7 +1101,9 @@ impl<'a> Planner<'a> {
             let (body, scratch) = (&planner.body, &mut planner.scratch);
             planner
                 .travel
-                .first_below(samples, 0.0, |positions| body.distance(positions, scratch))
+                .first_below(samples, 0.0, |part, positions| {
+                    body.part_distance(part, positions, scratch)
+                })
                 .map(|(sample, clearance_m)| PaintPlanError::Collides {
                     sample,
                     clearance_m,
