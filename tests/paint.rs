@@ -5,14 +5,18 @@
 mod common;
 
 use common::repo_path;
-use glam::DVec2;
-use rigbridge::apps::paint::body::{Body, Scratch, Travel};
+use glam::{DVec2, DVec3};
+use rigbridge::apps::paint::body::{
+    Body, Part, RoomTravel, Scratch, Travel, merge_room, room_cell,
+};
 use rigbridge::apps::paint::planner::Planner;
 use rigbridge::apps::paint::room::{OpeningKind, RoomError, WallType, apothem};
 use rigbridge::apps::paint::run::{PaintRun, run_paint};
 use rigbridge::apps::paint::{
-    EXTRA_AXES, PaintPlan, PaintSettings, load_paint_settings, plan_room, room_for, world_for,
+    EXTRA_AXES, LIFT_AXIS, PaintPlan, PaintSettings, load_paint_settings, plan_room, room_for,
+    world_for,
 };
+use rigbridge::cell::CollisionModel;
 use rigbridge::clock::VirtualClock;
 use rigbridge::daemon::config::load_run_settings;
 use rigbridge::ik::{BaseHeldSolver, IkSolver};
@@ -838,38 +842,44 @@ fn uniform(seed: u64) -> impl FnMut() -> f64 {
     }
 }
 
-/// Every point whose distance from a wall the planner measures, in the floor plan: the
-/// ends of the capsules' segments and the axes of the vertical cylinders of the collision
-/// model (the painter's bodies and the brush's handle), and the brush's contact ends.
-fn floor_points(body: &Body, rig: &Rig, positions: &[f64]) -> Vec<DVec2> {
+/// Every point whose distance from a wall or the floor the planner measures: the ends of
+/// the capsules' segments and the axes' centres of the vertical cylinders of the collision
+/// model (the painter's bodies and the brush's handle; a cylinder stays vertical, so its
+/// centre's motion is every point's), and the brush's contact ends.
+fn measured_points(body: &Body, rig: &Rig, positions: &[f64]) -> Vec<DVec3> {
     let model = body.model();
     let mut scratch = model.scratch();
     let mut points = Vec::new();
     for placed in model.body_poses(positions, &mut scratch) {
         match model.shape(placed.shape) {
             Shape::Capsule { a, b, .. } => {
-                points.extend([a, b].map(|p| placed.pose.transform_point3(*p).truncate()))
+                points.extend([a, b].map(|p| placed.pose.transform_point3(*p)))
             }
-            Shape::Cylinder { .. } => points.push(placed.pose.translation.truncate()),
+            Shape::Cylinder { .. } => points.push(placed.pose.translation),
             _ => {}
         }
     }
     let tool0 = rig.forward(positions).unwrap();
-    points.extend(body.brush.contact(&tool0).map(|p| p.truncate()));
+    points.extend(body.brush.contact(&tool0));
     points
 }
 
 #[test]
-fn the_travel_bound_covers_every_point_the_planner_measures() {
-    // The planner skips measuring samples this bound places clear, so it must hold for
-    // any two in-limit positions: far apart, a plan's step apart, or one joint moved.
+fn the_travel_bounds_cover_every_point_the_planner_measures() {
+    // The planner skips measuring samples these bounds place clear, so they must hold for
+    // any two in-limit positions: far apart, a plan's step apart, or one joint moved. The
+    // planar bound covers motion in the floor plan (the body's and the brush's distances
+    // from the walls' planes), the vertical one motion up and down (the body's distance
+    // from the floor).
     let settings = paint_settings();
     let rig = &settings.rig;
     let room = room_for(&settings, 3, 0).unwrap();
     let body = Body::new(rig, &room, &settings.config).unwrap();
-    let travel = Travel::new(rig, &body.brush);
+    let vertical = Travel::vertical(rig, &body.brush);
+    let planar = Travel::planar(rig, &body.brush);
     let mut next = uniform(0x2545_f491_4f6c_dd1d);
-    let mut tightest = 0.0f64;
+    let (mut tightest_vertical, mut tightest_planar) = (0.0f64, 0.0f64);
+    let mut lift_only_vertical = 0.0f64;
     for trial in 0..20_000 {
         let a: Vec<f64> = rig
             .joints
@@ -891,32 +901,59 @@ fn the_travel_bound_covers_every_point_the_planner_measures() {
                 }
             })
             .collect();
-        let bound = travel.between(&a, &b);
-        let moved = floor_points(&body, rig, &a)
-            .iter()
-            .zip(floor_points(&body, rig, &b))
-            .map(|(p, q)| p.distance(q))
-            .fold(0.0, f64::max);
-        assert!(
-            moved <= bound + BOUND_ROUNDING_M,
-            "from {a:?} to {b:?}: a point moves {moved} m, bound {bound} m"
+        let (from, to) = (
+            measured_points(&body, rig, &a),
+            measured_points(&body, rig, &b),
         );
-        if bound > 0.0 {
-            tightest = tightest.max(moved / bound);
+        let moved = |flat: bool| {
+            from.iter()
+                .zip(&to)
+                .map(|(p, q)| match flat {
+                    true => p.truncate().distance(q.truncate()),
+                    false => (p.z - q.z).abs(),
+                })
+                .fold(0.0, f64::max)
+        };
+        for (travel, flat, tightest) in [
+            (&vertical, false, &mut tightest_vertical),
+            (&planar, true, &mut tightest_planar),
+        ] {
+            let bound = travel.between(&a, &b);
+            let moved = moved(flat);
+            assert!(
+                moved <= bound + BOUND_ROUNDING_M,
+                "from {a:?} to {b:?}: a point moves {moved} m (floor plan: {flat}, else up or down), bound {bound} m"
+            );
+            if bound > 0.0 {
+                *tightest = tightest.max(moved / bound);
+            }
+        }
+        if only == Some(LIFT_AXIS) && b[LIFT_AXIS] != a[LIFT_AXIS] {
+            lift_only_vertical = lift_only_vertical.max(moved(false) / vertical.between(&a, &b));
+            assert_eq!(
+                planar.between(&a, &b),
+                0.0,
+                "the lift moves nothing in the plan"
+            );
         }
     }
-    // Not vacuous: moving the base alone moves every point by exactly the bound.
-    assert!(tightest > 0.99, "{tightest}");
+    // Not vacuous: moving the base alone moves every point by exactly the planar bound,
+    // and the lift alone every point by exactly its stroke up (none in the floor plan).
+    assert!(tightest_vertical > 0.99, "{tightest_vertical}");
+    assert!(tightest_planar > 0.99, "{tightest_planar}");
+    assert!(lift_only_vertical > 0.99, "{lift_only_vertical}");
 }
 
 #[test]
 fn sweeps_skipping_samples_give_the_same_answers_as_measuring_all() {
-    // A random walk of the painter through a 3-walled room, in and out of its walls.
+    // A random walk of the painter through a 3-walled room, in and out of its walls and
+    // its floor. The sweeps measure the walls and the floor apart, each with its own bound;
+    // their answers must be those of the whole room's clearance at every sample.
     let settings = paint_settings();
     let rig = &settings.rig;
     let room = room_for(&settings, 3, 0).unwrap();
     let body = Body::new(rig, &room, &settings.config).unwrap();
-    let travel = Travel::new(rig, &body.brush);
+    let travel = RoomTravel::new(rig, &body.brush);
     let mut scratch = Scratch::new(rig, &body);
     let mut next = uniform(0x9e37_79b9_7f4a_7c15);
     let mut walk = vec![start_position()];
@@ -933,7 +970,20 @@ fn sweeps_skipping_samples_give_the_same_answers_as_measuring_all() {
         .collect();
     let least = measured.iter().copied().fold(f64::INFINITY, f64::min);
     assert!(least < 0.0, "the walk must leave the room: {least}");
-    let mut measure = |q: &[f64]| body.clearance(q, &mut scratch).0;
+    let mut parts = Scratch::new(rig, &body);
+    let floor_nearest = walk
+        .iter()
+        .filter(|q| {
+            body.part_distance(Part::Floor, q, &mut parts)
+                < body.part_distance(Part::Walls, q, &mut parts)
+        })
+        .count();
+    // Not vacuous: the floor's part decides the answer at many samples (2087 of 4001).
+    assert!(
+        floor_nearest > 0,
+        "the walk must come nearer the floor than the walls"
+    );
+    let mut measure = |part: Part, q: &[f64]| body.part_distance(part, q, &mut parts);
     for needed in [least - 0.1, least, 0.0, 0.01, 0.5, 10.0] {
         let lowest = travel.lowest(walk.iter().map(Vec::as_slice), needed, &mut measure);
         if least <= needed {
@@ -989,4 +1039,78 @@ fn a_cell_margin_not_below_the_planners_clearance_is_refused_naming_both() {
     let logged = std::fs::read_dir(dir.join("runs")).map_or(0, |entries| entries.count());
     assert_eq!(logged, 0, "refused before its log opened: nothing moved");
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The bottom strokes start at the floor (the brush 0.5 mm above it): the planner plans
+/// against the room's floor as well as its walls, so every body of every plan's samples
+/// stays above the floor by the painter cell's margin (config/cell-painter.toml, 5 mm;
+/// docs/cell.md, "The painter's floor"). Measured here against the floor alone, every
+/// sample, on the rooms the other tests paint.
+#[test]
+fn the_painters_plans_keep_every_body_above_the_floor() {
+    let settings = paint_settings();
+    let rig = &settings.rig;
+    let plan = PlanSettings {
+        period: std::time::Duration::from_millis(10),
+        ..PlanSettings::default()
+    };
+    for (walls, seed) in [(3, 0), (3, 5), (4, 1), (5, 2), (8, 4)] {
+        let (room, planned) = plan_room(&settings, walls, seed, &start_position(), &plan).unwrap();
+        let mut floor_only = room_cell(rig, &room, &settings.config);
+        floor_only.objects.retain(|object| object.name == "floor");
+        assert_eq!(floor_only.objects.len(), 1, "the room's cell has its floor");
+        let model = CollisionModel::new(rig, &floor_only).unwrap();
+        let mut scratch = model.scratch();
+        let trajectory = &planned.trajectory;
+        let (lowest, at) = (0..trajectory.len())
+            .map(|i| (model.clearance(&trajectory.position(i), &mut scratch), i))
+            .min_by(|a, b| a.0.distance_m.total_cmp(&b.0.distance_m))
+            .unwrap();
+        let pair = format!(
+            "{}-{}",
+            model.body_name(lowest.a),
+            model.body_name(lowest.b)
+        );
+        println!(
+            "{walls} walls, seed {seed}: lowest {:.4} m above the floor ({pair}, sample {at} of {})",
+            lowest.distance_m,
+            trajectory.len()
+        );
+        assert!(
+            lowest.distance_m >= 0.005,
+            "{walls} walls, seed {seed}: {pair} {} m from the floor at sample {at}",
+            lowest.distance_m
+        );
+        // Not vacuous: the strokes do reach down to the floor.
+        assert!(
+            lowest.distance_m < 0.1,
+            "{walls}/{seed}: {}",
+            lowest.distance_m
+        );
+    }
+}
+
+/// The painter's cell file gives the floor the room's cell gives too: merged, it is one
+/// object; a cell whose `floor` is another solid (raised 5 cm) clashes with the room's and
+/// the model refuses it, naming the floor, rather than keeping either silently.
+#[test]
+fn the_room_and_its_cells_floor_are_one_object_and_a_different_floor_is_refused() {
+    let settings = paint_settings();
+    let rig = &settings.rig;
+    let room = room_cell(rig, &room_for(&settings, 4, 1).unwrap(), &settings.config);
+    let run = load_run_settings(&repo_path("config/paint-run.toml")).unwrap();
+    let merged = merge_room(&run.cell, &room);
+    let floors = merged.objects.iter().filter(|o| o.name == "floor").count();
+    assert_eq!(floors, 1, "{:?}", merged.objects);
+    assert_eq!(merged.objects.len(), 4 + 1, "four walls and the floor");
+    CollisionModel::new(rig, &merged).unwrap();
+    let mut raised = run.cell.clone();
+    let floor = raised
+        .objects
+        .iter_mut()
+        .find(|o| o.name == "floor")
+        .unwrap();
+    floor.pose = glam::DAffine3::from_translation(DVec3::Z * 0.05);
+    let refused = CollisionModel::new(rig, &merge_room(&raised, &room)).unwrap_err();
+    assert!(refused.to_string().contains("floor"), "{refused}");
 }

@@ -5,9 +5,9 @@
 use super::run::{ClockChoice, default_log_path, make_clock, print_stream_summary};
 use anyhow::Context;
 use clap::Args;
-use rigbridge::clock::{Clock, WallClock};
 use rigbridge::apps::paint::run::run_paint;
 use rigbridge::apps::paint::{PaintPlan, PaintReport, PaintWorld, load_paint_settings, write_svg};
+use rigbridge::clock::{Clock, WallClock};
 use rigbridge::daemon::config::{JobConfig, load_run_settings};
 use rigbridge::stream::StreamControl;
 use std::path::{Path, PathBuf};

@@ -5,7 +5,7 @@
 
 use super::{PaintScene, load_paint_settings, room_for, world_for};
 use crate::apps::{App, JobScene};
-use crate::cell::{Cell, CellObject};
+use crate::cell::Cell;
 use crate::job::{AppRig, Job, JobError};
 use crate::rig::Rig;
 use std::sync::{Arc, Mutex};
@@ -28,7 +28,7 @@ impl App for PaintApp {
         Some((Box::new(scene), Some(Box::new(world))))
     }
 
-    /// The run's own cell objects and pairs, plus the walls and brush of the room the job
+    /// The run's own cell objects and pairs, plus the walls, floor and brush of the room the job
     /// generates (a cell file cannot know a generated room's walls), at the run cell's
     /// margin. That margin must lie below the planner's clearance, which the planner keeps
     /// at its samples only.
@@ -47,16 +47,6 @@ impl App for PaintApp {
         }
         let room = room_for(&paint, job.walls, job.seed).map_err(|e| JobError::Paint(e.into()))?;
         let room = super::body::room_cell(rig, &room, &paint.config);
-        let mut gated = cell.clone();
-        // The room's walls are placed in the painter's base frame; the cell's objects in its own.
-        gated
-            .objects
-            .extend(room.objects.iter().map(|object| CellObject {
-                pose: cell.mount * object.pose,
-                ..object.clone()
-            }));
-        gated.allowed_pairs.extend(room.allowed_pairs);
-        gated.tool = room.tool;
-        Ok(Some(gated))
+        Ok(Some(super::body::merge_room(cell, &room)))
     }
 }

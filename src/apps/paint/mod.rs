@@ -17,7 +17,7 @@ pub mod scene;
 pub mod world;
 
 pub use app::PaintApp;
-pub use config::{EXTRA_AXES, PaintSettings, load_paint_settings};
+pub use config::{EXTRA_AXES, LIFT_AXIS, PaintSettings, load_paint_settings};
 pub use job::Paint;
 pub use planner::{PaintPlan, PaintPlanError, plan_paint};
 pub use report::{PaintReport, build_report, write_svg};

@@ -16,7 +16,7 @@
 //! Owns choosing strokes, attitudes and stations. Must not stream, and never clamps a
 //! target: everything is solved, validated and collision-checked.
 
-use super::body::{Body, Scratch, Travel};
+use super::body::{Body, RoomTravel, Scratch, Travel};
 use super::config::{EXTRA_AXES, LIFT_AXIS, PaintSettings};
 use super::room::{Room, Wall};
 use crate::ik::{BaseHeldSolver, IkSolver, StructureError, plan_cartesian};
@@ -53,7 +53,7 @@ pub enum PaintPlanError {
         tries: RouteTries,
     },
     #[error(
-        "plan check: sample {sample} comes {clearance_m:.4} m from a wall (body must stay clear)"
+        "plan check: sample {sample} comes {clearance_m:.4} m from a wall or the floor (body must stay clear)"
     )]
     Collides { sample: usize, clearance_m: f64 },
     #[error("the painter's collision model")]
@@ -73,13 +73,13 @@ pub enum PlanRefusal {
     NoCandidate,
     #[error("no base position at standoff {standoff_m:.2} m")]
     NoBasePosition { standoff_m: f64 },
-    #[error("body comes {clearance_m:.3} m from a wall (needs {needed_m:.3})")]
+    #[error("body comes {clearance_m:.3} m from a wall or the floor (needs {needed_m:.3})")]
     BodyTooClose { clearance_m: f64, needed_m: f64 },
     #[error("arm cannot paint up to {height_m:.3} m above its base")]
     CannotPaint { height_m: f64 },
     #[error("arm cannot retract at {height_m:.3} m above its base")]
     CannotRetract { height_m: f64 },
-    #[error("the body would come {clearance_m:.3} m from a wall")]
+    #[error("the body would come {clearance_m:.3} m from a wall or the floor")]
     RouteCollides { clearance_m: f64 },
     #[error("the brush would come {off_m:.4} m from a wall (needs {needed_m:.4})")]
     BrushNearWall { off_m: f64, needed_m: f64 },
@@ -218,7 +218,10 @@ pub struct Planner<'a> {
     solver: BaseHeldSolver,
     body: Body,
     scratch: Scratch,
-    travel: Travel,
+    /// Bounds the body's clearance from the walls and from the floor between samples.
+    travel: RoomTravel,
+    /// Bounds the brush's distance from the walls' planes between samples.
+    travel_planar: Travel,
     travel_arm: Vec<f64>,
     pieces: HashMap<PieceKey, Option<Trajectory>>,
     /// [`Planner::base_range`] by wall and standoff (bits): every band of a wall asks
@@ -266,7 +269,8 @@ impl<'a> Planner<'a> {
             plan,
             rig,
             solver: BaseHeldSolver::new(rig.clone(), EXTRA_AXES)?,
-            travel: Travel::new(rig, &body.brush),
+            travel: RoomTravel::new(rig, &body.brush),
+            travel_planar: Travel::planar(rig, &body.brush),
             scratch: Scratch::new(rig, &body),
             body,
             travel_arm: settings
@@ -428,8 +432,8 @@ impl<'a> Planner<'a> {
             .chain([last])
             .map(|i| trajectory.position(i));
         let (body, scratch) = (&self.body, &mut self.scratch);
-        self.travel.lowest(samples, needed, |positions| {
-            body.distance(positions, scratch)
+        self.travel.lowest(samples, needed, |part, positions| {
+            body.part_distance(part, positions, scratch)
         })
     }
 
@@ -440,7 +444,7 @@ impl<'a> Planner<'a> {
     fn brush_off_wall(&mut self, trajectory: &Trajectory, needed: f64) -> f64 {
         let samples = (0..trajectory.len()).map(|i| trajectory.position(i));
         let (body, room, scratch) = (&self.body, self.room, &mut self.scratch);
-        self.travel.lowest(samples, needed, |positions| {
+        self.travel_planar.lowest(samples, needed, |positions| {
             // The brush's contact line only: tool0 from the kinematics.
             let tool0 = scratch
                 .rig
@@ -1097,7 +1101,9 @@ impl<'a> Planner<'a> {
             let (body, scratch) = (&planner.body, &mut planner.scratch);
             planner
                 .travel
-                .first_below(samples, 0.0, |positions| body.distance(positions, scratch))
+                .first_below(samples, 0.0, |part, positions| {
+                    body.part_distance(part, positions, scratch)
+                })
                 .map(|(sample, clearance_m)| PaintPlanError::Collides {
                     sample,
                     clearance_m,

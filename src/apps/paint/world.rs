@@ -1,7 +1,7 @@
 //! The twin paints: a [`TwinWorld`] that, every controller cycle, takes the twin's actual
 //! joint positions (base, lift and arm), finds where the brush's contact line touches a
 //! wall, and marks the coverage grid swept since the previous cycle. It also checks the
-//! body against the walls on the one collision model (collisions, counted as episodes;
+//! body against the walls and the floor on the one collision model (collisions, counted as episodes;
 //! `body.rs`) and the positions against the axis limits.
 //!
 //! Sweeping, not point sampling: each cycle marks every cell whose centre lies in the area
@@ -152,15 +152,18 @@ fn convex_hull(points: &mut [DVec2]) -> Vec<DVec2> {
 pub struct Measurements {
     pub cycles: u64,
     pub painting_cycles: u64,
-    /// Episodes: runs of consecutive cycles in which some part of the body pierced a wall.
+    /// Episodes: runs of consecutive cycles in which some part of the body pierced a wall
+    /// or the floor.
     pub collisions: u64,
     pub collision_cycles: u64,
-    /// The smallest clearance between the body and any wall over the run (m).
+    /// The smallest clearance between the body and any wall or the floor over the run (m).
     pub min_clearance_m: f64,
     /// Cycles whose actual position lay outside some axis limit.
     pub limit_violations: u64,
     /// Collision episodes by the wall pierced.
     pub collisions_by_wall: Vec<u64>,
+    /// Collision episodes that began with the floor pierced.
+    pub floor_collisions: u64,
     /// Limit violations by the wall the base faced (nearest heading to its yaw).
     pub limit_violations_by_wall: Vec<u64>,
 }
@@ -201,6 +204,7 @@ impl PaintWorld {
                 min_clearance_m: f64::INFINITY,
                 limit_violations: 0,
                 collisions_by_wall: vec![0; room.walls.len()],
+                floor_collisions: 0,
                 limit_violations_by_wall: vec![0; room.walls.len()],
             },
         }
@@ -260,8 +264,10 @@ impl TwinWorld for PaintWorld {
             self.measured.collision_cycles += 1;
             if !self.in_collision {
                 self.measured.collisions += 1;
-                let pierced = self.body.nearest_wall(&self.scratch);
-                self.measured.collisions_by_wall[pierced] += 1;
+                match self.body.nearest_wall(&self.scratch) {
+                    Some(pierced) => self.measured.collisions_by_wall[pierced] += 1,
+                    None => self.measured.floor_collisions += 1,
+                }
             }
         }
         self.in_collision = colliding;
