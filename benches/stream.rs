@@ -2,12 +2,16 @@
 //! 10 s, wall clock. Prints missed cycles and jitter percentiles, and checks them against
 //! the targets (missed <= 0.1 %, jitter p99 <= 20 % of the period).
 //!
-//! Each rate runs two ways: as is, and with the rig's ROS 2 node publishing its JointState
-//! over Zenoh (docs/ros2.md) to a subscribing session in this process, over loopback TCP;
-//! the node must add no missed cycle and at most 5 us to the jitter's p99. Without the node
-//! runs twice, as two ways of its own: what the node adds is measured against their mean,
-//! and how far the two differ is the bench's own noise, printed beside it. The three ways
-//! take turns in slices, each first, second and third in as many rounds, so that all meet
+//! Each rate runs with the rig's ROS 2 node publishing its JointState over Zenoh
+//! (docs/ros2.md) to a subscribing session in a process of its own, over loopback TCP; and
+//! with its node over DDS (the default middleware: JointState, `/tf`, `/tf_static` and the
+//! robot description, on loopback) to a RustDDS subscriber of `/irb120/joint_states` in a
+//! process of its own (the same reasons as Zenoh's; RustDDS, not rclpy, so that the bench
+//! needs no Python: the DDS wire is judged against rclpy by tests/ros2_dds.rs). Each node
+//! must add no missed cycle and at most 5 us to the jitter's p99. Without a node runs
+//! twice, as two ways of its own: what a node adds is measured against their mean, and how
+//! far the two differ is the bench's own noise, printed beside it. The four ways
+//! take turns in slices, each first, second, third and fourth in as many rounds, so that all meet
 //! the same host: on a shared or virtual machine its stalls come and go over seconds, and
 //! long runs one after the other compare the host's moods more than the node. Each way's
 //! p99 is the median of its slices' p99s; its missed cycles are their sum, and each stall
@@ -22,7 +26,9 @@
 use rigbridge::clock::WallClock;
 use rigbridge::link::LoopbackLink;
 use rigbridge::rig::{Rig, load_rig};
-use rigbridge::ros2::{DEFAULT_JOINT_STATES_HZ, Middleware, Ros2Node, Ros2Settings};
+use rigbridge::ros2::{
+    DEFAULT_JOINT_STATES_HZ, DiscoveryRange, Middleware, PublishedRig, RigNode, Ros2Settings,
+};
 use rigbridge::stream::{
     CycleRecord, CycleSink, StreamControl, StreamReport, StreamSettings, slowdown_rate, stream,
 };
@@ -42,11 +48,16 @@ const MAX_ADDED_P99_US: f64 = 5.0;
 /// Slices each way's time is cut into: enough turns for every way to meet the host's
 /// quiet and noisy spells alike, few enough that each slice holds thousands of cycles. A
 /// multiple of [`WAYS`], so that each way goes first, second and third equally often.
-const SLICES: usize = 6;
-/// As is, with the node, and as is again (the control).
-const WAYS: [&str; 3] = ["as is", "+ ROS 2", "as is 2"];
-/// The way with the node.
+const SLICES: usize = 8;
+/// As is, with the Zenoh node, as is again (the control), with the DDS node.
+const WAYS: [&str; 4] = ["as is", "+ ROS 2", "as is 2", "+ DDS"];
+/// The ways with a node: Zenoh's, DDS's.
 const NODE: usize = 1;
+const DDS: usize = 3;
+/// The DDS domain of the bench's node and subscriber: apart from the tests' (40s).
+const DDS_DOMAIN: u16 = 91;
+/// Set in the DDS subscriber's own process (this bench, run again).
+const DDS_SUBSCRIBER_CHILD: &str = "RIGBRIDGE_STREAM_BENCH_DDS_SUBSCRIBER";
 /// Stalls listed per slice at most: the list is reserved before the stream starts, so
 /// that the cycle's sink never allocates.
 const MAX_STALLS: usize = 64;
@@ -129,16 +140,14 @@ impl Drop for Subscriber {
     }
 }
 
-/// Starts the subscriber's process: it prints its endpoint, then its count every
-/// [`COUNT_EVERY`], until its stdin closes.
-fn subscriber(keep_off: Option<usize>) -> Subscriber {
+/// Starts the subscriber's process (`child`: [`SUBSCRIBER_CHILD`] for Zenoh's,
+/// [`DDS_SUBSCRIBER_CHILD`] for DDS's): it prints its endpoint (DDS: its domain), then its
+/// count every [`COUNT_EVERY`], until its stdin closes.
+fn subscriber(child: &str, keep_off: Option<usize>) -> Subscriber {
     use std::io::BufRead;
     let mut command = std::process::Command::new(std::env::current_exe().expect("own path"));
     command
-        .env(
-            SUBSCRIBER_CHILD,
-            keep_off.map_or(String::new(), |c| c.to_string()),
-        )
+        .env(child, keep_off.map_or(String::new(), |c| c.to_string()))
         .stdin(std::process::Stdio::piped())
         .stdout(std::process::Stdio::piped());
     let mut child = command.spawn().expect("subscriber process");
@@ -210,6 +219,62 @@ fn subscriber_process(keep_off: &str) {
     }
 }
 
+/// The DDS subscriber's process (see [`subscriber`]): a ROS 2 node on RustDDS
+/// (`ros2-client`, as rigbridge's own) subscribing to `/irb120/joint_states` with ROS 2's
+/// default profile, on loopback only.
+fn dds_subscriber_process(keep_off: &str) {
+    use ros2_client::dds::{Context, Subscription, rustdds};
+    use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, QosProfile};
+    let _ = rigbridge::realtime::normal_priority();
+    if let Ok(cpu) = keep_off.parse() {
+        rigbridge::realtime::keep_off(cpu).expect("keep the subscriber off the cycle's CPU");
+    }
+    let participant = rustdds::DomainParticipantBuilder::new(DDS_DOMAIN)
+        .with_only_networks([std::net::IpAddr::V4(std::net::Ipv4Addr::LOCALHOST)])
+        .build()
+        .expect("a DDS participant");
+    let context = Context::from_domain_participant(participant).expect("a ROS 2 context");
+    let mut node = context
+        .new_node(
+            NodeName::new("/bench", "joint_states_counter").expect("a node name"),
+            NodeOptions::new().enable_rosout(false),
+        )
+        .expect("a node");
+    let qos = QosProfile::subscription_default()
+        .reliability_reliable(ros2_client::qos::WhenFull::DEFAULT)
+        .durability(ros2_client::qos::Durability::Volatile)
+        .history(ros2_client::qos::History::KeepLast { depth: 10 });
+    let topic = node
+        .create_topic(
+            &Name::new("/irb120", "joint_states").expect("a topic name"),
+            MessageTypeName::new("sensor_msgs", "JointState"),
+            &qos,
+        )
+        .expect("the topic");
+    let states: Subscription<rigbridge::ros2::messages::JointState> = node
+        .create_subscription(&topic, None)
+        .expect("the subscription");
+    println!("domain {DDS_DOMAIN}");
+    let closed = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let watch = closed.clone();
+    std::thread::spawn(move || {
+        let _ = std::io::copy(&mut std::io::stdin(), &mut std::io::sink());
+        watch.store(true, Ordering::SeqCst);
+    });
+    let mut received = 0_u64;
+    let mut reported = std::time::Instant::now();
+    while !closed.load(Ordering::SeqCst) {
+        while let Ok(Some(_)) = states.take() {
+            received += 1;
+        }
+        if reported.elapsed() >= COUNT_EVERY {
+            println!("{received}");
+            reported = std::time::Instant::now();
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+}
+
 /// What one slice measured.
 struct Slice {
     report: StreamReport,
@@ -219,8 +284,56 @@ struct Slice {
     stalls_ms: Vec<f32>,
 }
 
-/// One stream of `seconds`; with `ros2`, beside a node publishing to it.
-fn stream_once(rig: &Rig, rate_hz: f64, seconds: f64, ros2: Option<&Subscriber>) -> Slice {
+/// Which node streams beside the cycle.
+#[derive(Clone, Copy)]
+enum Beside<'a> {
+    Nothing,
+    /// The Zenoh node, publishing to this subscriber.
+    Zenoh(&'a Subscriber),
+    /// The DDS node, found by the DDS subscriber on loopback.
+    Dds,
+}
+
+/// The node `beside` asks for, publishing `rig` from `slot`.
+fn node(rig: &Rig, beside: Beside<'_>, slot: &Arc<LiveSlot>) -> Option<RigNode> {
+    let middleware = match beside {
+        Beside::Nothing => return None,
+        Beside::Zenoh(subscriber) => Middleware::Zenoh {
+            connect: subscriber.endpoint.clone(),
+        },
+        Beside::Dds => Middleware::Dds {
+            range: DiscoveryRange::Localhost,
+        },
+    };
+    let settings = Ros2Settings {
+        domain_id: if matches!(beside, Beside::Dds) {
+            u32::from(DDS_DOMAIN)
+        } else {
+            0
+        },
+        middleware,
+        joint_states_hz: DEFAULT_JOINT_STATES_HZ,
+        login: None,
+        accept_motion: false,
+        tolerances: rigbridge::ros2::fjt::Tolerances {
+            path: 0.0,
+            goal: 0.0,
+            goal_time_s: 0.0,
+        },
+    };
+    let cell = rigbridge::cell::Cell::builtin();
+    let published = PublishedRig {
+        name: rig.name.clone(),
+        joints: rig.joint_names().map(String::from).collect(),
+        robot: Arc::new(rigbridge::log::RobotDescription::generated(rig, &cell)),
+        mount: cell.mount,
+    };
+    let node = rigbridge::ros2::start_node(&settings, published, slot.clone(), true, None, None);
+    Some(node.expect("node"))
+}
+
+/// One stream of `seconds`, beside the node `beside` asks for.
+fn stream_once(rig: &Rig, rate_hz: f64, seconds: f64, beside: Beside<'_>) -> Slice {
     let period = std::time::Duration::from_secs_f64(1.0 / rate_hz);
     let twin = Twin::new(
         rig,
@@ -233,24 +346,7 @@ fn stream_once(rig: &Rig, rate_hz: f64, seconds: f64, ros2: Option<&Subscriber>)
     .expect("twin");
     let settings = StreamSettings::new(period, slowdown_rate(rig, 0.9, 0.8));
     let slot = Arc::new(LiveSlot::new(LiveSample::at_rest(&START)));
-    let node = ros2.map(|subscriber| {
-        let settings = Ros2Settings {
-            middleware: Middleware::Zenoh {
-                connect: subscriber.endpoint.clone(),
-            },
-            domain_id: 0,
-            joint_states_hz: DEFAULT_JOINT_STATES_HZ,
-            login: None,
-            accept_motion: false,
-            tolerances: rigbridge::ros2::fjt::Tolerances {
-                path: 0.0,
-                goal: 0.0,
-                goal_time_s: 0.0,
-            },
-        };
-        let joints = rig.joint_names().map(String::from).collect();
-        Ros2Node::start(&settings, &rig.name, joints, slot.clone(), true, None).expect("node")
-    });
+    let node = node(rig, beside, &slot);
     let mut live = LiveSink::new(&slot, rate_hz as u64);
     let inner: &mut dyn CycleSink = if node.is_some() { &mut live } else { &mut () };
     let mut stalls = Stalls::new(inner, period);
@@ -266,7 +362,7 @@ fn stream_once(rig: &Rig, rate_hz: f64, seconds: f64, ros2: Option<&Subscriber>)
     .expect("stream");
     Slice {
         report,
-        published: node.as_ref().map_or(0, Ros2Node::published),
+        published: node.as_ref().map_or(0, RigNode::published),
         stalls_ms: stalls.sizes_ms,
     }
 }
@@ -383,22 +479,29 @@ fn interrupts(cpu: Option<usize>) -> [u64; 3] {
     counts
 }
 
-/// The three [`WAYS`] at `rate_hz`, in turns; whether every way meets the stream's targets
-/// and the node adds nothing beyond [`MAX_ADDED_P99_US`].
-fn run(rig: &Rig, rate_hz: f64, seconds: f64, ros2: &Subscriber, cpu: Option<usize>) -> bool {
+/// The [`WAYS`] at `rate_hz`, in turns; whether every way meets the stream's targets and
+/// each node adds nothing beyond [`MAX_ADDED_P99_US`].
+fn run(
+    rig: &Rig,
+    rate_hz: f64,
+    seconds: f64,
+    (ros2, dds): (&Subscriber, &Subscriber),
+    cpu: Option<usize>,
+) -> bool {
     let slice = seconds / SLICES as f64;
-    let mut ways: [Way; 3] = Default::default();
+    let mut ways: [Way; 4] = Default::default();
     let received_before = ros2.received.load(Ordering::Relaxed);
+    let dds_before = dds.received.load(Ordering::Relaxed);
     for round in 0..SLICES {
         for k in 0..WAYS.len() {
             let way = (round + k) % WAYS.len();
             let before = interrupts(cpu);
-            ways[way].add(stream_once(
-                rig,
-                rate_hz,
-                slice,
-                (way == NODE).then_some(ros2),
-            ));
+            let beside = match way {
+                NODE => Beside::Zenoh(ros2),
+                DDS => Beside::Dds,
+                _ => Beside::Nothing,
+            };
+            ways[way].add(stream_once(rig, rate_hz, slice, beside));
             let after = interrupts(cpu);
             for k in 0..INTERRUPTS.len() {
                 ways[way].interrupts[k] += after[k].saturating_sub(before[k]);
@@ -408,50 +511,55 @@ fn run(rig: &Rig, rate_hz: f64, seconds: f64, ros2: &Subscriber, cpu: Option<usi
     // The subscriber's process reports its count every COUNT_EVERY: wait for the last.
     std::thread::sleep(COUNT_EVERY * 4);
     let received = ros2.received.load(Ordering::Relaxed) - received_before;
+    let dds_received = dds.received.load(Ordering::Relaxed) - dds_before;
     let mut ok = true;
     for (way, label) in ways.iter().zip(WAYS) {
         ok &= way.report(rate_hz, label);
     }
-    println!(
-        "        ROS 2: {} JointState published ({:.0} Hz), {} received",
-        ways[NODE].published,
-        ways[NODE].published as f64 / ways[NODE].seconds,
-        received
-    );
+    for (way, label, received) in [(NODE, "ROS 2", received), (DDS, "DDS", dds_received)] {
+        println!(
+            "        {label}: {} JointState published ({:.0} Hz), {received} received",
+            ways[way].published,
+            ways[way].published as f64 / ways[way].seconds,
+        );
+    }
     if cpu.is_some() {
         print_interrupts(&ways);
     }
-    ok & node_within(rate_hz, &ways)
+    let zenoh = node_within(rate_hz, &ways, NODE);
+    ok & zenoh & node_within(rate_hz, &ways, DDS)
 }
 
-/// Prints the streaming CPU's [`INTERRUPTS`] per second, as is -> with the node.
-fn print_interrupts(ways: &[Way; 3]) {
+/// Prints the streaming CPU's [`INTERRUPTS`] per second, as is -> with each node.
+fn print_interrupts(ways: &[Way; 4]) {
     let per_s = |way: &Way, k: usize| way.interrupts[k] as f64 / way.seconds.max(1e-9);
     let kinds: Vec<String> = (0..INTERRUPTS.len())
         .map(|k| {
             let as_is = mean(per_s(&ways[0], k), per_s(&ways[2], k));
             format!(
-                "{} {as_is:.0} -> {:.0}",
+                "{} {as_is:.0} -> {:.0} / {:.0}",
                 INTERRUPTS[k],
-                per_s(&ways[NODE], k)
+                per_s(&ways[NODE], k),
+                per_s(&ways[DDS], k)
             )
         })
         .collect();
     println!(
-        "        interrupts on the streaming CPU per second, as is -> + ROS 2: {}",
+        "        interrupts on the streaming CPU per second, as is -> + ROS 2 / + DDS: {}",
         kinds.join(", ")
     );
 }
 
-/// What the node adds over the mean of the two ways as is, beside how far those two differ
-/// (the bench's own noise); whether it is within the target.
-fn node_within(rate_hz: f64, ways: &[Way; 3]) -> bool {
-    let [as_is, node, again] = ways;
+/// What the node of way `with` adds over the mean of the two ways as is, beside how far
+/// those two differ (the bench's own noise); whether it is within the target.
+fn node_within(rate_hz: f64, ways: &[Way; 4], with: usize) -> bool {
+    let (as_is, node, again) = (&ways[0], &ways[with], &ways[2]);
     let added_missed = node.missed as f64 - mean(as_is.missed as f64, again.missed as f64);
     let added_p99 = node.median_p99() - mean(as_is.median_p99(), again.median_p99());
     let within = added_missed <= 0.0 && added_p99 <= MAX_ADDED_P99_US;
     println!(
-        "{rate_hz:>6.0} Hz: ROS 2 adds {added_missed:+.1} missed cycles and {added_p99:+.1} us to p99 -> {}",
+        "{rate_hz:>6.0} Hz: {} adds {added_missed:+.1} missed cycles and {added_p99:+.1} us to p99 -> {}",
+        WAYS[with],
         if within {
             "within target"
         } else {
@@ -471,10 +579,16 @@ fn main() {
         subscriber_process(&keep_off);
         return;
     }
+    if let Ok(keep_off) = std::env::var(DDS_SUBSCRIBER_CHILD) {
+        dds_subscriber_process(&keep_off);
+        return;
+    }
     let cpu = rigbridge::realtime::streaming_cpu();
-    // The subscriber is another process, started before this thread pins itself and rises
-    // to SCHED_FIFO: a child inherits both, and would see the streaming CPU as its only one.
-    let ros2 = subscriber(cpu);
+    // The subscribers are other processes, started before this thread pins itself and
+    // rises to SCHED_FIFO: a child inherits both, and would see the streaming CPU as its
+    // only one.
+    let ros2 = subscriber(SUBSCRIBER_CHILD, cpu);
+    let dds = subscriber(DDS_SUBSCRIBER_CHILD, cpu);
     let priority = rigbridge::realtime::CYCLE_PRIORITY;
     match rigbridge::stream::raise_priority(priority) {
         Ok(()) => println!("streaming at SCHED_FIFO priority {priority}"),
@@ -499,8 +613,8 @@ fn main() {
     .expect("rig");
     let (long, short) = if quick { (5.0, 5.0) } else { (60.0, 10.0) };
     let results = [
-        run(&rig, 250.0, long, &ros2, cpu),
-        run(&rig, 1000.0, short, &ros2, cpu),
+        run(&rig, 250.0, long, (&ros2, &dds), cpu),
+        run(&rig, 1000.0, short, (&ros2, &dds), cpu),
     ];
     // `exit` runs no destructor: the other processes get their CPUs back first.
     drop(shield);

@@ -140,8 +140,7 @@ const MIN_FEEDBACK_HZ: f64 = 50.0;
 const ON_PATH_RAD: f64 = 1e-3;
 
 #[test]
-fn rclpy_follow_joint_trajectory_goals_complete_a_cancel_rests_on_the_path_and_a_new_goal_preempts()
-{
+fn rclpy_follow_joint_trajectory_goals_complete_and_a_cancel_rests_on_the_path() {
     let Some(python) = action_python() else {
         return;
     };
@@ -193,32 +192,209 @@ fn rclpy_follow_joint_trajectory_goals_complete_a_cancel_rests_on_the_path_and_a
     assert_eq!(cancel["canceling"], 1, "{result}");
     assert!((0.3..0.8).contains(&along), "halfway, braked: {along}");
     assert!(off < ON_PATH_RAD, "{off} rad off the path");
-    // A new goal preempts the running one, as JointTrajectoryController's does.
-    let preempted = &result["preempted"];
-    let preempting = &result["preempting"];
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// How slow the arm may go at the slowest between a goal's preemption and the second goal's
+/// easing out (rad/s, the fastest axis): far above what rounding leaves of an arm at rest,
+/// far below the goals' speeds there (0.1 rad/s and more).
+const MOVING_RAD_S: f64 = 1e-3;
+/// Cycles the arm's speed is measured over (20 ms at 250 Hz): the twin reports a new
+/// position every cycle.
+const SPEED_WINDOW: usize = 5;
+/// The second goal's last stretch, where it eases out to rest (s), left out of the
+/// no-stop check.
+const EASING_TO_REST_S: f64 = 0.6;
+
+/// The arm's speed (the fastest axis', rad/s) at each measured state from `SPEED_WINDOW`
+/// on, with its job time.
+fn speeds(log: &rigbridge::log::RunLog) -> Vec<(f64, f64)> {
+    log.states
+        .windows(SPEED_WINDOW + 1)
+        .map(|w| {
+            let (a, b) = (&w[0], &w[SPEED_WINDOW]);
+            let speed = a
+                .positions
+                .iter()
+                .zip(&b.positions)
+                .map(|(p, q)| (q - p).abs() / (b.t - a.t))
+                .fold(0.0, f64::max);
+            (b.t, speed)
+        })
+        .collect()
+}
+
+/// The commanded targets' largest share of each axis' speed and acceleration limit (the
+/// positions' first and second differences), and the largest third difference (rad/s^3).
+fn command_shares(log: &rigbridge::log::RunLog, rig: &rigbridge::rig::Rig) -> (f64, f64, f64) {
+    let dt = 1.0 / 250.0;
+    let (mut speed, mut accel, mut jerk) = (0.0_f64, 0.0_f64, 0.0_f64);
+    for w in log.commands.windows(4) {
+        for (axis, joint) in rig.joints.iter().enumerate() {
+            let p: Vec<f64> = w.iter().map(|c| c.positions[axis]).collect();
+            let v = (p[1] - p[0]) / dt;
+            let a = (p[2] - 2.0 * p[1] + p[0]) / (dt * dt);
+            let j = (p[3] - 3.0 * p[2] + 3.0 * p[1] - p[0]) / (dt * dt * dt);
+            speed = speed.max(v.abs() / joint.limits.max_speed);
+            accel = accel.max(a.abs() / joint.limits.max_acceleration);
+            jerk = jerk.max(j.abs());
+        }
+    }
+    (speed, accel, jerk)
+}
+
+#[test]
+fn rclpy_a_new_goal_preempts_the_running_one_and_the_arm_goes_on_into_it_without_stopping() {
+    let Some(python) = action_python() else {
+        return;
+    };
+    const DOMAIN: u32 = 47;
+    let dir = scratch("fjt-preempt");
+    let daemon = serve_with_motion(&dir, DOMAIN);
+    let client = start_client(
+        &python,
+        DOMAIN,
+        &dir,
+        &["preempt", "--rig", "irb120", "--duration-s", "6"],
+    );
+    let result = client.result();
+    let (first, second) = (&result["first"], &result["second"]);
     println!(
-        "preemption: the first goal {} / {} ({}), the second {} / {}",
-        preempted["status"],
-        preempted["error_code"],
-        preempted["error_string"],
-        preempting["status"],
-        preempting["error_code"]
+        "first goal (6 s): {} / {} ({}); the second sent at {:.2} s: answered in {:.3} s, {} / \
+         {} ({}), {:.2} s",
+        first["status"],
+        first["error_code"],
+        first["error_string"],
+        result["second_sent_s"].as_f64().unwrap_or(0.0),
+        second["answered_s"].as_f64().unwrap_or(0.0),
+        second["status"],
+        second["error_code"],
+        second["error_string"],
+        second["seconds"].as_f64().unwrap_or(0.0)
     );
-    assert_eq!(preempted["status"], STATUS_CANCELED, "{result}");
-    assert_eq!(preempted["error_code"], INVALID_GOAL, "{result}");
+    // As JointTrajectoryController on Jazzy since ros2_controllers#2423.
+    assert_eq!(first["status"], STATUS_ABORTED, "{result}");
+    assert_eq!(first["error_code"], INVALID_GOAL, "{result}");
     assert_eq!(
-        preempted["error_string"],
-        "Current goal cancelled due to new incoming action."
+        first["error_string"],
+        "Current goal preempted by new incoming action."
     );
-    assert_eq!(preempting["status"], STATUS_SUCCEEDED, "{result}");
-    let start: Vec<f64> = serde_json::from_value(result["start"].clone()).unwrap();
-    let ended: Vec<f64> = serde_json::from_value(result["preempting_end"].clone()).unwrap();
-    let missed = start
+    assert_eq!(second["status"], STATUS_SUCCEEDED, "{result}");
+    assert_eq!(second["error_code"], SUCCESSFUL, "{result}");
+    let other: Vec<f64> = serde_json::from_value(result["other_end"].clone()).unwrap();
+    let ended: Vec<f64> = serde_json::from_value(result["second_end"].clone()).unwrap();
+    let missed = other
         .iter()
         .zip(&ended)
-        .map(|(s, e)| (s - e).abs())
+        .map(|(o, e)| (o - e).abs())
         .fold(0.0, f64::max);
+    println!("  the second goal ended {missed:.2e} rad from its last point");
     assert!(missed <= 0.01, "the second goal's end: {missed}");
+    drop(daemon);
+    // One job carried both goals: its log has every cycle of both.
+    let logs: Vec<PathBuf> = std::fs::read_dir(dir.join("runs"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| {
+            p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with("job-") && n.ends_with(".mcap"))
+        })
+        .collect();
+    assert_eq!(logs.len(), 1, "one job: {logs:?}");
+    let log = rigbridge::log::read_log(&logs[0]).expect("the job's log reads");
+    let preempted_at = log
+        .events
+        .iter()
+        .find(|e| e.kind == "ros2_goal_preempted")
+        .map(|e| e.t)
+        .expect("the preemption is in the job's log");
+    let ended_at = log.states.last().unwrap().t;
+    let moving = speeds(&log);
+    let (slowest_t, slowest) = moving
+        .iter()
+        .filter(|(t, _)| *t >= preempted_at - 0.5 && *t <= ended_at - EASING_TO_REST_S)
+        .copied()
+        .fold((0.0, f64::INFINITY), |a, b| if b.1 < a.1 { b } else { a });
+    let rig = common::irb120();
+    let (speed, accel, jerk) = command_shares(&log, &rig);
+    let report = log
+        .events
+        .iter()
+        .find(|e| e.kind == "job_ended")
+        .map(|e| e.detail.clone())
+        .unwrap_or_default();
+    println!(
+        "  preempted at {preempted_at:.3} s of the job; the arm's slowest from 0.5 s before to \
+         {EASING_TO_REST_S} s before the end: {slowest:.4} rad/s at {slowest_t:.3} s; the \
+         commands' largest share of an axis' speed {speed:.3} and acceleration {accel:.3}, \
+         third difference up to {jerk:.1} rad/s^3; limit violations {}",
+        report["limit_violations"]
+    );
+    assert!(
+        slowest > MOVING_RAD_S,
+        "the arm stopped ({slowest} rad/s at {slowest_t} s) between the goals"
+    );
+    assert!(
+        speed <= 1.0 && accel <= 1.0,
+        "within limits: {speed}, {accel}"
+    );
+    assert_eq!(report["limit_violations"], 0, "{report}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// FollowJointTrajectory's tolerance codes, as control_msgs defines them.
+const PATH_TOLERANCE_VIOLATED: i64 = -4;
+const GOAL_TOLERANCE_VIOLATED: i64 = -5;
+
+#[test]
+fn rclpy_goals_whose_path_or_goal_tolerance_the_twin_cannot_meet_end_with_their_codes() {
+    let Some(python) = action_python() else {
+        return;
+    };
+    const DOMAIN: u32 = 48;
+    let dir = scratch("fjt-tolerances");
+    let _daemon = serve_with_motion(&dir, DOMAIN);
+    let client = start_client(&python, DOMAIN, &dir, &["tolerances", "--rig", "irb120"]);
+    let result = client.result();
+    let (path, goal) = (&result["path"], &result["goal"]);
+    let along = result["path_rest_along"].as_f64().unwrap();
+    let off = result["path_rest_off_rad"].as_f64().unwrap();
+    println!(
+        "path tolerance 1 mrad on joint_6: {} / {} ({}) after {:.2} s; at rest {:.1} % along, \
+         {off:.2e} rad off the line",
+        path["status"],
+        path["error_code"],
+        path["error_string"],
+        path["seconds"].as_f64().unwrap_or(0.0),
+        100.0 * along
+    );
+    assert_eq!(path["status"], STATUS_ABORTED, "{result}");
+    assert_eq!(path["error_code"], PATH_TOLERANCE_VIOLATED, "{result}");
+    let text = path["error_string"].as_str().unwrap();
+    assert!(text.starts_with("joint_6 is "), "{text}");
+    assert!(
+        (0.0..1.0).contains(&along) && off < ON_PATH_RAD,
+        "braked to rest on the path before its end: {along}, {off}"
+    );
+    let target: Vec<f64> = serde_json::from_value(result["goal_target"].clone()).unwrap();
+    let rest: Vec<f64> = serde_json::from_value(result["goal_rest"].clone()).unwrap();
+    println!(
+        "goal tolerance 0.1 urad on joint_1: {} / {} ({}); joint_1 at rest {:.2e} rad from the \
+         last point",
+        goal["status"],
+        goal["error_code"],
+        goal["error_string"],
+        (rest[0] - target[0]).abs()
+    );
+    assert_eq!(goal["status"], STATUS_ABORTED, "{result}");
+    assert_eq!(goal["error_code"], GOAL_TOLERANCE_VIOLATED, "{result}");
+    let text = goal["error_string"].as_str().unwrap();
+    assert!(text.starts_with("joint_1 ended "), "{text}");
+    assert!(
+        (rest[0] - target[0]).abs() < 1e-3,
+        "the arm went to the goal's end"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 

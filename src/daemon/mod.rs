@@ -699,6 +699,25 @@ pub fn plan_for(
     })
 }
 
+/// `job` planned from `start` and checked clear of the cell, as [`plan_for`] plans once the
+/// controller holds: for a trajectory spliced into a running job (a preempting
+/// FollowJointTrajectory goal, docs/ros2.md).
+pub fn plan_from(
+    settings: &RunSettings,
+    job: &config::JobConfig,
+    start: &[f64],
+) -> Result<crate::trajectory::Trajectory, DaemonError> {
+    let (trajectory, origins) = job.plan_traced(&crate::job::PlanContext {
+        rig: &settings.tcp_rig,
+        sloth: settings.sloth.as_deref(),
+        start,
+        settings: &plan_settings(settings),
+        model: Some(&settings.collision),
+    })?;
+    clear_job(settings, Some(job), &trajectory, &origins)?;
+    Ok(trajectory)
+}
+
 /// Plans `job`, then streams it to the end (or until `control` stops it), recording to
 /// `log` when given.
 pub fn run_job(

@@ -36,6 +36,12 @@ const KEPT_RESULTS: usize = 32;
 /// OLD_HEADER_TIMESTAMP, as JointTrajectoryController says it.
 pub const STAMP_SKEW_S: f64 = 0.5;
 
+/// What a preempted goal's result says: ros2_controllers' JointTrajectoryController's words
+/// since ros-controls/ros2_controllers#2422 (on Jazzy by #2423, June 2026), with status
+/// ABORTED and INVALID_GOAL; before, "Current goal cancelled due to new incoming action."
+/// with status CANCELED.
+pub const PREEMPTED: &str = "Current goal preempted by new incoming action.";
+
 /// The result codes of `FollowJointTrajectory` (control_msgs 5.x, Jazzy).
 pub mod code {
     pub const SUCCESSFUL: i32 = 0;
@@ -429,6 +435,36 @@ pub enum GoalRefused {
     /// The job's thread ended before it had planned.
     #[error("the job thread ended before planning")]
     JobThreadEnded,
+    /// A preempting goal whose first point is at t = 0: the arm is moving, so it cannot be
+    /// where the arm is.
+    #[error(
+        "trajectory.points[0].time_from_start is 0 while the arm moves for the running goal: \
+         a preempting goal's first point must come later (the arm goes on from its present \
+         motion into it by then)"
+    )]
+    FirstPointNow,
+    /// The running job's stream refused to go on into the new trajectory.
+    #[error(
+        "the arm cannot go on into this goal from the running one's motion: {0}; the running \
+         goal goes on"
+    )]
+    NotJoined(crate::stream::SpliceRefusal),
+    /// The running job's stream did not answer (it was not streaming).
+    #[error("the running goal's job did not take the new trajectory within {0} ms")]
+    NoAnswer(u64),
+}
+
+/// What came of a goal preempting the running one's job.
+#[derive(Debug)]
+pub enum Preemption {
+    /// The arm went on into the new goal's trajectory without stopping: the running job
+    /// carries the new goal from here.
+    Continued,
+    /// The new goal was refused (nothing of it moved); the running goal goes on.
+    Refused(GoalRefused),
+    /// The running job cannot take a new trajectory (it is not streaming a goal): the new
+    /// goal waits for it to be stopped and at rest.
+    Unavailable,
 }
 
 /// What runs a goal: the daemon's, which makes it a job through the same validation as
@@ -437,6 +473,10 @@ pub trait GoalRunner: Send {
     /// Starts `goal` as a job, once the previous one is at rest; the validation's text when
     /// it is refused (nothing then moved).
     fn start(&mut self, goal: &CheckedGoal) -> Result<(), GoalRefused>;
+    /// Hands `goal`, validated and planned as a job, to the running goal's job, which goes
+    /// on into it from its present motion (as JointTrajectoryController starts a new
+    /// trajectory from the state it commands).
+    fn preempt(&mut self, goal: &CheckedGoal) -> Preemption;
     /// Asks the running job to stop: it brakes to rest along its path. Returns at once.
     fn stop(&mut self);
     /// How the job goes.
@@ -578,19 +618,58 @@ impl Goals {
                         outcome(code::INVALID_GOAL, why),
                     );
                 }
-                if let Some(active) = &mut self.active {
-                    // As JointTrajectoryController: the running goal is canceled by the new
-                    // (unless it is being stopped already, with its own result).
-                    if active.stopping.is_none() {
-                        let why = "Current goal cancelled due to new incoming action.";
-                        active.stopping =
-                            Some((GoalStatusEnum::Canceled, outcome(code::INVALID_GOAL, why)));
-                        self.runner.stop();
-                    }
-                    self.next = Some((id, checked));
-                } else {
-                    self.begin(server, id, checked);
+                match self.active.as_ref().map(|a| a.stopping.is_none()) {
+                    Some(true) => self.preempt(server, id, checked),
+                    // Being stopped already (a cancel, a violation), with its own result:
+                    // the new goal starts once the arm is at rest.
+                    Some(false) => self.next = Some((id, checked)),
+                    None => self.begin(server, id, checked),
                 }
+            }
+        }
+    }
+
+    /// A new goal while the active one runs: the arm goes on into it without stopping and
+    /// the active goal ends ABORTED with INVALID_GOAL and JointTrajectoryController's words
+    /// (its `preempt_active_goal`); a new goal that cannot be joined is refused and the
+    /// active one goes on; a job that takes no new trajectory is stopped first.
+    fn preempt(&mut self, server: &Server, id: GoalId, goal: CheckedGoal) {
+        match self.runner.preempt(&goal) {
+            Preemption::Continued => {
+                if let Some(old) = self.active.take() {
+                    self.end(
+                        server,
+                        &old.id,
+                        GoalStatusEnum::Aborted,
+                        outcome(code::INVALID_GOAL, PREEMPTED),
+                    );
+                }
+                self.set_status(&id, GoalStatusEnum::Executing);
+                self.active = Some(Active {
+                    id,
+                    goal,
+                    started: std::time::Instant::now(),
+                    stopping: None,
+                });
+            }
+            Preemption::Refused(refused) => {
+                tracing::info!("ros2: preempting FollowJointTrajectory goal refused: {refused}");
+                self.end(
+                    server,
+                    &id,
+                    GoalStatusEnum::Aborted,
+                    outcome(code::INVALID_GOAL, refused.to_string()),
+                );
+            }
+            Preemption::Unavailable => {
+                if let Some(active) = &mut self.active {
+                    active.stopping = Some((
+                        GoalStatusEnum::Aborted,
+                        outcome(code::INVALID_GOAL, PREEMPTED),
+                    ));
+                    self.runner.stop();
+                }
+                self.next = Some((id, goal));
             }
         }
     }

@@ -1476,6 +1476,14 @@ impl Cell {
         .map(|(id, _)| id)
     }
 
+    /// The controls of job `id` while it runs (a FollowJointTrajectory goal's splice).
+    pub fn job_control(&self, id: u64) -> Option<Arc<StreamControl>> {
+        let job = self.job.lock().unwrap_or_else(PoisonError::into_inner);
+        job.as_ref()
+            .filter(|j| j.id == id && !j.handle.is_finished())
+            .map(|j| j.control.clone())
+    }
+
     /// Asks the running job to stop or e-stop (`request`, called `action` in the cell's
     /// events): its number and the phase it was in when the request was acknowledged, or
     /// `None` when no job runs.

@@ -6,15 +6,26 @@
 
 use super::cell::Cell;
 use super::{Daemon, start_refusal};
-use crate::ros2::fjt::{CheckedGoal, GoalRefused, GoalRunner, JobState, Progress};
-use crate::stream::StreamControl;
+use crate::ros2::fjt::{CheckedGoal, GoalRefused, GoalRunner, JobState, Preemption, Progress};
+use crate::stream::{Splice, SpliceAnswer, StreamControl};
+use crate::trajectory::Trajectory;
 use std::sync::Arc;
+use std::time::Duration;
 
-/// A cell's goals: the job of the goal being carried out, if one is.
+/// How long a preempting goal waits for the running job's cycle to take or refuse its
+/// trajectory: a cycle that streams answers within one period (4 ms at 250 Hz); one that
+/// does not answer in this is not streaming (waiting for the controller, planning).
+const SPLICE_ANSWER_WAIT: Duration = Duration::from_millis(250);
+/// How often the answer is looked for meanwhile.
+const SPLICE_POLL: Duration = Duration::from_millis(1);
+
+/// A cell's goals: the job of the goal being carried out, if one is, and the trajectories
+/// spliced into it (kept until the next job, so the cycle never frees one).
 pub struct CellGoals {
     daemon: Arc<Daemon>,
     cell: Arc<Cell>,
     job: Option<u64>,
+    spliced: Vec<Arc<Trajectory>>,
 }
 
 impl CellGoals {
@@ -23,6 +34,7 @@ impl CellGoals {
             daemon,
             cell,
             job: None,
+            spliced: Vec::new(),
         }
     }
 }
@@ -45,6 +57,7 @@ impl GoalRunner for CellGoals {
             Ok(Ok(())) => {
                 cell.log_ros2("ros2_goal_started", Some(id), "streaming".into());
                 self.job = Some(id);
+                self.spliced.clear();
                 Ok(())
             }
             Ok(Err(message)) => {
@@ -52,6 +65,30 @@ impl GoalRunner for CellGoals {
                 Err(GoalRefused::Refused(message.to_string()))
             }
             Err(_) => Err(GoalRefused::JobThreadEnded),
+        }
+    }
+
+    fn preempt(&mut self, goal: &CheckedGoal) -> Preemption {
+        let Some(id) = self.job.filter(|id| self.cell.planned_job() == Some(*id)) else {
+            return Preemption::Unavailable;
+        };
+        let Some(control) = self.cell.job_control(id) else {
+            return Preemption::Unavailable;
+        };
+        let splice = match self.plan_splice(goal) {
+            Ok(splice) => splice,
+            Err(refused) => return Preemption::Refused(refused),
+        };
+        let trajectory = splice.trajectory.clone();
+        control.online().splice(splice);
+        match wait_for_answer(&control) {
+            Ok(()) => {
+                self.spliced.push(trajectory);
+                self.cell
+                    .control("ros2_goal_preempted", |_: &StreamControl| ());
+                Preemption::Continued
+            }
+            Err(refused) => Preemption::Refused(refused),
         }
     }
 
@@ -73,7 +110,63 @@ impl GoalRunner for CellGoals {
     }
 }
 
+/// The cycle's answer to a splice: taken, refused, or withdrawn unseen after
+/// [`SPLICE_ANSWER_WAIT`] (a cycle that took it meanwhile is waited for).
+fn wait_for_answer(control: &StreamControl) -> Result<(), GoalRefused> {
+    let polls = SPLICE_ANSWER_WAIT.as_millis() / SPLICE_POLL.as_millis();
+    let mut withdrawn = false;
+    loop {
+        for _ in 0..polls {
+            match control.online().splice_answer() {
+                SpliceAnswer::Taken => return Ok(()),
+                SpliceAnswer::Refused(why) => return Err(GoalRefused::NotJoined(why)),
+                SpliceAnswer::Waiting => std::thread::sleep(SPLICE_POLL),
+            }
+        }
+        if withdrawn || control.online().withdraw_splice() {
+            return Err(GoalRefused::NoAnswer(SPLICE_ANSWER_WAIT.as_millis() as u64));
+        }
+        withdrawn = true;
+    }
+}
+
 impl CellGoals {
+    /// `goal` as a job from where the arm is commanded now, validated and planned like
+    /// every job, and the sample its first point is on: where the arm joins it.
+    fn plan_splice(&self, goal: &CheckedGoal) -> Result<Splice, GoalRefused> {
+        let first = goal
+            .trajectory
+            .points
+            .first()
+            .map_or(0.0, |p| seconds(&p.time_from_start));
+        if first <= 0.0 {
+            return Err(GoalRefused::FirstPointNow);
+        }
+        let cell = &self.cell;
+        let settings = cell.settings();
+        let held = cell.current_position();
+        let job = crate::daemon::ros2::goal_job(&goal.trajectory, &settings.rig, held.as_deref())
+            .map_err(|e| GoalRefused::Refused(e.to_string()))?;
+        let job = cell
+            .validate(job)
+            .map_err(|e| GoalRefused::Refused(e.to_string()))?;
+        let start = held.ok_or_else(|| {
+            GoalRefused::Refused("where the arm is commanded is not known".into())
+        })?;
+        let trajectory = crate::daemon::plan_from(settings, &job, &start)
+            .map_err(|e| GoalRefused::Refused(crate::daemon::error_chain(&e)))?;
+        // The rows' curve ends the plan; its first row (the held position) is at
+        // `offset`, and the goal's first point `first` seconds after it.
+        let period_s = trajectory.period.as_secs_f64();
+        let curve = (goal.duration_s / period_s).ceil() as usize;
+        let offset = (trajectory.len() - 1).saturating_sub(curve);
+        let join = (offset + (first / period_s).round() as usize).min(trajectory.len() - 1);
+        Ok(Splice {
+            trajectory: Arc::new(trajectory),
+            join,
+        })
+    }
+
     /// The goal's job as the cell's history has it.
     fn state(&self) -> JobState {
         let Some(id) = self.job else {
@@ -105,4 +198,8 @@ impl CellGoals {
             )),
         }
     }
+}
+
+fn seconds(duration: &crate::ros2::messages::Duration) -> f64 {
+    f64::from(duration.sec) + f64::from(duration.nanosec) * 1e-9
 }

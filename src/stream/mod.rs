@@ -32,7 +32,8 @@ pub use follow::Tolerances;
 pub use gate::{CellGate, CellRefusal, GateCheck, GateRefusal, ModelCheck};
 pub use online::{
     CellCheck, DEADMAN, Frame, IDLE_END, Jog, NoCell, OnlineCommand, OnlineCommands,
-    OnlineSettings, REDUCED_SPEED_M_S, SERVO_TIMEOUT, ServoTarget,
+    OnlineSettings, REDUCED_SPEED_M_S, SERVO_TIMEOUT, ServoTarget, Splice, SpliceAnswer,
+    SpliceRefusal,
 };
 pub use phase::{Halting, Phase};
 
@@ -992,7 +993,12 @@ impl Cycle {
             feedback_timeout: settings.feedback_timeout,
             follow: Follow::new(rig, settings),
             aborting: None,
-            online: Online::new(rig, trajectory.period, settings.online),
+            online: Online::new(
+                rig,
+                trajectory.period,
+                settings.online,
+                settings.slowdown_rate_per_s * trajectory.period.as_secs_f64(),
+            ),
             velocity_before: None,
             io: io::IoRun::new(trajectory),
             job_offset: settings.job_offset,
@@ -1076,7 +1082,10 @@ impl Cycle {
         trajectory: &Trajectory,
         rig: &Rig,
     ) -> (AxisValues, AxisValues, bool) {
-        if !self.online.engaged() && !control.online.given() {
+        if !self.online.engaged()
+            && !control.online.given()
+            && !self.splice(control, trajectory, rig)
+        {
             let finished = self.advance(control, trajectory, rig);
             let (positions, velocities) = brake::sample_at(trajectory, self.path, self.scale);
             return (positions, velocities, finished);
@@ -1104,6 +1113,24 @@ impl Cycle {
             self.aborting.get_or_insert(Outcome::Stopped);
         }
         (step.positions, step.velocities, step.finished && !stopping)
+    }
+
+    /// A splice waiting while the planned path streams: taken from the last target sent (at
+    /// the path's time scale), or refused with the path going on as before. True when taken.
+    fn splice(&mut self, control: &StreamControl, trajectory: &Trajectory, rig: &Rig) -> bool {
+        if !control.online.splice_waiting() {
+            return false;
+        }
+        self.online.start_at(&trajectory.position(0));
+        self.online.engage(&self.sent, self.velocity_before);
+        let stopping = control.is_stopping() || self.aborting.is_some();
+        let taken = self
+            .online
+            .try_splice(rig, &control.online, self.scale, stopping);
+        if !taken {
+            self.online.disengage();
+        }
+        taken
     }
 
     /// Moves along the path by the time scale: when stopping (or aborting) by the rate of

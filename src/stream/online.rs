@@ -4,6 +4,14 @@
 //! keeps position, velocity and acceleration continuous and within the limits it is given:
 //! each axis' speed and acceleration times the plan's shares, times the speed override.
 //!
+//! A splice (a preempting FollowJointTrajectory goal, docs/ros2.md) hands over a planned
+//! trajectory that starts where the arm held when it was planned: the arm goes on from its
+//! present state (position, velocity, acceleration) into the trajectory's `join` sample, by
+//! an rsruckig profile that reaches that sample's position and velocity exactly at its time
+//! (jerk, acceleration and speed limited), then follows the trajectory's samples at the
+//! same time scale as a planned path (the override ramps it). A splice whose profile would
+//! need longer than the join's time is refused, and the motion before goes on unchanged.
+//!
 //! Braking is this module's own: on a stop, a deadman (no keep-alive for `deadman`), a jog
 //! key released, an override of 0 % or a joint limit ahead, every axis' velocity is scaled
 //! down together by the same share each cycle, at the brake's acceleration, so the arm
@@ -26,16 +34,17 @@
 //! nothing here: the generator's buffers are made when the stream is prepared.
 
 use super::gate::Sent;
+use crate::motion::Trajectory;
 use crate::protocol::AxisValues;
 use crate::rig::{JointAxis, JointKind, Rig};
 use glam::DVec3;
 use rsruckig::prelude::{
     ControlInterface, DataArrayOrVec, InputParameter, OutputParameter, Ruckig, RuckigResult,
-    Synchronization, ThrowErrorHandler,
+    Synchronization, ThrowErrorHandler, Trajectory as Profile,
 };
 use serde::{Deserialize, Serialize};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Mutex, PoisonError};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
 /// ISO 10218-1 (5.6) limits the tool's speed in reduced-speed (manual) mode to 250 mm/s.
@@ -102,6 +111,12 @@ const SERVO_WINDOW: usize = 4;
 /// acceleration under the jerk limit, each axis on its own, the tool off the client's
 /// path by up to 90 mm.
 const SERVO_LATE_INTERVALS: f64 = 2.0;
+/// Below this time scale (samples a cycle) a session counts as paused: a splice is refused
+/// then, since its profile starts from the present velocity in the path's own time.
+const SPLICE_MIN_RATE: f64 = 1e-3;
+/// rsruckig's duration may exceed the minimum asked for by rounding: within this (s) the
+/// profile still ends at the join's time.
+const SPLICE_TIME_SLACK_S: f64 = 1e-9;
 
 /// A frame a Cartesian jog's direction is given in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -159,7 +174,60 @@ pub struct OnlineCommands {
     /// An online session holds at a goal it reached, waiting for more; a planned job whose
     /// goal was changed ends there.
     session: AtomicBool,
+    /// A trajectory waiting to be spliced in, and whether one waits (read every cycle
+    /// without taking the lock).
+    splice: Mutex<Option<Splice>>,
+    splice_waiting: AtomicBool,
+    /// The cycle's answer to the last splice ([`SpliceAnswer`], as its code) and, for a
+    /// profile too long, the seconds it needed.
+    splice_answer: AtomicU64,
+    splice_needed_s: AtomicU64,
+    splice_due_s: AtomicU64,
 }
+
+/// A planned trajectory to go on into from the present motion, at its sample `join` (see
+/// the module doc). It must start at rest within the limits, validated and checked against
+/// the cell as a job's.
+#[derive(Debug, Clone)]
+pub struct Splice {
+    pub trajectory: Arc<Trajectory>,
+    /// The sample the arm joins the trajectory at (> 0): reached at its own time from the
+    /// splice.
+    pub join: usize,
+}
+
+/// What the cycle made of a splice.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum SpliceAnswer {
+    /// Not seen by a cycle yet.
+    Waiting,
+    /// The arm goes on into it.
+    Taken,
+    Refused(SpliceRefusal),
+}
+
+/// Why a splice was refused: the motion before goes on unchanged.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum SpliceRefusal {
+    #[error("the session is stopping")]
+    Stopping,
+    #[error("the session is paused (or its override is 0 %)")]
+    Paused,
+    #[error(
+        "from the arm's present motion the join needs {needed_s:.3} s within the axes' speed, \
+         acceleration and jerk limits, but its point is due in {due_s:.3} s"
+    )]
+    TooSoon { needed_s: f64, due_s: f64 },
+    #[error("no motion within the axes' limits reaches the join from the arm's present motion")]
+    NoProfile,
+}
+
+const ANSWER_WAITING: u64 = 0;
+const ANSWER_TAKEN: u64 = 1;
+const ANSWER_STOPPING: u64 = 2;
+const ANSWER_PAUSED: u64 = 3;
+const ANSWER_TOO_SOON: u64 = 4;
+const ANSWER_NO_PROFILE: u64 = 5;
 
 impl OnlineCommands {
     /// Hands `command` to the next cycle (a newer one replaces one not yet taken); a jog
@@ -194,6 +262,71 @@ impl OnlineCommands {
     /// The goal the session was moving to, if it was (a jog has none).
     pub fn goal(&self) -> Option<AxisValues> {
         *self.goal.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Hands `splice` to the next cycle (replacing one not yet taken); its answer is then
+    /// [`SpliceAnswer::Waiting`] until a cycle decides.
+    pub fn splice(&self, splice: Splice) {
+        let mut slot = self.splice.lock().unwrap_or_else(PoisonError::into_inner);
+        self.splice_answer.store(ANSWER_WAITING, Ordering::SeqCst);
+        *slot = Some(splice);
+        self.splice_waiting.store(true, Ordering::SeqCst);
+    }
+
+    /// Takes back a splice no cycle has seen; false when one took it already (its answer
+    /// then comes).
+    pub fn withdraw_splice(&self) -> bool {
+        let mut slot = self.splice.lock().unwrap_or_else(PoisonError::into_inner);
+        self.splice_waiting.store(false, Ordering::SeqCst);
+        slot.take().is_some()
+    }
+
+    /// The cycle's answer to the last splice.
+    pub fn splice_answer(&self) -> SpliceAnswer {
+        match self.splice_answer.load(Ordering::SeqCst) {
+            ANSWER_TAKEN => SpliceAnswer::Taken,
+            ANSWER_STOPPING => SpliceAnswer::Refused(SpliceRefusal::Stopping),
+            ANSWER_PAUSED => SpliceAnswer::Refused(SpliceRefusal::Paused),
+            ANSWER_TOO_SOON => SpliceAnswer::Refused(SpliceRefusal::TooSoon {
+                needed_s: f64::from_bits(self.splice_needed_s.load(Ordering::SeqCst)),
+                due_s: f64::from_bits(self.splice_due_s.load(Ordering::SeqCst)),
+            }),
+            ANSWER_NO_PROFILE => SpliceAnswer::Refused(SpliceRefusal::NoProfile),
+            _ => SpliceAnswer::Waiting,
+        }
+    }
+
+    pub(super) fn splice_waiting(&self) -> bool {
+        self.splice_waiting.load(Ordering::SeqCst)
+    }
+
+    /// The waiting splice, unless the API holds its lock this very moment (then next cycle).
+    fn take_splice(&self) -> Option<Splice> {
+        let mut slot = self.splice.try_lock().ok()?;
+        self.splice_waiting.store(false, Ordering::SeqCst);
+        slot.take()
+    }
+
+    fn answer_splice(&self, answer: Result<(), SpliceRefusal>) {
+        let code = match answer {
+            Ok(()) => {
+                // From here the session's motion is online: a resume after a link loss
+                // does not go back to the planned path.
+                *self.goal.lock().unwrap_or_else(PoisonError::into_inner) = None;
+                self.given.store(true, Ordering::SeqCst);
+                ANSWER_TAKEN
+            }
+            Err(SpliceRefusal::Stopping) => ANSWER_STOPPING,
+            Err(SpliceRefusal::Paused) => ANSWER_PAUSED,
+            Err(SpliceRefusal::TooSoon { needed_s, due_s }) => {
+                self.splice_needed_s
+                    .store(needed_s.to_bits(), Ordering::SeqCst);
+                self.splice_due_s.store(due_s.to_bits(), Ordering::SeqCst);
+                ANSWER_TOO_SOON
+            }
+            Err(SpliceRefusal::NoProfile) => ANSWER_NO_PROFILE,
+        };
+        self.splice_answer.store(code, Ordering::SeqCst);
     }
 
     fn take(&self) -> Option<OnlineCommand> {
@@ -274,6 +407,13 @@ enum Intent {
         target: AxisValues,
         velocity: AxisValues,
     },
+    /// A spliced trajectory: the profile into it until sample `join`, then its samples; `at`
+    /// the place (samples from the splice), `rate` the time scale (samples a cycle).
+    Follow {
+        join: usize,
+        at: f64,
+        rate: f64,
+    },
 }
 
 /// Where the servo stream's targets arrived: the last one, its cycle, the mean interval
@@ -329,10 +469,23 @@ pub(super) struct Online {
     servo: Option<ServoArrivals>,
     /// Where the joint axes are this cycle (kept: no allocation in the cycle).
     axes: Vec<JointAxis>,
+    /// The spliced trajectory, the profile into it and that profile's input (made when the
+    /// stream is prepared); how fast the time scale may change (samples a cycle, a cycle).
+    follow: Option<Arc<Trajectory>>,
+    profile: Profile<0>,
+    profile_input: InputParameter<0>,
+    scale_step: f64,
 }
 
 impl Online {
-    pub(super) fn new(rig: &Rig, period: Duration, settings: OnlineSettings) -> Self {
+    /// `scale_step`: how much the time scale of a spliced trajectory may change a cycle (a
+    /// planned path's, see `stream::slowdown_rate`).
+    pub(super) fn new(
+        rig: &Rig,
+        period: Duration,
+        settings: OnlineSettings,
+        scale_step: f64,
+    ) -> Self {
         let dof = rig.dof();
         let dt = period.as_secs_f64();
         let mut input = InputParameter::new(Some(dof));
@@ -349,6 +502,8 @@ impl Online {
         }
         input.min_position = Some(lower);
         input.max_position = Some(upper);
+        let mut profile_input = input.clone();
+        profile_input.control_interface = ControlInterface::Position;
         Self {
             dof,
             dt,
@@ -368,6 +523,10 @@ impl Online {
             rest_since: None,
             servo: None,
             axes: Vec::with_capacity(dof),
+            follow: None,
+            profile: Profile::new(Some(dof)),
+            profile_input,
+            scale_step,
         }
     }
 
@@ -396,6 +555,83 @@ impl Online {
         self.position.as_mut_slice().copy_from_slice(positions);
     }
 
+    /// A planned path that was engaged only to try a splice, which was refused: the path
+    /// goes on as before (nothing of the online state was sent).
+    pub(super) fn disengage(&mut self) {
+        self.engaged = false;
+    }
+
+    /// Takes the waiting splice, if one waits, and goes on into it when a profile from the
+    /// present state (moving at `rate` samples a cycle of its path, 1 for online motion)
+    /// reaches its join in time; answers either way. True when it was taken.
+    pub(super) fn try_splice(
+        &mut self,
+        rig: &Rig,
+        commands: &OnlineCommands,
+        rate: f64,
+        stopping: bool,
+    ) -> bool {
+        let Some(splice) = commands.take_splice() else {
+            return false;
+        };
+        let answer = if stopping {
+            Err(SpliceRefusal::Stopping)
+        } else if rate < SPLICE_MIN_RATE {
+            Err(SpliceRefusal::Paused)
+        } else {
+            self.profile_into(rig, &splice, rate)
+        };
+        let taken = answer.is_ok();
+        if taken {
+            self.intent = Intent::Follow {
+                join: splice.join,
+                at: 0.0,
+                rate,
+            };
+            self.brake = None;
+            // The trajectory before stays alive with whoever spliced it: no free here.
+            self.follow = Some(splice.trajectory);
+        }
+        commands.answer_splice(answer);
+        taken
+    }
+
+    /// The profile from the present state into `splice`'s join, in the path's own time
+    /// (the present velocity over `rate`, so that sampled at `rate` it starts at the
+    /// present velocity), ending at the join's time from now.
+    fn profile_into(&mut self, rig: &Rig, splice: &Splice, rate: f64) -> Result<(), SpliceRefusal> {
+        let trajectory = &splice.trajectory;
+        let join = splice.join.min(trajectory.len() - 1);
+        let due_s = join as f64 * self.dt;
+        let (position, velocity) = trajectory.sample(join);
+        let input = &mut self.profile_input;
+        for (axis, joint) in rig.joints.iter().enumerate() {
+            let limits = joint.limits;
+            input.current_position[axis] = self.position.as_slice()[axis];
+            input.current_velocity[axis] = self.velocity.as_slice()[axis] / rate;
+            input.current_acceleration[axis] = self.acceleration.as_slice()[axis] / (rate * rate);
+            input.target_position[axis] = position[axis];
+            input.target_velocity[axis] = velocity[axis];
+            input.target_acceleration[axis] = 0.0;
+            // The planned share of the speed, or the trajectory's own speed at the join
+            // when it is faster (within the limit: the trajectory was validated).
+            input.max_velocity[axis] = (self.settings.speed_scale * limits.max_speed)
+                .max(velocity[axis].abs())
+                .min(limits.max_speed);
+        }
+        input.minimum_duration = Some(due_s);
+        let calculated = self.otg.calculate(&self.profile_input, &mut self.profile);
+        let needed_s = self.profile.get_duration();
+        match calculated {
+            Ok(RuckigResult::Working | RuckigResult::Finished) => {}
+            _ => return Err(SpliceRefusal::NoProfile),
+        }
+        if needed_s > due_s + SPLICE_TIME_SLACK_S {
+            return Err(SpliceRefusal::TooSoon { needed_s, due_s });
+        }
+        Ok(())
+    }
+
     /// The next target: from the commands, the stop and the override (0..=1).
     pub(super) fn step(
         &mut self,
@@ -407,6 +643,13 @@ impl Online {
     ) -> Step {
         self.cycle += 1;
         self.take(commands);
+        if commands.splice_waiting() {
+            let rate = match self.intent {
+                Intent::Follow { rate, .. } => rate,
+                _ => 1.0,
+            };
+            self.try_splice(rig, commands, rate, stopping);
+        }
         let deadman = matches!(self.intent, Intent::Jog(_))
             && (self.cycle - self.keepalive_cycle) as f64 * self.dt
                 > self.settings.deadman.as_secs_f64();
@@ -416,7 +659,9 @@ impl Online {
         if deadman || servo_timeout {
             self.intent = Intent::Idle;
         }
-        let brake = stopping || speed <= 0.0 || self.intent == Intent::Idle;
+        // A spliced trajectory pauses as a planned path does, its time scale ramped to 0.
+        let follows = matches!(self.intent, Intent::Follow { .. });
+        let brake = stopping || (speed <= 0.0 && !follows) || self.intent == Intent::Idle;
         let braked = brake || !self.generate(rig, speed, cell);
         if braked {
             self.brake_step(rig);
@@ -429,13 +674,14 @@ impl Online {
         }
         let reached = match self.intent {
             Intent::Goal(goal) => !braked && !moving && self.at(&goal),
+            Intent::Follow { at, .. } => !braked && !moving && self.at_end(at),
             _ => false,
         };
         if reached && commands.session.load(Ordering::SeqCst) {
             self.intent = Intent::Idle;
         }
         let finished = match self.intent {
-            Intent::Goal(_) => reached,
+            Intent::Goal(_) | Intent::Follow { .. } => reached,
             Intent::Idle => self.rest_since.is_some_and(|since| {
                 (self.cycle - since) as f64 * self.dt >= self.settings.idle_end.as_secs_f64()
             }),
@@ -547,6 +793,13 @@ impl Online {
             .all(|(p, g)| (p - g).abs() <= 1e-9)
     }
 
+    /// Whether `at` is the spliced trajectory's last sample.
+    fn at_end(&self, at: f64) -> bool {
+        self.follow
+            .as_ref()
+            .is_some_and(|trajectory| at >= (trajectory.len() - 1) as f64)
+    }
+
     fn at_rest(&self) -> bool {
         self.velocity
             .as_slice()
@@ -558,6 +811,9 @@ impl Online {
     /// ahead of a jog, the cell's refusal, or no profile within the limits).
     fn generate(&mut self, rig: &Rig, speed: f64, cell: &dyn CellCheck) -> bool {
         self.brake = None;
+        if let Intent::Follow { join, at, rate } = self.intent {
+            return self.follow_step(rig, speed, cell, join, at, rate);
+        }
         for (axis, joint) in rig.joints.iter().enumerate() {
             self.input.max_velocity[axis] =
                 speed * self.settings.speed_scale * joint.limits.max_speed;
@@ -598,7 +854,8 @@ impl Online {
                     self.input.target_velocity[axis] = velocity.as_slice()[axis];
                 }
             }
-            Intent::Idle => return false,
+            // Followed above.
+            Intent::Idle | Intent::Follow { .. } => return false,
         }
         match self.otg.update(&self.input, &mut self.output) {
             Ok(RuckigResult::Working | RuckigResult::Finished) => {}
@@ -617,6 +874,63 @@ impl Online {
             self.velocity.as_mut_slice()[axis] = self.output.new_velocity[axis];
             self.acceleration.as_mut_slice()[axis] = self.output.new_acceleration[axis];
         }
+        true
+    }
+
+    /// One cycle along the spliced trajectory: the time scale ramped toward the override
+    /// by the planned path's step, the profile into the join before it, the trajectory's
+    /// samples after, each step checked against the cell with its stop as every online
+    /// step is. A refused step ends the splice: the arm brakes to rest and holds.
+    fn follow_step(
+        &mut self,
+        rig: &Rig,
+        speed: f64,
+        cell: &dyn CellCheck,
+        join: usize,
+        at: f64,
+        rate: f64,
+    ) -> bool {
+        // A clone of the handle, not of the samples; the splicer keeps its own.
+        let Some(trajectory) = self.follow.clone() else {
+            return false;
+        };
+        let rate = if speed > rate {
+            (rate + self.scale_step).min(speed)
+        } else {
+            (rate - self.scale_step).max(speed)
+        };
+        let at = (at + rate).min((trajectory.len() - 1) as f64);
+        if at < join as f64 {
+            self.profile.at_time(
+                at * self.dt,
+                &mut Some(&mut self.output.new_position),
+                &mut Some(&mut self.output.new_velocity),
+                &mut None,
+                &mut None,
+                &mut None,
+            );
+            for axis in 0..self.dof {
+                self.output.new_velocity[axis] *= rate;
+            }
+        } else {
+            let (positions, velocities) = super::brake::sample_at(&trajectory, at, rate);
+            for axis in 0..self.dof {
+                self.output.new_position[axis] = positions.as_slice()[axis];
+                self.output.new_velocity[axis] = velocities.as_slice()[axis];
+            }
+        }
+        if !self.admitted_with_its_stop(rig, cell) {
+            self.intent = Intent::Idle;
+            return false;
+        }
+        for axis in 0..self.dof {
+            let velocity = self.output.new_velocity[axis];
+            self.acceleration.as_mut_slice()[axis] =
+                (velocity - self.velocity.as_slice()[axis]) / self.dt;
+            self.position.as_mut_slice()[axis] = self.output.new_position[axis];
+            self.velocity.as_mut_slice()[axis] = velocity;
+        }
+        self.intent = Intent::Follow { join, at, rate };
         true
     }
 

@@ -12,8 +12,18 @@ the ros-jazzy-* wheels, scripts/test.sh), and a JointTrajectory publisher. It pr
       A goal of D seconds along a straight line in joint space from where the arm is, run
       to its end; then the same line back, canceled at half its duration. Reports for each
       the status, code, feedback rate and longest gap (by arrival), and after the cancel
-      where the arm came to rest: its distance from the line and its place along it. Then
-      a goal preempted after 1 s by another: both results, and where the second ended.
+      where the arm came to rest: its distance from the line and its place along it.
+  preempt --rig R --duration-s D
+      A goal of D seconds along the line from where the arm is, and at 40 % of it a second
+      goal from where the arm then is toward another end (its first point 0.5 s later,
+      easing out to rest over 4 s): both results, when each was sent and answered, and
+      where the second ended.
+  tolerances --rig R
+      A 2 s goal along the line whose path tolerance on joint_6 (1 mrad) the twin's servo lag
+      cannot keep, then, from where the arm came to rest, a 2 s goal whose goal tolerance
+      on joint_1 (0.1 urad) is finer than where a lagging servo ends (and than the wire's
+      micro-radian: its last point lies between two): each one's status, code and string,
+      and where the arm rested.
   topic --rig R
       One JointTrajectory on /R/joint_trajectory from where the arm is to a point 0.2 rad
       away in 2 s; reports the target and where the arm is 4 s later.
@@ -42,6 +52,12 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 # The line every motion goal follows, per joint (rad): inside the IRB 120's ranges from
 # its home position, and clear of the shipped cell.
 DELTA = [0.4, 0.15, -0.15, 0.3, 0.3, 0.5]
+# Where a preempting goal goes instead (rad from the start), clear of the shipped cell too.
+DELTA_PREEMPT = [0.6, 0.2, -0.2, 0.1, 0.5, 0.8]
+# A preempting goal's first point, after it is sent (s): time to go on into it from the
+# first goal's motion; and how long it then eases out to rest.
+PREEMPT_FIRST_S = 0.5
+PREEMPT_DURATION_S = 4.0
 # Points of a goal: one every this many seconds.
 POINT_EVERY_S = 0.1
 # How long the arm must hold still to be at rest, and how still (rad).
@@ -233,19 +249,70 @@ def motion(peer, duration_s):
     rest = peer.at_rest(10.0)
     out["rest"] = rest
     out["rest_along"], out["rest_off_rad"] = place_on_line(reached, start, rest)
-    # A goal preempted after a second by a second goal, which then runs to its end.
-    first = peer.line_goal(rest, reached, duration_s / 2)
-    handle = wait(peer.client.send_goal_async(first), 10.0)
+    return out
+
+
+def ease_out_goal(peer, start, end, first_s, duration_s):
+    """Points from start toward end, the first at first_s, easing out to rest at end
+    (1 - (1 - u)^3 of the way at u of duration_s)."""
+    goal = FollowJointTrajectory.Goal()
+    goal.trajectory.joint_names = peer.names
+    steps = int(round(duration_s / POINT_EVERY_S))
+    for i in range(1, steps + 1):
+        u = i / steps
+        s = 1.0 - (1.0 - u) ** 3
+        point = JointTrajectoryPoint()
+        point.positions = [a + s * (b - a) for a, b in zip(start, end)]
+        point.time_from_start = duration(first_s + (i - 1) * POINT_EVERY_S)
+        goal.trajectory.points.append(point)
+    return goal
+
+
+def preempt(peer, duration_s):
+    start = peer.wait_for_state(20.0)
+    end = [a + d for a, d in zip(start, DELTA)]
+    other = [a + d for a, d in zip(start, DELTA_PREEMPT)]
+    out = {"start": start, "end": end, "other_end": other}
+    t0 = time.monotonic()
+    handle = wait(peer.client.send_goal_async(peer.line_goal(start, end, duration_s)), 10.0)
+    out["first_accepted"] = handle.accepted
     first_result = handle.get_result_async()
-    time.sleep(1.0)
-    out["preempting"] = peer.run(peer.line_goal(rest, start, duration_s / 2), timeout_s=duration_s * 3)
+    time.sleep(0.4 * duration_s - (time.monotonic() - t0))
+    now = peer.now()
+    out["second_from"] = now
+    out["second_sent_s"] = time.monotonic() - t0
+    goal = ease_out_goal(peer, now, other, PREEMPT_FIRST_S, PREEMPT_DURATION_S)
+    out["second"] = peer.run(goal, timeout_s=3 * (PREEMPT_FIRST_S + PREEMPT_DURATION_S))
     result = wait(first_result, 10.0)
-    out["preempted"] = {
+    out["first"] = {
         "status": result.status,
         "error_code": result.result.error_code,
         "error_string": result.result.error_string,
     }
-    out["preempting_end"] = peer.at_rest(10.0)
+    out["second_end"] = peer.at_rest(10.0)
+    return out
+
+
+def tolerances(peer):
+    from control_msgs.msg import JointTolerance
+
+    start = peer.wait_for_state(20.0)
+    end = [a + d for a, d in zip(start, DELTA)]
+    out = {"start": start}
+    goal = peer.line_goal(start, end, 2.0)
+    goal.path_tolerance = [JointTolerance(name=peer.names[5], position=1e-3)]
+    out["path"] = peer.run(goal, timeout_s=20.0)
+    rest = peer.at_rest(10.0)
+    out["path_rest"] = rest
+    out["path_rest_along"], out["path_rest_off_rad"] = place_on_line(start, end, rest)
+    # joint_1 ends half a micro-radian off the wire's grid; the rest stay where they are.
+    target = list(rest)
+    target[0] = round(rest[0] + 0.1, 6) + 5e-7
+    goal = peer.line_goal(rest, target, 2.0)
+    goal.goal_tolerance = [JointTolerance(name=peer.names[0], position=1e-7)]
+    out["goal"] = peer.run(goal, timeout_s=20.0)
+    out["goal_target"] = target
+    out["goal_rest"] = peer.at_rest(10.0)
     return out
 
 
@@ -265,7 +332,7 @@ def topic(peer):
 
 def main():
     parser = argparse.ArgumentParser()
-    parser.add_argument("mode", choices=["refusals", "motion", "topic"])
+    parser.add_argument("mode", choices=["refusals", "motion", "preempt", "tolerances", "topic"])
     parser.add_argument("--rig", required=True)
     parser.add_argument("--duration-s", type=float, default=10.0)
     args = parser.parse_args()
@@ -284,6 +351,10 @@ def main():
         out = refusals(peer)
     elif args.mode == "motion":
         out = motion(peer, args.duration_s)
+    elif args.mode == "preempt":
+        out = preempt(peer, args.duration_s)
+    elif args.mode == "tolerances":
+        out = tolerances(peer)
     else:
         out = topic(peer)
     print(json.dumps(out), flush=True)
