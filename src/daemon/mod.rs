@@ -709,7 +709,7 @@ pub fn plan_from(
 ) -> Result<crate::trajectory::Trajectory, DaemonError> {
     let (trajectory, origins) = job.plan_traced(&crate::job::PlanContext {
         rig: &settings.tcp_rig,
-        sloth: settings.sloth.as_deref(),
+        app_rig: settings.app_rig.as_deref(),
         start,
         settings: &plan_settings(settings),
         model: Some(&settings.collision),

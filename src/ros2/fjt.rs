@@ -648,7 +648,7 @@ impl Goals {
                 self.active = Some(Active {
                     id,
                     goal,
-                    started: std::time::Instant::now(),
+                    started: clock::real().now(),
                     stopping: None,
                 });
             }

@@ -145,7 +145,7 @@ impl CellGoals {
         let cell = &self.cell;
         let settings = cell.settings();
         let held = cell.current_position();
-        let job = crate::daemon::ros2::goal_job(&goal.trajectory, &settings.rig, held.as_deref())
+        let job = crate::server::ros2::goal_job(&goal.trajectory, &settings.rig, held.as_deref())
             .map_err(|e| GoalRefused::Refused(e.to_string()))?;
         let job = cell
             .validate(job)
