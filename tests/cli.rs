@@ -165,7 +165,7 @@ fn undescribed(help: &str) -> Vec<String> {
 }
 
 /// Issue 32: every command's every argument says what it is, and every command that takes
-/// `--link` lists every link form there is (one text, rigbridge::device::LINK_FORMS).
+/// `--link` lists every link form there is (one text, rigbridge::device::link_forms(), from the one list of backends).
 #[test]
 fn every_argument_is_described_and_every_link_form_listed() {
     let mut commands: Vec<Vec<String>> = subcommands(&String::from_utf8_lossy(

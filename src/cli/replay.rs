@@ -24,7 +24,7 @@ pub struct ReplayArgs {
     #[arg(long, env = "RIGBRIDGE_CONFIG", default_value = rigbridge::rig::shipped::DEFAULT_RUN_SETTINGS)]
     config: PathBuf,
     /// Where to stream (overrides the config's `[stream] link`); `--help` lists every form.
-    #[arg(long, long_help = format!("Where to stream (overrides the config's `[stream] link`), as for `run`: {}", rigbridge::device::LINK_FORMS))]
+    #[arg(long, long_help = format!("Where to stream (overrides the config's `[stream] link`), as for `run`: {}", rigbridge::device::link_forms()))]
     link: Option<String>,
     /// Time factor at the stream's own rate: 0.5 takes twice as long, 2 half as long
     /// (refused, naming the axis, if that breaks a speed or acceleration limit).

@@ -14,7 +14,7 @@ use std::process::ExitCode;
 #[derive(Args)]
 pub struct ResetArgs {
     /// The controller (default: the config's `[stream] link`); `--help` lists every form.
-    #[arg(long, long_help = format!("The controller whose latched fault or e-stop to clear (default: the config's `[stream] link`): {}", rigbridge::device::LINK_FORMS))]
+    #[arg(long, long_help = format!("The controller whose latched fault or e-stop to clear (default: the config's `[stream] link`): {}", rigbridge::device::link_forms()))]
     link: Option<String>,
     /// Run settings: the rig and stream rate the bridge's Hello announces.
     #[arg(long, env = "RIGBRIDGE_CONFIG", default_value = rigbridge::rig::shipped::DEFAULT_RUN_SETTINGS)]

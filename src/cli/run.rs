@@ -33,7 +33,7 @@ pub struct RunArgs {
     #[arg(long, env = "RIGBRIDGE_CONFIG", default_value = rigbridge::rig::shipped::DEFAULT_RUN_SETTINGS)]
     config: PathBuf,
     /// Where to stream (overrides the config's `[stream] link`); `--help` lists every form.
-    #[arg(long, long_help = format!("Where to stream (overrides the config's `[stream] link`): {}. egm:// binds as an ABB EGM sensor, answering only the robot named after ?robot=, streaming joints or, with mode=pose, tool poses (docs/egm.md); dynamixel:// and canopen:// drive one servo or drive per axis (docs/dynamixel.md, docs/canopen.md)", rigbridge::device::LINK_FORMS))]
+    #[arg(long, long_help = format!("Where to stream (overrides the config's `[stream] link`): {}. egm:// binds as an ABB EGM sensor, answering only the robot named after ?robot=, streaming joints or, with mode=pose, tool poses (docs/egm.md); dynamixel:// and canopen:// drive one servo or drive per axis (docs/dynamixel.md, docs/canopen.md)", rigbridge::device::link_forms()))]
     link: Option<String>,
     /// Record the run to this MCAP file (default: runs/run-<unix time>-<pid>.mcap).
     #[arg(long)]

@@ -35,7 +35,7 @@ pub struct TwinArgs {
     #[arg(long)]
     serial: Option<PathBuf>,
     /// The serial line's baud rate, with --serial.
-    #[arg(long, default_value_t = rigbridge::device::DEFAULT_BAUD)]
+    #[arg(long, default_value_t = rigbridge::device::ours::DEFAULT_BAUD)]
     baud: u32,
     /// Open a pseudo-terminal pair and serve on it; its path is the first line printed.
     #[arg(long)]
@@ -266,7 +266,10 @@ fn open_port(
             let stats = port.stats();
             (Box::new(port), Some(stats))
         }
-        _ => anyhow::bail!("choose one transport: --listen, --serial, --pty, --can or --egm"),
+        _ => anyhow::bail!(
+            "choose what the twin plays: one of {}",
+            rigbridge::device::twin_flags()
+        ),
     };
     Ok(opened)
 }
@@ -342,4 +345,27 @@ fn egm_twin(
         c.host_stalls
     );
     Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::TwinArgs;
+    use clap::Args;
+
+    /// Every flag the device backends list for the twin is one of its arguments, so the
+    /// twin's command line and the one list of protocols agree.
+    #[test]
+    fn every_backend_flag_is_a_twin_argument() {
+        let command = TwinArgs::augment_args(clap::Command::new("twin"));
+        let longs: Vec<&str> = command
+            .get_arguments()
+            .filter_map(|argument| argument.get_long())
+            .collect();
+        for backend in rigbridge::device::BACKENDS {
+            for flag in backend.twin_flags() {
+                let name = flag.trim_start_matches("--");
+                assert!(longs.contains(&name), "rigbridge twin has no {flag}");
+            }
+        }
+    }
 }

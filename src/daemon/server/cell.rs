@@ -59,18 +59,9 @@ pub enum CellError {
     },
 }
 
-/// The device or address a link occupies, whatever its options (a serial port is the same
-/// port at any baud rate); `None` for the in-process twin, which every cell has its own of.
+/// The device or address a link occupies ([`LinkSpec::occupied_resource`]).
 fn occupied_resource(link: &str) -> Option<String> {
-    match link.parse::<LinkSpec>().ok()? {
-        LinkSpec::Loopback => None,
-        LinkSpec::Tcp { address } => Some(format!("tcp://{address}")),
-        LinkSpec::Serial { path, .. } => Some(format!("serial://{path}")),
-        LinkSpec::Can { interface } => Some(format!("can://{interface}")),
-        LinkSpec::Egm { address, .. } => Some(format!("egm://{address}")),
-        // One SYNC producer and NMT master a bus: the interface is the resource.
-        LinkSpec::Canopen { interface, .. } => Some(format!("can://{interface}")),
-    }
+    link.parse::<LinkSpec>().ok()?.occupied_resource()
 }
 
 /// Refuses cells that cannot run side by side: none at all, two with the same name (their
