@@ -5,7 +5,7 @@
 //! two cells. Also the settings: `foxglove_port = 0` turns it off, and off loopback it is
 //! refused without `foxglove_allow_remote`. Traffic only ever goes to 127.0.0.1.
 
-mod common;
+use crate::common;
 
 use common::cli::{assert_succeeded_as, numbers};
 use common::serve::{Served, request_json, serve_args, start_serve};

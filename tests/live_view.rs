@@ -15,7 +15,7 @@
 //! skips. `RIGBRIDGE_CHROMIUM` and `RIGBRIDGE_CHROMEDRIVER` override the binaries' paths.
 //! Traffic only ever goes to 127.0.0.1.
 
-mod common;
+use crate::common;
 
 use common::group::{GONE_WITHIN, ProcessGroup, live_members};
 use common::repo_path;

@@ -8,9 +8,8 @@
 //! opened, by `run` and over HTTP; a collision names the step as written; and zones make
 //! the demo at least 20 % faster than fine points, both within every limit.
 
-mod common;
-#[path = "common/in_process.rs"]
-mod in_process;
+use crate::common;
+use crate::in_process;
 
 use common::repo_path;
 use common::serve::request_json;
