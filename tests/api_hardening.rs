@@ -2,7 +2,7 @@
 //! mutated job bodies (no job starts, the daemon stays up, no answer quotes a file's
 //! content), the Host allowlist, the JSON content type, and the schema route.
 
-mod common;
+use crate::common;
 
 use common::repo_path;
 use common::serve::{Served, serve_command, start_serve};

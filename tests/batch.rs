@@ -2,7 +2,7 @@
 //! quaternions, outputs that a failed batch leaves whole, closed pipes, URDF tool frames
 //! and content, the solver hint, exit codes, and no Rust debug text.
 
-mod common;
+use crate::common;
 
 use common::{output_with_stdin, repo_path};
 use std::path::{Path, PathBuf};

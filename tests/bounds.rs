@@ -4,7 +4,7 @@
 //! rate-limited, with counts, in a journal that stays under its size cap. The daemon is a
 //! child `rigbridge serve` on 127.0.0.1; its memory is read from `/proc/<pid>/status`.
 
-mod common;
+use crate::common;
 
 use common::serve::{request_json, serve_command, start_serve};
 use common::{repo_path, scratch_dir, shipped_settings_text};

@@ -5,7 +5,7 @@
 //! parses them and does its own forward kinematics): the same status on every row, and the
 //! clearances within 1e-4 m wherever both say free.
 
-mod common;
+use crate::common;
 
 use common::{random_configuration, repo_path, rng};
 use rigbridge::daemon::config::load_run_settings;

@@ -3,7 +3,7 @@
 //! URDF reader we did not write), the batch tools at the cell tool's TCP, and the worked
 //! example of docs/cell.md loading and running clear of its table.
 
-mod common;
+use crate::common;
 
 use common::{output_with_stdin, repo_path};
 use rigbridge::daemon::config::load_run_settings;

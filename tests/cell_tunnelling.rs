@@ -3,7 +3,7 @@
 //! the collision model's public API: the whole-path check (`check_path`) and the streaming
 //! gate's step check (`check_step`).
 
-mod common;
+use crate::common;
 
 use glam::{DAffine3, DQuat, DVec3};
 use rigbridge::cell::{Cell, CellObject, CollisionModel, DEFAULT_MARGIN_M, Tool};

@@ -1,6 +1,6 @@
 //! The `fk` and `ik` batch tools, run as a user would, against the reference data.
 
-mod common;
+use crate::common;
 
 use common::cli::assert_succeeded;
 use common::{output_with_stdin, reference_path, repo_path};

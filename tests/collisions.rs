@@ -5,9 +5,8 @@
 //! name the two bodies, the time, where the stretch came from as the user wrote it, the
 //! joints in degrees and the clearance against the margin; nothing moves.
 
-mod common;
-#[path = "common/in_process.rs"]
-mod in_process;
+use crate::common;
+use crate::in_process;
 
 use common::repo_path;
 use common::serve::request_json;

@@ -1,6 +1,6 @@
 //! Every shipped config loads; a bad one is refused with the file, the key and the value.
 
-mod common;
+use crate::common;
 
 use common::repo_path;
 use rigbridge::rig::{ConfigError, load_rig};

@@ -11,7 +11,7 @@
 //!
 //! Needs `python3` (3.11, for `tomllib`); without it every test here says it skips.
 
-mod common;
+use crate::common;
 
 use serde_json::Value;
 use std::io::{BufRead, BufReader};

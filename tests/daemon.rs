@@ -1,7 +1,7 @@
 //! The daemon end to end, as a user runs it: `run` against the twin, the MCAP log checked
 //! independently of the report, replay, Ctrl-C, SIGKILL, and bad input.
 
-mod common;
+use crate::common;
 
 use common::cli::{read_json, rigbridge, spawn_run};
 use common::runlog::resumptions;

@@ -3,7 +3,7 @@
 //! refused or counted by the servos), a servo's hardware error stopping a job, and our
 //! twin's servos against PyPI's dynamixel-sdk as the master (tests/peers/dxl_master.py).
 
-mod common;
+use crate::common;
 
 use common::cycles::{one_at_a_time, real_time, wait_for};
 use common::shipped_run_settings;

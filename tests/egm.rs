@@ -2,7 +2,7 @@
 //! (the default job completes, the twin refuses nothing), the twin's sessions (motors,
 //! CommTimeout), and the twin against abb-robot-client's `EGM` sensor (tests/peers/).
 
-mod common;
+use crate::common;
 
 use common::cycles::{one_at_a_time, real_time, wait_for};
 use common::shipped_run_settings;

@@ -7,11 +7,9 @@
 //! the EGM twin, judged from the twin's side (the references it received) and from the
 //! forgers' (the answers they got).
 
-mod common;
-#[path = "common/flood.rs"]
-mod flood;
-#[path = "common/in_process.rs"]
-mod in_process;
+use crate::common;
+use crate::flood;
+use crate::in_process;
 
 use common::cycles::{one_at_a_time, real_time, wait_for};
 use common::shipped_run_settings;

@@ -4,11 +4,9 @@
 //! while its neighbours on the executor complete theirs. Outcomes and counts only: the
 //! timing figures are `cargo bench --bench cells`'s. Traffic only ever goes to 127.0.0.1.
 
-mod common;
-#[path = "common/flood.rs"]
-mod flood;
-#[path = "common/in_process.rs"]
-mod in_process;
+use crate::common;
+use crate::flood;
+use crate::in_process;
 
 use common::repo_path;
 use rigbridge::clock::WallClock;

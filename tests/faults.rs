@@ -6,9 +6,8 @@
 //! position), the targets seen on the wire, and the twin's own lines (no fault). Prints
 //! the figures: faults per kind, outcomes, resume latency.
 
-mod common;
-#[path = "common/proxy.rs"]
-mod proxy;
+use crate::common;
+use crate::proxy;
 
 use common::repo_path;
 use proxy::{Entry, FAULT_KINDS, FaultKind, FaultProxy, Injection};

@@ -5,7 +5,7 @@
 //! back. Run through the binary (`rigbridge run --clock virtual --log X`), for a TOML rig (the
 //! URDF generated from the model) and a URDF rig (the file attached as is, fixed links kept).
 
-mod common;
+use crate::common;
 
 use common::cli::{assert_succeeded_as, numbers};
 use common::{reference_path, repo_path};

@@ -5,7 +5,7 @@
 //! two cells. Also the settings: `foxglove_port = 0` turns it off, and off loopback it is
 //! refused without `foxglove_allow_remote`. Traffic only ever goes to 127.0.0.1.
 
-mod common;
+use crate::common;
 
 use common::cli::{assert_succeeded_as, numbers};
 use common::serve::{Served, request_json, serve_args, start_serve};
@@ -579,18 +579,6 @@ fn foxglove_origins_are_checked_on_load_and_let_in() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// The pick-and-place demo's program over two slots only: a few seconds of wall time.
-fn two_part_demo() -> serde_json::Value {
-    let text = std::fs::read_to_string(repo_path("config/pick-place.toml")).unwrap();
-    let text = text.replace("over = \"slot\"", "over = [\"slot[0]\", \"slot[1]\"]");
-    assert!(
-        text.contains("slot[1]"),
-        "the demo's repeat is over the grid"
-    );
-    let table: toml::Value = toml::from_str(&text).unwrap();
-    serde_json::json!({ "job": serde_json::to_value(&table["job"]).unwrap() })
-}
-
 #[test]
 fn a_websockets_client_follows_the_program_topic_through_the_demo() {
     let Some(python) = peer_python() else {
@@ -607,7 +595,12 @@ fn a_websockets_client_follows_the_program_topic_through_the_demo() {
             &port.to_string(),
         ],
     );
-    let (code, job) = call(&server, "POST", "/api/jobs", &two_part_demo().to_string());
+    let (code, job) = call(
+        &server,
+        "POST",
+        "/api/jobs",
+        &serde_json::json!({ "job": common::two_part_demo_job() }).to_string(),
+    );
     assert_eq!(code, 202, "{job}");
     // The two passes take about 7 s; the peer listens through them and past the end.
     let output = Command::new(&python)

@@ -5,9 +5,8 @@
 //! refused before motion with the reason; and a `move_joints` job with `plan_around = true`
 //! whose direct move the pillar blocks runs to the end with no contact at the twin.
 
-mod common;
-#[path = "common/free_pairs.rs"]
-mod free_pairs;
+use crate::common;
+use crate::free_pairs;
 
 use common::repo_path;
 use free_pairs::{blocked_pairs, demo_settings, direct_is_clear, pairs};

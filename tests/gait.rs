@@ -2,7 +2,7 @@
 //! judged from the twin's actual positions (virtual clock). Scenarios across their ranges,
 //! rule stops outside them, and config errors naming file, key and value.
 
-mod common;
+use crate::common;
 
 use common::cli::{assert_succeeded, read_json, rigbridge};
 use common::repo_path;

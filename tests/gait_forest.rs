@@ -2,7 +2,7 @@
 //! scenes exactly, a bad file is refused naming the file, the key and the value, a gait job
 //! takes a walk from a forest, and the `fork` walk passes end to end on the twin.
 
-mod common;
+use crate::common;
 
 use common::repo_path;
 use rigbridge::apps::gait::run::run_gait;

@@ -1,7 +1,7 @@
 //! Out-of-reach and invalid targets give typed errors, never a panic; whatever a solver
 //! calls a solution is inside the limits and verified.
 
-mod common;
+use crate::common;
 
 use common::irb120;
 use glam::{DQuat, DVec3};

@@ -1,6 +1,6 @@
 //! Nearest-branch and continuity behaviour of the FABRIK planner along smooth paths.
 
-mod common;
+use crate::common;
 
 use common::{irb120, random_configuration, rng};
 use glam::{DQuat, DVec3};

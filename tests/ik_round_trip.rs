@@ -1,7 +1,7 @@
 //! The FABRIK planner's round trip: in-limit configuration -> FK pose -> IK from the
 //! all-zero seed must come back within 1e-6 m and 1e-6 rad, with raw in-limit values.
 
-mod common;
+use crate::common;
 
 use common::{irb120, random_configuration, rng};
 use rand::RngExt;

@@ -3,7 +3,7 @@
 //! job, the batch tools find their rig, `config dump` writes files that load back, and a
 //! missing file's error says where it looked.
 
-mod common;
+use crate::common;
 
 use common::output_with_stdin;
 use rigbridge::apps::paint::load_paint_settings;

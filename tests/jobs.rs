@@ -3,7 +3,7 @@
 //! lines by forward kinematics of the commanded joints, `follow_trajectory` follows its
 //! file, and TOML refuses what HTTP refuses with the same text.
 
-mod common;
+use crate::common;
 
 use common::repo_path;
 use rigbridge::daemon::config::load_run_settings;

@@ -1,7 +1,7 @@
 //! Forward kinematics against 1,000 configurations whose tool0 poses were computed
 //! independently from the ROS-Industrial URDF.
 
-mod common;
+use crate::common;
 
 use common::{irb120, reference_path, reference_rows};
 use rigbridge::rig::{Rig, load_rig};

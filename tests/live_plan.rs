@@ -6,7 +6,7 @@
 //! on the API's own `?wait_s=` and on the WebSocket, never on sleeps. Traffic only ever
 //! goes to 127.0.0.1.
 
-mod common;
+use crate::common;
 
 use common::serve::{Served, request_json, serve_command, start_serve};
 use serde_json::Value;

@@ -2,7 +2,7 @@
 //! our files, truncated / damaged / random files (never a panic, never silently wrong data),
 //! a real SIGKILL mid-run, and the recorder dropping instead of blocking.
 
-mod common;
+use crate::common;
 
 use rigbridge::log::{
     LogError, LogRecord, Recorder, RecorderOptions, RunLog, command_topic, read_log, read_log_from,
@@ -669,7 +669,7 @@ fn a_dropped_recorder_still_closes_its_file_and_refuses_to_overwrite() {
 }
 
 const CHILD_ENV: &str = "RIGBRIDGE_LOG_TEST_CHILD";
-const KILLED_TEST: &str = "a_run_killed_with_sigkill_leaves_a_readable_file";
+const KILLED_TEST: &str = "log::a_run_killed_with_sigkill_leaves_a_readable_file";
 
 /// A child process killed however the test ends: the recording child never stops alone.
 struct Killed(std::process::Child);

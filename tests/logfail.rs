@@ -11,9 +11,8 @@
 //! CI); where mounting is not allowed, the child's file size limit (RLIMIT_FSIZE, SIGXFSZ
 //! ignored) makes every write past that size fail the same way (EFBIG for ENOSPC).
 
-mod common;
-#[path = "common/proxy.rs"]
-mod proxy;
+use crate::common;
+use crate::proxy;
 
 use common::cli::read_json;
 use common::{scratch_dir, scratch_file, shipped_settings_text, wait_until};

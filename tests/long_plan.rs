@@ -4,7 +4,7 @@
 //! (`VmHWM` in `/proc/<pid>/status`) stays under the figure: the plan stores its two rows,
 //! not 21.6 M samples.
 
-mod common;
+use crate::common;
 
 use common::serve::{request_json, serve_command, start_serve};
 use common::{scratch_dir, shipped_settings_text, wait_until};

@@ -10,7 +10,7 @@
 //! The suite runs 200 random commands; `RIGBRIDGE_ONLINE_COMMANDS=1000` runs the full
 //! figure (docs/online.md has its numbers), and `RIGBRIDGE_DEADMAN_CASES` the deadman's.
 
-mod common;
+use crate::common;
 
 use rand::{Rng, RngExt};
 use rigbridge::clock::VirtualClock;

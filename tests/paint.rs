@@ -2,7 +2,7 @@
 //! the base-held FABRIK solver, and whole jobs streamed to the twin under the virtual
 //! clock, judged by what the twin's world measured.
 
-mod common;
+use crate::common;
 
 use common::repo_path;
 use glam::{DVec2, DVec3};

@@ -2,7 +2,7 @@
 //! has the requested size and is not blank; and that the log holds per-cycle jitter (on
 //! the commands, `docs/logs.md` "Versions").
 
-mod common;
+use crate::common;
 
 use rigbridge::log::read_log;
 use std::path::PathBuf;

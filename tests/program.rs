@@ -8,9 +8,8 @@
 //! opened, by `run` and over HTTP; a collision names the step as written; and zones make
 //! the demo at least 20 % faster than fine points, both within every limit.
 
-mod common;
-#[path = "common/in_process.rs"]
-mod in_process;
+use crate::common;
+use crate::in_process;
 
 use common::repo_path;
 use common::serve::request_json;
@@ -336,18 +335,6 @@ fn a_pause_mid_program_lengthens_the_measured_time_of_its_step_by_the_pause() {
     assert_eq!(report.cycle_times.unwrap(), plan);
 }
 
-/// The demo's program over two slots only: a few seconds of wall-clock time.
-fn two_part_demo() -> serde_json::Value {
-    let text = std::fs::read_to_string(repo_path("config/pick-place.toml")).unwrap();
-    let text = text.replace("over = \"slot\"", "over = [\"slot[0]\", \"slot[1]\"]");
-    assert!(
-        text.contains("slot[1]"),
-        "the demo's repeat is over the grid"
-    );
-    let table: toml::Value = toml::from_str(&text).unwrap();
-    serde_json::to_value(&table["job"]).unwrap()
-}
-
 #[test]
 fn the_live_frames_name_the_program_step_as_it_advances_and_show_the_parts_placed() {
     let dir = demo_dir("live");
@@ -361,7 +348,7 @@ fn the_live_frames_name_the_program_step_as_it_advances_and_show_the_parts_place
             .set_read_timeout(Some(std::time::Duration::from_secs(60)))
             .unwrap();
     }
-    let body = serde_json::json!({ "job": two_part_demo() });
+    let body = serde_json::json!({ "job": common::two_part_demo_job() });
     let (code, answer) = request_json(
         &server.address.to_string(),
         "POST",

@@ -2,7 +2,7 @@
 //! into a 250 Hz stream, a truncated log that must end at rest, `--speed 0.5`, and a replay
 //! over TCP to `rigbridge twin --listen` started away from the log's start.
 
-mod common;
+use crate::common;
 
 use common::cli::{read_json, rigbridge};
 use common::runlog::resumptions;

@@ -2,7 +2,7 @@
 //! refuses jobs; a reset clears it (exit 0, the controller's words), a second one finds
 //! nothing latched, and a job then completes.
 
-mod common;
+use crate::common;
 
 use common::cli::rigbridge;
 use common::repo_path;

@@ -6,7 +6,7 @@
 //! reason; four daemons in one Zenoh group are all seen by one subscriber. Also the
 //! `[ros2]` settings' validation. Loopback only.
 
-mod common;
+use crate::common;
 
 use common::cli::{assert_succeeded, rigbridge};
 use common::line_peer::LinePeer;

@@ -10,7 +10,7 @@
 //! (with `ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`, Jazzy's Fast DDS still advertises the
 //! host's other addresses, docs/ros2.md). Each test has a DDS domain of its own.
 
-mod common;
+use crate::common;
 
 use common::cli::{assert_succeeded, rigbridge};
 use common::line_peer::LinePeer;

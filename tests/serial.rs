@@ -1,7 +1,7 @@
 //! The daemon and the twin as separate processes over a real serial line: a pseudo-terminal
 //! pair opened by `rigbridge twin --pty`, the daemon on its slave side at 115200 baud.
 
-mod common;
+use crate::common;
 
 use common::cli::{assert_succeeded, read_json, rigbridge};
 use common::scratch_file;

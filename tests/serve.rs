@@ -1,7 +1,7 @@
 //! `rigbridge serve`: the control API over real HTTP on 127.0.0.1, against the twin, and its
 //! access control (bind address, bearer token). Traffic only ever goes to 127.0.0.1.
 
-mod common;
+use crate::common;
 
 use common::repo_path;
 use common::serve::{Served, request_bare, request_json, start_serve, write_pan_tilt_rig};

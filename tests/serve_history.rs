@@ -4,7 +4,7 @@
 //! the 404 of a job the cell does not know, the 405 of a method a route does not take, and
 //! a reset without a content type. Traffic only ever goes to 127.0.0.1.
 
-mod common;
+use crate::common;
 
 use common::serve::{Served, request_bare, request_json, serve_command, start_serve};
 use std::process::Stdio;

@@ -6,11 +6,9 @@
 //! `mcap`), and a panicking job that takes down neither the daemon nor another cell.
 //! Traffic only ever goes to 127.0.0.1.
 
-mod common;
-#[path = "common/flood.rs"]
-mod flood;
-#[path = "common/in_process.rs"]
-mod in_process;
+use crate::common;
+use crate::flood;
+use crate::in_process;
 
 use common::cli::assert_succeeded;
 use common::repo_path;

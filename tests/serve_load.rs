@@ -5,9 +5,8 @@
 //! resident size in /proc/PID/status) staying under 64 MB while it closes each with 1009.
 //! How fast the e-stop is answered is a figure of `benches/serve_load.rs`, not a test.
 
-mod common;
-#[path = "common/flood.rs"]
-mod flood;
+use crate::common;
+use crate::flood;
 
 use common::serve::{Served, serve_args, start_serve};
 use flood::{Flood, http, open_descriptors, serve_with_nofile};

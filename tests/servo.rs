@@ -5,9 +5,8 @@
 //! job runs. Judged here: from what the peer saw, and from the session's log (every target
 //! the twin was sent: within every limit, on the circle).
 
-mod common;
-#[path = "common/in_process.rs"]
-mod in_process;
+use crate::common;
+use crate::in_process;
 
 use common::serve::request_json;
 use rigbridge::log::read_log;

@@ -5,7 +5,7 @@
 //! A SIGINT that fell in the same turn of the supervisor's loop as its progress tick was
 //! once lost (the job ran on to its end): rare per signal, so the test sends many.
 
-mod common;
+use crate::common;
 
 use common::{repo_path, scratch_file};
 use rand::{RngExt, SeedableRng};

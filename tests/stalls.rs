@@ -7,7 +7,7 @@
 //! the `Clock` trait: a virtual clock that, at given instants, wakes 300 ms after the
 //! deadline it was asked for, as a loaded machine's scheduler does.
 
-mod common;
+use crate::common;
 
 use glam::DVec3;
 use rigbridge::clock::{Clock, VirtualClock};

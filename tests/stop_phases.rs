@@ -14,7 +14,7 @@
 //! steps the twin receives) never rises and that ends at rest within what braking needs.
 //! After an e-stop no target at all.
 
-mod common;
+use crate::common;
 
 use rand::{Rng, RngExt};
 use rigbridge::clock::{Clock, VirtualClock, WallClock};

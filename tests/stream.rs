@@ -1,7 +1,7 @@
 //! The streamer against the in-process twin under the virtual clock: it completes, pauses
 //! and stops along the path within the limits, and refuses bad trajectories before motion.
 
-mod common;
+use crate::common;
 
 use common::irb120;
 use rigbridge::clock::VirtualClock;

@@ -1,7 +1,7 @@
 //! The daemon and the twin as separate processes over a real TCP socket on 127.0.0.1:
 //! a whole job, a twin killed and restarted mid-job, a daemon killed mid-job, and garbage.
 
-mod common;
+use crate::common;
 
 use common::cli::{assert_succeeded, read_json, rigbridge};
 use common::runlog::assert_resumes_in_step_after_link_loss;

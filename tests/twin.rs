@@ -3,7 +3,7 @@
 //! targets are faults with no motion and one notice; silence trips the watchdog into a
 //! hold within the limits; a reset clears a fault and unbinds it.
 
-mod common;
+use crate::common;
 
 use common::irb120;
 use proptest::prelude::*;

@@ -5,7 +5,7 @@
 //! a 1,000-joint chain within the caps loads. The refusals are checked through the binary
 //! (`rigbridge fk --rig`, its exit status and message) as a user meets them.
 
-mod common;
+use crate::common;
 
 use common::cli::rigbridge;
 use rigbridge::rig::{MAX_URDF_BYTES, MAX_URDF_JOINTS, load_rig, rig_from_urdf};

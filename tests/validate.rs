@@ -3,7 +3,7 @@
 //! acceleration (positions' second differences and velocity changes); hand-built
 //! trajectories just over and exactly at an acceleration limit.
 
-mod common;
+use crate::common;
 
 use common::irb120;
 use glam::{DAffine3, DVec3};

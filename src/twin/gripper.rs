@@ -169,6 +169,19 @@ struct Carried {
     scratch: Scratch,
 }
 
+impl Carried {
+    /// Part `part` held at `grip`, as `model`, with the scratch space its queries use.
+    fn new(part: usize, grip: DAffine3, model: CollisionModel) -> Carried {
+        let scratch = model.scratch();
+        Carried {
+            part,
+            grip,
+            model,
+            scratch,
+        }
+    }
+}
+
 /// How the twin finds its TCP in the cell frame.
 struct Kinematics {
     rig_at_tcp: Rig,
@@ -466,15 +479,7 @@ impl TwinIo {
         };
         let (index, grip) = (carried.part, carried.grip);
         match carried_model(kinematics, &self.parts[index].part, grip, objects) {
-            Ok(model) => {
-                let scratch = model.scratch();
-                self.carried = Some(Carried {
-                    part: index,
-                    grip,
-                    model,
-                    scratch,
-                });
-            }
+            Ok(model) => self.carried = Some(Carried::new(index, grip, model)),
             Err(error) => self.trouble = Some(error.to_string()),
         }
     }
@@ -500,13 +505,7 @@ impl TwinIo {
         let grip = tcp.inverse() * self.parts[index].pose;
         match carried_model(kinematics, &self.parts[index].part, grip, Vec::new()) {
             Ok(model) => {
-                let scratch = model.scratch();
-                self.carried = Some(Carried {
-                    part: index,
-                    grip,
-                    model,
-                    scratch,
-                });
+                self.carried = Some(Carried::new(index, grip, model));
                 let state = &mut self.parts[index];
                 state.picked_cycle.get_or_insert(self.cycle);
                 state.released_cycle = None;

@@ -5,12 +5,13 @@
 //! stdin, scratch paths in the temporary directory, the shipped settings to copy; `serve` starts `rigbridge serve` and
 //! talks to it, `twin` starts and stops `rigbridge twin`, `cli` runs the binary to the end
 //! and reads its reports, `runlog` checks a run log read back, `cycles` serves tests that
-//! hold real-time cycles, `can` skips the SocketCAN tests where there is no bus.
+//! hold real-time cycles, `group` kills a child's whole process group, `can` skips the SocketCAN tests where there is no bus.
 #![allow(dead_code)]
 
 pub mod can;
 pub mod cli;
 pub mod cycles;
+pub mod group;
 pub mod line_peer;
 pub mod runlog;
 pub mod serve;
@@ -103,6 +104,19 @@ pub fn with_absolute_cell(text: &str) -> String {
 pub fn write_settings_with_serve(path: &Path, serve: &str) {
     let text = shipped_settings_text();
     std::fs::write(path, format!("{text}\n[serve]\n{serve}\n")).unwrap();
+}
+
+/// The pick-and-place demo's job (`config/pick-place.toml`) with its repeat over two slots
+/// only, as the JSON a job request carries: a few seconds of wall time.
+pub fn two_part_demo_job() -> serde_json::Value {
+    let text = std::fs::read_to_string(repo_path("config/pick-place.toml")).unwrap();
+    let text = text.replace("over = \"slot\"", "over = [\"slot[0]\", \"slot[1]\"]");
+    assert!(
+        text.contains("slot[1]"),
+        "the demo's repeat is over the grid"
+    );
+    let table: toml::Value = toml::from_str(&text).unwrap();
+    serde_json::to_value(&table["job"]).unwrap()
 }
 
 /// The shipped run settings, `config/rigbridge.toml`.

@@ -9,33 +9,20 @@ for a while; and `/scene`, decoded with the advertised protobuf schema (PyPI's
 Usage: foxglove_program.py URL SECONDS
 Prints one JSON object: the channel as advertised, the steps' texts in the order they
 first came, the last message, and each part entity's positions as /scene moved it. Driven by tests/foxglove_live.rs.
+The connection, the schema decoding and the receive loop are foxglove_ws.py's.
 """
 import asyncio
-import base64
 import json
 import struct
 import sys
 import time
 
-import websockets
-from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
-
-SUBPROTOCOL = "foxglove.websocket.v1"
-MESSAGE_DATA = 1
-
-
-def message_class(channel):
-    """The protobuf class of a channel, from its base64 FileDescriptorSet."""
-    files = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel["schema"]))
-    pool = descriptor_pool.DescriptorPool()
-    for file in files.file:
-        pool.Add(file)
-    return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
+from foxglove_ws import MESSAGE_DATA, connect, message_class, received_until
 
 
 async def run(url, seconds):
     out = {"steps": [], "last": None, "messages": 0, "part_positions": {}}
-    async with websockets.connect(url, subprotocols=[SUBPROTOCOL], max_size=2**24) as ws:
+    async with connect(url) as ws:
         await ws.recv()  # serverInfo
         advertise = json.loads(await ws.recv())
         channel = next(c for c in advertise["channels"] if c["topic"].endswith("/program"))
@@ -45,12 +32,7 @@ async def run(url, seconds):
         scene_class = message_class(scene)
         await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
             {"id": 7, "channelId": channel["id"]}, {"id": 8, "channelId": scene["id"]}]}))
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            try:
-                raw = await asyncio.wait_for(ws.recv(), deadline - time.monotonic())
-            except asyncio.TimeoutError:
-                break
+        async for raw in received_until(ws, time.monotonic() + seconds):
             if isinstance(raw, str):
                 continue
             assert raw[0] == MESSAGE_DATA, raw[0]

@@ -39,13 +39,28 @@ def message_class(channel):
     return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
 
 
+def connect(url):
+    """A ws-protocol session with the server at `url` (messages up to 16 MiB: /scene's
+    meshes)."""
+    return websockets.connect(url, subprotocols=[SUBPROTOCOL], max_size=2**24)
+
+
+async def received_until(ws, deadline):
+    """The messages `ws` receives until `deadline` (`time.monotonic()`)."""
+    while time.monotonic() < deadline:
+        try:
+            yield await asyncio.wait_for(ws.recv(), deadline - time.monotonic())
+        except asyncio.TimeoutError:
+            return
+
+
 def stamp_ns(stamp):
     return stamp.seconds * 1_000_000_000 + stamp.nanos
 
 
 async def run(url, seconds, base, tool, urdf_uri):
     out = {}
-    async with websockets.connect(url, subprotocols=[SUBPROTOCOL], max_size=2**24) as ws:
+    async with connect(url) as ws:
         out["subprotocol"] = ws.subprotocol
         info = json.loads(await ws.recv())
         advertise = json.loads(await ws.recv())
@@ -62,12 +77,7 @@ async def run(url, seconds, base, tool, urdf_uri):
 
         tf, joints, scene_ids, statuses, sizes = {}, {}, set(), [], {}
         tf_count, first, last = 0, None, None
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            try:
-                raw = await asyncio.wait_for(ws.recv(), deadline - time.monotonic())
-            except asyncio.TimeoutError:
-                break
+        async for raw in received_until(ws, time.monotonic() + seconds):
             if isinstance(raw, str):
                 statuses.append(json.loads(raw))
                 continue
@@ -122,7 +132,7 @@ async def run(url, seconds, base, tool, urdf_uri):
         out["publish_reply"] = await next_text(ws)
 
     # An oversized message closes the connection with 1009.
-    async with websockets.connect(url, subprotocols=[SUBPROTOCOL], max_size=2**24) as ws:
+    async with connect(url) as ws:
         await ws.recv()
         await ws.recv()
         await ws.send(json.dumps({"op": "subscribe", "subscriptions": [], "pad": "x" * 65536}))
