@@ -128,10 +128,10 @@ mod stop_phases;
 mod stream;
 #[path = "tcp.rs"]
 mod tcp;
-#[path = "trajectory.rs"]
-mod trajectory;
 #[path = "time.rs"]
 mod time;
+#[path = "trajectory.rs"]
+mod trajectory;
 #[path = "twin.rs"]
 mod twin;
 #[path = "urdf_tree.rs"]
