@@ -6,6 +6,7 @@
 //! A file is read up to its `#[cfg(test)]` module (tests may reach anywhere), with its
 //! comments and string literals blanked out: a doc link or a message is not an import.
 
+use crate::common;
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
@@ -68,7 +69,7 @@ fn src_dir() -> PathBuf {
 fn no_module_imports_one_above_it() {
     let mut offences = Vec::new();
     let mut pending_seen = BTreeSet::new();
-    for file in rust_files(&src_dir()) {
+    for file in common::rust_files(&src_dir()) {
         let relative = file.strip_prefix(src_dir()).unwrap();
         let Some(module) = module_path(relative) else {
             continue;
@@ -191,20 +192,6 @@ fn offence(from: &str, target: &str) -> Option<String> {
         )),
         _ => None,
     }
-}
-
-fn rust_files(dir: &Path) -> Vec<PathBuf> {
-    let mut files = Vec::new();
-    for entry in std::fs::read_dir(dir).unwrap() {
-        let path = entry.unwrap().path();
-        if path.is_dir() {
-            files.extend(rust_files(&path));
-        } else if path.extension().is_some_and(|e| e == "rs") {
-            files.push(path);
-        }
-    }
-    files.sort();
-    files
 }
 
 /// The module a file under `src/` is, as its path from the crate root (`daemon/server.rs`

@@ -8,6 +8,7 @@
 //! all of it (a test that reads the clock is as untestable as the code it tests). Comments
 //! are left out of both.
 
+use crate::common;
 use std::path::{Path, PathBuf};
 
 /// The one module that reads the system's clocks.
@@ -70,24 +71,10 @@ fn src_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("src")
 }
 
-fn rust_files(dir: &Path) -> Vec<PathBuf> {
-    let mut files = Vec::new();
-    for entry in std::fs::read_dir(dir).unwrap() {
-        let path = entry.unwrap().path();
-        if path.is_dir() {
-            files.extend(rust_files(&path));
-        } else if path.extension().is_some_and(|e| e == "rs") {
-            files.push(path);
-        }
-    }
-    files.sort();
-    files
-}
-
 /// Each file under `src/` as (its path under `src/`, with `/` separators; its text).
 fn sources() -> Vec<(String, String)> {
     let src = src_dir();
-    rust_files(&src)
+    common::rust_files(&src)
         .into_iter()
         .map(|file| {
             let relative = file.strip_prefix(&src).unwrap();

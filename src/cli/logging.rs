@@ -18,8 +18,14 @@ use tracing_subscriber::{Layer, fmt, prelude::*};
 /// none of its dependencies' (zenoh, hyper) chatter.
 const DEFAULT_FILTER: &str = "rigbridge=info";
 
-/// The events of the twin's own processes: their output, one line per event on stdout.
+/// The events of the twin's own processes: their output, one line per event on stdout
+/// (with each device's twin side, `rigbridge::device::twin_log_targets`).
 const TWIN_TARGET: &str = "rigbridge::twin";
+
+/// The twin's targets: the shared twin's and each device's twin side's.
+fn twin_targets() -> impl Iterator<Item = &'static str> {
+    std::iter::once(TWIN_TARGET).chain(rigbridge::device::twin_log_targets())
+}
 
 /// Sets the subscriber up; called once, before any command runs.
 pub fn init() {
@@ -39,13 +45,13 @@ pub fn init() {
     let twin = fmt::layer()
         .event_format(Plain)
         .with_writer(std::io::stdout)
-        .with_filter(Targets::new().with_target(TWIN_TARGET, Level::INFO));
+        .with_filter(Targets::new().with_targets(twin_targets().map(|t| (t, Level::INFO))));
     // Targets, not a closure: both decide once per call site, never per event (zenoh's
     // trace events on hot paths then cost nothing).
     let others = filter.and(
         Targets::new()
             .with_default(LevelFilter::TRACE)
-            .with_target(TWIN_TARGET, LevelFilter::OFF),
+            .with_targets(twin_targets().map(|t| (t, LevelFilter::OFF))),
     );
     let diagnostics = if detailed {
         fmt::layer()

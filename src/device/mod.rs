@@ -33,6 +33,9 @@ pub trait Backend: Sync {
     fn parse(&self, scheme: &str, rest: &str) -> Result<LinkSpec, &'static str>;
     /// The `rigbridge twin` flags that play it.
     fn twin_flags(&self) -> &'static [&'static str];
+    /// The tracing target its twin side logs under (its module path), whose events the
+    /// twin's process prints on stdout, where its users and tests read them line by line.
+    fn twin_log_target(&self) -> &'static str;
 }
 
 /// Every device protocol rigbridge speaks, the one list the link address parser, the
@@ -44,6 +47,11 @@ pub const BACKENDS: &[&dyn Backend] = &[
     &canopen::Canopen,
     &dynamixel::Dynamixel,
 ];
+
+/// Every device twin's tracing target ([`Backend::twin_log_target`]).
+pub fn twin_log_targets() -> impl Iterator<Item = &'static str> {
+    BACKENDS.iter().map(|backend| backend.twin_log_target())
+}
 
 /// Every `rigbridge twin` flag that chooses what the twin plays, as its error lists them.
 pub fn twin_flags() -> String {

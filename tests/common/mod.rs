@@ -170,6 +170,22 @@ pub fn repo_path(relative: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(relative)
 }
 
+/// Every `.rs` file under `dir`, its folders walked, in sorted order (the source-reading
+/// tests, tests/layers.rs and tests/time.rs, read `src/` with it).
+pub fn rust_files(dir: &Path) -> Vec<PathBuf> {
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_dir() {
+            files.extend(rust_files(&path));
+        } else if path.extension().is_some_and(|e| e == "rs") {
+            files.push(path);
+        }
+    }
+    files.sort();
+    files
+}
+
 /// `../shared/reference`, or `RIGBRIDGE_REFERENCE_DIR` where the checkout sits elsewhere.
 pub fn reference_path(file: &str) -> PathBuf {
     std::env::var_os("RIGBRIDGE_REFERENCE_DIR")

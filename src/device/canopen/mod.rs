@@ -32,6 +32,10 @@ impl Backend for Canopen {
     fn twin_flags(&self) -> &'static [&'static str] {
         &["--canopen"]
     }
+
+    fn twin_log_target(&self) -> &'static str {
+        concat!(module_path!(), "::twin")
+    }
 }
 
 /// `IFACE?nodes=1,2,...&counts_per_turn=N`: nodes required (one per axis, in axis order).

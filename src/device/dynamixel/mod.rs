@@ -35,6 +35,10 @@ impl Backend for Dynamixel {
     fn twin_flags(&self) -> &'static [&'static str] {
         &["--dynamixel"]
     }
+
+    fn twin_log_target(&self) -> &'static str {
+        concat!(module_path!(), "::twin")
+    }
 }
 
 /// `PATH?baud=N&ids=1,2,...`: ids required (one per axis, in axis order), baud optional.

@@ -34,6 +34,10 @@ impl Backend for Egm {
     fn twin_flags(&self) -> &'static [&'static str] {
         &["--egm"]
     }
+
+    fn twin_log_target(&self) -> &'static str {
+        concat!(module_path!(), "::twin")
+    }
 }
 
 /// `ADDR:PORT?robot=HOST:PORT&mode=joint|pose`: the address to bind, the robot's (optional)

@@ -42,6 +42,10 @@ impl Backend for Ours {
     fn twin_flags(&self) -> &'static [&'static str] {
         &["--listen", "--serial", "--pty", "--can"]
     }
+
+    fn twin_log_target(&self) -> &'static str {
+        concat!(module_path!(), "::can_port")
+    }
 }
 
 /// `HOST:PORT`.
