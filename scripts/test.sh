@@ -264,7 +264,13 @@ fi
 
 # ------------------------------------------------------------- 1. on this machine --
 # The full tier: the tests a plain `cargo test` skips for their minutes run here too.
-[ -n "$vm_only" ] || RIGBRIDGE_TIER=full cargo test --release --no-fail-fast
+# tests/logfail.rs fills a tmpfs under a running bridge; beside the rest of the one test
+# binary its bridge stalled or lost its link (2 whole runs of 2, 3 of 3 passes alone: cause
+# not found yet), so it runs in a pass of its own, as it did when it was its own binary.
+if [ -z "$vm_only" ]; then
+  RIGBRIDGE_TIER=full cargo test --release --no-fail-fast -- --skip logfail::
+  RIGBRIDGE_TIER=full cargo test --release --test suite logfail::
+fi
 
 # ------------------------------------------------------- 2. tests/can.rs in the VM --
 # The test binary and the rigbridge binary it spawns, from cargo's own account of them.
