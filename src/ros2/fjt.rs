@@ -644,13 +644,7 @@ impl Goals {
                         outcome(code::INVALID_GOAL, PREEMPTED),
                     );
                 }
-                self.set_status(&id, GoalStatusEnum::Executing);
-                self.active = Some(Active {
-                    id,
-                    goal,
-                    started: clock::real().now(),
-                    stopping: None,
-                });
+                self.execute(id, goal);
             }
             Preemption::Refused(refused) => {
                 tracing::info!("ros2: preempting FollowJointTrajectory goal refused: {refused}");
@@ -674,17 +668,22 @@ impl Goals {
         }
     }
 
+    /// `goal`, whose job now runs (started or spliced in), as the executing goal from now.
+    fn execute(&mut self, id: GoalId, goal: CheckedGoal) {
+        self.set_status(&id, GoalStatusEnum::Executing);
+        self.active = Some(Active {
+            id,
+            goal,
+            started: clock::real().now(),
+            stopping: None,
+        });
+    }
+
     /// Starts `goal`'s job, or ends the goal with the validation's refusal.
     fn begin(&mut self, server: &Server, id: GoalId, goal: CheckedGoal) {
         match self.runner.start(&goal) {
             Ok(()) => {
-                self.set_status(&id, GoalStatusEnum::Executing);
-                self.active = Some(Active {
-                    id,
-                    goal,
-                    started: clock::real().now(),
-                    stopping: None,
-                });
+                self.execute(id, goal);
             }
             Err(text) => {
                 tracing::info!("ros2: FollowJointTrajectory goal refused: {text}");
